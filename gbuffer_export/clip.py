@@ -1,0 +1,247 @@
+"""The clip on disk: reading (``open_clip``) and atomic, resumable writing (``ClipWriter``).
+
+Layout (see ``docs/clip-format.md``)::
+
+    CLIP/manifest.json                    clip header + one record per finished frame
+    CLIP/frames/000012.json               the record of frame 12, written last (the frame's commit marker)
+    CLIP/<level>/<buffer>/000012.exr      one EXR per level, buffer and frame, channels from ``BUFFERS``
+
+Pure numpy + json + OpenEXR: no bpy, no torch.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec
+from .exr import read_exr, write_exr
+
+MANIFEST = "manifest.json"
+FRAMES_DIR = "frames"
+#: Header keys that may differ between the processes rendering one clip (shards) or between reruns.
+VOLATILE_KEYS = ("shard", "created", "frame_data", "identity", "command")
+
+
+class ClipError(ValueError):
+    """A clip that cannot be opened or written as asked. The message is one line naming the path."""
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def header_identity(header: dict) -> str:
+    """Hash of the clip header without its volatile keys: two processes may write one clip only when equal."""
+    stable = {k: v for k, v in header.items() if k not in VOLATILE_KEYS}
+    return hashlib.sha256(json.dumps(stable, sort_keys=True, default=_json_default).encode()).hexdigest()[:16]
+
+
+def frame_name(frame: int) -> str:
+    return f"{frame:06d}"
+
+
+def buffer_path(root: Path, frame: int, level: str, name: str) -> Path:
+    return root / level / name / f"{frame_name(frame)}.exr"
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """'hr/fbeta' -> ('hr', 'fbeta'), with a clear error for anything else."""
+    level, sep, name = key.partition("/")
+    if not sep or level not in LEVELS:
+        raise ClipError(f"buffer key {key!r} must be '<level>/<buffer>' with level in {LEVELS}")
+    buffer_spec(name)
+    return level, name
+
+
+class Clip:
+    """A rendered clip opened for reading. ``frames`` lists the finished frames in ascending order."""
+
+    def __init__(self, path: Path, manifest: dict):
+        self.path = path
+        self.manifest = manifest
+        self.frame_data: dict[str, dict] = manifest.get("frame_data", {})
+        self.frames: list[int] = sorted(int(f) for f in self.frame_data)
+        self.planned_frames: list[int] = list(manifest.get("frames", []))
+        self.scale: int = int(manifest["scale"])
+        self.buffers: tuple[str, ...] = tuple(manifest["buffers"])
+        self.sizes: dict[str, tuple[int, int]] = {
+            lvl: (int(v["width"]), int(v["height"])) for lvl, v in manifest["levels"].items()}
+
+    def __repr__(self) -> str:
+        return f"Clip({str(self.path)!r}, frames={len(self.frames)}, scale={self.scale})"
+
+    @property
+    def complete(self) -> bool:
+        return set(self.planned_frames) <= set(self.frames)
+
+    def path_of(self, frame: int, key: str) -> Path:
+        level, name = split_key(key)
+        return buffer_path(self.path, frame, level, name)
+
+    def read(self, frame: int, key: str) -> np.ndarray:
+        """Buffer ``key`` ('hr/fbeta', 'lr/radiance', ...) of ``frame`` as H x W x C float32
+        (the ``flags`` buffer as uint32)."""
+        level, name = split_key(key)
+        if name not in self.buffers:
+            raise ClipError(f"{self.path}: clip has no buffer {name!r} (has {', '.join(self.buffers)})")
+        if frame not in self.frame_data and str(frame) not in self.frame_data:
+            raise ClipError(f"{self.path}: frame {frame} is not a finished frame of this clip")
+        return read_exr(self.path_of(frame, key), buffer_spec(name).channels)
+
+    def camera(self, frame: int, level: str) -> dict[str, np.ndarray]:
+        """``world_from_camera`` (4x4), ``intrinsics`` (fx, fy, cx, cy) and ``jitter`` (dx, dy) of a frame and
+        level, plus ``prev_world_from_camera`` and ``prev_intrinsics`` (the camera of frame - 1)."""
+        try:
+            rec = self.frame_data[str(frame)][level]
+        except KeyError:
+            raise ClipError(f"{self.path}: no camera for frame {frame}, level {level!r}") from None
+        return {
+            "world_from_camera": np.asarray(rec["world_from_camera"], dtype=np.float64),
+            "intrinsics": np.asarray(rec["intrinsics"], dtype=np.float64),
+            "jitter": np.asarray(rec["jitter"], dtype=np.float64),
+            "prev_world_from_camera": np.asarray(rec["prev_world_from_camera"], dtype=np.float64),
+            "prev_intrinsics": np.asarray(rec["prev_intrinsics"], dtype=np.float64),
+        }
+
+    def record(self, frame: int) -> dict:
+        """The manifest's whole record of a frame (cameras, spp, seeds, timings)."""
+        return self.frame_data[str(frame)]
+
+
+def load_manifest(path: str | os.PathLike) -> dict:
+    """Read and minimally check ``CLIP/manifest.json``; ClipError with a one-line reason otherwise."""
+    root = Path(path)
+    mpath = root / MANIFEST if root.is_dir() or not root.suffix else root
+    if not mpath.is_file():
+        raise ClipError(f"{mpath}: no manifest (not a BlendSR clip, or nothing finished yet)")
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ClipError(f"{mpath}: manifest is not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("schema") != SCHEMA:
+        raise ClipError(f"{mpath}: not a BlendSR clip manifest (schema is not {SCHEMA!r})")
+    version = manifest.get("schema_version")
+    if not isinstance(version, int) or version > SCHEMA_VERSION:
+        raise ClipError(f"{mpath}: schema_version {version!r} is newer than this blendsr reads ({SCHEMA_VERSION}); "
+                        "upgrade blendsr")
+    for key in ("scale", "levels", "buffers", "frames", "frame_data"):
+        if key not in manifest:
+            raise ClipError(f"{mpath}: manifest lacks {key!r}")
+    return manifest
+
+
+def open_clip(path: str | os.PathLike) -> Clip:
+    """Open a clip directory for reading."""
+    root = Path(path)
+    if not root.is_dir():
+        raise ClipError(f"{root}: not a directory")
+    return Clip(root, load_manifest(root))
+
+
+class ClipWriter:
+    """Writes a clip atomically and resumably. Each buffer file is renamed into place when complete; a frame
+    counts as finished only once its record ``frames/NNNNNN.json`` exists, and that is written last."""
+
+    def __init__(self, path: str | os.PathLike, header: dict):
+        self.path = Path(path)
+        self.header = copy.deepcopy(header)
+        self.header.setdefault("schema", SCHEMA)
+        self.header.setdefault("schema_version", SCHEMA_VERSION)
+        self.header["identity"] = header_identity(self.header)
+        self._check_existing()
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    def _check_existing(self) -> None:
+        if not self.path.exists():
+            return
+        if not self.path.is_dir():
+            raise ClipError(f"{self.path}: exists and is not a directory")
+        mpath = self.path / MANIFEST
+        if mpath.is_file():
+            old = load_manifest(self.path)
+            if old.get("identity") != self.header["identity"]:
+                raise ClipError(f"{self.path}: holds a different clip (other scene or settings); "
+                                "choose another output directory or delete it")
+        elif any(p.name not in (FRAMES_DIR, *LEVELS) and not p.name.startswith(".") for p in self.path.iterdir()):
+            raise ClipError(f"{self.path}: directory is not empty and holds no BlendSR clip")
+
+    def record_path(self, frame: int) -> Path:
+        return self.path / FRAMES_DIR / f"{frame_name(frame)}.json"
+
+    def is_frame_done(self, frame: int) -> bool:
+        """True when the frame's record and every buffer file it lists exist."""
+        rp = self.record_path(frame)
+        if not rp.is_file():
+            return False
+        try:
+            json.loads(rp.read_text())
+        except json.JSONDecodeError:
+            return False
+        return all(buffer_path(self.path, frame, lvl, b).is_file()
+                   for lvl in LEVELS for b in self.header["buffers"])
+
+    def write_buffer(self, frame: int, level: str, name: str, data: np.ndarray) -> None:
+        """Write buffer ``name`` (H x W x C in the channel order of ``BUFFERS``) of a frame and level."""
+        spec = buffer_spec(name)
+        w, h = self.header["levels"][level]["width"], self.header["levels"][level]["height"]
+        data = np.asarray(data)
+        if data.ndim == 2:
+            data = data[..., None]
+        if data.shape != (h, w, len(spec.channels)):
+            raise ClipError(f"{self.path}: {level}/{name} has shape {data.shape}, expected {(h, w, len(spec.channels))}")
+        if spec.dtype == "uint32":
+            data = data.astype(np.uint32)
+        else:
+            data = data.astype(np.float32)
+        write_exr(buffer_path(self.path, frame, level, name),
+                  {c: data[..., i] for i, c in enumerate(spec.channels)})
+
+    def commit_frame(self, frame: int, record: dict) -> None:
+        """Mark ``frame`` finished with its record (per level: cameras, jitter, spp, seed, seconds) and merge."""
+        for lvl in LEVELS:
+            for b in self.header["buffers"]:
+                if not buffer_path(self.path, frame, lvl, b).is_file():
+                    raise ClipError(f"{self.path}: cannot commit frame {frame}: {lvl}/{b} was not written")
+        write_json_atomic(self.record_path(frame), record)
+        self.merge()
+
+    def merge(self) -> dict:
+        """Rewrite ``manifest.json`` from the header and every frame record present (shards merge here)."""
+        data = {}
+        rdir = self.path / FRAMES_DIR
+        if rdir.is_dir():
+            for rp in sorted(rdir.glob("*.json")):
+                try:
+                    data[str(int(rp.stem))] = json.loads(rp.read_text())
+                except (ValueError, json.JSONDecodeError):
+                    continue  # a torn record is not a finished frame
+        manifest = dict(self.header)
+        manifest["frame_data"] = {k: data[k] for k in sorted(data, key=int)}
+        write_json_atomic(self.path / MANIFEST, manifest)
+        return manifest
+
+
+__all__ = ["Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]

@@ -1,0 +1,250 @@
+"""The one place where BlendSR's conventions live: buffers, channels, axes, signs, units.
+
+Everything here is pure numpy (no bpy, no torch). ``docs/clip-format.md`` describes the same
+conventions in prose; tests check these functions against independent computations.
+
+Image coordinates
+    x to the right, y down, in pixels of the level. Pixel (row i, column j) covers
+    [j, j+1) x [i, i+1); its centre is at (j + 0.5, i + 0.5).
+
+Camera space (Blender's camera convention)
+    +X right, +Y up, the camera looks along -Z. ``world_from_camera`` is the 4x4 matrix that maps
+    camera-space homogeneous points to world space (Blender's ``camera.matrix_world``, without scale).
+
+Pinhole intrinsics (fx, fy, cx, cy), pixels of the level, un-jittered
+    A camera-space point (X, Y, Z) with Z < 0 lands at x = cx + fx * X / (-Z), y = cy - fy * Y / (-Z).
+
+Depth
+    View-space distance along the viewing axis: depth = -Z > 0, in scene units; +inf on background.
+
+Motion
+    Two channels (X, Y) in pixels of the level, image coordinates. For pixel centre p of frame t,
+    ``p + motion`` is where the same surface point was in frame t-1 (backward vector, jitter excluded).
+    Background pixels carry the motion caused by the camera's rotation (points at infinity).
+
+Jitter (dx, dy)
+    Pixels of the level, image coordinates. The radiance sample of pixel centre p was taken at
+    image position ``p + (dx, dy)`` of the un-jittered camera described by the intrinsics.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntFlag
+
+import numpy as np
+
+SCHEMA = "blendsr.clip"
+SCHEMA_VERSION = 1
+LEVELS = ("hr", "lr")
+
+
+@dataclass(frozen=True)
+class BufferSpec:
+    """A semantic buffer: its EXR channel names, whether it is stored as float32 or uint32, and its meaning."""
+
+    name: str
+    channels: tuple[str, ...]
+    dtype: str  # "float32" or "uint32"
+    meaning: str
+
+
+BUFFERS: dict[str, BufferSpec] = {
+    spec.name: spec
+    for spec in (
+        BufferSpec("radiance", ("R", "G", "B"), "float32",
+                   "linear scene-referred RGB (scene_linear primaries of the manifest); hr: ground truth"),
+        BufferSpec("albedo", ("R", "G", "B"), "float32", "Principled base colour, linear"),
+        BufferSpec("normal", ("X", "Y", "Z"), "float32",
+                   "unit shading normal in camera space (+X right, +Y up, +Z towards the viewer); 0 on background"),
+        BufferSpec("depth", ("Z",), "float32", "view-space depth -Z > 0 in scene units; +inf on background"),
+        BufferSpec("roughness", ("Y",), "float32", "Principled roughness in [0, 1] (perceptual, alpha = r^2)"),
+        BufferSpec("metallic", ("Y",), "float32", "Principled metallic in [0, 1]"),
+        BufferSpec("specular", ("Y",), "float32",
+                   "dielectric F0 = ((ior-1)/(ior+1))^2 * 2 * specular_ior_level, clamped to [0, 1]"),
+        BufferSpec("emission", ("R", "G", "B"), "float32",
+                   "emitted radiance seen directly, so that radiance = fbeta * L_D + emission"),
+        BufferSpec("fbeta", ("R", "G", "B"), "float32",
+                   "pre-integrated BRDF (directional albedo) per pixel; 1 on background"),
+        BufferSpec("motion", ("X", "Y"), "float32",
+                   "backward motion in pixels of the level, image coords: p_prev = p + motion"),
+        BufferSpec("flags", ("F",), "uint32", "per-pixel bit mask, see Flag"),
+    )
+}
+
+#: Buffers the default model (FuseSR) consumes; what ``blendsr render`` writes unless told otherwise.
+DEFAULT_BUFFERS: tuple[str, ...] = (
+    "radiance", "albedo", "normal", "depth", "roughness", "metallic", "specular", "emission", "fbeta", "motion", "flags",
+)
+ALL_BUFFERS: tuple[str, ...] = tuple(BUFFERS)
+
+
+class Flag(IntFlag):
+    """Bits of the ``flags`` buffer. Any bit in ``UNTRUSTED`` means demodulation cannot be trusted there."""
+
+    BACKGROUND = 1 << 0       # no surface: world/HDRI seen directly
+    ANISOTROPIC = 1 << 1      # Principled anisotropy > 0
+    SPECULAR_TINT = 1 << 2    # non-white specular tint
+    SUBSURFACE = 1 << 3       # subsurface weight > 0
+    ALPHA = 1 << 4            # alpha < 1 (or driven by a texture)
+    VOLUME = 1 << 5           # the material has a volume shader
+    NON_PRINCIPLED = 1 << 6   # surface shader is not a single Principled BSDF
+    NO_MATERIAL = 1 << 7      # object without material (Cycles' default grey)
+    EMISSIVE = 1 << 8         # emission > 0 (informative; demodulation subtracts it)
+    MOVING = 1 << 9           # the object is animated (informative; not static for reprojection checks)
+
+
+UNTRUSTED = (Flag.ANISOTROPIC | Flag.SPECULAR_TINT | Flag.SUBSURFACE | Flag.ALPHA | Flag.VOLUME
+             | Flag.NON_PRINCIPLED | Flag.NO_MATERIAL)
+
+
+def buffer_spec(name: str) -> BufferSpec:
+    """Return the spec of a buffer name; ValueError naming the valid ones otherwise."""
+    try:
+        return BUFFERS[name]
+    except KeyError:
+        raise ValueError(f"unknown buffer {name!r}; known buffers: {', '.join(BUFFERS)}") from None
+
+
+def parse_buffer_list(text: str) -> tuple[str, ...]:
+    """Parse ``--buffers``: 'default', 'all' or a comma-separated list of names (radiance always included)."""
+    text = text.strip()
+    if text in ("", "default"):
+        return DEFAULT_BUFFERS
+    if text == "all":
+        return ALL_BUFFERS
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    for n in names:
+        buffer_spec(n)
+    ordered = [n for n in ALL_BUFFERS if n in names or n == "radiance"]
+    return tuple(ordered)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cameras
+# ----------------------------------------------------------------------------------------------
+
+def intrinsics_from_projection(proj: np.ndarray, width: int, height: int) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) in pixels from an OpenGL-style 4x4 perspective projection (Blender's
+    ``calc_matrix_camera``) for an image of ``width`` x ``height`` pixels."""
+    p = np.asarray(proj, dtype=np.float64)
+    fx = 0.5 * width * p[0, 0]
+    fy = 0.5 * height * p[1, 1]
+    cx = 0.5 * width * (1.0 - p[0, 2])
+    cy = 0.5 * height * (1.0 + p[1, 2])
+    return float(fx), float(fy), float(cx), float(cy)
+
+
+def scale_intrinsics(k: tuple[float, float, float, float], factor: float) -> tuple[float, float, float, float]:
+    """Intrinsics of the same camera for an image ``factor`` times as large in each dimension."""
+    fx, fy, cx, cy = k
+    return fx * factor, fy * factor, cx * factor, cy * factor
+
+
+def pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates (x, y), each H x W float64."""
+    ys, xs = np.meshgrid(np.arange(height, dtype=np.float64) + 0.5,
+                         np.arange(width, dtype=np.float64) + 0.5, indexing="ij")
+    return xs, ys
+
+
+def rays_camera(xs: np.ndarray, ys: np.ndarray, k) -> np.ndarray:
+    """Camera-space directions (..., 3) with Z = -1 through image positions (xs, ys)."""
+    fx, fy, cx, cy = k
+    return np.stack([(xs - cx) / fx, -(ys - cy) / fy, -np.ones_like(xs)], axis=-1)
+
+
+def unproject(depth: np.ndarray, k) -> np.ndarray:
+    """Camera-space points H x W x 3 of the pixel centres at view depth ``depth`` (H x W)."""
+    xs, ys = pixel_grid(*depth.shape)
+    return rays_camera(xs, ys, k) * depth[..., None]
+
+
+def project(points_cam: np.ndarray, k) -> tuple[np.ndarray, np.ndarray]:
+    """Image positions (x, y) of camera-space points (..., 3); points behind the camera give NaN."""
+    fx, fy, cx, cy = k
+    z = -points_cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(z > 0, 1.0 / z, np.nan)
+    return cx + fx * points_cam[..., 0] * inv, cy - fy * points_cam[..., 1] * inv
+
+
+def transform_points(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 affine matrix to points (..., 3)."""
+    m = np.asarray(m, dtype=np.float64)
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def reprojection_motion(depth: np.ndarray, k, world_from_camera, k_prev, world_from_camera_prev) -> np.ndarray:
+    """Backward motion (H x W x 2, pixels) that static geometry at ``depth`` has between the previous and
+    the current camera. Background pixels (depth not finite) get the rotation-only motion."""
+    depth = np.asarray(depth, dtype=np.float64)
+    finite = np.isfinite(depth) & (depth > 0)
+    xs, ys = pixel_grid(*depth.shape)
+    pts = unproject(np.where(finite, depth, 1.0), k)
+    prev_from_cur = np.linalg.inv(np.asarray(world_from_camera_prev, np.float64)) @ np.asarray(world_from_camera,
+                                                                                                np.float64)
+    p_prev = transform_points(prev_from_cur, pts)
+    # Points at infinity: rotate the direction only.
+    d_prev = rays_camera(xs, ys, k) @ prev_from_cur[:3, :3].T
+    p_prev = np.where(finite[..., None], p_prev, d_prev)
+    xp, yp = project(p_prev, k_prev)
+    return np.stack([xp - xs, yp - ys], axis=-1)
+
+
+def background_motion(height: int, width: int, k, world_from_camera, k_prev, world_from_camera_prev) -> np.ndarray:
+    """Backward motion (H x W x 2) of points at infinity: what the camera's rotation (and zoom) causes."""
+    depth = np.full((height, width), np.inf)
+    return reprojection_motion(depth, k, world_from_camera, k_prev, world_from_camera_prev)
+
+
+def world_to_camera_normals(normals_world: np.ndarray, world_from_camera) -> np.ndarray:
+    """Rotate world-space normals (..., 3) into camera space and renormalise (zero vectors stay zero)."""
+    r = np.asarray(world_from_camera, dtype=np.float64)[:3, :3]
+    r = r / np.linalg.norm(r, axis=0, keepdims=True)  # strip scale
+    n = normals_world.astype(np.float64) @ r  # (R^T n) written for row vectors
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(norm > 1e-12, n / norm, 0.0)
+    return out.astype(np.float32)
+
+
+def halton(index: int, base: int) -> float:
+    """Radical inverse of ``index`` (>= 1) in ``base``: the Halton sequence in [0, 1)."""
+    f, r = 1.0, 0.0
+    while index > 0:
+        f /= base
+        r += f * (index % base)
+        index //= base
+    return r
+
+
+def halton_jitter(frame_index: int, period: int = 16) -> tuple[float, float]:
+    """Sub-pixel jitter (dx, dy) in [-0.5, 0.5) pixels from the Halton(2, 3) sequence, as TAA engines use it.
+    ``frame_index`` counts frames from 0; the sequence repeats every ``period`` frames."""
+    i = frame_index % period + 1
+    return halton(i, 2) - 0.5, halton(i, 3) - 0.5
+
+
+def backward_warp(image: np.ndarray, motion: np.ndarray, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Warp ``image`` of frame t-1 (H x W x C) to frame t with the backward motion of frame t (H x W x 2) by
+    bilinear sampling at p + motion. Returns (warped, valid) where valid is False where the sample left the image."""
+    h, w = image.shape[:2]
+    xs, ys = pixel_grid(h, w)
+    sx = xs + motion[..., 0] - 0.5
+    sy = ys + motion[..., 1] - 0.5
+    valid = np.isfinite(sx) & np.isfinite(sy) & (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+    sx = np.clip(np.nan_to_num(sx), 0, w - 1)
+    sy = np.clip(np.nan_to_num(sy), 0, h - 1)
+    x0 = np.floor(sx).astype(int)
+    y0 = np.floor(sy).astype(int)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    fx = (sx - x0)[..., None]
+    fy = (sy - y0)[..., None]
+    img = image if image.ndim == 3 else image[..., None]
+    out = (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x1] * fx * (1 - fy)
+           + img[y1, x0] * (1 - fx) * fy + img[y1, x1] * fx * fy)
+    out = np.where(valid[..., None], out, fill)
+    if image.ndim == 2:
+        out = out[..., 0]
+    return out.astype(image.dtype, copy=False), valid
