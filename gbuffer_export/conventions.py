@@ -153,10 +153,10 @@ def rays_camera(xs: np.ndarray, ys: np.ndarray, k) -> np.ndarray:
     return np.stack([(xs - cx) / fx, -(ys - cy) / fy, -np.ones_like(xs)], axis=-1)
 
 
-def unproject(depth: np.ndarray, k) -> np.ndarray:
-    """Camera-space points H x W x 3 of the pixel centres at view depth ``depth`` (H x W)."""
+def unproject(depth: np.ndarray, k, jitter=(0.0, 0.0)) -> np.ndarray:
+    """Camera-space points H x W x 3 at view depth ``depth`` (H x W) on the rays through pixel centre + jitter."""
     xs, ys = pixel_grid(*depth.shape)
-    return rays_camera(xs, ys, k) * depth[..., None]
+    return rays_camera(xs + jitter[0], ys + jitter[1], k) * depth[..., None]
 
 
 def project(points_cam: np.ndarray, k) -> tuple[np.ndarray, np.ndarray]:
@@ -174,13 +174,16 @@ def transform_points(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ m[:3, :3].T + m[:3, 3]
 
 
-def reprojection_motion(depth: np.ndarray, k, world_from_camera, k_prev, world_from_camera_prev) -> np.ndarray:
+def reprojection_motion(depth: np.ndarray, k, world_from_camera, k_prev, world_from_camera_prev,
+                        jitter=(0.0, 0.0)) -> np.ndarray:
     """Backward motion (H x W x 2, pixels) that static geometry at ``depth`` has between the previous and
-    the current camera. Background pixels (depth not finite) get the rotation-only motion."""
+    the current camera. Background pixels (depth not finite) get the rotation-only motion. With a ``jitter``,
+    depth was sampled at p + jitter and the motion is that point's displacement (jitter excluded)."""
     depth = np.asarray(depth, dtype=np.float64)
     finite = np.isfinite(depth) & (depth > 0)
     xs, ys = pixel_grid(*depth.shape)
-    pts = unproject(np.where(finite, depth, 1.0), k)
+    xs, ys = xs + jitter[0], ys + jitter[1]
+    pts = rays_camera(xs, ys, k) * np.where(finite, depth, 1.0)[..., None]
     prev_from_cur = np.linalg.inv(np.asarray(world_from_camera_prev, np.float64)) @ np.asarray(world_from_camera,
                                                                                                 np.float64)
     p_prev = transform_points(prev_from_cur, pts)
@@ -191,10 +194,11 @@ def reprojection_motion(depth: np.ndarray, k, world_from_camera, k_prev, world_f
     return np.stack([xp - xs, yp - ys], axis=-1)
 
 
-def background_motion(height: int, width: int, k, world_from_camera, k_prev, world_from_camera_prev) -> np.ndarray:
+def background_motion(height: int, width: int, k, world_from_camera, k_prev, world_from_camera_prev,
+                      jitter=(0.0, 0.0)) -> np.ndarray:
     """Backward motion (H x W x 2) of points at infinity: what the camera's rotation (and zoom) causes."""
     depth = np.full((height, width), np.inf)
-    return reprojection_motion(depth, k, world_from_camera, k_prev, world_from_camera_prev)
+    return reprojection_motion(depth, k, world_from_camera, k_prev, world_from_camera_prev, jitter)
 
 
 def world_to_camera_normals(normals_world: np.ndarray, world_from_camera) -> np.ndarray:

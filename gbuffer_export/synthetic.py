@@ -136,7 +136,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
                 "specular": np.where(np.isfinite(depth), 0.04, 0.0),
                 "emission": np.zeros_like(g["albedo"]),
                 "fbeta": np.where(np.isfinite(depth)[..., None], g["albedo"], 1.0),
-                "motion": reprojection_motion(depth, k, m, k, m_prev),
+                "motion": reprojection_motion(depth, k, m, k, m_prev, jit),
                 "flags": g["flags"],
             }
             for b in header["buffers"]:

@@ -1,0 +1,239 @@
+"""Material inspection and per-pixel material parameters (bpy layer).
+
+``inspect_materials`` records which features each material uses and which flag bits (``conventions.Flag``) its
+pixels get. ``install_aovs`` adds Shader AOV Output nodes so that Cycles writes base colour, roughness, metallic
+and dielectric F0 per pixel, fed from the same sockets as the Principled BSDF (textures included).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import bpy
+
+from ..conventions import Flag
+
+AOV_COLOR = {"albedo": "bsr_albedo"}
+AOV_VALUE = {"roughness": "bsr_roughness", "metallic": "bsr_metallic", "specular": "bsr_specular"}
+
+
+@dataclass
+class MaterialInfo:
+    """What a material uses. ``index`` is the material pass index BlendSR assigns (1-based)."""
+
+    name: str
+    index: int
+    principled: bool
+    features: list[str] = field(default_factory=list)
+    flags: int = 0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def _input(node, *names):
+    for n in names:
+        if n in node.inputs:
+            return node.inputs[n]
+    return None
+
+
+def _nonzero(sock, threshold=1e-6) -> bool:
+    """True when an input socket is linked (texture-driven) or its default value is non-zero."""
+    if sock is None:
+        return False
+    if sock.is_linked:
+        return True
+    v = sock.default_value
+    try:
+        return any(abs(x) > threshold for x in v)
+    except TypeError:
+        return abs(v) > threshold
+
+
+def _surface_node(mat):
+    """The node feeding the Cycles material output's Surface, or None."""
+    if not mat.node_tree:
+        return None, None
+    out = mat.node_tree.get_output_node("CYCLES")
+    if out is None:
+        return None, None
+    surf = out.inputs.get("Surface")
+    vol = out.inputs.get("Volume")
+    node = surf.links[0].from_node if surf is not None and surf.is_linked else None
+    return node, (vol is not None and vol.is_linked)
+
+
+def inspect_material(mat, index: int) -> MaterialInfo:
+    """Features and flag bits of one material."""
+    info = MaterialInfo(name=mat.name, index=index, principled=False)
+    node, has_volume = _surface_node(mat)
+    flags = Flag(0)
+    if has_volume:
+        info.features.append("volume")
+        flags |= Flag.VOLUME
+    if node is None or node.type != "BSDF_PRINCIPLED":
+        info.features.append(f"shader:{node.type.lower() if node is not None else 'none'}")
+        flags |= Flag.NON_PRINCIPLED
+        info.flags = int(flags)
+        return info
+    info.principled = True
+    aniso = _input(node, "Anisotropic")
+    if _nonzero(aniso):
+        info.features.append("anisotropic")
+        flags |= Flag.ANISOTROPIC
+    tint = _input(node, "Specular Tint")
+    if tint is not None and (tint.is_linked or any(abs(c - 1.0) > 1e-4 for c in tint.default_value[:3])):
+        info.features.append("specular_tint")
+        flags |= Flag.SPECULAR_TINT
+    if _nonzero(_input(node, "Subsurface Weight")):
+        info.features.append("subsurface")
+        flags |= Flag.SUBSURFACE
+    alpha = _input(node, "Alpha")
+    if alpha is not None and (alpha.is_linked or alpha.default_value < 1.0 - 1e-6):
+        info.features.append("alpha")
+        flags |= Flag.ALPHA
+    strength = _input(node, "Emission Strength")
+    ecol = _input(node, "Emission Color")
+    if _nonzero(strength) and _nonzero(ecol):
+        info.features.append("emission")
+        flags |= Flag.EMISSIVE
+    if _nonzero(_input(node, "Metallic")):
+        info.features.append("metallic")
+    if _nonzero(_input(node, "Transmission Weight")):
+        info.features.append("transmission")
+    if _nonzero(_input(node, "Coat Weight")):
+        info.features.append("coat")
+    if _nonzero(_input(node, "Sheen Weight")):
+        info.features.append("sheen")
+    if _nonzero(_input(node, "Thin Film Thickness")):
+        info.features.append("thin_film")
+    normal = _input(node, "Normal")
+    if normal is not None and normal.is_linked:
+        info.features.append("normal_map_or_bump")
+    if getattr(node, "distribution", "MULTI_GGX") != "MULTI_GGX":
+        info.features.append(f"distribution:{node.distribution.lower()}")
+    info.flags = int(flags)
+    return info
+
+
+def scene_materials(scene) -> list:
+    """Materials used by renderable objects of the scene, in a deterministic order."""
+    mats = {}
+    for ob in scene.objects:
+        if ob.hide_render or not hasattr(ob, "material_slots"):
+            continue
+        for slot in ob.material_slots:
+            if slot.material is not None:
+                mats[slot.material.name] = slot.material
+    return [mats[k] for k in sorted(mats)]
+
+
+def inspect_materials(scene) -> dict[str, MaterialInfo]:
+    """Inspect every material in use, assigning pass indices 1..N (index 0 means no material)."""
+    infos = {}
+    for i, mat in enumerate(scene_materials(scene), start=1):
+        mat.pass_index = i
+        infos[mat.name] = inspect_material(mat, i)
+    return infos
+
+
+def material_summary(infos: dict[str, MaterialInfo]) -> dict:
+    """Counts of each feature over the scene's materials, for the manifest."""
+    counts: dict[str, int] = {}
+    for info in infos.values():
+        for f in info.features:
+            counts[f] = counts.get(f, 0) + 1
+    return {"materials": len(infos), "principled": sum(i.principled for i in infos.values()),
+            "features": dict(sorted(counts.items()))}
+
+
+def _feed(tree, src_sock, dst_sock):
+    """Connect whatever feeds ``src_sock`` (or copy its value) into ``dst_sock``."""
+    if src_sock.is_linked:
+        tree.links.new(src_sock.links[0].from_socket, dst_sock)
+    else:
+        v = src_sock.default_value
+        try:
+            dst_sock.default_value = v
+        except (TypeError, ValueError):
+            dst_sock.default_value = v[0] if hasattr(v, "__len__") else (v, v, v, 1.0)
+
+
+def _f0_from_ior(tree, node, dst_sock):
+    """Wire dielectric F0 = ((ior-1)/(ior+1))^2 * 2 * specular_ior_level, clamped to [0,1], into ``dst_sock``."""
+    nodes, links = tree.nodes, tree.links
+
+    def math(op, a, b=None):
+        m = nodes.new("ShaderNodeMath")
+        m.operation = op
+        m.label = "BlendSR F0"
+        for i, src in enumerate((a, b)):
+            if src is None:
+                continue
+            if isinstance(src, (int, float)):
+                m.inputs[i].default_value = float(src)
+            elif hasattr(src, "is_output") and src.is_output:
+                links.new(src, m.inputs[i])
+            else:  # an input socket of the Principled node: follow its link or copy its value
+                _feed(tree, src, m.inputs[i])
+        return m.outputs[0]
+
+    ior = _input(node, "IOR")
+    level = _input(node, "Specular IOR Level")
+    num = math("SUBTRACT", ior, 1.0)
+    den = math("ADD", ior, 1.0)
+    r = math("DIVIDE", num, den)
+    r2 = math("MULTIPLY", r, r)
+    scaled = math("MULTIPLY", r2, math("MULTIPLY", level, 2.0)) if level is not None else r2
+    clamped = nodes.new("ShaderNodeClamp")
+    links.new(scaled, clamped.inputs["Value"])
+    links.new(clamped.outputs[0], dst_sock)
+
+
+def install_aovs(scene, view_layer, infos: dict[str, MaterialInfo], buffers) -> list[str]:
+    """Add AOV outputs for the requested parameter buffers to every Principled material; returns AOV names."""
+    wanted = [b for b in (*AOV_COLOR, *AOV_VALUE) if b in buffers]
+    if not wanted:
+        return []
+    existing = {a.name for a in view_layer.aovs}
+    for b in wanted:
+        name = AOV_COLOR.get(b) or AOV_VALUE[b]
+        if name not in existing:
+            aov = view_layer.aovs.add()
+            aov.name = name
+            aov.type = "COLOR" if b in AOV_COLOR else "VALUE"
+    for mat in scene_materials(scene):
+        info = infos.get(mat.name)
+        if info is None or not info.principled:
+            continue
+        node, _ = _surface_node(mat)
+        tree = mat.node_tree
+        for b in wanted:
+            out = tree.nodes.new("ShaderNodeOutputAOV")
+            out.aov_name = AOV_COLOR.get(b) or AOV_VALUE[b]
+            if b == "albedo":
+                _feed(tree, _input(node, "Base Color"), out.inputs["Color"])
+            elif b == "roughness":
+                _feed(tree, _input(node, "Roughness"), out.inputs["Value"])
+            elif b == "metallic":
+                _feed(tree, _input(node, "Metallic"), out.inputs["Value"])
+            elif b == "specular":
+                _f0_from_ior(tree, node, out.inputs["Value"])
+    return [AOV_COLOR.get(b) or AOV_VALUE[b] for b in wanted]
+
+
+def object_is_moving(ob, scene, frame: int) -> bool:
+    """True when the object's world transform or its deformation may differ between frame-1 and frame
+    (animated transform, parent, armature, shape keys or any modifier with animation)."""
+    if ob.animation_data and ob.animation_data.action:
+        return True
+    if ob.parent is not None and object_is_moving(ob.parent, scene, frame):
+        return True
+    for mod in getattr(ob, "modifiers", []):
+        if mod.type in ("ARMATURE", "CLOTH", "SOFT_BODY", "FLUID", "DYNAMIC_PAINT", "OCEAN", "WAVE"):
+            return True
+    data = getattr(ob, "data", None)
+    keys = getattr(data, "shape_keys", None) if data is not None else None
+    if keys is not None and keys.animation_data and keys.animation_data.action:
+        return True
+    return False

@@ -1,0 +1,81 @@
+"""``blendsr render``: render a clip from a .blend scene (or the built-in default scene)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..config import CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_shard, parse_size
+from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
+
+HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
+as EXR sequences plus a JSON manifest (docs/clip-format.md).
+
+Units: sizes in pixels; motion in pixels of each level (x right, y down, p_prev = p + motion); depth is view-space
+z in scene units (+inf on background); normals are unit vectors in camera space (+X right, +Y up, +Z to the
+viewer); radiance is linear scene-referred RGB (float32).
+
+Rerunning the same command resumes: finished frames are skipped. --shard K/N renders every N-th frame starting at
+the K-th, so N processes can fill one clip; their manifests merge."""
+
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", type=Path, help="the .blend file; omitted: the built-in default scene")
+    p.add_argument("-o", "--output", required=True, type=Path, help="clip directory to create or resume")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="inclusive frame range (default: the scene's range; default scene: 1:48)")
+    p.add_argument("--hr-size", default=None, metavar="WxH",
+                   help="HR (target) resolution in pixels (default: the scene's resolution; default scene 640x360)")
+    p.add_argument("--scale", type=int, default=4, help="integer upscaling factor; LR = HR / scale")
+    p.add_argument("--hr-spp", type=int, default=64, help="samples per pixel of the HR ground truth")
+    p.add_argument("--lr-spp", type=int, default=4, help="samples per pixel of the LR render")
+    p.add_argument("--gbuffer-spp", type=int, default=4,
+                   help="samples per pixel of the HR G-buffer pass (all within 0.01 px of the pixel centre)")
+    p.add_argument("--hr-denoise", action=argparse.BooleanOptionalAction, default=False,
+                   help="denoise the HR ground truth with OpenImageDenoise")
+    p.add_argument("--lr-denoise", action=argparse.BooleanOptionalAction, default=False,
+                   help="denoise the LR render with OpenImageDenoise (as a real-time denoiser would)")
+    p.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=False,
+                   help="adaptive sampling for the HR ground truth (hr-spp becomes the maximum)")
+    p.add_argument("--adaptive-threshold", type=float, default=0.01, help="Cycles' adaptive noise threshold")
+    p.add_argument("--adaptive-min-samples", type=int, default=0, help="adaptive minimum samples (0 = automatic)")
+    p.add_argument("--camera-path", choices=CAMERA_PATHS, default="scene",
+                   help="scene: the file's own camera; orbit/walk: a generated, seeded path framed from the bounds")
+    p.add_argument("--seed", type=int, default=0, help="seed of the default scene, camera paths and Cycles noise")
+    p.add_argument("--jitter", choices=JITTERS, default="halton",
+                   help="sub-pixel jitter of the LR frames (Halton 2,3, period 16), in LR pixels")
+    p.add_argument("--buffers", default="default",
+                   help=f"comma-separated buffers to write, or 'default' ({','.join(DEFAULT_BUFFERS)}) or 'all' "
+                        f"({','.join(ALL_BUFFERS)}); radiance is always written")
+    p.add_argument("--fbeta", choices=FBETA_SOURCES, default="cycles",
+                   help="source of the pre-integrated BRDF: Cycles' colour passes, the split-sum table (lut), "
+                        "the papers' literal table (lut-paper), or a model of Cycles' Principled BSDF")
+    p.add_argument("--max-bounces", type=int, default=None, help="override the scene's total light bounces")
+    p.add_argument("--shard", default=None, metavar="K/N", help="render every N-th frame starting with the K-th")
+    p.add_argument("--threads", type=int, default=0, help="render threads (0 = all cores)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def config_from_args(args) -> RenderConfig:
+    return RenderConfig(
+        output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
+        scale=args.scale, hr_spp=args.hr_spp, lr_spp=args.lr_spp, gbuffer_spp=args.gbuffer_spp,
+        hr_denoise=args.hr_denoise, lr_denoise=args.lr_denoise, adaptive=args.adaptive,
+        adaptive_threshold=args.adaptive_threshold, adaptive_min_samples=args.adaptive_min_samples,
+        camera_path=args.camera_path, seed=args.seed, jitter=args.jitter, buffers=args.buffers, fbeta=args.fbeta,
+        shard=parse_shard(args.shard), max_bounces=args.max_bounces, threads=args.threads,
+        progress=not args.no_progress)
+
+
+def run(args) -> int:
+    cfg = config_from_args(args)
+    from ..blender.render import render_clip  # imports bpy
+    out = render_clip(cfg)
+    print(f"blendsr: wrote {out}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("render", help="render a training clip from a .blend scene", description=HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_render_arguments(p)
+    p.set_defaults(func=run)

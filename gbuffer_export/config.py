@@ -1,0 +1,128 @@
+"""Typed, validated render configuration (pure Python). The CLI, the add-on and tests build a ``RenderConfig``
+and hand it to ``gbuffer_export.blender.render.render_clip``."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .conventions import DEFAULT_BUFFERS, parse_buffer_list
+
+CAMERA_PATHS = ("scene", "orbit", "walk")
+JITTERS = ("none", "halton")
+FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
+
+
+class ConfigError(ValueError):
+    """An invalid configuration value; the message names the option."""
+
+
+def parse_frames(text: str | None) -> tuple[int, int] | None:
+    """'A:B' (inclusive) -> (A, B); None or '' -> None (the scene's range)."""
+    if not text:
+        return None
+    a, sep, b = text.partition(":")
+    try:
+        start, end = int(a), int(b) if sep else int(a)
+    except ValueError:
+        raise ConfigError(f"--frames {text!r}: expected A:B with integers, e.g. 1:48") from None
+    if end < start:
+        raise ConfigError(f"--frames {text!r}: end {end} is before start {start}")
+    return start, end
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """'WxH' -> (W, H); None -> None (the scene's resolution)."""
+    if not text:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--hr-size {text!r}: expected WxH, e.g. 640x360") from None
+    if w <= 0 or h <= 0:
+        raise ConfigError(f"--hr-size {text!r}: width and height must be positive")
+    return w, h
+
+
+def parse_shard(text: str | None) -> tuple[int, int]:
+    """'K/N' (1-based K) -> (K, N); None -> (1, 1)."""
+    if not text:
+        return 1, 1
+    try:
+        k, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ConfigError(f"--shard {text!r}: expected K/N, e.g. 2/4") from None
+    if not (n >= 1 and 1 <= k <= n):
+        raise ConfigError(f"--shard {text!r}: need 1 <= K <= N")
+    return k, n
+
+
+@dataclass
+class RenderConfig:
+    """Everything ``render_clip`` needs. Sizes in pixels, sample counts per pixel, adaptive threshold is
+    Cycles' noise threshold (0 = automatic)."""
+
+    output: Path
+    scene: Path | None = None              # None: the built-in default scene
+    frames: tuple[int, int] | None = None  # inclusive; None: the scene's range
+    hr_size: tuple[int, int] | None = None  # (W, H); None: the scene's resolution
+    scale: int = 4
+    hr_spp: int = 64
+    lr_spp: int = 4
+    gbuffer_spp: int = 1
+    hr_denoise: bool = False
+    lr_denoise: bool = False
+    adaptive: bool = False
+    adaptive_threshold: float = 0.01
+    adaptive_min_samples: int = 0
+    camera_path: str = "scene"
+    seed: int = 0
+    jitter: str = "halton"
+    buffers: tuple[str, ...] = DEFAULT_BUFFERS
+    fbeta: str = "cycles"
+    shard: tuple[int, int] = (1, 1)
+    max_bounces: int | None = None         # None: the scene's own light paths
+    threads: int = 0                        # 0: all cores
+    progress: bool = True
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.output = Path(self.output)
+        if self.scene is not None:
+            self.scene = Path(self.scene)
+        self.validate()
+
+    def validate(self) -> None:
+        if not isinstance(self.scale, int) or self.scale < 1:
+            raise ConfigError(f"--scale {self.scale!r}: must be a positive integer")
+        for name in ("hr_spp", "lr_spp", "gbuffer_spp"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ConfigError(f"--{name.replace('_', '-')} {v!r}: must be a positive integer")
+        if self.camera_path not in CAMERA_PATHS:
+            raise ConfigError(f"--camera-path {self.camera_path!r}: choose one of {', '.join(CAMERA_PATHS)}")
+        if self.jitter not in JITTERS:
+            raise ConfigError(f"--jitter {self.jitter!r}: choose one of {', '.join(JITTERS)}")
+        if self.fbeta not in FBETA_SOURCES:
+            raise ConfigError(f"--fbeta {self.fbeta!r}: choose one of {', '.join(FBETA_SOURCES)}")
+        if isinstance(self.buffers, str):
+            self.buffers = parse_buffer_list(self.buffers)
+        else:
+            self.buffers = parse_buffer_list(",".join(self.buffers))
+        if self.hr_size is not None:
+            w, h = self.hr_size
+            if w % self.scale or h % self.scale:
+                raise ConfigError(f"--hr-size {w}x{h} is not divisible by --scale {self.scale}")
+        if not (0 <= self.adaptive_threshold < 1):
+            raise ConfigError(f"--adaptive-threshold {self.adaptive_threshold}: must be in [0, 1)")
+        if self.scene is not None:
+            if not self.scene.is_file():
+                raise ConfigError(f"{self.scene}: scene file not found")
+            if self.scene.suffix.lower() != ".blend":
+                raise ConfigError(f"{self.scene}: not a .blend file")
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["output"] = str(self.output)
+        d["scene"] = str(self.scene) if self.scene else None
+        return d
