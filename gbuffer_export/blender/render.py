@@ -415,7 +415,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     writer = ClipWriter(cfg.output, header)
     todo = [f for f in my_frames if not writer.is_frame_done(f)]
     skipped = len(my_frames) - len(todo)
-    if skipped and cfg.progress:
+    if skipped:
         print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
     tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
     try:

@@ -1,0 +1,114 @@
+"""Tiny .blend fixtures built in code, run as a script in a subprocess (bpy state is global and a crash in Blender
+kills the process): ``python tests/scenes.py KIND OUT.blend``.
+
+Kinds:
+  basic     ground plane (no material), metal sphere, checkered cube that moves, sky visible, animated camera
+  furnace   white furnace: uniform world of radiance 1, objects invisible to secondary rays, static camera
+  nocamera  basic without camera
+  empty     camera and world only
+  ortho     basic with an orthographic camera
+"""
+from __future__ import annotations
+
+import sys
+
+
+def _principled(name, **inputs):
+    import bpy
+    mat = bpy.data.materials.new(name)
+    node = mat.node_tree.nodes["Principled BSDF"]
+    for k, v in inputs.items():
+        node.inputs[k].default_value = v
+    return mat
+
+
+def _world(strength_rgb):
+    import bpy
+    w = bpy.data.worlds.new("World")
+    bpy.context.scene.world = w
+    w.node_tree.nodes["Background"].inputs[0].default_value = (*strength_rgb, 1.0)
+    w.node_tree.nodes["Background"].inputs[1].default_value = 1.0
+
+
+def _camera(animated=True, ortho=False):
+    import bpy
+    sc = bpy.context.scene
+    bpy.ops.object.camera_add(location=(0, -8, 2.2), rotation=(1.45, 0, 0))
+    cam = bpy.context.object
+    if ortho:
+        cam.data.type = "ORTHO"
+    sc.camera = cam
+    if animated:
+        cam.keyframe_insert("location", frame=0)
+        cam.keyframe_insert("rotation_euler", frame=0)
+        cam.location = (1.0, -7.0, 2.4)
+        cam.rotation_euler = (1.43, 0.0, 0.12)
+        cam.keyframe_insert("location", frame=10)
+        cam.keyframe_insert("rotation_euler", frame=10)
+    return cam
+
+
+def basic(camera=True, ortho=False):
+    import bpy
+    bpy.ops.mesh.primitive_plane_add(size=30)
+    bpy.ops.mesh.primitive_uv_sphere_add(location=(0, 0, 1))
+    bpy.context.object.data.materials.append(_principled("metal", Metallic=1.0, Roughness=0.3))
+    bpy.ops.mesh.primitive_cube_add(location=(2.5, 0, 0.5), size=1)
+    cube = bpy.context.object
+    mat = _principled("checker")
+    nt = mat.node_tree
+    chk = nt.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 20
+    nt.links.new(chk.outputs["Color"], nt.nodes["Principled BSDF"].inputs["Base Color"])
+    cube.data.materials.append(mat)
+    cube.keyframe_insert("location", frame=0)
+    cube.location = (2.5, 1.0, 0.5)
+    cube.keyframe_insert("location", frame=10)
+    _world((0.6, 0.7, 1.0))
+    if camera:
+        _camera(ortho=ortho)
+
+
+def furnace():
+    import bpy
+    specs = [("white", dict(**{"Base Color": (1, 1, 1, 1)}, Roughness=0.5)),
+             ("grey", dict(**{"Base Color": (0.5, 0.5, 0.5, 1)}, Roughness=0.2)),
+             ("gold", dict(**{"Base Color": (1.0, 0.78, 0.34, 1)}, Metallic=1.0, Roughness=0.3)),
+             ("red", dict(**{"Base Color": (0.8, 0.1, 0.1, 1)}, Roughness=0.7))]
+    for i, (name, inputs) in enumerate(specs):
+        bpy.ops.mesh.primitive_uv_sphere_add(location=((i - 1.5) * 2.2, 0, 0), segments=48, ring_count=24)
+        ob = bpy.context.object
+        bpy.ops.object.shade_smooth()
+        ob.data.materials.append(_principled(name, **inputs))
+        ob.visible_diffuse = ob.visible_glossy = ob.visible_transmission = False
+        ob.visible_volume_scatter = ob.visible_shadow = False
+    _world((1.0, 1.0, 1.0))
+    _camera(animated=False)
+    cam = bpy.context.scene.camera
+    cam.location, cam.rotation_euler = (0, -9, 0), (1.5708, 0, 0)
+
+
+def main(kind: str, out: str) -> None:
+    import bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    sc = bpy.context.scene
+    if kind == "basic":
+        basic()
+    elif kind == "furnace":
+        furnace()
+    elif kind == "nocamera":
+        basic(camera=False)
+    elif kind == "empty":
+        _world((0.5, 0.5, 0.5))
+        _camera()
+    elif kind == "ortho":
+        basic(ortho=True)
+    else:
+        raise SystemExit(f"unknown kind {kind}")
+    sc.frame_start, sc.frame_end = 1, 10
+    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = 64, 36, 100
+    bpy.ops.wm.save_as_mainfile(filepath=out)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])
