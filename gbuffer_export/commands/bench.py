@@ -1,0 +1,31 @@
+"""``blendsr bench KIND``: benchmarks (speed and accuracy targets live here, never in timed tests)."""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+#: The visible table of benchmarks: name -> module exposing add_arguments(parser) and run(args).
+BENCHES = {
+    "render": "gbuffer_export.commands.bench_render",
+    "brdf": "gbuffer_export.commands.bench_brdf",
+    "models": "training.bench_models",
+    "loader": "training.bench_loader",
+}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
+                       description="Benchmarks. Each prints a table and can save JSON; numbers are medians.")
+    bsub = p.add_subparsers(dest="bench", metavar="KIND")
+    for name, modname in BENCHES.items():
+        try:
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name and modname.startswith(exc.name):
+                continue
+            raise
+        bp = bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0],
+                             description=mod.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(bp)
+        bp.set_defaults(func=mod.run)
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])

@@ -1,0 +1,84 @@
+"""Render cost: seconds per frame of the HR ground truth, the HR G-buffer pass, the LR render and the rest.
+
+Renders the built-in default scene (or SCENE) into a temporary clip with ``blendsr render`` in a subprocess and
+reads the per-pass wall-clock seconds from its manifest. Reports medians over the frames and the cost of
+everything beyond the ground truth as a fraction of it (goal: < 10%)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def add_arguments(p) -> None:
+    p.add_argument("scene", nargs="?", default=None, help=".blend to benchmark (default: the built-in scene)")
+    p.add_argument("--hr-size", default="640x360", help="HR resolution WxH in pixels")
+    p.add_argument("--scale", type=int, default=4, help="upscaling factor")
+    p.add_argument("--frames", default="1:3", help="inclusive frame range A:B")
+    p.add_argument("--hr-spp", type=int, default=64, help="samples per pixel of the ground truth")
+    p.add_argument("--lr-spp", type=int, default=4, help="samples per pixel of the LR render")
+    p.add_argument("--buffers", default="default", help="buffers to write (see blendsr render --help)")
+    p.add_argument("--extra", default="", help="further 'blendsr render' arguments, quoted as one string")
+    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON here")
+
+
+def _median(xs):
+    xs = sorted(xs)
+    n = len(xs)
+    return 0.0 if n == 0 else (xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2]))
+
+
+def summarize(manifest: dict) -> dict:
+    """Median seconds per frame of each pass from a clip manifest."""
+    rows = {"hr_ground_truth": [], "hr_gbuffer": [], "lr_render": [], "convert_and_write": [], "other": [],
+            "total": []}
+    for rec in manifest["frame_data"].values():
+        hr, lr = rec["hr"]["seconds"], rec["lr"]["seconds"]
+        gt, gb, lrr = hr.get("radiance", 0.0), hr.get("gbuffer", 0.0), lr.get("radiance", 0.0)
+        cw = hr.get("convert", 0.0) + hr.get("write", 0.0) + lr.get("convert", 0.0) + lr.get("write", 0.0)
+        total = rec.get("seconds_total", gt + gb + lrr + cw)
+        for k, v in (("hr_ground_truth", gt), ("hr_gbuffer", gb), ("lr_render", lrr), ("convert_and_write", cw),
+                     ("other", max(total - gt - gb - lrr - cw, 0.0)), ("total", total)):
+            rows[k].append(v)
+    med = {k: _median(v) for k, v in rows.items()}
+    gt = med["hr_ground_truth"]
+    med["beyond_ground_truth_fraction"] = (med["total"] - gt) / gt if gt > 0 else float("nan")
+    return med
+
+
+def run(args) -> int:
+    with tempfile.TemporaryDirectory(prefix="blendsr-bench-") as tmp:
+        out = Path(tmp) / "clip"
+        cmd = [sys.executable, "-m", "gbuffer_export.cli", "render", *([args.scene] if args.scene else []),
+               "-o", str(out), "--hr-size", args.hr_size, "--scale", str(args.scale), "--frames", args.frames,
+               "--hr-spp", str(args.hr_spp), "--lr-spp", str(args.lr_spp), "--buffers", args.buffers,
+               *args.extra.split()]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(proc.stderr[-2000:], file=sys.stderr)
+            return proc.returncode
+        manifest = json.loads((out / "manifest.json").read_text())
+    med = summarize(manifest)
+    nframes = len(manifest["frame_data"])
+    result = {"scene": args.scene or "built-in default", "hr_size": args.hr_size, "scale": args.scale,
+              "hr_spp": args.hr_spp, "lr_spp": args.lr_spp, "frames": nframes, "buffers": manifest["buffers"],
+              "median_seconds_per_frame": med, "process_wall_seconds": wall,
+              "startup_seconds": wall - sum(r.get("seconds_total", 0) for r in manifest["frame_data"].values()),
+              "command": " ".join(cmd[1:])}
+    print(f"render cost, {result['scene']} at {args.hr_size}, scale {args.scale}, {nframes} frames "
+          f"(median seconds per frame)")
+    gt = med["hr_ground_truth"]
+    for k in ("hr_ground_truth", "hr_gbuffer", "lr_render", "convert_and_write", "other", "total"):
+        pct = f"{100 * med[k] / gt:6.1f}% of GT" if gt > 0 else ""
+        print(f"  {k:<20} {med[k]:8.3f} s  {pct}")
+    print(f"  beyond ground truth: {100 * med['beyond_ground_truth_fraction']:.1f}% (goal < 10%)")
+    print(f"  process startup and scene setup: {result['startup_seconds']:.1f} s once per clip")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
