@@ -204,10 +204,13 @@ def install_aovs(scene, view_layer, infos: dict[str, MaterialInfo], buffers) -> 
             aov.type = "COLOR" if b in AOV_COLOR else "VALUE"
     for mat in scene_materials(scene):
         info = infos.get(mat.name)
-        if info is None or not info.principled:
+        if info is None:
             continue
         node, _ = _surface_node(mat)
         tree = mat.node_tree
+        if not info.principled:
+            _install_simple_aovs(tree, node, wanted)
+            continue
         for b in wanted:
             out = tree.nodes.new("ShaderNodeOutputAOV")
             out.aov_name = AOV_COLOR.get(b) or AOV_VALUE[b]
@@ -220,6 +223,23 @@ def install_aovs(scene, view_layer, infos: dict[str, MaterialInfo], buffers) -> 
             elif b == "specular":
                 _f0_from_ior(tree, node, out.inputs["Value"])
     return [AOV_COLOR.get(b) or AOV_VALUE[b] for b in wanted]
+
+
+def _install_simple_aovs(tree, node, wanted) -> None:
+    """Best-effort parameters for a plain Diffuse or Glossy BSDF (their pixels stay flagged NON_PRINCIPLED)."""
+    if node is None or node.type not in ("BSDF_DIFFUSE", "BSDF_GLOSSY"):
+        return
+    values = {"metallic": 1.0 if node.type == "BSDF_GLOSSY" else 0.0, "specular": 0.0,
+              "roughness": 1.0 if node.type == "BSDF_DIFFUSE" else None}
+    for b in wanted:
+        out = tree.nodes.new("ShaderNodeOutputAOV")
+        out.aov_name = AOV_COLOR.get(b) or AOV_VALUE[b]
+        if b == "albedo":
+            _feed(tree, node.inputs["Color"], out.inputs["Color"])
+        elif b == "roughness" and values["roughness"] is None:
+            _feed(tree, node.inputs["Roughness"], out.inputs["Value"])
+        else:
+            out.inputs["Value"].default_value = values[b]
 
 
 def object_is_moving(ob, scene, frame: int) -> bool:
