@@ -421,8 +421,10 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     try:
         bar = _progress(todo, cfg)
         for f in bar:
+            t0 = time.perf_counter()
             rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut, light_paths,
                                (w, h), tmpdir, writer)
+            rec["seconds_total"] = time.perf_counter() - t0
             writer.commit_frame(f, rec)
             if hasattr(bar, "set_postfix"):
                 bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
