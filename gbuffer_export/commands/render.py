@@ -18,13 +18,17 @@ Rerunning the same command resumes: finished frames are skipped. --shard K/N ren
 the K-th, so N processes can fill one clip; their manifests merge."""
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the description's line breaks and appends each option's default."""
+
+
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", nargs="?", type=Path, help="the .blend file; omitted: the built-in default scene")
+    p.add_argument("scene", nargs="?", type=Path, default=None, help="the .blend file; omitted: the built-in default scene")
     p.add_argument("-o", "--output", required=True, type=Path, help="clip directory to create or resume")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="inclusive frame range (default: the scene's range; default scene: 1:48)")
+                   help="inclusive frame range; None: the scene's range (default scene: 1:48)")
     p.add_argument("--hr-size", default=None, metavar="WxH",
-                   help="HR (target) resolution in pixels (default: the scene's resolution; default scene 640x360)")
+                   help="HR (target) resolution in pixels; None: the scene's resolution (default scene: 640x360)")
     p.add_argument("--scale", type=int, default=4, help="integer upscaling factor; LR = HR / scale")
     p.add_argument("--hr-spp", type=int, default=64, help="samples per pixel of the HR ground truth")
     p.add_argument("--lr-spp", type=int, default=4, help="samples per pixel of the LR render")
@@ -76,6 +80,6 @@ def run(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("render", help="render a training clip from a .blend scene", description=HELP,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+                       formatter_class=HelpFormatter)
     add_render_arguments(p)
     p.set_defaults(func=run)

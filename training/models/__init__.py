@@ -1,0 +1,53 @@
+"""The model table. Every entry is a plain ``nn.Module`` in its own file under ``training/models/``; this module
+imports no torch, so the CLI and the config validation can list models cheaply.
+
+Contract (see ``base.SRModel``): ``model(batch) -> SR`` where ``batch`` maps keys such as ``'lr/irradiance'`` to
+tensors (B, T, C, H, W) (the last frame is the current one; LR keys hold ``model.history + 1`` frames or more,
+HR keys at least the current frame) plus ``'depth_ref'`` (B, T). SR is (B, 3, H_hr, W_hr) linear radiance.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    module: str
+    cls: str
+    learned: bool
+    description: str
+
+
+#: name -> where the class lives, whether it trains, what it is.
+MODELS: dict[str, ModelInfo] = {
+    "bilinear": ModelInfo("training.models.bilinear", "Bilinear", False,
+                          "bilinear upsampling of LR radiance (no training)"),
+    "bicubic": ModelInfo("training.models.bicubic", "Bicubic", False,
+                         "bicubic upsampling of LR radiance, clamped at 0 (no training)"),
+    "demod-bilinear": ModelInfo("training.models.demod_bilinear", "DemodBilinear", False,
+                                "bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta "
+                                "and HR emission (no training)"),
+    "fusesr": ModelInfo("training.models.fusesr", "FuseSR", True,
+                        "FuseSR H-Net (Zhong et al. 2023): LR encoder + 2 warped history frames, pixel-unshuffled "
+                        "HR G-buffers, LR fusion backbone, pixel shuffle, HR F_beta remodulation"),
+    "fusesr-l": ModelInfo("training.models.fusesr_l", "FuseSRLight", True,
+                          "FuseSR-l: no history, half-width fusion network of depthwise-separable convolutions"),
+}
+
+
+def model_class(name: str):
+    """The class of model ``name`` (imports torch)."""
+    try:
+        info = MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown model {name!r}; choose one of {', '.join(MODELS)}") from None
+    return getattr(importlib.import_module(info.module), info.cls)
+
+
+def build_model(cfg, scale: int):
+    """Instantiate the model of a ``ModelConfig`` for upscaling factor ``scale``."""
+    return model_class(cfg.name)(cfg, scale)
+
+
+__all__ = ["MODELS", "ModelInfo", "model_class", "build_model"]
