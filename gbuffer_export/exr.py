@@ -1,6 +1,8 @@
 """EXR reading and atomic writing with the OpenEXR 3 Python bindings (pure numpy layer)."""
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from pathlib import Path
 
@@ -54,7 +56,10 @@ def read_exr_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ExrError(f"{path}: file not found")
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
+        # A truncated file gives zero parts and a warning printed on sys.stdout instead of an exception.
+        with contextlib.redirect_stdout(io.StringIO()), OpenEXR.File(str(path), separate_channels=True) as f:
+            if not f.parts or any(ch.pixels is None for part in f.parts for ch in part.channels.values()):
+                raise ExrError(f"{path}: truncated or corrupt EXR (no readable pixel data)")
             out = {}
             for part in f.parts:
                 for name, ch in part.channels.items():

@@ -1,0 +1,74 @@
+"""``blendsr validate``: check that a clip is complete, readable and consistent with the conventions."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+from pathlib import Path
+
+HELP = """Check a clip directory: manifest and frame records, every buffer file of every finished frame at both
+levels (exists, readable EXR, level size, channels, sample type), values (finite; depth > 0 on surfaces and +inf
+on background; unit normals; fbeta in [0, 1.05] on surfaces and 1 on background; material buffers in [0, 1];
+known flag bits) and motion (agreement with reprojection from depth and cameras on static surface pixels, with the
+camera's rotation-only motion on background pixels). A half-written clip (planned frames missing, buffer files of
+unfinished frames) never passes.
+
+Prints one line per finding ('ERROR frame 12 hr/normal: ... [code]') and a summary line; with --json one JSON
+object (ok, errors, warnings, findings, stats) on stdout. Exit code 0: no errors (warnings allowed); 1: errors;
+2: CLIP_DIR is not a directory or an option is invalid."""
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the description's paragraphs and shows defaults."""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("validate", help="check a clip's completeness, files, values and motion vectors",
+                              description=HELP, formatter_class=_Formatter)
+    p.add_argument("clip", type=Path, metavar="CLIP_DIR", help="the clip directory (holding manifest.json)")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object on stdout")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="check only the records and files of frames A..B (inclusive); default: every finished "
+                        "frame. Clip-wide checks (missing frames, stale manifest) always cover the whole clip")
+    p.add_argument("--quick", action="store_true",
+                   help="value and motion checks on the first and last checked frame only; the others get "
+                        "existence, size and channel checks from the EXR headers")
+    p.add_argument("--tolerance-px", type=float, default=0.05,
+                   help="motion tolerance in pixels of the hr level: stored and reprojected motion agree when "
+                        "they differ by at most this")
+    p.add_argument("--lr-tolerance-px", type=float, default=None,
+                   help="motion tolerance in pixels of the lr level (default: the same number as --tolerance-px)")
+    p.add_argument("--min-motion-fraction", type=float, default=0.8,
+                   help="least fraction of static surface pixels whose motion must agree (edges may disagree, "
+                        "as depth is point-sampled)")
+    p.add_argument("--min-background-fraction", type=float, default=0.9,
+                   help="least fraction of background pixels that must carry the rotation-only motion")
+    p.add_argument("--fbeta-max", type=float, default=1.05, help="upper end of the plausible fbeta range on surfaces")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..config import parse_frames
+    from ..validate import ValidationOptions, validate_clip
+
+    if not args.clip.is_dir():
+        raise NotADirectoryError(f"{args.clip}: not a directory")
+    options = ValidationOptions(motion_tol_px=args.tolerance_px, lr_motion_tol_px=args.lr_tolerance_px,
+                                motion_min_fraction=args.min_motion_fraction,
+                                background_min_fraction=args.min_background_fraction, fbeta_max=args.fbeta_max)
+    frames = None
+    if args.frames:
+        a, b = parse_frames(args.frames)
+        frames = range(a, b + 1)
+    with contextlib.redirect_stdout(sys.stderr):  # stdout holds only the report
+        report = validate_clip(args.clip, frames=frames, quick=args.quick, options=options,
+                               progress=not args.no_progress)
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=1, allow_nan=False))
+    else:
+        for f in report.findings:
+            print(f.line())
+        print(report.summary_line())
+    return 0 if report.ok else 1
