@@ -1,0 +1,241 @@
+"""bpy probes for tests/test_scene_*.py, run in a subprocess: ``python tests/scene_probes.py PROBE JSON_ARGS``.
+
+Each probe builds something with the bpy layer and prints one JSON line (prefixed ``PROBE-RESULT ``) describing what
+Blender holds afterwards, so that the tests assert on plain data in their own process (bpy state is global and a
+crash inside Blender kills the process)."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+
+PRINCIPLED_INPUTS = ("Base Color", "Metallic", "Roughness", "IOR", "Transmission Weight", "Emission Color",
+                     "Emission Strength", "Anisotropic", "Subsurface Weight", "Alpha", "Coat Weight")
+
+
+def _value(v):
+    try:
+        return [float(x) for x in v]
+    except TypeError:
+        return float(v)
+
+
+def fcurves(idblock) -> list:
+    """[(data_path, index, [frames], sorted interpolations)] of the ID's assigned action (slotted actions)."""
+    ad = idblock.animation_data
+    if ad is None or ad.action is None:
+        return []
+    out = []
+    for layer in ad.action.layers:
+        for strip in layer.strips:
+            for cb in strip.channelbags:
+                if ad.action_slot is not None and cb.slot != ad.action_slot:
+                    continue
+                for fc in cb.fcurves:
+                    out.append((fc.data_path, fc.array_index, [kp.co[0] for kp in fc.keyframe_points],
+                                sorted({kp.interpolation for kp in fc.keyframe_points})))
+    return sorted(out)
+
+
+def material_info(mat) -> dict:
+    nt = mat.node_tree
+    outs = [n for n in nt.nodes if n.type == "OUTPUT_MATERIAL"]
+    surface = outs[0].inputs["Surface"].links if outs else []
+    p = next((n for n in nt.nodes if n.type == "BSDF_PRINCIPLED"), None)
+    info = {"surface": surface[0].from_node.type if surface else None,
+            "node_types": sorted(n.type for n in nt.nodes), "inputs": {}}
+    if p is not None:
+        for name in PRINCIPLED_INPUTS:
+            s = p.inputs[name]
+            info["inputs"][name] = {"value": _value(s.default_value), "linked": s.is_linked}
+    return info
+
+
+def world_info(world) -> dict:
+    if world is None or world.node_tree is None:
+        return {}
+    nt = world.node_tree
+    bg = next((n for n in nt.nodes if n.type == "BACKGROUND"), None)
+    link = bg.inputs["Color"].links if bg else []
+    src = link[0].from_node if link else None
+    image = getattr(src, "image", None)
+    return {"background_color_from": src.type if src else None,
+            "image": os.path.normpath(bpy.path.abspath(image.filepath)) if image is not None else None,
+            "strength": float(bg.inputs["Strength"].default_value) if bg else None,
+            "studiolights": bpy.utils.system_resource("DATAFILES", path="studiolights/world")}
+
+
+def scene_summary(scene) -> dict:
+    start, end = scene.frame_start, scene.frame_end
+    objects = {}
+    for ob in sorted(scene.objects, key=lambda o: o.name):
+        d = {"type": ob.type, "matrix": [list(r) for r in ob.matrix_world],
+             "materials": [m.name for m in getattr(ob.data, "materials", [])] if ob.data else [],
+             "verts": len(ob.data.vertices) if ob.type == "MESH" else 0,
+             "fcurves": fcurves(ob), "props": {k: _value(ob[k]) if not isinstance(ob[k], str) else ob[k]
+                                                 for k in ob.keys() if not k.startswith("_")}}
+        if ob.type == "CAMERA":
+            d["camera"] = {"type": ob.data.type, "lens": ob.data.lens, "clip": [ob.data.clip_start, ob.data.clip_end]}
+        objects[ob.name] = d
+    # World matrices of the animated objects on every keyed frame.
+    animated = [n for n, d in objects.items() if d["fcurves"]]
+    per_frame = {n: [] for n in animated}
+    for f in range(start - 1, end + 1):
+        scene.frame_set(f)
+        for n in animated:
+            per_frame[n].append([list(r) for r in scene.objects[n].matrix_world])
+    scene.frame_set(start)
+    return {"frames": [start, end], "resolution": [scene.render.resolution_x, scene.render.resolution_y,
+                                                   scene.render.resolution_percentage],
+            "engine": scene.render.engine, "camera": scene.camera.name if scene.camera else None,
+            "objects": objects, "materials": {m.name: material_info(m) for m in bpy.data.materials if m.users},
+            "world": world_info(scene.world), "animated_matrices": per_frame,
+            "images": sorted((i.name, i.source, bpy.path.abspath(i.filepath)) for i in bpy.data.images)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Probes
+# ----------------------------------------------------------------------------------------------
+
+def probe_default(args) -> dict:
+    """Factory engine, then one summary per (seed, frames, resolution) build."""
+    from gbuffer_export.blender import default_scene as ds
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    factory = {"engine": bpy.context.scene.render.engine}
+    builds = []
+    for b in args["builds"]:
+        scene = ds.build_default_scene(seed=b["seed"], frames=tuple(b["frames"]), resolution=tuple(b["resolution"]))
+        builds.append(scene_summary(scene))
+    return {"factory": factory, "builds": builds, "features": ds.DEFAULT_SCENE_FEATURES}
+
+
+def probe_default_render(args) -> dict:
+    """Tiny Cycles render of the default scene with a Depth pass, written as a multilayer EXR."""
+    from gbuffer_export.blender.default_scene import build_default_scene
+    scene = build_default_scene(seed=args.get("seed", 0), frames=(1, 4), resolution=(64, 36))
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = 1
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.use_denoising = False
+    scene.render.threads_mode = "FIXED"
+    scene.render.threads = 2
+    scene.view_layers[0].use_pass_z = True
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = args["out"]
+    scene.frame_set(args.get("frame", 1))
+    bpy.ops.render.render(write_still=True)
+    return {"out": args["out"], "view_layer": scene.view_layers[0].name}
+
+
+def _project(scene, cam, points) -> list:
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+    return [list(world_to_camera_view(scene, cam, Vector(p))) for p in points]
+
+
+def _camera_record(scene, cam, frames, points) -> dict:
+    rec = {"matrices": [], "projected": []}
+    for f in range(frames[0] - 1, frames[1] + 1):
+        scene.frame_set(f)
+        rec["matrices"].append([list(r) for r in cam.matrix_world])
+        rec["projected"].append(_project(scene, cam, points))
+    rec["fcurves"] = fcurves(cam)
+    rec["clip"] = [cam.data.clip_start, cam.data.clip_end]
+    rec["lens"] = cam.data.lens
+    rec["type"] = cam.data.type
+    rec["is_scene_camera"] = scene.camera == cam
+    rec["name"] = cam.name
+    return rec
+
+
+def _paths(scene, frames, runs) -> dict:
+    from gbuffer_export.blender import camera_paths as cp
+    boxes = cp.clip_boxes(scene, tuple(frames))
+    centre, radius = cp.framing_sphere(boxes)
+    out = {"boxes": [[b.name, list(b.lo), list(b.hi), b.ground] for b in boxes], "centre": list(centre),
+           "radius": radius, "bounds": [list(x) for x in cp.scene_bounds(scene)], "runs": []}
+    for kind, seed in runs:
+        n_actions = len(bpy.data.actions)
+        cam = cp.make_camera_path(scene, kind, tuple(frames), seed)
+        rec = _camera_record(scene, cam, frames, [centre])
+        rec.update(kind=kind, seed=seed, n_cameras=sum(o.type == "CAMERA" and o.name.startswith(cp.CAMERA_NAME)
+                                                      for o in bpy.data.objects),
+                   actions_added=len(bpy.data.actions) - n_actions)
+        out["runs"].append(rec)
+    return out
+
+
+def probe_paths_default(args) -> dict:
+    """Camera paths on the default scene."""
+    from gbuffer_export.blender.default_scene import build_default_scene
+    scene = build_default_scene(seed=0, frames=tuple(args["frames"]))
+    return _paths(scene, args["frames"], args["runs"])
+
+
+def probe_paths_scaled(args) -> dict:
+    """Camera paths on a factory scene holding two boxes and a ground plane, all scaled by ``scale``."""
+    import bmesh
+    from mathutils import Matrix, Vector
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 320, 180
+    s = args["scale"]
+
+    def box(name, center, size):
+        bm = bmesh.new()
+        bmesh.ops.create_cube(bm, size=1.0, matrix=Matrix.LocRotScale(Vector(center) * s, None, Vector(size) * s))
+        me = bpy.data.meshes.new(name)
+        bm.to_mesh(me)
+        bm.free()
+        ob = bpy.data.objects.new(name, me)
+        scene.collection.objects.link(ob)
+        return ob
+
+    box("Ground", (0, 0, -0.01), (30, 30, 0.02))  # unflagged: the heuristic must find it
+    box("Block", (0.3, 0.1, 0.5), (1.0, 0.6, 1.0))
+    box("Post", (-0.6, -0.2, 0.9), (0.1, 0.1, 1.8))
+    hidden = box("Hidden", (50, 50, 50), (1, 1, 1))
+    hidden.hide_render = True
+    out = _paths(scene, args["frames"], args["runs"])
+    out["scale"] = s
+    return out
+
+
+def probe_gltf(args) -> dict:
+    """build_gltf_scene on each model; reopen each saved .blend and summarise it."""
+    sys.path.insert(0, str(REPO / "examples"))
+    from render_gltf import build_gltf_scene
+    from gbuffer_export.blender import camera_paths as cp
+    out = []
+    for model, blend in args["models"]:
+        path = build_gltf_scene(model, frames=(1, 6), resolution=(320, 180), blend_path=blend)
+        bpy.ops.wm.open_mainfile(filepath=str(path))
+        scene = bpy.context.scene
+        rec = {"model": model, "blend": str(path), "frames": [scene.frame_start, scene.frame_end],
+               "resolution": [scene.render.resolution_x, scene.render.resolution_y],
+               "world": world_info(scene.world),
+               "packed": [i.name for i in bpy.data.images if i.packed_file is not None],
+               "unpacked": [i.name for i in bpy.data.images if i.source == "FILE" and i.packed_file is None],
+               "camera": scene.camera.name if scene.camera else None, "per_frame": []}
+        for f in (1, 6):
+            scene.frame_set(f)
+            boxes = cp.object_boxes(scene)
+            rec["per_frame"].append([[b.name, list(b.lo), list(b.hi), b.ground] for b in boxes])
+        out.append(rec)
+    return {"models": out}
+
+
+PROBES = {name[len("probe_"):]: fn for name, fn in globals().items() if name.startswith("probe_")}
+
+if __name__ == "__main__":
+    result = PROBES[sys.argv[1]](json.loads(sys.argv[2]) if len(sys.argv) > 2 else {})
+    print("PROBE-RESULT " + json.dumps(result, default=lambda o: np.asarray(o).tolist()), flush=True)
