@@ -69,7 +69,7 @@ class RenderConfig:
     scale: int = 4
     hr_spp: int = 64
     lr_spp: int = 4
-    gbuffer_spp: int = 1
+    gbuffer_spp: int = 4
     hr_denoise: bool = False
     lr_denoise: bool = False
     adaptive: bool = False

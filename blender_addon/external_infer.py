@@ -1,0 +1,121 @@
+"""Upscale one frame of a clip with the training helper's inference API and score it against the ground truth.
+
+Used two ways:
+  * in Blender's Python when torch is importable there: ``run_inference(clip_dir, frame, spec)``;
+  * with an external Python that has torch and the library (add-on preferences, ``python_path``):
+        python external_infer.py --clip DIR --frame F --model SPEC --out DIR [--sys-path D ...] [--reference]
+    writes OUT/sr.exr, OUT/bilinear.exr (and OUT/reference.exr with --reference) as linear RGB float32 and
+    OUT/result.json {ms, psnr, metric, size}; exit 0, or 2 with {error} in result.json.
+
+PSNR is the evaluation's: ``training.metrics.psnr_tm`` (PSNR, peak 1, of the tonemapped images: sRGB OETF of
+Reinhard x/(1+x)); if training.metrics cannot be imported, the same transform from ``gbuffer_export.preview.tonemap``
+and PSNR on [0, 1] floats. ``metric`` in the result names which one was used. Standard library only at import time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import traceback
+
+
+def psnr_function():
+    """(callable(sr, ref) -> dB, description) of the evaluation's PSNR for linear HDR H x W x 3 images:
+    ``training.metrics.psnr_tm`` (tonemapped, peak 1) when it imports, else ``tonemapped_psnr``."""
+    try:
+        from training import metrics
+        fn = metrics.psnr_tm
+    except (ImportError, AttributeError):
+        return tonemapped_psnr, "PSNR of gbuffer_export.preview.tonemap (Reinhard x/(1+x), sRGB), peak 1"
+    desc = f"training.metrics.psnr_tm, {getattr(metrics, 'TRANSFORM', 'tonemapped')}"
+    return (lambda sr, ref: float(fn(sr, ref))), desc
+
+
+def tonemapped_psnr(sr, ref) -> float:
+    """PSNR in dB between the display encodings (``gbuffer_export.preview.tonemap``) of two linear images."""
+    import numpy as np
+    from gbuffer_export.preview import tonemap
+    mse = float(np.mean((tonemap(sr) - tonemap(ref)) ** 2))
+    return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
+
+
+_MODELS: dict = {}
+
+
+def load_model_cached(spec: str, scale: int):
+    """``training.inference.load_model`` with a cache keyed on the spec, scale and checkpoint file time."""
+    from training.inference import load_model
+    mtime = os.path.getmtime(spec) if os.path.isfile(spec) else None
+    key = (spec, scale, mtime)
+    if key not in _MODELS:
+        _MODELS.clear()
+        _MODELS[key] = load_model(spec, scale)
+    return _MODELS[key]
+
+
+def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) -> dict:
+    """Upscale ``frame`` of the clip with model ``spec`` (a model name or a checkpoint path).
+
+    Returns {'sr', 'bilinear': HxWx3 float32 linear, 'reference': HxWx3 or absent, 'ms': inference milliseconds,
+    'psnr': dB or absent, 'metric': how PSNR was computed}."""
+    import numpy as np
+    from gbuffer_export import open_clip
+    from training.inference import upscale_frame
+    clip = open_clip(clip_dir)
+    model = load_model_cached(spec, clip.scale)
+    out = upscale_frame(model, clip, frame)
+    res = {"sr": np.asarray(out["sr"], np.float32), "bilinear": np.asarray(out["bilinear"], np.float32),
+           "ms": float(out["ms"])}
+    ref = out.get("reference")
+    if with_reference and ref is not None:
+        fn, desc = psnr_function()
+        res["reference"] = np.asarray(ref, np.float32)
+        res["psnr"] = float(fn(res["sr"], res["reference"]))
+        res["metric"] = desc
+    return res
+
+
+def _write_rgb(path: str, img) -> None:
+    from gbuffer_export.exr import write_exr
+    write_exr(path, {c: img[..., i] for i, c in enumerate("RGB")})
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--clip", required=True, help="clip directory")
+    p.add_argument("--frame", type=int, required=True, help="frame number")
+    p.add_argument("--model", required=True, help="model name (e.g. demod-bilinear) or checkpoint path")
+    p.add_argument("--out", required=True, help="output folder for sr.exr, bilinear.exr, result.json")
+    p.add_argument("--reference", action="store_true", help="also write reference.exr and the PSNR")
+    p.add_argument("--sys-path", action="append", default=[], help="folder to put on sys.path (repeatable)")
+    p.add_argument("--site-dir", action="append", default=[], help="site folder to add (repeatable)")
+    a = p.parse_args(argv)
+    import site
+    here = os.path.dirname(os.path.abspath(__file__))
+    sys.path[:] = [d for d in sys.path if os.path.abspath(d or os.curdir) != here]
+    for d in a.site_dir:
+        site.addsitedir(d)
+    for d in reversed(a.sys_path):
+        sys.path.insert(0, d)
+    os.makedirs(a.out, exist_ok=True)
+    result: dict = {}
+    try:
+        res = run_inference(a.clip, a.frame, a.model, a.reference)
+        _write_rgb(os.path.join(a.out, "sr.exr"), res["sr"])
+        _write_rgb(os.path.join(a.out, "bilinear.exr"), res["bilinear"])
+        if "reference" in res:
+            _write_rgb(os.path.join(a.out, "reference.exr"), res["reference"])
+        result = {"ok": True, "ms": res["ms"], "psnr": res.get("psnr"), "metric": res.get("metric", ""),
+                  "size": [int(res["sr"].shape[1]), int(res["sr"].shape[0])]}
+    except Exception as exc:
+        traceback.print_exc()
+        result = {"ok": False, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__}
+    with open(os.path.join(a.out, "result.json"), "w") as f:
+        json.dump(result, f)
+    return 0 if result["ok"] else 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

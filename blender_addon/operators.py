@@ -1,0 +1,350 @@
+"""``blendsr.export_dataset`` and ``blendsr.preview_upscale``.
+
+Both render through a worker process (``jobs.RenderJob`` running ``worker.py``, which calls the library's
+``render_clip``), never in the user's session: the renderer changes the scene it renders (render settings, AOV
+nodes, pass indices). In the Blender application the operators are modal: a timer polls the worker, the status bar
+shows the frames done, Esc kills the worker (finished frames stay; running it again resumes). In the bpy module
+(no event loop: timers never fire, ``bpy.app.binary_path`` is empty) and in background mode they wait for the
+worker.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import bpy
+
+from . import images, jobs, library, mapping
+from .prefs import Prefs
+from .props import store_preview_results
+
+#: Running jobs by kind ("export", "preview"); one of each at a time. Read by the panels for their progress line.
+ACTIVE: dict[str, jobs.RenderJob] = {}
+
+EXTERNAL_INFER = Path(__file__).with_name("external_infer.py")
+
+
+def interactive() -> bool:
+    """True in the Blender application with a UI (modal operators and timers work)."""
+    return bool(bpy.app.binary_path) and not bpy.app.background
+
+
+def scene_file_for_job(job_dir: Path) -> Path:
+    """The .blend the worker opens: the saved file itself when it has no unsaved changes, else a copy of the
+    current state (``save_as_mainfile(copy=True)``, without a thumbnail so that equal states give equal files and
+    the renderer can resume) named like the file, in ``job_dir``."""
+    if bpy.data.filepath and not bpy.data.is_dirty:
+        return Path(bpy.data.filepath)
+    name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
+    path = Path(job_dir) / name
+    prefs = bpy.context.preferences
+    fp = prefs.filepaths
+    old_preview, old_dirty = getattr(fp, "file_preview_type", None), prefs.is_dirty
+    try:
+        if old_preview is not None:
+            fp.file_preview_type = "NONE"
+        bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True, check_existing=False)
+    finally:
+        if old_preview is not None:
+            fp.file_preview_type = old_preview
+            prefs.is_dirty = old_dirty
+    return path
+
+
+def _tag_redraw() -> None:
+    wm = bpy.context.window_manager
+    for win in getattr(wm, "windows", []):
+        for area in win.screen.areas:
+            if area.type in ("PROPERTIES", "VIEW_3D"):
+                area.tag_redraw()
+
+
+def _set_status(context, text: str | None) -> None:
+    ws = getattr(context, "workspace", None)
+    if ws is not None and interactive():
+        ws.status_text_set(text)
+
+
+class _JobOperator:
+    """Runs ``self.start(context) -> RenderJob`` then ``self.finish(context, job)``: modal in the application,
+    synchronous otherwise."""
+
+    job_key = ""
+    label = ""
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and cls.job_key not in ACTIVE
+
+    def execute(self, context):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        try:
+            job.wait()
+        except BaseException:
+            job.cancel()
+            ACTIVE.pop(self.job_key, None)
+            raise
+        return self._finish(context, job)
+
+    def invoke(self, context, event):
+        if not interactive() or context.window is None:
+            return self.execute(context)
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.5, window=context.window)
+        wm.modal_handler_add(self)
+        _set_status(context, f"BlendSR {self.label}: starting (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = ACTIVE.get(self.job_key)
+        if job is None:
+            self._stop_timer(context)
+            return {"CANCELLED"}
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            self._stop_timer(context)
+            done, total, _ = job.progress()
+            ACTIVE.pop(self.job_key, None)
+            job.result()
+            shutil.rmtree(job.job_dir, ignore_errors=True)
+            self.report({"WARNING"}, f"BlendSR {self.label} cancelled: {done}/{total} frames done; "
+                                     "run it again to resume")
+            _tag_redraw()
+            return {"CANCELLED"}
+        if event.type == "TIMER":
+            if job.poll() is None:
+                _set_status(context, f"BlendSR {self.label}: {job.status_line()}")
+                _tag_redraw()
+                return {"PASS_THROUGH"}
+            self._stop_timer(context)
+            return self._finish(context, job)
+        return {"PASS_THROUGH"}
+
+    def _stop_timer(self, context) -> None:
+        timer = getattr(self, "_timer", None)
+        if timer is not None:
+            context.window_manager.event_timer_remove(timer)
+            self._timer = None
+        _set_status(context, None)
+
+    def _start(self, context):
+        st = library.status(Prefs(context).library_path)
+        if not st.ok:
+            self.report({"ERROR"}, f"{st.message}; see the BlendSR panel for how to install it")
+            return None
+        try:
+            job = self.start(context, st)
+        except (ValueError, OSError, RuntimeError) as exc:
+            self.report({"ERROR"}, f"BlendSR {self.label}: {str(exc).splitlines()[0]}")
+            return None
+        if job is not None:
+            ACTIVE[self.job_key] = job
+        return job
+
+    def _finish(self, context, job):
+        ACTIVE.pop(self.job_key, None)
+        try:
+            return self.finish(context, job)
+        finally:
+            _tag_redraw()
+
+
+class BLENDSR_OT_export_dataset(_JobOperator, bpy.types.Operator):
+    bl_idname = "blendsr.export_dataset"
+    bl_label = "Export Dataset"
+    bl_description = ("Render the clip with these settings in a background process and validate it "
+                      "(Esc cancels; running it again resumes)")
+    bl_options = {"REGISTER"}
+    job_key = "export"
+    label = "export"
+
+    def start(self, context, st):
+        scene = context.scene
+        cfg = mapping.render_config(scene.blendsr, scene)
+        job_dir = jobs.new_job_dir("blendsr-export-")
+        cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir))
+        a, b = cfg.frames
+        return jobs.RenderJob(cfg.to_json(), list(range(a, b + 1)), job_dir=job_dir,
+                              library_paths=library.worker_paths(st), validate="quick",
+                              blender_binary=bpy.app.binary_path)
+
+    def finish(self, context, job):
+        res = job.result()
+        settings = context.scene.blendsr
+        if not res.ok:
+            settings["_last_export"] = f"failed: {res.error}"
+            self.report({"ERROR"}, f"BlendSR export failed: {res.error} (log: {job.log_file})")
+            return {"CANCELLED"}
+        shutil.rmtree(job.job_dir, ignore_errors=True)
+        text = f"{res.output}: {len(job.frames)} frames in {jobs.format_seconds(res.seconds)}; {res.validation}"
+        settings["_last_export"] = text
+        self.report({"INFO"} if res.valid is not False else {"WARNING"}, f"BlendSR export: {text}")
+        return {"FINISHED"}
+
+
+def preview_dir() -> Path:
+    """Folder of the preview's one-frame clip (inside Blender's session temporary folder)."""
+    return Path(bpy.app.tempdir or tempfile.gettempdir()) / "blendsr_preview"
+
+
+def model_spec(settings) -> str:
+    """The checkpoint path when one is chosen, else the non-learned model's name."""
+    if settings.checkpoint.strip():
+        path = bpy.path.abspath(settings.checkpoint.strip())
+        if not os.path.isfile(path):
+            raise ValueError(f"checkpoint {path}: file not found")
+        return path
+    return settings.preview_model
+
+
+def inference_runner(st: library.LibraryStatus, prefs: Prefs) -> str:
+    """'' for Blender's Python, else the external Python's path; ValueError saying what to install or set."""
+    internal_ok = st.torch and st.training
+    if prefs.inference == "INTERNAL" or (prefs.inference == "AUTO" and internal_ok):
+        if not internal_ok:
+            raise ValueError("torch (or the training package) is not importable from Blender's Python; install "
+                             "blendsr[train] there or choose the external Python in the add-on preferences")
+        return ""
+    py = bpy.path.abspath(prefs.python_path.strip()) if prefs.python_path.strip() else ""
+    if not py:
+        raise ValueError("torch is not importable from Blender's Python: install it there, or set 'External "
+                         "Python' in the add-on preferences to a Python with torch and blendsr[train]")
+    if not os.path.isfile(py):
+        raise ValueError(f"external Python {py}: file not found")
+    return py
+
+
+class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
+    bl_idname = "blendsr.preview_upscale"
+    bl_label = "Preview Upscaling"
+    bl_description = ("Render the current frame's LR radiance and HR G-buffers (and the reference when asked), "
+                      "upscale it with the chosen model and show the images 'BlendSR SR', 'BlendSR bilinear' "
+                      "and 'BlendSR reference'")
+    bl_options = {"REGISTER"}
+    job_key = "preview"
+    label = "preview"
+
+    def start(self, context, st):
+        scene = context.scene
+        settings = scene.blendsr
+        prefs = Prefs(context)
+        self.spec = model_spec(settings)
+        self.python = inference_runner(st, prefs)
+        self.status = st
+        self.with_reference = bool(settings.with_reference)
+        frame = scene.frame_current
+        root = preview_dir()
+        clip_dir = root / "clip"
+        cfg = mapping.render_config(settings, scene, output=clip_dir)
+        a, b = cfg.frames
+        if a <= frame <= b:
+            # Only `frame` of the export's range: same generated camera path and jitter index as the export.
+            frames, shard = (a, b), (frame - a + 1, b - a + 1)
+        else:
+            frames, shard = (frame, frame), (1, 1)
+        hr = {} if self.with_reference else {"hr_spp": 1, "hr_denoise": False, "adaptive": False}
+        if clip_dir.exists():
+            shutil.rmtree(clip_dir)
+        root.mkdir(parents=True, exist_ok=True)
+        job_dir = Path(tempfile.mkdtemp(prefix="job-", dir=root))
+        cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir), frames=frames, shard=shard, **hr)
+        self.frame = frame
+        return jobs.RenderJob(cfg.to_json(), [frame], job_dir=job_dir, library_paths=library.worker_paths(st),
+                              validate="", blender_binary=bpy.app.binary_path)
+
+    def finish(self, context, job):
+        res = job.result()
+        if not res.ok:
+            self.report({"ERROR"}, f"BlendSR preview failed: {res.error} (log: {job.log_file})")
+            return {"CANCELLED"}
+        shutil.rmtree(job.job_dir, ignore_errors=True)
+        clip_dir = str(job.output)
+        try:
+            out = self.infer(clip_dir, job.job_dir.parent / "inference")
+        except Exception as exc:  # the model or the external process failed: say so, keep Blender running
+            self.report({"ERROR"}, f"BlendSR preview inference failed: {str(exc).splitlines()[0]}")
+            return {"CANCELLED"}
+        sr = images.set_image(images.SR_IMAGE, out["sr"])
+        images.set_image(images.BILINEAR_IMAGE, out["bilinear"])
+        if "reference" in out:
+            images.set_image(images.REFERENCE_IMAGE, out["reference"])
+        elif images.REFERENCE_IMAGE in bpy.data.images:
+            bpy.data.images.remove(bpy.data.images[images.REFERENCE_IMAGE])  # a stale one would mislead
+        images.show_in_image_editors(sr, context)
+        h, w = out["sr"].shape[:2]
+        name = os.path.basename(self.spec)
+        info = f"frame {self.frame}, {name}, {w}x{h}"
+        psnr = out.get("psnr")
+        store_preview_results(context.scene.blendsr, ms=out["ms"], psnr=psnr, metric=out.get("metric", ""),
+                              info=info, clip=clip_dir)
+        msg = f"BlendSR preview: {info}, {out['ms']:.1f} ms"
+        if psnr is not None:
+            msg += f", PSNR {psnr:.2f} dB"
+        self.report({"INFO"}, msg)
+        return {"FINISHED"}
+
+    def infer(self, clip_dir: str, out_dir: Path) -> dict:
+        """Run the model on the preview clip: in Blender's Python, or with the external Python."""
+        if not self.python:
+            from . import external_infer
+            return external_infer.run_inference(clip_dir, self.frame, self.spec, self.with_reference)
+        return run_external_inference(self.python, clip_dir, self.frame, self.spec, self.with_reference,
+                                      self.status, out_dir)
+
+
+def run_external_inference(python: str, clip_dir: str, frame: int, spec: str, with_reference: bool,
+                           st: library.LibraryStatus, out_dir: Path, timeout_s: float = 600.0) -> dict:
+    """``external_infer.py`` with another Python; reads back its EXRs and result.json (same keys as
+    ``external_infer.run_inference``)."""
+    import json
+
+    from gbuffer_export.exr import read_exr
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    cmd = [python, str(EXTERNAL_INFER), "--clip", clip_dir, "--frame", str(frame), "--model", spec,
+           "--out", str(out_dir)]
+    if with_reference:
+        cmd.append("--reference")
+    if st.root and Path(st.root).name not in ("site-packages", "dist-packages"):
+        cmd += ["--sys-path", st.root]  # a source checkout; an installed library is the external Python's own
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
+    try:
+        r = json.loads((out_dir / "result.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        tail = (proc.stderr or proc.stdout).strip().splitlines()
+        raise RuntimeError(f"{python} exited {proc.returncode}: {tail[-1] if tail else 'no output'}") from None
+    if not r.get("ok"):
+        raise RuntimeError(r.get("error", "external inference failed"))
+    out = {"sr": read_exr(out_dir / "sr.exr", ("R", "G", "B")),
+           "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"])}
+    if with_reference and (out_dir / "reference.exr").is_file():
+        out["reference"] = read_exr(out_dir / "reference.exr", ("R", "G", "B"))
+        if r.get("psnr") is not None:
+            out["psnr"] = float(r["psnr"])
+            out["metric"] = r.get("metric", "")
+    return out
+
+
+CLASSES = (BLENDSR_OT_export_dataset, BLENDSR_OT_preview_upscale)
+
+
+def register() -> None:
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister() -> None:
+    for key, job in list(ACTIVE.items()):
+        job.cancel()
+        ACTIVE.pop(key, None)
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)

@@ -1,0 +1,193 @@
+"""The BlendSR panel, drawn in the Properties editor's Output tab and in the 3D viewport's sidebar (tab 'BlendSR'):
+the settings, what the export will write and roughly how long it takes, the export and preview buttons, and the
+last preview's numbers."""
+from __future__ import annotations
+
+import bpy
+
+from . import estimate, jobs, library, mapping
+from .prefs import Prefs
+
+
+def format_mb(mb: float) -> str:
+    return f"{mb:.2f} MB" if mb < 10 else f"{mb:,.0f} MB"
+
+
+def summary(context) -> tuple[list[str], str]:
+    """(lines describing the export of the current settings, error message or '')."""
+    scene = context.scene
+    s = scene.blendsr
+    error = ""
+    try:
+        output = mapping.output_path(s)
+    except ValueError as exc:
+        output, error = None, str(exc)
+    try:
+        cfg = mapping.render_config(s, scene, output=output if output is not None else "unset")
+    except ValueError as exc:
+        return [], str(exc).splitlines()[0]
+    done = estimate.frames_done_in(cfg.output, cfg.frames) if output is not None else 0
+    est = estimate.estimate_export(cfg, done)
+    (w, h), k = cfg.hr_size, cfg.scale
+    lines = [
+        f"{est.buffers} buffers x {est.levels} levels x {est.frames} frames = {est.files} EXR files",
+        f"HR {w}x{h}, LR {w // k}x{h // k}: at most {format_mb(est.megabytes)} (uncompressed float32)",
+        f"Time: about {jobs.format_seconds(est.seconds_left)} ({est.seconds_per_frame:.1f} s/frame, "
+        "rough CPU cost model)",
+    ]
+    if est.frames_done:
+        lines.append(f"{est.frames_done} of {est.frames} frames already in the folder: export resumes")
+    return lines, error
+
+
+def draw_blendsr(layout, context) -> None:
+    """Draw the whole panel into ``layout`` (shared by both panels)."""
+    scene = context.scene
+    s = scene.blendsr
+    prefs = Prefs(context)
+    st = library.status(prefs.library_path)
+    if not st.ok:
+        box = layout.box()
+        box.alert = True
+        box.label(text=st.message, icon="ERROR")
+        for line in st.hint:
+            box.label(text=line)
+
+    layout.prop(s, "output_dir")
+
+    box = layout.box()
+    box.label(text="Frames and size", icon="RENDER_ANIMATION")
+    box.prop(s, "use_scene_frames")
+    row = box.row(align=True)
+    row.active = not s.use_scene_frames
+    row.prop(s, "frame_start")
+    row.prop(s, "frame_end")
+    box.prop(s, "use_scene_resolution")
+    row = box.row(align=True)
+    row.active = not s.use_scene_resolution
+    row.prop(s, "hr_width")
+    row.prop(s, "hr_height")
+    box.prop(s, "scale")
+
+    box = layout.box()
+    box.label(text="Sampling", icon="RENDER_STILL")
+    col = box.column(align=True)
+    col.prop(s, "hr_spp")
+    col.prop(s, "lr_spp")
+    col.prop(s, "gbuffer_spp")
+    row = box.row()
+    row.prop(s, "hr_denoise")
+    row.prop(s, "lr_denoise")
+    box.prop(s, "adaptive")
+    row = box.row(align=True)
+    row.active = s.adaptive
+    row.prop(s, "adaptive_threshold")
+    row.prop(s, "adaptive_min_samples")
+    row = box.row(align=True)
+    row.prop(s, "use_max_bounces")
+    sub = row.row()
+    sub.active = s.use_max_bounces
+    sub.prop(s, "max_bounces")
+    row = box.row(align=True)
+    row.prop(s, "seed")
+    row.prop(s, "threads")
+
+    box = layout.box()
+    box.label(text="Camera and buffers", icon="CAMERA_DATA")
+    box.prop(s, "camera_path")
+    box.prop(s, "jitter")
+    box.prop(s, "buffers")
+    box.prop(s, "fbeta_source")
+
+    box = layout.box()
+    box.label(text="Export summary", icon="INFO")
+    if st.ok:
+        lines, error = summary(context)
+        for line in lines:
+            box.label(text=line)
+        if error:
+            row = box.row()
+            row.alert = True
+            row.label(text=error, icon="ERROR")
+    else:
+        box.label(text="Needs the BlendSR library (see above)")
+    from .operators import ACTIVE
+    job = ACTIVE.get("export")
+    if job is not None:
+        layout.label(text=f"Exporting: {job.status_line()}", icon="TIME")
+    else:
+        row = layout.row()
+        row.enabled = st.ok
+        row.scale_y = 1.4
+        row.operator("blendsr.export_dataset", icon="EXPORT")
+    if s.last_export:
+        layout.label(text=f"Last export: {s.last_export}")
+
+    box = layout.box()
+    box.label(text="Preview upscaling (current frame)", icon="IMAGE_DATA")
+    box.prop(s, "checkpoint")
+    row = box.row()
+    row.active = not s.checkpoint.strip()
+    row.prop(s, "preview_model")
+    box.prop(s, "with_reference")
+    if st.ok and not (st.torch and st.training) and prefs.inference != "EXTERNAL":
+        col = box.column()
+        if prefs.python_path.strip():
+            col.label(text=f"torch is not in Blender's Python: inference runs with {prefs.python_path}")
+        else:
+            col.alert = True
+            col.label(text="torch is not importable from Blender's Python.", icon="ERROR")
+            col.label(text="Install blendsr[train] into it, or set 'External Python'")
+            col.label(text="in Preferences > Add-ons > BlendSR to a Python with torch.")
+    pjob = ACTIVE.get("preview")
+    if pjob is not None:
+        box.label(text=f"Rendering preview: {pjob.status_line()}", icon="TIME")
+    else:
+        row = box.row()
+        row.enabled = st.ok
+        row.operator("blendsr.preview_upscale", icon="ZOOM_IN")
+    if s.preview_info:
+        col = box.column(align=True)
+        col.label(text=f"Last preview: {s.preview_info}")
+        col.label(text=f"Inference: {s.preview_ms:.1f} ms")
+        if s.preview_metric:
+            col.label(text=f"PSNR: {s.preview_psnr:.2f} dB")
+            col.label(text=f"({s.preview_metric})")
+        else:
+            col.label(text="PSNR: no reference rendered")
+
+
+class BLENDSR_PT_output(bpy.types.Panel):
+    bl_idname = "BLENDSR_PT_output"
+    bl_label = "BlendSR Dataset"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "output"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        draw_blendsr(self.layout, context)
+
+
+class BLENDSR_PT_view3d(bpy.types.Panel):
+    bl_idname = "BLENDSR_PT_view3d"
+    bl_label = "BlendSR"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "BlendSR"
+
+    def draw(self, context):
+        draw_blendsr(self.layout, context)
+
+
+CLASSES = (BLENDSR_PT_output, BLENDSR_PT_view3d)
+
+
+def register() -> None:
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister() -> None:
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)

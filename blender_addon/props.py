@@ -1,0 +1,126 @@
+"""``Scene.blendsr``: the panel's settings, one property per option of ``blendsr render`` (same defaults as the
+CLI), the preview's inputs, and the last preview's read-only results."""
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+
+CAMERA_PATH_ITEMS = (
+    ("scene", "Scene", "The file's own (animated) scene camera"),
+    ("orbit", "Orbit", "A generated, seeded orbit framed from the scene bounds"),
+    ("walk", "Walk", "A generated, seeded walk through the scene"),
+)
+JITTER_ITEMS = (
+    ("none", "None", "LR frames are not jittered"),
+    ("halton", "Halton", "Sub-pixel jitter of the LR frames, Halton(2, 3) with period 16, in LR pixels"),
+)
+FBETA_ITEMS = (
+    ("cycles", "Cycles", "Pre-integrated BRDF from Cycles' Diffuse + Glossy + Transmission Color passes"),
+    ("lut", "Split-sum table", "Split-sum table (image-based-lighting convention)"),
+    ("lut-paper", "Papers' table", "The papers' literal table convention"),
+    ("model", "Model", "A model of Cycles' Principled BSDF"),
+)
+#: Non-learned models the preview runs when no checkpoint is chosen (names of training.models.MODELS).
+PREVIEW_MODEL_ITEMS = (
+    ("demod-bilinear", "Demodulated bilinear",
+     "Bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta and emission"),
+    ("bilinear", "Bilinear", "Bilinear upsampling of LR radiance"),
+    ("bicubic", "Bicubic", "Bicubic upsampling of LR radiance, clamped at 0"),
+)
+
+
+def _result(key: str, default):
+    """Getter of a read-only result stored as an ID property (set by the preview operator)."""
+    return lambda self: self.get(key, default)
+
+
+class BlendSRSettings(bpy.types.PropertyGroup):
+    # -- output ----------------------------------------------------------------------------------------------
+    output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//blendsr_clip/",
+                               description="Clip directory to create or resume (// is relative to the .blend)")
+    # -- frames and size ---------------------------------------------------------------------------------------
+    use_scene_frames: BoolProperty(name="Scene frame range", default=True,
+                                   description="Render the scene's frame range (the CLI's default)")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (inclusive)")
+    frame_end: IntProperty(name="End", default=48, description="Last frame (inclusive)")
+    use_scene_resolution: BoolProperty(name="Scene resolution", default=True,
+                                       description="HR size = the scene's render resolution (the CLI's default)")
+    hr_width: IntProperty(name="HR width", default=640, min=1, subtype="PIXEL",
+                          description="HR (target) width in pixels; divisible by the scale")
+    hr_height: IntProperty(name="HR height", default=360, min=1, subtype="PIXEL",
+                           description="HR (target) height in pixels; divisible by the scale")
+    scale: IntProperty(name="Scale", default=4, min=1, max=16, description="Integer upscaling factor; LR = HR / scale")
+    # -- sampling ----------------------------------------------------------------------------------------------
+    hr_spp: IntProperty(name="HR samples", default=64, min=1, description="Samples per pixel of the HR ground truth")
+    lr_spp: IntProperty(name="LR samples", default=4, min=1, description="Samples per pixel of the LR render")
+    gbuffer_spp: IntProperty(name="G-buffer samples", default=4, min=1,
+                             description="Samples per pixel of the HR G-buffer pass (within 0.01 px of the centre)")
+    hr_denoise: BoolProperty(name="Denoise HR", default=False,
+                             description="Denoise the HR ground truth with OpenImageDenoise")
+    lr_denoise: BoolProperty(name="Denoise LR", default=False,
+                             description="Denoise the LR render with OpenImageDenoise")
+    adaptive: BoolProperty(name="Adaptive HR", default=False,
+                           description="Adaptive sampling for the HR ground truth (HR samples become the maximum)")
+    adaptive_threshold: FloatProperty(name="Noise threshold", default=0.01, min=0.0, max=0.999, precision=4,
+                                      description="Cycles' adaptive noise threshold")
+    adaptive_min_samples: IntProperty(name="Min samples", default=0, min=0,
+                                      description="Adaptive minimum samples (0 = automatic)")
+    use_max_bounces: BoolProperty(name="Override bounces", default=False,
+                                  description="Override the scene's total light bounces")
+    max_bounces: IntProperty(name="Max bounces", default=12, min=0, description="Total light bounces")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of camera paths and Cycles noise")
+    threads: IntProperty(name="Threads", default=0, min=0, description="Render threads (0 = all cores)")
+    # -- buffers and camera --------------------------------------------------------------------------------------
+    camera_path: EnumProperty(name="Camera path", items=CAMERA_PATH_ITEMS, default="scene",
+                              description="Camera of the clip")
+    jitter: EnumProperty(name="Jitter", items=JITTER_ITEMS, default="halton", description="Sub-pixel jitter of LR")
+    buffers: StringProperty(name="Buffers", default="default",
+                            description="Comma-separated buffers to write, 'default' or 'all'; radiance is always "
+                                        "written")
+    fbeta_source: EnumProperty(name="F_beta source", items=FBETA_ITEMS, default="cycles",
+                               description="Source of the pre-integrated BRDF")
+    # -- preview -------------------------------------------------------------------------------------------------
+    checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", default="",
+                               description="Trained model checkpoint; empty: the non-learned model below")
+    preview_model: EnumProperty(name="Model", items=PREVIEW_MODEL_ITEMS, default="demod-bilinear",
+                                description="Non-learned model used when no checkpoint is chosen")
+    with_reference: BoolProperty(name="With reference", default=False,
+                                 description="Also render the HR ground truth (HR samples) and report PSNR")
+    # -- results of the last preview (read-only) -----------------------------------------------------------------
+    preview_ms: FloatProperty(name="Inference time", get=_result("_preview_ms", 0.0), unit="NONE",
+                              description="Inference time of the last preview in milliseconds")
+    preview_psnr: FloatProperty(name="PSNR", get=_result("_preview_psnr", 0.0),
+                                description="PSNR of the last preview against the reference in dB (0: none)")
+    preview_metric: StringProperty(name="Metric", get=_result("_preview_metric", ""),
+                                   description="How the last preview's PSNR was computed")
+    preview_info: StringProperty(name="Preview", get=_result("_preview_info", ""),
+                                 description="Frame and model of the last preview")
+    preview_clip: StringProperty(name="Preview clip", get=_result("_preview_clip", ""),
+                                 description="Folder of the last preview's one-frame clip")
+    last_export: StringProperty(name="Last export", get=_result("_last_export", ""),
+                                description="Outcome of the last export")
+
+
+def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str) -> None:
+    """Set the read-only results (ID properties behind the getters)."""
+    settings["_preview_ms"] = float(ms)
+    settings["_preview_psnr"] = float(psnr) if psnr is not None else 0.0
+    settings["_preview_metric"] = metric if psnr is not None else ""
+    settings["_preview_info"] = info
+    settings["_preview_clip"] = clip
+
+
+CLASSES = (BlendSRSettings,)
+
+
+def register() -> None:
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+    bpy.types.Scene.blendsr = bpy.props.PointerProperty(type=BlendSRSettings, name="BlendSR")
+
+
+def unregister() -> None:
+    if hasattr(bpy.types.Scene, "blendsr"):
+        del bpy.types.Scene.blendsr
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)
