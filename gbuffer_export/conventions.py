@@ -71,9 +71,10 @@ BUFFERS: dict[str, BufferSpec] = {
     )
 }
 
-#: Buffers the default model (FuseSR) consumes; what ``blendsr render`` writes unless told otherwise.
+#: Buffers the default model (FuseSR) consumes; what ``blendsr render`` writes unless told otherwise. Material
+#: parameters (roughness, metallic, specular) are rendered only when asked for or when a table fbeta needs them.
 DEFAULT_BUFFERS: tuple[str, ...] = (
-    "radiance", "albedo", "normal", "depth", "roughness", "metallic", "specular", "emission", "fbeta", "motion", "flags",
+    "radiance", "albedo", "normal", "depth", "emission", "fbeta", "motion", "flags",
 )
 ALL_BUFFERS: tuple[str, ...] = tuple(BUFFERS)
 

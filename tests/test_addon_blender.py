@@ -255,9 +255,11 @@ def test_panels_draw_with_library(tmp_path):
         assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale"} and all(e[2] for e in ops)
         assert any(e[0] == "open" and e[2] >= 1 for e in log), "nested layouts are drawn"
         labels = [e[1] for e in log if e[0] == "label"]
-        # 11 default buffers x 2 levels x 2 frames; size from the channel counts (22 channels, float32).
-        assert "11 buffers x 2 levels x 2 frames = 44 EXR files" in labels
-        mb = 22 * 4 * (64 * 36 + 16 * 9) * 2 / 1e6
+        # default buffers x 2 levels x 2 frames; size from the channel counts (float32).
+        from gbuffer_export.conventions import BUFFERS, DEFAULT_BUFFERS
+        nb, nch = len(DEFAULT_BUFFERS), sum(len(BUFFERS[b].channels) for b in DEFAULT_BUFFERS)
+        assert f"{nb} buffers x 2 levels x 2 frames = {nb * 4} EXR files" in labels
+        mb = nch * 4 * (64 * 36 + 16 * 9) * 2 / 1e6
         assert any(f"at most {mb:.2f} MB" in t for t in labels), labels
         assert any(t.startswith("Time: about") and "cost model" in t for t in labels)
         assert not any("pip install" in t for t in labels)
@@ -330,9 +332,11 @@ def test_export_dataset_operator(tmp_path):
     assert "OK" in r["last"] and str(out) in r["last"]
     # the summary's counts and size bound describe what was written
     exrs = list(out.glob("*/*/*.exr"))
-    assert len(exrs) == len(m["buffers"]) * 2 * 2 == 44
-    payload = 22 * 4 * (64 * 36 + 16 * 9) * 2
-    assert sum(p.stat().st_size for p in exrs) < payload + 44 * 2000  # ZIP data + per-file header
+    from gbuffer_export.conventions import BUFFERS, DEFAULT_BUFFERS
+    nch = sum(len(BUFFERS[b].channels) for b in DEFAULT_BUFFERS)
+    assert len(exrs) == len(m["buffers"]) * 2 * 2 == len(DEFAULT_BUFFERS) * 4
+    payload = nch * 4 * (64 * 36 + 16 * 9) * 2
+    assert sum(p.stat().st_size for p in exrs) < payload + len(exrs) * 2000  # ZIP data + per-file header
 
 
 @pytest.mark.torch
