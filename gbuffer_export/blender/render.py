@@ -11,6 +11,7 @@ Then the passes are converted to the clip's conventions (``gbuffer_export.conven
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import sys
@@ -268,9 +269,28 @@ def read_passes(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+@contextlib.contextmanager
+def quiet_stdout():
+    """Silence Blender's per-render log lines on file descriptor 1 (set BLENDSR_VERBOSE=1 to keep them)."""
+    if os.environ.get("BLENDSR_VERBOSE"):
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True, scene=scene.name)
+    with quiet_stdout():
+        bpy.ops.render.render(write_still=True, scene=scene.name)
     if not path.is_file():
         raise RuntimeError(f"Cycles wrote no output to {path}")
     return read_passes(path)

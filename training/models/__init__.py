@@ -19,6 +19,9 @@ class ModelInfo:
     description: str
 
 
+#: Keys a batch may lack; models then use zeros (e.g. a clip rendered without emission).
+OPTIONAL_KEYS = ("lr/emission", "hr/emission")
+
 #: name -> where the class lives, whether it trains, what it is.
 MODELS: dict[str, ModelInfo] = {
     "bilinear": ModelInfo("training.models.bilinear", "Bilinear", False,
@@ -50,4 +53,4 @@ def build_model(cfg, scale: int):
     return model_class(cfg.name)(cfg, scale)
 
 
-__all__ = ["MODELS", "ModelInfo", "model_class", "build_model"]
+__all__ = ["MODELS", "ModelInfo", "OPTIONAL_KEYS", "model_class", "build_model"]
