@@ -92,10 +92,11 @@ class Flag(IntFlag):
     NO_MATERIAL = 1 << 7      # object without material (Cycles' default grey)
     EMISSIVE = 1 << 8         # emission > 0 (informative; demodulation subtracts it)
     MOVING = 1 << 9           # the object is animated (informative; not static for reprojection checks)
+    SINGLE_SCATTER_GGX = 1 << 10  # Principled with a non-multiscatter distribution: loses energy on rough metals
 
 
 UNTRUSTED = (Flag.ANISOTROPIC | Flag.SPECULAR_TINT | Flag.SUBSURFACE | Flag.ALPHA | Flag.VOLUME
-             | Flag.NON_PRINCIPLED | Flag.NO_MATERIAL)
+             | Flag.NON_PRINCIPLED | Flag.NO_MATERIAL | Flag.SINGLE_SCATTER_GGX)
 
 
 def buffer_spec(name: str) -> BufferSpec:

@@ -112,6 +112,7 @@ def inspect_material(mat, index: int) -> MaterialInfo:
         info.features.append("normal_map_or_bump")
     if getattr(node, "distribution", "MULTI_GGX") != "MULTI_GGX":
         info.features.append(f"distribution:{node.distribution.lower()}")
+        flags |= Flag.SINGLE_SCATTER_GGX
     info.flags = int(flags)
     return info
 

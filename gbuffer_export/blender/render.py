@@ -483,6 +483,9 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     k_hr = camera_intrinsics(cam, scene, w, h)
     k_lr, k_prev_lr = scale_intrinsics(k_hr, 1 / cfg.scale), scale_intrinsics(k_prev_hr, 1 / cfg.scale)
     gbuf_buffers = [b for b in cfg.buffers if b != "radiance"]
+    if "fbeta" in cfg.buffers and cfg.fbeta != "cycles":  # table sources read these even when not written
+        gbuf_buffers += [b for b in ("albedo", "normal", "roughness", "metallic", "specular", "flags")
+                         if b not in gbuf_buffers]
     base_shift = (cam.data.shift_x, cam.data.shift_y)
     record = {}
 
