@@ -1,0 +1,173 @@
+"""Models: the torch warp against the numpy reference, baselines against closed forms, FuseSR switches, config."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slower
+
+from gbuffer_export.config import ConfigError  # noqa: E402
+from gbuffer_export.conventions import backward_warp as np_warp  # noqa: E402
+from training.config import ModelConfig, TrainConfig, config_from_dict, dict_to_toml, load_config  # noqa: E402
+from training.models import MODELS, build_model  # noqa: E402
+from training.models.base import accumulate_motion, backward_warp  # noqa: E402
+from training.models.fusesr import FuseSR  # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+
+def t(a):
+    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].float()
+
+
+def test_torch_warp_matches_numpy_reference():
+    rng = np.random.default_rng(0)
+    img = rng.random((13, 17, 3)).astype(np.float32)
+    motion = (rng.random((13, 17, 2)) * 8 - 4).astype(np.float32)
+    motion[0, 0] = (-30, 0)  # leaves the image
+    ref, valid = np_warp(img, motion)
+    out, v = backward_warp(t(img), t(motion))
+    np.testing.assert_array_equal(v[0, 0].numpy().astype(bool), valid)
+    np.testing.assert_allclose(out[0].numpy().transpose(1, 2, 0), ref, atol=1e-5)
+    # chained motion t -> t-2
+    m2 = (rng.random((13, 17, 2)) * 4 - 2).astype(np.float32)
+    acc = accumulate_motion(t(motion), t(m2))[0].numpy().transpose(1, 2, 0)
+    np.testing.assert_allclose(acc, motion + np_warp(m2, motion)[0], atol=1e-5)
+
+
+def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
+    g = torch.Generator().manual_seed(seed)
+    H, W = h * scale, w * scale
+    lr = lambda c: torch.rand(1, frames, c, h, w, generator=g)  # noqa: E731
+    hr = lambda c: torch.rand(1, hr_frames, c, H, W, generator=g)  # noqa: E731
+    depth = 1 + 5 * lr(1)
+    depth[..., 0, :] = float("inf")  # background row
+    hdepth = 1 + 5 * hr(1)
+    hdepth[..., :scale, :] = float("inf")
+    return {"lr/radiance": lr(3), "lr/irradiance": lr(3) * 2, "lr/depth": depth, "lr/normal": lr(3) - 0.5,
+            "lr/motion": 2 * lr(2) - 1, "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
+            "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3),
+            "depth_ref": torch.full((1, frames), 3.0)}
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("scale", [4, 8])
+def test_every_model_maps_lr_to_hr(name, scale):
+    model = build_model(ModelConfig(name=name), scale).eval()
+    batch = make_batch(scale)
+    with torch.no_grad():
+        out = model(batch)
+    assert out.shape == (1, 3, 6 * scale, 8 * scale) and torch.isfinite(out).all()
+    assert set(model.needs()) <= set(batch)
+    assert MODELS[name].learned == any(True for _ in model.parameters())
+
+
+def test_demod_bilinear_is_remodulation_of_upsampled_irradiance():
+    batch = make_batch()
+    batch["lr/irradiance"][:] = 0.7  # constant irradiance: bilinear keeps it, so SR = 0.7 F_HR + E_HR exactly
+    out = build_model(ModelConfig(name="demod-bilinear"), 4)(batch)
+    expect = 0.7 * batch["hr/fbeta_used"][:, -1] + batch["hr/emission"][:, -1]
+    torch.testing.assert_close(out, expect)
+
+
+def test_bicubic_is_clamped_and_bilinear_preserves_constants():
+    batch = make_batch()
+    batch["lr/radiance"][:] = 0.0
+    batch["lr/radiance"][..., 2, 3] = 5.0  # a spike: bicubic rings negative, clamped at 0
+    out = build_model(ModelConfig(name="bicubic"), 4)(batch)
+    raw = torch.nn.functional.interpolate(batch["lr/radiance"][:, -1], scale_factor=4, mode="bicubic")
+    assert raw.min() < 0 and out.min() == 0 and torch.equal(out, raw.clamp(min=0))
+    batch["lr/radiance"][:] = 0.25
+    assert torch.allclose(build_model(ModelConfig(name="bilinear"), 4)(batch), torch.full((1, 3, 24, 32), 0.25))
+
+
+def _changes_output(model, batch, key, frame_index):
+    with torch.no_grad():
+        a = model(batch)
+        b2 = {k: v.clone() for k, v in batch.items()}
+        b2[key][:, frame_index] += 0.5
+        b = model(b2)
+    return not torch.allclose(a, b)
+
+
+def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
+    torch.manual_seed(0)
+    batch = make_batch()
+    full = FuseSR(ModelConfig(name="fusesr"), 4).eval()
+    assert full.history == 2 and full.window == 3
+    assert _changes_output(full, batch, "lr/irradiance", 0)      # history frame t-2
+    assert _changes_output(full, batch, "hr/albedo", -1)         # HR G-buffer branch
+    no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4).eval()
+    assert "hr/albedo" not in no_hr.needs() and "hr/fbeta_used" in no_hr.needs()
+    assert not _changes_output(no_hr, batch, "hr/albedo", -1)
+    no_demod = FuseSR(ModelConfig(name="fusesr", demodulation=False), 4).eval()
+    assert "lr/radiance" in no_demod.needs() and "lr/irradiance" not in no_demod.needs()
+    assert not _changes_output(no_demod, batch, "lr/irradiance", -1)
+    plain = FuseSR(ModelConfig(name="fusesr", demodulation=False, hr_gbuffer=False), 4).eval()
+    assert not any(k.startswith("hr/") for k in plain.needs())
+    # residual head: with the last convolution zeroed the output is the bilinear upsampling of T(L_D) remodulated
+    from training.transforms import forward_transform, inverse_transform
+    with torch.no_grad():
+        full.refine.weight.zero_()
+        full.refine.bias.zero_()
+        up = torch.nn.functional.interpolate(forward_transform(batch["lr/irradiance"][:, -1], "log1p"),
+                                             scale_factor=4, mode="bilinear")
+        expect = inverse_transform(up.clamp(min=0), "log1p") * batch["hr/fbeta_used"][:, -1] \
+            + batch["hr/emission"][:, -1]
+        torch.testing.assert_close(full(batch), expect)
+    authors = FuseSR(ModelConfig(name="fusesr", residual=False), 4).eval()
+    with torch.no_grad():
+        authors.refine.weight.zero_()
+        authors.refine.bias.zero_()
+        assert torch.equal(authors(batch), batch["hr/emission"][:, -1])  # L_D = 0: only the emission is left
+    # demodulation on: the output is remodulated by the HR F_beta (zero F_beta and emission -> zero output)
+    b0 = {k: v.clone() for k, v in batch.items()}
+    b0["hr/fbeta_used"][:] = 0
+    b0["hr/emission"][:] = 0
+    with torch.no_grad():
+        assert torch.equal(no_hr(b0), torch.zeros(1, 3, 24, 32))
+
+
+def test_fusesr_light_has_no_history_and_depthwise_separable_fusion():
+    light = build_model(ModelConfig(name="fusesr-l"), 4).eval()
+    full = build_model(ModelConfig(name="fusesr"), 4)
+    assert light.history == 0 and "lr/motion" not in light.needs()
+    assert not _changes_output(light, make_batch(), "lr/irradiance", 0)
+    dw = [m for m in light.blocks.modules() if isinstance(m, torch.nn.Conv2d) and m.groups > 1]
+    assert len(dw) == 2 * 6 and all(m.groups == m.in_channels == 64 for m in dw)
+    n_light = sum(p.numel() for p in light.parameters())
+    n_full = sum(p.numel() for p in full.parameters())
+    assert n_light < 0.2 * n_full
+    # the authors' layer sizes: encoder 7 -> 64, 6 residual blocks of 128 channels, 10-channel HR branch
+    assert full.encoder.shallow[0].in_channels == 7 and full.encoder.shallow[0].out_channels == 64
+    assert len(full.blocks) == 6 and full.blocks[0].conv1.in_channels == 128
+    assert full.hr_branch[0].in_channels == 10 * 16
+
+
+def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
+    with pytest.raises(ConfigError, match="unknown key data.crops"):
+        config_from_dict({"data": {"crops": 3}})
+    with pytest.raises(ConfigError, match=r"unknown section \[train\]"):
+        config_from_dict({"train": {}})
+    with pytest.raises(ConfigError, match="data.crop: expected an integer"):
+        config_from_dict({"data": {"crop": "big"}})
+    with pytest.raises(ConfigError, match="model.name 'esrgan'"):
+        config_from_dict({"model": {"name": "esrgan"}})
+    with pytest.raises(ConfigError, match="vgg_weights"):
+        config_from_dict({"loss": {"perceptual_weight": 0.5}})
+    with pytest.raises(ConfigError, match="loss.space"):
+        load_config(None, ["loss.space=srgb"])
+    p = tmp_path / "c.toml"
+    p.write_text('[data]\ncrop = 32\nexposure_range = [1, 3]\n[optim]\nlr = 1e-3\n')
+    cfg = load_config(p, ["data.crop=48", "run.amp=bf16", "model.name=fusesr-l"])
+    assert cfg.data.crop == 48 and cfg.data.exposure_range == [1.0, 3.0] and cfg.optim.lr == 1e-3
+    assert cfg.run.amp == "bf16" and cfg.model.name == "fusesr-l"
+    back = tmp_path / "back.toml"
+    back.write_text(cfg.to_toml())
+    assert load_config(back).to_dict() == cfg.to_dict()
+    assert dict_to_toml({"a": {"s": 'x"y'}}) == '[a]\ns = "x\\"y"\n'
+    assert TrainConfig().validate().model.name == "fusesr"
+    example = Path(__file__).resolve().parents[1] / "examples" / "train_config.toml"
+    assert load_config(example).data.val_frames == 8

@@ -1,0 +1,144 @@
+"""Training: a few steps through the CLI, bit-identical resume, NaN stops, losses, perceptual weights file."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slower
+
+from gbuffer_export.cli import main  # noqa: E402
+from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
+from training.config import load_config  # noqa: E402
+from training.train import TrainingError, load_checkpoint, train  # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+SMALL = ["data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
+         "run.log_every=1", "run.amp=\"none\"", "run.threads=0"]
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 6), hr_size=(64, 36), scale=4)
+
+
+def _sets(items):
+    out = []
+    for s in items:
+        out += ["--set", s]
+    return out
+
+
+def test_train_cli_writes_config_log_checkpoint_and_summary(clip, tmp_path):
+    run = tmp_path / "run"
+    rc = main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "3",
+               *_sets(SMALL + ["run.checkpoint_every=2", "loss.temporal_weight=0.5", "loss.fft_weight=0.1",
+                               "loss.pixel=\"charbonnier\""])])
+    assert rc == 0
+    cfg = load_config(run / "config.toml")
+    assert cfg.model.name == "fusesr" and cfg.model.scale == 4 and cfg.data.clips == [str(clip)]
+    rows = list(csv.DictReader(open(run / "log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3]
+    for r in rows:
+        for k in ("loss", "pixel", "ssim", "fft", "temporal"):
+            assert np.isfinite(float(r[k])), k
+        total = float(r["pixel"]) + 0.05 * float(r["ssim"]) + 0.1 * float(r["fft"]) + 0.5 * float(r["temporal"])
+        assert float(r["loss"]) == pytest.approx(total, rel=1e-5)
+    ck = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert ck["step"] == 3 and ck["model_name"] == "fusesr" and ck["scale"] == 4
+    assert {"torch", "numpy", "python"} <= set(ck["rng"]) and ck["sampler"]["seed"] == 0
+    assert ck["data"][0]["manifest_sha256"] and {"model", "optimizer", "scheduler", "config"} <= set(ck)
+    assert (run / "checkpoints" / "step_00000002.pt").is_file()
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["step"] == 3 and summary["stopped_by"] == "max_steps" and summary["params"] > 0
+    # an existing run is not overwritten without --resume
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "3"]) == 2
+
+
+def test_resume_is_bit_identical(clip, tmp_path):
+    over = SMALL + ["optim.decay_steps=4", "run.max_steps=4", "run.checkpoint_every=100", "data.prefetch=1"]
+    straight = tmp_path / "straight"
+    cfg = load_config(None, over + ["model.name=\"fusesr\""])
+    cfg.data.clips = [str(clip)]
+    train(cfg, straight, log=lambda m: None)
+    split = tmp_path / "split"
+    cfg2 = load_config(None, over + ["model.name=\"fusesr\""])
+    cfg2.data.clips = [str(clip)]
+    s1 = train(cfg2, split, stop_at=2, log=lambda m: None)
+    assert s1["step"] == 2 and s1["stopped_by"] == "stop_at"
+    half = load_checkpoint(split / "checkpoints" / "last.pt")
+    assert half["step"] == 2
+    assert main(["train", "-o", str(split), "--resume"]) == 0
+    a = load_checkpoint(straight / "checkpoints" / "last.pt")
+    b = load_checkpoint(split / "checkpoints" / "last.pt")
+    assert a["step"] == b["step"] == 4
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+    assert not torch.equal(half["model"]["head.weight"], a["model"]["head.weight"])
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    for i in sa:
+        assert torch.equal(sa[i]["exp_avg_sq"], sb[i]["exp_avg_sq"])
+    rows = list(csv.DictReader(open(split / "log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
+    # a changed configuration is refused on resume
+    assert main(["train", "-o", str(split), "--resume", "--max-steps", "5", "--set", "data.crop=12"]) == 2
+
+
+def test_nonfinite_loss_stops_training_and_names_the_batch(clip, tmp_path, monkeypatch):
+    from training.models.fusesr_l import FuseSRLight
+    real = FuseSRLight.forward
+    calls = {"n": 0}
+
+    def poisoned(self, batch):
+        calls["n"] += 1
+        out = real(self, batch)
+        return out * float("nan") if calls["n"] == 2 else out
+    monkeypatch.setattr(FuseSRLight, "forward", poisoned)
+    cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "run.max_steps=5"])
+    cfg.data.clips = [str(clip)]
+    with pytest.raises(TrainingError) as err:
+        train(cfg, tmp_path / "nan", log=lambda m: None)
+    msg = str(err.value)
+    assert "step 2" in msg and "model output" in msg and str(clip) in msg and "frames" in msg
+    assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()  # nothing after the bad step
+
+
+def test_perceptual_loss_needs_a_user_file_and_uses_it(clip, tmp_path):
+    from training.perceptual import VGGFeatures, vgg16_features
+    assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(tmp_path / "r0"),
+                 "--set", "loss.perceptual_weight=0.5"]) == 2
+    torch.manual_seed(0)
+    weights = tmp_path / "vgg16.pt"
+    torch.save({f"features.{k}": v for k, v in vgg16_features().state_dict().items()}, weights)
+    v = VGGFeatures.from_file(weights)
+    a = torch.rand(1, 3, 32, 32)
+    assert float(v.distance(a, a)) == 0.0 and float(v.distance(a, a.flip(-1))) > 0
+    bad = tmp_path / "bad.pt"
+    torch.save({"x": torch.zeros(1)}, bad)
+    with pytest.raises(ValueError, match="not a VGG-16"):
+        VGGFeatures.from_file(bad)
+    run = tmp_path / "r1"
+    assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                 *_sets(SMALL + ["loss.perceptual_weight=0.5", f"loss.vgg_weights=\"{weights}\""])]) == 0
+    row = next(csv.DictReader(open(run / "log.csv")))
+    assert float(row["perceptual"]) > 0
+
+
+def test_untrainable_model_and_missing_data_are_usage_errors(clip, tmp_path):
+    assert main(["train", "--model", "bicubic", "--data", str(clip), "-o", str(tmp_path / "a")]) == 2
+    assert main(["train", "--model", "fusesr", "-o", str(tmp_path / "b")]) == 2
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "c"),
+                 "--set", "data.crop=64"]) == 2  # LR is 16x9
+
+
+def test_bf16_autocast_step_on_cpu(clip, tmp_path):
+    over = [s for s in SMALL if not s.startswith("run.amp")] + ["model.name=\"fusesr-l\"", "run.max_steps=2",
+                                                               "run.amp=\"bf16\""]
+    cfg = load_config(None, over)
+    cfg.data.clips = [str(clip)]
+    s = train(cfg, tmp_path / "bf16", log=lambda m: None)
+    assert s["amp"] == "bfloat16" and s["step"] == 2
+    rows = list(csv.DictReader(open(tmp_path / "bf16" / "log.csv")))
+    assert all(np.isfinite(float(r["loss"])) for r in rows)

@@ -1,0 +1,68 @@
+"""Augmentations that keep every buffer consistent (numpy, arrays (..., H, W, C) keyed by 'level/buffer').
+
+Dihedral transforms (the 8 symmetries of a square crop) are written as an optional transpose (swap image x and y)
+followed by optional flips of x and of y. Image-space vectors follow the image:
+
+- motion (x right, y down, pixels): transpose swaps (mx, my); flip x negates mx; flip y negates my.
+- camera-space normals (+X right, +Y up, +Z toward the viewer): their image direction is (X, -Y), so transpose maps
+  (X, Y, Z) -> (-Y, -X, Z), flip x negates X, flip y negates Y. Z is unchanged (each transform is a mirror or
+  rotation of the image plane, seen by a mirrored/rotated pinhole camera).
+
+Exposure scaling multiplies radiance, irradiance and emission by one factor (F_beta and G-buffers unchanged), which
+keeps radiance = F_beta * L_D + emission. Scalar buffers (depth, albedo, flags, ...) only move with the pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+RADIOMETRIC = ("radiance", "irradiance", "emission")
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    transpose: bool = False
+    flip_x: bool = False
+    flip_y: bool = False
+    exposure: float = 1.0
+
+    @staticmethod
+    def draw(rng: np.random.Generator, flip: bool, rotate: bool, exposure_range=(1.0, 1.0)) -> "Augmentation":
+        """Random augmentation: flips and transposes each with probability 1/2 when enabled (transpose plus a flip
+        is a 90-degree rotation), exposure log-uniform in ``exposure_range``. Always draws the same number of
+        variates, so the random stream does not depend on the switches."""
+        u = rng.random(4)
+        lo, hi = exposure_range
+        return Augmentation(transpose=bool(rotate and u[0] < 0.5), flip_x=bool(flip and u[1] < 0.5),
+                            flip_y=bool(flip and u[2] < 0.5),
+                            exposure=float(np.exp(np.log(lo) + u[3] * (np.log(hi) - np.log(lo)))))
+
+
+def _buffer(key: str) -> str:
+    return key.rsplit("/", 1)[-1]
+
+
+def apply(key: str, a: np.ndarray, aug: Augmentation) -> np.ndarray:
+    """Apply ``aug`` to array ``a`` (..., H, W, C) of buffer ``key``; returns a new array."""
+    name = _buffer(key)
+    h_ax, w_ax = a.ndim - 3, a.ndim - 2
+    if aug.transpose:
+        a = np.swapaxes(a, h_ax, w_ax)
+        if name == "motion":
+            a = a[..., ::-1]
+        elif name == "normal":
+            a = np.stack([-a[..., 1], -a[..., 0], a[..., 2]], axis=-1)
+    if aug.flip_x:
+        a = np.flip(a, axis=w_ax)
+        if name in ("motion", "normal"):
+            a = a * np.array([-1, 1] if name == "motion" else [-1, 1, 1], dtype=a.dtype)
+    if aug.flip_y:
+        a = np.flip(a, axis=h_ax)
+        if name == "motion":
+            a = a * np.array([1, -1], dtype=a.dtype)
+        elif name == "normal":
+            a = a * np.array([1, -1, 1], dtype=a.dtype)
+    if aug.exposure != 1.0 and name in RADIOMETRIC:
+        a = a * np.asarray(aug.exposure, dtype=a.dtype)
+    return np.ascontiguousarray(a)

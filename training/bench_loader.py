@@ -1,0 +1,101 @@
+"""``blendsr bench loader``: time of loading a training batch against the time of a training step.
+
+Loads batches with the training sampler (memory-mapped cache, aligned crops, augmentation, float32 conversion) in the
+main thread, without prefetching, and times a full FuseSR training step (forward, loss, backward, Adam) on the same
+batch size and crop. Reports the medians and their ratio. Without --data it writes a synthetic clip (512x288 HR,
+scale 4, 8 frames) to a temporary directory. torch is imported inside ``run``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", nargs="*", default=[], metavar="CLIP",
+                        help="clips to load from (default: a synthetic clip in a temporary directory)")
+    parser.add_argument("--model", default="fusesr", help="model whose inputs are loaded and whose step is timed")
+    parser.add_argument("--batch", type=int, default=8, help="batch size")
+    parser.add_argument("--crop", type=int, default=64, help="LR crop side, pixels")
+    parser.add_argument("--batches", type=int, default=20, help="batches loaded for the timing")
+    parser.add_argument("--steps", type=int, default=5, help="training steps timed (after one warm-up step)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--amp", default="none", choices=("none", "bf16", "auto"), help="autocast of the step")
+    parser.add_argument("--json", metavar="OUT", help="also write the numbers as JSON")
+
+
+def run(args) -> int:
+    import torch
+
+    from gbuffer_export.synthetic import make_synthetic_clip
+    from training.cache import ClipCache
+    from training.config import LossConfig, ModelConfig
+    from training.data import BatchSpec, TrainSampler
+    from training.losses import Criterion
+    from training.models import build_model
+    from training.train import amp_dtype, autocast
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    tmp = None
+    clips = list(args.data)
+    if not clips:
+        tmp = tempfile.TemporaryDirectory(prefix="blendsr-bench-loader-")
+        t = time.perf_counter()
+        clips = [str(make_synthetic_clip(Path(tmp.name) / "clip", frames=range(1, 9), hr_size=(512, 288),
+                                         scale=4, hr_supersample=1))]
+        print(f"synthetic clip 512x288 x4, 8 frames written in {time.perf_counter() - t:.1f} s")
+    try:
+        scales = {ClipCache(c).scale for c in clips}
+        scale = scales.pop()
+        model = build_model(ModelConfig(name=args.model), scale)
+        spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True, exposure_range=(0.5, 2.0))
+        caches = [ClipCache(c) for c in clips]
+        t = time.perf_counter()
+        for c in caches:
+            c.ensure(spec.cache_keys)
+        cache_s = time.perf_counter() - t
+        sampler = TrainSampler(caches, spec, args.batch, seed=0)
+        load_ms = []
+        for k in range(args.batches):
+            t = time.perf_counter()
+            batch, _ = sampler.batch(k)
+            tb = {key: torch.from_numpy(v) for key, v in batch.items()}
+            load_ms.append(1000 * (time.perf_counter() - t))
+        crit = Criterion(LossConfig())
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+        device = torch.device("cpu")
+        dtype = amp_dtype(args.amp, device)
+        step_ms = []
+        for k in range(args.steps + 1):
+            batch, _ = sampler.batch(1000 + k)
+            tb = {key: torch.from_numpy(v) for key, v in batch.items()}
+            t = time.perf_counter()
+            with autocast(device, dtype):
+                sr = model(tb).float()
+            loss, _ = crit(sr, tb["hr/radiance"][:, -1])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            if k:
+                step_ms.append(1000 * (time.perf_counter() - t))
+        res = {"model": args.model, "batch": args.batch, "crop_lr": args.crop, "scale": scale,
+               "threads": torch.get_num_threads(), "amp": str(dtype).replace("torch.", "") if dtype else "none",
+               "cache_build_s": cache_s, "load_ms_median": statistics.median(load_ms),
+               "load_ms_max": max(load_ms), "step_ms_median": statistics.median(step_ms),
+               "step_ms_min": min(step_ms)}
+        res["ratio"] = res["load_ms_median"] / res["step_ms_median"]
+        print(f"{args.model} batch {args.batch}, LR crop {args.crop} (x{scale}), {res['threads']} threads, "
+              f"amp {res['amp']}: load {res['load_ms_median']:.1f} ms (max {res['load_ms_max']:.1f}), "
+              f"step {res['step_ms_median']:.0f} ms -> loading = {100 * res['ratio']:.2f}% of a step "
+              f"(cache built in {cache_s:.1f} s)")
+        if args.json:
+            Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
+        return 0
+    finally:
+        if tmp is not None:
+            tmp.cleanup()

@@ -1,0 +1,277 @@
+"""Training cache of a clip: every buffer decoded once into a memory-mapped ``.npy`` array, so that no EXR is
+decoded inside a training step (pure numpy; no torch).
+
+Layout::
+
+    CACHE/index.json                 identity, frames, sizes, arrays, per-frame depth reference, sanitising log
+    CACHE/<level>__<buffer>.npy      (N, H, W, C) for the N finished frames in ascending order
+
+``CACHE`` is ``CLIP/.blendsr_cache`` (ClipWriter ignores dot-names), or ``DIR/<clip-name>-<path-hash>`` when a cache
+directory is given or the clip is not writable. The cache identity hashes the bytes of ``manifest.json``, the
+cache format version, the demodulation eps and the non-finite policy: when any of them changes the cache is wiped
+and rebuilt. Arrays are added lazily (``ensure``), each under a file lock, written to a temporary name and renamed.
+
+Stored dtypes: radiance, irradiance, emission, fbeta_used, depth and motion as float32 (float16 overflows above
+65504 and loses motion precision); flags uint32; the other G-buffers float16. Derived buffers:
+``irradiance`` and ``fbeta_used`` = ``gbuffer_export.demod.demodulate(radiance, emission, fbeta, flags, eps)``.
+"""
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from gbuffer_export.clip import Clip, ClipError, open_clip, split_key, write_json_atomic
+from gbuffer_export.conventions import BUFFERS, LEVELS
+from gbuffer_export.demod import RADIANCE_CAP, demodulate
+
+CACHE_VERSION = 1
+CACHE_DIRNAME = ".blendsr_cache"
+DERIVED = ("irradiance", "fbeta_used")
+FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion")
+
+
+class NonFiniteError(ClipError):
+    """A buffer holds NaN/Inf where it must not (message names the file and frame)."""
+
+
+def storage_dtype(name: str) -> np.dtype:
+    if name == "flags":
+        return np.dtype(np.uint32)
+    return np.dtype(np.float32 if name in FLOAT32_BUFFERS else np.float16)
+
+
+def channels_of(name: str) -> int:
+    if name in DERIVED:
+        return 3
+    return len(BUFFERS[name].channels)
+
+
+def manifest_sha256(clip_path: Path) -> str:
+    return hashlib.sha256((Path(clip_path) / "manifest.json").read_bytes()).hexdigest()
+
+
+def default_cache_path(clip_path: Path, cache_dir: str | os.PathLike | None = None) -> Path:
+    """Where the cache of ``clip_path`` lives (see module doc)."""
+    clip_path = Path(clip_path).resolve()
+    tag = f"{clip_path.name}-{hashlib.sha256(str(clip_path).encode()).hexdigest()[:10]}"
+    if cache_dir:
+        return Path(cache_dir) / tag
+    if os.access(clip_path, os.W_OK):
+        return clip_path / CACHE_DIRNAME
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "blendsr"
+    return base / tag
+
+
+def check_finite(a: np.ndarray, name: str, where: str, policy: str, log: list) -> np.ndarray:
+    """Apply the non-finite policy to buffer ``name``. Depth may be +inf (background); nothing else may be
+    non-finite. 'error' raises NonFiniteError naming ``where``; 'sanitize' warns, records and repairs:
+    radiance/emission by the demodulation rule (NaN -> 0, +-Inf -> +-cap), depth NaN/-Inf -> +inf (background),
+    other buffers NaN/Inf -> 0."""
+    if a.dtype.kind != "f":
+        return a
+    if name == "depth":
+        bad = np.isnan(a) | np.isneginf(a)
+    else:
+        bad = ~np.isfinite(a)
+    n = int(bad.sum())
+    if n == 0:
+        return a
+    if policy == "error":
+        raise NonFiniteError(f"{where}: {n} NaN/Inf value(s) in buffer {name!r}; fix the render or set "
+                             "data.nonfinite = \"sanitize\"")
+    warnings.warn(f"{where}: sanitised {n} NaN/Inf value(s) in buffer {name!r}", RuntimeWarning, stacklevel=3)
+    log.append({"where": where, "buffer": name, "count": n})
+    if name in ("radiance", "emission"):
+        return np.clip(np.nan_to_num(a, nan=0.0, posinf=RADIANCE_CAP, neginf=-RADIANCE_CAP),
+                       -RADIANCE_CAP, RADIANCE_CAP).astype(a.dtype)
+    if name == "depth":
+        return np.where(bad, np.inf, a).astype(a.dtype)
+    return np.where(bad, 0.0, a).astype(a.dtype)
+
+
+class ClipCache:
+    """The cache of one clip. ``array(key)`` gives the (N, H, W, C) memmap of 'lr/irradiance' etc.;
+    ``index_of[frame]`` its row; ``depth_ref[frame]`` the median finite LR depth of a frame (scene units)."""
+
+    def __init__(self, clip_path: str | os.PathLike, *, eps: float = 0.01, nonfinite: str = "error",
+                 cache_dir: str | os.PathLike | None = None):
+        self.clip: Clip = open_clip(clip_path)
+        self.clip_path = Path(clip_path)
+        self.eps = float(eps)
+        self.nonfinite = nonfinite
+        self.path = default_cache_path(self.clip_path, cache_dir)
+        self.manifest_sha256 = manifest_sha256(self.clip_path)
+        self.identity = hashlib.sha256(json.dumps(
+            [CACHE_VERSION, self.manifest_sha256, self.eps, nonfinite]).encode()).hexdigest()[:16]
+        self.frames = list(self.clip.frames)
+        if not self.frames:
+            raise ClipError(f"{self.clip_path}: clip has no finished frame")
+        self.index_of = {f: i for i, f in enumerate(self.frames)}
+        self.scale = self.clip.scale
+        self.sizes = self.clip.sizes
+        self._arrays: dict[str, np.ndarray] = {}
+        self.index = self._load_or_reset()
+
+    # -------------------------------------------------------------------------------------------- index
+    @contextmanager
+    def _lock(self):
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.path / ".lock", "a+") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def _read_index(self) -> dict | None:
+        p = self.path / "index.json"
+        if not p.is_file():
+            return None
+        try:
+            return json.loads(p.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            return None
+
+    def _load_or_reset(self) -> dict:
+        with self._lock():
+            idx = self._read_index()
+            if idx is None or idx.get("identity") != self.identity:
+                self.rebuilt = idx is not None
+                for p in self.path.iterdir():
+                    if p.name != ".lock":
+                        shutil.rmtree(p) if p.is_dir() else p.unlink()
+                idx = {"version": CACHE_VERSION, "identity": self.identity, "clip": str(self.clip_path.resolve()),
+                       "manifest_sha256": self.manifest_sha256, "frames": self.frames, "scale": self.scale,
+                       "sizes": self.sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
+                       "depth_ref": {}, "sanitized": []}
+                write_json_atomic(self.path / "index.json", idx)
+            else:
+                self.rebuilt = False
+            return idx
+
+    @property
+    def keys(self) -> list[str]:
+        """Keys available in the clip (derived ones included), cached or not."""
+        out = []
+        for lvl in LEVELS:
+            out += [f"{lvl}/{b}" for b in self.clip.buffers]
+            if {"radiance", "fbeta"} <= set(self.clip.buffers):
+                out += [f"{lvl}/{d}" for d in DERIVED]
+        return out
+
+    def has(self, key: str) -> bool:
+        return key in self.keys
+
+    # -------------------------------------------------------------------------------------------- build
+    def ensure(self, keys) -> "ClipCache":
+        """Build the arrays of ``keys`` that are not cached yet (and the depth reference with 'lr/depth')."""
+        keys = list(dict.fromkeys(keys))
+        missing = [k for k in keys if k not in self.index["arrays"]]
+        if "lr/depth" in keys and not self.index.get("depth_ref"):
+            missing.append("lr/depth")
+        if not missing:
+            return self
+        for k in missing:
+            if not self.has(k):
+                lvl, _, name = k.partition("/")
+                need = "radiance and fbeta" if name in DERIVED else name
+                raise ClipError(f"{self.clip_path}: clip has no buffer {need!r} needed for {k!r} "
+                                f"(has {', '.join(self.clip.buffers)})")
+        with self._lock():
+            idx = self._read_index()
+            if idx is None or idx.get("identity") != self.identity:
+                raise ClipError(f"{self.path}: cache changed while building; rerun")
+            self.index = idx
+            for k in dict.fromkeys(missing):
+                if k in self.index["arrays"] and not (k == "lr/depth" and not self.index.get("depth_ref")):
+                    continue
+                lvl, name = k.split("/")
+                if name in DERIVED:
+                    self._build_derived(lvl)
+                else:
+                    self._build(lvl, name)
+                write_json_atomic(self.path / "index.json", self.index)
+        return self
+
+    def _read_checked(self, frame: int, key: str) -> np.ndarray:
+        a = self.clip.read(frame, key)
+        where = f"{self.clip.path_of(frame, key)} (frame {frame})"
+        return check_finite(a, split_key(key)[1], where, self.nonfinite, self.index["sanitized"])
+
+    def _new_array(self, key: str) -> tuple[np.ndarray, Path, Path]:
+        lvl, name = key.split("/")
+        w, h = self.sizes[lvl]
+        final = self.path / f"{lvl}__{name}.npy"
+        tmp = self.path / f".{lvl}__{name}.npy.tmp{os.getpid()}"
+        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=storage_dtype(name),
+                                        shape=(len(self.frames), h, w, channels_of(name)))
+        return arr, tmp, final
+
+    def _commit(self, key: str, arr: np.ndarray, tmp: Path, final: Path) -> None:
+        arr.flush()
+        del arr
+        os.replace(tmp, final)
+        self.index["arrays"][key] = {"file": final.name, "dtype": storage_dtype(key.split("/")[1]).name}
+        self._arrays.pop(key, None)
+
+    def _build(self, lvl: str, name: str) -> None:
+        key = f"{lvl}/{name}"
+        arr, tmp, final = self._new_array(key)
+        refs = {}
+        for i, f in enumerate(self.frames):
+            a = self._read_checked(f, key)
+            if name == "flags":
+                arr[i] = a.astype(np.uint32)
+            else:
+                arr[i] = a
+            if key == "lr/depth":
+                d = a[..., 0]
+                fin = d[np.isfinite(d) & (d > 0)]
+                refs[str(f)] = float(np.median(fin)) if fin.size else 1.0
+        self._commit(key, arr, tmp, final)
+        if key == "lr/depth":
+            self.index["depth_ref"] = refs
+
+    def _build_derived(self, lvl: str) -> None:
+        have_e = "emission" in self.clip.buffers
+        have_f = "flags" in self.clip.buffers
+        irr, tmp_i, fin_i = self._new_array(f"{lvl}/irradiance")
+        fbu, tmp_f, fin_f = self._new_array(f"{lvl}/fbeta_used")
+        for i, f in enumerate(self.frames):
+            rad = self._read_checked(f, f"{lvl}/radiance")
+            em = self._read_checked(f, f"{lvl}/emission") if have_e else None
+            fb = self._read_checked(f, f"{lvl}/fbeta")
+            fl = self.clip.read(f, f"{lvl}/flags") if have_f else None
+            irr[i], fbu[i] = demodulate(rad, em, fb, fl, self.eps)
+        self._commit(f"{lvl}/irradiance", irr, tmp_i, fin_i)
+        self._commit(f"{lvl}/fbeta_used", fbu, tmp_f, fin_f)
+
+    # -------------------------------------------------------------------------------------------- read
+    def array(self, key: str) -> np.ndarray:
+        """Memory-mapped (N, H, W, C) array of a cached key (call ``ensure`` first)."""
+        a = self._arrays.get(key)
+        if a is None:
+            if key not in self.index["arrays"]:
+                raise ClipError(f"{self.path}: {key!r} is not cached; call ensure([{key!r}])")
+            a = np.load(self.path / self.index["arrays"][key]["file"], mmap_mode="r")
+            self._arrays[key] = a
+        return a
+
+    def depth_ref(self, frame: int) -> float:
+        return float(self.index["depth_ref"].get(str(frame), 1.0))
+
+    def read(self, frame: int, key: str) -> np.ndarray:
+        """One frame of a cached key as float32 H x W x C (flags uint32)."""
+        a = self.array(key)[self.index_of[frame]]
+        return np.asarray(a, dtype=np.uint32 if a.dtype == np.uint32 else np.float32)
+
+
+__all__ = ["ClipCache", "NonFiniteError", "default_cache_path", "check_finite", "CACHE_VERSION"]

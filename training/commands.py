@@ -1,0 +1,197 @@
+"""``blendsr train | evaluate | upscale | export``: argument parsing only; torch is imported inside the functions."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+FMT = argparse.ArgumentDefaultsHelpFormatter
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", formatter_class=FMT, help="train a model on exported clips",
+        description="Train a super-resolution model on BlendSR clips. Configuration: defaults < --config TOML < "
+                    "--set overrides < --max-steps/--minutes. The run directory receives config.toml, log.csv, "
+                    "checkpoints/ and summary.json; see docs/training.md.")
+    p.add_argument("--model", help="model name (see 'blendsr train --list-models'); overrides model.name")
+    p.add_argument("--data", nargs="+", metavar="CLIP", default=[], help="training clip directories")
+    p.add_argument("-o", "--output", metavar="RUN_DIR", help="run directory (created)")
+    p.add_argument("--config", metavar="FILE", help="TOML configuration ([data] [model] [loss] [optim] [run])")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one configuration value (TOML literal), repeatable, e.g. --set data.crop=48")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--max-steps", type=int, metavar="N",
+                   help="train until step N (run.max_steps; clears run.minutes)")
+    g.add_argument("--minutes", type=float, metavar="M",
+                   help="stop after M minutes of this invocation (run.minutes; run.max_steps stays a cap)")
+    p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
+    p.add_argument("--list-models", action="store_true", help="print the model table and exit")
+    p.set_defaults(func=cmd_train)
+
+    p = subparsers.add_parser(
+        "evaluate", formatter_class=FMT, help="score a model against the HR ground truth",
+        description="Evaluate a checkpoint or a non-learned model on clips: PSNR/SSIM on the declared tonemap, "
+                    "PSNR on linear HDR (peak 1), HDR-FLIP, temporal PSNR, warping error, ms per frame. "
+                    "Writes JSON (docs/training.md describes every key).")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
+    g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear")
+    p.add_argument("--data", nargs="+", required=True, metavar="CLIP", help="clip directories")
+    p.add_argument("--json", required=True, metavar="OUT", help="output JSON file")
+    p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
+    p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all finished frames)")
+    p.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (about 4 s per 1080p frame on a CPU)")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
+    p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
+                   help="autocast precision of the model")
+    p.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = subparsers.add_parser(
+        "upscale", formatter_class=FMT, help="write the super-resolved EXR sequence of a clip",
+        description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear RGB float32) and "
+                    "OUT_DIR/upscale.json (model, ms per frame).")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file")
+    g.add_argument("--model", metavar="NAME", help="non-learned model name")
+    p.add_argument("--clip", required=True, help="clip directory")
+    p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output directory")
+    p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
+    p.set_defaults(func=cmd_upscale)
+
+    p = subparsers.add_parser(
+        "export", formatter_class=FMT, help="export a model to ONNX and check it against torch",
+        description="Export to ONNX (opset 17, dynamic batch/height/width), run it with onnxruntime on the same "
+                    "inputs and compare with torch. Inputs: the model's keys in order, each (B, T, C, H, W), plus "
+                    "depth_ref (B, T); see OUT.onnx.json.")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file")
+    g.add_argument("--model", metavar="NAME", help="non-learned model name")
+    p.add_argument("--onnx", required=True, metavar="OUT.onnx", help="output ONNX file")
+    p.add_argument("--clip", help="take the example input from this clip (default: random inputs)")
+    p.add_argument("--scale", type=int, default=4, help="scale of a non-learned model (checkpoints know theirs)")
+    p.add_argument("--hr-size", default="128x72", metavar="WxH", help="HR size of random example inputs")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset")
+    p.set_defaults(func=cmd_export)
+
+
+def _frames(text: str | None):
+    from gbuffer_export.config import parse_frames
+    rng = parse_frames(text)
+    return None if rng is None else list(range(rng[0], rng[1] + 1))
+
+
+def cmd_train(args) -> int:
+    from training.config import load_config
+    from training.models import MODELS
+    if args.list_models:
+        for name, info in MODELS.items():
+            print(f"{name:16s} {'learned' if info.learned else 'fixed  '}  {info.description}")
+        return 0
+    if not args.output:
+        raise ValueError("train: -o RUN_DIR is required")
+    overrides = list(args.set)
+    if args.model:
+        overrides.append(f'model.name="{args.model}"')
+    run_overrides = {}
+    if args.max_steps is not None:  # a step budget replaces a time budget (also one saved in a checkpoint)
+        run_overrides["max_steps"] = args.max_steps
+        run_overrides["minutes"] = 0.0
+    if args.minutes is not None:
+        run_overrides["minutes"] = args.minutes
+    if args.resume and not (args.config or overrides):
+        cfg = None
+        if args.data:  # only the clips were repeated: they must be the checkpoint's
+            from training.train import load_checkpoint
+            ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
+            saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
+            if sorted(str(Path(c).resolve()) for c in args.data) != saved:
+                raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
+    else:
+        cfg = load_config(args.config, overrides)
+        if args.data:
+            cfg.data.clips = list(args.data)
+        if not args.resume and not args.model and not args.config:
+            raise ValueError("train: --model NAME is required (or model.name in --config)")
+    from training.train import TrainingError, train
+    try:
+        train(cfg, args.output, resume=args.resume, run_overrides=run_overrides,
+              log=lambda m: print(m, file=sys.stderr))
+    except TrainingError as exc:
+        print(f"blendsr: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _scale_of(clips) -> int:
+    from gbuffer_export.clip import open_clip
+    scales = {open_clip(c).scale for c in clips}
+    if len(scales) != 1:
+        raise ValueError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
+    return scales.pop()
+
+
+def cmd_evaluate(args) -> int:
+    import torch
+    from gbuffer_export.clip import write_json_atomic
+    from training.evaluate import evaluate_model
+    from training.inference import load_model
+    from training.train import amp_dtype, resolve_device
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    scale = _scale_of(args.data)
+    spec = args.checkpoint or args.model
+    model = load_model(spec, scale)
+    device = resolve_device(args.device)
+    frames = _frames(args.frames)
+    result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
+                            device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
+                            save_images=args.save_images, warmup=args.warmup, progress=sys.stderr.isatty())
+    write_json_atomic(args.json, result)
+    m = result["mean"]
+    print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
+          f"FLIP {m['flip'] if m['flip'] is None else round(m['flip'], 4)}  {m['ms_per_frame']:.2f} ms/frame  "
+          f"({m['frames']} frames, {result['device']}) -> {args.json}")
+    return 0
+
+
+def cmd_upscale(args) -> int:
+    from gbuffer_export.clip import open_clip, write_json_atomic
+    from gbuffer_export.exr import write_exr
+    from training.inference import ClipFrames, load_model, upscale_frame
+    from training.train import resolve_device
+    clip = open_clip(args.clip)
+    model = load_model(args.checkpoint or args.model, clip.scale)
+    model.to(resolve_device(args.device))
+    source = ClipFrames(clip, eps=model.demod_eps)
+    frames = _frames(args.frames) or clip.frames
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    times = {}
+    for f in frames:
+        r = upscale_frame(model, source, f)
+        write_exr(out / f"{f:06d}.exr", {c: r["sr"][..., i] for i, c in enumerate("RGB")})
+        times[str(f)] = r["ms"]
+    write_json_atomic(out / "upscale.json", {"model": model.spec, "clip": str(args.clip), "scale": clip.scale,
+                                            "frames": [int(f) for f in frames], "ms": times})
+    print(f"wrote {len(frames)} frames to {out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from training.export import export_onnx
+    from training.inference import load_model
+    from gbuffer_export.config import parse_size
+    if args.checkpoint:
+        from training.train import load_checkpoint
+        scale = int(load_checkpoint(args.checkpoint)["scale"])
+    else:
+        scale = args.scale
+    model = load_model(args.checkpoint or args.model, scale)
+    report = export_onnx(model, args.onnx, clip=args.clip, hr_size=parse_size(args.hr_size), opset=args.opset)
+    print(json.dumps(report, indent=1))
+    return 0 if report["match"] else 1

@@ -1,0 +1,322 @@
+"""Typed, validated training configuration (pure Python, no torch).
+
+A configuration is read from a TOML file (sections ``[data]``, ``[model]``, ``[loss]``, ``[optim]``, ``[run]``),
+then CLI overrides are applied (``--set section.key=value``, ``--max-steps``, ...). Unknown sections or keys are
+errors that name the key, and so are values of the wrong type or outside their range. The resolved configuration
+is written to the run directory as ``config.toml`` (``to_toml``) and stored in every checkpoint (``to_dict``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+from gbuffer_export.config import ConfigError
+
+INPUT_TRANSFORMS = ("log1p", "none")
+LOSS_SPACES = ("log1p", "tonemap", "linear")
+DEPTH_NORMS = ("ratio", "inverse")
+NONFINITE_POLICIES = ("error", "sanitize")
+SCHEDULERS = ("cosine", "constant", "step")
+AMP_MODES = ("auto", "none", "bf16", "fp16")
+DEVICES = ("auto", "cpu", "cuda")
+PIXEL_LOSSES = ("l1", "charbonnier")
+
+
+@dataclass
+class DataConfig:
+    """What the loader feeds. Crop sizes are in LR pixels (the HR crop is ``scale`` times larger)."""
+
+    clips: list[str] = field(default_factory=list)   # clip directories (the CLI's --data adds to these)
+    crop: int = 64                   # LR crop side, pixels
+    batch_size: int = 8              # per process
+    augment_flip: bool = True        # random horizontal/vertical flips
+    augment_rotate: bool = True      # random 90-degree rotations (transpose)
+    exposure_range: list[float] = field(default_factory=lambda: [0.5, 2.0])  # log-uniform radiance scale
+    demod_eps: float = 0.01          # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
+    nonfinite: str = "error"         # NaN/Inf in a buffer: 'error' (name file and frame) or 'sanitize' (warn)
+    cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
+    prefetch: int = 2                # batches prepared ahead in a background thread (0: none)
+    val_frames: int = 0              # last N frames of each clip held out from training (evaluated at the end)
+
+    def validate(self) -> None:
+        _positive("data.crop", self.crop)
+        _positive("data.batch_size", self.batch_size)
+        if len(self.exposure_range) != 2 or not all(isinstance(v, (int, float)) for v in self.exposure_range):
+            raise ConfigError(f"data.exposure_range {self.exposure_range!r}: expected [low, high]")
+        lo, hi = (float(v) for v in self.exposure_range)
+        if not (0 < lo <= hi):
+            raise ConfigError(f"data.exposure_range {self.exposure_range!r}: need 0 < low <= high")
+        self.exposure_range = [lo, hi]
+        if not (1e-6 <= self.demod_eps <= 1):
+            raise ConfigError(f"data.demod_eps {self.demod_eps}: must lie in [1e-6, 1]")
+        _choice("data.nonfinite", self.nonfinite, NONFINITE_POLICIES)
+        if self.prefetch < 0:
+            raise ConfigError(f"data.prefetch {self.prefetch}: must be >= 0")
+        if self.val_frames < 0:
+            raise ConfigError(f"data.val_frames {self.val_frames}: must be >= 0")
+
+
+@dataclass
+class ModelConfig:
+    """Which network and its switches. ``scale`` is taken from the clips (all must agree)."""
+
+    name: str = "fusesr"
+    scale: int = 0                   # 0: from the data
+    history: int = -1                # previous frames the model reads (-1: the model's default)
+    hr_gbuffer: bool = True          # FuseSR: the pixel-unshuffled HR G-buffer branch (Table 3 ablation)
+    demodulation: bool = True        # FuseSR: predict L_D and remodulate with HR F_beta (Table 3 ablation)
+    input_transform: str = "log1p"   # HDR transform of radiance/irradiance inputs; outputs are inverted
+    depth_norm: str = "ratio"        # 'ratio': d / (d + median_d(frame)); 'inverse': 1 / (1 + d); bg -> 1 / 0
+    width: int = 0                   # backbone channels (0: the model's default, FuseSR 128, FuseSR-L 64)
+    blocks: int = 0                  # residual blocks (0: the model's default, 6)
+    residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
+
+    def validate(self) -> None:
+        from training.models import MODELS  # torch-free table
+        if self.name not in MODELS:
+            raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}")
+        if self.scale not in (0, 2, 4, 8):
+            raise ConfigError(f"model.scale {self.scale}: must be 2, 4 or 8 (0: from the data)")
+        if self.history < -1 or self.history > 4:
+            raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
+        _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)
+        _choice("model.depth_norm", self.depth_norm, DEPTH_NORMS)
+        if self.width < 0 or self.blocks < 0:
+            raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
+
+
+@dataclass
+class LossConfig:
+    """Weights of the loss terms (0 disables a term) and the space the pixel losses compare in."""
+
+    space: str = "log1p"             # where SR and ground truth are compared: log1p, tonemap (metric's), linear
+    pixel: str = "l1"                # 'l1' or 'charbonnier'
+    pixel_weight: float = 1.0
+    charbonnier_eps: float = 1e-3    # sqrt(x^2 + eps^2); not below 1e-6 (fp16 gradients)
+    ssim_weight: float = 0.05        # 1 - SSIM on the tonemapped images (FuseSR: 0.05)
+    fft_weight: float = 0.0          # L1 of the 2-D FFT difference (frequency loss)
+    temporal_weight: float = 0.0     # L1 of (SR_t - warp(SR_t-1)) - (GT_t - warp(GT_t-1)), HR motion
+    perceptual_weight: float = 0.0   # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
+    vgg_weights: str = ""            # path to a user-supplied VGG-16 state dict; nothing is downloaded
+
+    def validate(self) -> None:
+        _choice("loss.space", self.space, LOSS_SPACES)
+        _choice("loss.pixel", self.pixel, PIXEL_LOSSES)
+        for name in ("pixel_weight", "ssim_weight", "fft_weight", "temporal_weight", "perceptual_weight"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"loss.{name} {v}: must be a finite number >= 0")
+        if self.pixel_weight + self.ssim_weight + self.fft_weight + self.perceptual_weight <= 0:
+            raise ConfigError("loss: every weight is 0; nothing to train")
+        if self.charbonnier_eps < 1e-6:
+            raise ConfigError(f"loss.charbonnier_eps {self.charbonnier_eps}: must be >= 1e-6")
+        if self.perceptual_weight > 0:
+            if not self.vgg_weights:
+                raise ConfigError("loss.perceptual_weight > 0 needs loss.vgg_weights = a VGG-16 weights file "
+                                  "(torchvision layout, features.N.weight/bias); BlendSR downloads nothing")
+            if not Path(self.vgg_weights).is_file():
+                raise ConfigError(f"loss.vgg_weights {self.vgg_weights}: file not found (supply VGG-16 weights "
+                                  "yourself; BlendSR downloads nothing)")
+
+
+@dataclass
+class OptimConfig:
+    """Adam(W) with a learning-rate schedule."""
+
+    lr: float = 2e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    weight_decay: float = 0.0
+    scheduler: str = "cosine"        # cosine decay to lr * min_lr_ratio over decay_steps, constant, or step
+    decay_steps: int = 0             # length of the cosine schedule (0: run.max_steps)
+    warmup_steps: int = 0
+    min_lr_ratio: float = 0.01
+    step_every: int = 10000          # 'step': multiply by step_gamma every N steps
+    step_gamma: float = 0.5
+    grad_clip: float = 0.0           # max gradient norm (0: off)
+
+    def validate(self) -> None:
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"optim.lr {self.lr}: must be > 0")
+        if len(self.betas) != 2 or not all(0 <= float(b) < 1 for b in self.betas):
+            raise ConfigError(f"optim.betas {self.betas}: expected [b1, b2] in [0, 1)")
+        self.betas = [float(b) for b in self.betas]
+        _choice("optim.scheduler", self.scheduler, SCHEDULERS)
+        for name in ("weight_decay", "min_lr_ratio", "grad_clip", "step_gamma"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"optim.{name}: must be >= 0")
+        if self.warmup_steps < 0 or self.step_every < 1 or self.decay_steps < 0:
+            raise ConfigError("optim.warmup_steps and optim.decay_steps must be >= 0, optim.step_every >= 1")
+
+
+@dataclass
+class RunConfig:
+    """How long and where to run, and what to record."""
+
+    seed: int = 0
+    max_steps: int = 20000           # optimiser steps (also the length of the cosine schedule)
+    minutes: float = 0.0             # wall-clock budget (0: none); stops cleanly with a checkpoint
+    checkpoint_every: int = 500      # steps
+    keep_checkpoints: int = 3        # numbered checkpoints kept besides last.pt
+    log_every: int = 10              # steps between CSV rows
+    device: str = "auto"             # auto: cuda when available, else cpu
+    amp: str = "auto"                # auto: bf16 on CPU when supported / on GPU when supported, else fp16
+    compile: bool = False            # torch.compile the model
+    threads: int = 0                 # torch intra-op threads (0: torch's default)
+    progress: bool = True            # tqdm progress bar
+    eval_every: int = 0              # steps between validation runs on held-out frames (0: only at the end)
+
+    def validate(self) -> None:
+        _positive("run.max_steps", self.max_steps)
+        _positive("run.checkpoint_every", self.checkpoint_every)
+        _positive("run.log_every", self.log_every)
+        if self.minutes < 0 or self.threads < 0 or self.keep_checkpoints < 0 or self.eval_every < 0:
+            raise ConfigError("run.minutes, run.threads, run.keep_checkpoints, run.eval_every must be >= 0")
+        _choice("run.device", self.device, DEVICES)
+        _choice("run.amp", self.amp, AMP_MODES)
+
+
+@dataclass
+class TrainConfig:
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+    def validate(self) -> "TrainConfig":
+        for f in dataclasses.fields(self):
+            getattr(self, f.name).validate()
+        return self
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+    def to_toml(self) -> str:
+        return dict_to_toml(self.to_dict())
+
+
+SECTIONS = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
+
+
+def _positive(name: str, v) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+        raise ConfigError(f"{name} {v!r}: must be a positive integer")
+
+
+def _choice(name: str, v, choices) -> None:
+    if v not in choices:
+        raise ConfigError(f"{name} {v!r}: choose one of {', '.join(choices)}")
+
+
+def _section_class(name: str):
+    return {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "optim": OptimConfig, "run": RunConfig}[name]
+
+
+def _coerce(where: str, value: Any, typ) -> Any:
+    """Check ``value`` against the annotation ``typ`` (int, float, bool, str, list[float], list[str])."""
+    origin = get_origin(typ)
+    if origin is list:
+        (item,) = get_args(typ)
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return [_coerce(f"{where}[{i}]", v, item) for i, v in enumerate(value)]
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if typ is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{where}: unsupported type {typ}")
+
+
+def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
+    """Build and validate a TrainConfig from nested dicts; unknown sections/keys raise ConfigError."""
+    cfg = TrainConfig()
+    for section, values in data.items():
+        if section not in SECTIONS:
+            raise ConfigError(f"{source}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{source}: [{section}] must be a table")
+        cls = _section_class(section)
+        hints = get_type_hints(cls)
+        obj = getattr(cfg, section)
+        for key, value in values.items():
+            if key not in hints:
+                raise ConfigError(f"{source}: unknown key {section}.{key} (known: {', '.join(hints)})")
+            setattr(obj, key, _coerce(f"{source}: {section}.{key}", value, hints[key]))
+    return cfg.validate()
+
+
+def load_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
+    """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (values in TOML syntax;
+    bare words are taken as strings)."""
+    data: dict = {}
+    source = "defaults"
+    if path:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"{p}: config file not found")
+        try:
+            data = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{p}: not valid TOML ({exc})") from None
+        source = str(p)
+    for item in overrides or []:
+        key, sep, text = item.partition("=")
+        if not sep or "." not in key:
+            raise ConfigError(f"--set {item!r}: expected section.key=value, e.g. data.crop=48")
+        section, _, name = key.strip().partition(".")
+        data.setdefault(section, {})
+        if not isinstance(data[section], dict):
+            raise ConfigError(f"--set {item!r}: [{section}] is not a table")
+        data[section][name] = parse_value(text.strip())
+    return config_from_dict(data, source)
+
+
+def parse_value(text: str) -> Any:
+    """A TOML literal (1, 2.5, true, "x", [1, 2]); anything else is a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def dict_to_toml(d: dict[str, dict[str, Any]]) -> str:
+    """Nested {section: {key: value}} as TOML text (round-trips through tomllib)."""
+    lines = []
+    for section, values in d.items():
+        lines.append(f"[{section}]")
+        for k, v in values.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+__all__ = ["TrainConfig", "DataConfig", "ModelConfig", "LossConfig", "OptimConfig", "RunConfig", "ConfigError",
+           "load_config", "config_from_dict"]

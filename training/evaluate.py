@@ -1,0 +1,137 @@
+"""Evaluation of a model on clips (torch): ``evaluate_model`` -> the JSON-ready dict of ``blendsr evaluate``.
+
+Every model is fed the same inputs (``inference.model_inputs``) and scored against ``hr/radiance`` with the metrics of
+``training.metrics`` on one declared tonemap. Nothing of the ground truth ever enters an output pixel. Pixels with an
+UNTRUSTED flag (demodulation not trustworthy there) are scored separately (``psnr_flagged``, ``psnr_unflagged``,
+``flagged_fraction``); the main metrics cover all pixels. Timing: the model runs ``warmup`` times on the first frame,
+then each frame's forward pass is timed (inputs already on the device, GPU synchronised); ``mean.ms_per_frame`` is
+the median over frames.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gbuffer_export.clip import ClipError
+from gbuffer_export.conventions import UNTRUSTED, Flag
+from gbuffer_export.exr import write_exr
+from training import metrics
+from training.flip_worker import FlipRunner
+from training.inference import ClipFrames, model_device, model_inputs, run_model
+
+METRIC_KEYS = ("psnr", "ssim", "psnr_hdr", "flip", "tpsnr", "warp_error", "ms_per_frame")
+EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite")
+
+
+def describe_device(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(device)})"
+    name = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"cpu ({name}, {torch.get_num_threads()} threads)"
+
+
+def _mean(values):
+    vals = [v for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
+                   amp: torch.dtype | None = None, flip: bool = True, data_cfg=None,
+                   save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
+                   label: str | None = None) -> dict:
+    """Evaluate ``model`` on ``clips`` (paths); ``frames`` maps a clip path (as given) to the frames to score
+    (default: all). Returns {model, transform, device, mean, per_frame, ...}."""
+    device = device or model_device(model)
+    model.to(device).eval()
+    eps = data_cfg.demod_eps if data_cfg is not None else getattr(model, "demod_eps", 0.01)
+    runner = FlipRunner() if flip else None
+    per_frame: list[dict] = []
+    try:
+        for clip_path in clips:
+            source = ClipFrames(clip_path, eps=eps)
+            if source.scale != model.scale:
+                raise ClipError(f"{clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
+            if not source.has("hr/radiance"):
+                raise ClipError(f"{clip_path}: clip has no hr/radiance to compare with")
+            todo = list((frames or {}).get(str(clip_path)) or source.frames)
+            first = model_inputs(model, source, todo[0])
+            for _ in range(warmup):
+                run_model(model, first, device, amp)
+            prev = None
+            iterator = todo
+            if progress:
+                from tqdm import tqdm
+                iterator = tqdm(todo, desc=f"evaluate {Path(clip_path).name}", unit="frame")
+            for f in iterator:
+                inputs = model_inputs(model, source, f)
+                sr, ms = run_model(model, inputs, device, amp)
+                gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
+                bad = int((~np.isfinite(sr)).sum())
+                if bad:
+                    sr = np.nan_to_num(sr, nan=0.0, posinf=0.0, neginf=0.0)
+                row = {"clip": str(clip_path), "frame": int(f), "ms_per_frame": ms, "sr_nonfinite": bad,
+                       "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
+                       "psnr_hdr": metrics.psnr_hdr(sr, gt),
+                       "flip": runner(gt, sr) if runner is not None else None,
+                       "tpsnr": None, "warp_error": None, "warp_error_gt": None}
+                if "hr/flags" in inputs:
+                    fl = inputs["hr/flags"][0, -1, 0].astype(np.uint32)
+                    flagged = ((fl & np.uint32(UNTRUSTED)) != 0) & ((fl & np.uint32(Flag.BACKGROUND)) == 0)
+                    row["flagged_fraction"] = float(flagged.mean())
+                    row["psnr_flagged"] = metrics.psnr_tm(sr, gt, flagged)
+                    row["psnr_unflagged"] = metrics.psnr_tm(sr, gt, ~flagged)
+                else:
+                    row.update(flagged_fraction=None, psnr_flagged=None, psnr_unflagged=None)
+                if prev is not None and prev[0] == f - 1:
+                    _, sr_p, gt_p = prev
+                    row["tpsnr"] = metrics.tpsnr(sr, sr_p, gt, gt_p)
+                    if "hr/motion" in inputs:
+                        motion = inputs["hr/motion"][0, -1].transpose(1, 2, 0)
+                        row["warp_error"] = metrics.warp_error(sr, sr_p, motion)
+                        row["warp_error_gt"] = metrics.warp_error(gt, gt_p, motion)
+                prev = (f, sr, gt)
+                per_frame.append(row)
+                if save_images:
+                    _save(Path(save_images), Path(clip_path).name, f, sr)
+    finally:
+        if runner is not None:
+            runner.close()
+    if not per_frame:
+        raise ClipError("no frame evaluated")
+    mean = {k: _mean([r[k] for r in per_frame]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
+    mean["ms_per_frame"] = float(statistics.median(r["ms_per_frame"] for r in per_frame))
+    mean["frames"] = len(per_frame)
+    return {
+        "model": label or getattr(model, "spec", type(model).__name__),
+        "transform": metrics.TRANSFORM,
+        "device": describe_device(device),
+        "amp": str(amp).replace("torch.", "") if amp else "none",
+        "scale": model.scale,
+        "hdr_peak": metrics.HDR_PEAK,
+        "psnr_cap_db": metrics.PSNR_CAP,
+        "timing": f"median over frames of the forward pass after {warmup} warm-up runs, inputs on the device",
+        "flip_failures": runner.failures if runner is not None else [],
+        "clips": [str(c) for c in clips],
+        "mean": mean,
+        "per_frame": per_frame,
+    }
+
+
+def _save(root: Path, clip_name: str, frame: int, sr: np.ndarray) -> None:
+    d = root / clip_name
+    write_exr(d / f"{frame:06d}.exr", {c: sr[..., i] for i, c in enumerate("RGB")})
+    import matplotlib.image as mpimg
+    tm = metrics.tonemapped(sr)[0].permute(1, 2, 0).numpy()
+    mpimg.imsave(d / f"{frame:06d}.png", np.clip(tm, 0, 1))

@@ -1,0 +1,177 @@
+"""Inference API (torch) used by ``blendsr evaluate/upscale``, the benchmark and the Blender add-on.
+
+    model = load_model("demod-bilinear", scale=4)          # a model name (non-learned) or a checkpoint path
+    out = upscale_frame(model, clip, frame)                # clip: a Clip, a clip directory or a ClipFrames
+    out["sr"], out["bilinear"], out["reference"]           # HR H x W x 3 float32 linear radiance
+    out["ms"]                                              # model time of this call, milliseconds
+
+Inputs are read straight from the clip's EXRs (``ClipFrames``): the demodulated irradiance is computed with the
+torch mirror of the demodulation (``training.demod``), with the eps the checkpoint was trained with.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gbuffer_export.clip import Clip, ClipError, open_clip
+from gbuffer_export.conventions import LEVELS
+from training.cache import DERIVED
+from training.config import ModelConfig
+from training.data import BatchSpec, frame_window
+from training.demod import demodulate
+from training.models import MODELS, build_model
+
+
+class ClipFrames:
+    """Frames of a clip read from its EXR files, with the derived buffers of ``ClipCache`` ('irradiance',
+    'fbeta_used') and the per-frame depth reference. Keeps the last few decoded buffers."""
+
+    def __init__(self, clip: Clip | str | os.PathLike, eps: float = 0.01, keep: int = 64):
+        self.clip = clip if isinstance(clip, Clip) else open_clip(clip)
+        self.clip_path = Path(self.clip.path)
+        self.eps = float(eps)
+        self.frames = list(self.clip.frames)
+        self.scale = self.clip.scale
+        self.sizes = self.clip.sizes
+        self._keep = keep
+        self._lru: OrderedDict = OrderedDict()
+
+    def has(self, key: str) -> bool:
+        level, _, name = key.partition("/")
+        if level not in LEVELS:
+            return False
+        if name in DERIVED:
+            return {"radiance", "fbeta"} <= set(self.clip.buffers)
+        return name in self.clip.buffers
+
+    def _get(self, frame: int, key: str) -> np.ndarray:
+        k = (frame, key)
+        if k in self._lru:
+            self._lru.move_to_end(k)
+            return self._lru[k]
+        level, _, name = key.partition("/")
+        if name in DERIVED:
+            irr, fbu = self._demodulate(frame, level)
+            self._put((frame, f"{level}/irradiance"), irr)
+            self._put((frame, f"{level}/fbeta_used"), fbu)
+            return irr if name == "irradiance" else fbu
+        a = self.clip.read(frame, key)
+        self._put(k, a)
+        return a
+
+    def _put(self, k, a) -> None:
+        self._lru[k] = a
+        while len(self._lru) > self._keep:
+            self._lru.popitem(last=False)
+
+    def _demodulate(self, frame: int, level: str) -> tuple[np.ndarray, np.ndarray]:
+        def t(a):
+            return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))
+        rad = t(self._get(frame, f"{level}/radiance"))
+        em = t(self._get(frame, f"{level}/emission")) if "emission" in self.clip.buffers else None
+        fb = t(self._get(frame, f"{level}/fbeta"))
+        fl = t(self._get(frame, f"{level}/flags").astype(np.int64)) if "flags" in self.clip.buffers else None
+        irr, fbu = demodulate(rad, em, fb, fl, self.eps)
+        return irr.numpy().transpose(1, 2, 0), fbu.numpy().transpose(1, 2, 0)
+
+    def read(self, frame: int, key: str) -> np.ndarray:
+        return self._get(frame, key)
+
+    def depth_ref(self, frame: int) -> float:
+        d = self._get(frame, "lr/depth")[..., 0]
+        fin = d[np.isfinite(d) & (d > 0)]
+        return float(np.median(fin)) if fin.size else 1.0
+
+
+def model_device(model: torch.nn.Module) -> torch.device:
+    for t in list(model.parameters()) + list(model.buffers()):
+        return t.device
+    return getattr(model, "device", torch.device("cpu"))
+
+
+def load_model(spec: str, scale: int) -> torch.nn.Module:
+    """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
+    ``scale`` must match the checkpoint's. The module gets ``spec``, ``demod_eps`` and ``config`` attributes."""
+    scale = int(scale)
+    if spec in MODELS:
+        if MODELS[spec].learned:
+            raise ValueError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
+                             "'blendsr train', not its name")
+        cfg = ModelConfig(name=spec, scale=scale)
+        model = build_model(cfg, scale)
+        model.demod_eps = 0.01
+        model.config = None
+    else:
+        from training.train import load_checkpoint
+        from training.config import config_from_dict
+        path = Path(spec)
+        if not path.exists():
+            raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
+        ck = load_checkpoint(path)
+        if int(ck["scale"]) != scale:
+            raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
+        cfg = config_from_dict(ck["config"], source=str(path))
+        model = build_model(cfg.model, scale)
+        model.load_state_dict(ck["model"])
+        model.demod_eps = cfg.data.demod_eps
+        model.config = cfg
+    model.spec = str(spec)
+    model.eval()
+    return model
+
+
+def model_inputs(model, source, frame: int, with_reference: bool = True) -> dict[str, np.ndarray]:
+    """Full-frame numpy inputs (1, T, C, H, W) of ``model`` for ``frame`` plus 'lr/radiance' and, when present,
+    'hr/radiance' (the reference) and 'hr/motion'/'hr/flags' for metrics."""
+    targets = ["lr/radiance"]
+    if with_reference:
+        targets += [k for k in ("hr/radiance", "hr/motion", "hr/flags") if source.has(k)]
+    return frame_window(source, frame, BatchSpec.for_model(model, targets=tuple(targets)))
+
+
+def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None = None,
+              amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
+    """(SR H x W x 3 float32, milliseconds of the forward pass, synchronised on GPU)."""
+    device = device or model_device(model)
+    needs = set(model.needs())
+    batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items() if k in needs}
+    ctx = torch.autocast(device_type=device.type, dtype=amp) if amp is not None else None
+    with torch.inference_mode():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        if ctx is None:
+            sr = model(batch)
+        else:
+            with ctx:
+                sr = model(batch)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        ms = 1000 * (time.perf_counter() - t0)
+    return sr[0].float().permute(1, 2, 0).cpu().numpy(), ms
+
+
+def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
+    """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. Returns ``sr`` and
+    ``bilinear`` (HR H x W x 3 float32 linear), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
+    the clip has it)."""
+    source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
+    if source.scale != model.scale:
+        raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
+    inputs = model_inputs(model, source, int(frame))
+    sr, ms = run_model(model, inputs)
+    lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
+    bil = torch.nn.functional.interpolate(lr, scale_factor=model.scale, mode="bilinear", align_corners=False)
+    out = {"sr": np.ascontiguousarray(sr, dtype=np.float32),
+           "bilinear": np.ascontiguousarray(bil[0].permute(1, 2, 0).numpy(), dtype=np.float32), "ms": float(ms)}
+    if "hr/radiance" in inputs:
+        out["reference"] = np.ascontiguousarray(inputs["hr/radiance"][0, -1].transpose(1, 2, 0), dtype=np.float32)
+    return out
+
+
+__all__ = ["load_model", "upscale_frame", "ClipFrames", "model_inputs", "run_model", "model_device"]

@@ -1,0 +1,78 @@
+"""Image metrics of the evaluation (torch, on H x W x 3 float32 linear radiance given as numpy arrays).
+
+- ``psnr``: PSNR of the tonemapped images (``transforms.tonemap``: sRGB OETF of Reinhard x / (1 + x)), peak 1.
+- ``ssim``: SSIM of the tonemapped images (pytorch-msssim, Gaussian 11x11 window sigma 1.5, data range 1).
+- ``psnr_hdr``: PSNR on linear values with the fixed peak ``HDR_PEAK`` = 1 (scene-linear units, no clamping).
+- ``tpsnr``: PSNR (peak 1) between the tonemapped frame differences SR_t - SR_t-1 and GT_t - GT_t-1.
+- ``warp_error``: mean |T(SR_t) - W(T(SR_t-1))| over pixels whose warp stays inside the image, W the backward warp
+  with the clip's HR motion vectors of frame t, T the tonemap. ``warp_error_gt`` is the same for the ground truth
+  (what disocclusions and shading changes alone give).
+PSNR values are capped at ``PSNR_CAP`` dB (identical images) so that JSON stays finite.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from pytorch_msssim import ssim as _ssim
+
+from training.models.base import backward_warp
+from training.transforms import HDR_PEAK, tonemap
+
+PSNR_CAP = 100.0
+TRANSFORM = "reinhard-srgb: sRGB_OETF(x / (1 + x)) per channel, x = max(linear radiance, 0); values in [0, 1]"
+
+
+def _t(a: np.ndarray) -> torch.Tensor:
+    """H x W x C numpy -> 1 x C x H x W float32 tensor."""
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).permute(2, 0, 1)[None]
+
+
+def psnr_from_mse(mse: float, peak: float = 1.0) -> float:
+    if not math.isfinite(mse):
+        return float("nan")
+    if mse <= peak * peak * 10 ** (-PSNR_CAP / 10):
+        return PSNR_CAP
+    return 10.0 * math.log10(peak * peak / mse)
+
+
+def tonemapped(a: np.ndarray) -> torch.Tensor:
+    return tonemap(_t(a))
+
+
+def psnr_tm(sr: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float | None:
+    """PSNR of the tonemapped images, over ``mask`` (H x W bool) when given (None when the mask is empty)."""
+    d = (tonemapped(sr) - tonemapped(gt)) ** 2
+    if mask is not None:
+        m = torch.from_numpy(mask)[None, None].expand_as(d)
+        if not bool(m.any()):
+            return None
+        return psnr_from_mse(float(d[m].mean()))
+    return psnr_from_mse(float(d.mean()))
+
+
+def ssim_tm(sr: np.ndarray, gt: np.ndarray) -> float:
+    a, b = tonemapped(sr), tonemapped(gt)
+    if min(a.shape[-2:]) < 11:
+        raise ValueError(f"SSIM needs images of at least 11 x 11 pixels, got {tuple(a.shape[-2:])}")
+    return float(_ssim(a, b, data_range=1.0, size_average=True))
+
+
+def psnr_hdr(sr: np.ndarray, gt: np.ndarray) -> float:
+    return psnr_from_mse(float(np.mean((sr.astype(np.float64) - gt.astype(np.float64)) ** 2)), HDR_PEAK)
+
+
+def tpsnr(sr: np.ndarray, sr_prev: np.ndarray, gt: np.ndarray, gt_prev: np.ndarray) -> float:
+    ds = tonemapped(sr) - tonemapped(sr_prev)
+    dg = tonemapped(gt) - tonemapped(gt_prev)
+    return psnr_from_mse(float(((ds - dg) ** 2).mean()))
+
+
+def warp_error(cur: np.ndarray, prev: np.ndarray, motion: np.ndarray) -> float | None:
+    """Mean absolute tonemapped difference between ``cur`` and ``prev`` warped with ``motion`` (H x W x 2)."""
+    warped, valid = backward_warp(tonemapped(prev), _t(motion).to(torch.float32))
+    n = float(valid.sum()) * 3
+    if n == 0:
+        return None
+    return float(((tonemapped(cur) - warped).abs() * valid).sum() / n)

@@ -1,0 +1,119 @@
+"""Base class and building blocks shared by the models (torch).
+
+Tensors are channel-first. ``batch`` values are (B, T, C, H, W); ``current(batch, key)`` is the last frame.
+Motion is in pixels of its level, image coordinates (x right, y down), backward: p_prev = p + motion.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from training.models import OPTIONAL_KEYS
+from training.transforms import normalize_depth
+
+
+class SRModel(nn.Module):
+    """A super-resolution model. Subclasses set ``learned``, ``history`` and implement ``needs`` and ``forward``."""
+
+    learned = False
+
+    def __init__(self, cfg, scale: int):
+        super().__init__()
+        if scale not in (2, 4, 8):
+            raise ValueError(f"scale {scale}: models support 2, 4 and 8")
+        self.cfg = cfg
+        self.scale = int(scale)
+        self.history = 0
+
+    def needs(self) -> tuple[str, ...]:
+        """Batch keys the forward pass reads ('lr/...', 'hr/...', 'depth_ref')."""
+        raise NotImplementedError
+
+    @property
+    def window(self) -> int:
+        """LR frames per input window: the current one and ``history`` previous ones."""
+        return self.history + 1
+
+
+def current(batch: dict, key: str) -> torch.Tensor:
+    """(B, C, H, W) current frame of ``key`` (zeros of the radiance's shape for a missing optional key)."""
+    x = batch.get(key)
+    if x is None:
+        if key in OPTIONAL_KEYS:
+            level = key.split("/")[0]
+            ref = next(v for k, v in batch.items() if k.startswith(level + "/"))
+            return torch.zeros_like(ref[:, -1, :1]).expand(-1, 3, -1, -1)
+        raise KeyError(f"batch lacks {key!r}")
+    return x[:, -1]
+
+
+def frame(batch: dict, key: str, back: int) -> torch.Tensor:
+    """(B, C, H, W) frame ``back`` steps before the current one (clamped to the oldest frame in the batch)."""
+    x = batch[key]
+    t = x.shape[1]
+    return x[:, max(t - 1 - back, 0)]
+
+
+def depth_features(batch: dict, level: str, back: int, kind: str) -> torch.Tensor:
+    """Normalised depth (B, 1, H, W) of a frame, with the current frame's reference depth."""
+    ref = batch["depth_ref"][:, -1].reshape(-1, 1, 1, 1).to(batch[f"{level}/depth"].dtype)
+    return normalize_depth(frame(batch, f"{level}/depth", back), ref, kind)
+
+
+def backward_warp(x: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp ``x`` (B, C, H, W) of frame t-1 to frame t with the backward motion of frame t (B, 2, H, W, pixels):
+    bilinear sampling at p + motion, clamped at the border, 0 where the sample leaves the image.
+    Returns (warped, valid (B, 1, H, W) float). Matches ``gbuffer_export.conventions.backward_warp``."""
+    b, _, h, w = x.shape
+    ys = torch.arange(h, device=x.device, dtype=motion.dtype) + 0.5
+    xs = torch.arange(w, device=x.device, dtype=motion.dtype) + 0.5
+    sx = xs.view(1, 1, w) + motion[:, 0]
+    sy = ys.view(1, h, 1) + motion[:, 1]
+    valid = (sx >= 0) & (sx <= w) & (sy >= 0) & (sy <= h) & torch.isfinite(sx) & torch.isfinite(sy)
+    sx = torch.nan_to_num(sx, nan=0.0, posinf=0.0, neginf=0.0)
+    sy = torch.nan_to_num(sy, nan=0.0, posinf=0.0, neginf=0.0)
+    grid = torch.stack([2.0 * sx / w - 1.0, 2.0 * sy / h - 1.0], dim=-1)
+    out = F.grid_sample(x, grid.to(x.dtype), mode="bilinear", padding_mode="border", align_corners=False)
+    valid = valid.unsqueeze(1).to(x.dtype)
+    return out * valid, valid
+
+
+def accumulate_motion(m_cur: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
+    """Motion from frame t to t-2: m_t(p) + m_{t-1}(p + m_t(p)) (pixels, B x 2 x H x W)."""
+    warped, _ = backward_warp(m_prev, m_cur)
+    return m_cur + warped
+
+
+def conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, k, padding=k // 2)
+
+
+class DWSConv(nn.Module):
+    """Depthwise-separable 3x3 convolution: depthwise 3x3 then pointwise 1x1."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.depthwise = nn.Conv2d(cin, cin, 3, padding=1, groups=cin)
+        self.pointwise = nn.Conv2d(cin, cout, 1)
+
+    def forward(self, x):
+        return self.pointwise(self.depthwise(x))
+
+
+class ResBlock(nn.Module):
+    """x + conv(relu(conv(x))) with plain or depthwise-separable 3x3 convolutions."""
+
+    def __init__(self, channels: int, separable: bool = False):
+        super().__init__()
+        make = DWSConv if separable else conv
+        self.conv1 = make(channels, channels)
+        self.conv2 = make(channels, channels)
+
+    def forward(self, x):
+        return x + self.conv2(F.relu(self.conv1(x)))
+
+
+def upsample(x: torch.Tensor, scale: int, mode: str) -> torch.Tensor:
+    """Bilinear/bicubic upsampling by ``scale`` with pixel-centre alignment (align_corners=False)."""
+    return F.interpolate(x, scale_factor=scale, mode=mode, align_corners=False)

@@ -1,0 +1,15 @@
+"""``bilinear``: bilinear upsampling of the LR radiance (no training, no G-buffers)."""
+from __future__ import annotations
+
+from training.models.base import SRModel, current, upsample
+
+
+class Bilinear(SRModel):
+    learned = False
+    mode = "bilinear"
+
+    def needs(self):
+        return ("lr/radiance",)
+
+    def forward(self, batch):
+        return upsample(current(batch, "lr/radiance"), self.scale, self.mode)

@@ -1,0 +1,19 @@
+"""``demod-bilinear``: the honest non-learned baseline with HR G-buffers.
+
+SR = bilinear(L_D^LR) * F_used^HR + E^HR, where L_D^LR = (I^LR - E^LR) / F_used^LR (``gbuffer_export.demod``).
+The HR material detail comes from the HR F_beta; no ground truth is used.
+"""
+from __future__ import annotations
+
+from training.models.base import SRModel, current, upsample
+
+
+class DemodBilinear(SRModel):
+    learned = False
+
+    def needs(self):
+        return ("lr/irradiance", "hr/fbeta_used", "hr/emission")
+
+    def forward(self, batch):
+        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear")
+        return irr * current(batch, "hr/fbeta_used") + current(batch, "hr/emission")

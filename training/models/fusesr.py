@@ -1,0 +1,138 @@
+"""``fusesr``: the H-Net of FuseSR (Zhong et al., SIGGRAPH Asia 2023), written from the paper and the layer sizes of
+the authors' public code.
+
+Per LR frame the encoder reads 7 channels [T(L_D) 3, depth 1, normal 3] (T = the HDR input transform, L_D the
+demodulated irradiance; with ``demodulation = false`` T(radiance) instead). Encoder: 3x3 conv 7->64 + ReLU (the
+shallow feature F_s, skip-connected to the head), then 64-64-32-24-24-32-32 3x3 convs with BatchNorm + ReLU (F_f).
+History: F_f of the ``history`` previous frames is warped to the current frame with the LR motion vectors
+(accumulated over frames), zeroed where the sample leaves the image and gated by a small attention net on
+[motion / 16, warped history depth, current depth] (sigmoid). The current F_f is expanded to 64 channels.
+HR branch: [F_beta_used 3, depth 1, normal 3, albedo 3] = 10 HR channels, pixel-unshuffled by the scale
+(10 s^2 LR channels), 3x3 conv to 64 + ReLU. Fusion network F at LR: 3x3 conv to ``width`` (128) + ReLU and
+``blocks`` (6) residual blocks. Head: concat [F output, F_s], 3x3 conv to 3 s^2, pixel shuffle to HR, 3x3 conv
+3->3 + ReLU = T(L_D^HR). Output: SR = T^-1(.) * F_beta_used^HR + E^HR (or T^-1(.) without demodulation).
+
+Deviation (``model.residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
+before the final ReLU, so the network learns a correction of the demod-bilinear baseline. Without it (the authors'
+head, ``residual = false``) the final 3-channel ReLU went dead on about a third of the output pixels in our runs and
+training stalled far below the non-learned baseline (docs/training.md has the numbers).
+
+Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
+background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
+``demodulation`` is on), reproducing the switches of the paper's Table 3.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from training.models.base import (DWSConv, ResBlock, SRModel, accumulate_motion, backward_warp, conv, current,
+                                  depth_features, frame)
+from training.transforms import forward_transform, inverse_transform
+
+ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
+
+
+class Encoder(nn.Module):
+    """7 -> 64 (shallow, ReLU) then 64-64-32-24-24-32-32 with BatchNorm + ReLU. Returns (F_s, F_f)."""
+
+    def __init__(self, cin: int = 7):
+        super().__init__()
+        self.shallow = nn.Sequential(conv(cin, ENCODER_CHANNELS[0]), nn.ReLU(inplace=True))
+        layers = []
+        for a, b in zip(ENCODER_CHANNELS[:-1], ENCODER_CHANNELS[1:]):
+            layers += [conv(a, b), nn.BatchNorm2d(b), nn.ReLU(inplace=True)]
+        self.main = nn.Sequential(*layers)
+
+    def forward(self, x):
+        s = self.shallow(x)
+        return s, self.main(s)
+
+
+class HistoryGate(nn.Module):
+    """Per-pixel weight in (0, 1) for a warped history feature from [motion/16, warped depth, current depth]."""
+
+    def __init__(self):
+        super().__init__()
+        self.net = nn.Sequential(conv(4, 8), nn.ReLU(inplace=True), conv(8, 1))
+
+    def forward(self, motion, depth_prev_warped, depth_cur):
+        return torch.sigmoid(self.net(torch.cat([motion / 16.0, depth_prev_warped, depth_cur], dim=1)))
+
+
+class FuseSR(SRModel):
+    learned = True
+    default_history = 2
+    default_width = 128
+    hr_channels = 64
+    separable = False
+
+    def __init__(self, cfg, scale: int):
+        super().__init__(cfg, scale)
+        self.history = self.default_history if cfg.history < 0 else cfg.history
+        self.demod = bool(cfg.demodulation)
+        self.use_hr = bool(cfg.hr_gbuffer)
+        self.transform = cfg.input_transform
+        self.depth_norm = cfg.depth_norm
+        self.residual = bool(cfg.residual)
+        width = cfg.width or self.default_width
+        blocks = cfg.blocks or 6
+        s = self.scale
+        self.encoder = Encoder(7)
+        self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], 64), nn.ReLU(inplace=True))
+        self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
+        cin = 64 + ENCODER_CHANNELS[-1] * self.history
+        if self.use_hr:
+            self.hr_branch = nn.Sequential(conv(10 * s * s, self.hr_channels), nn.ReLU(inplace=True))
+            cin += self.hr_channels
+        make = DWSConv if self.separable else conv
+        self.fuse_in = nn.Sequential(make(cin, width), nn.ReLU(inplace=True))
+        self.blocks = nn.Sequential(*[ResBlock(width, self.separable) for _ in range(blocks)])
+        self.head = conv(width + ENCODER_CHANNELS[0], 3 * s * s)
+        self.refine = conv(3, 3)
+
+    def needs(self):
+        keys = ["lr/irradiance" if self.demod else "lr/radiance", "lr/depth", "lr/normal", "depth_ref"]
+        if self.history:
+            keys.append("lr/motion")
+        if self.use_hr:
+            keys += ["hr/fbeta_used", "hr/depth", "hr/normal", "hr/albedo"]
+        if self.demod:
+            keys += ["hr/fbeta_used", "hr/emission"]
+        return tuple(dict.fromkeys(keys))
+
+    def _lr_input(self, batch, back: int):
+        key = "lr/irradiance" if self.demod else "lr/radiance"
+        color = forward_transform(frame(batch, key, back), self.transform)
+        depth = depth_features(batch, "lr", back, self.depth_norm)
+        return torch.cat([color, depth, frame(batch, "lr/normal", back)], dim=1), depth
+
+    def forward(self, batch):
+        x, depth_cur = self._lr_input(batch, 0)
+        f_s, f_f = self.encoder(x)
+        feats = [self.expand(f_f)]
+        if self.history:
+            m_cur = current(batch, "lr/motion")
+            motion = m_cur
+            for k in range(1, self.history + 1):
+                if k > 1:  # motion t -> t-k: follow t -> t-k+1, then the motion of frame t-k+1 from there
+                    motion = accumulate_motion(motion, frame(batch, "lr/motion", k - 1))
+                xk, dk = self._lr_input(batch, k)
+                _, fk = self.encoder(xk)
+                warped, valid = backward_warp(torch.cat([fk, dk], dim=1), motion)
+                gate = self.gates[k - 1](motion, warped[:, -1:], depth_cur) * valid
+                feats.append(warped[:, :-1] * gate)
+        if self.use_hr:
+            hr = torch.cat([current(batch, "hr/fbeta_used"), depth_features(batch, "hr", 0, self.depth_norm),
+                            current(batch, "hr/normal"), current(batch, "hr/albedo")], dim=1)
+            feats.append(self.hr_branch(F.pixel_unshuffle(hr, self.scale)))
+        y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
+        y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
+        if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
+            y = y + F.interpolate(x[:, :3], scale_factor=self.scale, mode="bilinear", align_corners=False)
+        y = F.relu(y)
+        out = inverse_transform(y.float(), self.transform)
+        if self.demod:
+            out = out * current(batch, "hr/fbeta_used").float() + current(batch, "hr/emission").float()
+        return out

@@ -1,0 +1,507 @@
+"""The training loop (torch): ``train(cfg, run_dir, resume=...)``.
+
+Run directory::
+
+    RUN/config.toml              the resolved configuration
+    RUN/log.csv                  one row every run.log_every steps (loss terms, lr, step and data times)
+    RUN/checkpoints/last.pt      the latest checkpoint; step_NNNNNNNN.pt every run.checkpoint_every steps
+    RUN/summary.json             steps, time per step, fraction of time spent waiting for data, ...
+    RUN/val.json                 evaluation of the held-out frames (data.val_frames > 0)
+
+A checkpoint holds the model, optimiser and scheduler states, the RNG states (torch, numpy, python), the sampler
+state (seed; batch k is a pure function of seed, rank and k), the configuration, and the manifest hashes of the
+training clips. ``resume`` continues from ``last.pt``: on CPU the weights after N straight steps and after
+N/2 + resume + N/2 are bit-identical (tests/test_training_resume.py). Distributed data parallel runs under torchrun
+(gloo on CPU, NCCL on GPU); only rank 0 writes.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import math
+import os
+import random
+import signal
+import statistics
+import time
+import warnings
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gbuffer_export.clip import write_json_atomic
+from gbuffer_export.config import ConfigError
+from training.cache import ClipCache
+from training.config import TrainConfig, config_from_dict
+from training.data import BatchSpec, Prefetcher, TrainSampler
+from training.losses import Criterion
+from training.models import MODELS, OPTIONAL_KEYS, build_model
+
+CHECKPOINT_FORMAT = "blendsr.checkpoint"
+LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "lr", "step_ms", "data_ms",
+               "samples_per_s", "elapsed_s")
+#: Run-section keys that may change on --resume (everything else must match the checkpoint).
+RESUMABLE_RUN_KEYS = ("max_steps", "minutes", "checkpoint_every", "keep_checkpoints", "log_every", "progress",
+                      "threads", "eval_every", "device", "compile")
+
+
+class TrainingError(RuntimeError):
+    """Training stopped (non-finite loss, broken data); the message says where."""
+
+
+# ------------------------------------------------------------------------------------------------- devices
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("run.device = 'cuda' but no CUDA device is available")
+    return torch.device(name)
+
+
+def cpu_bf16_supported() -> bool:
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def amp_dtype(mode: str, device: torch.device) -> torch.dtype | None:
+    """Autocast dtype: 'auto' picks bf16 where the hardware has it (CPU avx512-bf16/AMX, CUDA >= Ampere),
+    fp16 on older CUDA GPUs, and full precision otherwise."""
+    if mode == "none":
+        return None
+    if mode == "bf16":
+        return torch.bfloat16
+    if mode == "fp16":
+        return torch.float16
+    if device.type == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    return torch.bfloat16 if cpu_bf16_supported() else None
+
+
+def autocast(device: torch.device, dtype: torch.dtype | None):
+    if dtype is None:
+        return nullcontext()
+    return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+def to_device(batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def drop_last(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The batch of the window that ends one frame earlier (every key loses its last frame)."""
+    return {k: v[:, :-1] for k, v in batch.items()}
+
+
+def lr_lambda(cfg: TrainConfig):
+    o = cfg.optim
+    total = o.decay_steps or cfg.run.max_steps
+
+    def f(step: int) -> float:
+        if o.warmup_steps and step < o.warmup_steps:
+            return (step + 1) / o.warmup_steps
+        if o.scheduler == "constant":
+            return 1.0
+        if o.scheduler == "step":
+            return o.step_gamma ** (step // o.step_every)
+        t = min(max(step - o.warmup_steps, 0) / max(total - o.warmup_steps, 1), 1.0)
+        return o.min_lr_ratio + (1 - o.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t))
+    return f
+
+
+def param_digest(model: torch.nn.Module, params_only: bool = False) -> str:
+    """Short hash of the state dict (or of the parameters only: BatchNorm running statistics are per rank under
+    DDP until the next forward pass broadcasts rank 0's)."""
+    h = hashlib.sha256()
+    items = model.named_parameters() if params_only else model.state_dict().items()
+    for k, v in items:
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable checkpoint ({exc})") from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a BlendSR checkpoint")
+    return ck
+
+
+def unwrap(model):
+    model = getattr(model, "module", model)
+    return getattr(model, "_orig_mod", model)
+
+
+class Dist:
+    """torchrun environment (WORLD_SIZE, RANK, LOCAL_RANK); a no-op for a single process."""
+
+    def __init__(self, device_name: str):
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        self.enabled = self.world > 1
+        device = resolve_device(device_name)
+        if device.type == "cuda" and self.enabled:
+            device = torch.device("cuda", self.local_rank)
+            torch.cuda.set_device(device)
+        self.device = device
+        if self.enabled and not torch.distributed.is_initialized():
+            backend = "nccl" if device.type == "cuda" else "gloo"
+            torch.distributed.init_process_group(backend=backend)
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def barrier(self) -> None:
+        if self.enabled:
+            torch.distributed.barrier()
+
+    def any(self, flag: bool) -> bool:
+        """True on every rank when ``flag`` is true on any rank."""
+        if not self.enabled:
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0], device=self.device)
+        torch.distributed.all_reduce(t)
+        return bool(t.item() > 0)
+
+    def close(self) -> None:
+        if self.enabled and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+
+
+def open_caches(clips, data_cfg, keys, dist: Dist | None = None) -> list[ClipCache]:
+    """Open (and build where needed) the caches of ``clips``; rank 0 builds first."""
+    caches = []
+    for c in clips:
+        caches.append(ClipCache(c, eps=data_cfg.demod_eps, nonfinite=data_cfg.nonfinite,
+                                cache_dir=data_cfg.cache_dir or None))
+    if dist is not None and dist.enabled and not dist.main:
+        dist.barrier()
+    for cache in caches:
+        cache.ensure([k for k in keys if cache.has(k) or k not in OPTIONAL_KEYS])
+    if dist is not None and dist.enabled and dist.main:
+        dist.barrier()
+    return caches
+
+
+# ------------------------------------------------------------------------------------------------- train
+def _comparable(cfg: TrainConfig) -> dict:
+    d = cfg.to_dict()
+    d["data"]["clips"] = [str(Path(c).resolve()) for c in d["data"]["clips"]]
+    d["model"].pop("scale")
+    return d
+
+
+def resumed_config(ck: dict, cfg: TrainConfig | None, run_overrides: dict | None, source: str) -> TrainConfig:
+    """The checkpoint's configuration with run.* settings from ``cfg`` / ``run_overrides``. ``cfg`` (when given)
+    must otherwise match the checkpoint's (clips compared as resolved paths)."""
+    saved = config_from_dict(ck["config"], source=source)
+    if cfg is not None:
+        a, b = _comparable(cfg), _comparable(saved)
+        if not cfg.data.clips:
+            a["data"]["clips"] = b["data"]["clips"]
+        for section in ("data", "model", "loss", "optim"):
+            if a[section] != b[section]:
+                diff = [k for k in a[section] if a[section][k] != b[section].get(k)]
+                raise ConfigError(f"{source}: {section}.{diff[0]} differs from the checkpoint's; resume with the "
+                                  "same configuration (only run.* settings may change)")
+        for key in RESUMABLE_RUN_KEYS:
+            setattr(saved.run, key, getattr(cfg.run, key))
+    for key, value in (run_overrides or {}).items():
+        if key not in RESUMABLE_RUN_KEYS:
+            raise ConfigError(f"run.{key} cannot change on --resume")
+        setattr(saved.run, key, value)
+    return saved.validate()
+
+
+def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool = False,
+          run_overrides: dict | None = None, stop_at: int | None = None, log=print) -> dict:
+    """Train ``cfg.model.name`` on ``cfg.data.clips`` into ``run_dir``; returns the summary dict.
+    With ``resume`` the checkpoint's configuration is used (``cfg`` may be None; see ``resumed_config``).
+    ``stop_at`` stops after that step as if interrupted (checkpoint written), for tests."""
+    run_dir = Path(run_dir)
+    last = run_dir / "checkpoints" / "last.pt"
+    ck = None
+    if resume:
+        ck = load_checkpoint(last)
+        cfg = resumed_config(ck, cfg, run_overrides, str(last))
+    elif cfg is None:
+        raise ConfigError("no configuration given")
+    else:
+        for key, value in (run_overrides or {}).items():
+            setattr(cfg.run, key, value)
+        cfg.validate()
+    if not resume and last.exists():
+        raise FileExistsError(f"{run_dir}: already holds a run (checkpoints/last.pt); pass --resume to continue or "
+                              "choose another output directory")
+    if not cfg.data.clips:
+        raise ConfigError("no training clips: pass --data CLIP [CLIP ...] or set data.clips")
+    if not MODELS[cfg.model.name].learned:
+        raise ConfigError(f"model {cfg.model.name!r} has no weights to train; evaluate it with "
+                          f"'blendsr evaluate --model {cfg.model.name}'")
+
+    dist = Dist(cfg.run.device)
+    device = dist.device
+    if cfg.run.threads:
+        torch.set_num_threads(cfg.run.threads)
+    random.seed(cfg.run.seed)
+    np.random.seed(cfg.run.seed % 2**32)
+    torch.manual_seed(cfg.run.seed)
+
+    # Data: scale from the clips, then the model, then what it reads.
+    from gbuffer_export.clip import open_clip
+    scales = {open_clip(c).scale for c in cfg.data.clips}
+    if len(scales) != 1:
+        raise ConfigError(f"training clips have different scales {sorted(scales)}; train one scale at a time")
+    scale = scales.pop()
+    if cfg.model.scale and cfg.model.scale != scale:
+        raise ConfigError(f"model.scale = {cfg.model.scale} but the clips have scale {scale}")
+    cfg.model.scale = scale
+    model = build_model(cfg.model, scale)
+    temporal = cfg.loss.temporal_weight > 0
+    spec = BatchSpec.for_model(model, temporal=temporal, crop=cfg.data.crop, flip=cfg.data.augment_flip,
+                               rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range))
+    caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist)
+    manifests = [{"clip": str(Path(c.clip_path).resolve()), "manifest_sha256": c.manifest_sha256} for c in caches]
+    if ck is not None:
+        old = {m["clip"]: m["manifest_sha256"] for m in ck["data"]}
+        for m in manifests:
+            if m["clip"] in old and old[m["clip"]] != m["manifest_sha256"]:
+                raise ConfigError(f"{m['clip']}: the clip changed since the checkpoint was written "
+                                  "(manifest hash differs); start a new run")
+    sampler = TrainSampler(caches, spec, cfg.data.batch_size, cfg.run.seed, dist.rank, cfg.data.val_frames)
+
+    model.to(device)
+    criterion = Criterion(cfg.loss).to(device)
+    opt_cls = torch.optim.AdamW if cfg.optim.weight_decay > 0 else torch.optim.Adam
+    optimizer = opt_cls(model.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
+                        weight_decay=cfg.optim.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lr_lambda(cfg))
+    step = 0
+    elapsed_before = 0.0
+    if ck is not None:
+        model.load_state_dict(ck["model"])
+        optimizer.load_state_dict(ck["optimizer"])
+        scheduler.load_state_dict(ck["scheduler"])
+        rng = ck["rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        if device.type == "cuda" and rng.get("cuda") is not None:
+            torch.cuda.set_rng_state_all(rng["cuda"])
+        step = int(ck["step"])
+        elapsed_before = float(ck.get("elapsed_s", 0.0))
+        if ck["sampler"]["seed"] != sampler.seed:
+            raise ConfigError(f"{last}: sampler seed differs from the checkpoint's")
+    dtype = amp_dtype(cfg.run.amp, device)
+    scaler = torch.amp.GradScaler("cuda") if (dtype == torch.float16 and device.type == "cuda") else None
+    if ck is not None and scaler is not None and ck.get("scaler"):
+        scaler.load_state_dict(ck["scaler"])
+    net = model
+    if dist.enabled:
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None)
+    if cfg.run.compile:
+        net = torch.compile(net)
+
+    if dist.main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.toml").write_text(cfg.to_toml())
+    logf = None
+    writer = None
+    if dist.main:
+        new = not (run_dir / "log.csv").exists()
+        logf = open(run_dir / "log.csv", "a", newline="")
+        writer = csv.writer(logf)
+        if new:
+            writer.writerow(LOG_COLUMNS)
+    tb = None
+    if dist.main:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+            tb = SummaryWriter(str(run_dir / "tensorboard"))
+        except ImportError:
+            tb = None
+
+    def state(cur_step: int, elapsed: float) -> dict:
+        return {"format": CHECKPOINT_FORMAT, "version": 1, "model_name": cfg.model.name, "scale": scale,
+                "step": cur_step, "config": cfg.to_dict(), "model": unwrap(net).state_dict(),
+                "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "scaler": scaler.state_dict() if scaler is not None else None,
+                "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+                        "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else None},
+                "sampler": {**sampler.state_dict(), "next_step": cur_step}, "data": manifests,
+                "world_size": dist.world, "elapsed_s": elapsed, "device": str(device),
+                "amp": str(dtype).replace("torch.", "") if dtype else "none"}
+
+    def checkpoint(cur_step: int, elapsed: float, numbered: bool) -> None:
+        if not dist.main:
+            return
+        st = state(cur_step, elapsed)
+        save_checkpoint(last, st)
+        if numbered:
+            save_checkpoint(run_dir / "checkpoints" / f"step_{cur_step:08d}.pt", st)
+            olds = sorted((run_dir / "checkpoints").glob("step_*.pt"))
+            for p in olds[:max(len(olds) - cfg.run.keep_checkpoints, 0)]:
+                p.unlink()
+
+    stop_requested = {"flag": False}
+
+    def on_term(signum, frame):
+        stop_requested["flag"] = True
+    old_handler = None
+    try:
+        old_handler = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not in the main thread
+        pass
+
+    bar = None
+    if cfg.run.progress and dist.main:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.run.max_steps, initial=step, desc=f"train {cfg.model.name}", unit="step",
+                   dynamic_ncols=True)
+    prefetch = Prefetcher(sampler, step, cfg.data.prefetch)
+    t_start = time.perf_counter()
+    step_times: list[float] = []
+    data_times: list[float] = []
+    net.train()
+    reason = "max_steps"
+    interrupted = False
+    try:
+        while step < cfg.run.max_steps:
+            t0 = time.perf_counter()
+            batch_np, samples = prefetch.get(step)
+            batch = to_device(batch_np, device)
+            t1 = time.perf_counter()
+            with autocast(device, dtype):
+                sr = net(batch).float()
+                sr_prev = net(drop_last(batch)).float() if temporal else None
+            gt = batch["hr/radiance"][:, -1]
+            loss, terms = criterion(sr, gt, sr_prev,
+                                    batch["hr/radiance"][:, -2] if temporal else None,
+                                    batch["hr/motion"][:, -1] if temporal else None)
+            bad = not bool(torch.isfinite(loss))
+            if dist.any(bad):
+                where = "; ".join(f"{s.clip} frames {s.frames[0]}-{s.frames[-1]}" for s in samples)
+                bad_sr = not bool(torch.isfinite(sr).all())
+                raise TrainingError(f"loss became {loss.item()} at step {step + 1} (rank {dist.rank}; "
+                                    f"{'the model output' if bad_sr else 'a loss term'} is not finite; batch: "
+                                    f"{where}); training stopped, last checkpoint: {last}")
+            optimizer.zero_grad(set_to_none=True)
+            if scaler is not None:
+                scaler.scale(loss).backward()
+                scaler.unscale_(optimizer)
+            else:
+                loss.backward()
+            if cfg.optim.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
+            if scaler is not None:
+                scaler.step(optimizer)
+                scaler.update()
+            else:
+                optimizer.step()
+            scheduler.step()
+            step += 1
+            t2 = time.perf_counter()
+            step_times.append(t2 - t0)
+            data_times.append(t1 - t0)
+            elapsed = elapsed_before + (t2 - t_start)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss.item():.4f}", samples_s=f"{cfg.data.batch_size * dist.world / (t2 - t0):.1f}")
+            if step % cfg.run.log_every == 0 or step == cfg.run.max_steps:
+                row = {"step": step, "loss": loss.item(), **{k: v.item() for k, v in terms.items()},
+                       "lr": scheduler.get_last_lr()[0], "step_ms": 1000 * (t2 - t0), "data_ms": 1000 * (t1 - t0),
+                       "samples_per_s": cfg.data.batch_size * dist.world / (t2 - t0), "elapsed_s": elapsed}
+                if writer is not None:
+                    writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in LOG_COLUMNS])
+                    logf.flush()
+                if tb is not None:
+                    for k, v in row.items():
+                        if k != "step":
+                            tb.add_scalar(k, v, step)
+            if step % cfg.run.checkpoint_every == 0 and step < cfg.run.max_steps:
+                checkpoint(step, elapsed, numbered=True)
+            if cfg.run.eval_every and step % cfg.run.eval_every == 0 and cfg.data.val_frames and dist.main:
+                _validate(unwrap(net), caches, cfg, run_dir / f"val_step_{step:08d}.json", device, dtype)
+                net.train()
+            stop_time = bool(cfg.run.minutes) and elapsed - elapsed_before >= 60 * cfg.run.minutes
+            stop_now = dist.any(stop_time or stop_requested["flag"] or (stop_at is not None and step >= stop_at))
+            if stop_now:
+                reason = "minutes" if stop_time else ("signal" if stop_requested["flag"] else "stop_at")
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        reason = "interrupted"
+        raise
+    finally:
+        prefetch.close()
+        if bar is not None:
+            bar.close()
+        elapsed = elapsed_before + (time.perf_counter() - t_start)
+        # On an exception other than an interrupt the last checkpoint stays the last good one.
+        import sys
+        exc = sys.exc_info()[1]
+        if exc is None or interrupted:
+            checkpoint(step, elapsed, numbered=(exc is None and step == cfg.run.max_steps))
+        if old_handler is not None:
+            signal.signal(signal.SIGTERM, old_handler)
+        if logf is not None:
+            logf.close()
+        if tb is not None:
+            tb.close()
+
+    summary = {"model": cfg.model.name, "step": step, "max_steps": cfg.run.max_steps, "stopped_by": reason,
+               "device": str(device), "amp": str(dtype).replace("torch.", "") if dtype else "none",
+               "world_size": dist.world, "threads": torch.get_num_threads(), "batch_size": cfg.data.batch_size,
+               "crop_lr": cfg.data.crop, "scale": scale, "params": sum(p.numel() for p in model.parameters()),
+               "elapsed_s": elapsed}
+    if len(step_times) > 2:
+        st, dt = step_times[2:], data_times[2:]
+        summary.update(median_step_ms=1000 * statistics.median(st), median_data_ms=1000 * statistics.median(dt),
+                       data_fraction=sum(dt) / sum(st))
+    if dist.enabled:
+        digest = param_digest(unwrap(net), params_only=True)
+        digests = [None] * dist.world
+        torch.distributed.all_gather_object(digests, digest)
+        summary["ranks_agree"] = len(set(digests)) == 1
+        if not summary["ranks_agree"]:
+            warnings.warn(f"DDP ranks hold different weights: {digests}", RuntimeWarning)
+    summary["param_digest"] = param_digest(unwrap(net))
+    if dist.main:
+        if cfg.data.val_frames and reason in ("max_steps", "minutes"):
+            summary["val"] = _validate(unwrap(net), caches, cfg, run_dir / "val.json", device, dtype)["mean"]
+        write_json_atomic(run_dir / "summary.json", summary)
+        log(f"trained {cfg.model.name} to step {step} ({reason}) in {elapsed:.1f} s; checkpoint {last}")
+    dist.barrier()
+    dist.close()
+    return summary
+
+
+def _validate(model, caches, cfg: TrainConfig, out: Path, device, dtype) -> dict:
+    """Evaluate the held-out last ``data.val_frames`` frames of every training clip; writes ``out``."""
+    from training.evaluate import evaluate_model
+    frames = {str(c.clip_path): c.frames[-cfg.data.val_frames:] for c in caches}
+    result = evaluate_model(model, [c.clip_path for c in caches], frames=frames, device=device, amp=dtype,
+                            flip=False, data_cfg=cfg.data)
+    write_json_atomic(out, result)
+    model.train()
+    return result
