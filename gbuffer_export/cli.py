@@ -23,6 +23,16 @@ COMMANDS = (
 )
 
 
+def import_optional(modname: str):
+    """Import a command module; None when the module itself (not one of its dependencies) is absent."""
+    try:
+        return importlib.import_module(modname)
+    except ModuleNotFoundError as exc:
+        if exc.name and modname.startswith(exc.name):
+            return None
+        raise
+
+
 class UsageError(Exception):
     """Bad input: printed as one line 'blendsr: error: ...' with exit code 2."""
 
@@ -38,14 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"blendsr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in COMMANDS:
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as exc:
-            # A command module that is not there yet (or whose pure dependencies are missing) is skipped.
-            if exc.name and modname.startswith(exc.name):
-                continue
-            raise
-        mod.register(sub)
+        mod = import_optional(modname)
+        if mod is not None:
+            mod.register(sub)
     return parser
 
 

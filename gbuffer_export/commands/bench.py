@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 
 #: The visible table of benchmarks: name -> module exposing add_arguments(parser) and run(args).
 BENCHES = {
@@ -17,13 +16,11 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
                        description="Benchmarks. Each prints a table and can save JSON; numbers are medians.")
     bsub = p.add_subparsers(dest="bench", metavar="KIND")
+    from ..cli import import_optional
     for name, modname in BENCHES.items():
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as exc:
-            if exc.name and modname.startswith(exc.name):
-                continue
-            raise
+        mod = import_optional(modname)
+        if mod is None:
+            continue
         bp = bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0],
                              description=mod.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(bp)
