@@ -183,11 +183,4 @@ class BLENDSR_PT_view3d(bpy.types.Panel):
 CLASSES = (BLENDSR_PT_output, BLENDSR_PT_view3d)
 
 
-def register() -> None:
-    for c in CLASSES:
-        bpy.utils.register_class(c)
-
-
-def unregister() -> None:
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
