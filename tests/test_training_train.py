@@ -142,3 +142,14 @@ def test_bf16_autocast_step_on_cpu(clip, tmp_path):
     assert s["amp"] == "bfloat16" and s["step"] == 2
     rows = list(csv.DictReader(open(tmp_path / "bf16" / "log.csv")))
     assert all(np.isfinite(float(r["loss"])) for r in rows)
+
+
+def test_max_steps_and_minutes_combine_whichever_comes_first(clip, tmp_path, capsys):
+    run = tmp_path / "run"
+    rc = main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(run), "--max-steps", "2",
+               "--minutes", "30", *_sets(SMALL)])
+    assert rc == 0
+    cfg = load_config(run / "config.toml")
+    assert cfg.run.max_steps == 2 and cfg.run.minutes == 30
+    assert json.loads((run / "summary.json").read_text())["stopped_by"] == "max_steps"
+    assert "cosine schedule decays over 2 steps" in capsys.readouterr().err

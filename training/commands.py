@@ -21,11 +21,12 @@ def register(subparsers) -> None:
     p.add_argument("--config", metavar="FILE", help="TOML configuration ([data] [model] [loss] [optim] [run])")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one configuration value (TOML literal), repeatable, e.g. --set data.crop=48")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--max-steps", type=int, metavar="N",
-                   help="train until step N (run.max_steps; clears run.minutes)")
-    g.add_argument("--minutes", type=float, metavar="M",
-                   help="stop after M minutes of this invocation (run.minutes; run.max_steps stays a cap)")
+    p.add_argument("--max-steps", type=int, metavar="N",
+                   help="train until step N (run.max_steps, also the length of the cosine schedule); alone it "
+                        "clears run.minutes, with --minutes the run stops at whichever comes first")
+    p.add_argument("--minutes", type=float, metavar="M",
+                   help="stop after M minutes of this invocation (run.minutes; run.max_steps stays a cap and the "
+                        "schedule's length: give --max-steps too so that the learning rate decays in time)")
     p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
     p.add_argument("--list-models", action="store_true", help="print the model table and exit")
     p.set_defaults(func=cmd_train)
@@ -98,7 +99,7 @@ def cmd_train(args) -> int:
     if args.model:
         overrides.append(f'model.name="{args.model}"')
     run_overrides = {}
-    if args.max_steps is not None:  # a step budget replaces a time budget (also one saved in a checkpoint)
+    if args.max_steps is not None:  # alone, a step budget replaces a time budget (also one saved in a checkpoint)
         run_overrides["max_steps"] = args.max_steps
         run_overrides["minutes"] = 0.0
     if args.minutes is not None:

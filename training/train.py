@@ -260,6 +260,9 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
 
     dist = Dist(cfg.run.device)
     device = dist.device
+    if dist.main and cfg.run.minutes and cfg.optim.scheduler == "cosine":
+        log(f"note: the cosine schedule decays over {cfg.optim.decay_steps or cfg.run.max_steps} steps "
+            f"(optim.decay_steps or run.max_steps) whatever the {cfg.run.minutes:g}-minute budget")
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
     random.seed(cfg.run.seed)
