@@ -12,7 +12,7 @@ from gbuffer_export.config import ConfigError  # noqa: E402
 from gbuffer_export.conventions import backward_warp as np_warp  # noqa: E402
 from training.config import ModelConfig, TrainConfig, config_from_dict, dict_to_toml, load_config  # noqa: E402
 from training.models import MODELS, build_model  # noqa: E402
-from training.models.base import accumulate_motion, backward_warp  # noqa: E402
+from training.models.base import accumulate_motion, backward_warp, upsample  # noqa: E402
 from training.models.fusesr import FuseSR  # noqa: E402
 
 pytestmark = pytest.mark.torch
@@ -49,7 +49,7 @@ def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
     return {"lr/radiance": lr(3), "lr/irradiance": lr(3) * 2, "lr/depth": depth, "lr/normal": lr(3) - 0.5,
             "lr/motion": 2 * lr(2) - 1, "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
             "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3),
-            "depth_ref": torch.full((1, frames), 3.0)}
+            "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5}
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -76,9 +76,11 @@ def test_bicubic_is_clamped_and_bilinear_preserves_constants():
     batch = make_batch()
     batch["lr/radiance"][:] = 0.0
     batch["lr/radiance"][..., 2, 3] = 5.0  # a spike: bicubic rings negative, clamped at 0
+    batch["lr_jitter"][:] = 0.0
     out = build_model(ModelConfig(name="bicubic"), 4)(batch)
     raw = torch.nn.functional.interpolate(batch["lr/radiance"][:, -1], scale_factor=4, mode="bicubic")
-    assert raw.min() < 0 and out.min() == 0 and torch.equal(out, raw.clamp(min=0))
+    assert raw.min() < 0 and out.min() == 0
+    torch.testing.assert_close(out, raw.clamp(min=0), atol=1e-5, rtol=1e-5)
     batch["lr/radiance"][:] = 0.25
     assert torch.allclose(build_model(ModelConfig(name="bilinear"), 4)(batch), torch.full((1, 3, 24, 32), 0.25))
 
@@ -107,13 +109,17 @@ def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
     assert not _changes_output(no_demod, batch, "lr/irradiance", -1)
     plain = FuseSR(ModelConfig(name="fusesr", demodulation=False, hr_gbuffer=False), 4).eval()
     assert not any(k.startswith("hr/") for k in plain.needs())
+    assert _changes_output(full, batch, "lr_jitter", -1)          # the current frame's jitter
+    assert _changes_output(full, batch, "lr_jitter", 0)           # history alignment
+    no_jit = FuseSR(ModelConfig(name="fusesr", jitter=False), 4).eval()
+    assert "lr_jitter" not in no_jit.needs() and not _changes_output(no_jit, batch, "lr_jitter", -1)
     # residual head: with the last convolution zeroed the output is the bilinear upsampling of T(L_D) remodulated
     from training.transforms import forward_transform, inverse_transform
     with torch.no_grad():
         full.refine.weight.zero_()
         full.refine.bias.zero_()
-        up = torch.nn.functional.interpolate(forward_transform(batch["lr/irradiance"][:, -1], "log1p"),
-                                             scale_factor=4, mode="bilinear")
+        up = upsample(forward_transform(batch["lr/irradiance"][:, -1], "log1p"), 4, "bilinear",
+                      batch["lr_jitter"][:, -1])
         expect = inverse_transform(up.clamp(min=0), "log1p") * batch["hr/fbeta_used"][:, -1] \
             + batch["hr/emission"][:, -1]
         torch.testing.assert_close(full(batch), expect)
@@ -171,3 +177,14 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
     assert TrainConfig().validate().model.name == "fusesr"
     example = Path(__file__).resolve().parents[1] / "examples" / "train_config.toml"
     assert load_config(example).data.val_frames == 8
+
+
+@pytest.mark.parametrize("mode", ["bilinear", "bicubic"])
+def test_jittered_upsampling_moves_the_samples_to_their_jittered_positions(mode):
+    x = torch.rand(2, 3, 6, 8, generator=torch.Generator().manual_seed(1))
+    plain = torch.nn.functional.interpolate(x, scale_factor=4, mode=mode, align_corners=False)
+    torch.testing.assert_close(upsample(x, 4, mode, torch.zeros(2, 2)), plain, atol=1e-5, rtol=1e-5)
+    # LR samples taken 0.25 LR px = 1 HR px right of / 0.5 LR px = 2 HR px below their centres: the image moves
+    # right by 1 and down by 2 HR pixels (away from the clamped borders)
+    j = torch.tensor([[0.25, 0.5], [0.25, 0.5]])
+    torch.testing.assert_close(upsample(x, 4, mode, j)[..., 8:-8, 8:-8], plain[..., 6:-10, 7:-9], atol=1e-5, rtol=1e-5)

@@ -3,7 +3,8 @@
 Dihedral transforms (the 8 symmetries of a square crop) are written as an optional transpose (swap image x and y)
 followed by optional flips of x and of y. Image-space vectors follow the image:
 
-- motion (x right, y down, pixels): transpose swaps (mx, my); flip x negates mx; flip y negates my.
+- motion and the LR jitter (x right, y down, pixels): transpose swaps (x, y); flip x negates x; flip y negates y.
+  (The jitter is the offset of a pixel's sample from its centre, so it turns with the image like a motion vector.)
 - camera-space normals (+X right, +Y up, +Z toward the viewer): their image direction is (X, -Y), so transpose maps
   (X, Y, Z) -> (-Y, -X, Z), flip x negates X, flip y negates Y. Z is unchanged (each transform is a mirror or
   rotation of the image plane, seen by a mirrored/rotated pinhole camera).
@@ -43,26 +44,32 @@ def _buffer(key: str) -> str:
     return key.rsplit("/", 1)[-1]
 
 
+def apply_vector(v: np.ndarray, aug: Augmentation) -> np.ndarray:
+    """Apply ``aug`` to image-space 2-vectors ``v`` (..., 2) (x right, y down): motion, jitter."""
+    v = np.asarray(v)
+    if aug.transpose:
+        v = v[..., ::-1]
+    return v * np.array([-1 if aug.flip_x else 1, -1 if aug.flip_y else 1], dtype=v.dtype)
+
+
 def apply(key: str, a: np.ndarray, aug: Augmentation) -> np.ndarray:
     """Apply ``aug`` to array ``a`` (..., H, W, C) of buffer ``key``; returns a new array."""
     name = _buffer(key)
     h_ax, w_ax = a.ndim - 3, a.ndim - 2
     if aug.transpose:
         a = np.swapaxes(a, h_ax, w_ax)
-        if name == "motion":
-            a = a[..., ::-1]
-        elif name == "normal":
+        if name == "normal":
             a = np.stack([-a[..., 1], -a[..., 0], a[..., 2]], axis=-1)
     if aug.flip_x:
         a = np.flip(a, axis=w_ax)
-        if name in ("motion", "normal"):
-            a = a * np.array([-1, 1] if name == "motion" else [-1, 1, 1], dtype=a.dtype)
+        if name == "normal":
+            a = a * np.array([-1, 1, 1], dtype=a.dtype)
     if aug.flip_y:
         a = np.flip(a, axis=h_ax)
-        if name == "motion":
-            a = a * np.array([1, -1], dtype=a.dtype)
-        elif name == "normal":
+        if name == "normal":
             a = a * np.array([1, -1, 1], dtype=a.dtype)
+    if name == "motion":
+        a = apply_vector(a, aug)
     if aug.exposure != 1.0 and name in RADIOMETRIC:
         a = a * np.asarray(aug.exposure, dtype=a.dtype)
     return np.ascontiguousarray(a)

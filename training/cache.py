@@ -268,10 +268,19 @@ class ClipCache:
     def depth_ref(self, frame: int) -> float:
         return float(self.index["depth_ref"].get(str(frame), 1.0))
 
+    def jitter(self, frame: int) -> np.ndarray:
+        """The LR jitter (dx, dy) of a frame, LR pixels (float32 (2,)); see docs/clip-format.md."""
+        return lr_jitter(self.clip, frame)
+
     def read(self, frame: int, key: str) -> np.ndarray:
         """One frame of a cached key as float32 H x W x C (flags uint32)."""
         a = self.array(key)[self.index_of[frame]]
         return np.asarray(a, dtype=np.uint32 if a.dtype == np.uint32 else np.float32)
 
 
-__all__ = ["ClipCache", "NonFiniteError", "default_cache_path", "check_finite", "CACHE_VERSION"]
+def lr_jitter(clip: Clip, frame: int) -> np.ndarray:
+    """(dx, dy) float32: the sample of LR pixel centre p was taken at p + (dx, dy) (LR pixels, x right, y down)."""
+    return np.asarray(clip.camera(frame, "lr")["jitter"], dtype=np.float32)
+
+
+__all__ = ["ClipCache", "lr_jitter", "NonFiniteError", "default_cache_path", "check_finite", "CACHE_VERSION"]

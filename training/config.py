@@ -74,6 +74,7 @@ class ModelConfig:
     width: int = 0                   # backbone channels (0: the model's default, FuseSR 128, FuseSR-L 64)
     blocks: int = 0                  # residual blocks (0: the model's default, 6)
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
+    jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
 
     def validate(self) -> None:
         from training.models import MODELS  # torch-free table

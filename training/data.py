@@ -1,6 +1,7 @@
 """Batches for training and full frames for inference (numpy; torch conversion happens in the caller).
 
-A batch maps keys ('lr/irradiance', 'hr/radiance', ...) to float32 arrays (B, T, C, H, W) plus 'depth_ref' (B, T).
+A batch maps keys ('lr/irradiance', 'hr/radiance', ...) to float32 arrays (B, T, C, H, W) plus 'depth_ref' (B, T)
+and 'lr_jitter' (B, T, 2: each LR frame's sub-pixel sample offset (dx, dy) in LR pixels, augmented like motion).
 LR keys hold ``lr_window`` consecutive frames ending at the sample's current frame; HR keys hold the last
 ``hr_window`` of them. Crops are aligned across levels: an LR crop of c x c pixels at (x0, y0) pairs with the HR
 crop of (s c) x (s c) at (s x0, s y0). Motion vectors stay in pixels of their own level.
@@ -17,8 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from gbuffer_export.clip import ClipError
-from training.augment import Augmentation, apply
+from training.augment import Augmentation, apply, apply_vector
 from training.models import OPTIONAL_KEYS
+
+
+FRAME_KEYS = ("depth_ref", "lr_jitter")  # per-frame values, not images
 
 
 @dataclass
@@ -45,10 +49,11 @@ class BatchSpec:
     rotate: bool = False
     exposure_range: tuple[float, float] = (1.0, 1.0)
     depth_ref: bool = True
+    jitter: bool = False
 
     @staticmethod
     def for_model(model, targets=("hr/radiance",), temporal: bool = False, **kw) -> "BatchSpec":
-        keys = [k for k in model.needs() if k != "depth_ref"] + list(targets)
+        keys = [k for k in model.needs() if k not in FRAME_KEYS] + list(targets)
         if temporal:
             keys.append("hr/motion")
         extra = 1 if temporal else 0
@@ -56,7 +61,7 @@ class BatchSpec:
         hr = [k for k in keys if k.startswith("hr/")]
         return BatchSpec(lr_keys=tuple(dict.fromkeys(lr)), hr_keys=tuple(dict.fromkeys(hr)),
                          lr_window=model.window + extra, hr_window=1 + extra,
-                         depth_ref="depth_ref" in model.needs(), **kw)
+                         depth_ref="depth_ref" in model.needs(), jitter="lr_jitter" in model.needs(), **kw)
 
     @property
     def cache_keys(self) -> list[str]:
@@ -138,6 +143,9 @@ class TrainSampler:
             if self.spec.depth_ref:
                 refs = np.array([cache.depth_ref(f) for f in frames], dtype=np.float32)
                 parts.setdefault("depth_ref", []).append(refs)
+            if self.spec.jitter:
+                jit = np.stack([cache.jitter(f) for f in frames]).astype(np.float32)
+                parts.setdefault("lr_jitter", []).append(apply_vector(jit, aug))
         return {k: np.stack(v) for k, v in parts.items()}, samples
 
 
@@ -186,6 +194,8 @@ def frame_window(source, frame: int, spec: BatchSpec) -> dict[str, np.ndarray]:
         out[key] = np.stack(stack)[None]
     if spec.depth_ref:
         out["depth_ref"] = np.array([[source.depth_ref(max(f, first_ok)) for f in wanted]], dtype=np.float32)
+    if spec.jitter:
+        out["lr_jitter"] = np.stack([source.jitter(max(f, first_ok)) for f in wanted])[None].astype(np.float32)
     return out
 
 

@@ -1,7 +1,7 @@
 """ONNX export of a model and a check of onnxruntime against torch (torch, onnx, onnxruntime).
 
 The exported graph takes the model's inputs as separate tensors in the order of ``model.needs()`` (each
-(B, T, C, H, W), 'depth_ref' (B, T)) with dynamic batch, height and width, and returns SR (B, 3, H_hr, W_hr) linear
+(B, T, C, H, W), 'depth_ref' (B, T), 'lr_jitter' (B, T, 2)) with dynamic batch, height and width, and returns SR (B, 3, H_hr, W_hr) linear
 radiance. A JSON sidecar ``OUT.onnx.json`` lists the inputs, their shapes and the scale. Uses the TorchScript-based
 exporter (``dynamo=False``): the dynamo exporter needs onnxscript, which is not a dependency.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from training.data import BatchSpec, frame_window
+from training.data import FRAME_KEYS, BatchSpec, frame_window
 
 
 class PositionalWrapper(torch.nn.Module):
@@ -53,6 +53,9 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
         if k == "depth_ref":
             out[k] = np.full((1, t), 5.0, np.float32)
             continue
+        if k == "lr_jitter":
+            out[k] = (rng.random((1, t, 2), dtype=np.float32) - 0.5).astype(np.float32)
+            continue
         level, name = k.split("/")
         hh, ww = (h, w) if level == "hr" else (h // s, w // s)
         n = t if level == "lr" else 1
@@ -85,7 +88,7 @@ def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int =
     tensors = tuple(torch.from_numpy(inputs[k]) for k in keys)
     dyn = {}
     for k, n in zip(keys, names):
-        dyn[n] = {0: "batch"} if k == "depth_ref" else {0: "batch", 3: f"{k.split('/')[0]}_height",
+        dyn[n] = {0: "batch"} if k in FRAME_KEYS else {0: "batch", 3: f"{k.split('/')[0]}_height",
                                                         4: f"{k.split('/')[0]}_width"}
     dyn["sr"] = {0: "batch", 2: "hr_height", 3: "hr_width"}
     with torch.no_grad():

@@ -20,7 +20,7 @@ import torch
 
 from gbuffer_export.clip import Clip, ClipError, open_clip
 from gbuffer_export.conventions import LEVELS
-from training.cache import DERIVED
+from training.cache import DERIVED, lr_jitter
 from training.config import ModelConfig
 from training.data import BatchSpec, frame_window
 from training.demod import demodulate
@@ -40,6 +40,9 @@ class ClipFrames:
         self.sizes = self.clip.sizes
         self._keep = keep
         self._lru: OrderedDict = OrderedDict()
+
+    def jitter(self, frame: int) -> np.ndarray:
+        return lr_jitter(self.clip, frame)
 
     def has(self, key: str) -> bool:
         level, _, name = key.partition("/")

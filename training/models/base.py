@@ -2,6 +2,9 @@
 
 Tensors are channel-first. ``batch`` values are (B, T, C, H, W); ``current(batch, key)`` is the last frame.
 Motion is in pixels of its level, image coordinates (x right, y down), backward: p_prev = p + motion.
+``batch['lr_jitter']`` (B, T, 2) is each LR frame's jitter: the sample of LR pixel centre p was taken at p + jitter
+(LR pixels). Models with ``use_jitter`` (``model.jitter``, default on) read it: upsampling samples the LR image at
+u - jitter for an HR pixel centre u, and history warping adds jitter_t - jitter_(t-k) to the motion.
 """
 from __future__ import annotations
 
@@ -25,6 +28,10 @@ class SRModel(nn.Module):
         self.cfg = cfg
         self.scale = int(scale)
         self.history = 0
+        self.use_jitter = bool(getattr(cfg, "jitter", True))
+
+    def jitter_keys(self) -> tuple[str, ...]:
+        return ("lr_jitter",) if self.use_jitter else ()
 
     def needs(self) -> tuple[str, ...]:
         """Batch keys the forward pass reads ('lr/...', 'hr/...', 'depth_ref')."""
@@ -53,6 +60,14 @@ def frame(batch: dict, key: str, back: int) -> torch.Tensor:
     x = batch[key]
     t = x.shape[1]
     return x[:, max(t - 1 - back, 0)]
+
+
+def jitter(batch: dict, back: int = 0) -> torch.Tensor | None:
+    """(B, 2) LR jitter of a frame ``back`` steps before the current one (LR pixels), None when the batch has none."""
+    j = batch.get("lr_jitter")
+    if j is None:
+        return None
+    return j[:, max(j.shape[1] - 1 - back, 0)]
 
 
 def depth_features(batch: dict, level: str, back: int, kind: str) -> torch.Tensor:
@@ -114,6 +129,37 @@ class ResBlock(nn.Module):
         return x + self.conv2(F.relu(self.conv1(x)))
 
 
-def upsample(x: torch.Tensor, scale: int, mode: str) -> torch.Tensor:
-    """Bilinear/bicubic upsampling by ``scale`` with pixel-centre alignment (align_corners=False)."""
-    return F.interpolate(x, scale_factor=scale, mode=mode, align_corners=False)
+def upsample(x: torch.Tensor, scale: int, mode: str, jitter: torch.Tensor | None = None) -> torch.Tensor:
+    """Bilinear/bicubic upsampling of (B, C, h, w) by ``scale`` with pixel-centre alignment (align_corners=False).
+    With ``jitter`` (B, 2, LR pixels) the LR samples sit at their jittered positions: the HR pixel centre at LR
+    position u is interpolated at grid position u - jitter (edges clamped). Zero jitter = plain interpolation."""
+    if jitter is None:
+        return F.interpolate(x, scale_factor=scale, mode=mode, align_corners=False)
+    b, _, h, w = x.shape
+    j = jitter.to(x.dtype)
+    xs = (torch.arange(w * scale, device=x.device, dtype=x.dtype) + 0.5) / scale
+    ys = (torch.arange(h * scale, device=x.device, dtype=x.dtype) + 0.5) / scale
+    gx = (2.0 * (xs.view(1, 1, -1) - j[:, 0].view(b, 1, 1)) / w - 1.0).expand(b, h * scale, w * scale)
+    gy = (2.0 * (ys.view(1, -1, 1) - j[:, 1].view(b, 1, 1)) / h - 1.0).expand(b, h * scale, w * scale)
+    return F.grid_sample(x, torch.stack([gx, gy], dim=-1), mode=mode, padding_mode="border", align_corners=False)
+
+
+def history_offsets(batch: dict, history: int, use_jitter: bool) -> list[torch.Tensor]:
+    """Sampling offsets (B, 2, h, w, LR pixels) that bring frames t-1 .. t-history to frame t with
+    ``backward_warp``. The surface seen at p + j_t was at p + j_t + m in frame t-1's un-jittered image, where
+    frame t-1's pixel q holds its sample at q + j_(t-1): offset = m + j_t - j_(t-1). Further back the motion of
+    frame t-k+1 is read at the previous offset and accumulated, then the jitter difference to frame t-k added."""
+    raw = current(batch, "lr/motion")
+    j_t = jitter(batch, 0) if use_jitter else None
+
+    def with_jitter(m: torch.Tensor, k: int) -> torch.Tensor:
+        if j_t is None:
+            return m
+        return m + (j_t - jitter(batch, k)).to(m.dtype).view(-1, 2, 1, 1)
+
+    offsets = [with_jitter(raw, 1)]
+    for k in range(2, history + 1):
+        warped, _ = backward_warp(frame(batch, "lr/motion", k - 1), offsets[-1])
+        raw = raw + warped
+        offsets.append(with_jitter(raw, k))
+    return offsets

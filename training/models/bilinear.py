@@ -1,7 +1,7 @@
 """``bilinear``: bilinear upsampling of the LR radiance (no training, no G-buffers)."""
 from __future__ import annotations
 
-from training.models.base import SRModel, current, upsample
+from training.models.base import SRModel, current, jitter, upsample
 
 
 class Bilinear(SRModel):
@@ -9,7 +9,7 @@ class Bilinear(SRModel):
     mode = "bilinear"
 
     def needs(self):
-        return ("lr/radiance",)
+        return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.scale, self.mode)
+        return upsample(current(batch, "lr/radiance"), self.scale, self.mode, jitter(batch))

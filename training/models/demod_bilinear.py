@@ -5,15 +5,15 @@ The HR material detail comes from the HR F_beta; no ground truth is used.
 """
 from __future__ import annotations
 
-from training.models.base import SRModel, current, upsample
+from training.models.base import SRModel, current, jitter, upsample
 
 
 class DemodBilinear(SRModel):
     learned = False
 
     def needs(self):
-        return ("lr/irradiance", "hr/fbeta_used", "hr/emission")
+        return ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.jitter_keys()
 
     def forward(self, batch):
-        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear")
+        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear", jitter(batch))
         return irr * current(batch, "hr/fbeta_used") + current(batch, "hr/emission")

@@ -17,6 +17,10 @@ before the final ReLU, so the network learns a correction of the demod-bilinear 
 head, ``residual = false``) the final 3-channel ReLU went dead on about a third of the output pixels in our runs and
 training stalled far below the non-learned baseline (docs/training.md has the numbers).
 
+LR jitter (``model.jitter``, default on; not in the paper, whose data has none): the current frame's jitter enters
+the fusion network as 2 constant channels, the residual upsampling samples at the jittered LR positions and history
+warping adds the jitter difference to the motion (``base.history_offsets``).
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -27,8 +31,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import (DWSConv, ResBlock, SRModel, accumulate_motion, backward_warp, conv, current,
-                                  depth_features, frame)
+from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
+                                  frame, history_offsets, jitter, upsample)
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -82,7 +86,7 @@ class FuseSR(SRModel):
         self.encoder = Encoder(7)
         self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], 64), nn.ReLU(inplace=True))
         self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
-        cin = 64 + ENCODER_CHANNELS[-1] * self.history
+        cin = 64 + ENCODER_CHANNELS[-1] * self.history + (2 if self.use_jitter else 0)
         if self.use_hr:
             self.hr_branch = nn.Sequential(conv(10 * s * s, self.hr_channels), nn.ReLU(inplace=True))
             cin += self.hr_channels
@@ -100,7 +104,7 @@ class FuseSR(SRModel):
             keys += ["hr/fbeta_used", "hr/depth", "hr/normal", "hr/albedo"]
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
-        return tuple(dict.fromkeys(keys))
+        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def _lr_input(self, batch, back: int):
         key = "lr/irradiance" if self.demod else "lr/radiance"
@@ -112,12 +116,11 @@ class FuseSR(SRModel):
         x, depth_cur = self._lr_input(batch, 0)
         f_s, f_f = self.encoder(x)
         feats = [self.expand(f_f)]
+        j_t = jitter(batch) if self.use_jitter else None
+        if j_t is not None:  # the current frame's sub-pixel sample offset, as two constant maps
+            feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         if self.history:
-            m_cur = current(batch, "lr/motion")
-            motion = m_cur
-            for k in range(1, self.history + 1):
-                if k > 1:  # motion t -> t-k: follow t -> t-k+1, then the motion of frame t-k+1 from there
-                    motion = accumulate_motion(motion, frame(batch, "lr/motion", k - 1))
+            for k, motion in enumerate(history_offsets(batch, self.history, self.use_jitter), start=1):
                 xk, dk = self._lr_input(batch, k)
                 _, fk = self.encoder(xk)
                 warped, valid = backward_warp(torch.cat([fk, dk], dim=1), motion)
@@ -130,7 +133,7 @@ class FuseSR(SRModel):
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
-            y = y + F.interpolate(x[:, :3], scale_factor=self.scale, mode="bilinear", align_corners=False)
+            y = y + upsample(x[:, :3], self.scale, "bilinear", j_t)
         y = F.relu(y)
         out = inverse_transform(y.float(), self.transform)
         if self.demod:
