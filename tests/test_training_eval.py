@@ -133,7 +133,7 @@ def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
     np.testing.assert_allclose(out["sr"], up * fbu + c.read(3, "hr/emission"), rtol=1e-5, atol=1e-6)
     bil = torch.nn.functional.interpolate(torch.from_numpy(c.read(3, "lr/radiance").transpose(2, 0, 1))[None],
                                           scale_factor=4, mode="bilinear")[0].numpy().transpose(1, 2, 0)
-    np.testing.assert_allclose(out["bilinear"], bil, rtol=1e-6)
+    np.testing.assert_allclose(out["bilinear"], bil, rtol=1e-5, atol=1e-6)  # un-jittered clip: plain bilinear
     with pytest.raises(ValueError, match="checkpoint"):
         load_model("fusesr", 4)
     with pytest.raises(ValueError, match="scale 4, not 8"):

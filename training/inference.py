@@ -25,6 +25,7 @@ from training.config import ModelConfig
 from training.data import BatchSpec, frame_window
 from training.demod import demodulate
 from training.models import MODELS, build_model
+from training.models.base import upsample
 
 
 class ClipFrames:
@@ -161,7 +162,7 @@ def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None 
 
 def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. Returns ``sr`` and
-    ``bilinear`` (HR H x W x 3 float32 linear), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
+    ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
     the clip has it)."""
     source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
     if source.scale != model.scale:
@@ -169,7 +170,7 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     inputs = model_inputs(model, source, int(frame))
     sr, ms = run_model(model, inputs)
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
-    bil = torch.nn.functional.interpolate(lr, scale_factor=model.scale, mode="bilinear", align_corners=False)
+    bil = upsample(lr, model.scale, "bilinear", torch.from_numpy(source.jitter(int(frame)))[None])
     out = {"sr": np.ascontiguousarray(sr, dtype=np.float32),
            "bilinear": np.ascontiguousarray(bil[0].permute(1, 2, 0).numpy(), dtype=np.float32), "ms": float(ms)}
     if "hr/radiance" in inputs:
