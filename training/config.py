@@ -18,6 +18,7 @@ from gbuffer_export.config import ConfigError
 
 INPUT_TRANSFORMS = ("log1p", "none")
 LOSS_SPACES = ("log1p", "tonemap", "linear")
+NORMS = ("none", "batch")
 DEPTH_NORMS = ("ratio", "inverse")
 NONFINITE_POLICIES = ("error", "sanitize")
 SCHEDULERS = ("cosine", "constant", "step")
@@ -75,6 +76,7 @@ class ModelConfig:
     blocks: int = 0                  # residual blocks (0: the model's default, 6)
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
+    norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
 
     def validate(self) -> None:
         from training.models import MODELS  # torch-free table
@@ -86,6 +88,7 @@ class ModelConfig:
             raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
         _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)
         _choice("model.depth_norm", self.depth_norm, DEPTH_NORMS)
+        _choice("model.norm", self.norm, NORMS)
         if self.width < 0 or self.blocks < 0:
             raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
 

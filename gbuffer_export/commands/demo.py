@@ -20,7 +20,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hr-size", default="256x144", help="HR resolution WxH in pixels")
     p.add_argument("--frames", default="1:12", help="frames A:B of each clip")
     p.add_argument("--hr-spp", type=int, default=32, help="ground-truth samples per pixel")
-    p.add_argument("--lr-spp", type=int, default=4, help="LR samples per pixel")
+    p.add_argument("--hr-denoise", action=argparse.BooleanOptionalAction, default=True,
+                   help="denoise the ground truth with OpenImageDenoise")
+    p.add_argument("--lr-spp", type=int, default=64,
+                   help="LR samples per pixel (point-sampled: many samples give a clean, aliased LR frame like a "
+                        "rasteriser's, for about 1/16 of the HR cost per sample at 4x)")
     p.add_argument("--train-minutes", type=float, default=4.0, help="training time budget in minutes (0: skip)")
     p.add_argument("--render-only", action="store_true", help="stop after the contact sheet")
 
@@ -49,7 +53,8 @@ def run(args) -> int:
     t = _step("render clips of the built-in scene")
     for _, (path, seed) in clips.items():
         _cli("render", "-o", path, "--seed", seed, "--hr-size", args.hr_size, "--frames", args.frames,
-             "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp)
+             "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp,
+             "--hr-denoise" if args.hr_denoise else "--no-hr-denoise")
     print(f"   {time.perf_counter() - t:.0f} s")
     _step("validate")
     for name, (path, _) in clips.items():

@@ -3,7 +3,8 @@ the authors' public code.
 
 Per LR frame the encoder reads 7 channels [T(L_D) 3, depth 1, normal 3] (T = the HDR input transform, L_D the
 demodulated irradiance; with ``demodulation = false`` T(radiance) instead). Encoder: 3x3 conv 7->64 + ReLU (the
-shallow feature F_s, skip-connected to the head), then 64-64-32-24-24-32-32 3x3 convs with BatchNorm + ReLU (F_f).
+shallow feature F_s, skip-connected to the head), then 64-64-32-24-24-32-32 3x3 convs with ReLU (F_f; BatchNorm too
+with ``model.norm = "batch"``, the authors' choice: measured to hurt on unseen scenes, docs/training.md).
 History: F_f of the ``history`` previous frames is warped to the current frame with the LR motion vectors
 (accumulated over frames), zeroed where the sample leaves the image and gated by a small attention net on
 [motion / 16, warped history depth, current depth] (sigmoid). The current F_f is expanded to 64 channels.
@@ -39,14 +40,16 @@ ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
 
 
 class Encoder(nn.Module):
-    """7 -> 64 (shallow, ReLU) then 64-64-32-24-24-32-32 with BatchNorm + ReLU. Returns (F_s, F_f)."""
+    """7 -> 64 (shallow, ReLU) then 64-64-32-24-24-32-32 with ReLU (and BatchNorm with ``norm = "batch"``).
+    Returns (F_s, F_f)."""
 
-    def __init__(self, cin: int = 7):
+    def __init__(self, cin: int = 7, norm: str = "none"):
         super().__init__()
         self.shallow = nn.Sequential(conv(cin, ENCODER_CHANNELS[0]), nn.ReLU(inplace=True))
         layers = []
         for a, b in zip(ENCODER_CHANNELS[:-1], ENCODER_CHANNELS[1:]):
-            layers += [conv(a, b), nn.BatchNorm2d(b), nn.ReLU(inplace=True)]
+            layers += [conv(a, b), nn.BatchNorm2d(b), nn.ReLU(inplace=True)] if norm == "batch" else \
+                [conv(a, b), nn.ReLU(inplace=True)]
         self.main = nn.Sequential(*layers)
 
     def forward(self, x):
@@ -83,7 +86,7 @@ class FuseSR(SRModel):
         width = cfg.width or self.default_width
         blocks = cfg.blocks or 6
         s = self.scale
-        self.encoder = Encoder(7)
+        self.encoder = Encoder(7, getattr(cfg, "norm", "none"))
         self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], 64), nn.ReLU(inplace=True))
         self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
         cin = 64 + ENCODER_CHANNELS[-1] * self.history + (2 if self.use_jitter else 0)
