@@ -153,3 +153,19 @@ def test_max_steps_and_minutes_combine_whichever_comes_first(clip, tmp_path, cap
     assert cfg.run.max_steps == 2 and cfg.run.minutes == 30
     assert json.loads((run / "summary.json").read_text())["stopped_by"] == "max_steps"
     assert "cosine schedule decays over 2 steps" in capsys.readouterr().err
+
+
+def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(clip, tmp_path):
+    import torch
+    from training.inference import load_model
+    run = tmp_path / "run"
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                 *_sets(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
+    ck = load_checkpoint(run / "checkpoints" / "last.pt")
+    for key in ("jitter", "norm"):
+        del ck["config"]["model"][key]
+    old = tmp_path / "old.pt"
+    torch.save(ck, old)
+    model = load_model(str(old), 4)
+    assert not model.use_jitter and "lr_jitter" not in model.needs()
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())

@@ -265,6 +265,17 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
     return cfg.validate()
 
 
+#: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
+LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch"}
+
+
+def config_from_checkpoint(data: dict, source: str = "checkpoint") -> TrainConfig:
+    """``config_from_dict`` for a checkpoint's saved configuration: model keys it predates take their old behaviour
+    (``LEGACY_MODEL_KEYS``), so older checkpoints load and run as they were trained."""
+    model = {**LEGACY_MODEL_KEYS, **data.get("model", {})}
+    return config_from_dict({**data, "model": model}, source=source)
+
+
 def load_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
     """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (values in TOML syntax;
     bare words are taken as strings)."""

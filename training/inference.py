@@ -112,14 +112,14 @@ def load_model(spec: str, scale: int) -> torch.nn.Module:
         model.config = None
     else:
         from training.train import load_checkpoint
-        from training.config import config_from_dict
+        from training.config import config_from_checkpoint
         path = Path(spec)
         if not path.exists():
             raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
         ck = load_checkpoint(path)
         if int(ck["scale"]) != scale:
             raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
-        cfg = config_from_dict(ck["config"], source=str(path))
+        cfg = config_from_checkpoint(ck["config"], source=str(path))
         model = build_model(cfg.model, scale)
         model.load_state_dict(ck["model"])
         model.demod_eps = cfg.data.demod_eps

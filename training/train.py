@@ -34,7 +34,7 @@ import torch
 from gbuffer_export.clip import write_json_atomic
 from gbuffer_export.config import ConfigError
 from training.cache import ClipCache
-from training.config import TrainConfig, config_from_dict
+from training.config import TrainConfig, config_from_checkpoint
 from training.data import BatchSpec, Prefetcher, TrainSampler
 from training.losses import Criterion
 from training.models import MODELS, OPTIONAL_KEYS, build_model
@@ -213,7 +213,7 @@ def _comparable(cfg: TrainConfig) -> dict:
 def resumed_config(ck: dict, cfg: TrainConfig | None, run_overrides: dict | None, source: str) -> TrainConfig:
     """The checkpoint's configuration with run.* settings from ``cfg`` / ``run_overrides``. ``cfg`` (when given)
     must otherwise match the checkpoint's (clips compared as resolved paths)."""
-    saved = config_from_dict(ck["config"], source=source)
+    saved = config_from_checkpoint(ck["config"], source=source)
     if cfg is not None:
         a, b = _comparable(cfg), _comparable(saved)
         if not cfg.data.clips:
