@@ -387,9 +387,12 @@ def test_preview_upscale_operator(tmp_path):
     sr, bil, gt = (np.load(tmp_path / f"{k}.npy") for k in ("sr", "bilinear", "reference"))
     np.testing.assert_array_equal(gt, clip.read(2, "hr/radiance"))
     lr = clip.read(2, "lr/radiance")
-    # independent bilinear x4 with half-pixel centres, clamped at the borders
-    ys = np.clip((np.arange(36) + 0.5) / 4 - 0.5, 0, 8)
-    xs = np.clip((np.arange(64) + 0.5) / 4 - 0.5, 0, 15)
+    # independent bilinear x4 with half-pixel centres, the LR samples at their jittered positions, clamped at the
+    # borders
+    jx, jy = clip.camera(2, "lr")["jitter"]
+    assert (jx, jy) != (0.0, 0.0)
+    ys = np.clip((np.arange(36) + 0.5) / 4 - 0.5 - jy, 0, 8)
+    xs = np.clip((np.arange(64) + 0.5) / 4 - 0.5 - jx, 0, 15)
     y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
     y1, x1 = np.minimum(y0 + 1, 8), np.minimum(x0 + 1, 15)
     wy, wx = (ys - y0)[:, None, None], (xs - x0)[None, :, None]
