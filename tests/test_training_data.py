@@ -133,20 +133,26 @@ def _camera_map(aug):
     return m
 
 
+def mirrored_camera(c, frame: int, level: str, aug):
+    """The camera that sees the augmented image of ``level``: (camera dict, world_from_camera, previous
+    world_from_camera, (width, height), intrinsics)."""
+    w, h = c.sizes[level]
+    cam = c.camera(frame, level)
+    m4 = np.eye(4)
+    m4[:3, :3] = np.linalg.inv(_camera_map(aug))
+    w2, h2 = (h, w) if aug.transpose else (w, h)
+    fx = cam["intrinsics"][0]
+    return (cam, cam["world_from_camera"] @ m4, cam["prev_world_from_camera"] @ m4, (w2, h2),
+            (fx, fx, w2 / 2, h2 / 2))
+
+
 @pytest.mark.parametrize("aug", AUGS, ids=str)
 def test_augmented_gbuffers_equal_a_render_by_the_mirrored_camera(clip, aug):
     """Independent check of the normal and motion transforms: render the scene with the camera that sees the
     augmented image (a mirrored/rotated pinhole) and compare."""
     c = open_clip(clip)
     f = 3
-    w, h = c.sizes["hr"]
-    cam = c.camera(f, "hr")
-    m4 = np.eye(4)
-    m4[:3, :3] = np.linalg.inv(_camera_map(aug))
-    wfc, wfc_prev = cam["world_from_camera"] @ m4, cam["prev_world_from_camera"] @ m4
-    w2, h2 = (h, w) if aug.transpose else (w, h)
-    fx = cam["intrinsics"][0]
-    k2 = (fx, fx, w2 / 2, h2 / 2)
+    _, wfc, wfc_prev, (w2, h2), k2 = mirrored_camera(c, f, "hr", aug)
     g = trace(w2, h2, k2, wfc)
     normal_ref = world_to_camera_normals(g["normal_world"], wfc)
     motion_ref = reprojection_motion(g["depth"], k2, wfc, k2, wfc_prev)

@@ -17,7 +17,7 @@ from training.inference import ClipFrames, model_inputs  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models.base import backward_warp, history_offsets  # noqa: E402
 
-from test_training_data import AUGS, _camera_map  # noqa: E402
+from test_training_data import AUGS, mirrored_camera  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -41,20 +41,14 @@ def test_augmented_jitter_is_the_jitter_of_the_mirrored_camera(clip, aug):
     augmented LR depth of the clip (a sign or axis error in the jitter transform moves every edge)."""
     c = open_clip(clip)
     f = 3
-    w, h = c.sizes["lr"]
-    cam = c.camera(f, "lr")
-    m4 = np.eye(4)
-    m4[:3, :3] = np.linalg.inv(_camera_map(aug))
-    w2, h2 = (h, w) if aug.transpose else (w, h)
-    fx = cam["intrinsics"][0]
-    k2 = (fx, fx, w2 / 2, h2 / 2)
-    ref = trace(w2, h2, k2, cam["world_from_camera"] @ m4, tuple(apply_vector(cam["jitter"], aug)))["depth"]
+    cam, wfc, _, (w2, h2), k2 = mirrored_camera(c, f, "lr", aug)
+    ref = trace(w2, h2, k2, wfc, tuple(apply_vector(cam["jitter"], aug)))["depth"]
     depth_aug = apply("lr/depth", c.read(f, "lr/depth"), aug)[..., 0]
     both = np.isfinite(depth_aug) & np.isfinite(ref)
     assert both.sum() > 0.5 * both.size
     np.testing.assert_allclose(depth_aug[both], ref[both], rtol=1e-4)
     # the un-transformed jitter gives another image (so the test can fail)
-    wrong = trace(w2, h2, k2, cam["world_from_camera"] @ m4, tuple(-apply_vector(cam["jitter"], aug)))["depth"]
+    wrong = trace(w2, h2, k2, wfc, tuple(-apply_vector(cam["jitter"], aug)))["depth"]
     ok = np.isfinite(wrong) & both
     assert np.mean(np.abs(wrong[ok] - depth_aug[ok]) > 1e-3 * depth_aug[ok]) > 0.01
 
