@@ -12,7 +12,7 @@ from gbuffer_export.config import ConfigError  # noqa: E402
 from gbuffer_export.conventions import backward_warp as np_warp  # noqa: E402
 from training.config import ModelConfig, TrainConfig, config_from_dict, dict_to_toml, load_config  # noqa: E402
 from training.models import MODELS, build_model  # noqa: E402
-from training.models.base import accumulate_motion, backward_warp, upsample  # noqa: E402
+from training.models.base import backward_warp, history_offsets, upsample  # noqa: E402
 from training.models.fusesr import FuseSR  # noqa: E402
 
 pytestmark = pytest.mark.torch
@@ -33,8 +33,16 @@ def test_torch_warp_matches_numpy_reference():
     np.testing.assert_allclose(out[0].numpy().transpose(1, 2, 0), ref, atol=1e-5)
     # chained motion t -> t-2
     m2 = (rng.random((13, 17, 2)) * 4 - 2).astype(np.float32)
-    acc = accumulate_motion(t(motion), t(m2))[0].numpy().transpose(1, 2, 0)
-    np.testing.assert_allclose(acc, motion + np_warp(m2, motion)[0], atol=1e-5)
+    batch = {"lr/motion": torch.stack([t(np.zeros_like(m2))[0], t(m2)[0], t(motion)[0]])[None]}
+    off1, off2 = (o[0].numpy().transpose(1, 2, 0) for o in history_offsets(batch, 2, use_jitter=False))
+    np.testing.assert_array_equal(off1, motion)
+    np.testing.assert_allclose(off2, motion + np_warp(m2, motion)[0], atol=1e-5)
+    # with jitter: the offsets gain j_t - j_(t-k), and frame t-1's motion is read at the corrected offset
+    j = torch.tensor([[[0.3, -0.1], [-0.2, 0.25], [0.1, 0.4]]])
+    o1, o2 = (o[0].numpy().transpose(1, 2, 0) for o in history_offsets({**batch, "lr_jitter": j}, 2, True))
+    d1, d2 = (j[0, 2] - j[0, 1]).numpy(), (j[0, 2] - j[0, 0]).numpy()
+    np.testing.assert_allclose(o1, motion + d1, atol=1e-6)
+    np.testing.assert_allclose(o2, motion + np_warp(m2, motion + d1)[0] + d2, atol=1e-5)
 
 
 def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
@@ -188,3 +196,12 @@ def test_jittered_upsampling_moves_the_samples_to_their_jittered_positions(mode)
     # right by 1 and down by 2 HR pixels (away from the clamped borders)
     j = torch.tensor([[0.25, 0.5], [0.25, 0.5]])
     torch.testing.assert_close(upsample(x, 4, mode, j)[..., 8:-8, 8:-8], plain[..., 6:-10, 7:-9], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["bilinear", "bicubic", "demod-bilinear", "fusesr"])
+def test_model_jitter_false_ignores_a_batch_jitter(name):
+    batch = make_batch()
+    model = build_model(ModelConfig(name=name, jitter=False), 4).eval()
+    assert "lr_jitter" not in model.needs()
+    with torch.no_grad():
+        torch.testing.assert_close(model(batch), model({**batch, "lr_jitter": batch["lr_jitter"] + 0.3}))

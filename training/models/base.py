@@ -33,6 +33,10 @@ class SRModel(nn.Module):
     def jitter_keys(self) -> tuple[str, ...]:
         return ("lr_jitter",) if self.use_jitter else ()
 
+    def frame_jitter(self, batch: dict, back: int = 0) -> torch.Tensor | None:
+        """(B, 2) LR jitter of a frame when the model uses it (``model.jitter``) and the batch has it, else None."""
+        return jitter(batch, back) if self.use_jitter else None
+
     def needs(self) -> tuple[str, ...]:
         """Batch keys the forward pass reads ('lr/...', 'hr/...', 'depth_ref')."""
         raise NotImplementedError
@@ -92,12 +96,6 @@ def backward_warp(x: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, 
     out = F.grid_sample(x, grid.to(x.dtype), mode="bilinear", padding_mode="border", align_corners=False)
     valid = valid.unsqueeze(1).to(x.dtype)
     return out * valid, valid
-
-
-def accumulate_motion(m_cur: torch.Tensor, m_prev: torch.Tensor) -> torch.Tensor:
-    """Motion from frame t to t-2: m_t(p) + m_{t-1}(p + m_t(p)) (pixels, B x 2 x H x W)."""
-    warped, _ = backward_warp(m_prev, m_cur)
-    return m_cur + warped
 
 
 def conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:

@@ -1,7 +1,7 @@
 """``bicubic``: bicubic upsampling (a = -0.75, PyTorch's kernel) of the LR radiance, negative lobes clamped at 0."""
 from __future__ import annotations
 
-from training.models.base import SRModel, current, jitter, upsample
+from training.models.base import SRModel, current, upsample
 
 
 class Bicubic(SRModel):
@@ -11,4 +11,4 @@ class Bicubic(SRModel):
         return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.scale, "bicubic", jitter(batch)).clamp(min=0.0)
+        return upsample(current(batch, "lr/radiance"), self.scale, "bicubic", self.frame_jitter(batch)).clamp(min=0.0)

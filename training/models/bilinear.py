@@ -1,7 +1,7 @@
 """``bilinear``: bilinear upsampling of the LR radiance (no training, no G-buffers)."""
 from __future__ import annotations
 
-from training.models.base import SRModel, current, jitter, upsample
+from training.models.base import SRModel, current, upsample
 
 
 class Bilinear(SRModel):
@@ -12,4 +12,4 @@ class Bilinear(SRModel):
         return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.scale, self.mode, jitter(batch))
+        return upsample(current(batch, "lr/radiance"), self.scale, self.mode, self.frame_jitter(batch))

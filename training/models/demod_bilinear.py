@@ -5,7 +5,7 @@ The HR material detail comes from the HR F_beta; no ground truth is used.
 """
 from __future__ import annotations
 
-from training.models.base import SRModel, current, jitter, upsample
+from training.models.base import SRModel, current, upsample
 
 
 class DemodBilinear(SRModel):
@@ -15,5 +15,5 @@ class DemodBilinear(SRModel):
         return ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.jitter_keys()
 
     def forward(self, batch):
-        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear", jitter(batch))
+        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear", self.frame_jitter(batch))
         return irr * current(batch, "hr/fbeta_used") + current(batch, "hr/emission")

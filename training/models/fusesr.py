@@ -33,7 +33,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
-                                  frame, history_offsets, jitter, upsample)
+                                  frame, history_offsets, upsample)
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -119,7 +119,7 @@ class FuseSR(SRModel):
         x, depth_cur = self._lr_input(batch, 0)
         f_s, f_f = self.encoder(x)
         feats = [self.expand(f_f)]
-        j_t = jitter(batch) if self.use_jitter else None
+        j_t = self.frame_jitter(batch)
         if j_t is not None:  # the current frame's sub-pixel sample offset, as two constant maps
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         if self.history:
