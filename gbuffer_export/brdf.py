@@ -287,22 +287,29 @@ def load_or_generate_lut(spec: LutSpec = LutSpec()) -> Lut:
     return _load_or_generate(spec, str(cache_dir()))
 
 
+def load_or_generate_file(path: Path, read, generate, write, unreadable: tuple[type[Exception], ...]):
+    """``read(path)`` when it succeeds; otherwise ``generate()``, written with ``write(path, value)`` (atomic in the
+    callers) and returned. A file ``read`` rejects with ``unreadable`` (torn or foreign) is regenerated and replaced;
+    a read-only cache only loses the write."""
+    if path.is_file():
+        try:
+            return read(path)
+        except unreadable:
+            pass
+    value = generate()
+    try:
+        write(path, value)
+    except OSError:
+        pass
+    return value
+
+
 @functools.lru_cache(maxsize=8)
 def _load_or_generate(spec: LutSpec, cache: str) -> Lut:
     from .exr import ExrError
 
-    path = Path(cache) / f"{spec.key}.exr"
-    if path.is_file():
-        try:
-            return read_lut(path, spec)
-        except ExrError:
-            pass  # torn or foreign file: regenerate and replace it
-    lut = generate_lut(spec)
-    try:
-        write_lut(path, lut)
-    except OSError:
-        pass  # read-only cache: the table is still usable in this process
-    return lut
+    return load_or_generate_file(Path(cache) / f"{spec.key}.exr", lambda p: read_lut(p, spec),
+                                 lambda: generate_lut(spec), write_lut, (ExrError,))
 
 
 # ----------------------------------------------------------------------------------------------

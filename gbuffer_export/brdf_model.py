@@ -234,18 +234,10 @@ def load_or_generate_model_tables(spec: ModelSpec = ModelSpec()) -> ModelTables:
 
 @functools.lru_cache(maxsize=4)
 def _load_or_generate(spec: ModelSpec, cache: str) -> ModelTables:
-    path = Path(cache) / f"{spec.key}.npz"
-    if path.is_file():
-        try:
-            return load_model_tables(path, spec)
-        except ValueError:
-            pass
-    t = generate_model_tables(spec)
-    try:
-        save_model_tables(path, t)
-    except OSError:
-        pass
-    return t
+    from .brdf import load_or_generate_file
+
+    return load_or_generate_file(Path(cache) / f"{spec.key}.npz", lambda p: load_model_tables(p, spec),
+                                 lambda: generate_model_tables(spec), save_model_tables, (ValueError,))
 
 
 # ----------------------------------------------------------------------------------------------
