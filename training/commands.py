@@ -9,6 +9,13 @@ from pathlib import Path
 FMT = argparse.ArgumentDefaultsHelpFormatter
 
 
+def add_model_source(p: argparse.ArgumentParser) -> None:
+    """--checkpoint CK | --model NAME, exactly one: the model that evaluate, upscale and export run."""
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
+    g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear")
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "train", formatter_class=FMT, help="train a model on exported clips",
@@ -36,9 +43,7 @@ def register(subparsers) -> None:
         description="Evaluate a checkpoint or a non-learned model on clips: PSNR/SSIM on the declared tonemap, "
                     "PSNR on linear HDR (peak 1), HDR-FLIP, temporal PSNR, warping error, ms per frame. "
                     "Writes JSON (docs/training.md describes every key).")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
-    g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear")
+    add_model_source(p)
     p.add_argument("--data", nargs="+", required=True, metavar="CLIP", help="clip directories")
     p.add_argument("--json", required=True, metavar="OUT", help="output JSON file")
     p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
@@ -55,9 +60,7 @@ def register(subparsers) -> None:
         "upscale", formatter_class=FMT, help="write the super-resolved EXR sequence of a clip",
         description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear RGB float32) and "
                     "OUT_DIR/upscale.json (model, ms per frame).")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file")
-    g.add_argument("--model", metavar="NAME", help="non-learned model name")
+    add_model_source(p)
     p.add_argument("--clip", required=True, help="clip directory")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output directory")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
@@ -69,9 +72,7 @@ def register(subparsers) -> None:
         description="Export to ONNX (opset 17, dynamic batch/height/width), run it with onnxruntime on the same "
                     "inputs and compare with torch. Inputs: the model's keys in order, each (B, T, C, H, W), plus "
                     "depth_ref (B, T); see OUT.onnx.json.")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file")
-    g.add_argument("--model", metavar="NAME", help="non-learned model name")
+    add_model_source(p)
     p.add_argument("--onnx", required=True, metavar="OUT.onnx", help="output ONNX file")
     p.add_argument("--clip", help="take the example input from this clip (default: random inputs)")
     p.add_argument("--scale", type=int, default=4, help="scale of a non-learned model (checkpoints know theirs)")
