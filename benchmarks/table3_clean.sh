@@ -4,7 +4,7 @@
 # non-learned baselines, train FuseSR with the 4 settings of the HR G-buffer / demodulation switches for the same
 # number of steps, evaluate each, and write the speed-against-error table and Pareto plot.
 #
-# Usage: benchmarks/table3_clean.sh OUT_DIR        (about 18 min of rendering + 4 x 15 min of training on 2 cores)
+# Usage: benchmarks/table3_clean.sh OUT_DIR        (about 15 min of rendering + 4 x 14 min of training on 2 cores)
 # Environment (defaults = the documented run): STEPS=1200 SIZE=320x180 TRAIN_FRAMES=1:16 TEST_FRAMES=1:8 CROP=40
 # HR_SPP=64 LR_SPP=128 SHARED=../shared. A smoke run: STEPS=2 SIZE=64x36 TRAIN_FRAMES=1:5 TEST_FRAMES=1:2 CROP=8.
 set -euo pipefail
