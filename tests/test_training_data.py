@@ -200,9 +200,41 @@ def test_exposure_keeps_the_demodulation_identity(clip):
     np.testing.assert_array_equal(fb, np.flip(c.read(2, "hr/fbeta"), axis=1))
 
 
+def test_reflectance_keeps_the_demodulation_identity_and_the_irradiance(clip):
+    """A tinted BRDF under the same light: the augmented buffers satisfy I = L_D * F_used + E, the irradiance the
+    model predicts is unchanged, and demodulating the augmented raw buffers gives it back (independently of
+    ``apply``'s list of buffers) wherever F_beta is trusted and not clamped."""
+    c = open_clip(clip)
+    tint = (0.6, 1.3, 1.9)
+    aug = Augmentation(reflectance=tint, flip_y=True)
+    raw = {k: c.read(2, f"hr/{k}") for k in ("radiance", "emission", "fbeta", "albedo", "flags")}
+    irr, fbu = np_demod.demodulate(raw["radiance"], raw["emission"], raw["fbeta"], raw["flags"])
+    a = {k: apply(f"hr/{k}", v, aug) for k, v in {**raw, "irradiance": irr, "fbeta_used": fbu}.items()}
+    np.testing.assert_allclose(a["irradiance"] * a["fbeta_used"] + a["emission"], a["radiance"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(a["irradiance"], np.flip(irr, axis=0))
+    np.testing.assert_allclose(a["albedo"], np.flip(raw["albedo"], axis=0) * np.float32(tint), rtol=1e-6)
+    np.testing.assert_array_equal(a["flags"], np.flip(raw["flags"], axis=0))
+    irr_again, _ = np_demod.demodulate(a["radiance"], a["emission"], a["fbeta"], a["flags"])
+    trusted = (fbu != 1.0).all(-1) & (np.flip(raw["fbeta"], 0) > 0.05).all(-1) & (np.flip(raw["fbeta"], 0) < 1).all(-1)
+    trusted = np.flip(trusted, 0)
+    assert trusted.mean() > 0.3
+    np.testing.assert_allclose(irr_again[trusted], a["irradiance"][trusted], rtol=1e-4, atol=1e-6)
+
+
 def test_draw_uses_a_fixed_number_of_variates():
     a = np.random.default_rng(1)
     b = np.random.default_rng(1)
-    Augmentation.draw(a, True, True, (0.5, 2))
+    Augmentation.draw(a, True, True, (0.5, 2), (0.5, 2))
     Augmentation.draw(b, False, False)
     assert a.random() == b.random()
+
+
+def test_draw_tints_each_channel_log_uniformly_within_the_range():
+    rng = np.random.default_rng(3)
+    tints = np.array([Augmentation.draw(rng, True, True, (1, 1), (0.5, 2.0)).reflectance for _ in range(2000)])
+    assert tints.min() >= 0.5 and tints.max() <= 2.0
+    logs = np.log2(tints)
+    np.testing.assert_allclose(logs.mean(0), 0.0, atol=0.05)  # log-uniform on [-1, 1]: mean 0, variance 1/3
+    np.testing.assert_allclose(logs.var(0), 1 / 3, atol=0.03)
+    assert abs(np.corrcoef(logs.T)[0, 1]) < 0.1  # channels drawn independently
+    assert Augmentation.draw(rng, True, True).reflectance == (1.0, 1.0, 1.0)

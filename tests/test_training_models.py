@@ -173,6 +173,10 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
         config_from_dict({"loss": {"perceptual_weight": 0.5}})
     with pytest.raises(ConfigError, match="loss.space"):
         load_config(None, ["loss.space=srgb"])
+    with pytest.raises(ConfigError, match="data.reflectance_range"):
+        load_config(None, ["data.reflectance_range=[2.0, 0.5]"])
+    with pytest.raises(ConfigError, match="data.exposure_range"):
+        load_config(None, ["data.exposure_range=[1.0]"])
     p = tmp_path / "c.toml"
     p.write_text('[data]\ncrop = 32\nexposure_range = [1, 3]\n[optim]\nlr = 1e-3\n')
     cfg = load_config(p, ["data.crop=48", "run.amp=bf16", "model.name=fusesr-l"])

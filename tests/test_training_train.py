@@ -10,7 +10,7 @@ torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slow
 
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
-from training.config import load_config  # noqa: E402
+from training.config import config_from_checkpoint, load_config  # noqa: E402
 from training.train import TrainingError, load_checkpoint, train  # noqa: E402
 
 pytestmark = pytest.mark.torch
@@ -164,8 +164,10 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
     for key in ("jitter", "norm"):
         del ck["config"]["model"][key]
+    del ck["config"]["data"]["reflectance_range"]
     old = tmp_path / "old.pt"
     torch.save(ck, old)
     model = load_model(str(old), 4)
     assert not model.use_jitter and "lr_jitter" not in model.needs()
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    assert config_from_checkpoint(ck["config"]).data.reflectance_range == [1.0, 1.0]  # no tint before session 3

@@ -10,7 +10,11 @@ followed by optional flips of x and of y. Image-space vectors follow the image:
   rotation of the image plane, seen by a mirrored/rotated pinhole camera).
 
 Exposure scaling multiplies radiance, irradiance and emission by one factor (F_beta and G-buffers unchanged), which
-keeps radiance = F_beta * L_D + emission. Scalar buffers (depth, albedo, flags, ...) only move with the pixels.
+keeps radiance = F_beta * L_D + emission: the light gets brighter or darker.
+Reflectance scaling multiplies radiance, emission, albedo, F_beta and the F_beta used for remodulation by one factor
+per colour channel (irradiance unchanged), which also keeps radiance = F_beta_used * L_D + emission: the same light
+falls on surfaces whose BRDF is tinted (interreflections are not recomputed). It teaches a model that the absolute
+level and tint of the albedo / F_beta say nothing about the irradiance. Other buffers only move with the pixels.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 RADIOMETRIC = ("radiance", "irradiance", "emission")
+REFLECTANCE = ("radiance", "emission", "albedo", "fbeta", "fbeta_used")
 
 
 @dataclass(frozen=True)
@@ -27,17 +32,24 @@ class Augmentation:
     flip_x: bool = False
     flip_y: bool = False
     exposure: float = 1.0
+    reflectance: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     @staticmethod
-    def draw(rng: np.random.Generator, flip: bool, rotate: bool, exposure_range=(1.0, 1.0)) -> "Augmentation":
+    def draw(rng: np.random.Generator, flip: bool, rotate: bool, exposure_range=(1.0, 1.0),
+             reflectance_range=(1.0, 1.0)) -> "Augmentation":
         """Random augmentation: flips and transposes each with probability 1/2 when enabled (transpose plus a flip
-        is a 90-degree rotation), exposure log-uniform in ``exposure_range``. Always draws the same number of
-        variates, so the random stream does not depend on the switches."""
-        u = rng.random(4)
-        lo, hi = exposure_range
+        is a 90-degree rotation), exposure log-uniform in ``exposure_range``, each channel's reflectance factor
+        log-uniform in ``reflectance_range``. Always draws the same number of variates, so the random stream does
+        not depend on the switches."""
+        u = rng.random(7)
+
+        def log_uniform(v, lo_hi):
+            lo, hi = np.log(lo_hi[0]), np.log(lo_hi[1])
+            return float(np.exp(lo + v * (hi - lo)))
+
         return Augmentation(transpose=bool(rotate and u[0] < 0.5), flip_x=bool(flip and u[1] < 0.5),
-                            flip_y=bool(flip and u[2] < 0.5),
-                            exposure=float(np.exp(np.log(lo) + u[3] * (np.log(hi) - np.log(lo)))))
+                            flip_y=bool(flip and u[2] < 0.5), exposure=log_uniform(u[3], exposure_range),
+                            reflectance=tuple(log_uniform(v, reflectance_range) for v in u[4:7]))
 
 
 def _buffer(key: str) -> str:
@@ -72,4 +84,6 @@ def apply(key: str, a: np.ndarray, aug: Augmentation) -> np.ndarray:
         a = apply_vector(a, aug)
     if aug.exposure != 1.0 and name in RADIOMETRIC:
         a = a * np.asarray(aug.exposure, dtype=a.dtype)
+    if aug.reflectance != (1.0, 1.0, 1.0) and name in REFLECTANCE:
+        a = a * np.asarray(aug.reflectance, dtype=a.dtype)
     return np.ascontiguousarray(a)

@@ -53,7 +53,8 @@ def run(args) -> int:
         scales = {ClipCache(c).scale for c in clips}
         scale = scales.pop()
         model = build_model(ModelConfig(name=args.model), scale)
-        spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True, exposure_range=(0.5, 2.0))
+        spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True, exposure_range=(0.5, 2.0),
+                                   reflectance_range=(0.5, 2.0))
         caches = [ClipCache(c) for c in clips]
         t = time.perf_counter()
         for c in caches:

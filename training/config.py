@@ -37,6 +37,7 @@ class DataConfig:
     augment_flip: bool = True        # random horizontal/vertical flips
     augment_rotate: bool = True      # random 90-degree rotations (transpose)
     exposure_range: list[float] = field(default_factory=lambda: [0.5, 2.0])  # log-uniform radiance scale
+    reflectance_range: list[float] = field(default_factory=lambda: [0.5, 2.0])  # log-uniform BRDF scale per channel
     demod_eps: float = 0.01          # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
     nonfinite: str = "error"         # NaN/Inf in a buffer: 'error' (name file and frame) or 'sanitize' (warn)
     cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
@@ -46,12 +47,8 @@ class DataConfig:
     def validate(self) -> None:
         _positive("data.crop", self.crop)
         _positive("data.batch_size", self.batch_size)
-        if len(self.exposure_range) != 2 or not all(isinstance(v, (int, float)) for v in self.exposure_range):
-            raise ConfigError(f"data.exposure_range {self.exposure_range!r}: expected [low, high]")
-        lo, hi = (float(v) for v in self.exposure_range)
-        if not (0 < lo <= hi):
-            raise ConfigError(f"data.exposure_range {self.exposure_range!r}: need 0 < low <= high")
-        self.exposure_range = [lo, hi]
+        self.exposure_range = _range("data.exposure_range", self.exposure_range)
+        self.reflectance_range = _range("data.reflectance_range", self.reflectance_range)
         if not (1e-6 <= self.demod_eps <= 1):
             raise ConfigError(f"data.demod_eps {self.demod_eps}: must lie in [1e-6, 1]")
         _choice("data.nonfinite", self.nonfinite, NONFINITE_POLICIES)
@@ -211,6 +208,17 @@ def _positive(name: str, v) -> None:
         raise ConfigError(f"{name} {v!r}: must be a positive integer")
 
 
+def _range(name: str, v) -> list[float]:
+    """A [low, high] pair of positive factors (low <= high), as floats."""
+    if not isinstance(v, (list, tuple)) or len(v) != 2 or \
+            not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        raise ConfigError(f"{name} {v!r}: expected [low, high]")
+    lo, hi = (float(x) for x in v)
+    if not (0 < lo <= hi):
+        raise ConfigError(f"{name} {v!r}: need 0 < low <= high")
+    return [lo, hi]
+
+
 def _choice(name: str, v, choices) -> None:
     if v not in choices:
         raise ConfigError(f"{name} {v!r}: choose one of {', '.join(choices)}")
@@ -267,13 +275,15 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
 
 #: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
 LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch"}
+LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 
 def config_from_checkpoint(data: dict, source: str = "checkpoint") -> TrainConfig:
     """``config_from_dict`` for a checkpoint's saved configuration: model keys it predates take their old behaviour
-    (``LEGACY_MODEL_KEYS``), so older checkpoints load and run as they were trained."""
+    (``LEGACY_MODEL_KEYS``, ``LEGACY_DATA_KEYS``), so older checkpoints load and run as they were trained."""
     model = {**LEGACY_MODEL_KEYS, **data.get("model", {})}
-    return config_from_dict({**data, "model": model}, source=source)
+    loader = {**LEGACY_DATA_KEYS, **data.get("data", {})}
+    return config_from_dict({**data, "model": model, "data": loader}, source=source)
 
 
 def load_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:

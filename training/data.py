@@ -48,6 +48,7 @@ class BatchSpec:
     flip: bool = False
     rotate: bool = False
     exposure_range: tuple[float, float] = (1.0, 1.0)
+    reflectance_range: tuple[float, float] = (1.0, 1.0)
     depth_ref: bool = True
     jitter: bool = False
 
@@ -133,7 +134,8 @@ class TrainSampler:
             w, h = cache.sizes["lr"]
             y0 = int(rng.integers(h - c + 1))
             x0 = int(rng.integers(w - c + 1))
-            aug = Augmentation.draw(rng, self.spec.flip, self.spec.rotate, self.spec.exposure_range)
+            aug = Augmentation.draw(rng, self.spec.flip, self.spec.rotate, self.spec.exposure_range,
+                                    self.spec.reflectance_range)
             frames = cache.frames[pos - self.spec.lr_window + 1: pos + 1]
             samples.append(Sample(str(cache.clip_path), list(frames), x0, y0, aug))
             for key in all_keys:

@@ -281,7 +281,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     model = build_model(cfg.model, scale)
     temporal = cfg.loss.temporal_weight > 0
     spec = BatchSpec.for_model(model, temporal=temporal, crop=cfg.data.crop, flip=cfg.data.augment_flip,
-                               rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range))
+                               rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
+                               reflectance_range=tuple(cfg.data.reflectance_range))
     caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist)
     manifests = [{"clip": str(Path(c.clip_path).resolve()), "manifest_sha256": c.manifest_sha256} for c in caches]
     if ck is not None:
