@@ -6,7 +6,8 @@
 #
 # Usage: benchmarks/table3_clean.sh OUT_DIR        (about 15 min of rendering + 4 x 14 min of training on 2 cores)
 # Environment (defaults = the documented run): STEPS=1200 SIZE=320x180 TRAIN_FRAMES=1:16 TEST_FRAMES=1:8 CROP=40
-# HR_SPP=64 LR_SPP=128 SHARED=../shared. A smoke run: STEPS=2 SIZE=64x36 TRAIN_FRAMES=1:5 TEST_FRAMES=1:2 CROP=8.
+# HR_SPP=64 LR_SPP=128 SHARED=../shared REFLECTANCE="[0.5, 2.0]" (data.reflectance_range; "[1.0, 1.0]" = session 2's
+# runs without the tint). A smoke run: STEPS=2 SIZE=64x36 TRAIN_FRAMES=1:5 TEST_FRAMES=1:2 CROP=8.
 set -euo pipefail
 OUT=${1:?usage: benchmarks/table3_clean.sh OUT_DIR}
 cd "$(dirname "$0")/.."
@@ -49,9 +50,13 @@ for v in "true true" "false true" "true false" "false false"; do
   elif [ ! -f "$run/summary.json" ]; then
     $B train --model fusesr --data $TRAIN -o "$run" --config examples/train_config.toml --max-steps "$STEPS" \
       --set data.val_frames=2 --set data.crop="$CROP" --set data.batch_size=4 --set 'run.amp="none"' \
-      --set 'model.norm="none"' --set model.hr_gbuffer=$1 --set model.demodulation=$2 --set run.progress=false
+      --set 'model.norm="none"' --set model.hr_gbuffer=$1 --set model.demodulation=$2 --set run.progress=false \
+      --set "data.reflectance_range=${REFLECTANCE:-[0.5, 2.0]}"
   fi
   $B evaluate --checkpoint "$run/checkpoints/last.pt" --data $TEST --json "$run.eval.json"
+  last=${TRAIN_FRAMES##*:}   # the 2 held-out (data.val_frames) frames of the training clips
+  $B evaluate --checkpoint "$run/checkpoints/last.pt" --data $TRAIN --frames $((last - 1)):$last --no-flip \
+    --json "$run.heldout.json"
   MODELS="$MODELS,fusesr:$run/checkpoints/last.pt"
 done
 $B bench models --data $TEST --models "$MODELS" -o "$OUT/bench"
