@@ -103,7 +103,12 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
         "scene": {"file": None, "sha256": None, "builtin": "synthetic-numpy"},
         "scale": scale, "levels": {lvl: {"width": s[0], "height": s[1]} for lvl, s in sizes.items()},
         "frames": frames, "buffers": [b for b in ALL_BUFFERS if b in buffers], "fbeta_source": "synthetic",
-        "colorspace": "Linear Rec.709", "render": {"jitter": "halton" if jitter else "none"},
+        "colorspace": "Linear Rec.709", "render": {
+            "jitter": "halton" if jitter else "none",
+            # n x n samples spread evenly over each HR pixel: a box filter of 1 px (n = 1: a point sample)
+            "hr": {"pixel_filter": "BOX" if hr_supersample > 1 else "GAUSSIAN",
+                   "filter_width_px": 1.0 if hr_supersample > 1 else 0.01},
+            "lr": {"pixel_filter": "GAUSSIAN", "filter_width_px": 0.01}},
         "materials": {}, "material_summary": {},
     }
     wr = ClipWriter(path, header)

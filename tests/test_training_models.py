@@ -5,6 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gbuffer_export import pixel_filter as pf
+
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slower
 
@@ -72,12 +74,38 @@ def test_every_model_maps_lr_to_hr(name, scale):
     assert MODELS[name].learned == any(True for _ in model.parameters())
 
 
+def _np(x):
+    return x[0].permute(1, 2, 0).detach().numpy()
+
+
 def test_demod_bilinear_is_remodulation_of_upsampled_irradiance():
     batch = make_batch()
-    batch["lr/irradiance"][:] = 0.7  # constant irradiance: bilinear keeps it, so SR = 0.7 F_HR + E_HR exactly
-    out = build_model(ModelConfig(name="demod-bilinear"), 4)(batch)
-    expect = 0.7 * batch["hr/fbeta_used"][:, -1] + batch["hr/emission"][:, -1]
-    torch.testing.assert_close(out, expect)
+    batch["lr/irradiance"][:] = 0.7  # constant irradiance: bilinear keeps it, so SR = K * (0.7 F_HR + E_HR)
+    point = 0.7 * batch["hr/fbeta_used"][:, -1] + batch["hr/emission"][:, -1]
+    out = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE"), 4)(batch)
+    torch.testing.assert_close(out, point)
+    out = build_model(ModelConfig(name="demod-bilinear"), 4)(batch)  # default: Blackman-Harris 1.5 px
+    np.testing.assert_allclose(_np(out), pf.convolve(_np(point), pf.weights_1d("BLACKMAN_HARRIS", 1.5)),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_fusesr_remodulates_point_samples_then_applies_the_reference_filter():
+    batch = make_batch()
+    torch.manual_seed(0)
+    plain = build_model(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    filtered = build_model(ModelConfig(name="fusesr", remod_filter="GAUSSIAN", remod_filter_px=1.5), 4).eval()
+    filtered.load_state_dict(plain.state_dict())  # the kernel is not a parameter: old checkpoints load
+    with torch.no_grad():
+        a, b = plain(batch), filtered(batch)
+    np.testing.assert_allclose(_np(b), pf.convolve(_np(a), pf.weights_1d("GAUSSIAN", 1.5)), rtol=1e-4, atol=1e-5)
+    nodemod = build_model(ModelConfig(name="fusesr", demodulation=False), 4)
+    assert nodemod.remod_filter_mismatch({"render": {"hr": {"pixel_filter": "BOX", "filter_width_px": 1}}}, "c") \
+        is None  # radiance models are not remodulated
+    msg = plain.remod_filter_mismatch({}, "c")
+    assert msg is None  # NONE never complains
+    msg = filtered.remod_filter_mismatch({"render": {"hr": {"pixel_filter": "BLACKMAN_HARRIS",
+                                                            "filter_width_px": 1.5}}}, "clipdir")
+    assert msg.startswith("clipdir: the ground truth was rendered with the BLACKMAN_HARRIS 1.5 px")
 
 
 def test_bicubic_is_clamped_and_bilinear_preserves_constants():
@@ -129,9 +157,10 @@ def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
         up = upsample(forward_transform(batch["lr/irradiance"][:, -1], "log1p"), 4, "bilinear",
                       batch["lr_jitter"][:, -1])
         expect = inverse_transform(up.clamp(min=0), "log1p") * batch["hr/fbeta_used"][:, -1] \
-            + batch["hr/emission"][:, -1]
-        torch.testing.assert_close(full(batch), expect)
-    authors = FuseSR(ModelConfig(name="fusesr", residual=False), 4).eval()
+            + batch["hr/emission"][:, -1]  # point samples, then the ground truth's pixel filter
+        np.testing.assert_allclose(_np(full(batch)), pf.convolve(_np(expect), pf.weights_1d("BLACKMAN_HARRIS", 1.5)),
+                                   rtol=1e-5, atol=1e-5)
+    authors = FuseSR(ModelConfig(name="fusesr", residual=False, remod_filter="NONE"), 4).eval()
     with torch.no_grad():
         authors.refine.weight.zero_()
         authors.refine.bias.zero_()

@@ -162,7 +162,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                  *_sets(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
-    for key in ("jitter", "norm"):
+    for key in ("jitter", "norm", "remod_filter", "remod_filter_px"):
         del ck["config"]["model"][key]
     del ck["config"]["data"]["reflectance_range"]
     old = tmp_path / "old.pt"
@@ -170,4 +170,21 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     model = load_model(str(old), 4)
     assert not model.use_jitter and "lr_jitter" not in model.needs()
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    assert model.remod_kernel is None  # remodulated without the ground truth's pixel filter, as before session 3
     assert config_from_checkpoint(ck["config"]).data.reflectance_range == [1.0, 1.0]  # no tint before session 3
+
+
+def test_training_refuses_a_remodulation_filter_other_than_the_ground_truths(clip, tmp_path, capsys):
+    code = main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *_sets(SMALL + ['model.remod_filter="BLACKMAN_HARRIS"', "model.remod_filter_px=2.0"])])
+    err = capsys.readouterr().err
+    assert code != 0 and f"{clip}: the ground truth was rendered with the BOX 1 px pixel filter" in err
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_reference_filter_is_resolved_from_the_clips_into_the_checkpoint(clip, tmp_path):
+    run = tmp_path / "run"
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                 *_sets(SMALL)]) == 0
+    saved = load_checkpoint(run / "checkpoints" / "last.pt")["config"]["model"]
+    assert (saved["remod_filter"], saved["remod_filter_px"]) == ("BOX", 1.0)  # the synthetic clip's 2x2 supersampling

@@ -74,8 +74,11 @@ class ModelConfig:
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
+    remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
+    remod_filter_px: float = 1.5     # the clips' ground-truth filter (manifest render.hr), NONE: off, or explicit
 
     def validate(self) -> None:
+        from gbuffer_export.pixel_filter import FILTERS
         from training.models import MODELS  # torch-free table
         if self.name not in MODELS:
             raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}")
@@ -86,6 +89,10 @@ class ModelConfig:
         _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)
         _choice("model.depth_norm", self.depth_norm, DEPTH_NORMS)
         _choice("model.norm", self.norm, NORMS)
+        _choice("model.remod_filter", self.remod_filter, ("REFERENCE", "NONE") + FILTERS)
+        if not isinstance(self.remod_filter_px, (int, float)) or not (0 < float(self.remod_filter_px) <= 4):
+            raise ConfigError(f"model.remod_filter_px {self.remod_filter_px!r}: must lie in (0, 4] pixels")
+        self.remod_filter_px = float(self.remod_filter_px)
         if self.width < 0 or self.blocks < 0:
             raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
 
@@ -274,7 +281,7 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
 
 
 #: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
-LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch"}
+LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE"}
 LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import platform
 import statistics
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,10 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 raise ClipError(f"{clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
             if not source.has("hr/radiance"):
                 raise ClipError(f"{clip_path}: clip has no hr/radiance to compare with")
+            model.follow_reference_filter(source.clip.manifest)
+            mismatch = model.remod_filter_mismatch(source.clip.manifest, clip_path)
+            if mismatch:
+                print(f"warning: {mismatch}", file=sys.stderr)
             todo = list((frames or {}).get(str(clip_path)) or source.frames)
             first = model_inputs(model, source, todo[0])
             for _ in range(warmup):

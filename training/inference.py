@@ -167,6 +167,7 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
     if source.scale != model.scale:
         raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
+    model.follow_reference_filter(source.clip.manifest)
     inputs = model_inputs(model, source, int(frame))
     sr, ms = run_model(model, inputs)
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])

@@ -218,6 +218,9 @@ def resumed_config(ck: dict, cfg: TrainConfig | None, run_overrides: dict | None
         a, b = _comparable(cfg), _comparable(saved)
         if not cfg.data.clips:
             a["data"]["clips"] = b["data"]["clips"]
+        if a["model"].get("remod_filter") == "REFERENCE":  # the checkpoint holds what REFERENCE resolved to
+            for k in ("remod_filter", "remod_filter_px"):
+                a["model"][k] = b["model"].get(k)
         for section in ("data", "model", "loss", "optim"):
             if a[section] != b[section]:
                 diff = [k for k in a[section] if a[section][k] != b[section].get(k)]
@@ -278,7 +281,18 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if cfg.model.scale and cfg.model.scale != scale:
         raise ConfigError(f"model.scale = {cfg.model.scale} but the clips have scale {scale}")
     cfg.model.scale = scale
+    if cfg.model.remod_filter == "REFERENCE":  # resolved once into the saved configuration
+        from gbuffer_export.pixel_filter import reference_filter
+        refs = {reference_filter(open_clip(c).manifest) for c in cfg.data.clips}
+        if len(refs) != 1:
+            raise ConfigError(f"the training clips' ground truths use different pixel filters {sorted(refs)}; "
+                              "set model.remod_filter and model.remod_filter_px")
+        cfg.model.remod_filter, cfg.model.remod_filter_px = refs.pop()
     model = build_model(cfg.model, scale)
+    for c in cfg.data.clips:
+        mismatch = model.remod_filter_mismatch(open_clip(c).manifest, c)
+        if mismatch:
+            raise ConfigError(mismatch + "; set them to the clip's filter, or model.remod_filter = \"NONE\"")
     temporal = cfg.loss.temporal_weight > 0
     spec = BatchSpec.for_model(model, temporal=temporal, crop=cfg.data.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),

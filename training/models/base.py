@@ -29,6 +29,38 @@ class SRModel(nn.Module):
         self.scale = int(scale)
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
+        w1 = remod_weights(cfg)
+        self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
+                             persistent=False)
+
+    def follow_reference_filter(self, manifest: dict) -> None:
+        """With ``model.remod_filter = "REFERENCE"`` (non-learned models; training resolves it into the checkpoint),
+        remodulate through the pixel filter of this clip's ground truth (manifest ``render.hr``)."""
+        if getattr(self.cfg, "remod_filter", "NONE") == "REFERENCE":
+            from gbuffer_export.pixel_filter import reference_filter
+            w1 = remod_weights(self.cfg, reference_filter(manifest))
+            self.remod_kernel = None if w1 is None else torch.tensor(w1, dtype=torch.float32)
+
+    def remod_filter_mismatch(self, manifest: dict, clip_path) -> str | None:
+        """A one-line reason when this model remodulates with a pixel filter other than the one the clip's ground
+        truth was rendered with (manifest ``render.hr``), else None."""
+        if not getattr(self, "demod", False) or getattr(self.cfg, "remod_filter", "NONE") in ("NONE", "REFERENCE"):
+            return None
+        from gbuffer_export.pixel_filter import reference_filter
+        kind, width = reference_filter(manifest)
+        mine = (self.cfg.remod_filter, float(self.cfg.remod_filter_px))
+        if (kind, width) == mine:
+            return None
+        return (f"{clip_path}: the ground truth was rendered with the {kind} {width:g} px pixel filter but the model "
+                f"remodulates through {mine[0]} {mine[1]:g} px (model.remod_filter, model.remod_filter_px)")
+
+    def remodulate(self, irradiance: torch.Tensor, batch: dict) -> torch.Tensor:
+        """HR radiance (B, 3, H, W) from a predicted HR irradiance: the point samples L_D * F_used^HR + E^HR (the
+        G-buffers are point-sampled), seen through the ground truth's pixel filter (``model.remod_filter``;
+        ``gbuffer_export.pixel_filter``) like the reference render, which averages its samples with that filter."""
+        out = irradiance * current(batch, "hr/fbeta_used").to(irradiance.dtype) + \
+            current(batch, "hr/emission").to(irradiance.dtype)
+        return out if self.remod_kernel is None else separable_filter(out, self.remod_kernel)
 
     def jitter_keys(self) -> tuple[str, ...]:
         return ("lr_jitter",) if self.use_jitter else ()
@@ -45,6 +77,31 @@ class SRModel(nn.Module):
     def window(self) -> int:
         """LR frames per input window: the current one and ``history`` previous ones."""
         return self.history + 1
+
+
+#: The filter REFERENCE stands for until a clip's manifest says otherwise: BlendSR's HR render setting.
+DEFAULT_REFERENCE_FILTER = ("BLACKMAN_HARRIS", 1.5)
+
+
+def remod_weights(cfg, reference: tuple[str, float] = DEFAULT_REFERENCE_FILTER):
+    """1-D weights of ``cfg.remod_filter`` (None for NONE or a point-sampling filter); REFERENCE uses
+    ``reference`` (type, width px)."""
+    kind = getattr(cfg, "remod_filter", "NONE")
+    if kind == "NONE":
+        return None
+    from gbuffer_export.pixel_filter import weights_1d
+    w1 = weights_1d(*reference) if kind == "REFERENCE" else weights_1d(kind, getattr(cfg, "remod_filter_px", 1.5))
+    return None if len(w1) == 1 else w1
+
+
+def separable_filter(x: torch.Tensor, w1: torch.Tensor) -> torch.Tensor:
+    """Convolve (B, C, H, W) with the separable kernel w1 x w1 (odd length), edges replicated."""
+    k = w1.numel() // 2
+    c = x.shape[1]
+    w = w1.to(device=x.device, dtype=x.dtype)
+    x = F.pad(x, (k, k, k, k), mode="replicate")
+    x = F.conv2d(x, w.view(1, 1, -1, 1).expand(c, 1, -1, 1).contiguous(), groups=c)
+    return F.conv2d(x, w.view(1, 1, 1, -1).expand(c, 1, 1, -1).contiguous(), groups=c)
 
 
 def current(batch: dict, key: str) -> torch.Tensor:

@@ -1,7 +1,9 @@
 """``demod-bilinear``: the honest non-learned baseline with HR G-buffers.
 
-SR = bilinear(L_D^LR) * F_used^HR + E^HR, where L_D^LR = (I^LR - E^LR) / F_used^LR (``gbuffer_export.demod``).
-The HR material detail comes from the HR F_beta; no ground truth is used.
+SR = K * (bilinear(L_D^LR) F_used^HR + E^HR), where L_D^LR = (I^LR - E^LR) / F_used^LR (``gbuffer_export.demod``)
+and K is the ground truth's pixel filter (``model.remod_filter``, ``SRModel.remodulate``): the point-sampled HR
+G-buffers give point samples, the reference averages its samples with K. The HR material detail comes from the HR
+F_beta; no ground truth is used.
 """
 from __future__ import annotations
 
@@ -10,10 +12,11 @@ from training.models.base import SRModel, current, upsample
 
 class DemodBilinear(SRModel):
     learned = False
+    demod = True
 
     def needs(self):
         return ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.jitter_keys()
 
     def forward(self, batch):
         irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear", self.frame_jitter(batch))
-        return irr * current(batch, "hr/fbeta_used") + current(batch, "hr/emission")
+        return self.remodulate(irr, batch)

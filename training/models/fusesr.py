@@ -11,7 +11,9 @@ History: F_f of the ``history`` previous frames is warped to the current frame w
 HR branch: [F_beta_used 3, depth 1, normal 3, albedo 3] = 10 HR channels, pixel-unshuffled by the scale
 (10 s^2 LR channels), 3x3 conv to 64 + ReLU. Fusion network F at LR: 3x3 conv to ``width`` (128) + ReLU and
 ``blocks`` (6) residual blocks. Head: concat [F output, F_s], 3x3 conv to 3 s^2, pixel shuffle to HR, 3x3 conv
-3->3 + ReLU = T(L_D^HR). Output: SR = T^-1(.) * F_beta_used^HR + E^HR (or T^-1(.) without demodulation).
+3->3 + ReLU = T(L_D^HR). Output: SR = K * (T^-1(.) F_beta_used^HR + E^HR) with K the ground truth's pixel filter
+(``model.remod_filter``, default Blackman-Harris 1.5 px as BlendSR renders it; not in the paper, whose G-buffers and
+ground truth are both rasterised), or T^-1(.) without demodulation.
 
 Deviation (``model.residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
 before the final ReLU, so the network learns a correction of the demod-bilinear baseline. Without it (the authors'
@@ -140,5 +142,5 @@ class FuseSR(SRModel):
         y = F.relu(y)
         out = inverse_transform(y.float(), self.transform)
         if self.demod:
-            out = out * current(batch, "hr/fbeta_used").float() + current(batch, "hr/emission").float()
+            out = self.remodulate(out, batch)
         return out
