@@ -14,6 +14,8 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
+
 COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "psnr_hdr", "flip", "tpsnr",
            "warp_error")
 
@@ -87,8 +89,11 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
     front = pareto_front(pts)
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     ax.scatter([p[0] for p in pts], [p[1] for p in pts], c="tab:blue", zorder=3)
-    for r, p in zip(rows, pts):
-        ax.annotate(r["model"], p, textcoords="offset points", xytext=(5, 4), fontsize=8)
+    placed: list[tuple[float, float]] = []
+    for r, p in zip(rows, pts):  # labels of near-coincident points are stacked downwards instead of overprinted
+        k = sum(1 for q in placed if abs(q[1] - p[1]) < 0.25 and abs(np.log10(q[0] / p[0])) < 0.3)
+        placed.append(p)
+        ax.annotate(r["model"], p, textcoords="offset points", xytext=(5, 4 - 10 * k), fontsize=8)
     ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", c="tab:orange", label="Pareto front")
     ax.set_xscale("log")
     ax.set_xlabel("ms per frame (median, log scale)")
