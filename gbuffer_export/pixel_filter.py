@@ -22,6 +22,10 @@ import numpy as np
 
 FILTERS = ("BOX", "GAUSSIAN", "BLACKMAN_HARRIS")
 
+#: (filter, width px) BlendSR renders with: the HR ground truth anti-aliased, LR frames and G-buffers point-sampled.
+HR_REFERENCE_FILTER = ("BLACKMAN_HARRIS", 1.5)
+POINT_FILTER = ("GAUSSIAN", 0.01)
+
 
 def support(filter_type: str, width_px: float) -> float:
     """Half-width (pixels) outside which the filter is zero."""
@@ -69,9 +73,10 @@ def convolve(image: np.ndarray, w1: np.ndarray) -> np.ndarray:
 
 
 def reference_filter(manifest: dict) -> tuple[str, float]:
-    """(filter type, width px) of a clip's HR ground truth, from its manifest."""
+    """(filter type, width px) of a clip's HR ground truth, from its manifest (BlendSR's ``HR_REFERENCE_FILTER`` when
+    the manifest does not record it)."""
     hr = manifest.get("render", {}).get("hr", {})
-    return str(hr.get("pixel_filter", "BLACKMAN_HARRIS")), float(hr.get("filter_width_px", 1.5))
+    return str(hr.get("pixel_filter", HR_REFERENCE_FILTER[0])), float(hr.get("filter_width_px", HR_REFERENCE_FILTER[1]))
 
 
 def _check(filter_type: str, width_px: float) -> str:
@@ -83,4 +88,4 @@ def _check(filter_type: str, width_px: float) -> str:
     return ft
 
 
-__all__ = ["FILTERS", "support", "evaluate", "weights_1d", "convolve", "reference_filter"]
+__all__ = ["FILTERS", "HR_REFERENCE_FILTER", "POINT_FILTER", "support", "evaluate", "weights_1d", "convolve", "reference_filter"]

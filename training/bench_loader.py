@@ -33,7 +33,7 @@ def run(args) -> int:
 
     from gbuffer_export.synthetic import make_synthetic_clip
     from training.cache import ClipCache
-    from training.config import LossConfig, ModelConfig
+    from training.config import DataConfig, LossConfig, ModelConfig
     from training.data import BatchSpec, TrainSampler
     from training.losses import Criterion
     from training.models import build_model
@@ -53,8 +53,10 @@ def run(args) -> int:
         scales = {ClipCache(c).scale for c in clips}
         scale = scales.pop()
         model = build_model(ModelConfig(name=args.model), scale)
-        spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True, exposure_range=(0.5, 2.0),
-                                   reflectance_range=(0.5, 2.0))
+        data = DataConfig()  # the training defaults' augmentations
+        spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True,
+                                   exposure_range=tuple(data.exposure_range),
+                                   reflectance_range=tuple(data.reflectance_range))
         caches = [ClipCache(c) for c in clips]
         t = time.perf_counter()
         for c in caches:

@@ -274,7 +274,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
 
     # Data: scale from the clips, then the model, then what it reads.
     from gbuffer_export.clip import open_clip
-    scales = {open_clip(c).scale for c in cfg.data.clips}
+    clips = {c: open_clip(c) for c in cfg.data.clips}  # manifests read once
+    scales = {clip.scale for clip in clips.values()}
     if len(scales) != 1:
         raise ConfigError(f"training clips have different scales {sorted(scales)}; train one scale at a time")
     scale = scales.pop()
@@ -283,14 +284,14 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     cfg.model.scale = scale
     if cfg.model.remod_filter == "REFERENCE":  # resolved once into the saved configuration
         from gbuffer_export.pixel_filter import reference_filter
-        refs = {reference_filter(open_clip(c).manifest) for c in cfg.data.clips}
+        refs = {reference_filter(clip.manifest) for clip in clips.values()}
         if len(refs) != 1:
             raise ConfigError(f"the training clips' ground truths use different pixel filters {sorted(refs)}; "
                               "set model.remod_filter and model.remod_filter_px")
         cfg.model.remod_filter, cfg.model.remod_filter_px = refs.pop()
     model = build_model(cfg.model, scale)
-    for c in cfg.data.clips:
-        mismatch = model.remod_filter_mismatch(open_clip(c).manifest, c)
+    for c, clip in clips.items():
+        mismatch = model.remod_filter_mismatch(clip.manifest, c)
         if mismatch:
             raise ConfigError(mismatch + "; set them to the clip's filter, or model.remod_filter = \"NONE\"")
     temporal = cfg.loss.temporal_weight > 0

@@ -29,6 +29,7 @@ from ..config import ConfigError, RenderConfig
 from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, scale_intrinsics,
                            world_to_camera_normals)
 from ..exr import read_exr_channels
+from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from . import materials as mats
 
 BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
@@ -419,9 +420,10 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
             "hr": {"spp": cfg.hr_spp, "denoise": cfg.hr_denoise, "adaptive": cfg.adaptive,
                    "adaptive_threshold": cfg.adaptive_threshold if cfg.adaptive else None,
                    "adaptive_min_samples": cfg.adaptive_min_samples if cfg.adaptive else None,
-                   "pixel_filter": "BLACKMAN_HARRIS", "filter_width_px": 1.5},
-            "lr": {"spp": cfg.lr_spp, "denoise": cfg.lr_denoise, "pixel_filter": "GAUSSIAN", "filter_width_px": 0.01},
-            "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": "GAUSSIAN", "filter_width_px": 0.01,
+                   "pixel_filter": HR_REFERENCE_FILTER[0], "filter_width_px": HR_REFERENCE_FILTER[1]},
+            "lr": {"spp": cfg.lr_spp, "denoise": cfg.lr_denoise, "pixel_filter": POINT_FILTER[0],
+                   "filter_width_px": POINT_FILTER[1]},
+            "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes"},
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
@@ -495,7 +497,7 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     hr_out = {}
     if plan.any:
         set_passes(view_layer, plan)
-        settings_g = set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=0.01, filter_type="GAUSSIAN",
+        settings_g = set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
                                   bounces=False, denoise=False, adaptive=False, cfg=cfg,
                                   seed=pass_seed(cfg.seed, frame, 0), light_paths=light_paths)
         t = time.perf_counter()
@@ -506,7 +508,7 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
                          jitter=(0.0, 0.0), flag_lut=flag_lut, fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     set_passes(view_layer, PassPlan())
-    settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=1.5, filter_type="BLACKMAN_HARRIS", bounces=True,
+    settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1], filter_type=HR_REFERENCE_FILTER[0], bounces=True,
                                denoise=cfg.hr_denoise, adaptive=cfg.adaptive, cfg=cfg,
                                seed=pass_seed(cfg.seed, frame, 1), light_paths=light_paths)
     t = time.perf_counter()
@@ -530,7 +532,7 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     cam.data.shift_x = base_shift[0] + jit[0] / max(lw, lh)
     cam.data.shift_y = base_shift[1] - jit[1] / max(lw, lh)
     set_passes(view_layer, plan)
-    settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=0.01, filter_type="GAUSSIAN", bounces=True,
+    settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0], bounces=True,
                                denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
                                seed=pass_seed(cfg.seed, frame, 2), light_paths=light_paths)
     seconds = {}

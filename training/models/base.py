@@ -79,18 +79,15 @@ class SRModel(nn.Module):
         return self.history + 1
 
 
-#: The filter REFERENCE stands for until a clip's manifest says otherwise: BlendSR's HR render setting.
-DEFAULT_REFERENCE_FILTER = ("BLACKMAN_HARRIS", 1.5)
-
-
-def remod_weights(cfg, reference: tuple[str, float] = DEFAULT_REFERENCE_FILTER):
+def remod_weights(cfg, reference: tuple[str, float] | None = None):
     """1-D weights of ``cfg.remod_filter`` (None for NONE or a point-sampling filter); REFERENCE uses
-    ``reference`` (type, width px)."""
+    ``reference`` (type, width px), by default BlendSR's own HR filter until a clip's manifest says otherwise."""
     kind = getattr(cfg, "remod_filter", "NONE")
     if kind == "NONE":
         return None
-    from gbuffer_export.pixel_filter import weights_1d
-    w1 = weights_1d(*reference) if kind == "REFERENCE" else weights_1d(kind, getattr(cfg, "remod_filter_px", 1.5))
+    from gbuffer_export.pixel_filter import HR_REFERENCE_FILTER, weights_1d
+    w1 = weights_1d(*(reference or HR_REFERENCE_FILTER)) if kind == "REFERENCE" else \
+        weights_1d(kind, getattr(cfg, "remod_filter_px", 1.5))
     return None if len(w1) == 1 else w1
 
 
