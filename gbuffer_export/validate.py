@@ -73,7 +73,7 @@ CODES: dict[str, str] = {
     "depth-range": "depth <= 0 on a surface pixel",
     "depth-inf-on-surface": "depth is +inf where flags do not mark background (or not finite where no flags)",
     "depth-finite-on-background": "depth is finite where flags mark background (Blender's 1e10 not converted?)",
-    "non-unit-normal": "too many surface normals are not unit length",
+    "non-unit-normal": "too many surface normals are not unit length (ALPHA-flagged pixels: a warning)",
     "normal-on-background": "normals are not zero on background pixels",
     "fbeta-range": "fbeta outside [0, fbeta_max] on surface pixels",
     "fbeta-background": "fbeta is not 1 on background pixels",
@@ -660,6 +660,18 @@ class _Validator:
         if normal is not None:
             length = np.linalg.norm(normal.astype(np.float64), axis=-1)
             surf = surface if surface is not None else length > 0.5
+            if flags is not None:
+                # Alpha-blended or cut-out surfaces: Cycles writes depth and indices from the first sample and
+                # accumulates the normal only over samples whose hit passes the alpha threshold, so a flagged
+                # pixel's normal may be short or zero. Counted apart, as a warning.
+                alpha = surf & ((flags[..., 0] & np.uint32(Flag.ALPHA)) != 0)
+                short = alpha & ~(np.abs(length - 1.0) < o.normal_tol)
+                if short.any():
+                    self.add("non-unit-normal", f"{int(short.sum())} of {int(alpha.sum())} ALPHA-flagged pixel(s) "
+                                                "have non-unit normals (partial coverage; excluded from the unit-length check)",
+                             frame=frame, key=f"{lvl}/normal", severity=WARNING, pixels=int(short.sum()),
+                             alpha_pixels=int(alpha.sum()))
+                surf = surf & ~alpha
             n_surf = int(surf.sum())
             if n_surf:
                 off = ~(np.abs(length[surf] - 1.0) < o.normal_tol)  # NaN counts as off

@@ -384,6 +384,19 @@ def test_non_unit_normal_threshold(clip):
     assert n_region > 0.01 * s.sum()
 
 
+def test_short_normals_on_alpha_pixels_are_a_warning(clip):
+    """Zero normals where flags say ALPHA (Cycles' partial coverage) warn; the same pixels unflagged fail."""
+    s = surface(clip, 2) & region(HR[::-1])
+    _non_unit_normals(clip)
+    (f,) = findings(validate_clip(clip), "non-unit-normal")
+    assert f.severity == ERROR
+    edit_buffer(clip, 2, "hr/flags", lambda a: np.where(s[..., None], a | np.uint32(Flag.ALPHA), a))
+    r = validate_clip(clip)
+    (f,) = findings(r, "non-unit-normal")
+    assert f.severity == WARNING and r.ok
+    assert f.details["pixels"] == int(s.sum()) == f.details["alpha_pixels"]
+
+
 def test_fbeta_few_pixels_is_a_warning(clip):
     s = surface(clip, 2)
     i, j = np.argwhere(s)[0]
