@@ -42,3 +42,20 @@ def test_two_gloo_processes_train_and_agree(tmp_path):
     b0 = TrainSampler([cache], spec, 2, seed=0, rank=0).batch(0)[0]["hr/radiance"]
     b1 = TrainSampler([cache], spec, 2, seed=0, rank=1).batch(0)[0]["hr/radiance"]
     assert not np.array_equal(b0, b1)
+
+
+def test_batchnorm_under_cpu_ddp_warns_and_ranks_agree(tmp_path):
+    """The authors' BatchNorm under gloo: per-rank statistics (SyncBatchNorm needs a GPU), said once, weights agree."""
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "gbuffer_export.cli", "train", "--model", "fusesr", "--data", str(clip), "-o", str(run),
+           "--max-steps", "2"]
+    for s in ("data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
+              "run.threads=1", 'model.norm="batch"'):
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stderr.count("RuntimeWarning: model.norm = 'batch' under DDP on CPU") == 1
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["ranks_agree"] is True and summary["step"] == 2

@@ -335,6 +335,13 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if ck is not None and scaler is not None and ck.get("scaler"):
         scaler.load_state_dict(ck["scaler"])
     net = model
+    if dist.enabled and any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in model.modules()):
+        if device.type == "cuda":  # same Parameter objects: the optimiser and the checkpoint keys are unchanged
+            model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+            net = model
+        elif dist.main:
+            warnings.warn("model.norm = 'batch' under DDP on CPU: BatchNorm statistics are per rank (torch's "
+                          "SyncBatchNorm needs a GPU)", RuntimeWarning)
     if dist.enabled:
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
