@@ -238,3 +238,29 @@ def test_model_jitter_false_ignores_a_batch_jitter(name):
     assert "lr_jitter" not in model.needs()
     with torch.no_grad():
         torch.testing.assert_close(model(batch), model({**batch, "lr_jitter": batch["lr_jitter"] + 0.3}))
+
+
+def test_fusesr_hr_guide_reads_the_hr_gbuffers_at_full_resolution():
+    """model.hr_guide: the refinement sees the HR G-buffers directly; with the LR-side HR branch zeroed, one HR depth
+    pixel still changes the output, and only within the refinement's 5x5 footprint (two 3x3 convs)."""
+    from training.config import ConfigError
+    torch.manual_seed(0)
+    batch = make_batch()
+    guided = FuseSR(ModelConfig(name="fusesr", hr_guide=True, remod_filter="NONE"), 4).eval()
+    plain = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    assert not plain.hr_guide and guided.hr_guide
+    assert sum(p.numel() for p in guided.parameters()) - sum(p.numel() for p in plain.parameters()) == \
+        (13 * 16 * 9 + 16) + (16 * 3 * 9 + 3) - (3 * 3 * 9 + 3)
+    with torch.no_grad():
+        for p in guided.hr_branch.parameters():
+            p.zero_()
+        a = guided(batch)
+        b2 = {k: v.clone() for k, v in batch.items()}
+        b2["hr/depth"][:, -1, :, 10, 12] *= 3.0
+        diff = (guided(b2) - a).abs().amax(dim=(0, 1))
+    assert diff[10, 12] > 0
+    far = torch.ones_like(diff, dtype=torch.bool)
+    far[8:13, 10:15] = False
+    assert diff[far].max() == 0
+    with pytest.raises(ConfigError, match="hr_guide needs model.hr_gbuffer"):
+        ModelConfig(name="fusesr", hr_guide=True, hr_gbuffer=False).validate()

@@ -72,6 +72,7 @@ class ModelConfig:
     width: int = 0                   # backbone channels (0: the model's default, FuseSR 128, FuseSR-L 64)
     blocks: int = 0                  # residual blocks (0: the model's default, 6)
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
+    hr_guide: bool = False           # FuseSR: the HR refinement also reads the HR G-buffers (not in the paper)
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
     remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
@@ -93,6 +94,8 @@ class ModelConfig:
         if not isinstance(self.remod_filter_px, (int, float)) or not (0 < float(self.remod_filter_px) <= 4):
             raise ConfigError(f"model.remod_filter_px {self.remod_filter_px!r}: must lie in (0, 4] pixels")
         self.remod_filter_px = float(self.remod_filter_px)
+        if self.hr_guide and not self.hr_gbuffer:
+            raise ConfigError("model.hr_guide needs model.hr_gbuffer = true (it reads the HR G-buffers)")
         if self.width < 0 or self.blocks < 0:
             raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
 

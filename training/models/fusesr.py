@@ -15,6 +15,10 @@ HR branch: [F_beta_used 3, depth 1, normal 3, albedo 3] = 10 HR channels, pixel-
 (``model.remod_filter``, default Blackman-Harris 1.5 px as BlendSR renders it; not in the paper, whose G-buffers and
 ground truth are both rasterised), or T^-1(.) without demodulation.
 
+Option (``model.hr_guide``, default off; not in the paper): the HR refinement reads the 10 HR G-buffer channels
+beside the pixel-shuffled prediction (3x3 conv 13 -> 16 + ReLU, 3x3 conv 16 -> 3) instead of the 3x3 conv 3 -> 3,
+a direct full-resolution path for the HR geometry (docs/training.md, "Session 4", has the measurement).
+
 Deviation (``model.residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
 before the final ReLU, so the network learns a correction of the demod-bilinear baseline. Without it (the authors'
 head, ``residual = false``) the final 3-channel ReLU went dead on about a third of the output pixels in our runs and
@@ -99,7 +103,10 @@ class FuseSR(SRModel):
         self.fuse_in = nn.Sequential(make(cin, width), nn.ReLU(inplace=True))
         self.blocks = nn.Sequential(*[ResBlock(width, self.separable) for _ in range(blocks)])
         self.head = conv(width + ENCODER_CHANNELS[0], 3 * s * s)
-        self.refine = conv(3, 3)
+        self.hr_guide = bool(getattr(cfg, "hr_guide", False)) and self.use_hr
+        # HR guidance (deviation, off by default): the refinement sees the 10 HR G-buffer channels at full resolution
+        self.refine = nn.Sequential(conv(3 + 10, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
+            else conv(3, 3)
 
     def needs(self):
         keys = ["lr/irradiance" if self.demod else "lr/radiance", "lr/depth", "lr/normal", "depth_ref"]
@@ -136,7 +143,8 @@ class FuseSR(SRModel):
                             current(batch, "hr/normal"), current(batch, "hr/albedo")], dim=1)
             feats.append(self.hr_branch(F.pixel_unshuffle(hr, self.scale)))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
-        y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
+        y = F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale)
+        y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + upsample(x[:, :3], self.scale, "bilinear", j_t)
         y = F.relu(y)
