@@ -209,9 +209,17 @@ def test_reflectance_keeps_the_demodulation_identity_and_the_irradiance(clip):
     aug = Augmentation(reflectance=tint, flip_y=True)
     raw = {k: c.read(2, f"hr/{k}") for k in ("radiance", "emission", "fbeta", "albedo", "flags")}
     irr, fbu = np_demod.demodulate(raw["radiance"], raw["emission"], raw["fbeta"], raw["flags"])
-    a = {k: apply(f"hr/{k}", v, aug) for k, v in {**raw, "irradiance": irr, "fbeta_used": fbu}.items()}
+    unit = (fbu == 1.0).all(-1, keepdims=True)  # background / UNTRUSTED: F_used = 1, L_D = I - E
+    assert unit.any() and not unit.all()
+    with pytest.raises(ValueError, match="needs the F_used = 1 mask"):
+        apply("hr/irradiance", irr, aug)
+    a = {k: apply(f"hr/{k}", v, aug, unit) for k, v in {**raw, "irradiance": irr, "fbeta_used": fbu}.items()}
     np.testing.assert_allclose(a["irradiance"] * a["fbeta_used"] + a["emission"], a["radiance"], rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(a["irradiance"], np.flip(irr, axis=0))
+    flipped_unit = np.flip(unit, axis=0)
+    np.testing.assert_array_equal(np.where(flipped_unit, 0, a["irradiance"]), np.where(flipped_unit, 0, np.flip(irr, 0)))
+    np.testing.assert_array_equal((a["fbeta_used"] == 1.0).all(-1, keepdims=True), flipped_unit)  # the class stays
+    np.testing.assert_allclose(a["irradiance"][flipped_unit[..., 0]],
+                               (np.flip(irr, 0) * np.float32(tint))[flipped_unit[..., 0]], rtol=1e-6)
     np.testing.assert_allclose(a["albedo"], np.flip(raw["albedo"], axis=0) * np.float32(tint), rtol=1e-6)
     np.testing.assert_array_equal(a["flags"], np.flip(raw["flags"], axis=0))
     irr_again, _ = np_demod.demodulate(a["radiance"], a["emission"], a["fbeta"], a["flags"])
@@ -220,6 +228,9 @@ def test_reflectance_keeps_the_demodulation_identity_and_the_irradiance(clip):
     trusted = np.flip(trusted, 0)  # into the augmented (flipped) image
     assert trusted.mean() > 0.3
     np.testing.assert_allclose(irr_again[trusted], a["irradiance"][trusted], rtol=1e-4, atol=1e-6)
+    # and where F_used = 1: L_D = tinted I - tinted E
+    np.testing.assert_allclose(irr_again[flipped_unit[..., 0]], a["irradiance"][flipped_unit[..., 0]], rtol=1e-5,
+                               atol=1e-6)
 
 
 def test_draw_uses_a_fixed_number_of_variates():

@@ -59,7 +59,8 @@ def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
     return {"lr/radiance": lr(3), "lr/irradiance": lr(3) * 2, "lr/depth": depth, "lr/normal": lr(3) - 0.5,
             "lr/motion": 2 * lr(2) - 1, "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
             "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3),
-            "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5}
+            "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5,
+            "lr/fbeta_used": 0.05 + lr(3)}
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -133,7 +134,7 @@ def _changes_output(model, batch, key, frame_index):
 def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
     torch.manual_seed(0)
     batch = make_batch()
-    full = FuseSR(ModelConfig(name="fusesr"), 4).eval()
+    full = FuseSR(ModelConfig(name="fusesr", upsample_by_class=False), 4).eval()
     assert full.history == 2 and full.window == 3
     assert _changes_output(full, batch, "lr/irradiance", 0)      # history frame t-2
     assert _changes_output(full, batch, "hr/albedo", -1)         # HR G-buffer branch
@@ -264,3 +265,55 @@ def test_fusesr_hr_guide_reads_the_hr_gbuffers_at_full_resolution():
     assert diff[far].max() == 0
     with pytest.raises(ConfigError, match="hr_guide needs model.hr_gbuffer"):
         ModelConfig(name="fusesr", hr_guide=True, hr_gbuffer=False).validate()
+
+
+def test_upsample_by_class_never_mixes_demodulated_and_unit_fbeta_pixels():
+    """LR L_D constant a on demodulated pixels and b where F_used = 1: every HR pixel with a same-class LR neighbour
+    gets exactly its class's constant (plain bilinear mixes them at the borders), the others the plain value; with
+    one class everywhere it is plain bilinear. Checked with jitter, at 4x."""
+    from training.models.base import demodulated_mask, upsample_by_class
+    g = torch.Generator().manual_seed(3)
+    h, w, s = 6, 8, 4
+    f_lr = torch.where(torch.rand(1, 1, h, w, generator=g) < 0.4, 1.0, 0.3).expand(-1, 3, -1, -1).clone()
+    f_hr = torch.where(torch.rand(1, 1, h * s, w * s, generator=g) < 0.4, 1.0, 0.3).expand(-1, 3, -1, -1).clone()
+    m_lr, m_hr = demodulated_mask(f_lr), demodulated_mask(f_hr)
+    a, b = 20.0, 1.0  # an irradiance 20x a radiance
+    x = (a * m_lr + b * (1 - m_lr)).expand(-1, 3, -1, -1)
+    j = torch.tensor([[0.2, -0.3]])
+    out = upsample_by_class(x, m_lr, m_hr, s, j)
+    plain = upsample(x, s, "bilinear", j)
+    for m_l, m_h, value in ((m_lr, m_hr, a), (1 - m_lr, 1 - m_hr, b)):
+        reach = upsample(m_l, s, "bilinear", j) > 1e-6  # the bilinear footprint holds a pixel of this class
+        sel = (reach & (m_h > 0.5)).expand_as(out)
+        assert sel.any()
+        torch.testing.assert_close(out[sel], torch.full_like(out[sel], value))
+        orphan = (~reach & (m_h > 0.5)).expand_as(out)
+        torch.testing.assert_close(out[orphan], plain[orphan])
+    assert ((plain - a).abs() > 1).logical_and((plain - b).abs() > 1).any()  # plain bilinear does mix
+    one = torch.ones_like(m_lr)
+    torch.testing.assert_close(upsample_by_class(x, one, torch.ones_like(m_hr), s, j), plain)
+
+
+def test_demod_bilinear_and_fusesr_residual_upsample_by_class():
+    """demod-bilinear = K * (upsample_by_class(L_D) F_used + E); FuseSR's residual path (refine zeroed) the same."""
+    from training.models.base import demodulated_mask, upsample_by_class
+    batch = make_batch()
+    batch["lr/fbeta_used"][..., 0, :] = 1.0  # background row (depth +inf) and HR rows above 4 px: F_used = 1
+    batch["hr/fbeta_used"][..., :4, :] = 1.0
+    masks = demodulated_mask(batch["lr/fbeta_used"][:, -1]), demodulated_mask(batch["hr/fbeta_used"][:, -1])
+    j = batch["lr_jitter"][:, -1]
+    db = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE"), 4).eval()
+    assert "lr/fbeta_used" in db.needs()
+    up = upsample_by_class(batch["lr/irradiance"][:, -1], *masks, 4, j)
+    torch.testing.assert_close(db(batch), up * batch["hr/fbeta_used"][:, -1] + batch["hr/emission"][:, -1])
+    old = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE", upsample_by_class=False), 4).eval()
+    assert "lr/fbeta_used" not in old.needs() and not torch.allclose(old(batch), db(batch))
+    from training.transforms import forward_transform, inverse_transform
+    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    with torch.no_grad():
+        net.refine.weight.zero_()
+        net.refine.bias.zero_()
+        up = upsample_by_class(forward_transform(batch["lr/irradiance"][:, -1], "log1p"), *masks, 4, j)
+        expect = inverse_transform(up.clamp(min=0), "log1p") * batch["hr/fbeta_used"][:, -1] \
+            + batch["hr/emission"][:, -1]
+        torch.testing.assert_close(net(batch), expect, rtol=1e-5, atol=1e-5)

@@ -13,7 +13,8 @@ Exposure scaling multiplies radiance, irradiance and emission by one factor (F_b
 keeps radiance = F_beta * L_D + emission: the light gets brighter or darker.
 Reflectance scaling multiplies radiance, emission, albedo, F_beta and the F_beta used for remodulation by one factor
 per colour channel (irradiance unchanged), which also keeps radiance = F_beta_used * L_D + emission: the same light
-falls on surfaces whose BRDF is tinted (interreflections are not recomputed). It teaches a model that the absolute
+falls on surfaces whose BRDF is tinted (interreflections are not recomputed). Where F_used = 1 (background,
+UNTRUSTED flags; L_D = radiance - emission there) F_used stays 1 and L_D takes the tint instead. It teaches a model that the absolute
 level and tint of the albedo / F_beta say nothing about the irradiance. Other buffers only move with the pixels.
 """
 from __future__ import annotations
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 RADIOMETRIC = ("radiance", "irradiance", "emission")
-REFLECTANCE = ("radiance", "emission", "albedo", "fbeta", "fbeta_used")
+REFLECTANCE = ("radiance", "emission", "albedo", "fbeta", "fbeta_used")  # irradiance: where F_used = 1
 
 
 @dataclass(frozen=True)
@@ -64,9 +65,26 @@ def apply_vector(v: np.ndarray, aug: Augmentation) -> np.ndarray:
     return v * np.array([-1 if aug.flip_x else 1, -1 if aug.flip_y else 1], dtype=v.dtype)
 
 
-def apply(key: str, a: np.ndarray, aug: Augmentation) -> np.ndarray:
-    """Apply ``aug`` to array ``a`` (..., H, W, C) of buffer ``key``; returns a new array."""
+def apply(key: str, a: np.ndarray, aug: Augmentation, unit: np.ndarray | None = None) -> np.ndarray:
+    """Apply ``aug`` to array ``a`` (..., H, W, C) of buffer ``key``; returns a new array.
+
+    ``unit`` (..., H, W, 1 bool, same orientation as ``a``): the pixels whose F_used is 1 (background, UNTRUSTED
+    flags), needed for ``irradiance`` and ``fbeta_used`` under a reflectance tint: there F_used stays 1 and the
+    tint moves into L_D (= radiance - emission), so F_used = 1 keeps marking them (``models.base.demodulated_mask``)."""
     name = _buffer(key)
+    # radiometric scaling first: pointwise, so it commutes with the dihedral transform below
+    if aug.exposure != 1.0 and name in RADIOMETRIC:
+        a = a * np.asarray(aug.exposure, dtype=a.dtype)
+    if aug.reflectance != (1.0, 1.0, 1.0):
+        tint = np.asarray(aug.reflectance, dtype=a.dtype)
+        if name in ("irradiance", "fbeta_used") and unit is None:
+            raise ValueError(f"{key}: a reflectance tint needs the F_used = 1 mask (unit)")
+        if name == "fbeta_used":
+            a = np.where(unit, a, a * tint)
+        elif name == "irradiance":
+            a = np.where(unit, a * tint, a)
+        elif name in REFLECTANCE:
+            a = a * tint
     h_ax, w_ax = a.ndim - 3, a.ndim - 2
     if aug.transpose:
         a = np.swapaxes(a, h_ax, w_ax)
@@ -82,8 +100,4 @@ def apply(key: str, a: np.ndarray, aug: Augmentation) -> np.ndarray:
             a = a * np.array([1, -1, 1], dtype=a.dtype)
     if name == "motion":
         a = apply_vector(a, aug)
-    if aug.exposure != 1.0 and name in RADIOMETRIC:
-        a = a * np.asarray(aug.exposure, dtype=a.dtype)
-    if aug.reflectance != (1.0, 1.0, 1.0) and name in REFLECTANCE:
-        a = a * np.asarray(aug.reflectance, dtype=a.dtype)
     return np.ascontiguousarray(a)

@@ -72,6 +72,7 @@ class ModelConfig:
     width: int = 0                   # backbone channels (0: the model's default, FuseSR 128, FuseSR-L 64)
     blocks: int = 0                  # residual blocks (0: the model's default, 6)
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
+    upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
     hr_guide: bool = False           # FuseSR: the HR refinement also reads the HR G-buffers (not in the paper)
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
@@ -284,7 +285,7 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
 
 
 #: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
-LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE"}
+LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE", "upsample_by_class": False}
 LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 

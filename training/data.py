@@ -164,7 +164,11 @@ def crop_window(cache, key: str, pos: int, spec: BatchSpec, xy: tuple[int, int],
     if key.startswith("hr/"):
         x0, y0, c = x0 * scale, y0 * scale, c * scale
     a = cache.array(key)[pos - t + 1: pos + 1, y0:y0 + c, x0:x0 + c]
-    a = apply(key, np.asarray(a, dtype=np.float32), aug)
+    unit = None
+    if aug.reflectance != (1.0, 1.0, 1.0) and key.split("/")[-1] in ("irradiance", "fbeta_used"):
+        f = cache.array(key.split("/")[0] + "/fbeta_used")[pos - t + 1: pos + 1, y0:y0 + c, x0:x0 + c]
+        unit = np.all(np.asarray(f) == 1.0, axis=-1, keepdims=True)  # cached together with the irradiance
+    a = apply(key, np.asarray(a, dtype=np.float32), aug, unit)
     return a.transpose(0, 3, 1, 2)
 
 

@@ -29,6 +29,7 @@ class SRModel(nn.Module):
         self.scale = int(scale)
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
+        self.by_class = bool(getattr(cfg, "upsample_by_class", False))
         w1 = remod_weights(cfg)
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)
@@ -194,6 +195,29 @@ def upsample(x: torch.Tensor, scale: int, mode: str, jitter: torch.Tensor | None
     gx = (2.0 * (xs.view(1, 1, -1) - j[:, 0].view(b, 1, 1)) / w - 1.0).expand(b, h * scale, w * scale)
     gy = (2.0 * (ys.view(1, -1, 1) - j[:, 1].view(b, 1, 1)) / h - 1.0).expand(b, h * scale, w * scale)
     return F.grid_sample(x, torch.stack([gx, gy], dim=-1), mode=mode, padding_mode="border", align_corners=False)
+
+
+def demodulated_mask(fbeta_used: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) 1 where a pixel was divided by its F_beta, 0 where F_used = 1 (background, UNTRUSTED flags: there
+    L_D holds radiance minus emission, a quantity of another scale; ``gbuffer_export.demod``)."""
+    return (fbeta_used != 1.0).any(dim=1, keepdim=True).to(fbeta_used.dtype)
+
+
+def upsample_by_class(x: torch.Tensor, lr_mask: torch.Tensor, hr_mask: torch.Tensor, scale: int,
+                      jitter: torch.Tensor | None = None) -> torch.Tensor:
+    """Bilinear upsampling of the demodulated L_D (B, C, h, w) that never mixes the two kinds of pixel: an HR pixel
+    of class c (``hr_mask`` (B, 1, H, W), 1 = demodulated) interpolates only the LR samples of class c (``lr_mask``
+    (B, 1, h, w)) with renormalised bilinear weights, and takes the plain bilinear value where none of its 4 LR
+    neighbours has its class. Without it an irradiance (radiance / F_beta, up to 1 / eps times larger) bleeds into
+    neighbouring background or untrusted HR pixels and the reverse, as bright or dark seams along silhouettes."""
+    plain = upsample(x, scale, "bilinear", jitter)
+    out = plain
+    for m_lr, m_hr in ((lr_mask, hr_mask), (1.0 - lr_mask, 1.0 - hr_mask)):
+        num = upsample(x * m_lr, scale, "bilinear", jitter)
+        den = upsample(m_lr, scale, "bilinear", jitter)
+        ok = (den > 1e-6) & (m_hr > 0.5)
+        out = torch.where(ok, num / den.clamp(min=1e-6), out)
+    return out
 
 
 def history_offsets(batch: dict, history: int, use_jitter: bool) -> list[torch.Tensor]:

@@ -3,11 +3,12 @@
 SR = K * (bilinear(L_D^LR) F_used^HR + E^HR), where L_D^LR = (I^LR - E^LR) / F_used^LR (``gbuffer_export.demod``)
 and K is the ground truth's pixel filter (``model.remod_filter``, ``SRModel.remodulate``): the point-sampled HR
 G-buffers give point samples, the reference averages its samples with K. The HR material detail comes from the HR
-F_beta; no ground truth is used.
+F_beta; no ground truth is used. With ``model.upsample_by_class`` (default on) the bilinear step never mixes
+demodulated pixels with pixels where F_used = 1 (background, UNTRUSTED flags): ``base.upsample_by_class``.
 """
 from __future__ import annotations
 
-from training.models.base import SRModel, current, upsample
+from training.models.base import SRModel, current, demodulated_mask, upsample, upsample_by_class
 
 
 class DemodBilinear(SRModel):
@@ -15,8 +16,16 @@ class DemodBilinear(SRModel):
     demod = True
 
     def needs(self):
-        return ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.jitter_keys()
+        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission")
+        if self.by_class:
+            keys += ("lr/fbeta_used",)
+        return keys + self.jitter_keys()
 
     def forward(self, batch):
-        irr = upsample(current(batch, "lr/irradiance"), self.scale, "bilinear", self.frame_jitter(batch))
+        irr, j = current(batch, "lr/irradiance"), self.frame_jitter(batch)
+        if self.by_class:
+            irr = upsample_by_class(irr, demodulated_mask(current(batch, "lr/fbeta_used")),
+                                    demodulated_mask(current(batch, "hr/fbeta_used")), self.scale, j)
+        else:
+            irr = upsample(irr, self.scale, "bilinear", j)
         return self.remodulate(irr, batch)
