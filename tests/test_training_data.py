@@ -250,3 +250,29 @@ def test_draw_tints_each_channel_log_uniformly_within_the_range():
     np.testing.assert_allclose(logs.var(0), 1 / 3, atol=0.03)
     assert abs(np.corrcoef(logs.T)[0, 1]) < 0.1  # channels drawn independently
     assert Augmentation.draw(rng, True, True).reflectance == (1.0, 1.0, 1.0)
+
+
+def test_tinted_batches_keep_unit_fbeta_where_the_clip_has_it(clip, tmp_path):
+    """Under the reflectance tint a batch's F_used is exactly 1 where the clip's is (the class models.base's
+    demodulated_mask reads), the other pixels are tinted, and I = F_used L_D + E still holds."""
+    from training.data import BatchSpec, TrainSampler
+    cache = ClipCache(clip, cache_dir=tmp_path)
+    keys = ("lr/radiance", "lr/emission", "lr/irradiance", "lr/fbeta_used")
+    spec = BatchSpec(lr_keys=keys, hr_keys=("hr/fbeta_used",), lr_window=1, hr_window=1, crop=8, depth_ref=False,
+                     reflectance_range=(0.5, 2.0))
+    cache.ensure(spec.cache_keys)
+    sampler = TrainSampler([cache], spec, batch_size=4, seed=2)
+    seen = 0
+    for b, s, batch in ((b, s, batch) for step in range(12) for batch, samples in [sampler.batch(step)]
+                        for b, s in enumerate(samples)):
+        assert s.aug.reflectance != (1.0, 1.0, 1.0)
+        f = s.frames[-1]
+        raw = cache.read(f, "lr/fbeta_used")[s.y0:s.y0 + 8, s.x0:s.x0 + 8]
+        unit = apply("x/flags", (raw == 1.0).all(-1, keepdims=True), s.aug)[..., 0]  # geometry only
+        got = batch["lr/fbeta_used"][b, -1].transpose(1, 2, 0)
+        np.testing.assert_array_equal((got == 1.0).all(-1), unit)
+        assert (got[~unit] != 1.0).all()
+        seen += int(unit.sum())
+        i = batch["lr/irradiance"][b, -1] * batch["lr/fbeta_used"][b, -1] + batch["lr/emission"][b, -1]
+        np.testing.assert_allclose(i, batch["lr/radiance"][b, -1], rtol=1e-5, atol=1e-6)
+    assert seen > 0  # the crops hold background pixels
