@@ -116,6 +116,20 @@ def test_demod_bilinear_beats_bilinear_on_the_exactly_diffuse_clip(clip, tmp_pat
     assert res["bilinear"]["flip"] is None
 
 
+def _bilinear_by_class(irr_lr, fbu_lr, fbu_hr, s):
+    """numpy/interpolate reference of base.upsample_by_class for an un-jittered clip (H x W x 3 arrays)."""
+    def interp(a):
+        t = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None].double()
+        return torch.nn.functional.interpolate(t, scale_factor=s, mode="bilinear")[0].numpy().transpose(1, 2, 0)
+    m_lr = (fbu_lr != 1.0).any(-1, keepdims=True).astype(np.float64)
+    m_hr = (fbu_hr != 1.0).any(-1, keepdims=True)
+    out = interp(irr_lr)
+    for ml, mh in ((m_lr, m_hr), (1.0 - m_lr, ~m_hr)):
+        num, den = interp(irr_lr * ml), interp(ml)
+        out = np.where((den > 1e-6) & mh, num / np.maximum(den, 1e-6), out)
+    return out.astype(np.float32)
+
+
 def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
     from training.inference import load_model, upscale_frame
     c = open_clip(clip)
@@ -124,12 +138,11 @@ def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
     assert set(out) == {"sr", "bilinear", "ms", "reference"} and out["sr"].shape == (72, 128, 3)
     assert out["sr"].dtype == np.float32 and out["ms"] > 0
     np.testing.assert_array_equal(out["reference"], c.read(3, "hr/radiance"))
-    irr, _ = np_demod.demodulate(c.read(3, "lr/radiance"), c.read(3, "lr/emission"), c.read(3, "lr/fbeta"),
-                                 c.read(3, "lr/flags"))
+    irr, fbu_lr = np_demod.demodulate(c.read(3, "lr/radiance"), c.read(3, "lr/emission"), c.read(3, "lr/fbeta"),
+                                      c.read(3, "lr/flags"))
     _, fbu = np_demod.demodulate(c.read(3, "hr/radiance"), c.read(3, "hr/emission"), c.read(3, "hr/fbeta"),
                                  c.read(3, "hr/flags"))
-    up = torch.nn.functional.interpolate(torch.from_numpy(irr.transpose(2, 0, 1))[None], scale_factor=4,
-                                         mode="bilinear")[0].numpy().transpose(1, 2, 0)
+    up = _bilinear_by_class(irr, fbu_lr, fbu, 4)
     np.testing.assert_allclose(out["sr"], up * fbu + c.read(3, "hr/emission"), rtol=1e-5, atol=1e-6)
     bil = torch.nn.functional.interpolate(torch.from_numpy(c.read(3, "lr/radiance").transpose(2, 0, 1))[None],
                                           scale_factor=4, mode="bilinear")[0].numpy().transpose(1, 2, 0)
@@ -237,10 +250,9 @@ def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 36), scale=4, buffers=bufs)
     out = upscale_frame(load_model("demod-bilinear", 4), clip, 2)
     c = open_clip(clip)
-    irr, _ = np_demod.demodulate(c.read(2, "lr/radiance"), None, c.read(2, "lr/fbeta"))
-    up = torch.nn.functional.interpolate(torch.from_numpy(irr.transpose(2, 0, 1))[None], scale_factor=4,
-                                         mode="bilinear")[0].numpy().transpose(1, 2, 0)
+    irr, fbu_lr = np_demod.demodulate(c.read(2, "lr/radiance"), None, c.read(2, "lr/fbeta"))
     fb = np.clip(c.read(2, "hr/fbeta"), 0.01, None)  # no flags: the background is divided like any pixel
+    up = _bilinear_by_class(irr, fbu_lr, fb, 4)  # (by its F_beta of 1, so the classes still hold)
     np.testing.assert_allclose(out["sr"], up * fb, rtol=1e-5, atol=1e-6)
     assert main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "b.json")]) == 0
     from training.config import ModelConfig
