@@ -133,6 +133,12 @@ def fbeta_for_division(fbeta: np.ndarray, flags: np.ndarray | None = None, eps: 
                "fbeta_capped": int((capped & keep).sum()), "background": int(bg.sum()), "untrusted": int(un.sum())}
 
 
+def undivided_mask(fbeta_used: np.ndarray) -> np.ndarray:
+    """(..., H, W, 1) bool: pixels that demodulation did not divide (F_used exactly 1 in every channel: background,
+    UNTRUSTED flags, non-finite F_beta), where L_D is radiance minus emission. ``fbeta_used``: (..., H, W, 3)."""
+    return np.all(np.asarray(fbeta_used) == 1.0, axis=-1, keepdims=True)
+
+
 def demodulate_full(radiance: np.ndarray, emission: np.ndarray | None, fbeta: np.ndarray,
                     flags: np.ndarray | None = None, eps: float = DEFAULT_EPS) -> DemodResult:
     """``demodulate`` plus the counts of sanitised and clamped values (``DemodResult.stats``)."""
@@ -177,5 +183,5 @@ def remodulate(irradiance: np.ndarray, fbeta_used: np.ndarray, emission: np.ndar
     return np.clip(out, -lim, lim).astype(np.float32)
 
 
-__all__ = ["demodulate", "remodulate", "demodulate_full", "fbeta_for_division", "sanitize", "DemodResult",
+__all__ = ["demodulate", "remodulate", "demodulate_full", "undivided_mask", "fbeta_for_division", "sanitize", "DemodResult",
            "DemodStats", "RADIANCE_CAP", "FBETA_MAX", "EPS_MIN", "DEFAULT_EPS"]

@@ -14,17 +14,24 @@ from training.train import load_checkpoint  # noqa: E402
 pytestmark = pytest.mark.torch
 
 
-def test_two_gloo_processes_train_and_agree(tmp_path):
-    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
+def _torchrun_train(tmp_path, frames: int, steps: int, *sets: str) -> tuple[subprocess.CompletedProcess, object]:
+    """Train a small FuseSR on a synthetic clip with 2 gloo processes under torchrun; returns (process, run dir)."""
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, frames + 1), hr_size=(64, 36), scale=4)
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "gbuffer_export.cli", "train", "--model", "fusesr", "--data", str(clip), "-o", str(run),
-           "--max-steps", "3"]
+           "--max-steps", str(steps)]
     for s in ("data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
-              "run.threads=1", "run.log_every=1"):
+              "run.threads=1") + sets:
         cmd += ["--set", s]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc, run
+
+
+def test_two_gloo_processes_train_and_agree(tmp_path):
+    _, run = _torchrun_train(tmp_path, 4, 3, "run.log_every=1")
+    clip = tmp_path / "c"
     summary = json.loads((run / "summary.json").read_text())
     assert summary["world_size"] == 2 and summary["ranks_agree"] is True and summary["step"] == 3
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
@@ -46,16 +53,7 @@ def test_two_gloo_processes_train_and_agree(tmp_path):
 
 def test_batchnorm_under_cpu_ddp_warns_and_ranks_agree(tmp_path):
     """The authors' BatchNorm under gloo: per-rank statistics (SyncBatchNorm needs a GPU), said once, weights agree."""
-    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
-    run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "gbuffer_export.cli", "train", "--model", "fusesr", "--data", str(clip), "-o", str(run),
-           "--max-steps", "2"]
-    for s in ("data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
-              "run.threads=1", 'model.norm="batch"'):
-        cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc, run = _torchrun_train(tmp_path, 3, 2, 'model.norm="batch"')
     assert proc.stderr.count("RuntimeWarning: model.norm = 'batch' under DDP on CPU") == 1
     summary = json.loads((run / "summary.json").read_text())
     assert summary["ranks_agree"] is True and summary["step"] == 2

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gbuffer_export.clip import ClipError
+from gbuffer_export.demod import undivided_mask
 from training.augment import Augmentation, apply, apply_vector
 from training.models import OPTIONAL_KEYS
 
@@ -163,12 +164,15 @@ def crop_window(cache, key: str, pos: int, spec: BatchSpec, xy: tuple[int, int],
     c = spec.crop
     if key.startswith("hr/"):
         x0, y0, c = x0 * scale, y0 * scale, c * scale
-    a = cache.array(key)[pos - t + 1: pos + 1, y0:y0 + c, x0:x0 + c]
+    rows, cols = slice(pos - t + 1, pos + 1), (slice(y0, y0 + c), slice(x0, x0 + c))
+    a = np.asarray(cache.array(key)[(rows, *cols)], dtype=np.float32)
     unit = None
-    if aug.reflectance != (1.0, 1.0, 1.0) and key.split("/")[-1] in ("irradiance", "fbeta_used"):
-        f = cache.array(key.split("/")[0] + "/fbeta_used")[pos - t + 1: pos + 1, y0:y0 + c, x0:x0 + c]
-        unit = np.all(np.asarray(f) == 1.0, axis=-1, keepdims=True)  # cached together with the irradiance
-    a = apply(key, np.asarray(a, dtype=np.float32), aug, unit)
+    level, _, name = key.partition("/")
+    if aug.reflectance != (1.0, 1.0, 1.0) and name in ("irradiance", "fbeta_used"):
+        # F_used is cached together with the irradiance
+        f = a if name == "fbeta_used" else cache.array(f"{level}/fbeta_used")[(rows, *cols)]
+        unit = undivided_mask(f)
+    a = apply(key, a, aug, unit)
     return a.transpose(0, 3, 1, 2)
 
 

@@ -63,6 +63,18 @@ class SRModel(nn.Module):
             current(batch, "hr/emission").to(irradiance.dtype)
         return out if self.remod_kernel is None else separable_filter(out, self.remod_kernel)
 
+    def upsample_demodulated(self, x: torch.Tensor, batch: dict, jitter: torch.Tensor | None) -> torch.Tensor:
+        """Bilinear upsampling of a demodulated LR image (B, C, h, w): by class (``upsample_by_class``) with
+        ``model.upsample_by_class``, else plain. Reads ``class_keys()``."""
+        if not self.by_class:
+            return upsample(x, self.scale, "bilinear", jitter)
+        return upsample_by_class(x, demodulated_mask(current(batch, "lr/fbeta_used")),
+                                 demodulated_mask(current(batch, "hr/fbeta_used")), self.scale, jitter)
+
+    def class_keys(self) -> tuple[str, ...]:
+        """Batch keys ``upsample_demodulated`` reads."""
+        return ("lr/fbeta_used", "hr/fbeta_used") if self.by_class else ()
+
     def jitter_keys(self) -> tuple[str, ...]:
         return ("lr_jitter",) if self.use_jitter else ()
 
@@ -199,7 +211,8 @@ def upsample(x: torch.Tensor, scale: int, mode: str, jitter: torch.Tensor | None
 
 def demodulated_mask(fbeta_used: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) 1 where a pixel was divided by its F_beta, 0 where F_used = 1 (background, UNTRUSTED flags: there
-    L_D holds radiance minus emission, a quantity of another scale; ``gbuffer_export.demod``)."""
+    L_D holds radiance minus emission, a quantity of another scale). The torch twin of
+    ``gbuffer_export.demod.undivided_mask`` (its complement)."""
     return (fbeta_used != 1.0).any(dim=1, keepdim=True).to(fbeta_used.dtype)
 
 

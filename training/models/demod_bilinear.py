@@ -8,7 +8,7 @@ demodulated pixels with pixels where F_used = 1 (background, UNTRUSTED flags): `
 """
 from __future__ import annotations
 
-from training.models.base import SRModel, current, demodulated_mask, upsample, upsample_by_class
+from training.models.base import SRModel, current
 
 
 class DemodBilinear(SRModel):
@@ -16,16 +16,9 @@ class DemodBilinear(SRModel):
     demod = True
 
     def needs(self):
-        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission")
-        if self.by_class:
-            keys += ("lr/fbeta_used",)
-        return keys + self.jitter_keys()
+        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.class_keys()
+        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def forward(self, batch):
-        irr, j = current(batch, "lr/irradiance"), self.frame_jitter(batch)
-        if self.by_class:
-            irr = upsample_by_class(irr, demodulated_mask(current(batch, "lr/fbeta_used")),
-                                    demodulated_mask(current(batch, "hr/fbeta_used")), self.scale, j)
-        else:
-            irr = upsample(irr, self.scale, "bilinear", j)
+        irr = self.upsample_demodulated(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
         return self.remodulate(irr, batch)

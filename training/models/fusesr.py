@@ -38,8 +38,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
-                                  depth_features, frame, history_offsets, upsample, upsample_by_class)
+from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
+                                  frame, history_offsets, upsample)
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -116,8 +116,8 @@ class FuseSR(SRModel):
             keys += ["hr/fbeta_used", "hr/depth", "hr/normal", "hr/albedo"]
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
-            if self.residual and self.by_class:
-                keys.append("lr/fbeta_used")
+            if self.residual:
+                keys += self.class_keys()
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def _lr_input(self, batch, back: int):
@@ -148,11 +148,8 @@ class FuseSR(SRModel):
         y = F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale)
         y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
-            if self.demod and self.by_class:  # never mix demodulated and F_used = 1 pixels (base.upsample_by_class)
-                y = y + upsample_by_class(x[:, :3], demodulated_mask(current(batch, "lr/fbeta_used")),
-                                          demodulated_mask(current(batch, "hr/fbeta_used")), self.scale, j_t)
-            else:
-                y = y + upsample(x[:, :3], self.scale, "bilinear", j_t)
+            y = y + (self.upsample_demodulated(x[:, :3], batch, j_t) if self.demod
+                     else upsample(x[:, :3], self.scale, "bilinear", j_t))
         y = F.relu(y)
         out = inverse_transform(y.float(), self.transform)
         if self.demod:
