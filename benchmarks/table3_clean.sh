@@ -40,8 +40,8 @@ TRAIN="$OUT/train_s0 $OUT/train_s1 $OUT/train_s2 $OUT/train_walk3"
 TEST="$OUT/test_bottle $OUT/test_chair $OUT/test_wicker $OUT/test_s7"
 for c in $TRAIN $TEST; do $B validate "$c" > /dev/null; done
 
-MODELS=bicubic,bilinear,demod-bilinear
-for m in bicubic bilinear demod-bilinear; do $B evaluate --model $m --data $TEST --json "$OUT/eval_$m.json"; done
+MODELS=bicubic,bilinear,demod-bilinear,demod-jbu
+for m in bicubic bilinear demod-bilinear demod-jbu; do $B evaluate --model $m --data $TEST --json "$OUT/eval_$m.json"; done
 for v in "true true" "false true" "true false" "false false"; do
   set -- $v
   run="$OUT/abl_hr$1_dm$2"

@@ -41,7 +41,7 @@ TEST="$OUT/test_bottle $OUT/test_chair $OUT/test_wicker $OUT/test_s7"
 UNSEEN="$OUT/unseen_fox $OUT/unseen_glassvaseflowers $OUT/unseen_anisotropyrotationtest"
 for c in $GLTF $UNSEEN; do $B validate "$c" > /dev/null; done
 last=${TRAIN_FRAMES##*:}   # the 2 held-out (data.val_frames) frames of the training clips
-for m in bilinear demod-bilinear; do
+for m in bilinear demod-bilinear demod-jbu; do
   $B evaluate --model $m --data $TRAIN --frames $((last - 1)):$last --no-flip --json "$OUT/multi_heldout_$m.json"
   $B evaluate --model $m --data $UNSEEN --no-flip --json "$OUT/multi_unseen_$m.json"
 done

@@ -24,6 +24,8 @@ FBETA_ITEMS = (
 PREVIEW_MODEL_ITEMS = (
     ("demod-bilinear", "Demodulated bilinear",
      "Bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta and emission"),
+    ("demod-jbu", "Demodulated joint bilateral",
+     "Joint bilateral upsampling of LR demodulated irradiance guided by HR depth and normals, remodulated"),
     ("bilinear", "Bilinear", "Bilinear upsampling of LR radiance"),
     ("bicubic", "Bicubic", "Bicubic upsampling of LR radiance, clamped at 0"),
 )

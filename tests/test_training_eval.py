@@ -236,7 +236,7 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path):
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
     s = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005)
     assert s["train"]["step"] >= 1 and s["train"]["stopped_by"] == "minutes"
-    assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "fusesr"]
+    assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu", "fusesr"]
     for f in ("pareto.png", "side_by_side.png", "bench/bench_models.md"):
         assert (tmp_path / "demo" / f).stat().st_size > 100
     again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005)  # resumes the run

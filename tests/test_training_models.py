@@ -134,12 +134,13 @@ def _changes_output(model, batch, key, frame_index):
 def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
     torch.manual_seed(0)
     batch = make_batch()
-    full = FuseSR(ModelConfig(name="fusesr", upsample_by_class=False), 4).eval()
+    full = FuseSR(ModelConfig(name="fusesr", upsample_by_class=False, guided_upsample=False), 4).eval()
     assert full.history == 2 and full.window == 3
     assert _changes_output(full, batch, "lr/irradiance", 0)      # history frame t-2
     assert _changes_output(full, batch, "hr/albedo", -1)         # HR G-buffer branch
     no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4).eval()
     assert "hr/albedo" not in no_hr.needs() and "hr/fbeta_used" in no_hr.needs()
+    assert not {"hr/depth", "hr/normal"} & set(no_hr.needs())  # no guided base without the HR G-buffers
     assert not _changes_output(no_hr, batch, "hr/albedo", -1)
     no_demod = FuseSR(ModelConfig(name="fusesr", demodulation=False), 4).eval()
     assert "lr/radiance" in no_demod.needs() and "lr/irradiance" not in no_demod.needs()
@@ -309,7 +310,7 @@ def test_demod_bilinear_and_fusesr_residual_upsample_by_class():
     old = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE", upsample_by_class=False), 4).eval()
     assert "lr/fbeta_used" not in old.needs() and not torch.allclose(old(batch), db(batch))
     from training.transforms import forward_transform, inverse_transform
-    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE", guided_upsample=False), 4).eval()
     with torch.no_grad():
         net.refine.weight.zero_()
         net.refine.bias.zero_()
@@ -317,3 +318,112 @@ def test_demod_bilinear_and_fusesr_residual_upsample_by_class():
         expect = inverse_transform(up.clamp(min=0), "log1p") * batch["hr/fbeta_used"][:, -1] \
             + batch["hr/emission"][:, -1]
         torch.testing.assert_close(net(batch), expect, rtol=1e-5, atol=1e-5)
+
+
+def _guided_reference(x, g_lr, g_hr, s, j, c_lr, c_hr, floor, fallback):
+    """Per-pixel numpy loop of the joint bilateral upsampling (guided module doc): (C, h, w) arrays in, (C, H, W)."""
+    c, h, w = x.shape
+    out = np.empty((c, h * s, w * s))
+    for yy in range(h * s):
+        for xx in range(w * s):
+            u, v = (xx + 0.5) / s - 0.5 - j[0], (yy + 0.5) / s - 0.5 - j[1]
+            num, den = np.zeros(c), 0.0
+            for iy in (int(np.floor(v)), int(np.floor(v)) + 1):
+                for ix in (int(np.floor(u)), int(np.floor(u)) + 1):
+                    bil = max(0.0, 1 - abs(u - ix)) * max(0.0, 1 - abs(v - iy))
+                    cy, cx = min(max(iy, 0), h - 1), min(max(ix, 0), w - 1)
+                    rng = np.exp(-0.5 * np.sum((g_lr[:, cy, cx] - g_hr[:, yy, xx]) ** 2))
+                    same = c_lr[cy, cx] == c_hr[yy, xx]
+                    num += bil * rng * same * x[:, cy, cx]
+                    den += bil * rng * same
+            out[:, yy, xx] = num / den if den >= floor else fallback[:, yy, xx]
+    return out
+
+
+def test_upsample_guided_matches_a_per_pixel_reference():
+    from training.models.guided import guide_features, upsample_guided
+    g = torch.Generator().manual_seed(5)
+    h, w, s = 5, 7, 4
+    x = torch.rand(1, 3, h, w, generator=g) * 10
+    depth_lr, depth_hr = 1 + 4 * torch.rand(1, 1, h, w, generator=g), 1 + 4 * torch.rand(1, 1, h * s, w * s, generator=g)
+    depth_lr[..., 0, 0] = float("inf")
+    n_lr, n_hr = torch.rand(1, 3, h, w, generator=g) - 0.5, torch.rand(1, 3, h * s, w * s, generator=g) - 0.5
+    g_lr, g_hr = guide_features(depth_lr, n_lr, 0.5, 0.6), guide_features(depth_hr, n_hr, 0.5, 0.6)
+    assert g_lr[0, 0, 0, 0] == pytest.approx(np.log(1e6) / 0.5)  # background depth clamped, not inf
+    c_lr = (torch.rand(1, 1, h, w, generator=g) < 0.7).float()
+    c_hr = (torch.rand(1, 1, h * s, w * s, generator=g) < 0.7).float()
+    fallback = torch.full((1, 3, h * s, w * s), -1.0)
+    j = torch.tensor([[0.3, -0.45]])
+    out = upsample_guided(x, g_lr, g_hr, s, fallback, j, c_lr, c_hr, floor=1e-3)
+    ref = _guided_reference(x[0].double().numpy(), g_lr[0].double().numpy(), g_hr[0].double().numpy(), s,
+                            (0.3, -0.45), c_lr[0, 0].numpy(), c_hr[0, 0].numpy(), 1e-3, fallback[0].numpy())
+    np.testing.assert_allclose(out[0].numpy(), ref, rtol=2e-4, atol=2e-4)
+    assert (ref == -1).any() and (ref != -1).any()  # both the weighted and the fallback branch are exercised
+
+
+def test_upsample_guided_is_bilinear_on_one_surface_and_keeps_a_depth_edge_sharp():
+    """Same guide everywhere: exactly the (jittered) bilinear upsampling. Two surfaces (depth 1 | 8, shading 1 | 5)
+    meeting at an LR pixel border: every HR pixel gets its own surface's value; bilinear blurs the edge."""
+    from training.models.guided import guide_features, upsample_guided
+    h, w, s = 4, 6, 4
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(2, 3, h, w, generator=g)
+    j = torch.tensor([[0.25, -0.1], [-0.4, 0.3]])
+    flat = torch.zeros(2, 4, h, w), torch.zeros(2, 4, h * s, w * s)
+    torch.testing.assert_close(upsample_guided(x, *flat, s, torch.zeros(2, 3, h * s, w * s), j),
+                               upsample(x, s, "bilinear", j))
+    d_lr = torch.where(torch.arange(w) < 3, 1.0, 8.0).expand(1, 1, h, w)
+    d_hr = torch.where(torch.arange(w * s) < 3 * s, 1.0, 8.0).expand(1, 1, h * s, w * s)
+    n_lr, n_hr = torch.zeros(1, 3, h, w), torch.zeros(1, 3, h * s, w * s)
+    shade = torch.where(torch.arange(w) < 3, 1.0, 5.0).expand(1, 3, h, w)
+    plain = upsample(shade, s, "bilinear")
+    out = upsample_guided(shade, guide_features(d_lr, n_lr, 0.1, 0.3), guide_features(d_hr, n_hr, 0.1, 0.3), s, plain)
+    torch.testing.assert_close(out, torch.where(torch.arange(w * s) < 3 * s, 1.0, 5.0).expand(1, 3, h * s, w * s))
+    assert ((plain > 1.01) & (plain < 4.99)).any()
+
+
+def test_demod_jbu_and_fusesr_guided_residual():
+    """demod-jbu = demod-bilinear with the guided upsampling; FuseSR's residual base (refine zeroed) is the same
+    guided upsampling of T(L_D), its HR depth moves the output, and without the HR G-buffers it is not read."""
+    from training.models.base import demodulated_mask, upsample_by_class
+    from training.models.guided import guide_features, upsample_guided
+    from training.transforms import forward_transform, inverse_transform
+    batch = make_batch()
+    batch["lr/fbeta_used"][..., 0, :] = 1.0
+    batch["hr/fbeta_used"][..., :4, :] = 1.0
+    cur = {k: v[:, -1] for k, v in batch.items() if k != "depth_ref"}
+    masks = demodulated_mask(cur["lr/fbeta_used"]), demodulated_mask(cur["hr/fbeta_used"])
+    guides = [guide_features(cur[f"{lv}/depth"], cur[f"{lv}/normal"], 0.1, 0.3) for lv in ("lr", "hr")]
+    j = cur["lr_jitter"]
+
+    def jbu(x):
+        return upsample_guided(x, *guides, 4, upsample_by_class(x, *masks, 4, j), j, *masks)
+
+    model = build_model(ModelConfig(name="demod-jbu", remod_filter="NONE"), 4).eval()
+    assert {"hr/depth", "hr/normal", "lr/depth", "lr/normal"} <= set(model.needs())
+    expect = jbu(cur["lr/irradiance"]) * cur["hr/fbeta_used"] + cur["hr/emission"]
+    torch.testing.assert_close(model(batch), expect)
+    db = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE"), 4).eval()
+    assert "hr/depth" not in db.needs() and not torch.allclose(db(batch), expect)
+    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    assert net.guided and "hr/normal" in net.needs()
+    with torch.no_grad():
+        net.refine.weight.zero_()
+        net.refine.bias.zero_()
+        net.hr_branch[0].weight.zero_()
+        up = jbu(forward_transform(cur["lr/irradiance"], "log1p"))
+        expect = inverse_transform(up.clamp(min=0), "log1p") * cur["hr/fbeta_used"] + cur["hr/emission"]
+        torch.testing.assert_close(net(batch), expect, rtol=1e-5, atol=1e-5)
+    net.refine.bias.data.fill_(0.1)
+    assert _changes_output(net, batch, "hr/depth", -1)  # through the guided base alone (HR branch zeroed)
+    no_guide = FuseSR(ModelConfig(name="fusesr", guided_upsample=False), 4)
+    assert not no_guide.guided and "hr/normal" in no_guide.needs()  # still read by the HR branch
+    no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4)
+    assert not no_hr.guided
+
+
+def test_guide_sigmas_are_validated():
+    with pytest.raises(ConfigError, match="guide_sigma_depth"):
+        ModelConfig(guide_sigma_depth=0.0).validate()
+    with pytest.raises(ConfigError, match="guide_sigma_normal"):
+        ModelConfig(guide_sigma_normal=float("nan")).validate()

@@ -162,7 +162,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                  *_sets(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
-    for key in ("jitter", "norm", "remod_filter", "remod_filter_px"):
+    for key in ("jitter", "norm", "remod_filter", "remod_filter_px", "upsample_by_class", "guided_upsample"):
         del ck["config"]["model"][key]
     del ck["config"]["data"]["reflectance_range"]
     old = tmp_path / "old.pt"
@@ -171,6 +171,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     assert not model.use_jitter and "lr_jitter" not in model.needs()
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
     assert model.remod_kernel is None  # remodulated without the ground truth's pixel filter, as before session 3
+    assert not model.by_class and not model.guided  # plain bilinear residual base, as before sessions 4 and 5
     assert config_from_checkpoint(ck["config"]).data.reflectance_range == [1.0, 1.0]  # no tint before session 3
 
 

@@ -22,7 +22,7 @@ COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "ps
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", nargs="+", required=True, metavar="CLIP", help="clip directories")
-    parser.add_argument("--models", default="bilinear,bicubic,demod-bilinear",
+    parser.add_argument("--models", default="bilinear,bicubic,demod-bilinear,demod-jbu",
                         help="comma-separated: model names, or NAME:CHECKPOINT for learned models")
     parser.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
     parser.add_argument("-o", "--output", default="bench-models", metavar="DIR", help="output directory")

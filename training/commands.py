@@ -13,7 +13,7 @@ def add_model_source(p: argparse.ArgumentParser) -> None:
     """--checkpoint CK | --model NAME, exactly one: the model that evaluate, upscale and export run."""
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
-    g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear")
+    g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear, demod-jbu")
 
 
 def register(subparsers) -> None:

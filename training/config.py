@@ -74,6 +74,9 @@ class ModelConfig:
     residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
     upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
     hr_guide: bool = False           # FuseSR: the HR refinement also reads the HR G-buffers (not in the paper)
+    guided_upsample: bool = True     # FuseSR with hr_gbuffer: residual base = joint bilateral upsampling guided by
+    guide_sigma_depth: float = 0.1   #   HR depth (log depth: a relative tolerance) and camera-space normals; also
+    guide_sigma_normal: float = 0.3  #   the sigmas of demod-jbu
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
     remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
@@ -95,6 +98,11 @@ class ModelConfig:
         if not isinstance(self.remod_filter_px, (int, float)) or not (0 < float(self.remod_filter_px) <= 4):
             raise ConfigError(f"model.remod_filter_px {self.remod_filter_px!r}: must lie in (0, 4] pixels")
         self.remod_filter_px = float(self.remod_filter_px)
+        for name in ("guide_sigma_depth", "guide_sigma_normal"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < float(v) <= 100):
+                raise ConfigError(f"model.{name} {v!r}: must lie in (0, 100]")
+            setattr(self, name, float(v))
         if self.hr_guide and not self.hr_gbuffer:
             raise ConfigError("model.hr_guide needs model.hr_gbuffer = true (it reads the HR G-buffers)")
         if self.width < 0 or self.blocks < 0:
@@ -285,7 +293,8 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
 
 
 #: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
-LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE", "upsample_by_class": False}
+LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE", "upsample_by_class": False,
+                     "guided_upsample": False}
 LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 

@@ -37,7 +37,7 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
     summary = train(cfg, run_dir, resume=resume, run_overrides={"minutes": float(minutes)})
     ck = run_dir / "checkpoints" / "last.pt"
     models = [("bilinear", "bilinear"), ("bicubic", "bicubic"), ("demod-bilinear", "demod-bilinear"),
-              (model, str(ck))]
+              ("demod-jbu", "demod-jbu"), (model, str(ck))]
     bench = benchmark(models, [str(c) for c in test_clips], out / "bench", flip=False)
     shutil.copyfile(out / "bench" / "pareto.png", out / "pareto.png")
     side = side_by_side(str(ck), str(test_clips[0]), out / "side_by_side.png")

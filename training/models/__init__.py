@@ -31,6 +31,9 @@ MODELS: dict[str, ModelInfo] = {
     "demod-bilinear": ModelInfo("training.models.demod_bilinear", "DemodBilinear", False,
                                 "bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta "
                                 "and HR emission (no training)"),
+    "demod-jbu": ModelInfo("training.models.demod_jbu", "DemodJBU", False,
+                           "joint bilateral upsampling of LR demodulated irradiance guided by HR depth and normals, "
+                           "remodulated with HR F_beta and HR emission (no training)"),
     "fusesr": ModelInfo("training.models.fusesr", "FuseSR", True,
                         "FuseSR H-Net (Zhong et al. 2023): LR encoder + 2 warped history frames, pixel-unshuffled "
                         "HR G-buffers, LR fusion backbone, pixel shuffle, HR F_beta remodulation"),

@@ -13,6 +13,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models import OPTIONAL_KEYS
+from training.models.guided import GUIDE_KEYS, guide_features, upsample_guided
 from training.transforms import normalize_depth
 
 
@@ -30,6 +31,9 @@ class SRModel(nn.Module):
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
         self.by_class = bool(getattr(cfg, "upsample_by_class", False))
+        self.guided = False  # subclasses that may read the HR geometry set it from ``model.guided_upsample``
+        self.guide_sigmas = (float(getattr(cfg, "guide_sigma_depth", 0.1)),
+                             float(getattr(cfg, "guide_sigma_normal", 0.3)))
         w1 = remod_weights(cfg)
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)
@@ -63,17 +67,29 @@ class SRModel(nn.Module):
             current(batch, "hr/emission").to(irradiance.dtype)
         return out if self.remod_kernel is None else separable_filter(out, self.remod_kernel)
 
-    def upsample_demodulated(self, x: torch.Tensor, batch: dict, jitter: torch.Tensor | None) -> torch.Tensor:
-        """Bilinear upsampling of a demodulated LR image (B, C, h, w): by class (``upsample_by_class``) with
-        ``model.upsample_by_class``, else plain. Reads ``class_keys()``."""
-        if not self.by_class:
-            return upsample(x, self.scale, "bilinear", jitter)
-        return upsample_by_class(x, demodulated_mask(current(batch, "lr/fbeta_used")),
-                                 demodulated_mask(current(batch, "hr/fbeta_used")), self.scale, jitter)
+    def upsample_input(self, x: torch.Tensor, batch: dict, jitter: torch.Tensor | None,
+                       demodulated: bool = True) -> torch.Tensor:
+        """Upsampling of an LR input image (B, C, h, w) to HR, the base the models start from: bilinear, by class
+        (``upsample_by_class``) for a ``demodulated`` L_D with ``model.upsample_by_class``, and with ``self.guided``
+        (``model.guided_upsample`` in models that read the HR G-buffers) joint bilateral upsampling guided by HR
+        depth and normals (``guided.upsample_guided``) over that. Reads ``upsample_keys(demodulated)``."""
+        classes = None
+        if demodulated and self.by_class:
+            classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
+                       demodulated_mask(current(batch, "hr/fbeta_used")))
+            base = upsample_by_class(x, *classes, self.scale, jitter)
+        else:
+            base = upsample(x, self.scale, "bilinear", jitter)
+        if not self.guided:
+            return base
+        guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
+                  for lv in ("lr", "hr")]
+        return upsample_guided(x, *guides, self.scale, base, jitter, *(classes or (None, None)))
 
-    def class_keys(self) -> tuple[str, ...]:
-        """Batch keys ``upsample_demodulated`` reads."""
-        return ("lr/fbeta_used", "hr/fbeta_used") if self.by_class else ()
+    def upsample_keys(self, demodulated: bool = True) -> tuple[str, ...]:
+        """Batch keys ``upsample_input`` reads."""
+        keys = ("lr/fbeta_used", "hr/fbeta_used") if demodulated and self.by_class else ()
+        return keys + (GUIDE_KEYS if self.guided else ())
 
     def jitter_keys(self) -> tuple[str, ...]:
         return ("lr_jitter",) if self.use_jitter else ()

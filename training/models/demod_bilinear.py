@@ -5,6 +5,7 @@ and K is the ground truth's pixel filter (``model.remod_filter``, ``SRModel.remo
 G-buffers give point samples, the reference averages its samples with K. The HR material detail comes from the HR
 F_beta; no ground truth is used. With ``model.upsample_by_class`` (default on) the bilinear step never mixes
 demodulated pixels with pixels where F_used = 1 (background, UNTRUSTED flags): ``base.upsample_by_class``.
+It never reads the HR geometry (``demod-jbu`` does).
 """
 from __future__ import annotations
 
@@ -16,9 +17,9 @@ class DemodBilinear(SRModel):
     demod = True
 
     def needs(self):
-        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.class_keys()
+        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.upsample_keys()
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def forward(self, batch):
-        irr = self.upsample_demodulated(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
+        irr = self.upsample_input(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
         return self.remodulate(irr, batch)

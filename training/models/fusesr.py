@@ -28,6 +28,11 @@ LR jitter (``model.jitter``, default on; not in the paper, whose data has none):
 the fusion network as 2 constant channels, the residual upsampling samples at the jittered LR positions and history
 warping adds the jitter difference to the motion (``base.history_offsets``).
 
+Guided base (``model.guided_upsample``, default on; not in the paper): with the HR branch on, the residual base is
+the joint bilateral upsampling of T(L_D^LR) guided by HR depth and normals (``guided.upsample_guided``, the
+``demod-jbu`` baseline's upsampling) instead of the bilinear one, so the network corrects a base that already
+respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (docs/training.md, "Session 5").
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -39,7 +44,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
-                                  frame, history_offsets, upsample)
+                                  frame, history_offsets)
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -89,6 +94,7 @@ class FuseSR(SRModel):
         self.transform = cfg.input_transform
         self.depth_norm = cfg.depth_norm
         self.residual = bool(cfg.residual)
+        self.guided = bool(getattr(cfg, "guided_upsample", False)) and self.use_hr
         width = cfg.width or self.default_width
         blocks = cfg.blocks or 6
         s = self.scale
@@ -116,8 +122,8 @@ class FuseSR(SRModel):
             keys += ["hr/fbeta_used", "hr/depth", "hr/normal", "hr/albedo"]
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
-            if self.residual:
-                keys += self.class_keys()
+        if self.residual:
+            keys += self.upsample_keys(self.demod)
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def _lr_input(self, batch, back: int):
@@ -148,8 +154,7 @@ class FuseSR(SRModel):
         y = F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale)
         y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
-            y = y + (self.upsample_demodulated(x[:, :3], batch, j_t) if self.demod
-                     else upsample(x[:, :3], self.scale, "bilinear", j_t))
+            y = y + self.upsample_input(x[:, :3], batch, j_t, self.demod)
         y = F.relu(y)
         out = inverse_transform(y.float(), self.transform)
         if self.demod:

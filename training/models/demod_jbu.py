@@ -1,0 +1,29 @@
+"""``demod-jbu``: the non-learned baseline that reads the HR geometry.
+
+SR = K * (JBU(L_D^LR) F_used^HR + E^HR): ``demod-bilinear`` with the bilinear step replaced by joint bilateral
+upsampling guided by HR depth and normals (``guided.upsample_guided``; Kopf et al. 2007): an HR pixel interpolates
+only the LR samples of its class that lie on a similar surface (``model.guide_sigma_depth``, relative depth, and
+``model.guide_sigma_normal``), falling back to the class-aware bilinear value where none does. It uses every HR
+G-buffer a G-buffer network gets except albedo, with no training: a network with HR G-buffers that cannot beat it
+has not learned to use them.
+"""
+from __future__ import annotations
+
+from training.models.base import SRModel, current
+
+
+class DemodJBU(SRModel):
+    learned = False
+    demod = True
+
+    def __init__(self, cfg, scale: int):
+        super().__init__(cfg, scale)
+        self.guided = True
+
+    def needs(self):
+        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.upsample_keys()
+        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
+
+    def forward(self, batch):
+        irr = self.upsample_input(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
+        return self.remodulate(irr, batch)
