@@ -116,6 +116,24 @@ def test_demod_bilinear_beats_bilinear_on_the_exactly_diffuse_clip(clip, tmp_pat
     assert res["bilinear"]["flip"] is None
 
 
+def test_evaluate_sets_a_non_learned_models_configuration(clip, checkpoint, tmp_path, capsys):
+    """--set model.KEY=VALUE: demod-jbu with guide tolerances so wide that every neighbour counts is demod-bilinear;
+    bad keys, values and checkpoints are refused with one line."""
+    res = {}
+    for name, m, sets in (("db", "demod-bilinear", []), ("jbu", "demod-jbu", []),
+                          ("wide", "demod-jbu", ["--set", "model.guide_sigma_depth=100",
+                                                 "--set", "model.guide_sigma_normal=100"])):
+        out = tmp_path / f"{name}.json"
+        assert main(["evaluate", "--model", m, "--data", str(clip), "--json", str(out), "--no-flip", *sets]) == 0
+        res[name] = json.loads(out.read_text())["mean"]["psnr"]
+    assert res["wide"] == pytest.approx(res["db"], abs=0.01) and res["jbu"] != pytest.approx(res["db"], abs=0.01)
+    for args, msg in ((["--model", "demod-jbu", "--set", "model.guide_sigma_depth=0"], "guide_sigma_depth"),
+                      (["--model", "demod-jbu", "--set", "data.crop=8"], "only model.KEY=VALUE"),
+                      (["--checkpoint", str(checkpoint), "--set", "model.guide_sigma_depth=1"], "fixed")):
+        assert main(["evaluate", *args, "--data", str(clip), "--json", str(tmp_path / "x.json"), "--no-flip"]) != 0
+        assert msg in capsys.readouterr().err
+
+
 def _bilinear_by_class(irr_lr, fbu_lr, fbu_hr, s):
     """numpy/interpolate reference of base.upsample_by_class for an un-jittered clip (H x W x 3 arrays)."""
     def interp(a):

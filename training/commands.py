@@ -54,6 +54,8 @@ def register(subparsers) -> None:
                    help="autocast precision of the model")
     p.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
+                   help="configuration of a non-learned --model (TOML value), e.g. model.guide_sigma_depth=0.05")
     p.set_defaults(func=cmd_evaluate)
 
     p = subparsers.add_parser(
@@ -147,7 +149,7 @@ def cmd_evaluate(args) -> int:
         torch.set_num_threads(args.threads)
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
-    model = load_model(spec, scale)
+    model = load_model(spec, scale, args.set)
     device = resolve_device(args.device)
     frames = _frames(args.frames)
     result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,

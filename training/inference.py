@@ -98,15 +98,27 @@ def model_device(model: torch.nn.Module) -> torch.device:
     return getattr(model, "device", torch.device("cpu"))
 
 
-def load_model(spec: str, scale: int) -> torch.nn.Module:
+def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = ()) -> torch.nn.Module:
     """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
-    ``scale`` must match the checkpoint's. The module gets ``spec``, ``demod_eps`` and ``config`` attributes."""
+    ``scale`` must match the checkpoint's. ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
+    a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps`` and ``config``
+    attributes."""
     scale = int(scale)
+    if overrides and spec not in MODELS:
+        raise ValueError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
     if spec in MODELS:
         if MODELS[spec].learned:
             raise ValueError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
                              "'blendsr train', not its name")
-        cfg = ModelConfig(name=spec, scale=scale)
+        bad = [o for o in overrides if not o.strip().startswith("model.")]
+        if bad:
+            raise ValueError(f"--set {bad[0]!r}: only model.KEY=VALUE applies to a non-learned model")
+        if overrides:
+            from training.config import load_config
+            cfg = load_config(None, [*overrides, f'model.name="{spec}"']).model
+            cfg.scale = scale
+        else:
+            cfg = ModelConfig(name=spec, scale=scale)
         model = build_model(cfg, scale)
         model.demod_eps = 0.01
         model.config = None
