@@ -209,6 +209,24 @@ def test_onnx_export_matches_torch_at_another_size(clip, checkpoint, tmp_path):
     np.testing.assert_allclose(got[0].transpose(1, 2, 0), ref, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("name", ["demod-bilinear", "demod-jbu"])
+def test_onnx_export_of_a_model_that_remodulates_through_the_pixel_filter(name, tmp_path):
+    """The default REFERENCE filter (Blackman-Harris 1.5 px) runs after remodulation; its convolution must export
+    with dynamic shapes (it did not before session 5). Checked again at another size."""
+    import onnxruntime as ort
+    from training.export import example_inputs
+    from training.inference import load_model, run_model
+    path = tmp_path / "m.onnx"
+    assert main(["export", "--model", name, "--onnx", str(path), "--hr-size", "64x32"]) == 0
+    model = load_model(name, 4)
+    assert model.remod_kernel is not None
+    assert json.loads(path.with_suffix(".onnx.json").read_text())["match"]
+    inputs = example_inputs(model, None, (96, 48), seed=4)
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        ["sr"], {k.replace("/", "_"): v for k, v in inputs.items()})[0]
+    np.testing.assert_allclose(got[0].transpose(1, 2, 0), run_model(model, inputs)[0], rtol=1e-4, atol=1e-4)
+
+
 def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
     import argparse
 

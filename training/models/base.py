@@ -123,11 +123,12 @@ def remod_weights(cfg, reference: tuple[str, float] | None = None):
 def separable_filter(x: torch.Tensor, w1: torch.Tensor) -> torch.Tensor:
     """Convolve (B, C, H, W) with the separable kernel w1 x w1 (odd length), edges replicated."""
     k = w1.numel() // 2
-    c = x.shape[1]
-    w = w1.to(device=x.device, dtype=x.dtype)
-    x = F.pad(x, (k, k, k, k), mode="replicate")
-    x = F.conv2d(x, w.view(1, 1, -1, 1).expand(c, 1, -1, 1).contiguous(), groups=c)
-    return F.conv2d(x, w.view(1, 1, 1, -1).expand(c, 1, 1, -1).contiguous(), groups=c)
+    b, c, h, w = x.shape
+    wt = w1.to(device=x.device, dtype=x.dtype)
+    # every channel as its own image: the kernel's shape stays static (ONNX export traces the channel count)
+    y = F.pad(x.reshape(b * c, 1, h, w), (k, k, k, k), mode="replicate")
+    y = F.conv2d(F.conv2d(y, wt.view(1, 1, -1, 1)), wt.view(1, 1, 1, -1))
+    return y.reshape(b, c, h, w)
 
 
 def current(batch: dict, key: str) -> torch.Tensor:
