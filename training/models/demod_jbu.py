@@ -9,21 +9,12 @@ has not learned to use them.
 """
 from __future__ import annotations
 
-from training.models.base import SRModel, current
+from training.models.demod_bilinear import DemodBilinear
 
 
-class DemodJBU(SRModel):
-    learned = False
-    demod = True
+class DemodJBU(DemodBilinear):
+    """``DemodBilinear`` whose ``upsample_input`` is guided (``SRModel.guided``); needs and forward are shared."""
 
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         self.guided = True
-
-    def needs(self):
-        keys = ("lr/irradiance", "hr/fbeta_used", "hr/emission") + self.upsample_keys()
-        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
-
-    def forward(self, batch):
-        irr = self.upsample_input(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
-        return self.remodulate(irr, batch)
