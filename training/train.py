@@ -452,7 +452,11 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             elapsed = elapsed_before + (t2 - t_start)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss.item():.4f}", samples_s=f"{cfg.data.batch_size * dist.world / (t2 - t0):.1f}")
+                post = {"loss": f"{loss.item():.4f}",
+                        "samples_s": f"{cfg.data.batch_size * dist.world / (t2 - t0):.1f}"}
+                if cfg.run.minutes:  # the time budget often ends the run long before max_steps (bar's ETA)
+                    post["min_left"] = f"{max(cfg.run.minutes - (elapsed - elapsed_before) / 60, 0):.1f}"
+                bar.set_postfix(post)
             if step % cfg.run.log_every == 0 or step == cfg.run.max_steps:
                 row = {"step": step, "loss": loss.item(), **{k: v.item() for k, v in terms.items()},
                        "lr": scheduler.get_last_lr()[0], "step_ms": 1000 * (t2 - t0), "data_ms": 1000 * (t1 - t0),
