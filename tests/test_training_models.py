@@ -427,3 +427,24 @@ def test_guide_sigmas_are_validated():
         ModelConfig(guide_sigma_depth=0.0).validate()
     with pytest.raises(ConfigError, match="guide_sigma_normal"):
         ModelConfig(guide_sigma_normal=float("nan")).validate()
+
+
+@pytest.mark.parametrize("hr_guide", [False, True])
+def test_zero_init_refine_starts_exactly_at_the_residual_base(hr_guide):
+    """model.zero_init_refine: a fresh FuseSR equals the same network with its last conv zeroed by hand (the
+    residual base, remodulated), and the last conv still gets a gradient."""
+    batch = make_batch()
+    torch.manual_seed(0)
+    net = FuseSR(ModelConfig(name="fusesr", zero_init_refine=True, hr_guide=hr_guide), 4)
+    torch.manual_seed(0)
+    ref = FuseSR(ModelConfig(name="fusesr", hr_guide=hr_guide), 4)
+    last = ref.refine[-1] if hr_guide else ref.refine
+    with torch.no_grad():
+        assert last.weight.abs().sum() > 0
+        last.weight.zero_()
+        last.bias.zero_()
+        torch.testing.assert_close(net.eval()(batch), ref.eval()(batch))
+    out = net.train()(batch)
+    out.mean().backward()
+    grad = (net.refine[-1] if hr_guide else net.refine).weight.grad
+    assert grad is not None and grad.abs().sum() > 0

@@ -77,6 +77,7 @@ class ModelConfig:
     guided_upsample: bool = True     # FuseSR with hr_gbuffer: residual base = joint bilateral upsampling guided by
     guide_sigma_depth: float = 0.1   #   HR depth (log depth: a relative tolerance) and camera-space normals; also
     guide_sigma_normal: float = 0.3  #   the sigmas of demod-jbu
+    zero_init_refine: bool = False   # FuseSR: last conv starts at 0, so training starts exactly at the residual base
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
     remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
@@ -294,7 +295,7 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
 
 #: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
 LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE", "upsample_by_class": False,
-                     "guided_upsample": False}
+                     "guided_upsample": False, "zero_init_refine": False}
 LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 

@@ -33,6 +33,10 @@ the joint bilateral upsampling of T(L_D^LR) guided by HR depth and normals (``gu
 ``demod-jbu`` baseline's upsampling) instead of the bilinear one, so the network corrects a base that already
 respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (docs/training.md, "Session 5").
 
+Option (``model.zero_init_refine``, default off; not in the paper): the last 3x3 conv starts at zero, so a fresh
+network outputs exactly its residual base (the guided or bilinear upsampling) and training moves away from it only
+where the loss says so (docs/training.md, "Session 5", has the measurement).
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -113,6 +117,10 @@ class FuseSR(SRModel):
         # HR guidance (deviation, off by default): the refinement sees the 10 HR G-buffer channels at full resolution
         self.refine = nn.Sequential(conv(3 + 10, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
             else conv(3, 3)
+        if getattr(cfg, "zero_init_refine", False) and self.residual:  # start at the residual base (module doc)
+            last = self.refine[-1] if self.hr_guide else self.refine
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
 
     def needs(self):
         keys = ["lr/irradiance" if self.demod else "lr/radiance", "lr/depth", "lr/normal", "depth_ref"]
