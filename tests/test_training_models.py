@@ -420,6 +420,8 @@ def test_demod_jbu_and_fusesr_guided_residual():
     assert not no_guide.guided and "hr/normal" in no_guide.needs()  # still read by the HR branch
     no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4)
     assert not no_hr.guided
+    authors = FuseSR(ModelConfig(name="fusesr", residual=False), 4)  # no residual base to guide
+    assert not authors.guided and "lr/normal" in authors.needs() and "lr/fbeta_used" not in authors.needs()
 
 
 def test_guide_sigmas_are_validated():

@@ -32,8 +32,7 @@ class SRModel(nn.Module):
         self.use_jitter = bool(getattr(cfg, "jitter", True))
         self.by_class = bool(getattr(cfg, "upsample_by_class", False))
         self.guided = False  # subclasses that may read the HR geometry set it from ``model.guided_upsample``
-        self.guide_sigmas = (float(getattr(cfg, "guide_sigma_depth", 0.1)),
-                             float(getattr(cfg, "guide_sigma_normal", 0.3)))
+        self.guide_sigmas = (float(cfg.guide_sigma_depth), float(cfg.guide_sigma_normal))  # defaults: ModelConfig
         w1 = remod_weights(cfg)
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)

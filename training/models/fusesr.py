@@ -98,7 +98,8 @@ class FuseSR(SRModel):
         self.transform = cfg.input_transform
         self.depth_norm = cfg.depth_norm
         self.residual = bool(cfg.residual)
-        self.guided = bool(getattr(cfg, "guided_upsample", False)) and self.use_hr
+        # the guided upsampling is the residual base: it needs the HR G-buffers and the residual head
+        self.guided = bool(getattr(cfg, "guided_upsample", False)) and self.use_hr and self.residual
         width = cfg.width or self.default_width
         blocks = cfg.blocks or 6
         s = self.scale
