@@ -15,6 +15,7 @@ import sys
 #: The visible table of command modules, in the order ``--help`` lists them.
 COMMANDS = (
     "gbuffer_export.commands.render",
+    "gbuffer_export.commands.dataset",
     "gbuffer_export.commands.validate",
     "gbuffer_export.commands.lut",
     "training.commands",

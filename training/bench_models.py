@@ -21,7 +21,10 @@ COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "ps
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", nargs="+", required=True, metavar="CLIP", help="clip directories")
+    parser.add_argument("--data", nargs="+", required=True, metavar="CLIP",
+                        help="clip directories, or dataset folders (their --split)")
+    parser.add_argument("--split", default="test", choices=("train", "val", "test"),
+                        help="split of dataset folders given to --data")
     parser.add_argument("--models", default="bilinear,bicubic,demod-bilinear,demod-jbu",
                         help="comma-separated: model names, or NAME:CHECKPOINT for learned models")
     parser.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
@@ -166,6 +169,8 @@ def run(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
+    from training.commands import _dataset_clips
+    args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     rng = parse_frames(args.frames)
     frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
     benchmark(parse_models(args.models), list(args.data), args.output, frames=frames, device=device,

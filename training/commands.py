@@ -23,7 +23,9 @@ def register(subparsers) -> None:
                     "--set overrides < --max-steps/--minutes. The run directory receives config.toml, log.csv, "
                     "checkpoints/ and summary.json; see docs/training.md.")
     p.add_argument("--model", help="model name (see 'blendsr train --list-models'); overrides model.name")
-    p.add_argument("--data", nargs="+", metavar="CLIP", default=[], help="training clip directories")
+    p.add_argument("--data", nargs="+", metavar="CLIP", default=[],
+                   help="training clip directories, or dataset folders (their train split; their val split "
+                        "becomes data.val_clips unless set)")
     p.add_argument("-o", "--output", metavar="RUN_DIR", help="run directory (created)")
     p.add_argument("--config", metavar="FILE", help="TOML configuration ([data] [model] [loss] [optim] [run])")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -44,7 +46,10 @@ def register(subparsers) -> None:
                     "PSNR on linear HDR (peak 1), HDR-FLIP, temporal PSNR, warping error, ms per frame. "
                     "Writes JSON (docs/training.md describes every key).")
     add_model_source(p)
-    p.add_argument("--data", nargs="+", required=True, metavar="CLIP", help="clip directories")
+    p.add_argument("--data", nargs="+", required=True, metavar="CLIP",
+                   help="clip directories, or dataset folders (their --split)")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"),
+                   help="split of dataset folders given to --data")
     p.add_argument("--json", required=True, metavar="OUT", help="output JSON file")
     p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all finished frames)")
@@ -107,18 +112,21 @@ def cmd_train(args) -> int:
         run_overrides["minutes"] = 0.0
     if args.minutes is not None:
         run_overrides["minutes"] = args.minutes
+    data, val = _dataset_clips(args.data, "train"), _dataset_clips(args.data, "val", missing_ok=True)
     if args.resume and not (args.config or overrides):
         cfg = None
-        if args.data:  # only the clips were repeated: they must be the checkpoint's
+        if data:  # only the clips were repeated: they must be the checkpoint's
             from training.train import load_checkpoint
             ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
             saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
-            if sorted(str(Path(c).resolve()) for c in args.data) != saved:
+            if sorted(str(Path(c).resolve()) for c in data) != saved:
                 raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
     else:
         cfg = load_config(args.config, overrides)
-        if args.data:
-            cfg.data.clips = list(args.data)
+        if data:
+            cfg.data.clips = [str(c) for c in data]
+            if val and not cfg.data.val_clips:
+                cfg.data.val_clips = [str(c) for c in val]
         if not args.resume and not args.model and not args.config:
             raise ValueError("train: --model NAME is required (or model.name in --config)")
     from training.train import TrainingError, train
@@ -129,6 +137,21 @@ def cmd_train(args) -> int:
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
+    """--data arguments with every dataset folder replaced by the finished clips of its ``split``."""
+    from gbuffer_export.dataset.build import DatasetError, expand_data_paths, is_dataset, split_clips
+    if missing_ok:  # the optional split of dataset folders only
+        out = []
+        for p in paths:
+            if is_dataset(p):
+                out += split_clips(p, split)
+        return out
+    try:
+        return expand_data_paths(paths, split)
+    except DatasetError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def _scale_of(clips) -> int:
@@ -147,6 +170,7 @@ def cmd_evaluate(args) -> int:
     from training.train import amp_dtype, resolve_device
     if args.threads:
         torch.set_num_threads(args.threads)
+    args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
     model = load_model(spec, scale, args.set)

@@ -43,6 +43,8 @@ class DataConfig:
     cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
     prefetch: int = 2                # batches prepared ahead in a background thread (0: none)
     val_frames: int = 0              # last N frames of each clip held out from training (evaluated at the end)
+    val_clips: list[str] = field(default_factory=list)  # whole clips never trained on, evaluated at the end and
+                                     # every run.eval_every steps (--data DATASET fills it with the val split)
 
     def validate(self) -> None:
         _positive("data.crop", self.crop)

@@ -470,8 +470,11 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                             tb.add_scalar(k, v, step)
             if step % cfg.run.checkpoint_every == 0 and step < cfg.run.max_steps:
                 checkpoint(step, elapsed, numbered=True)
-            if cfg.run.eval_every and step % cfg.run.eval_every == 0 and cfg.data.val_frames and dist.main:
-                _validate(unwrap(net), caches, cfg, run_dir / f"val_step_{step:08d}.json", device, dtype)
+            if cfg.run.eval_every and step % cfg.run.eval_every == 0 and dist.main:
+                if cfg.data.val_frames:
+                    _validate(unwrap(net), caches, cfg, run_dir / f"val_step_{step:08d}.json", device, dtype)
+                if cfg.data.val_clips:
+                    _validate_clips(unwrap(net), cfg, run_dir / f"val_clips_step_{step:08d}.json", device, dtype)
                 net.train()
             stop_time = bool(cfg.run.minutes) and elapsed - elapsed_before >= 60 * cfg.run.minutes
             stop_now = dist.any(stop_time or stop_requested["flag"] or (stop_at is not None and step >= stop_at))
@@ -519,11 +522,22 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if dist.main:
         if cfg.data.val_frames and reason in ("max_steps", "minutes"):
             summary["val"] = _validate(unwrap(net), caches, cfg, run_dir / "val.json", device, dtype)["mean"]
+        if cfg.data.val_clips and reason in ("max_steps", "minutes"):
+            summary["val_clips"] = _validate_clips(unwrap(net), cfg, run_dir / "val_clips.json", device, dtype)["mean"]
         write_json_atomic(run_dir / "summary.json", summary)
         log(f"trained {cfg.model.name} to step {step} ({reason}) in {elapsed:.1f} s; checkpoint {last}")
     dist.barrier()
     dist.close()
     return summary
+
+
+def _validate_clips(model, cfg: TrainConfig, out: Path, device, dtype) -> dict:
+    """Evaluate the whole ``data.val_clips`` (clips never trained on); writes ``out``."""
+    from training.evaluate import evaluate_model
+    result = evaluate_model(model, list(cfg.data.val_clips), device=device, amp=dtype, flip=False, data_cfg=cfg.data)
+    write_json_atomic(out, result)
+    model.train()
+    return result
 
 
 def _validate(model, caches, cfg: TrainConfig, out: Path, device, dtype) -> dict:

@@ -436,16 +436,15 @@ def _equirect_direction(u: float, v: float) -> np.ndarray:
     return np.array([math.cos(theta) * math.cos(phi), math.cos(theta) * math.sin(phi), math.sin(theta)])
 
 
-def _world(scene, rng) -> np.ndarray | None:
-    """HDR environment from bpy's studiolights, scaled so that its sky (upper hemisphere, values clipped at 50)
-    averages a luminance of 0.8. Returns the world direction of its sun (a pixel above 1000), or None."""
-    name = STUDIOLIGHTS[int(rng.integers(len(STUDIOLIGHTS)))]
-    rot_z = float(rng.uniform(0.0, 2.0 * math.pi))
+def make_world(scene, image_path, rot_z: float = 0.0, strength: float = 1.0) -> np.ndarray | None:
+    """Light ``scene`` with an equirectangular HDR environment rotated by ``rot_z`` radians about +Z, scaled so that
+    its sky (upper hemisphere, values clipped at 50) averages a luminance of 0.8 times ``strength``. Returns the
+    world direction of its sun (a pixel above 1000), or None."""
     world = bpy.data.worlds.new("BlendSR World")
     nt = world.node_tree
     bg = nt.nodes["Background"]
     env = nt.nodes.new("ShaderNodeTexEnvironment")
-    img = bpy.data.images.load(str(studiolight_path(name)), check_existing=True)
+    img = bpy.data.images.load(str(image_path), check_existing=True)
     env.image = img
     env.projection = "EQUIRECTANGULAR"
     tc = nt.nodes.new("ShaderNodeTexCoord")
@@ -456,6 +455,8 @@ def _world(scene, rng) -> np.ndarray | None:
     nt.links.new(env.outputs["Color"], bg.inputs["Color"])
 
     w, h = img.size
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{image_path}: the HDRI could not be read")
     px = np.empty(w * h * 4, dtype=np.float32)
     img.pixels.foreach_get(px)
     px = px.reshape(h, w, 4)[..., :3].astype(np.float64)  # row 0 is the bottom (v = 0)
@@ -463,8 +464,10 @@ def _world(scene, rng) -> np.ndarray | None:
     weight = np.cos((np.arange(h) + 0.5) / h * math.pi - 0.5 * math.pi)[:, None] * np.ones((1, w))
     upper = slice(h // 2, h)
     sky = float((np.minimum(lum[upper], 50.0) * weight[upper]).sum() / weight[upper].sum())
-    bg.inputs["Strength"].default_value = 0.8 / max(sky, 1e-3)
-    world["blendsr_studiolight"] = name
+    bg.inputs["Strength"].default_value = 0.8 * float(strength) / max(sky, 1e-3)
+    world["blendsr_hdri"] = str(image_path)
+    world["blendsr_hdri_rotation_deg"] = math.degrees(rot_z)
+    world["blendsr_hdri_strength"] = float(strength)
     scene.world = world
 
     i, j = np.unravel_index(int(np.argmax(lum)), lum.shape)
@@ -473,6 +476,30 @@ def _world(scene, rng) -> np.ndarray | None:
     e = _equirect_direction((j + 0.5) / w, (i + 0.5) / h)   # environment direction of the sun
     c, s = math.cos(-rot_z), math.sin(-rot_z)               # the mapping rotates world directions by +rot_z
     return np.array([c * e[0] - s * e[1], s * e[0] + c * e[1], e[2]])
+
+
+def hdri_path(entry: str) -> Path:
+    """A spec's HDRI entry (a file path or ``builtin:NAME``) as a file path."""
+    if entry.startswith("builtin:"):
+        return studiolight_path(entry.split(":", 1)[1])
+    path = Path(entry)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: HDRI not found")
+    return path
+
+
+def _world(scene, rng, override: dict | None = None) -> np.ndarray | None:
+    """The seed's environment from bpy's studiolights (or ``override``: hdri, rotation_deg, strength)."""
+    name = STUDIOLIGHTS[int(rng.integers(len(STUDIOLIGHTS)))]
+    rot_z = float(rng.uniform(0.0, 2.0 * math.pi))
+    if override:
+        sun = make_world(scene, hdri_path(override["hdri"]), math.radians(override.get("rotation_deg", 0.0)),
+                         override.get("strength", 1.0))
+        scene.world["blendsr_studiolight"] = override["hdri"]
+        return sun
+    sun = make_world(scene, studiolight_path(name), rot_z, 1.0)
+    scene.world["blendsr_studiolight"] = name
+    return sun
 
 
 def _sun(scene, rng, env_sun: np.ndarray | None) -> None:
@@ -683,11 +710,14 @@ def _camera(scene, rng, frames_all: np.ndarray) -> None:
 
 
 def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
-                        resolution: tuple[int, int] = (640, 360)) -> bpy.types.Scene:
+                        resolution: tuple[int, int] = (640, 360), world: dict | None = None,
+                        sun: bool = True) -> bpy.types.Scene:
     """Reset Blender to an empty factory state and build the default courtyard scene in it.
 
     ``frames``: inclusive (start, end); animation is keyed on every frame from start-1 to end. ``resolution``:
-    (width, height) in pixels at 100%. Returns the scene (also ``bpy.context.scene``). Engine and sampling are left
+    (width, height) in pixels at 100%. ``world``: replaces the seed's environment ({"hdri": path or
+    "builtin:NAME", "rotation_deg": about +Z, "strength": multiplier of the normalised sky}); the layout, materials
+    and camera of the seed stay the same. ``sun``: False removes the sun lamp. Returns the scene (also ``bpy.context.scene``). Engine and sampling are left
     at the factory values; the caller sets them."""
     start, end = int(frames[0]), int(frames[1])
     if end < start:
@@ -707,7 +737,9 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5CE7E])
     frames_all = np.arange(start - 1, end + 1)
     mats = _materials(rng)
-    _sun(scene, rng, _world(scene, rng))
+    _sun(scene, rng, _world(scene, rng, world))
+    if not sun:
+        bpy.data.objects.remove(bpy.data.objects["Sun"], do_unlink=True)
     _courtyard(scene, mats, rng)
     _table_and_props(scene, mats, rng)
     _rolling_ball(scene, mats, rng, frames_all)

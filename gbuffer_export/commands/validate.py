@@ -26,7 +26,9 @@ class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaults
 def register(subparsers) -> None:
     p = subparsers.add_parser("validate", help="check a clip's completeness, files, values and motion vectors",
                               description=HELP, formatter_class=_Formatter)
-    p.add_argument("clip", type=Path, metavar="CLIP_DIR", help="the clip directory (holding manifest.json)")
+    p.add_argument("clip", type=Path, metavar="CLIP_DIR",
+                   help="the clip directory (holding manifest.json), or a dataset folder (holding dataset.json: "
+                        "every clip is validated and the index checked; one summary line)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object on stdout")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="check only the records and files of frames A..B (inclusive); default: every finished "
@@ -58,6 +60,8 @@ def run(args) -> int:
     options = ValidationOptions(motion_tol_px=args.tolerance_px, lr_motion_tol_px=args.lr_tolerance_px,
                                 motion_min_fraction=args.min_motion_fraction,
                                 background_min_fraction=args.min_background_fraction, fbeta_max=args.fbeta_max)
+    if (args.clip / "dataset.json").is_file():
+        return run_dataset(args, options)
     frames = None
     if args.frames:
         a, b = parse_frames(args.frames)
@@ -70,5 +74,21 @@ def run(args) -> int:
     else:
         for f in report.findings:
             print(f.line())
+        print(report.summary_line())
+    return 0 if report.ok else 1
+
+
+def run_dataset(args, options) -> int:
+    """Validate every clip of a dataset folder and its index; one line per failing clip and one summary."""
+    from ..dataset.check import validate_dataset
+    if args.frames:
+        raise ValueError(f"{args.clip}: --frames applies to one clip, not to a dataset")
+    with contextlib.redirect_stdout(sys.stderr):
+        report = validate_dataset(args.clip, options=options, quick=args.quick, progress=not args.no_progress)
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=1, allow_nan=False))
+    else:
+        for line in report.lines():
+            print(line)
         print(report.summary_line())
     return 0 if report.ok else 1

@@ -1,0 +1,76 @@
+"""Render one clip of a dataset (bpy layer): build its scene from the job (built-in seed, or asset in a generated
+environment) and hand it to ``render.render_loaded_scene``. Run as a process of its own::
+
+    python -m gbuffer_export.blender.dataset_job JOB.json CLIP_DIR [--threads N]
+
+(one clip per process: Blender's state does not leak from one clip into the next, and a crash loses one clip's
+frames in flight only). Rerunning it resumes the clip.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..config import RenderConfig
+from ..dataset.spec import ClipJob
+
+
+def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False) -> RenderConfig:
+    r = job.render
+    return RenderConfig(output=clip_dir, scene=None, frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]),
+                        scale=int(r["scale"]), hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
+                        gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
+                        lr_denoise=bool(r["lr_denoise"]), camera_path="scene", seed=int(job.seed),
+                        jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],
+                        threads=int(r.get("threads") or threads), progress=progress)
+
+
+def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False) -> Path:
+    """Render (or resume) ``job`` into ``clip_dir``."""
+    from .render import render_loaded_scene
+    cfg = render_config(job, Path(clip_dir), threads, progress)
+    frames = cfg.frames
+    world = {"hdri": job.hdri, "rotation_deg": job.hdri_rotation_deg, "strength": job.hdri_strength}
+    if job.kind == "builtin":
+        from .default_scene import build_default_scene
+        scene = build_default_scene(seed=job.seed, frames=(1, max(frames[1], 48)), resolution=cfg.hr_size,
+                                    world=world, sun=job.sun)
+        info = {"file": None, "sha256": None, "builtin": "default", "seed": job.seed, "camera_path": job.camera,
+                "hdri": job.hdri, "hdri_rotation_deg": job.hdri_rotation_deg, "hdri_strength": job.hdri_strength}
+        if job.camera in ("orbit", "walk"):
+            from .camera_paths import make_camera_path
+            make_camera_path(scene, job.camera, frames, job.seed)
+    else:
+        from .assets import build_asset_scene
+        from .render import file_sha256
+        scene, extra = build_asset_scene(Path(job.asset), frames=frames, resolution=cfg.hr_size, seed=job.seed,
+                                         camera=job.camera, hdri=job.hdri, hdri_rotation_deg=job.hdri_rotation_deg,
+                                         hdri_strength=job.hdri_strength, target_size_m=job.target_size_m,
+                                         clutter=job.clutter)
+        info = {"file": Path(job.asset).name, "sha256": file_sha256(Path(job.asset)), "builtin": None, **extra}
+    info["dataset_clip"] = job.id
+    info["licence"] = job.licence
+    return render_loaded_scene(cfg, scene, info)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="render one dataset clip (used by 'blendsr dataset')")
+    p.add_argument("job", type=Path, help="JSON file holding one ClipJob")
+    p.add_argument("clip_dir", type=Path)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--progress", action="store_true")
+    a = p.parse_args(argv)
+    job = ClipJob.from_json(json.loads(a.job.read_text()))
+    try:
+        render_job(job, a.clip_dir, a.threads, a.progress)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"blendsr: error: {job.id}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+              file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,57 @@
+"""Which clip buffers each model reads (pure Python): ``blendsr dataset --for-models`` and ``blendsr render
+--for-models`` render only these (plus what evaluation needs).
+
+The table is written out here because the core may not import the torch layer; ``tests/test_dataset_buffers.py``
+checks it against every model's ``needs()`` in ``training.models``, so a model that starts reading a new buffer
+fails the suite until its row is updated. Buffers apply to both levels of a clip (a buffer read at HR only is also
+written at LR). Derived keys map to their sources: ``irradiance`` and ``fbeta_used`` are computed from radiance,
+emission, fbeta and flags; ``depth_ref`` from LR depth.
+"""
+from __future__ import annotations
+
+from ..conventions import ALL_BUFFERS
+
+#: Buffers every clip keeps: the ground truth (radiance) and HR motion for tPSNR and the warping error.
+EVALUATION_BUFFERS: tuple[str, ...] = ("radiance", "motion")
+
+_DEMOD = ("radiance", "emission", "fbeta", "flags")
+
+#: model name -> buffers it reads with its default configuration.
+MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
+    "bilinear": ("radiance",),
+    "bicubic": ("radiance",),
+    "demod-bilinear": _DEMOD,
+    "demod-jbu": _DEMOD + ("depth", "normal"),
+    "fusesr": _DEMOD + ("albedo", "depth", "normal", "motion"),
+    "fusesr-l": _DEMOD + ("albedo", "depth", "normal"),
+}
+
+#: batch key (without level) -> the clip buffers it is made from.
+KEY_SOURCES: dict[str, tuple[str, ...]] = {
+    "irradiance": ("radiance", "emission", "fbeta", "flags"),
+    "fbeta_used": ("fbeta", "flags"),
+}
+
+
+def buffers_of_keys(keys) -> set[str]:
+    """Clip buffers behind batch keys such as 'lr/irradiance', 'hr/normal', 'depth_ref' (lr_jitter needs none)."""
+    out: set[str] = set()
+    for k in keys:
+        if k == "depth_ref":
+            out.add("depth")
+        elif "/" in k:
+            name = k.split("/", 1)[1]
+            out.update(KEY_SOURCES.get(name, (name,)))
+    return out
+
+
+def buffers_for_models(models) -> tuple[str, ...]:
+    """The buffers to render for ``models`` (names, or 'name:checkpoint' as ``bench models`` takes them), in the
+    canonical order, evaluation buffers included; ValueError naming an unknown model."""
+    need = set(EVALUATION_BUFFERS)
+    for m in models:
+        name = m.split(":", 1)[0].strip()
+        if name not in MODEL_BUFFERS:
+            raise ValueError(f"--for-models: unknown model {name!r}; known: {', '.join(MODEL_BUFFERS)}")
+        need.update(MODEL_BUFFERS[name])
+    return tuple(b for b in ALL_BUFFERS if b in need)

@@ -1,0 +1,339 @@
+"""Render a dataset from a spec, resumably, on local worker processes or a Ray cluster (pure Python; the clips
+are rendered by ``python -m gbuffer_export.blender.dataset_job`` processes).
+
+Layout::
+
+    DATASET/dataset.json          the index: every clip with split, source, seed, licence, settings and state
+    DATASET/clips/<id>/           one BlendSR clip per job (docs/clip-format.md)
+    DATASET/jobs/<id>.json        the job a worker renders (the explicit ClipJob)
+    DATASET/logs/<id>.log         the worker's stderr of its last run
+
+Only this coordinator writes ``dataset.json`` (atomically, after every clip); a second coordinator on the same
+folder is refused. Every run recomputes each clip's state from its folder, so a run killed at any moment (kill -9
+included) resumes: finished clips are skipped, partial clips resume at their first missing frame, and at most the
+frames in flight are rendered again. Worker processes die with the coordinator (Linux parent-death signal).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..clip import ClipError, open_clip, write_json_atomic
+from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
+
+INDEX = "dataset.json"
+SCHEMA = "blendsr-dataset"
+SCHEMA_VERSION = 1
+STATES = ("pending", "partial", "done", "failed")
+EXECUTORS = ("local", "ray")
+
+
+class DatasetError(ValueError):
+    """A dataset folder that cannot be used as asked; one line naming the path."""
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to execute: ``workers`` clips at a time (local) or as many as the Ray cluster schedules, each clip's
+    Cycles render on ``threads`` threads (0: the machine's cores divided by ``workers``)."""
+
+    executor: str = "local"
+    workers: int = 1
+    threads: int = 0
+    address: str | None = None      # Ray: cluster address ("auto", "ray://host:10001", ...); None starts one
+    buffers_for: tuple[str, ...] = ()  # --for-models: the models whose buffers are rendered (recorded)
+    progress: bool = True
+    limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
+
+    def validate(self) -> None:
+        if self.executor not in EXECUTORS:
+            raise SpecError(f"--executor {self.executor!r}: choose one of {', '.join(EXECUTORS)}")
+        if self.workers < 1:
+            raise SpecError(f"--workers {self.workers}: must be at least 1")
+        if self.threads < 0:
+            raise SpecError(f"--threads {self.threads}: must be >= 0")
+
+
+# ----------------------------------------------------------------------------------------------
+# Index
+# ----------------------------------------------------------------------------------------------
+
+def clip_state(path: Path, planned: int) -> tuple[str, int]:
+    """(state, finished frames) of a clip folder: pending (nothing finished), partial, or done."""
+    if not (path / "manifest.json").is_file():
+        return "pending", 0
+    try:
+        clip = open_clip(path)
+    except ClipError:
+        return "partial", 0
+    n = len(clip.frames)
+    if clip.complete and n >= planned:
+        return "done", n
+    return ("partial" if n else "pending"), n
+
+
+def spec_digest(spec_path: Path | None) -> str | None:
+    if spec_path is None:
+        return None
+    return hashlib.sha256(Path(spec_path).read_bytes()).hexdigest()
+
+
+def make_index(spec: DatasetSpec, jobs: list[ClipJob], root: Path, old: dict | None, opts: RunOptions) -> dict:
+    entries = []
+    old_err = {c["id"]: c.get("error") for c in (old or {}).get("clips", [])}
+    for j in jobs:
+        path = root / "clips" / j.id
+        state, n = clip_state(path, j.render["frames"])
+        e = {**j.to_json(), "path": f"clips/{j.id}", "state": state, "frames_done": n,
+             "frames_planned": j.render["frames"]}
+        if state != "done" and old_err.get(j.id):
+            e["error"] = old_err[j.id]
+        entries.append(e)
+    return {
+        "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "name": spec.name, "seed": spec.seed,
+        "spec": {"file": str(spec.path) if spec.path else None, "sha256": spec_digest(spec.path),
+                 "text": spec.path.read_text() if spec.path else None},
+        "for_models": list(opts.buffers_for),
+        "splits": {s: [e["id"] for e in entries if e["split"] == s] for s in SPLITS},
+        "clips": entries,
+    }
+
+
+def read_index(root: str | os.PathLike) -> dict:
+    """``DATASET/dataset.json`` as a dict; DatasetError (one line) when missing or malformed."""
+    p = Path(root) / INDEX
+    if not p.is_file():
+        raise DatasetError(f"{Path(root)}: no {INDEX} (not a BlendSR dataset)")
+    try:
+        d = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{p}: not valid JSON ({exc})") from None
+    if not isinstance(d, dict) or d.get("schema") != SCHEMA:
+        raise DatasetError(f"{p}: not a BlendSR dataset index (schema is not {SCHEMA!r})")
+    if not isinstance(d.get("schema_version"), int) or d["schema_version"] > SCHEMA_VERSION:
+        raise DatasetError(f"{p}: schema_version {d.get('schema_version')!r} is newer than this blendsr reads")
+    if not isinstance(d.get("clips"), list):
+        raise DatasetError(f"{p}: index lacks its 'clips' list")
+    return d
+
+
+def is_dataset(path: str | os.PathLike) -> bool:
+    return (Path(path) / INDEX).is_file()
+
+
+def split_clips(root: str | os.PathLike, split: str, done_only: bool = True) -> list[Path]:
+    """The clip folders of one split of a dataset (finished clips only, unless ``done_only`` is False)."""
+    if split not in SPLITS:
+        raise DatasetError(f"split {split!r}: choose one of {', '.join(SPLITS)}")
+    root = Path(root)
+    idx = read_index(root)
+    out = []
+    for c in idx["clips"]:
+        if c.get("split") != split:
+            continue
+        path = root / c["path"]
+        if done_only and clip_state(path, int(c.get("frames_planned", 0)))[0] != "done":
+            continue
+        out.append(path)
+    return out
+
+
+def expand_data_paths(paths, split: str) -> list[Path]:
+    """``--data`` arguments: clip folders stay, a dataset folder becomes the finished clips of ``split``
+    (DatasetError when it has none)."""
+    out: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if is_dataset(p):
+            clips = split_clips(p, split)
+            if not clips:
+                raise DatasetError(f"{p}: the dataset has no finished clips in its {split!r} split")
+            out += clips
+        else:
+            out.append(p)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Execution
+# ----------------------------------------------------------------------------------------------
+
+def _die_with_parent() -> None:  # runs in the child before exec (Linux): SIGKILL when the coordinator dies
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").prctl(1, signal.SIGKILL)
+    except OSError:
+        pass
+
+
+def job_command(job_path: Path, clip_dir: Path, threads: int) -> list[str]:
+    return [sys.executable, "-m", "gbuffer_export.blender.dataset_job", str(job_path), str(clip_dir),
+            "--threads", str(threads)]
+
+
+def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int) -> tuple[int, str]:
+    """Render one clip in a child process; returns (exit code, the last line of its stderr)."""
+    Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    repo = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    with open(log_path, "w") as log:
+        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads), stdout=subprocess.DEVNULL,
+                              stderr=log, env=env, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+    lines = [ln for ln in Path(log_path).read_text(errors="replace").splitlines()
+             if ln.strip() and not ln.startswith(("render:", "\r"))]
+    err = next((ln for ln in reversed(lines) if "error" in ln.lower()), lines[-1] if lines else "")
+    return proc.returncode, err.strip()
+
+
+class _Lock:
+    """An exclusive lock on DATASET/.lock for the coordinator's lifetime."""
+
+    def __init__(self, root: Path):
+        import fcntl
+        self.f = open(root / ".lock", "w")
+        try:
+            fcntl.flock(self.f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.f.close()
+            raise DatasetError(f"{root}: another 'blendsr dataset' is running on this folder") from None
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def _local_map(todo, run_one, workers: int, on_done) -> None:
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(run_one, j): j for j in todo}
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                on_done(futures[fut], *fut.result())
+
+
+def _ray_map(todo, root: Path, threads: int, address: str | None, on_done) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise SpecError("--executor ray needs the 'ray' package: pip install 'blendsr[cluster]'") from None
+    started = False
+    if not ray.is_initialized():
+        ray.init(address=address or "local", include_dashboard=False, log_to_driver=False,
+                 runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
+        started = True
+    try:
+        remote = ray.remote(num_cpus=max(1, threads))(run_job_process)
+        refs = {remote.remote(str(root / "jobs" / f"{j.id}.json"), str(root / "clips" / j.id),
+                              str(root / "logs" / f"{j.id}.log"), threads): j for j in todo}
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for r in ready:
+                try:
+                    rc, err = ray.get(r)
+                except Exception as exc:  # noqa: BLE001 - a lost worker node: record and go on
+                    rc, err = 1, f"ray task failed: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                on_done(refs[r], rc, err)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
+    """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
+    opts.validate()
+    root = Path(out)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: exists and is not a folder")
+    jobs = expand(spec)
+    if opts.buffers_for:
+        from .buffers import buffers_for_models
+        need = buffers_for_models(opts.buffers_for)
+        jobs = [dataclasses.replace(j, render={**j.render, "buffers": list(need)}) for j in jobs]
+    root.mkdir(parents=True, exist_ok=True)
+    old = None
+    if (root / INDEX).is_file():
+        old = read_index(root)
+        if old.get("name") != spec.name or old.get("seed") != spec.seed:
+            raise DatasetError(f"{root}: holds dataset {old.get('name')!r} (seed {old.get('seed')}); choose "
+                               "another folder or delete it")
+        old_jobs = {c["id"]: c for c in old["clips"]}
+        for j in jobs:
+            o = old_jobs.get(j.id)
+            if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
+                    (root / "clips" / j.id / "manifest.json").is_file():
+                raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
+                                   "spec into another folder")
+    lock = _Lock(root)
+    try:
+        for j in jobs:
+            jp = root / "jobs" / f"{j.id}.json"
+            if not jp.is_file() or json.loads(jp.read_text()) != j.to_json():
+                write_json_atomic(jp, j.to_json())
+        index = make_index(spec, jobs, root, old, opts)
+        write_json_atomic(root / INDEX, index)
+        todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
+        if opts.limit is not None:
+            todo = todo[:opts.limit]
+        threads = opts.threads or max(1, (os.cpu_count() or 1) // opts.workers)
+        n_done = len(jobs) - len([e for e in index["clips"] if e["state"] != "done"])
+        print(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "
+              f"({opts.executor}, {opts.workers if opts.executor == 'local' else 'cluster'} workers, "
+              f"{threads} threads each)", file=sys.stderr)
+        by_id = {e["id"]: e for e in index["clips"]}
+        mutex = threading.Lock()
+        bar = None
+        if opts.progress and todo:
+            from tqdm import tqdm
+            bar = tqdm(total=len(todo), desc="dataset", unit="clip", file=sys.stderr, dynamic_ncols=True)
+
+        def on_done(job: ClipJob, rc: int, err: str) -> None:
+            with mutex:
+                e = by_id[job.id]
+                state, n = clip_state(root / "clips" / job.id, job.render["frames"])
+                e.update(state=state if rc == 0 else ("failed" if state != "done" else state), frames_done=n)
+                if rc != 0 and state != "done":
+                    e["error"] = err or f"worker exited with code {rc}"
+                else:
+                    e.pop("error", None)
+                write_json_atomic(root / INDEX, index)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(last=job.id[-24:], failed=sum(c["state"] == "failed" for c in index["clips"]))
+
+        def run_one(job: ClipJob):
+            return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
+                                   str(root / "logs" / f"{job.id}.log"), threads)
+
+        t0 = time.perf_counter()
+        if opts.executor == "local":
+            _local_map(todo, run_one, opts.workers, on_done)
+        else:
+            _ray_map(todo, root, threads, opts.address, on_done)
+        if bar is not None:
+            bar.close()
+        index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,
+                             "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1)}
+        write_json_atomic(root / INDEX, index)
+        return index
+    finally:
+        lock.close()
+
+
+def summary(index: dict) -> str:
+    """One line: clips per state and per split."""
+    states = {s: sum(c["state"] == s for c in index["clips"]) for s in STATES}
+    splits = {s: len(v) for s, v in index["splits"].items()}
+    return (f"{len(index['clips'])} clips: " + ", ".join(f"{v} {k}" for k, v in states.items() if v)
+            + " | splits: " + ", ".join(f"{k} {v}" for k, v in splits.items()))

@@ -1,0 +1,83 @@
+"""``blendsr validate DATASET``: every clip of a dataset validated, plus the index's own invariants (pure numpy).
+
+Index checks: every clip listed exists and is finished; no scene or asset id lies in two splits; no clip's clutter
+comes from an asset of another split (a test asset never appears in a training clip); every clip records a licence.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .build import clip_state, read_index
+
+
+@dataclass
+class DatasetReport:
+    path: str
+    clips: dict = field(default_factory=dict)      # id -> {"ok", "errors", "warnings", "first_error"}
+    index_errors: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.index_errors and all(c["ok"] for c in self.clips.values())
+
+    def lines(self) -> list[str]:
+        out = [f"ERROR dataset: {e}" for e in self.index_errors]
+        for cid, c in self.clips.items():
+            if not c["ok"]:
+                out.append(f"ERROR {cid}: {c['errors']} errors, first: {c['first_error']}")
+        return out
+
+    def summary_line(self) -> str:
+        n_ok = sum(c["ok"] for c in self.clips.values())
+        warn = sum(c["warnings"] for c in self.clips.values())
+        verdict = "OK" if self.ok else "FAILED"
+        return (f"{verdict}: {self.path}: {n_ok}/{len(self.clips)} clips valid, {warn} warnings, "
+                f"{len(self.index_errors)} index errors")
+
+    def to_dict(self) -> dict:
+        return {"path": self.path, "ok": self.ok, "clips": self.clips, "index_errors": self.index_errors}
+
+
+def index_errors(root: Path, index: dict) -> list[str]:
+    errs = []
+    split_of: dict[str, str] = {}
+    asset_split: dict[str, str] = {}
+    for c in index["clips"]:
+        sid = c.get("scene_id")
+        if sid in split_of and split_of[sid] != c["split"]:
+            errs.append(f"scene {sid!r} is in both the {split_of[sid]} and the {c['split']} split")
+        split_of.setdefault(sid, c["split"])
+        if c.get("asset"):
+            asset_split.setdefault(Path(c["asset"]).stem, c["split"])
+    for c in index["clips"]:
+        for cl in c.get("clutter", []):
+            s = asset_split.get(Path(cl).stem)
+            if s is not None and s != c["split"]:
+                errs.append(f"clip {c['id']} ({c['split']}) uses {Path(cl).stem} of the {s} split as clutter")
+        if not c.get("licence", {}).get("licence"):
+            errs.append(f"clip {c['id']}: no licence recorded")
+        state, _ = clip_state(root / c["path"], int(c.get("frames_planned", 0)))
+        if state != "done":
+            errs.append(f"clip {c['id']} is {state} (rerun 'blendsr dataset' to finish it)")
+    return errs
+
+
+def validate_dataset(root, options=None, quick: bool = False, progress: bool = True) -> DatasetReport:
+    """Validate every finished clip of the dataset at ``root`` and the index's invariants."""
+    from ..validate import validate_clip
+    root = Path(root)
+    index = read_index(root)
+    rep = DatasetReport(str(root), index_errors=index_errors(root, index))
+    clips = [c for c in index["clips"] if (root / c["path"] / "manifest.json").is_file()]
+    it = clips
+    if progress:
+        from tqdm import tqdm
+        import sys
+        it = tqdm(clips, desc="validate", unit="clip", file=sys.stderr, dynamic_ncols=True)
+    for c in it:
+        r = validate_clip(root / c["path"], quick=quick, options=options, progress=False)
+        first = r.errors[0].line() if r.errors else ""
+        rep.clips[c["id"]] = {"ok": r.ok, "errors": len(r.errors), "warnings": len(r.warnings),
+                              "first_error": first}
+    return rep

@@ -1,0 +1,519 @@
+"""The dataset spec: a typed, validated description of many clips (pure Python, no bpy, no torch).
+
+A spec is a TOML file (``examples/dataset_small.toml``) with a ``[dataset]`` table, a ``[render]`` table of
+defaults, a ``[splits]`` table and one ``[[source]]`` table per source. :func:`load_spec` parses and validates it
+(unknown keys are rejected with the known ones listed); :func:`expand` turns it into the explicit list of
+:class:`ClipJob` that ``dataset.json`` records: every random choice (seed, environment, its rotation and strength,
+clutter, camera path) is drawn here from a per-clip seed, so the same spec gives the same clips on any executor.
+
+Splits are assigned per scene (a built-in seed) or per asset, never per frame: an asset in the test split is
+never rendered into a training clip, not even as clutter.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..config import CAMERA_PATHS, FBETA_SOURCES, JITTERS, ConfigError, parse_size
+from ..conventions import DEFAULT_BUFFERS, parse_buffer_list
+
+SPLITS = ("train", "val", "test")
+ASSET_SUFFIXES = (".gltf", ".glb", ".blend")
+#: bpy's bundled environments (``studiolights/world/<name>.exr``), usable as ``hdri = ["builtin:courtyard"]``.
+BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
+#: Camera kinds a source may draw from; ``scene`` keeps the built-in scene's own designed camera (builtin only).
+SOURCE_CAMERAS = ("orbit", "walk", "scene")
+HDRI_SUFFIXES = (".hdr", ".exr")
+
+
+class SpecError(ConfigError):
+    """An invalid dataset spec; the message names the file and the key."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Typed tables
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Per-clip render settings (``[render]`` defaults, overridable per source). Sizes in pixels, samples per
+    pixel; ``frames`` is the number of frames per clip (rendered as frames 1..frames)."""
+
+    frames: int = 12
+    hr_size: tuple[int, int] = (256, 144)
+    scale: int = 4
+    hr_spp: int = 32
+    lr_spp: int = 64
+    gbuffer_spp: int = 4
+    hr_denoise: bool = True
+    lr_denoise: bool = False
+    jitter: str = "halton"
+    buffers: tuple[str, ...] = DEFAULT_BUFFERS
+    fbeta: str = "cycles"
+    threads: int = 0  # Cycles threads per clip; 0: the machine's cores divided by the local workers
+
+    def validate(self, where: str) -> None:
+        if not isinstance(self.frames, int) or self.frames < 1:
+            raise SpecError(f"{where}.frames = {self.frames!r}: must be a positive integer")
+        if not isinstance(self.scale, int) or self.scale < 1:
+            raise SpecError(f"{where}.scale = {self.scale!r}: must be a positive integer")
+        w, h = self.hr_size
+        if w % self.scale or h % self.scale:
+            raise SpecError(f"{where}.hr_size = {w}x{h}: not divisible by scale {self.scale}")
+        for k in ("hr_spp", "lr_spp", "gbuffer_spp"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise SpecError(f"{where}.{k} = {v!r}: must be a positive integer")
+        if self.jitter not in JITTERS:
+            raise SpecError(f"{where}.jitter = {self.jitter!r}: choose one of {', '.join(JITTERS)}")
+        if self.fbeta not in FBETA_SOURCES:
+            raise SpecError(f"{where}.fbeta = {self.fbeta!r}: choose one of {', '.join(FBETA_SOURCES)}")
+        if not isinstance(self.threads, int) or self.threads < 0:
+            raise SpecError(f"{where}.threads = {self.threads!r}: must be an integer >= 0")
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["hr_size"] = list(self.hr_size)
+        d["buffers"] = list(self.buffers)
+        return d
+
+
+@dataclass(frozen=True)
+class Environment:
+    """How a source lights its clips: an HDRI drawn from ``hdri`` (files, folders of .hdr/.exr, or
+    ``builtin:NAME`` for bpy's bundled ones), rotated about +Z uniformly in [0, 360) degrees, its strength drawn
+    log-uniformly in ``strength`` (a multiplier of the file's radiance)."""
+
+    hdri: tuple[str, ...] = ()
+    strength: tuple[float, float] = (0.7, 1.5)
+
+
+@dataclass(frozen=True)
+class Source:
+    """One ``[[source]]``: ``kind = "builtin"`` (the built-in scene over ``seeds``) or ``kind = "assets"``
+    (each glTF/GLB/.blend in ``paths`` placed in a generated environment, ``clips_per_asset`` clips each)."""
+
+    name: str
+    kind: str
+    render: RenderSettings
+    cameras: tuple[str, ...] = ("orbit",)
+    split: str | None = None                      # force every scene of this source into one split
+    seeds: tuple[int, int] = (0, 0)               # builtin: inclusive range
+    paths: tuple[str, ...] = ()                   # assets: files or folders
+    clips_per_asset: int = 1
+    environment: Environment = Environment()
+    clutter: int = 0                              # assets: up to N other assets of the same split around it
+    target_size_m: float = 1.5                    # assets: largest side after normalisation
+    licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
+    sun: bool = True                              # builtin: keep the sun lamp
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Split rule: explicit ``val``/``test`` lists of scene ids (asset stems, or ``builtin:SEED``), and for the
+    rest a stable hash rule with fractions ``val_fraction`` and ``test_fraction`` (0 = everything else trains)."""
+
+    val: tuple[str, ...] = ()
+    test: tuple[str, ...] = ()
+    val_fraction: float = 0.0
+    test_fraction: float = 0.0
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    name: str
+    seed: int
+    sources: tuple[Source, ...]
+    splits: Splits
+    path: Path | None = None  # the spec file (relative source paths resolve against its folder)
+
+
+# ----------------------------------------------------------------------------------------------
+# Parsing
+# ----------------------------------------------------------------------------------------------
+
+_TOP_KEYS = ("dataset", "render", "splits", "source")
+_DATASET_KEYS = ("name", "seed")
+_RENDER_KEYS = tuple(f.name for f in dataclasses.fields(RenderSettings))
+_SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
+_SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
+                "clutter", "target_size_m", "licence", "sun", *_RENDER_KEYS)
+
+
+def _check_keys(table: dict, known, where: str, spec_path) -> None:
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        raise SpecError(f"{spec_path}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} in "
+                        f"[{where}]; known keys: {', '.join(known)}")
+
+
+def _typed(value, kind, where: str, spec_path):
+    ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool) and kind in (int, float))
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not ok:
+        names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
+        raise SpecError(f"{spec_path}: {where} = {value!r}: expected {names}")
+    return value
+
+
+def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -> RenderSettings:
+    kw = {}
+    for k in _RENDER_KEYS:
+        if k not in table:
+            continue
+        v = table[k]
+        if k == "hr_size":
+            try:
+                v = parse_size(_typed(v, str, f"{where}.hr_size", spec_path))
+            except ConfigError as exc:
+                raise SpecError(f"{spec_path}: {where}.hr_size: {exc}") from None
+        elif k == "buffers":
+            if isinstance(v, list):
+                v = ",".join(_typed(x, str, f"{where}.buffers", spec_path) for x in v)
+            try:
+                v = parse_buffer_list(_typed(v, str, f"{where}.buffers", spec_path))
+            except (KeyError, ValueError) as exc:
+                raise SpecError(f"{spec_path}: {where}.buffers: {str(exc).strip(chr(39))}") from None
+        elif k in ("hr_denoise", "lr_denoise"):
+            v = _typed(v, bool, f"{where}.{k}", spec_path)
+        elif k in ("jitter", "fbeta"):
+            v = _typed(v, str, f"{where}.{k}", spec_path)
+        else:
+            v = _typed(v, int, f"{where}.{k}", spec_path)
+        kw[k] = v
+    out = dataclasses.replace(base, **kw)
+    try:
+        out.validate(where)
+    except SpecError as exc:
+        raise SpecError(f"{spec_path}: {exc}") from None
+    return out
+
+
+def _str_list(v, where, spec_path) -> tuple[str, ...]:
+    if isinstance(v, str):
+        v = [v]
+    if not isinstance(v, list):
+        raise SpecError(f"{spec_path}: {where} = {v!r}: expected a list of strings")
+    return tuple(_typed(x, str, where, spec_path) for x in v)
+
+
+def _range(v, where, spec_path) -> tuple[float, float]:
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return float(v), float(v)
+    if not (isinstance(v, list) and len(v) == 2):
+        raise SpecError(f"{spec_path}: {where} = {v!r}: expected [low, high]")
+    lo, hi = (_typed(x, float, where, spec_path) for x in v)
+    if not (0 < lo <= hi):
+        raise SpecError(f"{spec_path}: {where} = {v!r}: need 0 < low <= high")
+    return lo, hi
+
+
+def _seeds(v, where, spec_path) -> tuple[int, int]:
+    """'A:B' (inclusive), [A, B] or a single integer."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        a = b = v
+    elif isinstance(v, str) and ":" in v:
+        try:
+            a, b = (int(x) for x in v.split(":"))
+        except ValueError:
+            raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'A:B' with integers") from None
+    elif isinstance(v, list) and len(v) == 2:
+        a, b = (_typed(x, int, where, spec_path) for x in v)
+    else:
+        raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'A:B', [A, B] or an integer")
+    if b < a or a < 0:
+        raise SpecError(f"{spec_path}: {where} = {v!r}: need 0 <= A <= B")
+    return a, b
+
+
+def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
+    """Validate a parsed TOML document and return the typed spec."""
+    _check_keys(data, _TOP_KEYS, "top level", spec_path)
+    ds = data.get("dataset", {})
+    _check_keys(ds, _DATASET_KEYS, "dataset", spec_path)
+    name = _typed(ds.get("name", Path(str(spec_path)).stem), str, "dataset.name", spec_path)
+    seed = _typed(ds.get("seed", 0), int, "dataset.seed", spec_path)
+    render_table = data.get("render", {})
+    _check_keys(render_table, _RENDER_KEYS, "render", spec_path)
+    defaults = _render_settings(RenderSettings(), render_table, "render", spec_path)
+
+    sp = data.get("splits", {})
+    _check_keys(sp, _SPLIT_KEYS, "splits", spec_path)
+    splits = Splits(val=_str_list(sp.get("val", []), "splits.val", spec_path),
+                    test=_str_list(sp.get("test", []), "splits.test", spec_path),
+                    val_fraction=_typed(sp.get("val_fraction", 0.0), float, "splits.val_fraction", spec_path),
+                    test_fraction=_typed(sp.get("test_fraction", 0.0), float, "splits.test_fraction", spec_path))
+    if not (0 <= splits.val_fraction and 0 <= splits.test_fraction and splits.val_fraction + splits.test_fraction < 1):
+        raise SpecError(f"{spec_path}: splits: val_fraction and test_fraction must be >= 0 with a sum below 1")
+    both = set(splits.val) & set(splits.test)
+    if both:
+        raise SpecError(f"{spec_path}: splits: {', '.join(sorted(both))} listed in both val and test")
+
+    raw_sources = data.get("source", [])
+    if not isinstance(raw_sources, list) or not raw_sources:
+        raise SpecError(f"{spec_path}: no [[source]] tables: add at least one (kind = \"builtin\" or \"assets\")")
+    sources, names = [], set()
+    for i, t in enumerate(raw_sources):
+        where = f"source[{i}]"
+        if not isinstance(t, dict):
+            raise SpecError(f"{spec_path}: {where}: expected a table")
+        _check_keys(t, _SOURCE_KEYS, where, spec_path)
+        kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path)
+        if kind not in ("builtin", "assets"):
+            raise SpecError(f"{spec_path}: {where}.kind = {kind!r}: choose builtin or assets")
+        sname = _typed(t.get("name", kind if kind == "builtin" else f"assets{i}"), str, f"{where}.name", spec_path)
+        if sname in names or not sname.replace("-", "").replace("_", "").isalnum():
+            raise SpecError(f"{spec_path}: {where}.name = {sname!r}: must be unique, letters, digits, - and _")
+        names.add(sname)
+        render = _render_settings(defaults, t, where, spec_path)
+        cameras = _str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path)
+        for c in cameras:
+            if c not in SOURCE_CAMERAS:
+                raise SpecError(f"{spec_path}: {where}.cameras: {c!r}: choose from {', '.join(SOURCE_CAMERAS)}")
+        if kind == "assets" and "scene" in cameras:
+            raise SpecError(f"{spec_path}: {where}.cameras: 'scene' is for kind = \"builtin\" only")
+        split = t.get("split")
+        if split is not None and split not in SPLITS:
+            raise SpecError(f"{spec_path}: {where}.split = {split!r}: choose one of {', '.join(SPLITS)}")
+        kw = dict(name=sname, kind=kind, render=render, cameras=cameras, split=split)
+        if kind == "builtin":
+            for k in ("paths", "clips_per_asset", "clutter", "target_size_m", "licence"):
+                if k in t:
+                    raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"assets\"")
+            if "seeds" not in t:
+                raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
+            kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
+            kw["sun"] = _typed(t.get("sun", True), bool, f"{where}.sun", spec_path)
+        else:
+            if "seeds" in t or "sun" in t:
+                raise SpecError(f"{spec_path}: {where}: seeds and sun are for kind = \"builtin\"")
+            kw["paths"] = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
+            if not kw["paths"]:
+                raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
+            kw["clips_per_asset"] = _typed(t.get("clips_per_asset", 1), int, f"{where}.clips_per_asset", spec_path)
+            kw["clutter"] = _typed(t.get("clutter", 0), int, f"{where}.clutter", spec_path)
+            kw["target_size_m"] = _typed(t.get("target_size_m", 1.5), float, f"{where}.target_size_m", spec_path)
+            if kw["clips_per_asset"] < 1 or kw["clutter"] < 0 or kw["target_size_m"] <= 0:
+                raise SpecError(f"{spec_path}: {where}: need clips_per_asset >= 1, clutter >= 0, target_size_m > 0")
+            lic = t.get("licence", {})
+            if not isinstance(lic, dict) or not all(isinstance(v, dict) for v in lic.values()):
+                raise SpecError(f"{spec_path}: {where}.licence: expected {{ASSET = {{licence = ..., attribution = ...}}}}")
+            kw["licence"] = lic
+        kw["environment"] = Environment(
+            hdri=_str_list(t.get("hdri", []), f"{where}.hdri", spec_path),
+            strength=_range(t.get("hdri_strength", [0.7, 1.5]), f"{where}.hdri_strength", spec_path))
+        sources.append(Source(**kw))
+    return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
+                       path=Path(spec_path) if spec_path != "<spec>" else None)
+
+
+def load_spec(path: str | Path) -> DatasetSpec:
+    """Read and validate a spec file; SpecError (one line naming the file) on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: dataset spec not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SpecError(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    return parse_spec(data, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Expansion into clips
+# ----------------------------------------------------------------------------------------------
+
+def stable_hash(*parts) -> int:
+    """A 63-bit integer from the parts' text: the same on every machine and Python (no ``hash()``)."""
+    h = hashlib.sha256("\x1f".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(h[:8], "big") >> 1
+
+
+def assign_split(scene_id: str, splits: Splits, forced: str | None, dataset_seed: int) -> str:
+    """The split of one scene: the source's forced split, an explicit list, else the hash rule."""
+    if forced:
+        return forced
+    stem = scene_id
+    if stem in splits.test:
+        return "test"
+    if stem in splits.val:
+        return "val"
+    u = (stable_hash("split", dataset_seed, scene_id) % 1_000_000) / 1_000_000
+    if u < splits.test_fraction:
+        return "test"
+    if u < splits.test_fraction + splits.val_fraction:
+        return "val"
+    return "train"
+
+
+def _resolve(p: str, base: Path | None) -> Path:
+    path = Path(p).expanduser()
+    if not path.is_absolute() and base is not None:
+        path = base / path
+    return path.resolve()
+
+
+def find_assets(source: Source, base: Path | None, spec_path) -> list[Path]:
+    """The asset files of a source, sorted by stem: files as given, folders searched recursively."""
+    out: dict[str, Path] = {}
+    for p in source.paths:
+        path = _resolve(p, base)
+        if path.is_file():
+            files = [path]
+        elif path.is_dir():
+            files = sorted(f for f in path.rglob("*") if f.suffix.lower() in ASSET_SUFFIXES and f.is_file())
+        else:
+            raise SpecError(f"{spec_path}: source {source.name!r}: {path}: no such file or folder")
+        for f in files:
+            if f.suffix.lower() not in ASSET_SUFFIXES:
+                raise SpecError(f"{spec_path}: source {source.name!r}: {f}: not a glTF, GLB or .blend file")
+            if f.stem in out and out[f.stem] != f:
+                raise SpecError(f"{spec_path}: source {source.name!r}: two assets named {f.stem!r} "
+                                f"({out[f.stem]}, {f}): asset stems must be unique")
+            out[f.stem] = f
+    if not out:
+        raise SpecError(f"{spec_path}: source {source.name!r}: no .gltf, .glb or .blend files under its paths")
+    return [out[k] for k in sorted(out)]
+
+
+def find_hdris(env: Environment, base: Path | None, spec_path, source_name: str) -> list[str]:
+    """The HDRI pool: absolute file paths and ``builtin:NAME`` entries, sorted. Empty pool: bpy's builtins."""
+    out = []
+    for h in env.hdri or tuple(f"builtin:{n}" for n in BUILTIN_HDRIS):
+        if h.startswith("builtin:"):
+            if h.split(":", 1)[1] not in BUILTIN_HDRIS:
+                raise SpecError(f"{spec_path}: source {source_name!r}: hdri {h!r}: builtin names are "
+                                f"{', '.join(BUILTIN_HDRIS)}")
+            out.append(h)
+            continue
+        path = _resolve(h, base)
+        if path.is_dir():
+            out += sorted(str(f) for f in path.iterdir() if f.suffix.lower() in HDRI_SUFFIXES)
+        elif path.is_file() and path.suffix.lower() in HDRI_SUFFIXES:
+            out.append(str(path))
+        else:
+            raise SpecError(f"{spec_path}: source {source_name!r}: hdri {path}: not an .hdr/.exr file or folder")
+    if not out:
+        raise SpecError(f"{spec_path}: source {source_name!r}: the hdri pool is empty")
+    return sorted(set(out))
+
+
+def read_asset_licence(path: Path) -> dict:
+    """Licence and attribution of an asset from the files beside it: a Khronos-sample ``metadata.json`` (its
+    ``legal`` entries) up to two folders above, else the glTF's ``asset.copyright``; ``unknown`` otherwise."""
+    import json
+    for folder in (path.parent, path.parent.parent, path.parent.parent.parent):
+        meta = folder / "metadata.json"
+        if meta.is_file():
+            try:
+                legal = json.loads(meta.read_text()).get("legal", [])
+            except (ValueError, OSError, AttributeError):
+                legal = []
+            if legal:
+                lic = sorted({e.get("spdx") or e.get("license") or "unknown" for e in legal})
+                attr = "; ".join(f"{e.get('what', 'asset')}: {e.get('artist', '?')} ({e.get('year', '?')}, "
+                                 f"{e.get('spdx') or e.get('license', '?')})" for e in legal)
+                return {"licence": " + ".join(lic), "attribution": attr, "licence_source": str(meta)}
+    if path.suffix.lower() == ".gltf":
+        try:
+            asset = json.loads(path.read_text()).get("asset", {})
+        except (ValueError, OSError):
+            asset = {}
+        if asset.get("copyright"):
+            return {"licence": "unknown", "attribution": asset["copyright"], "licence_source": str(path)}
+    return {"licence": "unknown", "attribution": "unknown", "licence_source": None}
+
+
+@dataclass
+class ClipJob:
+    """One clip of the dataset, fully explicit (what ``dataset.json`` stores and a worker renders)."""
+
+    id: str
+    source: str
+    kind: str                 # builtin | assets
+    scene_id: str             # builtin:SEED or the asset's stem
+    split: str
+    seed: int                 # the clip's render/camera seed
+    render: dict              # RenderSettings.to_json()
+    camera: str               # orbit | walk
+    asset: str | None = None  # absolute path of the main asset
+    clutter: list = field(default_factory=list)   # absolute paths of clutter assets
+    hdri: str | None = None
+    hdri_rotation_deg: float = 0.0
+    hdri_strength: float = 1.0
+    target_size_m: float = 1.5
+    sun: bool = True
+    licence: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_json(d: dict) -> "ClipJob":
+        names = {f.name for f in dataclasses.fields(ClipJob)}
+        return ClipJob(**{k: v for k, v in d.items() if k in names})
+
+
+def _draw(seed: int):
+    import random
+    return random.Random(seed)
+
+
+def expand(spec: DatasetSpec) -> list[ClipJob]:
+    """Every clip of the spec, in a fixed order (source by source). Pure and deterministic."""
+    base = spec.path.parent.resolve() if spec.path else None
+    jobs: list[ClipJob] = []
+    for src in spec.sources:
+        hdris = find_hdris(src.environment, base, spec.path, src.name)
+        if src.kind == "builtin":
+            for s in range(src.seeds[0], src.seeds[1] + 1):
+                scene_id = f"builtin:{s}"
+                cid = f"{src.name}-s{s:04d}"
+                seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
+                rng = _draw(seed)
+                jobs.append(ClipJob(
+                    id=cid, source=src.name, kind="builtin", scene_id=scene_id,
+                    split=assign_split(scene_id, spec.splits, src.split, spec.seed), seed=s,
+                    render=src.render.to_json(), camera=rng.choice(src.cameras),
+                    hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
+                    hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
+                    licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
+            continue
+        assets = find_assets(src, base, spec.path)
+        split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed) for a in assets}
+        for a in assets:
+            lic = dict(read_asset_licence(a))
+            if a.stem in src.licence:
+                lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
+            same_split = [b for b in assets if b != a and split_of[b.stem] == split_of[a.stem]]
+            for k in range(src.clips_per_asset):
+                cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
+                seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
+                rng = _draw(seed)
+                n_clutter = rng.randint(0, min(src.clutter, len(same_split))) if src.clutter else 0
+                clutter = sorted(rng.sample(same_split, n_clutter), key=lambda p: p.stem) if n_clutter else []
+                jobs.append(ClipJob(
+                    id=cid, source=src.name, kind="assets", scene_id=a.stem, split=split_of[a.stem], seed=seed,
+                    render=src.render.to_json(), camera=rng.choice(src.cameras), asset=str(a),
+                    clutter=[str(c) for c in clutter], hdri=rng.choice(hdris),
+                    hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
+                    hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
+                    target_size_m=src.target_size_m, licence=lic))
+    ids = [j.id for j in jobs]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise SpecError(f"{spec.path}: clip ids collide ({', '.join(dup[:3])}): rename a source or an asset")
+    return jobs
+
+
+def _loguniform(rng, lo: float, hi: float) -> float:
+    import math
+    return math.exp(rng.uniform(math.log(lo), math.log(hi))) if hi > lo else lo
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in text)

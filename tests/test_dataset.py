@@ -1,0 +1,293 @@
+"""Datasets: the spec (pure), the index and splits, a tiny dataset rendered by local workers and by a local
+2-node Ray cluster, resume after kill -9, ``validate DATASET``, ``--for-models`` and ``train --data DATASET``."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ENV, REPO, requires_bpy, run_cli
+from gbuffer_export.dataset.build import read_index, split_clips
+from gbuffer_export.dataset.buffers import MODEL_BUFFERS, buffers_for_models
+from gbuffer_export.dataset.spec import SpecError, assign_split, expand, load_spec, parse_spec, Splits, stable_hash
+from gbuffer_export.exr import read_exr_channels
+
+
+def make_assets(folder: Path) -> Path:
+    """Two tiny GLB assets made with trimesh (a box and a sphere), each with a Khronos-style metadata.json."""
+    import trimesh
+    for name, mesh, lic in (("Box", trimesh.creation.box((1.0, 0.6, 0.4)), "CC0-1.0"),
+                            ("Ball", trimesh.creation.icosphere(2, 0.4), "CC-BY-4.0")):
+        d = folder / name / "glTF-Binary"
+        d.mkdir(parents=True, exist_ok=True)
+        mesh.export(d / f"{name}.glb")
+        (folder / name / "metadata.json").write_text(json.dumps(
+            {"legal": [{"spdx": lic, "artist": f"{name} maker", "year": "2026", "what": "Everything"}]}))
+    return folder
+
+
+def write_spec(path: Path, assets: Path, extra: str = "", name: str = "tiny") -> Path:
+    path.write_text(f"""
+[dataset]
+name = "{name}"
+seed = 3
+[render]
+frames = 2
+hr_size = "64x32"
+scale = 4
+hr_spp = 2
+lr_spp = 2
+gbuffer_spp = 1
+hr_denoise = false
+[splits]
+test = ["Ball"]
+[[source]]
+name = "builtin"
+kind = "builtin"
+seeds = "0:0"
+cameras = ["scene"]
+hdri = ["builtin:courtyard"]
+[[source]]
+name = "objs"
+kind = "assets"
+paths = ["{assets}"]
+clips_per_asset = 1
+clutter = 1
+cameras = ["orbit"]
+hdri = ["builtin:studio", "builtin:forest"]
+{extra}
+""")
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# The spec (pure)
+# ----------------------------------------------------------------------------------------------
+
+def test_spec_expands_deterministically_with_splits_by_asset(tmp_path):
+    assets = make_assets(tmp_path / "assets")
+    spec_path = write_spec(tmp_path / "s.toml", assets)
+    a, b = expand(load_spec(spec_path)), expand(load_spec(spec_path))
+    assert [j.to_json() for j in a] == [j.to_json() for j in b]
+    by_id = {j.id: j for j in a}
+    assert set(by_id) == {"builtin-s0000", "objs-Ball-00", "objs-Box-00"}
+    assert by_id["objs-Ball-00"].split == "test" and by_id["objs-Box-00"].split == "train"
+    # clutter only from the same split: the lone training asset has nobody to borrow, the test asset neither
+    assert by_id["objs-Box-00"].clutter == [] and by_id["objs-Ball-00"].clutter == []
+    assert by_id["objs-Box-00"].licence["licence"] == "CC0-1.0"
+    assert by_id["objs-Ball-00"].licence["licence"] == "CC-BY-4.0"
+    assert by_id["builtin-s0000"].seed == 0
+    # another dataset seed draws other per-clip seeds
+    other = expand(parse_spec({**__import__("tomllib").loads(spec_path.read_text()), "dataset": {"name": "t",
+                                                                                                   "seed": 4}},
+                              spec_path))
+    assert {j.id: j.seed for j in other}["objs-Box-00"] != by_id["objs-Box-00"].seed
+
+
+def test_spec_rejects_unknown_keys_and_bad_values(tmp_path):
+    assets = make_assets(tmp_path / "assets")
+    with pytest.raises(SpecError, match=r"unknown key frmaes in \[render\]; known keys: frames"):
+        parse_spec({"render": {"frmaes": 3}, "source": [{"kind": "builtin", "seeds": 0}]}, "x.toml")
+    with pytest.raises(SpecError, match=r"source\[0\]\.kind = 'nope'"):
+        parse_spec({"source": [{"kind": "nope"}]}, "x.toml")
+    with pytest.raises(SpecError, match="not divisible by scale"):
+        parse_spec({"render": {"hr_size": "65x32"}, "source": [{"kind": "builtin", "seeds": 0}]}, "x.toml")
+    with pytest.raises(SpecError, match="expected int"):
+        parse_spec({"render": {"hr_spp": "many"}, "source": [{"kind": "builtin", "seeds": 0}]}, "x.toml")
+    with pytest.raises(SpecError, match="no such file or folder"):
+        expand(parse_spec({"source": [{"kind": "assets", "paths": [str(tmp_path / "none")]}]}, "x.toml"))
+    with pytest.raises(SpecError, match="both val and test"):
+        parse_spec({"splits": {"val": ["Box"], "test": ["Box"]}, "source": [{"kind": "builtin", "seeds": 0}]}, "x")
+    proc = run_cli("dataset", write_spec(tmp_path / "bad.toml", assets, extra="colour = 1"), "-o", tmp_path / "o")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "unknown key colour" in proc.stderr
+
+
+def test_hash_split_rule_is_stable_and_near_its_fractions():
+    splits = Splits(test_fraction=0.2, val_fraction=0.1)
+    got = [assign_split(f"asset{i}", splits, None, 0) for i in range(2000)]
+    assert got == [assign_split(f"asset{i}", splits, None, 0) for i in range(2000)]
+    assert abs(got.count("test") / 2000 - 0.2) < 0.03 and abs(got.count("val") / 2000 - 0.1) < 0.03
+    assert stable_hash("a", 1) == stable_hash("a", 1) != stable_hash("a", 2)
+    assert assign_split("x", Splits(test=("x",)), None, 0) == "test"
+    assert assign_split("x", Splits(test=("x",)), "train", 0) == "train"  # a source may force its split
+
+
+def test_for_models_buffers():
+    assert buffers_for_models(["bicubic"]) == ("radiance", "motion")
+    assert set(buffers_for_models(["fusesr-l"])) == {"radiance", "albedo", "normal", "depth", "emission", "fbeta",
+                                                     "motion", "flags"}
+    with pytest.raises(ValueError, match="unknown model 'nope'"):
+        buffers_for_models(["nope"])
+
+
+@pytest.mark.torch
+def test_model_buffer_table_matches_every_models_needs():
+    pytest.importorskip("torch")
+    from gbuffer_export.dataset.buffers import buffers_of_keys
+    from training.config import load_config
+    from training.models import MODELS, build_model
+    for name in MODELS:
+        cfg = load_config(None, [f'model.name="{name}"'])
+        model = build_model(cfg.model, 4)
+        need = buffers_of_keys(model.needs())
+        assert name in MODEL_BUFFERS, f"model {name} has no row in gbuffer_export/dataset/buffers.py"
+        assert need <= set(MODEL_BUFFERS[name]), (name, need - set(MODEL_BUFFERS[name]))
+
+
+def assert_same_geometry(a: Path, b: Path, frame: int) -> None:
+    """Depth bit-identical, normals and motion within 1e-6 (float32 rounding of Cycles' averaged passes)."""
+    for key, tol in (("hr/depth", 0.0), ("lr/depth", 0.0), ("hr/normal", 1e-6), ("hr/motion", 1e-5)):
+        x = read_exr_channels(a / key / f"{frame:06d}.exr")
+        y = read_exr_channels(b / key / f"{frame:06d}.exr")
+        for k in x:
+            both_inf = np.isinf(x[k]) & np.isinf(y[k]) & (np.sign(x[k]) == np.sign(y[k]))
+            diff = np.abs(np.where(both_inf, 0.0, x[k]) - np.where(both_inf, 0.0, y[k]))
+            assert float(diff.max()) <= tol, (a.name, frame, key, k, float(diff.max()))
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering datasets (Cycles in subprocesses)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds")
+    assets = make_assets(root / "assets")
+    spec = write_spec(root / "tiny.toml", assets)
+    out = root / "local"
+    proc = run_cli("dataset", spec, "-o", out, "--workers", "2", "--threads", "1", "--no-progress", timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return spec, out
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_dataset_renders_validates_and_indexes(tiny):
+    spec, out = tiny
+    idx = read_index(out)
+    assert [c["state"] for c in idx["clips"]] == ["done"] * 3
+    assert idx["splits"] == {"train": ["builtin-s0000", "objs-Box-00"], "val": [], "test": ["objs-Ball-00"]}
+    assert [p.name for p in split_clips(out, "test")] == ["objs-Ball-00"]
+    box = json.loads((out / "clips" / "objs-Box-00" / "manifest.json").read_text())
+    assert box["scene"]["asset"] == "Box.glb" and box["scene"]["licence"]["licence"] == "CC0-1.0"
+    assert box["scene"]["camera_min_distance_m"] >= box["scene"]["camera_clearance_m"]
+    proc = run_cli("validate", out, "--no-progress")
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
+    assert proc.stdout.strip().splitlines()[-1].startswith("OK:") and "3/3 clips valid" in proc.stdout
+    # nothing to do on a rerun
+    again = run_cli("dataset", spec, "-o", out, "--no-progress")
+    assert again.returncode == 0 and "0 to render" in again.stderr
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_validate_dataset_reports_a_missing_clip(tiny, tmp_path):
+    import shutil
+    _, out = tiny
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    shutil.rmtree(copy / "clips" / "objs-Box-00")
+    proc = run_cli("validate", copy, "--no-progress")
+    assert proc.returncode == 1
+    assert "clip objs-Box-00 is pending" in proc.stdout and "FAILED" in proc.stdout
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_dataset_resumes_after_kill_9(tiny, tmp_path):
+    spec, reference = tiny
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "gbuffer_export.cli", "dataset", str(spec), "-o", str(out), "--workers", "1",
+           "--threads", "1", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((out / "clips").glob("*/frames/*.json")):
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)  # the coordinator; its worker dies with it (parent-death signal)
+    proc.wait()
+    time.sleep(0.5)
+    assert 0 < len(list((out / "clips").glob("*/frames/*.json"))) < 6
+    idx = read_index(out)
+    assert any(c["state"] != "done" for c in idx["clips"])
+    done = run_cli("dataset", spec, "-o", out, "--no-progress", "--threads", "1", timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert all(c["state"] == "done" for c in read_index(out)["clips"])
+    assert run_cli("validate", out, "--no-progress", "--quick").returncode == 0
+    # the same clips as the uninterrupted run: the same geometry (depth bit-identical; Cycles' averaged normal
+    # and vector passes may differ in the last bit of float32)
+    for clip in ("builtin-s0000", "objs-Box-00", "objs-Ball-00"):
+        for f in (1, 2):
+            assert_same_geometry(out / "clips" / clip, reference / "clips" / clip, f)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_ray_local_cluster_gives_the_same_clips(tiny, tmp_path, monkeypatch):
+    pytest.importorskip("ray")
+    spec, reference = tiny
+    code = f"""
+import os, sys
+os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"   # loopback addresses only
+from ray.cluster_utils import Cluster
+cluster = Cluster(initialize_head=True, head_node_args={{"num_cpus": 1, "include_dashboard": False}})
+cluster.add_node(num_cpus=1)                              # a second node: 2 workers in all
+from gbuffer_export.cli import main
+try:
+    rc = main(["dataset", {str(spec)!r}, "-o", {str(tmp_path / 'ray')!r}, "--executor", "ray", "--address",
+               cluster.address, "--threads", "1", "--no-progress"])
+finally:
+    cluster.shutdown()
+sys.exit(rc)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=ENV, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    idx = read_index(tmp_path / "ray")
+    ref = read_index(reference)
+    assert [c["state"] for c in idx["clips"]] == ["done"] * 3
+    strip = ("state", "frames_done", "error", "path")
+    assert [{k: v for k, v in c.items() if k not in strip} for c in idx["clips"]] == \
+        [{k: v for k, v in c.items() if k not in strip} for c in ref["clips"]]
+    for clip in ("objs-Box-00", "objs-Ball-00"):
+        assert_same_geometry(tmp_path / "ray" / "clips" / clip, reference / "clips" / clip, 2)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_for_models_renders_only_what_the_models_read(tmp_path):
+    assets = make_assets(tmp_path / "assets")
+    spec = write_spec(tmp_path / "s.toml", assets, name="formodels")
+    text = spec.read_text().replace('seeds = "0:0"', 'seeds = "0:0"\nsplit = "train"')
+    spec.write_text(text.split("[[source]]\nname = \"objs\"")[0])
+    out = tmp_path / "o"
+    proc = run_cli("dataset", spec, "-o", out, "--for-models", "bicubic", "--no-progress", "--threads", "1")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    m = json.loads((out / "clips" / "builtin-s0000" / "manifest.json").read_text())
+    assert m["buffers"] == ["radiance", "motion"]
+    assert read_index(out)["for_models"] == ["bicubic"]
+    assert sorted(p.name for p in (out / "clips" / "builtin-s0000" / "hr").iterdir()) == ["motion", "radiance"]
+
+
+@requires_bpy
+@pytest.mark.bpy
+@pytest.mark.torch
+def test_train_and_evaluate_take_a_dataset(tiny, tmp_path):
+    pytest.importorskip("torch")
+    _, out = tiny
+    run = tmp_path / "run"
+    proc = run_cli("train", "--model", "fusesr-l", "--data", out, "-o", run, "--max-steps", "2",
+                   "--set", "data.crop=8", "--set", "data.batch_size=2", timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    cfg = (run / "config.toml").read_text()
+    assert "builtin-s0000" in cfg and "objs-Box-00" in cfg and "objs-Ball-00" not in cfg  # train split only
+    ev = run_cli("evaluate", "--model", "bicubic", "--data", out, "--json", tmp_path / "e.json", "--no-flip")
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    result = json.loads((tmp_path / "e.json").read_text())
+    assert [Path(c).name for c in result["clips"]] == ["objs-Ball-00"]  # the test split by default
