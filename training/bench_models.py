@@ -37,11 +37,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_models(text: str) -> list[tuple[str, str]]:
-    """'bicubic,fusesr:runs/a/checkpoints/last.pt' -> [('bicubic', 'bicubic'), ('fusesr (a)', 'runs/a/...')]."""
+    """'bicubic,fusesr:runs/a/checkpoints/last.pt,pretrained:fusesr' -> [('bicubic', 'bicubic'),
+    ('fusesr (a)', 'runs/a/...'), ('pretrained:fusesr', 'pretrained:fusesr')]."""
     from training.models import MODELS
     out = []
     for item in (t.strip() for t in text.split(",")):
         if not item:
+            continue
+        if item.startswith("pretrained:"):  # a shipped model (training/pretrained.py)
+            out.append((item, item))
             continue
         name, sep, path = item.partition(":")
         if name not in MODELS:

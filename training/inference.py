@@ -125,7 +125,8 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     else:
         from training.train import load_checkpoint
         from training.config import config_from_checkpoint
-        path = Path(spec)
+        from training.pretrained import resolve
+        path = Path(resolve(spec))
         if not path.exists():
             raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
         ck = load_checkpoint(path)

@@ -132,7 +132,8 @@ def save_checkpoint(path: Path, state: dict) -> None:
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
-    path = Path(path)
+    from training.pretrained import resolve
+    path = Path(resolve(path))
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
     try:

@@ -22,6 +22,9 @@ def add_arguments(p) -> None:
     p.add_argument("--lr-spp", type=int, default=4, help="samples per pixel of the LR render")
     p.add_argument("--buffers", default="default", help="buffers to write (see blendsr render --help)")
     p.add_argument("--extra", default="", help="further 'blendsr render' arguments, quoted as one string")
+    p.add_argument("--for-models", default=None, metavar="M1,M2",
+                   help="render twice, with only the buffers these models read (plus radiance and motion) and with "
+                        "--buffers all, and report the bytes and seconds per frame saved")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON here")
 
 
@@ -49,20 +52,61 @@ def summarize(manifest: dict) -> dict:
     return med
 
 
-def run(args) -> int:
+def _render(args, buffers: str):
+    """Render the benchmark clip with ``buffers``; returns (manifest, bytes of EXR per frame, wall s, command)."""
     with tempfile.TemporaryDirectory(prefix="blendsr-bench-") as tmp:
         out = Path(tmp) / "clip"
         cmd = [sys.executable, "-m", "gbuffer_export.cli", "render", *([args.scene] if args.scene else []),
                "-o", str(out), "--hr-size", args.hr_size, "--scale", str(args.scale), "--frames", args.frames,
-               "--hr-spp", str(args.hr_spp), "--lr-spp", str(args.lr_spp), "--buffers", args.buffers,
+               "--hr-spp", str(args.hr_spp), "--lr-spp", str(args.lr_spp), "--buffers", buffers,
                *args.extra.split()]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if proc.returncode != 0:
-            print(proc.stderr[-2000:], file=sys.stderr)
-            return proc.returncode
+            raise RuntimeError(proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "render failed")
         manifest = json.loads((out / "manifest.json").read_text())
+        nbytes = sum(p.stat().st_size for p in out.rglob("*.exr"))
+    return manifest, nbytes / max(len(manifest["frame_data"]), 1), wall, cmd
+
+
+def run_for_models(args) -> int:
+    """Bytes and seconds per frame of the buffers some models read against ``--buffers all``."""
+    from ..dataset.buffers import buffers_for_models
+    need = buffers_for_models([m for m in args.for_models.split(",") if m.strip()])
+    rows = {}
+    for label, buffers in (("for-models", ",".join(need)), ("all", "all")):
+        manifest, per_frame, wall, cmd = _render(args, buffers)
+        med = summarize(manifest)
+        rows[label] = {"buffers": manifest["buffers"], "bytes_per_frame": per_frame,
+                       "seconds_per_frame": med["total"], "beyond_ground_truth_s": med["total"] - med["hr_ground_truth"],
+                       "hr_gbuffer_s": med["hr_gbuffer"], "command": " ".join(cmd[1:])}
+    a, b = rows["for-models"], rows["all"]
+    result = {"scene": args.scene or "built-in default", "hr_size": args.hr_size, "frames": args.frames,
+              "models": args.for_models, **rows,
+              "bytes_saved_fraction": 1 - a["bytes_per_frame"] / b["bytes_per_frame"],
+              "seconds_saved_per_frame": b["seconds_per_frame"] - a["seconds_per_frame"]}
+    print(f"buffers for {args.for_models} against --buffers all, {result['scene']} at {args.hr_size} "
+          f"(median per frame)")
+    for label, r in rows.items():
+        print(f"  {label:<11} {r['bytes_per_frame'] / 1e6:8.3f} MB  {r['seconds_per_frame']:7.3f} s "
+              f"(beyond ground truth {r['beyond_ground_truth_s']:.3f} s)  {','.join(r['buffers'])}")
+    print(f"  saved: {100 * result['bytes_saved_fraction']:.1f}% of the bytes, "
+          f"{result['seconds_saved_per_frame']:.3f} s per frame")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def run(args) -> int:
+    if args.for_models:
+        return run_for_models(args)
+    try:
+        manifest, _, wall, cmd = _render(args, args.buffers)
+    except RuntimeError as exc:
+        print(f"blendsr: error: bench render: {exc}", file=sys.stderr)
+        return 1
     med = summarize(manifest)
     nframes = len(manifest["frame_data"])
     result = {"scene": args.scene or "built-in default", "hr_size": args.hr_size, "scale": args.scale,

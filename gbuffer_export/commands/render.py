@@ -50,6 +50,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--buffers", default="default",
                    help=f"comma-separated buffers to write, or 'default' ({','.join(DEFAULT_BUFFERS)}) or 'all' "
                         f"({','.join(ALL_BUFFERS)}); radiance is always written")
+    p.add_argument("--for-models", default=None, metavar="M1,M2",
+                   help="instead of --buffers: only the buffers these models read, plus radiance and motion for "
+                        "evaluation (docs/dataset.md)")
     p.add_argument("--fbeta", choices=FBETA_SOURCES, default="cycles",
                    help="source of the pre-integrated BRDF: Cycles' colour passes, the split-sum table (lut), "
                         "the papers' literal table (lut-paper), or a model of Cycles' Principled BSDF")
@@ -60,6 +63,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args) -> RenderConfig:
+    if getattr(args, "for_models", None):
+        from ..dataset.buffers import buffers_for_models
+        args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
     return RenderConfig(
         output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
         scale=args.scale, hr_spp=args.hr_spp, lr_spp=args.lr_spp, gbuffer_spp=args.gbuffer_spp,

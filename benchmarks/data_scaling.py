@@ -1,0 +1,110 @@
+"""The data-scaling table: one model trained at equal steps on 1, 4, 16, ... and all training clips of a BlendSR
+dataset, evaluated on the dataset's test split (assets never seen in training), beside demod-bilinear and demod-jbu.
+
+    .venv/bin/python benchmarks/data_scaling.py DATASET -o runs/scaling [--counts 1,4,16,all] [--steps 500]
+        [--model fusesr] [--config benchmarks/pretrain.toml]
+
+The subsets are nested: the training clips ordered by a stable hash of their ids, the first N of them. Each run is
+a plain ``blendsr train`` run (resumed when its folder exists) and each score a plain ``evaluate_model`` on the test
+split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json, OUT/scaling.md and OUT/scaling.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dataset", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--counts", default="1,4,16,all", help="numbers of training clips ('all' = the whole split)")
+    p.add_argument("--steps", type=int, default=500, help="optimiser steps of every run")
+    p.add_argument("--model", default="fusesr")
+    p.add_argument("--config", default=str(REPO / "benchmarks" / "pretrain.toml"))
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: the config's)")
+    a = p.parse_args(argv)
+
+    import torch
+    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.dataset.build import split_clips
+    from gbuffer_export.dataset.spec import stable_hash
+    from training.config import load_config
+    from training.evaluate import evaluate_model
+    from training.inference import load_model
+    from training.train import train
+
+    train_clips = sorted(split_clips(a.dataset, "train"), key=lambda c: stable_hash("subset", c.name))
+    test_clips = [str(c) for c in split_clips(a.dataset, "test")]
+    if not test_clips:
+        raise SystemExit(f"{a.dataset}: no finished test clips")
+    counts = [len(train_clips) if c == "all" else int(c) for c in a.counts.split(",")]
+    counts = sorted({min(c, len(train_clips)) for c in counts})
+    out = a.output
+    out.mkdir(parents=True, exist_ok=True)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+
+    def score(spec: str) -> dict:
+        model = load_model(spec, 4)
+        r = evaluate_model(model, test_clips, flip=False)
+        per_clip = {}
+        for c in test_clips:
+            vals = [f["psnr"] for f in r["per_frame"] if f["clip"] == c]
+            per_clip[Path(c).name] = round(sum(vals) / len(vals), 3)
+        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip}
+
+    rows = []
+    for name in ("demod-bilinear", "demod-jbu"):
+        rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
+        print(json.dumps(rows[-1]), flush=True)
+    for n in counts:
+        run = out / f"{a.model}_{n:03d}clips"
+        overrides = [f'model.name="{a.model}"', f"run.max_steps={a.steps}", "run.minutes=0"]
+        if a.threads:
+            overrides.append(f"run.threads={a.threads}")
+        cfg = load_config(a.config, overrides)
+        cfg.data.clips = [str(c) for c in train_clips[:n]]
+        ck = run / "checkpoints" / "last.pt"
+        resume = ck.is_file()
+        summary = train(cfg, run, resume=resume, log=lambda m: print(m, file=sys.stderr))
+        rows.append({"model": a.model, "clips": n, "steps": summary["step"], "train_clips": [c.name for c in
+                                                                                           train_clips[:n]],
+                     "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), **score(str(ck))})
+        print(json.dumps(rows[-1]), flush=True)
+    write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
+                                             "steps": a.steps, "config": a.config,
+                                             "command": " ".join(sys.argv)})
+    lines = ["| training data | steps | test PSNR (dB) | test SSIM | per test clip (dB) |", "|---|---|---|---|---|"]
+    for r in rows:
+        what = r["model"] if not r["clips"] else f"{r['model']}, {r['clips']} clip{'s' if r['clips'] > 1 else ''}"
+        per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
+        lines.append(f"| {what} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {per} |")
+    (out / "scaling.md").write_text("\n".join(lines) + "\n")
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+    learned = [r for r in rows if r["clips"]]
+    ax.plot([r["clips"] for r in learned], [r["psnr"] for r in learned], "o-", label=f"{a.model} ({a.steps} steps)")
+    for r, style in zip([r for r in rows if not r["clips"]], ("--", ":")):
+        ax.axhline(r["psnr"], linestyle=style, color="grey", label=r["model"])
+    ax.set_xscale("log")
+    ax.set_xlabel("training clips")
+    ax.set_ylabel("PSNR on unseen test assets (dB)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "scaling.png")
+    print((out / "scaling.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""Pretrained weights shipped in the package (torch layer).
+
+``training/weights/<file>.pt`` holds a slim BlendSR checkpoint (format, configuration, scale, step and the model's
+weights in float16; no optimiser state), and ``<file>.json`` beside it the dataset spec, the commands that made it
+and its scores. Anywhere a checkpoint path is accepted (``evaluate``, ``upscale``, ``export``, ``bench models``,
+``make demo``, the add-on), ``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+PREFIX = "pretrained:"
+
+#: name -> weight file (scale 4) in ``training/weights``.
+PRETRAINED: dict[str, str] = {
+    "fusesr": "fusesr_x4.pt",
+    "fusesr-l": "fusesr_l_x4.pt",
+}
+MAX_BYTES = 10 * 1024 * 1024
+
+
+def resolve(spec) -> str:
+    """``pretrained:NAME`` -> the path of its weight file (FileNotFoundError naming the known ones); anything else
+    is returned unchanged."""
+    spec = str(spec)
+    if not spec.startswith(PREFIX):
+        return spec
+    name = spec[len(PREFIX):]
+    if name not in PRETRAINED:
+        raise FileNotFoundError(f"{spec}: no such pretrained model; shipped: "
+                                f"{', '.join(PREFIX + n for n in PRETRAINED)}")
+    path = WEIGHTS_DIR / PRETRAINED[name]
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: pretrained weights missing from this installation (run "
+                                "benchmarks/pretrain.sh to make them)")
+    return str(path)
+
+
+def available() -> list[str]:
+    """``pretrained:NAME`` specs whose weight file is installed."""
+    return [PREFIX + n for n, f in PRETRAINED.items() if (WEIGHTS_DIR / f).is_file()]
+
+
+def info(name: str) -> dict:
+    """The JSON beside a pretrained weight file (spec, commands, scores)."""
+    path = WEIGHTS_DIR / PRETRAINED[name]
+    return json.loads(path.with_suffix(".json").read_text())
+
+
+def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
+    """Write the slim float16 checkpoint of ``checkpoint`` to ``out`` and ``meta`` (plus sizes and the parameter
+    digest) to ``out`` with suffix .json; ValueError when the file would exceed 10 MB."""
+    import torch
+
+    from training.train import load_checkpoint, param_digest
+    ck = load_checkpoint(checkpoint)
+    slim = {"format": ck["format"], "version": ck.get("version", 1), "model_name": ck.get("model_name"),
+            "config": ck["config"], "scale": ck["scale"], "step": ck.get("step"),
+            "model": {k: (v.half() if v.is_floating_point() else v) for k, v in ck["model"].items()},
+            "weights_dtype": "float16"}
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    torch.save(slim, tmp)
+    size = tmp.stat().st_size
+    if size > MAX_BYTES:
+        tmp.unlink()
+        raise ValueError(f"{out}: {size} bytes exceeds the 10 MB limit for shipped weights")
+    tmp.replace(out)
+    from training.inference import load_model
+    model = load_model(str(out), int(ck["scale"]))
+    meta = {**meta, "file": out.name, "bytes": size, "step": ck.get("step"),
+            "params": sum(p.numel() for p in model.parameters()), "param_digest": param_digest(model)}
+    from gbuffer_export.clip import write_json_atomic
+    write_json_atomic(out.with_suffix(".json"), meta)
+    return meta
