@@ -191,6 +191,7 @@ class RunConfig:
     threads: int = 0                 # torch intra-op threads (0: torch's default)
     progress: bool = True            # tqdm progress bar
     eval_every: int = 0              # steps between validation runs on held-out frames (0: only at the end)
+    init_from: str = ""              # checkpoint (or pretrained:NAME) whose model weights start a fresh run
 
     def validate(self) -> None:
         _positive("run.max_steps", self.max_steps)

@@ -291,6 +291,16 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                               "set model.remod_filter and model.remod_filter_px")
         cfg.model.remod_filter, cfg.model.remod_filter_px = refs.pop()
     model = build_model(cfg.model, scale)
+    if cfg.run.init_from and not resume:  # fine-tuning: the weights of another run (its configuration must match)
+        init = load_checkpoint(cfg.run.init_from)
+        if int(init["scale"]) != scale:
+            raise ConfigError(f"run.init_from {cfg.run.init_from}: trained for scale {init['scale']}, not {scale}")
+        try:
+            model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in init["model"].items()})
+        except RuntimeError as exc:
+            raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
+                              f"with this configuration ({str(exc).splitlines()[0]})") from None
+        log(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
     for c, clip in clips.items():
         mismatch = model.remod_filter_mismatch(clip.manifest, c)
         if mismatch:

@@ -1,0 +1,81 @@
+"""Score trained runs and the baselines on a dataset's test split and write the shipped float16 weights.
+
+    .venv/bin/python benchmarks/release_weights.py DATASET RUNS [--steps N]
+
+Expects RUNS/fusesr and RUNS/fusesr_l (``benchmarks/pretrain.sh`` makes them). Writes
+training/weights/{fusesr_x4,fusesr_l_x4}.pt and .json (dataset spec and index digest, commands, scores of the
+model and of bicubic, demod-bilinear and demod-jbu on the same test clips) and RUNS/release.json.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dataset", type=Path)
+    p.add_argument("runs", type=Path)
+    p.add_argument("--steps", type=int, default=None, help="recorded in the metadata")
+    a = p.parse_args(argv)
+
+    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.dataset.build import read_index, split_clips
+    from training.evaluate import evaluate_model
+    from training.inference import load_model
+    from training.pretrained import PRETRAINED, WEIGHTS_DIR, release
+
+    test = [str(c) for c in split_clips(a.dataset, "test")]
+    train = [c.name for c in split_clips(a.dataset, "train")]
+    index = read_index(a.dataset)
+
+    def score(spec: str) -> dict:
+        r = evaluate_model(load_model(spec, 4), test, flip=False)
+        per = {}
+        for c in test:
+            vals = [f["psnr"] for f in r["per_frame"] if f["clip"] == c]
+            per[Path(c).name] = round(sum(vals) / len(vals), 3)
+        return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
+                "psnr_hdr": round(r["mean"]["psnr_hdr"], 3), "tpsnr": r["mean"].get("tpsnr"),
+                "per_clip": per, "frames": r["mean"]["frames"]}
+
+    baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
+    out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset), "test_clips": [Path(c).name
+                                                                                                 for c in test],
+           "baselines": baselines, "models": {}}
+    for name, file in PRETRAINED.items():
+        run = a.runs / name.replace("-", "_")
+        ck = run / "checkpoints" / "last.pt"
+        if not ck.is_file():
+            print(f"skip {name}: {ck} not found", file=sys.stderr)
+            continue
+        s = score(str(ck))
+        meta = {
+            "model": name, "scale": 4, "date": out["date"],
+            "dataset": {"spec_file": "examples/dataset_small.toml", "spec_sha256": index["spec"]["sha256"],
+                        "name": index["name"], "train_clips": train, "test_clips": out["test_clips"]},
+            "commands": ["benchmarks/pretrain.sh " + " ".join(map(str, (a.dataset, a.runs))),
+                         f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
+                         f"--max-steps {a.steps}"],
+            "config": "benchmarks/pretrain.toml",
+            "scores_on_test_split": {"metric": "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP",
+                                     name: s, **baselines},
+            "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
+        }
+        meta = release(ck, WEIGHTS_DIR / file, meta)
+        out["models"][name] = meta
+        print(f"{name}: test PSNR {s['psnr']:.2f} dB (demod-jbu {baselines['demod-jbu']['psnr']:.2f}, "
+              f"{meta['gain_over_demod_jbu_db']:+.2f} dB), {meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")
+    write_json_atomic(a.runs / "release.json", out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
