@@ -20,8 +20,13 @@ FBETA_ITEMS = (
     ("lut-paper", "Papers' table", "The papers' literal table convention"),
     ("model", "Model", "A model of Cycles' Principled BSDF"),
 )
-#: Non-learned models the preview runs when no checkpoint is chosen (names of training.models.MODELS).
+#: Models the preview runs when no checkpoint is chosen: the weights shipped with blendsr (training/pretrained.py,
+#: trained on the examples/dataset_small.toml dataset) and the non-learned models of training.models.MODELS.
 PREVIEW_MODEL_ITEMS = (
+    ("pretrained:fusesr-l", "FuseSR-l (pretrained)",
+     "FuseSR-l with the weights shipped in blendsr (trained on a BlendSR dataset; see training/weights/*.json)"),
+    ("pretrained:fusesr", "FuseSR (pretrained)",
+     "FuseSR with the weights shipped in blendsr (two history frames; slower than FuseSR-l)"),
     ("demod-bilinear", "Demodulated bilinear",
      "Bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta and emission"),
     ("demod-jbu", "Demodulated joint bilateral",
@@ -84,8 +89,9 @@ class BlendSRSettings(bpy.types.PropertyGroup):
     # -- preview -------------------------------------------------------------------------------------------------
     checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", default="",
                                description="Trained model checkpoint; empty: the non-learned model below")
-    preview_model: EnumProperty(name="Model", items=PREVIEW_MODEL_ITEMS, default="demod-bilinear",
-                                description="Non-learned model used when no checkpoint is chosen")
+    preview_model: EnumProperty(name="Model", items=PREVIEW_MODEL_ITEMS, default="pretrained:fusesr-l",
+                                description="Model used when no checkpoint is chosen: shipped pretrained weights "
+                                            "or a non-learned model")
     with_reference: BoolProperty(name="With reference", default=False,
                                  description="Also render the HR ground truth (HR samples) and report PSNR")
     # -- results of the last preview (read-only) -----------------------------------------------------------------

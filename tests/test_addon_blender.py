@@ -137,12 +137,14 @@ def test_register_unregister_twice_and_defaults():
     for prop, field in [("scale", "scale"), ("hr_spp", "hr_spp"), ("lr_spp", "lr_spp"), ("camera_path", "camera_path"),
                         ("jitter", "jitter"), ("fbeta_source", "fbeta"), ("seed", "seed")]:
         assert d[prop] == getattr(rc, field), prop
-    assert d["with_reference"] is False and d["checkpoint"] == "" and d["preview_model"] == "demod-bilinear"
+    assert d["with_reference"] is False and d["checkpoint"] == "" and d["preview_model"] == "pretrained:fusesr-l"
     assert r["enums"]["camera_path"] == list(CAMERA_PATHS)
     assert r["enums"]["jitter"] == list(JITTERS)
     assert r["enums"]["fbeta_source"] == list(FBETA_SOURCES)
     from training.models import MODELS
-    assert all(m in MODELS and not MODELS[m].learned for m in r["enums"]["preview_model"])
+    from training.pretrained import PREFIX, PRETRAINED
+    for m in r["enums"]["preview_model"]:  # shipped weights, or non-learned models
+        assert (m.startswith(PREFIX) and m[len(PREFIX):] in PRETRAINED) or (m in MODELS and not MODELS[m].learned), m
 
 
 def test_mapping_equals_cli_config(tmp_path):
