@@ -16,7 +16,8 @@ Checks, in order:
                background; fbeta in [0, fbeta_max] on surfaces and 1 on background; material buffers in [0, 1];
                emission >= 0; only known flag bits;
     motion     stored motion against ``reprojection_motion`` from the stored depth and cameras on static surface
-               pixels, and against the rotation-only motion on background pixels (fractions within tolerance).
+               pixels (neither MOVING nor ALPHA: an alpha-blended pixel's Vector pass averages the layers its samples
+               stopped at, its depth is sample 0's), and against the rotation-only motion on background pixels (fractions within tolerance).
 """
 from __future__ import annotations
 
@@ -747,7 +748,9 @@ class _Validator:
         static = surface & fin
         flags = b.get("flags")
         if flags is not None:
-            static &= (flags[..., 0] & np.uint32(Flag.MOVING)) == 0
+            # Moving objects are not static; alpha-blended pixels mix layers (Cycles averages the Vector pass over
+            # samples that pass through or stop at the surface, while depth comes from sample 0 alone).
+            static &= (flags[..., 0] & np.uint32(Flag.MOVING | Flag.ALPHA)) == 0
         background = ~surface
         # One call gives both fields: finite depth reprojects, +inf gets the rotation-only motion.
         jitter = cam.get("jitter", (0.0, 0.0))  # depth was sampled at p + jitter (see conventions)

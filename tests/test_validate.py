@@ -359,6 +359,16 @@ def test_moving_pixels_are_not_checked_for_reprojection(clip):
     assert r.stats["per_frame"]["2"]["hr"]["static_pixels"] == 0
 
 
+def test_alpha_blended_pixels_are_not_checked_for_reprojection(clip):
+    """An alpha-blended pixel's motion averages layers while its depth is sample 0's: not a static pixel."""
+    s = surface(clip, 2)
+    edit_buffer(clip, 2, "hr/flags", lambda a: np.where(s[..., None], a | np.uint32(Flag.ALPHA), a))
+    _motion_offset(clip)
+    r = validate_clip(clip)
+    assert findings(r, "motion-reprojection") == []
+    assert r.stats["per_frame"]["2"]["hr"]["static_pixels"] == 0
+
+
 def test_background_motion_zero_message(clip):
     _background_motion_zero(clip)
     r = validate_clip(clip)
