@@ -34,8 +34,8 @@ from .conventions import BUFFERS
 
 #: Resident memory of a render process before any pixel: Python, bpy, the scene (measured: ~0.6 GB).
 MEMORY_BASE = 700 * 2**20
-#: Peak bytes per HR pixel (the LR level included), all buffers; measured 512-560 B/pixel, rounded up.
-MEMORY_PER_HR_PIXEL = 600
+#: Peak bytes per HR pixel (the LR level included), all buffers; measured slope 656 B/pixel, rounded up.
+MEMORY_PER_HR_PIXEL = 800
 #: Channels of Cycles' temporary multilayer EXR per pixel (combined, depth, normal, vector, colour passes, AOVs).
 TEMP_EXR_CHANNELS = 40
 
