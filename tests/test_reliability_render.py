@@ -57,3 +57,58 @@ def test_the_same_render_command_gives_bit_identical_exrs(tmp_path):
     if address_layout_fixed() is None:
         pytest.skip("address-space layout cannot be queried on this platform")
     assert differ == [], f"{len(differ)} buffers differ, e.g. {differ[:4]}"
+
+
+def test_fbeta_unmodeled_flag_per_source():
+    from gbuffer_export.conventions import UNTRUSTED, Flag, material_flags_for_source
+    coat = int(Flag.COAT | Flag.EMISSIVE)
+    assert material_flags_for_source(coat, "cycles") == coat  # Cycles' colour passes carry the coat
+    for src in ("lut", "lut-paper", "model"):
+        f = material_flags_for_source(coat, src)
+        assert f & int(Flag.FBETA_UNMODELED) and f & int(UNTRUSTED)
+        assert material_flags_for_source(int(Flag.MOVING), src) == int(Flag.MOVING)
+
+
+def _furnace_clip(tmp_path, fbeta):
+    import subprocess
+    import sys
+
+    from conftest import ENV, REPO
+    blend, layout = tmp_path / "f.blend", tmp_path / "layout.json"
+    if not blend.exists():
+        subprocess.run([sys.executable, "-m", "gbuffer_export.blender.furnace", str(blend), str(layout), "--size",
+                        "256", "64", "--columns", "4", "--materials",
+                        "diel_grey_r0.50,coat_orange_r0.50,sheen_grey_r0.50,glass_r0.30"], check=True, cwd=REPO,
+                       capture_output=True, timeout=300, env=ENV)
+    clip = tmp_path / f"clip_{fbeta}"
+    run_cli("render", blend, "-o", clip, "--frames", "1:1", "--hr-size", "256x64", "--hr-spp", "1", "--lr-spp", "256",
+            "--buffers", "all", "--jitter", "none", "--no-progress", "--fbeta", fbeta, timeout=600, check=True)
+    return clip
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_unflagged_pixels_match_the_furnace_for_every_fbeta_source(tmp_path):
+    """White furnace with coat, sheen and glass: every surface pixel that no UNTRUSTED bit marks has fbeta within 5%
+    of the furnace radiance, for the model source (which cannot represent the layers) and for Cycles' passes."""
+    import numpy as np
+
+    from gbuffer_export import open_clip
+    from gbuffer_export.conventions import UNTRUSTED, Flag
+    within = {}
+    for src in ("model", "cycles"):
+        c = open_clip(_furnace_clip(tmp_path, src))
+        flags = c.read(1, "lr/flags")[..., 0]
+        truth = c.read(1, "lr/radiance") - c.read(1, "lr/emission")
+        fb = c.read(1, "lr/fbeta")
+        surface = (flags & int(Flag.BACKGROUND)) == 0
+        trusted = surface & ((flags & int(UNTRUSTED)) == 0)
+        layered = surface & ((flags & int(Flag.COAT | Flag.SHEEN | Flag.TRANSMISSION)) != 0)
+        assert layered.sum() > 50 and trusted.sum() > 20
+        rel = np.abs(fb - truth).max(axis=-1) / np.maximum(truth.max(axis=-1), 0.05)
+        within[src] = float((rel[trusted] <= 0.05).mean())
+        if src == "model":
+            assert not (trusted & layered).any()  # coat, sheen, glass: untrusted under the model
+        else:
+            assert (trusted & layered).sum() == layered.sum()  # Cycles' passes carry them
+    assert within["model"] >= 0.95 and within["cycles"] >= 0.95, within
