@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    args.own_process = argv is None  # the command line of this process (a command may re-exec it)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -93,10 +93,33 @@ class Flag(IntFlag):
     EMISSIVE = 1 << 8         # emission > 0 (informative; demodulation subtracts it)
     MOVING = 1 << 9           # the object is animated (informative; not static for reprojection checks)
     SINGLE_SCATTER_GGX = 1 << 10  # Principled with a non-multiscatter distribution: loses energy on rough metals
+    TRANSMISSION = 1 << 11    # transmission weight > 0 (informative; see FBETA_UNMODELED)
+    COAT = 1 << 12            # coat weight > 0 (informative)
+    SHEEN = 1 << 13           # sheen weight > 0 (informative)
+    THIN_FILM = 1 << 14       # thin-film thickness > 0 (informative)
+    FBETA_UNMODELED = 1 << 15  # the clip's fbeta source cannot represent this material (FBETA_UNMODELED_BY)
 
 
 UNTRUSTED = (Flag.ANISOTROPIC | Flag.SPECULAR_TINT | Flag.SUBSURFACE | Flag.ALPHA | Flag.VOLUME
-             | Flag.NON_PRINCIPLED | Flag.NO_MATERIAL | Flag.SINGLE_SCATTER_GGX)
+             | Flag.NON_PRINCIPLED | Flag.NO_MATERIAL | Flag.SINGLE_SCATTER_GGX | Flag.FBETA_UNMODELED)
+
+#: Per fbeta source, the material features it cannot represent: a pixel with any of them also gets
+#: FBETA_UNMODELED (untrusted). Cycles' colour passes carry transmission, coat, sheen and thin film (measured on the
+#: white furnace, docs/brdf.md); the split-sum tables and the Principled model describe only the base dielectric /
+#: metal layers. Features untrusted for every source (anisotropy, specular tint, alpha, ...) are in UNTRUSTED already.
+FBETA_UNMODELED_BY: dict[str, Flag] = {
+    "cycles": Flag(0),
+    "lut": Flag.TRANSMISSION | Flag.COAT | Flag.SHEEN | Flag.THIN_FILM,
+    "lut-paper": Flag.TRANSMISSION | Flag.COAT | Flag.SHEEN | Flag.THIN_FILM,
+    "model": Flag.TRANSMISSION | Flag.COAT | Flag.SHEEN | Flag.THIN_FILM,
+}
+
+
+def material_flags_for_source(flags: int, fbeta_source: str) -> int:
+    """A material's flag bits with FBETA_UNMODELED added when ``fbeta_source`` cannot represent it."""
+    if int(flags) & int(FBETA_UNMODELED_BY[fbeta_source]):
+        return int(flags) | int(Flag.FBETA_UNMODELED)
+    return int(flags)
 
 
 def buffer_spec(name: str) -> BufferSpec:

@@ -37,6 +37,7 @@ import OpenEXR
 
 from .clip import FRAMES_DIR, MANIFEST, ClipError, buffer_path, frame_name, load_manifest
 from .conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, Flag, reprojection_motion
+from .demod import RADIANCE_CAP
 
 ERROR = "error"
 WARNING = "warning"
@@ -71,6 +72,7 @@ CODES: dict[str, str] = {
     "bad-dtype": "a buffer file has the wrong sample type (flags must be uint32, others float)",
     # values
     "non-finite": "NaN or Inf in a buffer (Inf allowed only in depth on background)",
+    "implausible-value": "radiance or emission beyond +-RADIANCE_CAP (1e9), which no scene produces (warning)",
     "depth-range": "depth <= 0 on a surface pixel",
     "depth-inf-on-surface": "depth is +inf where flags do not mark background (or not finite where no flags)",
     "depth-finite-on-background": "depth is finite where flags mark background (Blender's 1e10 not converted?)",
@@ -657,6 +659,14 @@ class _Validator:
                 self.add("non-finite", f"{int(px.sum())} of {px.size} pixel(s) non-finite ({n_nan} NaN, {n_inf} "
                                        "Inf)", frame=frame, key=f"{lvl}/{name}", pixels=int(px.sum()),
                          nan=n_nan, inf=n_inf)
+            if name in ("radiance", "emission"):
+                with np.errstate(invalid="ignore"):
+                    huge = (np.abs(arr) > RADIANCE_CAP).any(axis=-1)
+                if huge.any():
+                    self.add("implausible-value", f"{int(huge.sum())} pixel(s) with |value| > {RADIANCE_CAP:.0e}, "
+                                                  f"which no scene produces (max {float(np.nanmax(np.abs(arr[huge]))):.4g}"
+                                                  "; training treats them as non-finite: data.nonfinite)",
+                             frame=frame, key=f"{lvl}/{name}", severity=WARNING, pixels=int(huge.sum()))
         normal = b.get("normal")
         if normal is not None:
             length = np.linalg.norm(normal.astype(np.float64), axis=-1)

@@ -244,6 +244,8 @@ CASES = {
     "bad-dtype": (lambda c: write(c, 2, "hr/flags", read(c, 2, "hr/flags").astype(np.float32)), ERROR, 2,
                   "hr/flags"),
     "non-finite": (_nan_radiance, ERROR, 2, "hr/radiance"),
+    "implausible-value": (lambda c: edit_buffer(c, 2, "lr/radiance", lambda a: a.__setitem__((3, 4, 0), 1e30)),
+                          WARNING, 2, "lr/radiance"),
     "depth-range": (lambda c: _depth_where(c, -1.0, True), ERROR, 2, "hr/depth"),
     "depth-inf-on-surface": (lambda c: _depth_where(c, np.inf, True), ERROR, 2, "hr/depth"),
     "depth-finite-on-background": (lambda c: _depth_where(c, 1e10, False), ERROR, 2, "hr/depth"),

@@ -120,7 +120,8 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     from training.commands import _scale_of
     from training.evaluate import evaluate_model
     from training.inference import ClipFrames, load_model, model_inputs
-    from training.train import load_checkpoint, resolve_device
+    from training.checkpoint import load_checkpoint
+    from training.train import resolve_device
 
     scale = _scale_of(clips)
     device = device or resolve_device("auto")

@@ -32,7 +32,7 @@ from gbuffer_export.clip import Clip, ClipError, open_clip, split_key, write_jso
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
 FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion")
@@ -72,7 +72,7 @@ def default_cache_path(clip_path: Path, cache_dir: str | os.PathLike | None = No
 
 def check_finite(a: np.ndarray, name: str, where: str, policy: str, log: list) -> np.ndarray:
     """Apply the non-finite policy to buffer ``name``. Depth may be +inf (background); nothing else may be
-    non-finite. 'error' raises NonFiniteError naming ``where``; 'sanitize' warns, records and repairs:
+    non-finite, and radiance/emission beyond +-RADIANCE_CAP (values no scene produces) count as non-finite. 'error' raises NonFiniteError naming ``where``; 'sanitize' warns, records and repairs:
     radiance/emission by the demodulation rule (NaN -> 0, +-Inf -> +-cap), depth NaN/-Inf -> +inf (background),
     other buffers NaN/Inf -> 0."""
     if a.dtype.kind != "f":
@@ -81,13 +81,19 @@ def check_finite(a: np.ndarray, name: str, where: str, policy: str, log: list) -
         bad = np.isnan(a) | np.isneginf(a)
     else:
         bad = ~np.isfinite(a)
+    what = "NaN/Inf"
+    if name in ("radiance", "emission"):  # beyond RADIANCE_CAP no scene produces: treated like Inf
+        huge = np.abs(a) > RADIANCE_CAP
+        if huge.any():
+            bad |= huge
+            what = f"NaN/Inf or implausible (|x| > {RADIANCE_CAP:.0e})"
     n = int(bad.sum())
     if n == 0:
         return a
     if policy == "error":
-        raise NonFiniteError(f"{where}: {n} NaN/Inf value(s) in buffer {name!r}; fix the render or set "
+        raise NonFiniteError(f"{where}: {n} {what} value(s) in buffer {name!r}; fix the render or set "
                              "data.nonfinite = \"sanitize\"")
-    warnings.warn(f"{where}: sanitised {n} NaN/Inf value(s) in buffer {name!r}", RuntimeWarning, stacklevel=3)
+    warnings.warn(f"{where}: sanitised {n} {what} value(s) in buffer {name!r}", RuntimeWarning, stacklevel=3)
     log.append({"where": where, "buffer": name, "count": n})
     if name in ("radiance", "emission"):
         return np.clip(np.nan_to_num(a, nan=0.0, posinf=RADIANCE_CAP, neginf=-RADIANCE_CAP),

@@ -116,7 +116,7 @@ def cmd_train(args) -> int:
     if args.resume and not (args.config or overrides):
         cfg = None
         if data:  # only the clips were repeated: they must be the checkpoint's
-            from training.train import load_checkpoint
+            from training.checkpoint import load_checkpoint
             ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
             saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
             if sorted(str(Path(c).resolve()) for c in data) != saved:
@@ -215,7 +215,7 @@ def cmd_export(args) -> int:
     from training.inference import load_model
     from gbuffer_export.config import parse_size
     if args.checkpoint:
-        from training.train import load_checkpoint
+        from training.checkpoint import load_checkpoint
         scale = int(load_checkpoint(args.checkpoint)["scale"])
     else:
         scale = args.scale

@@ -110,7 +110,8 @@ class TrainSampler:
             frames = c.frames[:len(c.frames) - val_frames] if val_frames else c.frames
             w, h = c.sizes["lr"]
             if spec.crop > min(w, h):
-                raise ClipError(f"{c.clip_path}: LR size {w}x{h} is smaller than data.crop = {spec.crop}")
+                raise ClipError(f"{c.clip_path}: LR size {w}x{h} is smaller than data.crop = {spec.crop}; "
+                                f"--set data.crop={min(w, h)} (or less) fits it")
             self.items += [(ci, i) for i in windows(frames, spec.lr_window)]
         if not self.items:
             raise ClipError(f"no window of {spec.lr_window} consecutive training frames in "

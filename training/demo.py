@@ -30,7 +30,8 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
     from training.bench_models import benchmark
     from training.config import config_from_checkpoint, load_config
     from training.pretrained import available
-    from training.train import load_checkpoint, train
+    from training.checkpoint import load_checkpoint
+    from training.train import train
 
     out = Path(out)
     pretrained = available()

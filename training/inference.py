@@ -123,7 +123,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         model.demod_eps = 0.01
         model.config = None
     else:
-        from training.train import load_checkpoint
+        from training.checkpoint import load_checkpoint
         from training.config import config_from_checkpoint
         from training.pretrained import resolve
         path = Path(resolve(spec))

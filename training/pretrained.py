@@ -54,7 +54,8 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     digest) to ``out`` with suffix .json; ValueError when the file would exceed 10 MB."""
     import torch
 
-    from training.train import load_checkpoint, param_digest
+    from training.checkpoint import load_checkpoint
+    from training.train import param_digest
     ck = load_checkpoint(checkpoint)
     slim = {"format": ck["format"], "version": ck.get("version", 1), "model_name": ck.get("model_name"),
             "config": ck["config"], "scale": ck["scale"], "step": ck.get("step"),

@@ -34,12 +34,13 @@ import torch
 from gbuffer_export.clip import write_json_atomic
 from gbuffer_export.config import ConfigError
 from training.cache import ClipCache
+from training.checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_checkpoint,  # noqa: F401
+                                 numpy_rng_state, restore_numpy_rng, save_checkpoint)
 from training.config import TrainConfig, config_from_checkpoint
 from training.data import BatchSpec, Prefetcher, TrainSampler
 from training.losses import Criterion
 from training.models import MODELS, OPTIONAL_KEYS, build_model
 
-CHECKPOINT_FORMAT = "blendsr.checkpoint"
 LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "lr", "step_ms", "data_ms",
                "samples_per_s", "elapsed_s")
 #: Run-section keys that may change on --resume (everything else must match the checkpoint).
@@ -124,25 +125,22 @@ def param_digest(model: torch.nn.Module, params_only: bool = False) -> str:
     return h.hexdigest()[:16]
 
 
-def save_checkpoint(path: Path, state: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    from training.pretrained import resolve
-    path = Path(resolve(path))
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:
-        raise ValueError(f"{path}: not a readable checkpoint ({exc})") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a BlendSR checkpoint")
-    return ck
+def fit_crop(cfg: TrainConfig, clips: dict, log=None) -> None:
+    """Shrink the default ``data.crop`` to the smallest LR side of ``clips`` (with a note); a crop set to
+    another value that does not fit is a ConfigError that names the largest one that does."""
+    from training.config import DataConfig
+    sides = {c: min(clip.sizes["lr"]) for c, clip in clips.items()}
+    if not sides or cfg.data.crop <= min(sides.values()):
+        return
+    c, side = min(sides.items(), key=lambda kv: kv[1])
+    w, h = clips[c].sizes["lr"]
+    if cfg.data.crop != DataConfig().crop:
+        raise ConfigError(f"{c}: LR size {w}x{h} is smaller than data.crop = {cfg.data.crop}; "
+                          f"--set data.crop={side} (or less) fits every clip")
+    if log is not None:
+        log(f"note: data.crop {cfg.data.crop} -> {side}, the largest that fits {c} (LR {w}x{h}); "
+            f"set data.crop to choose another")
+    cfg.data.crop = side
 
 
 def unwrap(model):
@@ -283,6 +281,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if cfg.model.scale and cfg.model.scale != scale:
         raise ConfigError(f"model.scale = {cfg.model.scale} but the clips have scale {scale}")
     cfg.model.scale = scale
+    fit_crop(cfg, clips, log if dist.main else None)
     if cfg.model.remod_filter == "REFERENCE":  # resolved once into the saved configuration
         from gbuffer_export.pixel_filter import reference_filter
         refs = {reference_filter(clip.manifest) for clip in clips.values()}
@@ -333,7 +332,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         scheduler.load_state_dict(ck["scheduler"])
         rng = ck["rng"]
         torch.set_rng_state(rng["torch"])
-        np.random.set_state(rng["numpy"])
+        restore_numpy_rng(rng["numpy"])
         random.setstate(rng["python"])
         if device.type == "cuda" and rng.get("cuda") is not None:
             torch.cuda.set_rng_state_all(rng["cuda"])
@@ -379,11 +378,11 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             tb = None
 
     def state(cur_step: int, elapsed: float) -> dict:
-        return {"format": CHECKPOINT_FORMAT, "version": 1, "model_name": cfg.model.name, "scale": scale,
+        return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "model_name": cfg.model.name, "scale": scale,
                 "step": cur_step, "config": cfg.to_dict(), "model": unwrap(net).state_dict(),
                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                 "scaler": scaler.state_dict() if scaler is not None else None,
-                "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+                "rng": {"torch": torch.get_rng_state(), "numpy": numpy_rng_state(), "python": random.getstate(),
                         "cuda": torch.cuda.get_rng_state_all() if device.type == "cuda" else None},
                 "sampler": {**sampler.state_dict(), "next_step": cur_step}, "data": manifests,
                 "world_size": dist.world, "elapsed_s": elapsed, "device": str(device),

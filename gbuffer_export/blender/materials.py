@@ -101,12 +101,16 @@ def inspect_material(mat, index: int) -> MaterialInfo:
         info.features.append("metallic")
     if _nonzero(_input(node, "Transmission Weight")):
         info.features.append("transmission")
+        flags |= Flag.TRANSMISSION
     if _nonzero(_input(node, "Coat Weight")):
         info.features.append("coat")
+        flags |= Flag.COAT
     if _nonzero(_input(node, "Sheen Weight")):
         info.features.append("sheen")
+        flags |= Flag.SHEEN
     if _nonzero(_input(node, "Thin Film Thickness")):
         info.features.append("thin_film")
+        flags |= Flag.THIN_FILM
     normal = _input(node, "Normal")
     if normal is not None and normal.is_linked:
         info.features.append("normal_map_or_bump")

@@ -24,12 +24,13 @@ import bpy
 import numpy as np
 
 from .. import __version__
-from ..clip import ClipError, ClipWriter
+from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name
 from ..config import ConfigError, RenderConfig
-from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, scale_intrinsics,
-                           world_to_camera_normals)
+from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection,
+                           material_flags_for_source, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
+from ..resources import check_render_resources
 from . import materials as mats
 
 BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
@@ -384,6 +385,9 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     scene.camera = cam
     w, h = resolve_size(cfg, scene)
     lw, lh = w // cfg.scale, h // cfg.scale
+    undone = [f for i, f in enumerate(all_frames) if i % cfg.shard[1] == cfg.shard[0] - 1
+              and not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
+    check_render_resources((w, h), cfg.scale, cfg.buffers, len(undone), cfg.output)
     ctx_vl = getattr(bpy.context, "view_layer", None)
     view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
     view_layer = view_layer or scene.view_layers[0]
@@ -395,7 +399,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
     flag_lut[0] = int(Flag.NO_MATERIAL)
     for info in infos.values():
-        flag_lut[info.index] = info.flags
+        flag_lut[info.index] = material_flags_for_source(info.flags, cfg.fbeta)
     moving = [ob for ob in renderable_meshes(scene) if mats.object_is_moving(ob, scene, all_frames[0])]
     for ob in renderable_meshes(scene):
         ob.pass_index = 1 if ob in moving else 0

@@ -78,6 +78,9 @@ def config_from_args(args) -> RenderConfig:
 
 def run(args) -> int:
     cfg = config_from_args(args)
+    if getattr(args, "own_process", False):
+        from ..reproducible import prepare_render_process
+        prepare_render_process(cfg.threads)  # --threads 1: bit-identical EXRs for the same command
     from ..blender.render import render_clip  # imports bpy
     out = render_clip(cfg)
     print(f"blendsr: wrote {out}")

@@ -1,0 +1,126 @@
+"""Memory and disk a render needs, estimated before it starts (pure Python; no bpy).
+
+``blendsr render`` calls ``check_render_resources`` once the HR size, buffers and frames are known and before
+anything is rendered or written; an absurd size (``--hr-size 100000x100000``) is refused with one line that says how
+much is needed and how much there is, instead of growing until the machine swaps.
+
+Memory model, peak resident memory of the render process::
+
+    bytes = MEMORY_BASE + MEMORY_PER_HR_PIXEL * W * H
+
+``MEMORY_PER_HR_PIXEL`` covers Cycles' render buffers, Blender's render result, the multilayer EXR read back and
+the converted output arrays of one HR frame (the LR frame is 1/scale^2 of that and included). Measured with
+``/usr/bin/time -f %M`` on ``blendsr render --frames 1:1 --hr-spp 1 --lr-spp 1 --buffers all`` of the built-in
+scene at 640x360, 1280x720 and 1920x1080 (docs/results.md, "Render memory"): rounded up so that the estimate stays
+above the measured peaks; scenes with large textures or geometry need more.
+
+Disk model: the uncompressed payload of the frames still to render, ``(W*H + w*h) * channels * 4`` bytes per frame
+(an upper bound: the EXRs are ZIP-compressed; float32 and uint32 are 4 bytes), plus Cycles' temporary multilayer
+EXR of one frame.
+
+Available memory is the smaller of /proc/meminfo's MemAvailable and the cgroup limit (when there is one);
+elsewhere the free physical pages. ``BLENDSR_MEMORY_AVAILABLE`` (bytes) overrides it, for tests and for machines
+where swap should count.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .config import ConfigError
+from .conventions import BUFFERS
+
+#: Resident memory of a render process before any pixel: Python, bpy, the scene (measured: ~0.6 GB).
+MEMORY_BASE = 700 * 2**20
+#: Peak bytes per HR pixel (the LR level included), all buffers; measured slope 656 B/pixel, rounded up.
+MEMORY_PER_HR_PIXEL = 800
+#: Channels of Cycles' temporary multilayer EXR per pixel (combined, depth, normal, vector, colour passes, AOVs).
+TEMP_EXR_CHANNELS = 40
+
+
+class ResourceError(ConfigError):
+    """A render would need more memory or disk than there is (one line: needed, available, what to change)."""
+
+
+@dataclass(frozen=True)
+class RenderEstimate:
+    memory_bytes: int   # peak resident memory of the render process
+    disk_bytes: int     # upper bound of what the frames still to render write (uncompressed)
+    frames: int
+
+
+def human(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1000.0
+    return f"{n:.3g} PB"
+
+
+def estimate_render(hr_size: tuple[int, int], scale: int, buffers, frames: int) -> RenderEstimate:
+    w, h = hr_size
+    lw, lh = w // scale, h // scale
+    channels = sum(len(BUFFERS[b].channels) for b in buffers)
+    per_frame = (w * h + lw * lh) * channels * 4
+    temp = w * h * TEMP_EXR_CHANNELS * 4
+    return RenderEstimate(memory_bytes=MEMORY_BASE + MEMORY_PER_HR_PIXEL * w * h,
+                          disk_bytes=per_frame * frames + (temp if frames else 0), frames=frames)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory a new allocation can use (see module doc); None when unknown."""
+    env = os.environ.get("BLENDSR_MEMORY_AVAILABLE")
+    if env:
+        return int(float(env))
+    found = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found.append(int(line.split()[1]) * 1024)
+    except OSError:
+        pass
+    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            lim = Path(limit).read_text().strip()
+            if lim != "max" and int(lim) < 2**60:
+                found.append(int(lim) - int(Path(usage).read_text().strip()))
+            break
+        except (OSError, ValueError):
+            continue
+    if not found:
+        try:
+            found.append(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            return None
+    return max(min(found), 0)
+
+
+def free_disk(path: Path) -> int | None:
+    """Free bytes on the file system that holds ``path`` (its nearest existing ancestor)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None
+
+
+def check_render_resources(hr_size: tuple[int, int], scale: int, buffers, frames: int, output: Path,
+                           *, memory: int | None = None, disk: int | None = None) -> RenderEstimate:
+    """Raise ResourceError when the estimate exceeds the available memory or the free disk; return it."""
+    est = estimate_render(hr_size, scale, buffers, frames)
+    w, h = hr_size
+    memory = available_memory() if memory is None else memory
+    if memory is not None and est.memory_bytes > memory:
+        raise ResourceError(f"--hr-size {w}x{h}: rendering needs about {human(est.memory_bytes)} of memory and "
+                            f"{human(memory)} is available; lower --hr-size")
+    disk = free_disk(output) if disk is None else disk
+    if disk is not None and est.disk_bytes > disk:
+        raise ResourceError(f"{output}: {frames} frame(s) of {w}x{h} with {len(list(buffers))} buffers need up to "
+                            f"{human(est.disk_bytes)} of disk and {human(disk)} is free; lower --hr-size, --frames or "
+                            "--buffers")
+    return est

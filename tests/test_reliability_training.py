@@ -1,0 +1,120 @@
+"""Reliability of the torch layer: checkpoints never run code, the default crop fits small clips."""
+import os
+import pickle
+import zipfile
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from gbuffer_export.cli import main  # noqa: E402
+from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
+from training.checkpoint import CheckpointError, load_checkpoint  # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+SMALL = ["data.batch_size=2", "model.width=8", "model.blocks=1", "run.progress=false", "run.amp=\"none\"",
+         "run.threads=0"]
+
+
+def _sets(items):
+    return [a for s in items for a in ("--set", s)]
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
+
+
+class _Payload:
+    """Unpickling this calls os.system: what a hostile checkpoint does."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_a_malicious_checkpoint_is_refused_with_one_line_and_runs_nothing(clip, tmp_path, capsys):
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "blendsr.checkpoint", "scale": 4, "model": _Payload(marker)}, evil)
+    with pytest.raises(CheckpointError, match="refused.*system"):
+        load_checkpoint(evil)
+    for argv in (["evaluate", "--checkpoint", str(evil), "--data", str(clip), "--json", str(tmp_path / "e.json")],
+                 ["upscale", "--checkpoint", str(evil), "--clip", str(clip), "-o", str(tmp_path / "sr")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "refused" in err and str(evil) in err, err
+    assert not marker.exists()
+    # a plain pickle (not torch's zip) is refused too, without unpickling it
+    raw = tmp_path / "raw.pt"
+    raw.write_bytes(pickle.dumps(_Payload(marker)))
+    with pytest.raises(CheckpointError, match="not a BlendSR checkpoint"):
+        load_checkpoint(raw)
+    assert not marker.exists()
+
+
+def test_real_checkpoints_load_weights_only_including_version_1_numpy_rng(clip, tmp_path):
+    run = tmp_path / "run"
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                 *_sets(SMALL + ["data.crop=8"])]) == 0
+    last = run / "checkpoints" / "last.pt"
+    ck = load_checkpoint(last)
+    assert ck["version"] == 2 and isinstance(ck["rng"]["numpy"], dict)
+    assert torch.serialization.get_unsafe_globals_in_checkpoint(str(last)) == []  # plain types only
+    ck["rng"]["numpy"] = np.random.get_state()  # what version 1 wrote
+    ck["version"] = 1
+    old = tmp_path / "v1.pt"
+    torch.save(ck, old)
+    assert isinstance(load_checkpoint(old)["rng"]["numpy"][1], np.ndarray)
+    # and a v1 run resumes
+    (run / "checkpoints" / "last.pt").write_bytes(old.read_bytes())
+    assert main(["train", "-o", str(run), "--resume", "--max-steps", "2"]) == 0
+
+
+def test_a_file_that_is_not_a_checkpoint_is_one_line(clip, tmp_path, capsys):
+    junk = tmp_path / "junk.pt"
+    with zipfile.ZipFile(junk, "w") as z:
+        z.writestr("a/data.pkl", b"not a pickle")
+    assert main(["evaluate", "--checkpoint", str(junk), "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(junk) in err
+
+
+def test_default_crop_shrinks_to_small_clips_with_a_note_and_a_set_crop_names_one_that_fits(clip, tmp_path, capsys):
+    run = tmp_path / "run"  # LR 16x9: the default data.crop = 64 does not fit
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                 *_sets(SMALL)]) == 0
+    err = capsys.readouterr().err
+    assert "note: data.crop 64 -> 9" in err
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["config"]["data"]["crop"] == 9
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "r2"), "--max-steps", "1",
+                 *_sets(SMALL + ["data.crop=20"])]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--set data.crop=9" in err and str(clip) in err, err
+
+
+def test_implausible_radiance_falls_under_the_nonfinite_policy(tmp_path, capsys):
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.demod import RADIANCE_CAP
+    from gbuffer_export.exr import write_exr
+    from training.cache import ClipCache, NonFiniteError
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    c = open_clip(clip)
+    a = c.read(2, "lr/radiance")
+    a[3, 4, 0] = 1e30
+    write_exr(c.path_of(2, "lr/radiance"), {ch: a[..., i] for i, ch in enumerate("RGB")})
+    with pytest.raises(NonFiniteError, match=r"frame 2.*1 NaN/Inf or implausible"):
+        ClipCache(clip).ensure(["lr/radiance"])
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *_sets(SMALL)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "implausible" in err[-1] and str(c.path_of(2, "lr/radiance")) in err[-1]
+    with pytest.warns(RuntimeWarning, match="implausible"):
+        cache = ClipCache(clip, nonfinite="sanitize").ensure(["lr/radiance"])
+    assert cache.read(2, "lr/radiance")[3, 4, 0] == RADIANCE_CAP
+    assert cache.index["sanitized"][0]["count"] == 1

@@ -1,0 +1,106 @@
+"""Checkpoint files: atomic writing, and loading that never runs code from the file.
+
+A checkpoint is a ``torch.save`` zip of one dict (see docs/training.md, "Checkpoint format"). ``torch.load`` is a
+pickle reader; with ``weights_only=False`` a crafted file runs arbitrary code as it is opened. ``load_checkpoint``
+always reads with ``weights_only=True``: torch's restricted unpickler rebuilds only tensors, dicts, lists, tuples,
+strings, numbers, booleans and None, plus the few numpy types in ``ALLOWED_GLOBALS`` (the numpy RNG state that
+checkpoints of format version 1 hold). Anything else (``os.system``, ``builtins.eval``, a class from some module)
+is refused with one line naming the file and the global it asked for, before any of it is called.
+
+Version 2 checkpoints hold only plain types (the numpy RNG state as a dict of lists, ``numpy_rng_state``); version 1
+checkpoints (numpy arrays in the RNG state) still load through the allow-list.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+CHECKPOINT_FORMAT = "blendsr.checkpoint"
+CHECKPOINT_VERSION = 2
+
+
+def _numpy_globals() -> list:
+    """The numpy callables a version-1 checkpoint's RNG state needs (an ndarray of uint32 and its dtype)."""
+    try:
+        from numpy.core.multiarray import _reconstruct
+    except ImportError:  # numpy >= 2 moved it
+        from numpy._core.multiarray import _reconstruct
+    out = [_reconstruct, np.ndarray, np.dtype]
+    dtypes = getattr(np, "dtypes", None)
+    if dtypes is not None:
+        out += [getattr(dtypes, n) for n in ("UInt32DType", "Float64DType", "Int64DType") if hasattr(dtypes, n)]
+    return out
+
+
+#: Everything beyond torch's own weights-only types that a BlendSR checkpoint may contain.
+ALLOWED_GLOBALS = _numpy_globals()
+
+
+class CheckpointError(ValueError):
+    """A file is not a loadable BlendSR checkpoint (the message names it and says why, on one line)."""
+
+
+def numpy_rng_state() -> dict:
+    """The global numpy RNG state as plain types (no numpy objects in the checkpoint)."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"bit_generator": str(name), "keys": [int(k) for k in keys], "pos": int(pos),
+            "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
+
+
+def restore_numpy_rng(state) -> None:
+    """Inverse of ``numpy_rng_state``; also takes the tuple ``np.random.get_state()`` (version-1 checkpoints)."""
+    if isinstance(state, dict):
+        state = (state["bit_generator"], np.asarray(state["keys"], dtype=np.uint32), state["pos"],
+                 state["has_gauss"], state["cached_gaussian"])
+    np.random.set_state(state)
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Write ``state`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _unsafe_globals(path: Path) -> list[str]:
+    try:
+        return list(torch.serialization.get_unsafe_globals_in_checkpoint(str(path)))
+    except Exception:
+        return []
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Read a BlendSR checkpoint (a path, or ``pretrained:NAME`` for shipped weights) without executing anything
+    from it; CheckpointError (one line) otherwise."""
+    from training.pretrained import resolve
+    path = Path(resolve(path))
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(f"{path}: not a BlendSR checkpoint (not a torch.save zip archive)")
+    try:
+        with torch.serialization.safe_globals(ALLOWED_GLOBALS):
+            ck = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        bad = [g for g in _unsafe_globals(path)
+               if g not in {f"{f.__module__}.{f.__qualname__}" for f in ALLOWED_GLOBALS}]
+        what = ", ".join(bad[:3]) if bad else "an object outside the allowed types"
+        raise CheckpointError(f"{path}: refused: the file asks to build {what}, which a BlendSR checkpoint never "
+                              "holds (it may run code; checkpoints load with torch weights_only=True)") from None
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint ({first})") from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a BlendSR checkpoint (no format = {CHECKPOINT_FORMAT!r})")
+    return ck
