@@ -71,8 +71,11 @@ def main(argv=None) -> int:
         cfg = load_config(a.config, overrides)
         cfg.data.clips = [str(c) for c in train_clips[:n]]
         ck = run / "checkpoints" / "last.pt"
-        resume = ck.is_file()
-        summary = train(cfg, run, resume=resume, log=lambda m: print(m, file=sys.stderr))
+        done = run / "summary.json"
+        if done.is_file() and json.loads(done.read_text()).get("step") == a.steps:
+            summary = json.loads(done.read_text())  # finished earlier: score it only
+        else:
+            summary = train(cfg, run, resume=ck.is_file(), log=lambda m: print(m, file=sys.stderr))
         rows.append({"model": a.model, "clips": n, "steps": summary["step"], "train_clips": [c.name for c in
                                                                                            train_clips[:n]],
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), **score(str(ck))})
