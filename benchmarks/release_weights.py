@@ -30,7 +30,8 @@ def main(argv=None) -> int:
     from gbuffer_export.dataset.build import read_index, split_clips
     from training.evaluate import evaluate_model
     from training.inference import load_model
-    from training.pretrained import PRETRAINED, WEIGHTS_DIR, release
+    from training.pretrained import PRETRAINED, WEIGHTS_DIR
+    from training.release import release
 
     test = [str(c) for c in split_clips(a.dataset, "test")]
     train = [c.name for c in split_clips(a.dataset, "train")]

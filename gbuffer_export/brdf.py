@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .brdf_common import cache_dir, hammersley, load_or_generate_file, radical_inverse_base2  # noqa: F401
 from .conventions import Flag, pixel_grid, rays_camera
 
 CONVENTIONS = ("ibl", "paper")
@@ -101,23 +102,6 @@ def alpha_k(roughness, convention: str = "ibl"):
     if convention == "paper":
         return r, (r + 1.0) ** 2 / 8.0
     raise ValueError(f"unknown table convention {convention!r}; use one of {', '.join(CONVENTIONS)}")
-
-
-def radical_inverse_base2(i: np.ndarray) -> np.ndarray:
-    """Van der Corput radical inverse in base 2 of non-negative integers < 2^32 (float64 in [0, 1))."""
-    x = np.asarray(i, dtype=np.uint64).astype(np.uint32)
-    x = (x << np.uint32(16)) | (x >> np.uint32(16))
-    x = ((x & np.uint32(0x55555555)) << np.uint32(1)) | ((x & np.uint32(0xAAAAAAAA)) >> np.uint32(1))
-    x = ((x & np.uint32(0x33333333)) << np.uint32(2)) | ((x & np.uint32(0xCCCCCCCC)) >> np.uint32(2))
-    x = ((x & np.uint32(0x0F0F0F0F)) << np.uint32(4)) | ((x & np.uint32(0xF0F0F0F0)) >> np.uint32(4))
-    x = ((x & np.uint32(0x00FF00FF)) << np.uint32(8)) | ((x & np.uint32(0xFF00FF00)) >> np.uint32(8))
-    return x.astype(np.float64) / 4294967296.0
-
-
-def hammersley(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The n-point Hammersley set (i / n, radical_inverse_2(i)), i = 0..n-1, as two float64 arrays."""
-    i = np.arange(n)
-    return i / n, radical_inverse_base2(i)
 
 
 def _row_ab(nov: np.ndarray, alpha: float, k: float, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -268,15 +252,6 @@ def default_spec(convention: str = "ibl") -> LutSpec:
     return LutSpec(size=DEFAULT_SIZE, samples=DEFAULT_SAMPLES, convention=convention)
 
 
-def cache_dir() -> Path:
-    """$BLENDSR_CACHE, else $XDG_CACHE_HOME/blendsr, else ~/.cache/blendsr."""
-    env = os.environ.get("BLENDSR_CACHE")
-    if env:
-        return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "blendsr"
-
-
 def cached_lut_path(spec: LutSpec) -> Path:
     return cache_dir() / f"{spec.key}.exr"
 
@@ -285,23 +260,6 @@ def load_or_generate_lut(spec: LutSpec = LutSpec()) -> Lut:
     """The table of ``spec`` from the disk cache, generated and written there (atomically) when absent or
     unreadable. Memoised per process and cache directory."""
     return _load_or_generate(spec, str(cache_dir()))
-
-
-def load_or_generate_file(path: Path, read, generate, write, unreadable: tuple[type[Exception], ...]):
-    """``read(path)`` when it succeeds; otherwise ``generate()``, written with ``write(path, value)`` (atomic in the
-    callers) and returned. A file ``read`` rejects with ``unreadable`` (torn or foreign) is regenerated and replaced;
-    a read-only cache only loses the write."""
-    if path.is_file():
-        try:
-            return read(path)
-        except unreadable:
-            pass
-    value = generate()
-    try:
-        write(path, value)
-    except OSError:
-        pass
-    return value
 
 
 @functools.lru_cache(maxsize=8)

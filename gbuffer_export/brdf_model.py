@@ -138,7 +138,7 @@ def _vndf_row(alpha: float, mu: np.ndarray, u1: np.ndarray, u2: np.ndarray):
 
 
 def _hammersley(n: int):
-    from .brdf import hammersley
+    from .brdf_common import hammersley
 
     return hammersley(n)
 
@@ -227,14 +227,14 @@ def load_model_tables(path: str | os.PathLike, spec: ModelSpec) -> ModelTables:
 
 def load_or_generate_model_tables(spec: ModelSpec = ModelSpec()) -> ModelTables:
     """The model tables from the disk cache (``brdf.cache_dir()``), generated and written when absent."""
-    from .brdf import cache_dir
+    from .brdf_common import cache_dir
 
     return _load_or_generate(spec, str(cache_dir()))
 
 
 @functools.lru_cache(maxsize=4)
 def _load_or_generate(spec: ModelSpec, cache: str) -> ModelTables:
-    from .brdf import load_or_generate_file
+    from .brdf_common import load_or_generate_file
 
     return load_or_generate_file(Path(cache) / f"{spec.key}.npz", lambda p: load_model_tables(p, spec),
                                  lambda: generate_model_tables(spec), save_model_tables, (ValueError,))

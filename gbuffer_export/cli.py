@@ -1,8 +1,13 @@
 """``blendsr``: one command-line tool with subcommands. It only parses arguments and calls the Python API.
 
-Each command module listed in ``COMMANDS`` exposes ``register(subparsers)``, which adds its parser(s) and sets
-``func`` (called with the parsed namespace, returning an exit code). Command modules import neither bpy nor torch
-at module level, so ``blendsr --help`` is fast and works with any subset of the extras installed.
+Commands come from the entry-point group ``blendsr.commands`` (``pyproject.toml``): each entry names a module that
+exposes ``register(subparsers)``, which adds its parser(s) and sets ``func`` (called with the parsed namespace,
+returning an exit code). The core ships render, dataset, validate, lut, bench and demo; the torch layer adds
+train, evaluate, upscale and export from its own entry; another package adds commands the same way without touching
+this file. ``blendsr bench`` reads the group ``blendsr.bench`` likewise (modules with ``add_arguments(parser)`` and
+``run(args)``). A module whose own import fails for lack of an optional extra (torch, bpy) is skipped. Command
+modules import neither bpy nor torch at module level, so ``blendsr --help`` is fast and works with any subset of
+the extras installed.
 
 Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error).
 """
@@ -11,25 +16,34 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from importlib import metadata
 
-#: The visible table of command modules, in the order ``--help`` lists them.
-COMMANDS = (
-    "gbuffer_export.commands.render",
-    "gbuffer_export.commands.dataset",
-    "gbuffer_export.commands.validate",
-    "gbuffer_export.commands.lut",
-    "training.commands",
-    "gbuffer_export.commands.bench",
-    "gbuffer_export.commands.demo",
-)
+#: The core's own commands, in the order ``--help`` lists them (used as is when blendsr's metadata is not
+#: installed, e.g. a source tree on PYTHONPATH); commands of other packages follow in name order.
+CORE_COMMANDS = {
+    "render": "gbuffer_export.commands.render",
+    "dataset": "gbuffer_export.commands.dataset",
+    "validate": "gbuffer_export.commands.validate",
+    "lut": "gbuffer_export.commands.lut",
+    "bench": "gbuffer_export.commands.bench",
+    "demo": "gbuffer_export.commands.demo",
+}
+
+
+def entry_modules(group: str, core: dict[str, str] | None = None) -> dict[str, str]:
+    """name -> module of the entry-point ``group``: the core's first (in their order), then the others by name."""
+    found = {ep.name: ep.value.split(":")[0] for ep in metadata.entry_points(group=group)}
+    core = dict(core or {})
+    return {**{k: found.get(k, v) for k, v in core.items()}, **{k: found[k] for k in sorted(found) if k not in core}}
 
 
 def import_optional(modname: str):
-    """Import a command module; None when the module itself (not one of its dependencies) is absent."""
+    """Import a command module; None when the module itself (not one of its dependencies) is absent, or when an
+    optional extra it needs (torch, bpy) is not installed."""
     try:
         return importlib.import_module(modname)
     except ModuleNotFoundError as exc:
-        if exc.name and modname.startswith(exc.name):
+        if exc.name and (modname.startswith(exc.name) or exc.name.split(".")[0] in ("torch", "bpy")):
             return None
         raise
 
@@ -48,7 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
     from gbuffer_export import __version__
     parser.add_argument("--version", action="version", version=f"blendsr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for modname in COMMANDS:
+    seen = set()
+    for modname in entry_modules("blendsr.commands", CORE_COMMANDS).values():
+        if modname in seen:  # one module may register several commands
+            continue
+        seen.add(modname)
         mod = import_optional(modname)
         if mod is not None:
             mod.register(sub)

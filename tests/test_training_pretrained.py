@@ -36,7 +36,8 @@ def run(clip, tmp_path_factory):
 
 def test_release_is_float16_small_and_matches_the_checkpoint(run, clip, tmp_path, monkeypatch):
     ck = run / "checkpoints" / "last.pt"
-    meta = pretrained.release(ck, tmp_path / "w.pt", {"model": "fusesr-l", "note": "test"})
+    from training.release import release
+    meta = release(ck, tmp_path / "w.pt", {"model": "fusesr-l", "note": "test"})
     slim = torch.load(tmp_path / "w.pt", map_location="cpu", weights_only=True)
     assert "optimizer" not in slim and all(v.dtype == torch.float16 for v in slim["model"].values()
                                            if v.is_floating_point())

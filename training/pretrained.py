@@ -3,7 +3,9 @@
 ``training/weights/<file>.pt`` holds a slim BlendSR checkpoint (format, configuration, scale, step and the model's
 weights in float16; no optimiser state), and ``<file>.json`` beside it the dataset spec, the commands that made it
 and its scores. Anywhere a checkpoint path is accepted (``evaluate``, ``upscale``, ``export``, ``bench models``,
-``make demo``, the add-on), ``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them.
+``make demo``, the add-on), ``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them
+(``training.release.release`` writes a file). This module imports nothing of the trainer: the checkpoint loader
+resolves names through it.
 """
 from __future__ import annotations
 
@@ -47,33 +49,3 @@ def info(name: str) -> dict:
     """The JSON beside a pretrained weight file (spec, commands, scores)."""
     path = WEIGHTS_DIR / PRETRAINED[name]
     return json.loads(path.with_suffix(".json").read_text())
-
-
-def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
-    """Write the slim float16 checkpoint of ``checkpoint`` to ``out`` and ``meta`` (plus sizes and the parameter
-    digest) to ``out`` with suffix .json; ValueError when the file would exceed 10 MB."""
-    import torch
-
-    from training.checkpoint import load_checkpoint
-    from training.train import param_digest
-    ck = load_checkpoint(checkpoint)
-    slim = {"format": ck["format"], "version": ck.get("version", 1), "model_name": ck.get("model_name"),
-            "config": ck["config"], "scale": ck["scale"], "step": ck.get("step"),
-            "model": {k: (v.half() if v.is_floating_point() else v) for k, v in ck["model"].items()},
-            "weights_dtype": "float16"}
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    torch.save(slim, tmp)
-    size = tmp.stat().st_size
-    if size > MAX_BYTES:
-        tmp.unlink()
-        raise ValueError(f"{out}: {size} bytes exceeds the 10 MB limit for shipped weights")
-    tmp.replace(out)
-    from training.inference import load_model
-    model = load_model(str(out), int(ck["scale"]))
-    meta = {**meta, "file": out.name, "bytes": size, "step": ck.get("step"),
-            "params": sum(p.numel() for p in model.parameters()), "param_digest": param_digest(model)}
-    from gbuffer_export.clip import write_json_atomic
-    write_json_atomic(out.with_suffix(".json"), meta)
-    return meta

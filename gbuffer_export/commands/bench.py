@@ -3,12 +3,11 @@ from __future__ import annotations
 
 import argparse
 
-#: The visible table of benchmarks: name -> module exposing add_arguments(parser) and run(args).
-BENCHES = {
+#: The core's benchmarks: name -> module exposing add_arguments(parser) and run(args). Other layers add theirs
+#: through the entry-point group ``blendsr.bench`` (the torch layer: models, loader; see pyproject.toml).
+CORE_BENCHES = {
     "render": "gbuffer_export.commands.bench_render",
     "brdf": "gbuffer_export.commands.bench_brdf",
-    "models": "training.bench_models",
-    "loader": "training.bench_loader",
 }
 
 
@@ -16,8 +15,8 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
                        description="Benchmarks. Each prints a table and can save JSON; numbers are medians.")
     bsub = p.add_subparsers(dest="bench", metavar="KIND")
-    from ..cli import import_optional
-    for name, modname in BENCHES.items():
+    from ..cli import entry_modules, import_optional
+    for name, modname in entry_modules("blendsr.bench", CORE_BENCHES).items():
         mod = import_optional(modname)
         if mod is None:
             continue

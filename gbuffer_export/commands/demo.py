@@ -74,15 +74,26 @@ def run(args) -> int:
     print(f"   contact sheet: {sheet}")
     if args.render_only:
         return 0
-    if importlib.util.find_spec("torch") is None or importlib.util.find_spec("training.demo") is None:
+    run_training_demo = _training_half()
+    if run_training_demo is None:
         print("   torch or the training package is not installed: skipping training (pip install 'blendsr[train]')")
         return 0
-    from training.demo import run_training_demo  # torch layer
     summary = run_training_demo(train_clips=[clips["train"][0]], test_clips=[clips["test"][0]], out=out,
                                 minutes=args.train_minutes)
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=1))
     print(f"\nDone. Look at {out}/contact_sheet.png, {out}/side_by_side.png and {out}/pareto.png")
     return 0
+
+
+def _training_half():
+    """The function of the entry point ``blendsr.demo`` 'training' (the torch layer's), or None without torch."""
+    from importlib import metadata
+    if importlib.util.find_spec("torch") is None:
+        return None
+    for ep in metadata.entry_points(group="blendsr.demo"):
+        if ep.name == "training":
+            return ep.load()
+    return None
 
 
 def register(sub) -> None:
