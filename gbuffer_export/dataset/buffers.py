@@ -24,6 +24,9 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "demod-jbu": _DEMOD + ("depth", "normal"),
     "fusesr": _DEMOD + ("albedo", "depth", "normal", "motion"),
     "fusesr-l": _DEMOD + ("albedo", "depth", "normal"),
+    "fusesr-fast": _DEMOD + ("depth", "normal"),
+    "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
+    "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
 }
 
 #: batch key (without level) -> the clip buffers it is made from.
