@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -55,6 +56,21 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
     return render_loaded_scene(cfg, scene, info)
 
 
+def prepare_process(threads: int) -> None:
+    """Before bpy is imported (``gbuffer_export.reproducible``): with one thread, pin this worker to the core of its
+    executor slot ($BLENDSR_CPU) so that Blender builds the scene on one thread; then re-execute once without address
+    randomisation and with a fixed string-hash seed. The same job rendered again into the same path then gives
+    bit-identical EXRs (a resumed clip's frames are another noise realisation of the same images)."""
+    from ..reproducible import MALLOC_TUNING, reexec_with_fixed_layout
+    cpu = os.environ.get("BLENDSR_CPU")
+    if threads == 1 and cpu is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, {int(cpu)})
+        except (OSError, ValueError):
+            pass
+    reexec_with_fixed_layout(drop_env=MALLOC_TUNING if threads == 1 else ())
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="render one dataset clip (used by 'blendsr dataset')")
     p.add_argument("job", type=Path, help="JSON file holding one ClipJob")
@@ -62,6 +78,8 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--progress", action="store_true")
     a = p.parse_args(argv)
+    if argv is None:
+        prepare_process(a.threads)
     job = ClipJob.from_json(json.loads(a.job.read_text()))
     try:
         render_job(job, a.clip_dir, a.threads, a.progress)

@@ -181,10 +181,14 @@ def job_command(job_path: Path, clip_dir: Path, threads: int) -> list[str]:
             "--threads", str(threads)]
 
 
-def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int) -> tuple[int, str]:
-    """Render one clip in a child process; returns (exit code, the last line of its stderr)."""
+def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
+                    cpu: int | None = None) -> tuple[int, str]:
+    """Render one clip in a child process (on core ``cpu`` when given and ``threads`` is 1); returns (exit code,
+    the last line of its stderr)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
+    if cpu is not None:
+        env["BLENDSR_CPU"] = str(cpu)
     repo = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     with open(log_path, "w") as log:
@@ -213,8 +217,21 @@ class _Lock:
 
 
 def _local_map(todo, run_one, workers: int, on_done) -> None:
+    """Run ``run_one(job, slot)`` for every job on ``workers`` threads, each holding one slot 0..workers-1."""
+    import queue
+    slots: queue.Queue = queue.Queue()
+    for k in range(workers):
+        slots.put(k)
+
+    def with_slot(job):
+        k = slots.get()
+        try:
+            return run_one(job, k)
+        finally:
+            slots.put(k)
+
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(run_one, j): j for j in todo}
+        futures = {pool.submit(with_slot, j): j for j in todo}
         pending = set(futures)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
@@ -312,9 +329,12 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                     bar.update(1)
                     bar.set_postfix(last=job.id[-24:], failed=sum(c["state"] == "failed" for c in index["clips"]))
 
-        def run_one(job: ClipJob):
+        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+
+        def run_one(job: ClipJob, slot: int):
+            cpu = cores[slot % len(cores)] if threads == 1 and cores else None  # one core per worker slot
             return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
-                                   str(root / "logs" / f"{job.id}.log"), threads)
+                                   str(root / "logs" / f"{job.id}.log"), threads, cpu)
 
         t0 = time.perf_counter()
         if opts.executor == "local":
