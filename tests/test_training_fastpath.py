@@ -186,3 +186,51 @@ def test_fusesr_fast_trains_evaluates_and_exports(tmp_path):
     assert rep["match"] and rep["output_shape"] == [1, 3, 16, 32]
     cfg = load_config(run / "config.toml")
     assert cfg.model.name == "fusesr-fast"
+
+
+# ------------------------------------------------------------------------------------------------ training loader
+def test_worker_loader_gives_the_same_training_as_the_prefetch_thread(tmp_path):
+    from training.train import train
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    digests = []
+    for workers in (0, 2):
+        cfg = load_config(None, ["model.name=\"fusesr-fast\"", "data.crop=8", "data.batch_size=2", "run.max_steps=4",
+                                 "run.progress=false", "run.amp=\"none\"", f"data.workers={workers}"])
+        cfg.data.clips = [str(clip)]
+        summary = train(cfg, tmp_path / f"run{workers}", log=lambda m: None)
+        digests.append(summary["param_digest"])
+        assert summary["workers"] == workers and summary["gpu_max_memory_mb"] is None
+        assert summary["samples_per_s"] == pytest.approx(2 * summary["steps_per_s"])
+        assert 0 <= summary["data_fraction"] <= 1 and summary["max_rss_mb"] > 0
+    assert digests[0] == digests[1]
+
+
+# ------------------------------------------------------------------------------------------------ bench models
+def test_bench_models_speed_mode_on_random_inputs(tmp_path):
+    import argparse
+
+    from training import bench_models
+    p = argparse.ArgumentParser()
+    bench_models.add_arguments(p)
+    out = tmp_path / "speed"
+    args = p.parse_args(["--models", "bilinear,demod-jbu,fusesr-fast", "--size", "64x32", "--device", "cpu",
+                         "--precision", "fp32,bf16", "--repeats", "2", "--warmup", "1", "--eager-reference",
+                         "--peak-tflops", "0.5", "--bandwidth-gbs", "10", "-o", str(out)])
+    assert bench_models.run(args) == 0
+    res = json.loads((out / "bench_speed.json").read_text())
+    assert res["size"] == [64, 32] and res["scale"] == 4 and res["peaks"]["fp32"]["tflops"] == 0.5
+    rows = res["rows"]
+    assert [(r["model"], r["variant"]) for r in rows[:3]] == [("bilinear", v) for v in
+                                                             ("fp32 eager reference", "fp32", "bf16")]
+    fast = next(r for r in rows if r["model"] == "fusesr-fast" and r["variant"] == "fp32")
+    assert fast["params"] == 68188 and 4000 < fast["macs_per_px"] < 4500
+    for r in rows:  # roofline: max(2 MACs / peak, bytes / bandwidth), ratio = measured / roofline
+        want = 1000 * max(2 * r["gmacs"] * 1e9 / 0.5e12, r["mbytes"] * 1e6 / 10e9)
+        assert r["roofline_ms"] == pytest.approx(want) and r["ratio"] == pytest.approx(r["ms"] / want)
+        assert r["ms"] > 0 and r["ms_min"] <= r["ms"]
+    md = (out / "bench_speed.md").read_text()
+    assert "| fusesr-fast | 68188 |" in md and "fp32 eager reference ms" in md
+    with pytest.raises(ValueError, match="--size"):
+        bench_models.run(p.parse_args(["--size", "63x32", "--models", "bilinear", "-o", str(out)]))
+    with pytest.raises(ValueError, match="--precision"):
+        bench_models.run(p.parse_args(["--precision", "fp8", "--models", "bilinear", "-o", str(out)]))
