@@ -100,6 +100,8 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
         fold_batchnorm(model)
     if channels_last:
         model.to(memory_format=torch.channels_last)
+    if dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed frame sizes: the fastest cuDNN algorithms, chosen once
     compiled = None
     if compile:
         mode = "reduce-overhead" if dev.type == "cuda" else None
