@@ -360,7 +360,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.config import ModelConfig
     from training.evaluate import describe_device
     from training.export import example_inputs
-    from training.fastpath import forward, precision_dtype, prepare_inference
+    from training.fastpath import channels_last_batch, forward, precision_dtype, prepare_inference
     from training.inference import load_model
     from training.models import build_model
     from training.train import resolve_device
@@ -398,17 +398,19 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             if v is not None:
                 prepare_inference(m, device, v[0], compile=v[1])
             dt = m.__dict__.get("inference", {}).get("dtype")
-            runners.append((vlabel, m, "fp32" if dt is None else str(dt).replace("torch.", "")))
-        times = {vl: [] for vl, _, _ in runners}
+            # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
+            b = channels_last_batch(batch) if m.__dict__.get("inference", {}).get("channels_last") else batch
+            runners.append((vlabel, m, "fp32" if dt is None else str(dt).replace("torch.", ""), b))
+        times = {r[0]: [] for r in runners}
         with torch.inference_mode():
-            for vl, m, _ in runners:
+            for vl, m, _, b in runners:
                 for _ in range(max(warmup, 1)):
-                    forward(m, batch)
+                    forward(m, b)
                 _sync(device)
             for _ in range(repeats):  # interleaved: the variants see the same machine state
-                for vl, m, _ in runners:
-                    times[vl].append(timer(lambda: forward(m, batch)))
-        for vl, m, key in runners:
+                for vl, m, _, b in runners:
+                    times[vl].append(timer(lambda: forward(m, b)))
+        for vl, m, key, _ in runners:
             pk = peaks[key]
             roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), nbytes / (pk["gbs"] * 1e9))
             ms = statistics.median(times[vl])

@@ -77,7 +77,7 @@ def channels_last_batch(batch: dict) -> dict:
     """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
     out = {}
     for k, v in batch.items():
-        if v.dim() == 5 and v.shape[2] > 1:
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
             v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
         out[k] = v
     return out
