@@ -388,6 +388,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         else:
             base = load_model(spec, scale, fast=False)
         n_params = sum(p.numel() for p in base.parameters())
+        base.to(device)
         inputs = example_inputs(base, None, (w, h))
         batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
         nbytes = sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4
