@@ -234,3 +234,56 @@ def test_bench_models_speed_mode_on_random_inputs(tmp_path):
         bench_models.run(p.parse_args(["--size", "63x32", "--models", "bilinear", "-o", str(out)]))
     with pytest.raises(ValueError, match="--precision"):
         bench_models.run(p.parse_args(["--precision", "fp8", "--models", "bilinear", "-o", str(out)]))
+
+
+# ------------------------------------------------------------------------------------------------ on a GPU
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+
+@cuda
+@pytest.mark.parametrize("name", list(MODELS))
+def test_cuda_fast_path_bf16_compiled_matches_the_cpu_fp32_reference(name):
+    """On a GPU: channels-last, bf16 autocast and torch.compile (reduce-overhead: CUDA graphs) against the fp32
+    eager reference computed on the CPU."""
+    ref = build_model(ModelConfig(name=name), 4).eval()
+    inputs = example_inputs(ref, None, (128, 64), seed=3)
+    with torch.inference_mode():
+        want = ref({k: torch.from_numpy(v) for k, v in inputs.items()})
+    dev = torch.device("cuda")
+    batch = {k: torch.from_numpy(v).to(dev) for k, v in inputs.items()}
+    for precision, comp, tol in (("fp32", False, 1e-3), ("bf16", False, 2e-2), ("bf16", True, 2e-2)):
+        fast = prepare_inference(copy.deepcopy(ref), dev, precision, compile=comp)
+        with torch.inference_mode():
+            for _ in range(3):  # CUDA-graph warm-up and replay
+                got = forward(fast, batch).cpu()
+        err = float((got - want).abs().max() / want.abs().max())
+        assert err <= tol, (precision, comp, err)
+
+
+@cuda
+def test_bench_models_speed_mode_on_cuda(tmp_path):
+    from training.bench_models import speed_benchmark
+    res = speed_benchmark([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], tmp_path, size=(256, 128),
+                          device=torch.device("cuda"), precisions=["fp32", "bf16"], compiles=[False, True],
+                          warmup=2, repeats=3, log=lambda m: None)
+    assert "CUDA events" in res["timing"] and len(res["rows"]) == 8
+    assert all(r["ms"] > 0 and r["roofline_ms"] > 0 for r in res["rows"])
+
+
+def test_bench_models_on_a_clip_adds_the_roofline_columns(tmp_path):
+    import argparse
+
+    from training import bench_models
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 36), scale=4)
+    p = argparse.ArgumentParser()
+    bench_models.add_arguments(p)
+    out = tmp_path / "b"
+    assert bench_models.run(p.parse_args(["--data", str(clip), "--models", "demod-bilinear", "--precision", "bf16",
+                                          "--warmup", "0", "--peak-tflops", "1", "--bandwidth-gbs", "2",
+                                          "-o", str(out)])) == 0
+    res = json.loads((out / "bench_models.json").read_text())
+    row = res["rows"][0]
+    assert res["peaks"]["bfloat16"]["gbs"] == 2.0
+    assert row["roofline_ms"] > 0 and row["ratio"] == pytest.approx(row["ms_per_frame"] / row["roofline_ms"])
+    with pytest.raises(ValueError, match="one --precision"):
+        bench_models.run(p.parse_args(["--data", str(clip), "--precision", "fp32,bf16", "-o", str(out)]))

@@ -5,7 +5,8 @@ With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
 products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). Writes
 OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot OUT/pareto.png (PSNR against
-ms per frame, the non-dominated models joined).
+ms per frame, the non-dominated models joined), with the roofline columns of the speed mode (below) for one frame of
+the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "psnr_hdr", "flip", "tpsnr",
-           "warp_error")
+           "warp_error", "roofline_ms", "ratio")
 
 
 #: Dense datasheet peaks per device kind: name substring -> (TFLOPS fp32 convolutions (TF32 tensor cores, torch's
@@ -153,7 +154,7 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
 
 def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None = None, device=None, amp=None,
               flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
-              compile: bool = False) -> dict:
+              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0) -> dict:
     """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips``; write the table files
     and ``pareto.png`` under ``out``; return {device, scale, rows, results}."""
     from training.commands import _scale_of
@@ -166,6 +167,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows, results = [], []
+    peaks: dict = {}
     for label, spec in models:
         name = label.split(" ")[0]
         if spec != name:
@@ -182,14 +184,25 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
+        inputs = model_inputs(model, src, first[0])
         row = {"model": label, "params": getattr(model, "n_params", sum(p.numel() for p in model.parameters())),
-               "macs_per_px": macs_per_pixel(model, model_inputs(model, src, first[0]), device),
+               "macs_per_px": macs_per_pixel(model, inputs, device),
                **{k: m[k] for k in COLUMNS if k in m}}
+        # roofline of one frame of these clips (bytes: the model's inputs read once, the output written once)
+        hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
+        nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
+        dt = model.__dict__.get("inference", {}).get("dtype") or amp
+        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        if key not in peaks:
+            peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
+        row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
+                                        nbytes / (peaks[key]["gbs"] * 1e9))
+        row["ratio"] = row["ms_per_frame"] / row["roofline_ms"]
         rows.append(row)
         results.append(res)
         log(f"{label:24s} {row['ms_per_frame']:9.2f} ms  PSNR {row['psnr']:6.2f} dB  SSIM {row['ssim']:.4f}")
     device_name = results[0]["device"]
-    (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale,
+    (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale, "peaks": peaks,
                                                        "clips": [str(c) for c in clips], "rows": rows,
                                                        "transform": results[0]["transform"]}, indent=1) + "\n")
     with open(out / "bench_models.csv", "w", newline="") as f:
@@ -233,7 +246,8 @@ def run(args) -> int:
     frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
     benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
               args.output, frames=frames, device=device, amp=amp_dtype(args.amp, device), flip=args.flip,
-              warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0])
+              warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0],
+              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs)
     print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
     return 0
 
