@@ -12,11 +12,11 @@ Without ``--data`` it times every model on random inputs of the right shapes (``
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
 ``--compile`` setting (the inference fast path, ``training.fastpath``); learned models named without a checkpoint
 run with their initial weights (speed does not depend on the weights). Times are medians of ``--repeats`` runs after
-``--warmup`` (CUDA events on a GPU; the variants of a model run interleaved, so their ratios are measured side by
-side). The table gives MACs, the bytes a frame must move (inputs read once, output written once) and the roofline
-estimate max(2 MACs / peak, bytes / bandwidth) with the measured/roofline ratio; peak and bandwidth come from
-``--peak-tflops``/``--bandwidth-gbs``, by default from ``DEVICE_PEAKS`` for known GPUs and measured (a large matmul
-and a large copy) elsewhere. Writes OUT/bench_speed.json, .csv and .md. torch and matplotlib are imported inside
+``--warmup`` (CUDA events on a GPU; all models and variants are prepared first and then timed round-robin, so
+their ratios are measured side by side). The table gives MACs, the bytes a frame must move (inputs read once,
+output written once) and the roofline estimate max(2 MACs / peak, bytes / bandwidth) with the measured/roofline
+ratio; peak and bandwidth come from ``--peak-tflops``/``--bandwidth-gbs``, by default from ``DEVICE_PEAKS`` for
+known GPUs and measured (a large matmul and a large copy) elsewhere. Writes OUT/bench_speed.json, .csv and .md. torch and matplotlib are imported inside
 ``run``.
 """
 from __future__ import annotations
@@ -393,7 +393,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
     timer = _timer(device)
-    records = []
+    runners = []  # every (model, variant) is prepared first, then all are timed round-robin: side by side
     for label, spec in models:
         name = label.split(" ")[0]
         if spec == name:
@@ -405,39 +405,40 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         base.to(device)
         inputs = example_inputs(base, None, (w, h))
         batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
-        nbytes = sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4
-        macs = macs_per_pixel(base, inputs, device) * w * h if n_params else 0.0
-        runners = []
+        info = {"model": label, "params": n_params, "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
+                "macs": macs_per_pixel(base, inputs, device) * w * h if n_params else 0.0}
         for vlabel, v in variants:
             m = copy.deepcopy(base).to(device)
             if v is not None:
                 prepare_inference(m, device, v[0], compile=v[1])
-            dt = m.__dict__.get("inference", {}).get("dtype")
+            settings = m.__dict__.get("inference", {})
+            dt = settings.get("dtype")
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
-            b = channels_last_batch(batch) if m.__dict__.get("inference", {}).get("channels_last") else batch
-            runners.append((vlabel, m, "fp32" if dt is None else str(dt).replace("torch.", ""), b))
-        times = {r[0]: [] for r in runners}
-        with torch.inference_mode():
-            for vl, m, _, b in runners:
-                for _ in range(max(warmup, 1)):
-                    forward(m, b)
-                _sync(device)
-            for _ in range(repeats):  # interleaved: the variants see the same machine state
-                for vl, m, _, b in runners:
-                    times[vl].append(timer(lambda: forward(m, b)))
-        for vl, m, key, _ in runners:
-            pk = peaks[key]
-            roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), nbytes / (pk["gbs"] * 1e9))
-            ms = statistics.median(times[vl])
-            rec = {"model": label, "variant": vl, "params": n_params, "macs_per_px": macs / (w * h),
-                   "gmacs": macs / 1e9, "mbytes": nbytes / 1e6, "ms": ms, "ms_min": min(times[vl]),
-                   "roofline_ms": roof, "ratio": ms / roof}
-            records.append(rec)
-            log(f"{label:24s} {vl:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
-                f"x{rec['ratio']:.0f})")
-        del runners
-        if device.type == "cuda":
-            torch.cuda.empty_cache()
+            b = channels_last_batch(batch) if settings.get("channels_last") else batch
+            runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
+                            "key": "fp32" if dt is None else str(dt).replace("torch.", "")})
+        del base, batch
+    with torch.inference_mode():
+        for r in runners:
+            for _ in range(max(warmup, 1)):
+                forward(r["module"], r["batch"])
+            _sync(device)
+        for _ in range(repeats):  # round-robin: every model and variant sees the same machine state
+            for r in runners:
+                r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
+    records = []
+    for r in runners:
+        pk = peaks[r["key"]]
+        macs = r["macs"]
+        roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
+        ms = statistics.median(r["times"])
+        rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / (w * h),
+               "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
+               "roofline_ms": roof, "ratio": ms / roof}
+        records.append(rec)
+        log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
+            f"x{rec['ratio']:.0f})")
+    del runners
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     device_name = describe_device(device)
