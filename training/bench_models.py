@@ -1,11 +1,23 @@
-"""``blendsr bench models``: error against time for several models on the same clips.
+"""``blendsr bench models``: speed against error, or speed alone against the hardware's limit.
 
-For every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of ``training.evaluate`` and
-reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP, the median ms per frame,
-the parameter count and the multiply-accumulates per output pixel (convolutions and matrix products counted by
-``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). Writes
+With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of
+``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
+the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
+products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). Writes
 OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot OUT/pareto.png (PSNR against
-ms per frame, the non-dominated models joined). torch and matplotlib are imported inside ``run``.
+ms per frame, the non-dominated models joined), with the roofline columns of the speed mode (below) for one frame of
+the clips.
+
+Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
+``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
+``--compile`` setting (the inference fast path, ``training.fastpath``); learned models named without a checkpoint
+run with their initial weights (speed does not depend on the weights). Times are medians of ``--repeats`` runs after
+``--warmup`` (CUDA events on a GPU; all models and variants are prepared first and then timed round-robin, so
+their ratios are measured side by side). The table gives MACs, the bytes a frame must move (inputs read once,
+output written once) and the roofline estimate max(2 MACs / peak, bytes / bandwidth) with the measured/roofline
+ratio; peak and bandwidth come from ``--peak-tflops``/``--bandwidth-gbs``, by default from ``DEVICE_PEAKS`` for
+known GPUs and measured (a large matmul and a large copy) elsewhere. Writes OUT/bench_speed.json, .csv and .md. torch and matplotlib are imported inside
+``run``.
 """
 from __future__ import annotations
 
@@ -17,28 +29,62 @@ from pathlib import Path
 import numpy as np
 
 COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "psnr_hdr", "flip", "tpsnr",
-           "warp_error")
+           "warp_error", "roofline_ms", "ratio")
+
+
+#: Dense datasheet peaks per device kind: name substring -> (TFLOPS fp32 convolutions (TF32 tensor cores, torch's
+#: cuDNN default), TFLOPS bf16/fp16 tensor cores, GB/s memory bandwidth). The first match wins; others: measured.
+DEVICE_PEAKS = {
+    "H100 PCIe": (378.0, 756.0, 2000.0),
+    "H100 NVL": (417.0, 835.0, 3900.0),
+    "H100": (494.0, 989.0, 3350.0),        # SXM5 (e.g. "NVIDIA H100 80GB HBM3")
+    "H200": (494.0, 989.0, 4800.0),
+    "A100": (156.0, 312.0, 2039.0),
+    "RTX 4090": (82.6, 165.2, 1008.0),
+    "RTX 3090": (35.6, 71.0, 936.0),
+}
+SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
+                 "ratio")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", nargs="+", required=True, metavar="CLIP",
-                        help="clip directories, or dataset folders (their --split)")
+    parser.add_argument("--data", nargs="*", default=[], metavar="CLIP",
+                        help="clip directories or dataset folders (their --split); none: speed only, on random "
+                             "inputs of --size")
     parser.add_argument("--split", default="test", choices=("train", "val", "test"),
                         help="split of dataset folders given to --data")
-    parser.add_argument("--models", default="bilinear,bicubic,demod-bilinear,demod-jbu",
-                        help="comma-separated: model names, or NAME:CHECKPOINT for learned models")
+    parser.add_argument("--models", default=None,
+                        help="comma-separated: model names, or NAME:CHECKPOINT for learned models (default: the "
+                             "non-learned models with --data, every model without)")
+    parser.add_argument("--size", default="1920x1080", metavar="WxH", help="HR size of the random inputs")
+    parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
+    parser.add_argument("--precision", default=None,
+                        help="comma-separated precisions to time: fp32, bf16, fp16, auto (default fp32; with --data "
+                             "one precision, default from --amp)")
+    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "off,on"),
+                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); off,on: both")
+    parser.add_argument("--eager-reference", action="store_true",
+                        help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
+    parser.add_argument("--repeats", type=int, default=30, help="timed runs per variant (speed mode)")
+    parser.add_argument("--peak-tflops", type=float, default=0.0,
+                        help="device peak for the roofline, TFLOPS in the timed precision (0: DEVICE_PEAKS, else "
+                             "measured)")
+    parser.add_argument("--bandwidth-gbs", type=float, default=0.0,
+                        help="device memory bandwidth for the roofline, GB/s (0: DEVICE_PEAKS, else measured)")
     parser.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
     parser.add_argument("-o", "--output", default="bench-models", metavar="DIR", help="output directory")
     parser.add_argument("--flip", action="store_true", help="also compute HDR-FLIP (slow on CPU)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where models run")
-    parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"), help="autocast")
+    parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
+                        help="autocast (with --data; --precision takes precedence)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
 
 
-def parse_models(text: str) -> list[tuple[str, str]]:
+def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
     """'bicubic,fusesr:runs/a/checkpoints/last.pt,pretrained:fusesr' -> [('bicubic', 'bicubic'),
-    ('fusesr (a)', 'runs/a/...'), ('pretrained:fusesr', 'pretrained:fusesr')]."""
+    ('fusesr (a)', 'runs/a/...'), ('pretrained:fusesr', 'pretrained:fusesr')]. Without ``need_checkpoints`` a
+    learned model may be named alone (initial weights: speed only)."""
     from training.models import MODELS
     out = []
     for item in (t.strip() for t in text.split(",")):
@@ -50,7 +96,7 @@ def parse_models(text: str) -> list[tuple[str, str]]:
         name, sep, path = item.partition(":")
         if name not in MODELS:
             raise ValueError(f"--models: unknown model {name!r}; choose among {', '.join(MODELS)}")
-        if MODELS[name].learned and not sep:
+        if MODELS[name].learned and not sep and need_checkpoints:
             raise ValueError(f"--models: {name!r} is learned; write {name}:CHECKPOINT")
         out.append((checkpoint_label(name, path) if sep else name, path if sep else name))
     if not out:
@@ -114,7 +160,8 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
 
 
 def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None = None, device=None, amp=None,
-              flip: bool = False, warmup: int = 2, log=print) -> dict:
+              flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
+              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0) -> dict:
     """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips``; write the table files
     and ``pareto.png`` under ``out``; return {device, scale, rows, results}."""
     from training.commands import _scale_of
@@ -128,6 +175,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows, results = [], []
+    peaks: dict = {}
     for label, spec in models:
         name = label.split(" ")[0]
         if spec != name:
@@ -135,19 +183,34 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
             if ck_name != name:
                 raise ValueError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
         model = load_model(spec, scale).to(device)
+        if precision is not None or compile:
+            from training.fastpath import prepare_inference
+            prepare_inference(model, device, precision or "fp32", compile=compile)
+            amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
                              label=label)
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
-        row = {"model": label, "params": sum(p.numel() for p in model.parameters()),
-               "macs_per_px": macs_per_pixel(model, model_inputs(model, src, first[0]), device),
+        inputs = model_inputs(model, src, first[0])
+        row = {"model": label, "params": getattr(model, "n_params", sum(p.numel() for p in model.parameters())),
+               "macs_per_px": macs_per_pixel(model, inputs, device),
                **{k: m[k] for k in COLUMNS if k in m}}
+        # roofline of one frame of these clips (bytes: the model's inputs read once, the output written once)
+        hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
+        nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
+        dt = model.__dict__.get("inference", {}).get("dtype") or amp
+        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        if key not in peaks:
+            peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
+        row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
+                                        nbytes / (peaks[key]["gbs"] * 1e9))
+        row["ratio"] = row["ms_per_frame"] / row["roofline_ms"]
         rows.append(row)
         results.append(res)
         log(f"{label:24s} {row['ms_per_frame']:9.2f} ms  PSNR {row['psnr']:6.2f} dB  SSIM {row['ssim']:.4f}")
     device_name = results[0]["device"]
-    (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale,
+    (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale, "peaks": peaks,
                                                        "clips": [str(c) for c in clips], "rows": rows,
                                                        "transform": results[0]["transform"]}, indent=1) + "\n")
     with open(out / "bench_models.csv", "w", newline="") as f:
@@ -176,12 +239,259 @@ def run(args) -> int:
     device = resolve_device(args.device)
     from training.commands import _dataset_clips
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
+    precisions = _precisions(args.precision)
+    compiles = {"off": [False], "on": [True], "off,on": [False, True]}[args.compile]
+    if not args.data:
+        from training.models import MODELS
+        models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
+        speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
+                        precisions=precisions or ["fp32"], compiles=compiles, warmup=args.warmup,
+                        repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
+                        reference=args.eager_reference)
+        print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
+        return 0
+    if len(precisions or []) > 1 or len(compiles) > 1:
+        raise ValueError("--data: one --precision and one --compile setting at a time")
     rng = parse_frames(args.frames)
     frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
-    benchmark(parse_models(args.models), list(args.data), args.output, frames=frames, device=device,
-              amp=amp_dtype(args.amp, device), flip=args.flip, warmup=args.warmup)
+    benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
+              args.output, frames=frames, device=device, amp=amp_dtype(args.amp, device), flip=args.flip,
+              warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0],
+              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs)
     print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
     return 0
+
+
+def _precisions(text: str | None) -> list[str] | None:
+    if not text:
+        return None
+    from training.fastpath import PRECISIONS  # noqa: F401  (torch is imported by run already)
+    out = [p.strip() for p in text.split(",") if p.strip()]
+    bad = [p for p in out if p not in ("fp32", "bf16", "fp16", "auto")]
+    if bad or not out:
+        raise ValueError(f"--precision {text!r}: comma-separated fp32, bf16, fp16, auto")
+    return out
+
+
+def _size(text: str) -> tuple[int, int]:
+    from gbuffer_export.config import parse_size
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("--hr-size", "--size")) from None
+
+
+# ------------------------------------------------------------------------------------------------ speed mode
+def device_peaks(device, dtype, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0) -> dict:
+    """{'tflops', 'gbs', 'source'} for the roofline: the options when given, else ``DEVICE_PEAKS`` for a known GPU
+    (bf16/fp16 tensor-core peak under autocast, TF32 otherwise), else measured here."""
+    import torch
+    src = []
+    tf, gb = peak_tflops, bandwidth_gbs
+    if device.type == "cuda" and (not tf or not gb):
+        name = torch.cuda.get_device_name(device)
+        for key, (f32, f16, bw) in DEVICE_PEAKS.items():
+            if key in name:
+                tf = tf or (f32 if dtype is None else f16)
+                gb = gb or bw
+                src.append(f"datasheet {key}")
+                break
+    if not tf:
+        tf = measure_tflops(device, dtype)
+        src.append("measured matmul")
+    if not gb:
+        gb = measure_bandwidth(device)
+        src.append("measured copy")
+    if peak_tflops or bandwidth_gbs:
+        src.append("options")
+    return {"tflops": float(tf), "gbs": float(gb), "source": ", ".join(src)}
+
+
+def _sync(device) -> None:
+    import torch
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def measure_tflops(device, dtype, n: int = 0) -> float:
+    """Best of 5 square matmuls in ``dtype`` (None: float32), TFLOPS."""
+    import time
+
+    import torch
+    n = n or (8192 if device.type == "cuda" else 1024)
+    a = torch.randn(n, n, device=device, dtype=dtype or torch.float32)
+    b = torch.randn(n, n, device=device, dtype=dtype or torch.float32)
+    best = float("inf")
+    for _ in range(6):
+        _sync(device)
+        t = time.perf_counter()
+        a @ b
+        _sync(device)
+        best = min(best, time.perf_counter() - t)
+    return 2 * n ** 3 / best / 1e12
+
+
+def measure_bandwidth(device, mbytes: int = 0) -> float:
+    """Best of 5 copies of a large float32 tensor (read + write counted), GB/s."""
+    import time
+
+    import torch
+    mbytes = mbytes or (2048 if device.type == "cuda" else 256)
+    a = torch.empty(mbytes * 2 ** 18, device=device)
+    b = torch.empty_like(a)
+    best = float("inf")
+    for _ in range(6):
+        _sync(device)
+        t = time.perf_counter()
+        b.copy_(a)
+        _sync(device)
+        best = min(best, time.perf_counter() - t)
+    return 2 * a.numel() * 4 / best / 1e9
+
+
+def _timer(device):
+    """start() / stop() -> ms: CUDA events on a GPU, perf_counter elsewhere."""
+    import time
+
+    import torch
+    if device.type == "cuda":
+        def run(fn):
+            s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            s.record()
+            fn()
+            e.record()
+            e.synchronize()
+            return s.elapsed_time(e)
+        return run
+
+    def run(fn):
+        t = time.perf_counter()
+        fn()
+        return 1000 * (time.perf_counter() - t)
+    return run
+
+
+def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
+                    precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
+                    peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
+                    log=print) -> dict:
+    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md}; return the result."""
+    import copy
+    import statistics
+
+    import torch
+
+    from training.config import ModelConfig
+    from training.evaluate import describe_device
+    from training.export import example_inputs
+    from training.fastpath import channels_last_batch, forward, precision_dtype, prepare_inference
+    from training.inference import load_model
+    from training.models import build_model
+    from training.train import resolve_device
+
+    device = device or resolve_device("auto")
+    w, h = size
+    if w % scale or h % scale:
+        raise ValueError(f"--size {w}x{h} is not divisible by the scale {scale}")
+    variants = ([("fp32 eager reference", None)] if reference else []) + \
+        [(f"{p}{' compiled' if c else ''}", (p, c)) for c in compiles for p in precisions]
+    peaks = {}
+    for _, v in variants:
+        p = "fp32" if v is None else v[0]
+        dt = precision_dtype(p, device)
+        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        if key not in peaks:
+            peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
+    timer = _timer(device)
+    runners = []  # every (model, variant) is prepared first, then all are timed round-robin: side by side
+    for label, spec in models:
+        name = label.split(" ")[0]
+        if spec == name:
+            base = build_model(ModelConfig(name=name, scale=scale), scale).eval()
+            base.spec, base.demod_eps, base.config = name, 0.01, None
+        else:
+            base = load_model(spec, scale, fast=False)
+        n_params = sum(p.numel() for p in base.parameters())
+        base.to(device)
+        inputs = example_inputs(base, None, (w, h))
+        batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
+        info = {"model": label, "params": n_params, "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
+                "macs": macs_per_pixel(base, inputs, device) * w * h if n_params else 0.0}
+        for vlabel, v in variants:
+            m = copy.deepcopy(base).to(device)
+            if v is not None:
+                prepare_inference(m, device, v[0], compile=v[1])
+            settings = m.__dict__.get("inference", {})
+            dt = settings.get("dtype")
+            # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
+            b = channels_last_batch(batch) if settings.get("channels_last") else batch
+            runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
+                            "key": "fp32" if dt is None else str(dt).replace("torch.", "")})
+        del base, batch
+    with torch.inference_mode():
+        for r in runners:
+            for _ in range(max(warmup, 1)):
+                forward(r["module"], r["batch"])
+            _sync(device)
+        for _ in range(repeats):  # round-robin: every model and variant sees the same machine state
+            for r in runners:
+                r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
+    records = []
+    for r in runners:
+        pk = peaks[r["key"]]
+        macs = r["macs"]
+        roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
+        ms = statistics.median(r["times"])
+        rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / (w * h),
+               "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
+               "roofline_ms": roof, "ratio": ms / roof}
+        records.append(rec)
+        log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
+            f"x{rec['ratio']:.0f})")
+    del runners
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    device_name = describe_device(device)
+    meta = {"device": device_name, "size": [w, h], "scale": scale, "batch": 1, "warmup": warmup,
+            "repeats": repeats, "timing": "median of the repeats; " + ("CUDA events" if device.type == "cuda"
+                                                                       else "perf_counter"),
+            "threads": torch.get_num_threads() if device.type == "cpu" else None, "peaks": peaks,
+            "torch": torch.__version__}
+    (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
+    with open(out / "bench_speed.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
+        wr.writeheader()
+        for r in records:
+            wr.writerow(r)
+    table = speed_table(records, [vl for vl, _ in variants])
+    peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
+                         for k, v in peaks.items())
+    (out / "bench_speed.md").write_text(f"Device: {device_name}; HR {w}x{h}, scale {scale}, batch 1; "
+                                        f"{meta['timing']} of {repeats} after {warmup} warm-up; roofline peaks: "
+                                        f"{peak_txt}\n\n{table}\n")
+    log(table)
+    return {**meta, "rows": records, "table": table}
+
+
+def speed_table(records: list[dict], variants: list[str]) -> str:
+    """Markdown: one row per model, ms per variant, then the best variant's ratio to the roofline."""
+    models = list(dict.fromkeys(r["model"] for r in records))
+    head = ["model", "params", "MACs/px", "GMAC", "MB", *[f"{v} ms" for v in variants], "roofline ms",
+            "best / roofline"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in models:
+        rs = {r["variant"]: r for r in records if r["model"] == m}
+        first = next(iter(rs.values()))
+        best = min(rs.values(), key=lambda r: r["ms"])
+        cells = [m, str(first["params"]), f"{first['macs_per_px']:.0f}", f"{first['gmacs']:.2f}",
+                 f"{first['mbytes']:.1f}", *[_ms(rs[v]["ms"]) if v in rs else "-" for v in variants],
+                 f"{best['roofline_ms']:.3g}", f"{best['ratio']:.0f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _ms(v: float) -> str:
+    return f"{v:.3g}" if v < 100 else f"{v:.0f}"
 
 
 def _fmt(v) -> str:

@@ -59,6 +59,8 @@ def register(subparsers) -> None:
                    help="autocast precision of the model")
     p.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
                    help="configuration of a non-learned --model (TOML value), e.g. model.guide_sigma_depth=0.05")
     p.set_defaults(func=cmd_evaluate)
@@ -72,6 +74,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output directory")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
+    p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
+                   help="autocast precision of the model")
+    p.add_argument("--compile", action="store_true", help="torch.compile the inference fast path")
     p.set_defaults(func=cmd_upscale)
 
     p = subparsers.add_parser(
@@ -175,6 +180,9 @@ def cmd_evaluate(args) -> int:
     spec = args.checkpoint or args.model
     model = load_model(spec, scale, args.set)
     device = resolve_device(args.device)
+    if args.compile:
+        from training.fastpath import prepare_inference
+        prepare_inference(model, device, compile=True)
     frames = _frames(args.frames)
     result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
                             device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
@@ -193,8 +201,10 @@ def cmd_upscale(args) -> int:
     from training.inference import ClipFrames, load_model, upscale_frame
     from training.train import resolve_device
     clip = open_clip(args.clip)
+    from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)
-    model.to(resolve_device(args.device))
+    prepare_inference(model, resolve_device(args.device), {"none": "fp32"}.get(args.amp, args.amp),
+                      compile=args.compile)
     source = ClipFrames(clip, eps=model.demod_eps)
     frames = _frames(args.frames) or clip.frames
     out = Path(args.output)

@@ -41,7 +41,9 @@ class DataConfig:
     demod_eps: float = 0.01          # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
     nonfinite: str = "error"         # NaN/Inf in a buffer: 'error' (name file and frame) or 'sanitize' (warn)
     cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
-    prefetch: int = 2                # batches prepared ahead in a background thread (0: none)
+    prefetch: int = 2                # batches prepared ahead in a background thread (0: none); per worker with workers
+    workers: int = 0                 # loader processes (0: the prefetch thread); batches are the same either way
+    pin_memory: bool = True          # with workers on CUDA: page-locked batches, asynchronous copies to the GPU
     val_frames: int = 0              # last N frames of each clip held out from training (evaluated at the end)
     val_clips: list[str] = field(default_factory=list)  # whole clips never trained on, evaluated at the end and
                                      # every run.eval_every steps (--data DATASET fills it with the val split)
@@ -56,6 +58,8 @@ class DataConfig:
         _choice("data.nonfinite", self.nonfinite, NONFINITE_POLICIES)
         if self.prefetch < 0:
             raise ConfigError(f"data.prefetch {self.prefetch}: must be >= 0")
+        if isinstance(self.workers, bool) or self.workers < 0 or self.workers > 64:
+            raise ConfigError(f"data.workers {self.workers}: must lie in 0..64")
         if self.val_frames < 0:
             raise ConfigError(f"data.val_frames {self.val_frames}: must be >= 0")
 

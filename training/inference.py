@@ -98,11 +98,14 @@ def model_device(model: torch.nn.Module) -> torch.device:
     return getattr(model, "device", torch.device("cpu"))
 
 
-def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = ()) -> torch.nn.Module:
+def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True
+               ) -> torch.nn.Module:
     """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
     ``scale`` must match the checkpoint's. ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
-    a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps`` and ``config``
-    attributes."""
+    a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps``, ``config`` and
+    ``n_params`` attributes. With ``fast`` (default) it is prepared for the inference fast path
+    (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
+    moving the model to set the precision or compile)."""
     scale = int(scale)
     if overrides and spec not in MODELS:
         raise ValueError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
@@ -139,6 +142,10 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         model.config = cfg
     model.spec = str(spec)
     model.eval()
+    model.n_params = sum(p.numel() for p in model.parameters())
+    if fast:
+        from training.fastpath import prepare_inference
+        prepare_inference(model)
     return model
 
 
@@ -153,20 +160,17 @@ def model_inputs(model, source, frame: int, with_reference: bool = True) -> dict
 
 def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None = None,
               amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
-    """(SR H x W x 3 float32, milliseconds of the forward pass, synchronised on GPU)."""
+    """(SR H x W x 3 float32, milliseconds of the forward pass, synchronised on GPU). ``amp`` overrides the
+    precision set by ``fastpath.prepare_inference``."""
+    from training.fastpath import forward
     device = device or model_device(model)
     needs = set(model.needs())
     batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items() if k in needs}
-    ctx = torch.autocast(device_type=device.type, dtype=amp) if amp is not None else None
     with torch.inference_mode():
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         t0 = time.perf_counter()
-        if ctx is None:
-            sr = model(batch)
-        else:
-            with ctx:
-                sr = model(batch)
+        sr = forward(model, batch, amp)  # the model's inference settings (training.fastpath), autocast ``amp``
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         ms = 1000 * (time.perf_counter() - t0)

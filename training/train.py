@@ -90,7 +90,19 @@ def autocast(device: torch.device, dtype: torch.dtype | None):
 
 # ------------------------------------------------------------------------------------------------- helpers
 def to_device(batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in batch.items()}
+    """numpy arrays or (pinned) CPU tensors -> tensors on ``device`` (asynchronous copies where pinned)."""
+    return {k: (v if isinstance(v, torch.Tensor) else torch.from_numpy(v)).to(device, non_blocking=True)
+            for k, v in batch.items()}
+
+
+def make_loader(sampler, step: int, cfg: TrainConfig, device: torch.device):
+    """The batch source of the loop: ``loader.WorkerLoader`` with ``data.workers`` > 0 (pinned on CUDA with
+    ``data.pin_memory``), else the ``data.Prefetcher`` thread. Both give batch k = sampler.batch(k)."""
+    if cfg.data.workers > 0:
+        from training.loader import WorkerLoader
+        return WorkerLoader(sampler, step, cfg.run.max_steps, cfg.data.workers, max(cfg.data.prefetch, 1),
+                            pin=cfg.data.pin_memory and device.type == "cuda")
+    return Prefetcher(sampler, step, cfg.data.prefetch)
 
 
 def drop_last(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -300,6 +312,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                               f"with this configuration ({str(exc).splitlines()[0]})") from None
         log(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
+    model.fast_ops = True  # the non-learned parts with fewer kernels (training.models.fast_ops); same values
     for c, clip in clips.items():
         mismatch = model.remod_filter_mismatch(clip.manifest, c)
         if mismatch:
@@ -414,7 +427,10 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         from tqdm import tqdm
         bar = tqdm(total=cfg.run.max_steps, initial=step, desc=f"train {cfg.model.name}", unit="step",
                    dynamic_ncols=True)
-    prefetch = Prefetcher(sampler, step, cfg.data.prefetch)
+    prefetch = make_loader(sampler, step, cfg, device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed crop size: cuDNN picks its fastest algorithms once
+        torch.cuda.reset_peak_memory_stats(device)
     t_start = time.perf_counter()
     step_times: list[float] = []
     data_times: list[float] = []
@@ -520,7 +536,16 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if len(step_times) > 2:
         st, dt = step_times[2:], data_times[2:]
         summary.update(median_step_ms=1000 * statistics.median(st), median_data_ms=1000 * statistics.median(dt),
-                       data_fraction=sum(dt) / sum(st))
+                       data_fraction=sum(dt) / sum(st), steps_per_s=len(st) / sum(st),
+                       samples_per_s=len(st) * cfg.data.batch_size * dist.world / sum(st))
+    summary["workers"] = cfg.data.workers
+    summary["gpu_max_memory_mb"] = (torch.cuda.max_memory_allocated(device) / 2 ** 20
+                                    if device.type == "cuda" else None)
+    try:
+        import resource
+        summary["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    except (ImportError, OSError):
+        summary["max_rss_mb"] = None
     if dist.enabled:
         digest = param_digest(unwrap(net), params_only=True)
         digests = [None] * dist.world

@@ -21,6 +21,9 @@ class SRModel(nn.Module):
     """A super-resolution model. Subclasses set ``learned``, ``history`` and implement ``needs`` and ``forward``."""
 
     learned = False
+    #: The inference fast path (``training.models.fast_ops``; ``training.fastpath.prepare_inference`` sets it):
+    #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
+    fast_ops = False
 
     def __init__(self, cfg, scale: int):
         super().__init__()
@@ -36,6 +39,7 @@ class SRModel(nn.Module):
         w1 = remod_weights(cfg)
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)
+        self.remod_taps = None if w1 is None else tuple(float(v) for v in w1)  # the same weights, for fast_ops
 
     def follow_reference_filter(self, manifest: dict) -> None:
         """With ``model.remod_filter = "REFERENCE"`` (non-learned models; training resolves it into the checkpoint),
@@ -43,7 +47,9 @@ class SRModel(nn.Module):
         if getattr(self.cfg, "remod_filter", "NONE") == "REFERENCE":
             from gbuffer_export.pixel_filter import reference_filter
             w1 = remod_weights(self.cfg, reference_filter(manifest))
-            self.remod_kernel = None if w1 is None else torch.tensor(w1, dtype=torch.float32)
+            device = self.remod_kernel.device if self.remod_kernel is not None else None
+            self.remod_kernel = None if w1 is None else torch.tensor(w1, dtype=torch.float32, device=device)
+            self.remod_taps = None if w1 is None else tuple(float(v) for v in w1)
 
     def remod_filter_mismatch(self, manifest: dict, clip_path) -> str | None:
         """A one-line reason when this model remodulates with a pixel filter other than the one the clip's ground
@@ -62,6 +68,10 @@ class SRModel(nn.Module):
         """HR radiance (B, 3, H, W) from a predicted HR irradiance: the point samples L_D * F_used^HR + E^HR (the
         G-buffers are point-sampled), seen through the ground truth's pixel filter (``model.remod_filter``;
         ``gbuffer_export.pixel_filter``) like the reference render, which averages its samples with that filter."""
+        if self.fast_ops:
+            from training.models import fast_ops
+            return fast_ops.remodulate(irradiance, current(batch, "hr/fbeta_used"), current(batch, "hr/emission"),
+                                       self.remod_taps)
         out = irradiance * current(batch, "hr/fbeta_used").to(irradiance.dtype) + \
             current(batch, "hr/emission").to(irradiance.dtype)
         return out if self.remod_kernel is None else separable_filter(out, self.remod_kernel)
@@ -72,18 +82,25 @@ class SRModel(nn.Module):
         (``upsample_by_class``) for a ``demodulated`` L_D with ``model.upsample_by_class``, and with ``self.guided``
         (``model.guided_upsample`` in models that read the HR G-buffers) joint bilateral upsampling guided by HR
         depth and normals (``guided.upsample_guided``) over that. Reads ``upsample_keys(demodulated)``."""
+        if self.fast_ops:
+            from training.models import fast_ops
+            by_class, bilinear, guided = fast_ops.upsample_by_class, fast_ops.upsample_bilinear, \
+                fast_ops.upsample_guided
+        else:
+            by_class, bilinear, guided = upsample_by_class, \
+                (lambda y, s, j: upsample(y, s, "bilinear", j)), upsample_guided
         classes = None
         if demodulated and self.by_class:
             classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
                        demodulated_mask(current(batch, "hr/fbeta_used")))
-            base = upsample_by_class(x, *classes, self.scale, jitter)
+            base = by_class(x, *classes, self.scale, jitter)
         else:
-            base = upsample(x, self.scale, "bilinear", jitter)
+            base = bilinear(x, self.scale, jitter)
         if not self.guided:
             return base
         guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
                   for lv in ("lr", "hr")]
-        return upsample_guided(x, *guides, self.scale, base, jitter, *(classes or (None, None)))
+        return guided(x, *guides, self.scale, base, jitter, *(classes or (None, None)))
 
     def upsample_keys(self, demodulated: bool = True) -> tuple[str, ...]:
         """Batch keys ``upsample_input`` reads."""

@@ -1,0 +1,135 @@
+"""The inference fast path (torch): what ``evaluate``, ``upscale``, ``bench models``, the add-on preview and
+``export`` run.
+
+``prepare_inference(model, device, precision, compile)`` turns an eval-mode model into its fast form, in place:
+
+- ``model.fast_ops``: the non-learned parts (class-aware and guided upsampling, remodulation, pixel filter) use
+  ``training.models.fast_ops`` (fewer, fused-friendly kernels; same outputs within float rounding);
+- BatchNorm folded into the preceding convolution (``model.norm = "batch"``, ``fusesr-fast`` with BatchNorm);
+- channels-last weights and inputs (cuDNN and oneDNN run NHWC natively: no layout conversions between layers);
+- ``precision`` fp32, bf16 or fp16 autocast (``auto``: bf16 where the device has it, fp16 on older GPUs, else fp32);
+- ``compile``: ``torch.compile`` (inductor; mode ``reduce-overhead`` on CUDA, i.e. CUDA graphs replayed for a
+  fixed input size), which also fuses the element-wise chains and gathers of the non-learned parts.
+
+``forward(model, batch)`` runs it with those settings; ``inference.run_model`` calls it. The reference path (fp32,
+eager, NCHW, reference ops) is a model fresh from ``build_model``; tests/test_training_fastpath.py compares every
+setting with it on the CPU.
+"""
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import torch
+import torch.nn as nn
+
+PRECISIONS = ("fp32", "bf16", "fp16", "auto")
+
+
+def precision_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """Autocast dtype of a precision name on ``device`` (None: fp32)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+    from training.train import amp_dtype
+    return amp_dtype({"fp32": "none"}.get(precision, precision), device)
+
+
+def _fused(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
+    return torch.nn.utils.fusion.fuse_conv_bn_eval(conv, bn)
+
+
+def fold_batchnorm(model: nn.Module) -> int:
+    """Fold every eval-mode BatchNorm2d that directly follows a Conv2d (in an ``nn.Sequential``, or as the
+    ``norm1``/``norm2`` of a block after its ``depthwise``/``pointwise`` convolution) into that convolution.
+    Returns the number folded. Only for inference: the model's state dict changes."""
+    if model.training:
+        raise ValueError("fold_batchnorm needs a model in eval mode")
+    n = 0
+    for mod in list(model.modules()):
+        if isinstance(mod, nn.Sequential):
+            names = list(mod._modules)
+            for a, b in zip(names[:-1], names[1:]):
+                ca, cb = mod._modules[a], mod._modules[b]
+                if isinstance(ca, nn.Conv2d) and isinstance(cb, nn.BatchNorm2d):
+                    mod._modules[a] = _fused(ca, cb)
+                    mod._modules[b] = nn.Identity()
+                    n += 1
+        for conv_name, bn_name in (("depthwise", "norm1"), ("pointwise", "norm2")):
+            ca, cb = getattr(mod, conv_name, None), getattr(mod, bn_name, None)
+            if isinstance(ca, nn.Conv2d) and isinstance(cb, nn.BatchNorm2d):
+                setattr(mod, conv_name, _fused(ca, cb))
+                setattr(mod, bn_name, nn.Identity())
+                n += 1
+    # a DWSConv/SeparableConv followed by BatchNorm in a Sequential: fold into its pointwise convolution
+    for mod in list(model.modules()):
+        if isinstance(mod, nn.Sequential):
+            names = list(mod._modules)
+            for a, b in zip(names[:-1], names[1:]):
+                ca, cb = mod._modules[a], mod._modules[b]
+                pw = getattr(ca, "pointwise", None)
+                if isinstance(pw, nn.Conv2d) and isinstance(cb, nn.BatchNorm2d) and pw.bias is not None:
+                    ca.pointwise = _fused(pw, cb)
+                    mod._modules[b] = nn.Identity()
+                    n += 1
+    return n
+
+
+def channels_last_batch(batch: dict) -> dict:
+    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
+    out = {}
+    for k, v in batch.items():
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
+            v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
+        out[k] = v
+    return out
+
+
+def prepare_inference(model: nn.Module, device: torch.device | str | None = None, precision: str = "fp32",
+                      compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> nn.Module:
+    """Make ``model`` (eval mode) the fast inference model described in the module doc; returns it. Settings are
+    kept as ``model.inference`` (dict) and applied by ``forward``. ``precision`` is validated for ``device``."""
+    model.eval()
+    if device is not None:
+        model.to(torch.device(device))
+    from training.inference import model_device
+    dev = model_device(model)
+    dtype = precision_dtype(precision, dev)
+    if not hasattr(model, "n_params"):
+        model.n_params = sum(p.numel() for p in model.parameters())
+    if fast_ops:
+        model.fast_ops = True
+        fold_batchnorm(model)
+    if channels_last:
+        model.to(memory_format=torch.channels_last)
+    if dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed frame sizes: the fastest cuDNN algorithms, chosen once
+    compiled = None
+    if compile:
+        mode = "reduce-overhead" if dev.type == "cuda" else None
+        compiled = torch.compile(model, mode=mode, dynamic=False)
+    # kept out of the module tree (not a submodule, not in the state dict)
+    model.__dict__["inference"] = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
+                                   "precision": "fp32" if dtype is None else str(dtype).replace("torch.", ""),
+                                   "compile": bool(compile), "fast_ops": bool(fast_ops)}
+    return model
+
+
+def autocast_context(device: torch.device, dtype: torch.dtype | None):
+    return nullcontext() if dtype is None else torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def forward(model: nn.Module, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
+    """SR of ``batch`` (tensors on the model's device) with the model's inference settings (``prepare_inference``;
+    none: plain call). ``amp`` overrides the prepared precision when given."""
+    settings = model.__dict__.get("inference") or {}
+    dtype = amp if amp is not None else settings.get("dtype")
+    if settings.get("channels_last"):
+        batch = channels_last_batch(batch)
+    fn = settings.get("compiled")
+    fn = model if fn is None else fn
+    device = next(iter(batch.values())).device
+    with autocast_context(device, dtype):
+        return fn(batch)
+
+
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "precision_dtype",
+           "PRECISIONS"]
