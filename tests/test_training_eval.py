@@ -266,17 +266,28 @@ def test_models_table_is_listed(capsys):
     assert all(name in listed for name in MODELS)
 
 
-def test_training_demo_writes_table_plot_and_side_by_side(tmp_path):
+def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch):
+    from training import pretrained
     from training.demo import run_training_demo
+    from training.release import release
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
-    s = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005)
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")  # no shipped weights: train from scratch
+    s = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
     assert s["train"]["step"] >= 1 and s["train"]["stopped_by"] == "minutes"
-    assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu", "fusesr"]
+    assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
+                                                "fusesr-l (0.005 min)"]
     for f in ("pareto.png", "side_by_side.png", "bench/bench_models.md"):
         assert (tmp_path / "demo" / f).stat().st_size > 100
-    again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005)  # resumes the run
+    again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")  # resumes the run
     assert again["train"]["step"] > s["train"]["step"]
+    # with shipped weights the demo scores them and fine-tunes one of them
+    release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt", tmp_path / "weights" / "fusesr_l_x4.pt",
+            {"model": "fusesr-l"})
+    ft = run_training_demo([a], [b], tmp_path / "demo2", minutes=0.005, model="fusesr-l")
+    assert [r["model"] for r in ft["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
+                                                 "pretrained:fusesr-l", "fusesr-l (fine-tuned 0.005 min)"]
+    assert ft["pretrained"] == ["pretrained:fusesr-l"] and (tmp_path / "demo2" / "side_by_side.png").is_file()
 
 
 def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):

@@ -29,7 +29,7 @@ def precision_dtype(precision: str, device: torch.device) -> torch.dtype | None:
     """Autocast dtype of a precision name on ``device`` (None: fp32)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
-    from training.train import amp_dtype
+    from training.device import amp_dtype
     return amp_dtype({"fp32": "none"}.get(precision, precision), device)
 
 
@@ -90,7 +90,7 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
     model.eval()
     if device is not None:
         model.to(torch.device(device))
-    from training.inference import model_device
+    from training.device import model_device
     dev = model_device(model)
     dtype = precision_dtype(precision, dev)
     if not hasattr(model, "n_params"):

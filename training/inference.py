@@ -25,6 +25,7 @@ from training.config import ModelConfig
 from training.data import BatchSpec, frame_window
 from training.demod import demodulate
 from training.models import MODELS, build_model
+from training.device import model_device  # noqa: F401  (re-exported)
 from training.models.base import upsample
 
 
@@ -90,12 +91,6 @@ class ClipFrames:
         d = self._get(frame, "lr/depth")[..., 0]
         fin = d[np.isfinite(d) & (d > 0)]
         return float(np.median(fin)) if fin.size else 1.0
-
-
-def model_device(model: torch.nn.Module) -> torch.device:
-    for t in list(model.parameters()) + list(model.buffers()):
-        return t.device
-    return getattr(model, "device", torch.device("cpu"))
 
 
 def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True

@@ -25,7 +25,6 @@ import signal
 import statistics
 import time
 import warnings
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ from training.checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_che
                                  numpy_rng_state, restore_numpy_rng, save_checkpoint)
 from training.config import TrainConfig, config_from_checkpoint
 from training.data import BatchSpec, Prefetcher, TrainSampler
+from training.device import amp_dtype, autocast, cpu_bf16_supported, resolve_device  # noqa: F401  (re-exported)
 from training.losses import Criterion
 from training.models import MODELS, OPTIONAL_KEYS, build_model
 
@@ -53,41 +53,6 @@ class TrainingError(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------------- devices
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("run.device = 'cuda' but no CUDA device is available")
-    return torch.device(name)
-
-
-def cpu_bf16_supported() -> bool:
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
-
-
-def amp_dtype(mode: str, device: torch.device) -> torch.dtype | None:
-    """Autocast dtype: 'auto' picks bf16 where the hardware has it (CPU avx512-bf16/AMX, CUDA >= Ampere),
-    fp16 on older CUDA GPUs, and full precision otherwise."""
-    if mode == "none":
-        return None
-    if mode == "bf16":
-        return torch.bfloat16
-    if mode == "fp16":
-        return torch.float16
-    if device.type == "cuda":
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-    return torch.bfloat16 if cpu_bf16_supported() else None
-
-
-def autocast(device: torch.device, dtype: torch.dtype | None):
-    if dtype is None:
-        return nullcontext()
-    return torch.autocast(device_type=device.type, dtype=dtype)
-
-
 # ------------------------------------------------------------------------------------------------- helpers
 def to_device(batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
     """numpy arrays or (pinned) CPU tensors -> tensors on ``device`` (asynchronous copies where pinned)."""

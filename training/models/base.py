@@ -14,6 +14,7 @@ import torch.nn.functional as F
 
 from training.models import OPTIONAL_KEYS
 from training.models.guided import GUIDE_KEYS, guide_features, upsample_guided
+from training.models.resample import upsample  # noqa: F401  (re-exported: models import it from here)
 from training.transforms import normalize_depth
 
 
@@ -225,21 +226,6 @@ class ResBlock(nn.Module):
 
     def forward(self, x):
         return x + self.conv2(F.relu(self.conv1(x)))
-
-
-def upsample(x: torch.Tensor, scale: int, mode: str, jitter: torch.Tensor | None = None) -> torch.Tensor:
-    """Bilinear/bicubic upsampling of (B, C, h, w) by ``scale`` with pixel-centre alignment (align_corners=False).
-    With ``jitter`` (B, 2, LR pixels) the LR samples sit at their jittered positions: the HR pixel centre at LR
-    position u is interpolated at grid position u - jitter (edges clamped). Zero jitter = plain interpolation."""
-    if jitter is None:
-        return F.interpolate(x, scale_factor=scale, mode=mode, align_corners=False)
-    b, _, h, w = x.shape
-    j = jitter.to(x.dtype)
-    xs = (torch.arange(w * scale, device=x.device, dtype=x.dtype) + 0.5) / scale
-    ys = (torch.arange(h * scale, device=x.device, dtype=x.dtype) + 0.5) / scale
-    gx = (2.0 * (xs.view(1, 1, -1) - j[:, 0].view(b, 1, 1)) / w - 1.0).expand(b, h * scale, w * scale)
-    gy = (2.0 * (ys.view(1, -1, 1) - j[:, 1].view(b, 1, 1)) / h - 1.0).expand(b, h * scale, w * scale)
-    return F.grid_sample(x, torch.stack([gx, gy], dim=-1), mode=mode, padding_mode="border", align_corners=False)
 
 
 def demodulated_mask(fbeta_used: torch.Tensor) -> torch.Tensor:

@@ -69,7 +69,7 @@ def upsample_bilinear(x: torch.Tensor, scale: int, jitter: torch.Tensor | None =
     """``base.upsample(x, scale, "bilinear", jitter)``: one ``grid_sample`` (or ``interpolate`` without jitter).
     A separable two-pass version (gather the LR columns, then rows) measured 3x slower on the CPU: PyTorch's
     gather along the innermost axis is slow there, while ``grid_sample`` is vectorised."""
-    from training.models.base import upsample
+    from training.models.resample import upsample
     return upsample(x, scale, "bilinear", jitter)
 
 
