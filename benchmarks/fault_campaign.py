@@ -76,6 +76,9 @@ class Tally:
 
     def fail(self, what: str) -> None:
         self.failures.append(what)
+        self.log(f"  FAIL {what}")
+
+    log = staticmethod(lambda m: None)
 
     def bad(self) -> int:
         return (self.tracebacks + self.wrong_exit + self.no_error_line + self.corrupt_clips + self.lost_frames
@@ -533,17 +536,22 @@ def _finished_frames(clip: Path) -> dict[int, dict[str, str]]:
     return out
 
 
-def _kill_loop(cmd_for, done, tally: Tally, kills: int, window: tuple[float, float], rng: random.Random,
+def _kill_loop(cmd_for, done, tally: Tally, kills: int, window: list, rng: random.Random,
                label: str, log=print, on_kill=None) -> int:
-    """Start ``cmd_for()`` and SIGKILL it after a random time in ``window`` until ``kills`` kills were delivered;
-    then run it to the end. Returns the number of kills delivered."""
+    """Start ``cmd_for()`` and SIGKILL it after a random time in ``window`` (seconds) until ``kills`` kills were
+    delivered; then run it to the end. Returns the number of kills delivered. A run that finishes before its kill
+    time shrinks ``window`` to its own duration (the reference run may have been slower)."""
     delivered = 0
     while True:
+        started = time.perf_counter()
         proc = subprocess.Popen(cmd_for(), cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                 text=True, start_new_session=True)
         t = rng.uniform(*window) if delivered < kills else None
         try:
             proc.wait(timeout=t)
+            if t is not None:
+                took = time.perf_counter() - started
+                window[:] = [min(window[0], 0.1 * took), min(window[1], 0.75 * took)]
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
@@ -581,6 +589,7 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
     clip.rename(ref)
     ref_clip = open_clip(ref)
     log(f"  uninterrupted render: {t_ref:.1f} s")
+    window = [0.1 * t_ref, 0.75 * t_ref]
     done_total = 0
     round_ = 0
     while done_total < kills:
@@ -603,7 +612,7 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
         want = min(kills - done_total, 5)
         n = _kill_loop(lambda: [sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(clip), *args],
                        lambda: (clip / "manifest.json").is_file() and len(_finished_frames(clip)) == frames,
-                       tally, want, (0.1 * t_ref, 0.75 * t_ref), rng, "render", log, on_kill)
+                       tally, want, window, rng, "render", log, on_kill)
         done_total += n
         if n == 0:
             if round_ > 3 * kills:
@@ -670,6 +679,7 @@ def train_kills(fx: Fixtures, tally: Tally, kills: int, rng: random.Random, step
         return
     ref = _weights_digest(work / "reference" / "checkpoints" / "last.pt")
     log(f"  uninterrupted training ({steps} steps): {t_ref:.1f} s")
+    window = [0.1 * t_ref, 0.75 * t_ref]
     done_total, round_ = 0, 0
     while done_total < kills:
         round_ += 1
@@ -685,8 +695,7 @@ def train_kills(fx: Fixtures, tally: Tally, kills: int, rng: random.Random, step
             s = run / "summary.json"
             return s.is_file() and json.loads(s.read_text()).get("step") == steps
 
-        n = _kill_loop(cmd, finished, tally, min(kills - done_total, 5), (0.1 * t_ref, 0.75 * t_ref), rng, "train",
-                       log)
+        n = _kill_loop(cmd, finished, tally, min(kills - done_total, 5), window, rng, "train", log)
         done_total += n
         if n == 0:
             if round_ > 3 * kills:
@@ -773,6 +782,7 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
              parts=("bad", "random", "render", "train", "addon"), log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
+    tally.log = log
     fx = Fixtures(out / "fixtures")
     if "bad" in parts:
         log("bad inputs:")
@@ -782,7 +792,7 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
         random_inputs(fx, tally, examples, log)
     if "render" in parts and kills:
         log("render: SIGKILL + resume:")
-        render_kills(out, tally, kills, rng, log)
+        render_kills(out, tally, kills, rng, log=log)
     if "train" in parts and kills:
         log("train: SIGKILL + resume:")
         train_kills(fx, tally, kills, rng, log=log)
