@@ -72,6 +72,8 @@ class Tally:
     changed_frames: int = 0      # frames finished before a kill that changed afterwards
     results_compared: int = 0
     results_differ: int = 0      # final weights or first-process frames not bit-identical, or resumed frames off
+    frames_bit_identical: int = 0  # render frames of a killed first process equal to the uninterrupted run's
+    frames_resumed: int = 0      # render frames of resumed processes checked (see module doc)
     failures: list = field(default_factory=list)
 
     def fail(self, what: str) -> None:
@@ -537,7 +539,7 @@ def _finished_frames(clip: Path) -> dict[int, dict[str, str]]:
 
 
 def _kill_loop(cmd_for, done, tally: Tally, kills: int, window: list, rng: random.Random,
-               label: str, log=print, on_kill=None) -> int:
+               label: str, log=print, on_kill=None, late_first: bool = False) -> int:
     """Start ``cmd_for()`` and SIGKILL it after a random time in ``window`` (seconds) until ``kills`` kills were
     delivered; then run it to the end. Returns the number of kills delivered. A run that finishes before its kill
     time shrinks ``window`` to its own duration (the reference run may have been slower)."""
@@ -546,10 +548,15 @@ def _kill_loop(cmd_for, done, tally: Tally, kills: int, window: list, rng: rando
         started = time.perf_counter()
         proc = subprocess.Popen(cmd_for(), cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                 text=True, start_new_session=True)
-        t = rng.uniform(*window) if delivered < kills else None
+        if delivered >= kills:
+            t = None
+        elif delivered == 0 and late_first:  # let the first process finish some work before its kill
+            t = rng.uniform(0.8 * window[1] / 0.75, 0.98 * window[1] / 0.75)  # startup is ~80% of a run
+        else:
+            t = rng.uniform(*window)
         try:
             proc.wait(timeout=t)
-            if t is not None:
+            if t is not None and delivered == 0:  # a full run (a resumed one has less to do)
                 took = time.perf_counter() - started
                 window[:] = [min(window[0], 0.1 * took), min(window[1], 0.75 * took)]
         except subprocess.TimeoutExpired:
@@ -591,7 +598,7 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
     log(f"  uninterrupted render: {t_ref:.1f} s")
     window = [0.1 * t_ref, 0.75 * t_ref]
     done_total = 0
-    round_ = 0
+    round_ = killed_rounds = 0
     while done_total < kills:
         round_ += 1
         if clip.exists():
@@ -612,12 +619,13 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
         want = min(kills - done_total, 5)
         n = _kill_loop(lambda: [sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(clip), *args],
                        lambda: (clip / "manifest.json").is_file() and len(_finished_frames(clip)) == frames,
-                       tally, want, window, rng, "render", log, on_kill)
+                       tally, want, window, rng, "render", log, on_kill, late_first=killed_rounds % 2 == 0)
         done_total += n
         if n == 0:
             if round_ > 3 * kills:
                 break
             continue
+        killed_rounds += 1
         final = _finished_frames(clip)
         for f, d in snapshots.items():
             if final.get(f) != d:
@@ -642,6 +650,11 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
                         same = bool(abs(a.astype("float64") - r).max() <= 1e-6)
                     else:  # radiance of a resumed frame: another noise realisation of the same image
                         same = abs(float(a.mean()) - float(r.mean())) <= 0.05 * max(abs(float(r.mean())), 1e-3)
+                    if b == "radiance" and lvl == "hr":
+                        if f in first:
+                            tally.frames_bit_identical += int(same)
+                        else:
+                            tally.frames_resumed += 1
                     if not same:
                         ok = False
                         tally.fail(f"render round {round_}: frame {f} {lvl}/{b} differs from the uninterrupted run"

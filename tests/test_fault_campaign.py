@@ -1,4 +1,4 @@
-"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign and its numbers: docs/results.md)."""
+"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign, numbers: docs/results.md)."""
 import importlib.util
 import random
 import sys
