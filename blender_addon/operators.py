@@ -143,8 +143,8 @@ class _JobOperator:
             return None
         try:
             job = self.start(context, st)
-        except (ValueError, OSError, RuntimeError) as exc:
-            self.report({"ERROR"}, f"BlendSR {self.label}: {str(exc).splitlines()[0]}")
+        except Exception as exc:  # bad settings or files: one line in the report area, never a traceback
+            self.report({"ERROR"}, f"BlendSR {self.label}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
             return None
         if job is not None:
             ACTIVE[self.job_key] = job

@@ -113,6 +113,12 @@ class RenderConfig:
             w, h = self.hr_size
             if w % self.scale or h % self.scale:
                 raise ConfigError(f"--hr-size {w}x{h} is not divisible by --scale {self.scale}")
+        if self.max_bounces is not None and (not isinstance(self.max_bounces, int) or self.max_bounces < 0):
+            raise ConfigError(f"--max-bounces {self.max_bounces!r}: must be an integer >= 0")
+        if not isinstance(self.threads, int) or self.threads < 0:
+            raise ConfigError(f"--threads {self.threads!r}: must be an integer >= 0 (0 = all cores)")
+        if not isinstance(self.adaptive_min_samples, int) or self.adaptive_min_samples < 0:
+            raise ConfigError(f"--adaptive-min-samples {self.adaptive_min_samples!r}: must be an integer >= 0")
         if not (0 <= self.adaptive_threshold < 1):
             raise ConfigError(f"--adaptive-threshold {self.adaptive_threshold}: must be in [0, 1)")
         if self.scene is not None:

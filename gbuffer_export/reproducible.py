@@ -13,8 +13,9 @@ G-buffers equal up to 1 ulp; docs/clip-format.md, "Reproducibility"):
 
 ``prepare_render_process`` removes the three for ``--threads 1``: it pins the process to one core (Blender's task
 scheduler then starts one thread), and re-executes the process once with ``personality(ADDR_NO_RANDOMIZE)`` (what
-``setarch -R`` does), ``PYTHONHASHSEED=0`` and glibc's default allocator thresholds (``MALLOC_TUNING``). Two runs of the same command (same arguments, same output path: the
-path's length shapes the heap too) then give bit-identical EXRs. With more threads (the default) only 1 and 2 are
+``setarch -R`` does), ``PYTHONHASHSEED=0`` and glibc's default allocator thresholds (``MALLOC_TUNING``). Two runs
+of the same command (same arguments, same output path: the path's length shapes the heap too) then give
+bit-identical EXRs. With more threads (the default) only 1 and 2 are
 removed and the radiance still varies.
 
 What stays different in every case: the layout depends on what the process did before a frame, so a frame rendered

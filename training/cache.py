@@ -72,7 +72,8 @@ def default_cache_path(clip_path: Path, cache_dir: str | os.PathLike | None = No
 
 def check_finite(a: np.ndarray, name: str, where: str, policy: str, log: list) -> np.ndarray:
     """Apply the non-finite policy to buffer ``name``. Depth may be +inf (background); nothing else may be
-    non-finite, and radiance/emission beyond +-RADIANCE_CAP (values no scene produces) count as non-finite. 'error' raises NonFiniteError naming ``where``; 'sanitize' warns, records and repairs:
+    non-finite, and radiance/emission beyond +-RADIANCE_CAP (values no scene produces) count as non-finite.
+    'error' raises NonFiniteError naming ``where``; 'sanitize' warns, records and repairs:
     radiance/emission by the demodulation rule (NaN -> 0, +-Inf -> +-cap), depth NaN/-Inf -> +inf (background),
     other buffers NaN/Inf -> 0."""
     if a.dtype.kind != "f":

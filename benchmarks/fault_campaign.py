@@ -1,0 +1,842 @@
+"""Fault campaign: bad inputs, random inputs and SIGKILL + resume, counted.
+
+    .venv/bin/python benchmarks/fault_campaign.py -o /tmp/faults [--kills 10] [--examples 40] [--quick] [--json F]
+
+Parts (each prints its counts; the totals come last):
+
+1. **Bad inputs** (``BAD_INPUTS``, table-driven): every command (render, validate, train, evaluate, upscale,
+   export) on inputs a user gets wrong: missing/fake/non-.blend scenes, sizes that do not divide, absurd sizes,
+   reversed frames, unknown buffers, output paths that are files or hold another clip, negative spp, truncated and
+   random-byte EXRs, deleted frames, missing/corrupt/foreign manifests, NaN/Inf and 1e30 radiance, all-zero F_beta,
+   unknown config keys, wrong types, unknown models, an existing run directory, non-checkpoint and malicious
+   checkpoints... Each must exit with its expected code (2 for refused input), print a line containing
+   ``error:`` when refused, and never a Python traceback.
+2. **Random inputs** (hypothesis): random manifests (JSON mutations of a valid one), random EXRs (channel sets,
+   dtypes, sizes) in place of a buffer, and random configuration TOML. ``validate_clip`` must return a report and
+   ``load_config`` must raise ``ConfigError``/``ValueError`` or succeed; anything else counts as a traceback.
+3. **SIGKILL + resume**: ``blendsr render`` (``--threads 1``) and ``blendsr train`` are killed with SIGKILL at
+   random moments, rerun until they finish, and compared with an uninterrupted run: the clip must validate with every
+   planned frame (0 corrupt clips, 0 lost frames), frames finished before a kill must not change afterwards, and
+   the final weights must be bit-identical. Render frames: those of the first (killed) process are compared
+   bit for bit with the uninterrupted run; frames of a resumed process are a different noise realisation
+   (docs/clip-format.md, "Reproducibility"): their scene-determined buffers (depth, albedo, emission, motion,
+   flags) must be bit-identical and the rest within 1e-6 (normals, F_beta) or equal in the frame mean within 5%
+   (radiance).
+4. **Add-on operators** (bpy): a missing checkpoint, a malicious checkpoint, an output folder that is a file and a
+   scene without a camera each give an ERROR report, never a traceback.
+
+``--quick`` runs the subset ``tests/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
+count of failures is 0.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import io
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+TRACEBACK = "Traceback (most recent call last)"
+ENV = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def render_args(frames: int) -> list[str]:
+    return ["--hr-size", "64x36", "--frames", f"1:{frames}", "--hr-spp", "4", "--lr-spp", "2", "--seed", "3",
+            "--threads", "1", "--no-progress"]
+TRAIN_SETS = ["data.crop=8", "data.batch_size=2", "model.width=8", "model.blocks=1", "run.progress=false",
+              "run.amp=\"none\"", "run.threads=1", "run.checkpoint_every=1", "run.log_every=1"]
+
+
+@dataclass
+class Tally:
+    inputs_tried: int = 0
+    tracebacks: int = 0
+    wrong_exit: int = 0          # refused with another exit code than expected, or accepted when it must not be
+    no_error_line: int = 0       # refused without a line saying 'error:'
+    faults: int = 0              # SIGKILLs delivered
+    faults_survived: int = 0     # kills after which the resumed run finished and checked out
+    corrupt_clips: int = 0
+    lost_frames: int = 0
+    changed_frames: int = 0      # frames finished before a kill that changed afterwards
+    results_compared: int = 0
+    results_differ: int = 0      # final weights or first-process frames not bit-identical, or resumed frames off
+    frames_bit_identical: int = 0  # render frames of a killed first process equal to the uninterrupted run's
+    frames_resumed: int = 0      # render frames of resumed processes checked (see module doc)
+    failures: list = field(default_factory=list)
+
+    def fail(self, what: str) -> None:
+        self.failures.append(what)
+        self.log(f"  FAIL {what}")
+
+    log = staticmethod(lambda m: None)
+
+    def bad(self) -> int:
+        return (self.tracebacks + self.wrong_exit + self.no_error_line + self.corrupt_clips + self.lost_frames
+                + self.changed_frames + self.results_differ + (self.faults - self.faults_survived))
+
+
+# ------------------------------------------------------------------------------------------------------ fixtures
+class Fixtures:
+    """Files the bad inputs refer to, built once under ``root``."""
+
+    def __init__(self, root: Path):
+        from gbuffer_export.synthetic import make_synthetic_clip
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        self.clip = make_synthetic_clip(root / "clip", frames=range(1, 5), hr_size=(64, 36), scale=4)
+        self.clip2 = make_synthetic_clip(root / "clip_x2", frames=range(1, 5), hr_size=(64, 36), scale=2)
+        (root / "notes.txt").write_text("not a scene\n")
+        (root / "fake.blend").write_text("BLENDER? no, text\n")
+        (root / "random.bin").write_bytes(random.Random(0).randbytes(4096))
+        (root / "a_file").write_text("I am a file\n")
+        (root / "empty_dir").mkdir(exist_ok=True)
+        self._variants: dict[str, Path] = {}
+        self._ck: Path | None = None
+
+    def variant(self, name: str, mutate) -> Path:
+        """A copy of the good clip changed by ``mutate(path)``."""
+        if name not in self._variants:
+            p = self.root / f"v_{name}"
+            if p.exists():
+                shutil.rmtree(p)
+            shutil.copytree(self.clip, p, ignore=shutil.ignore_patterns(".blendsr_cache"))
+            mutate(p)
+            self._variants[name] = p
+        return self._variants[name]
+
+    def checkpoint(self) -> Path:
+        """A real checkpoint (1 training step on the good clip)."""
+        if self._ck is None:
+            run = self.root / "run_ok"
+            if not (run / "checkpoints" / "last.pt").is_file():
+                argv = ["train", "--model", "fusesr", "--data", str(self.clip), "-o", str(run), "--max-steps", "1"]
+                for s in TRAIN_SETS:
+                    argv += ["--set", s]
+                proc = cli(argv)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"fixture training failed: {proc.stderr[-2000:]}")
+            self._ck = run / "checkpoints" / "last.pt"
+        return self._ck
+
+    def malicious(self) -> Path:
+        p = self.root / "evil.pt"
+        if not p.exists():
+            code = ("import os, torch\nclass P:\n    def __reduce__(self):\n        return (os.system, ('touch "
+                    f"{self.root / 'PWNED'}',))\ntorch.save({{'format': 'blendsr.checkpoint', 'm': P()}}, '{p}')\n")
+            subprocess.run([sys.executable, "-c", code], check=True, env=ENV, capture_output=True)
+        return p
+
+
+def _edit_exr(clip: Path, frame: int, key: str, fn) -> None:
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.exr import write_exr
+    c = open_clip(clip)
+    a = c.read(frame, key)
+    a = fn(a)
+    chans = {"radiance": "RGB", "fbeta": "RGB", "albedo": "RGB", "emission": "RGB"}[key.split("/")[1]]
+    write_exr(c.path_of(frame, key), {ch: a[..., i] for i, ch in enumerate(chans)})
+
+
+def _set(a, idx, v):
+    a[idx] = v
+    return a
+
+
+def _path(clip: Path, frame: int, key: str) -> Path:
+    from gbuffer_export.clip import open_clip
+    return Path(open_clip(clip).path_of(frame, key))
+
+
+def _truncate(clip):
+    p = _path(clip, 2, "hr/normal")
+    p.write_bytes(p.read_bytes()[:200])
+
+
+def _random_bytes(clip):
+    _path(clip, 2, "lr/radiance").write_bytes(random.Random(1).randbytes(3000))
+
+
+def _delete_frame(clip):
+    _path(clip, 3, "hr/radiance").unlink()
+
+
+def _manifest(clip, fn):
+    m = clip / "manifest.json"
+    m.write_text(fn(m.read_text()))
+
+
+def _foreign_manifest(text):
+    return json.dumps({"schema": "someone.else", "frames": [1, 2]})
+
+
+def _manifest_wrong_types(text):
+    m = json.loads(text)
+    m["scale"] = "four"
+    m["levels"] = [1, 2]
+    return json.dumps(m)
+
+
+# ---------------------------------------------------------------------------------------------------- bad inputs
+@dataclass
+class BadInput:
+    name: str
+    argv: object                 # list of str, or callable(Fixtures) -> list of str
+    expect: tuple = (2,)         # accepted exit codes
+    quick: bool = False          # part of the make-test subset
+    inproc: bool = True          # run in this process (fast); False: a fresh Python (render, bpy)
+
+
+def _r(*a):
+    return ["render", *a]
+
+
+BAD_INPUTS: list[BadInput] = [
+    # render (fresh process each: bpy)
+    BadInput("render: missing scene", lambda f: _r(str(f.root / "nope.blend"), "-o", str(f.root / "o1")),
+             quick=True, inproc=False),
+    BadInput("render: fake .blend", lambda f: _r(str(f.root / "fake.blend"), "-o", str(f.root / "o2")),
+             inproc=False),
+    BadInput("render: not a .blend", lambda f: _r(str(f.root / "notes.txt"), "-o", str(f.root / "o3")),
+             inproc=False),
+    BadInput("render: size not divisible by scale", lambda f: _r("-o", str(f.root / "o4"), "--hr-size", "63x36"),
+             inproc=False),
+    BadInput("render: scale 0", lambda f: _r("-o", str(f.root / "o5"), "--scale", "0"), inproc=False),
+    BadInput("render: reversed frames", lambda f: _r("-o", str(f.root / "o6"), "--frames", "4:1"), inproc=False),
+    BadInput("render: unknown buffer", lambda f: _r("-o", str(f.root / "o7"), "--buffers", "radiance,glow"),
+             inproc=False),
+    BadInput("render: negative spp", lambda f: _r("-o", str(f.root / "o8"), "--hr-spp", "-4"), inproc=False),
+    BadInput("render: zero LR spp", lambda f: _r("-o", str(f.root / "o9"), "--lr-spp", "0"), inproc=False),
+    BadInput("render: absurd size", lambda f: _r("-o", str(f.root / "o10"), "--hr-size", "100000x100000",
+                                                  "--frames", "1:1"), quick=True, inproc=False),
+    BadInput("render: size not WxH", lambda f: _r("-o", str(f.root / "o11"), "--hr-size", "big"), inproc=False),
+    BadInput("render: bad shard", lambda f: _r("-o", str(f.root / "o12"), "--shard", "3/2"), inproc=False),
+    BadInput("render: output holds another clip", lambda f: _r("-o", str(f.clip), "--hr-size", "64x36",
+                                                               "--frames", "1:1", "--hr-spp", "1"), inproc=False),
+    BadInput("render: output is a file", lambda f: _r("-o", str(f.root / "a_file"), "--hr-size", "64x36",
+                                                      "--frames", "1:1", "--hr-spp", "1"), inproc=False),
+    BadInput("render: unknown camera path", lambda f: _r("-o", str(f.root / "o13"), "--camera-path", "fly"),
+             inproc=False),
+    BadInput("render: negative bounces", lambda f: _r("-o", str(f.root / "o14"), "--max-bounces", "-1",
+                                                      "--hr-size", "64x36", "--frames", "1:1"), inproc=False),
+    BadInput("render: negative threads", lambda f: _r("-o", str(f.root / "o15"), "--threads", "-2",
+                                                      "--hr-size", "64x36", "--frames", "1:1"), inproc=False),
+    BadInput("render: frames not A:B", lambda f: _r("-o", str(f.root / "o16"), "--frames", "one"), inproc=False),
+    BadInput("render: unknown fbeta source", lambda f: _r("-o", str(f.root / "o17"), "--fbeta", "guess"),
+             inproc=False),
+    # validate
+    BadInput("validate: missing clip", lambda f: ["validate", str(f.root / "nope")], expect=(1, 2), quick=True),
+    BadInput("validate: folder without manifest", lambda f: ["validate", str(f.root / "empty_dir")], expect=(1, 2)),
+    BadInput("validate: clip is a file", lambda f: ["validate", str(f.root / "a_file")], expect=(1, 2)),
+    BadInput("validate: corrupt manifest",
+             lambda f: ["validate", str(f.variant("corrupt_manifest", lambda c: _manifest(c, lambda t: t[:-40])))],
+             expect=(1, 2), quick=True),
+    BadInput("validate: foreign manifest",
+             lambda f: ["validate", str(f.variant("foreign", lambda c: _manifest(c, _foreign_manifest)))],
+             expect=(1, 2)),
+    BadInput("validate: manifest of wrong types",
+             lambda f: ["validate", str(f.variant("types", lambda c: _manifest(c, _manifest_wrong_types)))],
+             expect=(1, 2)),
+    BadInput("validate: truncated EXR", lambda f: ["validate", str(f.variant("trunc", _truncate))], expect=(1,),
+             quick=True),
+    BadInput("validate: random-byte EXR", lambda f: ["validate", str(f.variant("randexr", _random_bytes))],
+             expect=(1,)),
+    BadInput("validate: deleted frame", lambda f: ["validate", str(f.variant("deleted", _delete_frame))],
+             expect=(1,)),
+    BadInput("validate: NaN radiance", lambda f: ["validate", str(f.variant(
+        "nan", lambda c: _edit_exr(c, 2, "lr/radiance", lambda a: _set(a, (1, 1, 0), float("nan")))))],
+        expect=(1,)),
+    BadInput("validate: 1e30 radiance (warning)", lambda f: ["validate", str(f.variant(
+        "huge", lambda c: _edit_exr(c, 2, "lr/radiance", lambda a: _set(a, (1, 1, 0), 1e30))))], expect=(0,),
+        quick=True),
+    BadInput("validate: manifest is a folder", lambda f: ["validate", str(f.variant(
+        "mdir", lambda c: ((c / "manifest.json").unlink(), (c / "manifest.json").mkdir())))], expect=(1, 2)),
+    # train
+    BadInput("train: unknown config key", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                     str(f.root / "t1"), "--set", "data.bogus=1"], quick=True),
+    BadInput("train: wrong type", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                             str(f.root / "t2"), "--set", "data.crop=\"big\""]),
+    BadInput("train: --set without =", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                  str(f.root / "t3"), "--set", "data.crop"]),
+    BadInput("train: unknown model", lambda f: ["train", "--model", "srgan9000", "--data", str(f.clip), "-o",
+                                                str(f.root / "t4")], quick=True),
+    BadInput("train: untrainable model", lambda f: ["train", "--model", "bicubic", "--data", str(f.clip), "-o",
+                                                    str(f.root / "t5")]),
+    BadInput("train: no data", lambda f: ["train", "--model", "fusesr", "-o", str(f.root / "t6")]),
+    BadInput("train: missing clip", lambda f: ["train", "--model", "fusesr", "--data", str(f.root / "nope"), "-o",
+                                               str(f.root / "t7")]),
+    BadInput("train: folder that is not a clip", lambda f: ["train", "--model", "fusesr", "--data",
+                                                            str(f.root / "empty_dir"), "-o", str(f.root / "t8")]),
+    BadInput("train: existing run directory", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                         str(f.checkpoint().parents[1]), "--max-steps", "1"]),
+    BadInput("train: resume without a run", lambda f: ["train", "-o", str(f.root / "t9"), "--resume"]),
+    BadInput("train: mixed scales", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), str(f.clip2),
+                                               "-o", str(f.root / "t10")]),
+    BadInput("train: crop larger than the clip", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip),
+                                                            "-o", str(f.root / "t11"), "--set", "data.crop=48"]),
+    BadInput("train: negative max steps", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                     str(f.root / "t12"), "--max-steps", "-3"]),
+    BadInput("train: config file missing", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                      str(f.root / "t13"), "--config", str(f.root / "nope.toml")]),
+    BadInput("train: config not TOML", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
+                                                  str(f.root / "t14"), "--config", str(f.root / "random.bin")]),
+    BadInput("train: NaN radiance", lambda f: ["train", "--model", "fusesr", "--data", str(f.variant(
+        "nan", lambda c: _edit_exr(c, 2, "lr/radiance", lambda a: _set(a, (1, 1, 0), float("nan"))))), "-o",
+        str(f.root / "t15"), "--max-steps", "1", "--set", "data.crop=8"]),
+    BadInput("train: 1e30 radiance", lambda f: ["train", "--model", "fusesr", "--data", str(f.variant(
+        "huge", lambda c: _edit_exr(c, 2, "lr/radiance", lambda a: _set(a, (1, 1, 0), 1e30)))), "-o",
+        str(f.root / "t16"), "--max-steps", "1", "--set", "data.crop=8"], quick=True),
+    BadInput("train: truncated EXR", lambda f: ["train", "--model", "fusesr", "--data", str(f.variant(
+        "trunc", _truncate)), "-o", str(f.root / "t17"), "--max-steps", "1", "--set", "data.crop=8"]),
+    BadInput("train: deleted frame", lambda f: ["train", "--model", "fusesr", "--data", str(f.variant(
+        "deleted", _delete_frame)), "-o", str(f.root / "t18"), "--max-steps", "1", "--set", "data.crop=8"]),
+    BadInput("train: all-zero fbeta (eps floor; trains)", lambda f: [
+        "train", "--model", "fusesr", "--data", str(f.variant("zero_fbeta", lambda c: [
+            _edit_exr(c, fr, f"{lv}/fbeta", lambda a: a * 0) for fr in range(1, 5) for lv in ("hr", "lr")])),
+        "-o", str(f.root / "t19"), "--max-steps", "1", *sum((["--set", s] for s in TRAIN_SETS), [])], expect=(0,)),
+    # evaluate / upscale / export
+    BadInput("evaluate: missing checkpoint", lambda f: ["evaluate", "--checkpoint", str(f.root / "nope.pt"),
+                                                        "--data", str(f.clip), "--json", str(f.root / "e1.json")]),
+    BadInput("evaluate: not a checkpoint", lambda f: ["evaluate", "--checkpoint", str(f.root / "random.bin"),
+                                                      "--data", str(f.clip), "--json", str(f.root / "e2.json")],
+             quick=True),
+    BadInput("evaluate: text file as checkpoint", lambda f: ["evaluate", "--checkpoint", str(f.root / "notes.txt"),
+                                                             "--data", str(f.clip), "--json",
+                                                             str(f.root / "e3.json")]),
+    BadInput("evaluate: malicious checkpoint", lambda f: ["evaluate", "--checkpoint", str(f.malicious()), "--data",
+                                                          str(f.clip), "--json", str(f.root / "e4.json")],
+             quick=True),
+    BadInput("evaluate: checkpoint of another scale", lambda f: ["evaluate", "--checkpoint", str(f.checkpoint()),
+                                                                 "--data", str(f.clip2), "--json",
+                                                                 str(f.root / "e5.json"), "--no-flip"]),
+    BadInput("evaluate: unknown model", lambda f: ["evaluate", "--model", "magic", "--data", str(f.clip), "--json",
+                                                   str(f.root / "e6.json")]),
+    BadInput("evaluate: missing clip", lambda f: ["evaluate", "--model", "bilinear", "--data", str(f.root / "nope"),
+                                                  "--json", str(f.root / "e7.json")]),
+    BadInput("evaluate: frames outside the clip", lambda f: ["evaluate", "--model", "bilinear", "--data",
+                                                             str(f.clip), "--json", str(f.root / "e8.json"),
+                                                             "--frames", "7:9", "--no-flip"]),
+    BadInput("evaluate: unknown model key", lambda f: ["evaluate", "--model", "demod-jbu", "--data", str(f.clip),
+                                                       "--json", str(f.root / "e9.json"), "--set", "model.zap=1"]),
+    BadInput("upscale: output is a file", lambda f: ["upscale", "--checkpoint", str(f.checkpoint()), "--clip",
+                                                     str(f.clip), "-o", str(f.root / "a_file")]),
+    BadInput("upscale: malicious checkpoint", lambda f: ["upscale", "--checkpoint", str(f.malicious()), "--clip",
+                                                         str(f.clip), "-o", str(f.root / "u2")]),
+    BadInput("export: not a checkpoint", lambda f: ["export", "--checkpoint", str(f.root / "random.bin"), "--onnx",
+                                                    str(f.root / "x.onnx")]),
+]
+
+
+def cli(argv, timeout=600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "gbuffer_export.cli", *argv], cwd=REPO, env=ENV,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def run_inproc(argv) -> tuple[int, str, bool]:
+    """``main(argv)`` in this process: (exit code, stderr, whether an exception escaped)."""
+    from gbuffer_export.cli import main
+    err = io.StringIO()
+    escaped = False
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 2
+        except Exception:
+            escaped = True
+            code = -1
+            err.write(traceback.format_exc())
+    return code, err.getvalue(), escaped
+
+
+def bad_inputs(fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
+    for case in BAD_INPUTS:
+        if quick and not case.quick:
+            continue
+        argv = case.argv(fx) if callable(case.argv) else list(case.argv)
+        if case.inproc:
+            code, err, escaped = run_inproc(argv)
+        else:
+            proc = cli(argv, timeout=300)
+            code, err, escaped = proc.returncode, proc.stderr, False
+        tally.inputs_tried += 1
+        problems = []
+        if escaped or TRACEBACK in err:
+            tally.tracebacks += 1
+            problems.append("traceback")
+        if code not in case.expect:
+            tally.wrong_exit += 1
+            problems.append(f"exit {code}, expected {case.expect}")
+        if code == 2 and "error:" not in err:
+            tally.no_error_line += 1
+            problems.append("no 'error:' line")
+        if problems:
+            last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
+            tally.fail(f"{case.name}: {', '.join(problems)}: {last[0][:200]}")
+        log(f"  {'FAIL' if problems else 'ok  '} {case.name}: exit {code}")
+    if (fx.root / "PWNED").exists():
+        tally.fail("the malicious checkpoint ran code")
+        tally.tracebacks += 1
+
+
+# ------------------------------------------------------------------------------------------------ random inputs
+def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from gbuffer_export.config import ConfigError
+    from gbuffer_export.exr import write_exr
+    from gbuffer_export.validate import validate_clip
+    from training.config import load_config
+
+    cfg = settings(max_examples=examples, deadline=None, database=None, derandomize=True,
+                   suppress_health_check=list(HealthCheck))
+    base = json.loads((fx.clip / "manifest.json").read_text())
+    work = fx.root / "hyp"
+    if work.exists():
+        shutil.rmtree(work)
+    shutil.copytree(fx.clip, work, ignore=shutil.ignore_patterns(".blendsr_cache"))
+    scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True),
+                        st.text(max_size=8))
+    json_values = st.recursive(scalars, lambda c: st.one_of(st.lists(c, max_size=4),
+                                                            st.dictionaries(st.text(max_size=6), c, max_size=4)),
+                               max_leaves=12)
+
+    def check(label, fn):
+        tally.inputs_tried += 1
+        try:
+            fn()
+        except Exception as exc:
+            tally.tracebacks += 1
+            tally.fail(f"{label}: {type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}")
+
+    def set_path(m, path, value):
+        d = m
+        for k in path[:-1]:
+            d = d[k] if isinstance(d, dict) and k in d else None
+            if not isinstance(d, dict):
+                return m
+        d[path[-1]] = value
+        return m
+
+    paths = [("scale",), ("levels",), ("levels", "hr"), ("levels", "lr", "width"), ("frames",), ("buffers",),
+             ("frame_data",), ("frame_data", "2"), ("frame_data", "2", "hr"), ("frame_data", "2", "lr", "jitter"),
+             ("frame_data", "2", "hr", "intrinsics"), ("schema",), ("schema_version",), ("render",), ("identity",)]
+
+    @cfg
+    @given(st.sampled_from(paths), json_values, st.booleans())
+    def manifests(path, value, drop):
+        m = json.loads(json.dumps(base))
+        if drop and path[0] in m:
+            del m[path[0]]
+        else:
+            set_path(m, path, value)
+        (work / "manifest.json").write_text(json.dumps(m))
+        check(f"manifest {path}={value!r:.60}", lambda: validate_clip(work, quick=True))
+
+    channel_sets = st.lists(st.sampled_from(["R", "G", "B", "A", "X", "Y", "Z", "F", "V", "rgb.R"]), min_size=1,
+                            max_size=4, unique=True)
+
+    @cfg
+    @given(channel_sets, st.sampled_from(["float32", "float16", "uint32"]), st.integers(1, 20), st.integers(1, 40),
+           st.sampled_from(["lr/radiance", "hr/normal", "hr/flags", "lr/depth"]))
+    def exrs(chans, dtype, h, w, key):
+        import numpy as np
+        from gbuffer_export.clip import open_clip
+        shutil.copyfile(fx.clip / "manifest.json", work / "manifest.json")
+        path = Path(open_clip(work).path_of(2, key))
+        rng = np.random.default_rng(h * 100 + w)
+        arrs = {c: (rng.random((h, w)) * 10).astype(dtype) for c in chans}
+        write_exr(path, arrs)
+
+        def run():
+            validate_clip(work, quick=True)
+            from training.cache import ClipCache
+            from gbuffer_export.clip import ClipError
+            try:
+                ClipCache(work, cache_dir=fx.root / "hyp_cache").ensure([key])
+            except (ClipError, ValueError):
+                pass
+        check(f"EXR {key} {chans} {dtype} {w}x{h}", run)
+        shutil.copyfile(fx.clip / Path(open_clip(fx.clip).path_of(2, key)).relative_to(fx.clip), path)
+
+    sections = st.sampled_from(["data", "model", "loss", "optim", "run", "extra"])
+    keys = st.sampled_from(["crop", "batch_size", "name", "width", "lr", "max_steps", "nonfinite", "betas",
+                            "exposure_range", "scale", "pixel", "bogus"])
+    toml_values = st.one_of(st.integers(-5, 10**4), st.floats(-1e3, 1e3), st.booleans(),
+                            st.text(alphabet="abcxyz-_", max_size=8), st.lists(st.floats(-2, 2), max_size=3))
+
+    @cfg
+    @given(st.dictionaries(sections, st.dictionaries(keys, toml_values, max_size=3), max_size=3),
+           st.booleans())
+    def configs(doc, garble):
+        lines = []
+        for sec, kv in doc.items():
+            lines.append(f"[{sec}]")
+            for k, v in kv.items():
+                lines.append(f"{k} = {_toml(v)}")
+        text = "\n".join(lines) + "\n"
+        if garble:
+            text = text.replace("=", "", 1)
+        p = fx.root / "hyp.toml"
+        p.write_text(text)
+
+        def run():
+            try:
+                load_config(p)
+            except (ConfigError, ValueError):
+                pass
+        check(f"config {text[:80]!r}", run)
+
+    before = tally.inputs_tried
+    manifests()
+    exrs()
+    configs()
+    log(f"  {tally.inputs_tried - before} random inputs")
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    return repr(v)
+
+
+# ---------------------------------------------------------------------------------------------- kill + resume
+def _digest_dir(clip: Path) -> dict[str, str]:
+    out = {}
+    for p in sorted(clip.rglob("*")):
+        if p.is_file() and ".blendsr_cache" not in p.parts and p.name != "manifest.json" and not p.name.startswith("."):
+            out[str(p.relative_to(clip))] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def _finished_frames(clip: Path) -> dict[int, dict[str, str]]:
+    """frame -> digests of its record and buffers, for frames whose record exists."""
+    out = {}
+    rec_dir = clip / "frames"
+    if not rec_dir.is_dir():
+        return out
+    digests = _digest_dir(clip)
+    for rec in rec_dir.glob("*.json"):
+        f = int(rec.stem)
+        out[f] = {k: v for k, v in digests.items() if Path(k).stem == rec.stem}
+    return out
+
+
+def _kill_loop(cmd_for, done, tally: Tally, kills: int, window: list, rng: random.Random,
+               label: str, log=print, on_kill=None, late_first: bool = False) -> int:
+    """Start ``cmd_for()`` and SIGKILL it after a random time in ``window`` (seconds) until ``kills`` kills were
+    delivered; then run it to the end. Returns the number of kills delivered. A run that finishes before its kill
+    time shrinks ``window`` to its own duration (the reference run may have been slower)."""
+    delivered = 0
+    while True:
+        started = time.perf_counter()
+        proc = subprocess.Popen(cmd_for(), cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True, start_new_session=True)
+        if delivered >= kills:
+            t = None
+        elif delivered == 0 and late_first:  # let the first process finish some work before its kill
+            t = rng.uniform(0.8 * window[1] / 0.75, 0.98 * window[1] / 0.75)  # startup is ~80% of a run
+        else:
+            t = rng.uniform(*window)
+        try:
+            proc.wait(timeout=t)
+            if t is not None and delivered == 0:  # a full run (a resumed one has less to do)
+                took = time.perf_counter() - started
+                window[:] = [min(window[0], 0.1 * took), min(window[1], 0.75 * took)]
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            delivered += 1
+            tally.faults += 1
+            if on_kill is not None:
+                on_kill()
+            continue
+        err = proc.stderr.read() if proc.stderr else ""
+        if proc.returncode != 0:
+            if TRACEBACK in err:
+                tally.tracebacks += 1
+            tally.fail(f"{label}: rerun exited {proc.returncode}: {err.strip().splitlines()[-1:]}")
+            return delivered
+        if done():
+            return delivered
+
+
+def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frames: int = 4, log=print) -> None:
+    from gbuffer_export import open_clip
+    from gbuffer_export.validate import validate_clip
+    work = root / "render_kills"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    clip = work / "clip"
+    t0 = time.perf_counter()
+    args = render_args(frames)
+    proc = cli(["render", "-o", str(clip), *args])
+    t_ref = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tally.fail(f"render reference failed: {proc.stderr[-500:]}")
+        return
+    ref = work / "reference"
+    clip.rename(ref)
+    ref_clip = open_clip(ref)
+    log(f"  uninterrupted render: {t_ref:.1f} s")
+    window = [0.1 * t_ref, 0.75 * t_ref]
+    done_total = 0
+    round_ = killed_rounds = 0
+    while done_total < kills:
+        round_ += 1
+        if clip.exists():
+            shutil.rmtree(clip)
+        snapshots: dict[int, dict[str, str]] = {}
+        first_process = {"frames": None}
+        changed = {"n": 0}
+
+        def on_kill():
+            now = _finished_frames(clip)
+            if first_process["frames"] is None:
+                first_process["frames"] = set(now)
+            for f, d in snapshots.items():
+                if now.get(f) != d:
+                    changed["n"] += 1
+            snapshots.update(now)
+
+        want = min(kills - done_total, 5)
+        n = _kill_loop(lambda: [sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(clip), *args],
+                       lambda: (clip / "manifest.json").is_file() and len(_finished_frames(clip)) == frames,
+                       tally, want, window, rng, "render", log, on_kill, late_first=killed_rounds % 2 == 0)
+        done_total += n
+        if n == 0:
+            if round_ > 3 * kills:
+                break
+            continue
+        killed_rounds += 1
+        final = _finished_frames(clip)
+        for f, d in snapshots.items():
+            if final.get(f) != d:
+                changed["n"] += 1
+        tally.changed_frames += changed["n"]
+        rep = validate_clip(clip)
+        if not rep.ok:
+            tally.corrupt_clips += 1
+            tally.fail(f"render round {round_}: {rep.summary_line()}")
+        lost = frames - len(final)
+        tally.lost_frames += max(lost, 0)
+        c = open_clip(clip)
+        first = first_process["frames"] or set()
+        ok = True
+        for f in c.frames:
+            for lvl in ("hr", "lr"):
+                for b in c.manifest["buffers"]:
+                    a, r = c.read(f, f"{lvl}/{b}"), ref_clip.read(f, f"{lvl}/{b}")
+                    if f in first or b in ("depth", "albedo", "emission", "motion", "flags"):
+                        same = a.tobytes() == r.tobytes()
+                    elif b in ("normal", "fbeta"):
+                        same = bool(abs(a.astype("float64") - r).max() <= 1e-6)
+                    else:  # radiance of a resumed frame: another noise realisation of the same image
+                        same = abs(float(a.mean()) - float(r.mean())) <= 0.05 * max(abs(float(r.mean())), 1e-3)
+                    if b == "radiance" and lvl == "hr":
+                        if f in first:
+                            tally.frames_bit_identical += int(same)
+                        else:
+                            tally.frames_resumed += 1
+                    if not same:
+                        ok = False
+                        tally.fail(f"render round {round_}: frame {f} {lvl}/{b} differs from the uninterrupted run"
+                                   f" ({'first process' if f in first else 'resumed'})")
+        tally.results_compared += 1
+        tally.results_differ += 0 if ok else 1
+        if rep.ok and lost == 0 and changed["n"] == 0:
+            tally.faults_survived += n
+        log(f"  render round {round_}: {n} kills, first process finished frames {sorted(first)}, "
+            f"{'valid' if rep.ok else 'INVALID'}, {len(final)}/{frames} frames, {'same' if ok else 'DIFFERENT'}")
+
+
+def _weights_digest(ck_path: Path) -> str:
+    from training.checkpoint import load_checkpoint
+    ck = load_checkpoint(ck_path)
+    h = hashlib.sha256()
+    for k, v in ck["model"].items():
+        h.update(k.encode())
+        h.update(v.cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def train_kills(fx: Fixtures, tally: Tally, kills: int, rng: random.Random, steps: int = 12, log=print) -> None:
+    work = fx.root / "train_kills"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    sets = sum((["--set", s] for s in TRAIN_SETS), [])
+    base = ["train", "--model", "fusesr", "--data", str(fx.clip), "--max-steps", str(steps), *sets]
+    t0 = time.perf_counter()
+    proc = cli([*base, "-o", str(work / "reference")])
+    t_ref = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tally.fail(f"train reference failed: {proc.stderr[-500:]}")
+        return
+    ref = _weights_digest(work / "reference" / "checkpoints" / "last.pt")
+    log(f"  uninterrupted training ({steps} steps): {t_ref:.1f} s")
+    window = [0.1 * t_ref, 0.75 * t_ref]
+    done_total, round_ = 0, 0
+    while done_total < kills:
+        round_ += 1
+        run = work / f"run{round_}"
+        last = run / "checkpoints" / "last.pt"
+
+        def cmd():
+            if last.is_file():
+                return [sys.executable, "-m", "gbuffer_export.cli", "train", "-o", str(run), "--resume"]
+            return [sys.executable, "-m", "gbuffer_export.cli", *base, "-o", str(run)]
+
+        def finished():
+            s = run / "summary.json"
+            return s.is_file() and json.loads(s.read_text()).get("step") == steps
+
+        n = _kill_loop(cmd, finished, tally, min(kills - done_total, 5), window, rng, "train", log)
+        done_total += n
+        if n == 0:
+            if round_ > 3 * kills:
+                break
+            continue
+        same = last.is_file() and _weights_digest(last) == ref
+        tally.results_compared += 1
+        if not same:
+            tally.results_differ += 1
+            tally.fail(f"train round {round_}: final weights differ from the uninterrupted run")
+        else:
+            tally.faults_survived += n
+        log(f"  train round {round_}: {n} kills, weights {'bit-identical' if same else 'DIFFERENT'}")
+
+
+# ------------------------------------------------------------------------------------------------------- add-on
+ADDON_SCRIPT = r'''
+import json, os, sys
+import bpy
+import blender_addon
+root = sys.argv[1]
+evil = sys.argv[2]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+sc = bpy.context.scene
+bpy.ops.mesh.primitive_uv_sphere_add()
+sc.frame_start, sc.frame_end = 1, 1
+blender_addon.register()
+s = sc.blendsr
+s.use_scene_resolution = False
+s.hr_width, s.hr_height = 64, 36
+s.hr_spp, s.lr_spp, s.gbuffer_spp = 1, 1, 1
+out = []
+def attempt(name, op):
+    try:
+        res = op()
+        out.append({"case": name, "result": sorted(res), "message": ""})
+    except RuntimeError as exc:
+        out.append({"case": name, "result": ["ERROR"], "message": str(exc)})
+    except Exception as exc:
+        import traceback
+        out.append({"case": name, "result": ["EXCEPTION"], "message": traceback.format_exc()})
+s.output_dir = os.path.join(root, "addon_out")
+attempt("export: scene without a camera", bpy.ops.blendsr.export_dataset)
+bpy.ops.object.camera_add(location=(0, -6, 0), rotation=(1.5708, 0, 0))
+sc.camera = bpy.context.object
+s.output_dir = os.path.join(root, "a_file")
+attempt("export: output folder is a file", bpy.ops.blendsr.export_dataset)
+s.output_dir = os.path.join(root, "addon_out2")
+s.checkpoint = os.path.join(root, "missing.pt")
+attempt("preview: missing checkpoint", bpy.ops.blendsr.preview_upscale)
+s.checkpoint = evil
+attempt("preview: malicious checkpoint", bpy.ops.blendsr.preview_upscale)
+print("RESULT " + json.dumps(out), flush=True)
+'''
+
+
+def addon_inputs(fx: Fixtures, tally: Tally, log=print, cases: int | None = None) -> None:
+    proc = subprocess.run([sys.executable, "-c", ADDON_SCRIPT, str(fx.root), str(fx.malicious())], cwd=REPO, env=ENV,
+                          capture_output=True, text=True, timeout=600)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode != 0 or not lines:
+        tally.tracebacks += 1
+        tally.fail(f"add-on script exited {proc.returncode}: {proc.stderr[-400:]}")
+        return
+    for r in json.loads(lines[-1][len("RESULT "):])[:cases]:
+        tally.inputs_tried += 1
+        bad = []
+        if r["result"] != ["ERROR"]:
+            bad.append(f"result {r['result']}")
+            tally.wrong_exit += 1
+        if TRACEBACK in r["message"] or "Traceback" in r["message"]:
+            bad.append("traceback")
+            tally.tracebacks += 1
+        if bad:
+            tally.fail(f"add-on {r['case']}: {', '.join(bad)}: {r['message'][:200]}")
+        log(f"  {'FAIL' if bad else 'ok  '} add-on {r['case']}: {r['message'].strip().splitlines()[-1][:120]}")
+    if (fx.root / "PWNED").exists():
+        tally.tracebacks += 1
+        tally.fail("the malicious checkpoint ran code in the add-on")
+
+
+# --------------------------------------------------------------------------------------------------------- main
+def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
+             parts=("bad", "random", "render", "train", "addon"), log=print) -> Tally:
+    rng = random.Random(seed)
+    tally = Tally()
+    tally.log = log
+    fx = Fixtures(out / "fixtures")
+    if "bad" in parts:
+        log("bad inputs:")
+        bad_inputs(fx, tally, quick, log)
+    if "random" in parts:
+        log("random inputs (hypothesis):")
+        random_inputs(fx, tally, examples, log)
+    if "render" in parts and kills:
+        log("render: SIGKILL + resume:")
+        render_kills(out, tally, kills, rng, log=log)
+    if "train" in parts and kills:
+        log("train: SIGKILL + resume:")
+        train_kills(fx, tally, kills, rng, log=log)
+    if "addon" in parts:
+        log("add-on operators:")
+        addon_inputs(fx, tally, log)
+    return tally
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("-o", "--output", type=Path, required=True, help="work folder (created; reused fixtures)")
+    p.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (render, train)")
+    p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
+    p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
+    p.add_argument("--parts", default="bad,random,render,train,addon", help="comma-separated parts to run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the kill times")
+    p.add_argument("--json", type=Path, help="write the counts here")
+    args = p.parse_args(argv)
+    t0 = time.perf_counter()
+    tally = campaign(args.output, kills=args.kills, examples=args.examples, quick=args.quick, seed=args.seed,
+                     parts=tuple(args.parts.split(",")))
+    counts = {k: v for k, v in asdict(tally).items() if k != "failures"}
+    counts["seconds"] = round(time.perf_counter() - t0, 1)
+    print("counts: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    for f in tally.failures:
+        print(f"FAILURE: {f}")
+    if args.json:
+        args.json.write_text(json.dumps({**counts, "failures": tally.failures}, indent=1))
+    return 0 if tally.bad() == 0 and not tally.failures else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign, numbers: docs/results.md)."""
+import importlib.util
+import random
+import sys
+
+import pytest
+from conftest import REPO, requires_bpy
+
+spec = importlib.util.spec_from_file_location("fault_campaign", REPO / "benchmarks" / "fault_campaign.py")
+fc = importlib.util.module_from_spec(spec)
+sys.modules["fault_campaign"] = fc  # dataclasses look their module up
+spec.loader.exec_module(fc)
+
+
+@pytest.fixture(scope="module")
+def fixtures(tmp_path_factory):
+    pytest.importorskip("torch")
+    return fc.Fixtures(tmp_path_factory.mktemp("faults"))
+
+
+def _clean(tally):
+    assert tally.failures == [] and tally.bad() == 0, tally.failures
+
+
+@pytest.mark.torch
+def test_bad_and_random_inputs_give_one_line_and_no_traceback(fixtures):
+    pytest.importorskip("hypothesis")
+    tally = fc.Tally()
+    fc.bad_inputs(fixtures, tally, quick=True, log=lambda m: None)
+    assert tally.inputs_tried == sum(c.quick for c in fc.BAD_INPUTS) >= 10
+    fc.random_inputs(fixtures, tally, examples=6, log=lambda m: None)
+    assert tally.inputs_tried >= 10 + 3 * 6
+    _clean(tally)
+    assert len(fc.BAD_INPUTS) >= 50
+
+
+@pytest.mark.torch
+def test_training_killed_and_resumed_gives_bit_identical_weights(fixtures):
+    tally = fc.Tally()
+    fc.train_kills(fixtures, tally, kills=1, rng=random.Random(1), steps=6, log=lambda m: None)
+    assert tally.faults == 1 and tally.results_compared == 1
+    _clean(tally)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_render_killed_and_resumed_validates_with_every_frame(tmp_path):
+    tally = fc.Tally()
+    fc.render_kills(tmp_path, tally, kills=1, rng=random.Random(2), frames=2, log=lambda m: None)
+    assert tally.faults == 1 and tally.results_compared == 1
+    _clean(tally)
