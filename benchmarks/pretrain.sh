@@ -4,20 +4,24 @@
 #   2. train fusesr and fusesr-l on its train split with benchmarks/pretrain.toml,
 #   3. score them and the non-learned baselines on its test split (assets never seen in training),
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
-# Usage: benchmarks/pretrain.sh [DATASET] [RUNS]      (STEPS=N to change the 1500 steps)
+# Usage: benchmarks/pretrain.sh [DATASET] [RUNS]
+#        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 2000 and 2500 as shipped; THREADS: torch threads)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DS=${1:-datasets/small}
 RUNS=${2:-runs/pretrain}
-STEPS=${STEPS:-1500}
+FUSESR_STEPS=${FUSESR_STEPS:-2000}
+FUSESR_L_STEPS=${FUSESR_L_STEPS:-2500}
+THREADS=${THREADS:-1}
 PY=${PY:-.venv/bin/python}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
 $PY -m gbuffer_export.cli dataset examples/dataset_small.toml -o "$DS" --workers 2
 $PY -m gbuffer_export.cli validate "$DS" --quick --no-progress
 for M in fusesr fusesr-l; do
   R="$RUNS/${M//-/_}"
+  if [ "$M" = fusesr ]; then STEPS=$FUSESR_STEPS; else STEPS=$FUSESR_L_STEPS; fi
   if [ -f "$R/checkpoints/last.pt" ]; then RESUME=--resume; else RESUME=; fi
   $PY -m gbuffer_export.cli train --model "$M" --data "$DS" -o "$R" --config benchmarks/pretrain.toml \
-      --max-steps "$STEPS" $RESUME
+      --max-steps "$STEPS" --set run.threads="$THREADS" $RESUME
 done
-$PY benchmarks/release_weights.py "$DS" "$RUNS" --steps "$STEPS"
+$PY benchmarks/release_weights.py "$DS" "$RUNS"

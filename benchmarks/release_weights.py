@@ -1,6 +1,6 @@
 """Score trained runs and the baselines on a dataset's test split and write the shipped float16 weights.
 
-    .venv/bin/python benchmarks/release_weights.py DATASET RUNS [--steps N]
+    .venv/bin/python benchmarks/release_weights.py DATASET RUNS
 
 Expects RUNS/fusesr and RUNS/fusesr_l (``benchmarks/pretrain.sh`` makes them). Writes
 training/weights/{fusesr_x4,fusesr_l_x4}.pt and .json (dataset spec and index digest, commands, scores of the
@@ -23,11 +23,11 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("runs", type=Path)
-    p.add_argument("--steps", type=int, default=None, help="recorded in the metadata")
     a = p.parse_args(argv)
 
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index, split_clips
+    from training.checkpoint import load_checkpoint
     from training.evaluate import evaluate_model
     from training.inference import load_model
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
@@ -57,14 +57,14 @@ def main(argv=None) -> int:
         if not ck.is_file():
             print(f"skip {name}: {ck} not found", file=sys.stderr)
             continue
-        s = score(str(ck))
+        s = {**score(str(ck)), "steps": int(load_checkpoint(ck)["step"])}
         meta = {
             "model": name, "scale": 4, "date": out["date"],
             "dataset": {"spec_file": "examples/dataset_small.toml", "spec_sha256": index["spec"]["sha256"],
                         "name": index["name"], "train_clips": train, "test_clips": out["test_clips"]},
             "commands": ["benchmarks/pretrain.sh " + " ".join(map(str, (a.dataset, a.runs))),
                          f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
-                         f"--max-steps {a.steps}"],
+                         f"--max-steps {s['steps']} --set run.threads=1"],
             "config": "benchmarks/pretrain.toml",
             "scores_on_test_split": {"metric": "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP",
                                      name: s, **baselines},
