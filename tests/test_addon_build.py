@@ -83,6 +83,6 @@ def test_build_validate_install_and_external_preview(tmp_path):
     from training.inference import load_model, upscale_frame
     from training.metrics import psnr_tm
     clip = open_clip(tmp_path / "preview_clip")
-    o = upscale_frame(load_model("demod-bilinear", 4), clip, 1)
+    o = upscale_frame(load_model("pretrained:fusesr-l", 4), clip, 1)  # the preview's default model
     assert r["psnr"] == pytest.approx(psnr_tm(o["sr"], o["reference"]), abs=1e-4)
     assert np.isfinite(o["sr"]).all()
