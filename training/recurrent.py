@@ -35,7 +35,8 @@ def window_losses(net, criterion, batch: dict, detach_every: int, backward, temp
                   autocast_ctx) -> tuple[torch.Tensor, dict, torch.Tensor]:
     """Run ``net`` (``net(batch, state) -> (SR, state)``, a ``StepWrapper``) over the T frames of a window batch, the loss averaged over frames. Every ``detach_every``
     frames the summed loss of the chunk (divided by T) is back-propagated by ``backward(loss)`` and the state
-    detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached."""
+    detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached. The
+    temporal term is averaged over the T - 1 consecutive pairs, the others over the T frames."""
     t_len = window_length(batch)
     state = None
     total = 0.0
@@ -55,7 +56,11 @@ def window_losses(net, criterion, batch: dict, detach_every: int, backward, temp
                                 batch["hr/motion"][:, t] if use_temporal and "hr/motion" in batch else None)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + float(v.detach())
-        loss = loss / t_len
+        if "temporal" in terms:  # the mean over the T - 1 frame pairs, so that loss = sum of weight x term
+            w = criterion.cfg.temporal_weight * terms["temporal"]
+            loss = (loss - w) / t_len + w / (t_len - 1)
+        else:
+            loss = loss / t_len
         chunk = loss if chunk is None else chunk + loss
         total += float(loss.detach())
         if not bool(torch.isfinite(loss.detach())):

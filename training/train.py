@@ -160,7 +160,8 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
 
 def unwrap(model):
     model = getattr(model, "module", model)
-    return getattr(model, "_orig_mod", model)
+    model = getattr(model, "_orig_mod", model)
+    return model.model if isinstance(model, StepWrapper) else model
 
 
 class Dist:

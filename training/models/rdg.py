@@ -314,7 +314,7 @@ class RDG(SRModel):
             size = tuple(x.shape[-2:])
             prev = None
             if state is not None:  # motion in pixels of this level: resized and divided by the size ratio
-                ratio = motion.shape[-1] // size[-1]
+                ratio = 2 ** (LEVELS - 1 - level)
                 prev, _ = backward_warp(state[level].to(x.dtype), resize(motion, size) / ratio)
             x = dec(x, resize(g, size), resize(depth, size), prev, reset if state is not None else None)
             new_state.append(x)
