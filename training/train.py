@@ -315,8 +315,6 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     if not recurrent and (cfg.data.window or cfg.data.detach_every):
         raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s), not "
                           f"{cfg.model.name!r}")
-    if recurrent and dist.enabled:
-        raise ConfigError(f"model {cfg.model.name!r} is recurrent: train it in one process (no torchrun)")
     spec = BatchSpec.for_model(model, temporal=temporal and (not recurrent or cfg.loss.temporal == "warped"),
                                window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
@@ -365,11 +363,14 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         elif dist.main:
             warnings.warn("model.norm = 'batch' under DDP on CPU: BatchNorm statistics are per rank (torch's "
                           "SyncBatchNorm needs a GPU)", RuntimeWarning)
-    if dist.enabled:
+    if dist.enabled and not recurrent:
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
-    if recurrent:
+    if recurrent:  # several forward/backward passes per step: no DDP wrapper, gradients averaged by hand
         net = StepWrapper(model)
+        if dist.enabled:
+            for p in model.parameters():
+                torch.distributed.broadcast(p.data, 0)
     if cfg.run.compile:
         net = torch.compile(net)
 
@@ -467,6 +468,13 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             if not recurrent:
                 optimizer.zero_grad(set_to_none=True)
                 backward(loss)
+            elif dist.enabled:
+                for p in model.parameters():
+                    if p.requires_grad:
+                        if p.grad is None:
+                            p.grad = torch.zeros_like(p)
+                        torch.distributed.all_reduce(p.grad)
+                        p.grad /= dist.world
             if scaler is not None:
                 scaler.unscale_(optimizer)
             if cfg.optim.grad_clip > 0:
