@@ -311,3 +311,20 @@ def test_bench_models_runs_a_recurrent_checkpoint(clip, checkpoint, tmp_path):
     row = res["rows"][0]
     assert row["params"] == n_params(build_model(ModelConfig(name="rdg-s", width=8), 4))
     assert row["macs_per_px"] > 0 and row["tpsnr"] is not None and row["warp_error"] is not None
+
+
+def test_demodulated_rdg_remodulates_with_the_hr_fbeta():
+    cfg = ModelConfig(name="rdg-s", rdg_demod=True, remod_filter="NONE")
+    model = build_model(cfg, 4).eval()
+    assert {"lr/irradiance", "hr/fbeta_used", "hr/emission"} <= set(model.needs())
+    assert "lr/radiance" not in model.needs()
+    batch = make_batch()
+    batch["lr/irradiance"] = batch.pop("lr/radiance")
+    g = torch.Generator().manual_seed(1)
+    batch["hr/fbeta_used"] = 0.1 + torch.rand(1, 3, 3, 24, 32, generator=g)
+    batch["hr/emission"] = torch.zeros(1, 3, 3, 24, 32)
+    with torch.no_grad():
+        out = model(batch)
+        other = dict(batch, **{"hr/fbeta_used": 2 * batch["hr/fbeta_used"],
+                               "hr/emission": torch.full((1, 3, 3, 24, 32), 0.5)})
+        torch.testing.assert_close(model(other), 2 * out + 0.5)
