@@ -195,6 +195,7 @@ def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(clip
         total = float(r["pixel"]) + 0.05 * float(r["fft"]) + float(r["temporal"])
         assert float(r["loss"]) == pytest.approx(total, rel=1e-4)
     summary = json.loads((straight / "summary.json").read_text())
+    assert summary["peak_mem_mb"] == max(float(r["mem_mb"]) for r in rows)
     assert summary["window"] == 3 and summary["params"] == n_params(
         build_model(load_config(straight / "config.toml").model, 4))
     split = tmp_path / "split"

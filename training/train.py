@@ -436,6 +436,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     prefetch = Prefetcher(sampler, step, cfg.data.prefetch)
     t_start = time.perf_counter()
     step_times: list[float] = []
+    mem_peak = 0.0
     data_times: list[float] = []
     net.train()
     reason = "max_steps"
@@ -502,6 +503,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                        "lr": scheduler.get_last_lr()[0], "step_ms": 1000 * (t2 - t0), "data_ms": 1000 * (t1 - t0),
                        "samples_per_s": cfg.data.batch_size * dist.world / (t2 - t0), "elapsed_s": elapsed,
                        "mem_mb": peak_memory_mb(device)}
+                mem_peak = max(mem_peak, row["mem_mb"])
                 if writer is not None:
                     writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in LOG_COLUMNS])
                     logf.flush()
@@ -544,7 +546,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                "device": str(device), "amp": str(dtype).replace("torch.", "") if dtype else "none",
                "world_size": dist.world, "threads": torch.get_num_threads(), "batch_size": cfg.data.batch_size,
                "crop_lr": cfg.data.crop, "scale": scale, "params": sum(p.numel() for p in model.parameters()),
-               "elapsed_s": elapsed, "window": window or None}
+               "elapsed_s": elapsed, "window": window or None, "peak_mem_mb": mem_peak or None}
     if len(step_times) > 2:
         st, dt = step_times[2:], data_times[2:]
         summary.update(median_step_ms=1000 * statistics.median(st), median_data_ms=1000 * statistics.median(dt),
