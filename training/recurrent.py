@@ -33,9 +33,9 @@ def window_length(batch: dict) -> int:
 
 def window_losses(net, criterion, batch: dict, detach_every: int, backward, temporal: bool,
                   autocast_ctx) -> tuple[torch.Tensor, dict, torch.Tensor]:
-    """Run ``net`` (``net(batch, state) -> (SR, state)``, a ``StepWrapper``) over the T frames of a window batch, the loss averaged over frames. Every ``detach_every``
-    frames the summed loss of the chunk (divided by T) is back-propagated by ``backward(loss)`` and the state
-    detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached. The
+    """Run ``net`` (``net(batch, state) -> (SR, state)``, a ``StepWrapper``) over the T frames of a window batch,
+    the loss averaged over frames. Every ``detach_every`` frames the summed loss of the chunk (divided by T) is
+    back-propagated by ``backward(loss)`` and the state detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached. The
     temporal term is averaged over the T - 1 consecutive pairs, the others over the T frames."""
     t_len = window_length(batch)
     state = None
