@@ -57,3 +57,19 @@ def test_batchnorm_under_cpu_ddp_warns_and_ranks_agree(tmp_path):
     assert proc.stderr.count("RuntimeWarning: model.norm = 'batch' under DDP on CPU") == 1
     summary = json.loads((run / "summary.json").read_text())
     assert summary["ranks_agree"] is True and summary["step"] == 2
+
+
+def test_recurrent_model_under_two_gloo_processes_averages_gradients_and_ranks_agree(tmp_path):
+    """RDG-s runs several forward/backward passes per step (windows): no DDP wrapper, gradients all-reduced."""
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "gbuffer_export.cli", "train", "--model", "rdg-s", "--data", str(clip), "-o", str(run),
+           "--max-steps", "2"]
+    for s in ("data.crop=8", "data.batch_size=1", "model.width=8", "run.progress=false", "run.threads=1",
+              "data.window=3", "data.detach_every=2"):
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["world_size"] == 2 and summary["ranks_agree"] is True and summary["step"] == 2

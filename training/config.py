@@ -25,6 +25,9 @@ SCHEDULERS = ("cosine", "constant", "step")
 AMP_MODES = ("auto", "none", "bf16", "fp16")
 DEVICES = ("auto", "cpu", "cuda")
 PIXEL_LOSSES = ("l1", "charbonnier")
+TEMPORAL_LOSSES = ("warped", "difference")
+FFT_LOSSES = ("ortho", "rfft")
+RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
 
 
 @dataclass
@@ -47,6 +50,8 @@ class DataConfig:
     val_frames: int = 0              # last N frames of each clip held out from training (evaluated at the end)
     val_clips: list[str] = field(default_factory=list)  # whole clips never trained on, evaluated at the end and
                                      # every run.eval_every steps (--data DATASET fills it with the val split)
+    window: int = 0                  # recurrent models: frames per training window, a target each (0: 7)
+    detach_every: int = 0            # recurrent models: detach the state every N frames of a window (0: never)
 
     def validate(self) -> None:
         _positive("data.crop", self.crop)
@@ -62,6 +67,9 @@ class DataConfig:
             raise ConfigError(f"data.workers {self.workers}: must lie in 0..64")
         if self.val_frames < 0:
             raise ConfigError(f"data.val_frames {self.val_frames}: must be >= 0")
+        if self.window < 0 or self.window > 64 or self.detach_every < 0:
+            raise ConfigError(f"data.window {self.window} / data.detach_every {self.detach_every}: must be >= 0 "
+                              "(window at most 64)")
 
 
 @dataclass
@@ -88,6 +96,8 @@ class ModelConfig:
     norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
     remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
     remod_filter_px: float = 1.5     # the clips' ground-truth filter (manifest render.hr), NONE: off, or explicit
+    rdg_demod: bool = False          # RDG: L_D in, remodulated with HR F_beta and emission (off: radiance, the paper)
+    rdg_gbuffers: list[str] = field(default_factory=lambda: list(RDG_GBUFFERS))  # RDG: G-buffers read (ablations)
 
     def validate(self) -> None:
         from gbuffer_export.pixel_filter import FILTERS
@@ -114,6 +124,10 @@ class ModelConfig:
             raise ConfigError("model.hr_guide needs model.hr_gbuffer = true (it reads the HR G-buffers)")
         if self.width < 0 or self.blocks < 0:
             raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
+        for g in self.rdg_gbuffers:
+            _choice("model.rdg_gbuffers item", g, RDG_GBUFFERS)
+        if len(set(self.rdg_gbuffers)) != len(self.rdg_gbuffers):
+            raise ConfigError(f"model.rdg_gbuffers {self.rdg_gbuffers}: an item is repeated")
 
 
 @dataclass
@@ -126,13 +140,18 @@ class LossConfig:
     charbonnier_eps: float = 1e-3    # sqrt(x^2 + eps^2); not below 1e-6 (fp16 gradients)
     ssim_weight: float = 0.05        # 1 - SSIM on the tonemapped images (FuseSR: 0.05)
     fft_weight: float = 0.0          # L1 of the 2-D FFT difference (frequency loss)
-    temporal_weight: float = 0.0     # L1 of (SR_t - warp(SR_t-1)) - (GT_t - warp(GT_t-1)), HR motion
+    fft: str = "ortho"               # 'ortho': orthonormal FFT, modulus; 'rfft': unnormalised, |Re| + |Im| (RDG)
+    temporal_weight: float = 0.0     # temporal consistency term (see temporal)
+    temporal: str = "warped"         # 'warped': L1 of (SR_t - W(SR_t-1)) - (GT_t - W(GT_t-1)), W: warp with HR
+                                     # motion; 'difference': MSE of (SR_t - SR_t-1) - (GT_t - GT_t-1) (RDG's code)
     perceptual_weight: float = 0.0   # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
     vgg_weights: str = ""            # path to a user-supplied VGG-16 state dict; nothing is downloaded
 
     def validate(self) -> None:
         _choice("loss.space", self.space, LOSS_SPACES)
         _choice("loss.pixel", self.pixel, PIXEL_LOSSES)
+        _choice("loss.temporal", self.temporal, TEMPORAL_LOSSES)
+        _choice("loss.fft", self.fft, FFT_LOSSES)
         for name in ("pixel_weight", "ssim_weight", "fft_weight", "temporal_weight", "perceptual_weight"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):

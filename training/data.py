@@ -54,15 +54,17 @@ class BatchSpec:
     jitter: bool = False
 
     @staticmethod
-    def for_model(model, targets=("hr/radiance",), temporal: bool = False, **kw) -> "BatchSpec":
+    def for_model(model, targets=("hr/radiance",), temporal: bool = False, window: int = 0, **kw) -> "BatchSpec":
+        """``window`` > 0 (recurrent models): every key, LR and HR, holds ``window`` consecutive frames (a target
+        for every frame); ``temporal`` then only adds HR motion."""
         keys = [k for k in model.needs() if k not in FRAME_KEYS] + list(targets)
         if temporal:
             keys.append("hr/motion")
-        extra = 1 if temporal else 0
+        extra = 1 if temporal and not window else 0
         lr = [k for k in keys if k.startswith("lr/")]
         hr = [k for k in keys if k.startswith("hr/")]
         return BatchSpec(lr_keys=tuple(dict.fromkeys(lr)), hr_keys=tuple(dict.fromkeys(hr)),
-                         lr_window=model.window + extra, hr_window=1 + extra,
+                         lr_window=window or model.window + extra, hr_window=window or 1 + extra,
                          depth_ref="depth_ref" in model.needs(), jitter="lr_jitter" in model.needs(), **kw)
 
     @property

@@ -5,7 +5,9 @@ Every model is fed the same inputs (``inference.model_inputs``) and scored again
 UNTRUSTED flag (demodulation not trustworthy there) are scored separately (``psnr_flagged``, ``psnr_unflagged``,
 ``flagged_fraction``); the main metrics cover all pixels. Timing: the model runs ``warmup`` times on the first frame,
 then each frame's forward pass is timed (inputs already on the device, GPU synchronised); ``mean.ms_per_frame`` is
-the median over frames.
+the median over frames. Recurrent models (``training.recurrent``) run the frames in order with their state carried
+from frame to frame, reset at the clip's first frame and after a gap in the frame numbers; when the scored frames
+start later in the clip, the frames before them are run first (unscored) from the clip's start.
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from gbuffer_export.exr import write_exr
 from training import metrics
 from training.flip_worker import FlipRunner
 from training.inference import ClipFrames, model_device, model_inputs, run_model
+from training.recurrent import ClipState, is_recurrent, lead_in, run_step
 
 METRIC_KEYS = ("psnr", "ssim", "psnr_hdr", "flip", "tpsnr", "warp_error", "ms_per_frame")
 EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite")
@@ -72,8 +75,14 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 print(f"warning: {mismatch}", file=sys.stderr)
             todo = list((frames or {}).get(str(clip_path)) or source.frames)
             first = model_inputs(model, source, todo[0])
-            for _ in range(warmup):
-                run_model(model, first, device, amp)
+            recurrent = is_recurrent(model)
+            for _ in range(warmup):  # a recurrent model's warm-up runs start from no state and keep none
+                run_step(model, first, None, device, amp) if recurrent else run_model(model, first, device, amp)
+            states = ClipState()
+            if recurrent:  # the frames before the first scored one, from the clip's start (unscored)
+                for g in lead_in(source.frames, todo[0]):
+                    states.put(clip_path, g, run_step(model, model_inputs(model, source, g, False),
+                                                      states.get(clip_path, g), device, amp)[2])
             prev = None
             iterator = todo
             if progress:
@@ -81,7 +90,11 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 iterator = tqdm(todo, desc=f"evaluate {Path(clip_path).name}", unit="frame")
             for f in iterator:
                 inputs = model_inputs(model, source, f)
-                sr, ms = run_model(model, inputs, device, amp)
+                if recurrent:  # state carried from the previous frame; reset at a clip's start or after a gap
+                    sr, ms, new = run_step(model, inputs, states.get(clip_path, f), device, amp)
+                    states.put(clip_path, f, new)
+                else:
+                    sr, ms = run_model(model, inputs, device, amp)
                 gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
                 bad = int((~np.isfinite(sr)).sum())
                 if bad:

@@ -2,7 +2,15 @@
 
 The exported graph takes the model's inputs as separate tensors in the order of ``model.needs()`` (each
 (B, T, C, H, W), 'depth_ref' (B, T), 'lr_jitter' (B, T, 2)) with dynamic batch, height and width, and returns SR (B, 3, H_hr, W_hr) linear
-radiance. A JSON sidecar ``OUT.onnx.json`` lists the inputs, their shapes and the scale. Uses the TorchScript-based
+radiance. A JSON sidecar ``OUT.onnx.json`` lists the inputs, their shapes and the scale.
+
+A recurrent model (``training.recurrent``) is exported as one step with its state explicit: inputs are the
+current frame's tensors (T = 1), then ``state_0`` .. ``state_N`` (the model's ``state_shapes``) and ``reset`` (B,)
+(1 at a clip's first frame: the state inputs are then ignored, pass zeros); outputs are ``sr`` and
+``state_out_0`` .. ``state_out_N``, fed back as the next frame's state. The check runs 3 consecutive frames through
+torch (state carried) and onnxruntime (state fed back) and compares every frame. RDG pads the LR frame to a
+multiple of 4 with amounts fixed at export: the graph serves LR sizes with the example's remainders modulo 4
+(sidecar ``lr_size_mod4``). Uses the TorchScript-based
 exporter (``dynamo=False``): the dynamo exporter needs onnxscript, which is not a dependency.
 """
 from __future__ import annotations
@@ -73,12 +81,106 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
     return out
 
 
+class StepExport(torch.nn.Module):
+    """One step of a recurrent model: ``forward(*inputs, *state, reset) -> (sr, *state)``."""
+
+    def __init__(self, model, keys, n_state: int):
+        super().__init__()
+        self.model = model
+        self.keys = list(keys)
+        self.n_state = n_state
+
+    def forward(self, *tensors):
+        k, n = len(self.keys), self.n_state
+        batch = dict(zip(self.keys, tensors[:k]))
+        sr, state = self.model.step(batch, list(tensors[k:k + n]), tensors[k + n])
+        return (sr, *state)
+
+
+def recurrent_example_frames(model, clip: str | None, hr_size, frames: int = 3) -> list[dict[str, np.ndarray]]:
+    """``frames`` consecutive frames of inputs: the last ones of ``clip``, or random ones (moving content)."""
+    if clip:
+        from training.inference import ClipFrames
+        src = ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
+        if len(src.frames) < frames:
+            raise ValueError(f"{clip}: the check needs {frames} consecutive frames, the clip has {len(src.frames)}")
+        spec = BatchSpec.for_model(model, targets=())
+        out = []
+        for f in src.frames[-frames:]:
+            inputs = frame_window(src, f, spec)
+            for k in model.needs():
+                if k not in inputs:
+                    ref = inputs[next(x for x in inputs if x.startswith(k.split("/")[0] + "/"))]
+                    inputs[k] = np.zeros(ref.shape[:2] + (3,) + ref.shape[3:], np.float32)
+            out.append({k: inputs[k] for k in model.needs()})
+        return out
+    return [example_inputs(model, None, hr_size, seed=i) for i in range(frames)]
+
+
+def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -> dict:
+    import onnx
+    import onnxruntime as ort
+    frames = recurrent_example_frames(model, clip, hr_size)
+    keys = list(frames[0])
+    names = [k.replace("/", "_") for k in keys]
+    refs, states = [], []
+    with torch.no_grad():
+        state = None
+        for inp in frames:
+            sr, state = model.step({k: torch.from_numpy(v) for k, v in inp.items()}, state)
+            refs.append(sr.numpy())
+            states.append(state)
+    n = len(states[0])
+    s_names = [f"state_{i}" for i in range(n)]
+    o_names = [f"state_out_{i}" for i in range(n)]
+    wrapper = StepExport(model, keys, n).eval()
+    example = tuple(torch.from_numpy(frames[1][k]) for k in keys) + tuple(states[0]) + (torch.zeros(1),)
+    dyn = {}
+    for k, nm in zip(keys, names):
+        dyn[nm] = {0: "batch"} if k in FRAME_KEYS else {0: "batch", 3: f"{k.split('/')[0]}_height",
+                                                         4: f"{k.split('/')[0]}_width"}
+    for i, st in enumerate(states[0]):
+        axes = {0: "batch"} if st.dim() == 2 else {0: "batch", 2: f"state_{i}_height", 3: f"state_{i}_width"}
+        dyn[s_names[i]] = axes
+        dyn[o_names[i]] = axes
+    dyn["reset"] = {0: "batch"}
+    dyn["sr"] = {0: "batch", 2: "hr_height", 3: "hr_width"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(wrapper, example, str(path), input_names=names + s_names + ["reset"],
+                          output_names=["sr"] + o_names, dynamic_axes=dyn, opset_version=opset, dynamo=False)
+    onnx.checker.check_model(onnx.load(str(path)))
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    feed_state = [np.zeros(tuple(s.shape), np.float32) for s in states[0]]
+    reset = np.ones(1, np.float32)
+    diffs = []
+    for inp, ref in zip(frames, refs):
+        outs = sess.run(["sr"] + o_names, {**{nm: inp[k] for k, nm in zip(keys, names)},
+                                          **dict(zip(s_names, feed_state)), "reset": reset})
+        diffs.append(float(np.max(np.abs(outs[0] - ref))))
+        feed_state, reset = outs[1:], np.zeros(1, np.float32)
+    diff = max(diffs)
+    scale_ref = max(float(np.max(np.abs(r))) for r in refs) or 1.0
+    h, w = frames[0][keys[0]].shape[-2:]
+    return {"onnx": str(path), "model": getattr(model, "spec", type(model).__name__), "scale": model.scale,
+            "opset": opset, "recurrent": True, "inputs": {nm: list(frames[0][k].shape) for k, nm in zip(keys, names)},
+            "state": {nm: list(s.shape) for nm, s in zip(s_names, states[0])}, "lr_size_mod4": [h % 4, w % 4],
+            "output_shape": list(refs[0].shape), "frames_checked": len(frames), "max_abs_diff_per_frame": diffs,
+            "max_abs_diff": diff, "max_rel_diff": diff / scale_ref, "match": bool(diff <= 1e-4 * scale_ref + 1e-5)}
+
+
 def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int = 17) -> dict:
     """Export ``model`` to ``path`` and compare onnxruntime with torch on the example inputs. Returns a report
     with ``max_abs_diff``, ``max_rel_diff`` (relative to the largest output magnitude) and ``match``."""
     import onnx
     import onnxruntime as ort
     model = model.cpu().eval()
+    if getattr(model, "recurrent", False):
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        report = export_recurrent(model, path, clip, hr_size, opset)
+        path.with_suffix(path.suffix + ".json").write_text(json.dumps(report, indent=1) + "\n")
+        return report
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     inputs = example_inputs(model, clip, hr_size)

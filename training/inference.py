@@ -173,7 +173,9 @@ def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None 
 
 
 def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
-    """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. Returns ``sr`` and
+    """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. A recurrent model keeps
+    its state between calls (``training.recurrent.state_for``): frames asked in order carry it; another frame is
+    reached by running the clip from its start. Returns ``sr`` and
     ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
     the clip has it)."""
     source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
@@ -181,7 +183,14 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
         raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
     model.follow_reference_filter(source.clip.manifest)
     inputs = model_inputs(model, source, int(frame))
-    sr, ms = run_model(model, inputs)
+    from training.recurrent import is_recurrent, run_step, state_for
+    if is_recurrent(model):  # state carried from the previous call's frame, else run from the clip's start
+        device = model_device(model)
+        state = state_for(model, source, int(frame), lambda g: model_inputs(model, source, g, False), device)
+        sr, ms, new = run_step(model, inputs, state, device)
+        model._clip_state.put(str(source.clip_path), int(frame), new)
+    else:
+        sr, ms = run_model(model, inputs)
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
     bil = upsample(lr, model.scale, "bilinear", torch.from_numpy(source.jitter(int(frame)))[None])
     out = {"sr": np.ascontiguousarray(sr, dtype=np.float32),

@@ -4,8 +4,11 @@
 
 - pixel: L1 or Charbonnier sqrt(d^2 + eps^2) (eps >= 1e-6: smaller values give NaN gradients in fp16)
 - ssim: 1 - SSIM (pytorch-msssim, 11x11 Gaussian window, data range 1)
-- fft: mean |FFT2(a) - FFT2(b)| / sqrt(H W) (orthonormal FFT: the frequency loss)
-- temporal: mean over valid pixels of |(a_t - W(a_t-1)) - (b_t - W(b_t-1))|, W = backward warp with HR motion
+- fft (``loss.fft``): 'ortho', mean |FFT2(a) - FFT2(b)| / sqrt(H W) (orthonormal FFT); 'rfft', the mean of
+  |Re| and |Im| of RFFT2(a) - RFFT2(b) unnormalised (RDG's code)
+- temporal (``loss.temporal``): 'warped', the mean over valid pixels of |(a_t - W(a_t-1)) - (b_t - W(b_t-1))|,
+  W = backward warp with HR motion; 'difference', the mean of ((a_t - a_t-1) - (b_t - b_t-1))^2 without warping
+  (the consistency loss of RDG's code)
 - perceptual: VGG-16 features from a user-supplied weights file (``training.perceptual``)
 """
 from __future__ import annotations
@@ -29,7 +32,12 @@ def ssim_loss(a_tm: torch.Tensor, b_tm: torch.Tensor) -> torch.Tensor:
     return 1.0 - ssim(a_tm, b_tm, data_range=1.0, size_average=True)
 
 
-def fft_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def fft_loss(a: torch.Tensor, b: torch.Tensor, kind: str = "ortho") -> torch.Tensor:
+    """'ortho': mean modulus of the orthonormal 2-D FFT difference; 'rfft': mean absolute value of the real and
+    imaginary parts of the unnormalised real FFT difference (RDG's code; about sqrt(H W) times larger)."""
+    if kind == "rfft":
+        d = torch.fft.rfft2(a.float()) - torch.fft.rfft2(b.float())
+        return torch.stack([d.real, d.imag], dim=-1).abs().mean()
     fa = torch.fft.fft2(a.float(), norm="ortho")
     fb = torch.fft.fft2(b.float(), norm="ortho")
     return (fa - fb).abs().mean()
@@ -41,6 +49,12 @@ def temporal_loss(a_t, a_prev, b_t, b_prev, motion) -> torch.Tensor:
     wb, _ = backward_warp(b_prev, motion)
     diff = ((a_t - wa) - (b_t - wb)).abs() * valid
     return diff.sum() / (valid.sum() * a_t.shape[1]).clamp(min=1.0)
+
+
+def difference_loss(a_t, a_prev, b_t, b_prev) -> torch.Tensor:
+    """Temporal consistency without motion: SR frame differences should match the ground truth's (MSE)."""
+    d = (a_t - a_prev) - (b_t - b_prev)
+    return (d * d).mean()
 
 
 class Criterion(torch.nn.Module):
@@ -67,10 +81,13 @@ class Criterion(torch.nn.Module):
             if self.vgg is not None:
                 terms["perceptual"] = self.vgg.distance(a_tm, b_tm)
         if c.fft_weight > 0:
-            terms["fft"] = fft_loss(a, b)
+            terms["fft"] = fft_loss(a, b, getattr(c, "fft", "ortho"))
         if c.temporal_weight > 0 and sr_prev is not None:
-            terms["temporal"] = temporal_loss(a, loss_space(sr_prev, c.space), b, loss_space(gt_prev, c.space),
-                                              motion)
+            if getattr(c, "temporal", "warped") == "difference":
+                terms["temporal"] = difference_loss(a, loss_space(sr_prev, c.space), b, loss_space(gt_prev, c.space))
+            else:
+                terms["temporal"] = temporal_loss(a, loss_space(sr_prev, c.space), b, loss_space(gt_prev, c.space),
+                                                  motion)
         weights = {"pixel": c.pixel_weight, "ssim": c.ssim_weight, "fft": c.fft_weight,
                    "temporal": c.temporal_weight, "perceptual": c.perceptual_weight}
         total = sum(weights[k] * v for k, v in terms.items())

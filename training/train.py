@@ -40,9 +40,12 @@ from training.data import BatchSpec, Prefetcher, TrainSampler
 from training.device import amp_dtype, autocast, cpu_bf16_supported, resolve_device  # noqa: F401  (re-exported)
 from training.losses import Criterion
 from training.models import MODELS, OPTIONAL_KEYS, build_model
+from training.recurrent import StepWrapper, is_recurrent, window_losses
 
 LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "lr", "step_ms", "data_ms",
-               "samples_per_s", "elapsed_s")
+               "samples_per_s", "elapsed_s", "mem_mb")
+#: Frames per training window of a recurrent model when ``data.window`` is 0.
+DEFAULT_WINDOW = 7
 #: Run-section keys that may change on --resume (everything else must match the checkpoint).
 RESUMABLE_RUN_KEYS = ("max_steps", "minutes", "checkpoint_every", "keep_checkpoints", "log_every", "progress",
                       "threads", "eval_every", "device", "compile")
@@ -73,6 +76,17 @@ def make_loader(sampler, step: int, cfg: TrainConfig, device: torch.device):
 def drop_last(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """The batch of the window that ends one frame earlier (every key loses its last frame)."""
     return {k: v[:, :-1] for k, v in batch.items()}
+
+
+def peak_memory_mb(device: torch.device) -> float:
+    """Peak memory since the last call: CUDA memory allocated by torch on a GPU (the peak is reset), else the
+    process's peak resident set size (never reset: the maximum so far)."""
+    if device.type == "cuda":
+        mb = torch.cuda.max_memory_allocated(device) / 2**20
+        torch.cuda.reset_peak_memory_stats(device)
+        return mb
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def lr_lambda(cfg: TrainConfig):
@@ -122,7 +136,8 @@ def fit_crop(cfg: TrainConfig, clips: dict, log=None) -> None:
 
 def unwrap(model):
     model = getattr(model, "module", model)
-    return getattr(model, "_orig_mod", model)
+    model = getattr(model, "_orig_mod", model)
+    return model.model if isinstance(model, StepWrapper) else model
 
 
 class Dist:
@@ -283,7 +298,13 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         if mismatch:
             raise ConfigError(mismatch + "; set them to the clip's filter, or model.remod_filter = \"NONE\"")
     temporal = cfg.loss.temporal_weight > 0
-    spec = BatchSpec.for_model(model, temporal=temporal, crop=cfg.data.crop, flip=cfg.data.augment_flip,
+    recurrent = is_recurrent(model)
+    window = (cfg.data.window or DEFAULT_WINDOW) if recurrent else 0
+    if not recurrent and (cfg.data.window or cfg.data.detach_every):
+        raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s), not "
+                          f"{cfg.model.name!r}")
+    spec = BatchSpec.for_model(model, temporal=temporal and (not recurrent or cfg.loss.temporal == "warped"),
+                               window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
     caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist)
@@ -330,9 +351,14 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         elif dist.main:
             warnings.warn("model.norm = 'batch' under DDP on CPU: BatchNorm statistics are per rank (torch's "
                           "SyncBatchNorm needs a GPU)", RuntimeWarning)
-    if dist.enabled:
+    if dist.enabled and not recurrent:
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
+    if recurrent:  # several forward/backward passes per step: no DDP wrapper, gradients averaged by hand
+        net = StepWrapper(model)
+        if dist.enabled:
+            for p in model.parameters():
+                torch.distributed.broadcast(p.data, 0)
     if cfg.run.compile:
         net = torch.compile(net)
 
@@ -387,6 +413,9 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     except ValueError:  # not in the main thread
         pass
 
+    def backward(chunk: torch.Tensor) -> None:
+        (scaler.scale(chunk) if scaler is not None else chunk).backward()
+
     bar = None
     if cfg.run.progress and dist.main:
         from tqdm import tqdm
@@ -398,6 +427,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         torch.cuda.reset_peak_memory_stats(device)
     t_start = time.perf_counter()
     step_times: list[float] = []
+    mem_peak = 0.0
     data_times: list[float] = []
     net.train()
     reason = "max_steps"
@@ -408,13 +438,18 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             batch_np, samples = prefetch.get(step)
             batch = to_device(batch_np, device)
             t1 = time.perf_counter()
-            with autocast(device, dtype):
-                sr = net(batch).float()
-                sr_prev = net(drop_last(batch)).float() if temporal else None
-            gt = batch["hr/radiance"][:, -1]
-            loss, terms = criterion(sr, gt, sr_prev,
-                                    batch["hr/radiance"][:, -2] if temporal else None,
-                                    batch["hr/motion"][:, -1] if temporal else None)
+            if recurrent:  # back-propagates chunk by chunk (training.recurrent)
+                optimizer.zero_grad(set_to_none=True)
+                loss, terms, sr = window_losses(net, criterion, batch, cfg.data.detach_every or window,
+                                                backward, temporal, lambda: autocast(device, dtype))
+            else:
+                with autocast(device, dtype):
+                    sr = net(batch).float()
+                    sr_prev = net(drop_last(batch)).float() if temporal else None
+                gt = batch["hr/radiance"][:, -1]
+                loss, terms = criterion(sr, gt, sr_prev,
+                                        batch["hr/radiance"][:, -2] if temporal else None,
+                                        batch["hr/motion"][:, -1] if temporal else None)
             bad = not bool(torch.isfinite(loss))
             if dist.any(bad):
                 where = "; ".join(f"{s.clip} frames {s.frames[0]}-{s.frames[-1]}" for s in samples)
@@ -422,12 +457,18 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                 raise TrainingError(f"loss became {loss.item()} at step {step + 1} (rank {dist.rank}; "
                                     f"{'the model output' if bad_sr else 'a loss term'} is not finite; batch: "
                                     f"{where}); training stopped, last checkpoint: {last}")
-            optimizer.zero_grad(set_to_none=True)
+            if not recurrent:
+                optimizer.zero_grad(set_to_none=True)
+                backward(loss)
+            elif dist.enabled:
+                for p in model.parameters():
+                    if p.requires_grad:
+                        if p.grad is None:
+                            p.grad = torch.zeros_like(p)
+                        torch.distributed.all_reduce(p.grad)
+                        p.grad /= dist.world
             if scaler is not None:
-                scaler.scale(loss).backward()
                 scaler.unscale_(optimizer)
-            else:
-                loss.backward()
             if cfg.optim.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
             if scaler is not None:
@@ -451,7 +492,9 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             if step % cfg.run.log_every == 0 or step == cfg.run.max_steps:
                 row = {"step": step, "loss": loss.item(), **{k: v.item() for k, v in terms.items()},
                        "lr": scheduler.get_last_lr()[0], "step_ms": 1000 * (t2 - t0), "data_ms": 1000 * (t1 - t0),
-                       "samples_per_s": cfg.data.batch_size * dist.world / (t2 - t0), "elapsed_s": elapsed}
+                       "samples_per_s": cfg.data.batch_size * dist.world / (t2 - t0), "elapsed_s": elapsed,
+                       "mem_mb": peak_memory_mb(device)}
+                mem_peak = max(mem_peak, row["mem_mb"])
                 if writer is not None:
                     writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in LOG_COLUMNS])
                     logf.flush()
@@ -497,7 +540,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                "device": str(device), "amp": str(dtype).replace("torch.", "") if dtype else "none",
                "world_size": dist.world, "threads": torch.get_num_threads(), "batch_size": cfg.data.batch_size,
                "crop_lr": cfg.data.crop, "scale": scale, "params": sum(p.numel() for p in model.parameters()),
-               "elapsed_s": elapsed}
+               "elapsed_s": elapsed, "window": window or None, "peak_mem_mb": mem_peak or None}
     if len(step_times) > 2:
         st, dt = step_times[2:], data_times[2:]
         summary.update(median_step_ms=1000 * statistics.median(st), median_data_ms=1000 * statistics.median(dt),

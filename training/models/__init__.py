@@ -39,6 +39,10 @@ MODELS: dict[str, ModelInfo] = {
                         "HR G-buffers, LR fusion backbone, pixel shuffle, HR F_beta remodulation"),
     "fusesr-l": ModelInfo("training.models.fusesr_l", "FuseSRLight", True,
                           "FuseSR-l: no history, half-width fusion network of depthwise-separable convolutions"),
+    "rdg": ModelInfo("training.models.rdg", "RDG", True,
+                     "RDG (Zhou et al. 2025): recurrent asymmetric U-Net, width 36, LR image with decoupled LR "
+                     "G-buffer guidance (normal, BRDF, depth, motion); state = the 3 decoder levels"),
+    "rdg-s": ModelInfo("training.models.rdg", "RDGSmall", True, "RDG-s: RDG at width 16"),
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
                              "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)"),

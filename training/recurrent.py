@@ -1,0 +1,159 @@
+"""Recurrent models (torch): running a model that carries a state from frame to frame.
+
+A recurrent model (class attribute ``recurrent = True``, e.g. ``rdg``) has ``step(batch, state, reset=None) ->
+(SR, state)`` for the last frame of ``batch``; ``state`` is a list of tensors (``model.state_shapes``), None at a
+clip's first frame. Training feeds windows of ``data.window`` consecutive frames with a target for every frame
+(``window_losses``): the state is carried across the window and detached every ``data.detach_every`` frames
+(truncated back-propagation: each chunk is back-propagated as soon as it is complete, so only one chunk's graph is
+held). Evaluation, ``upscale``, the add-on preview and ``bench models`` run a clip's frames in order with the state
+reset at its first frame (``ClipState``).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def is_recurrent(model) -> bool:
+    return bool(getattr(model, "recurrent", False))
+
+
+def frame_slice(batch: dict, i: int) -> dict:
+    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1)."""
+    return {k: v[:, i:i + 1] for k, v in batch.items()}
+
+
+def detach_state(state):
+    return None if state is None else [s.detach() for s in state]
+
+
+def window_length(batch: dict) -> int:
+    return next(v.shape[1] for k, v in batch.items() if k.startswith("lr/"))
+
+
+def window_losses(net, criterion, batch: dict, detach_every: int, backward, temporal: bool,
+                  autocast_ctx) -> tuple[torch.Tensor, dict, torch.Tensor]:
+    """Run ``net`` (``net(batch, state) -> (SR, state)``, a ``StepWrapper``) over the T frames of a window batch,
+    the loss averaged over frames. Every ``detach_every`` frames the summed loss of the chunk (divided by T) is
+    back-propagated by ``backward(loss)`` and the state detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached. The
+    temporal term is averaged over the T - 1 consecutive pairs, the others over the T frames."""
+    t_len = window_length(batch)
+    state = None
+    total = 0.0
+    sums: dict[str, float] = {}
+    chunk = None
+    sr_prev = None
+    sr = None
+    for t in range(t_len):
+        sub = frame_slice(batch, t)
+        with autocast_ctx():
+            sr, state = net(sub, state)
+            sr = sr.float()
+        gt = batch["hr/radiance"][:, t]
+        use_temporal = temporal and t > 0
+        loss, terms = criterion(sr, gt, sr_prev if use_temporal else None,
+                                batch["hr/radiance"][:, t - 1] if use_temporal else None,
+                                batch["hr/motion"][:, t] if use_temporal and "hr/motion" in batch else None)
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + float(v.detach())
+        if "temporal" in terms:  # the mean over the T - 1 frame pairs, so that loss = sum of weight x term
+            w = criterion.cfg.temporal_weight * terms["temporal"]
+            loss = (loss - w) / t_len + w / (t_len - 1)
+        else:
+            loss = loss / t_len
+        chunk = loss if chunk is None else chunk + loss
+        total += float(loss.detach())
+        if not bool(torch.isfinite(loss.detach())):
+            return torch.tensor(float("nan")), {k: torch.tensor(v / (t + 1)) for k, v in sums.items()}, sr.detach()
+        sr_prev = sr
+        if (t + 1) % detach_every == 0 or t == t_len - 1:
+            backward(chunk)
+            chunk = None
+            state = detach_state(state)
+            sr_prev = sr_prev.detach()
+    # terms: the temporal term exists for T - 1 frames
+    counts = {k: (t_len - 1 if k == "temporal" else t_len) for k in sums}
+    return torch.tensor(total), {k: torch.tensor(v / counts[k]) for k, v in sums.items()}, sr.detach()
+
+
+class StepWrapper(torch.nn.Module):
+    """``forward(batch, state)`` = ``model.step(batch, state)``, so DDP / torch.compile see the step."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch, state=None):
+        return self.model.step(batch, state)
+
+
+class ClipState:
+    """The state of a recurrent model along a clip: ``get(clip, frame)`` is the state to use for ``frame`` (None
+    at a clip's first frame, after a gap in the frame numbers, or on another clip); ``put`` stores the state after
+    it. For non-recurrent models it always holds None."""
+
+    def __init__(self):
+        self.key = None
+        self.state = None
+
+    def get(self, clip, frame: int):
+        if self.key is not None and self.key == (str(clip), int(frame) - 1):
+            return self.state
+        return None
+
+    def put(self, clip, frame: int, state) -> None:
+        self.key = (str(clip), int(frame))
+        self.state = state
+
+    def reset(self) -> None:
+        self.key = None
+        self.state = None
+
+
+def lead_in(frames, first: int) -> list[int]:
+    """The run of consecutive clip frames that ends just before ``first`` (what a recurrent model runs, from the
+    clip's start or the last gap, before it reaches ``first``)."""
+    have = set(int(f) for f in frames)
+    out = []
+    g = int(first) - 1
+    while g in have:
+        out.append(g)
+        g -= 1
+    return out[::-1]
+
+
+def state_for(model, source, frame: int, inputs_fn, device, amp=None):
+    """The state of a recurrent model for ``frame`` of ``source`` (a ``ClipFrames``) kept on the model
+    (``model._clip_state``, a ``ClipState``): the stored one when the previous call was the previous frame of the
+    same clip, else the frames of ``lead_in`` are run first from the clip's start."""
+    st = getattr(model, "_clip_state", None)
+    if st is None:
+        st = model._clip_state = ClipState()
+    clip = str(source.clip_path)
+    if st.key == (clip, int(frame) - 1):
+        return st.state
+    state = None
+    for g in lead_in(source.frames, frame):
+        state = run_step(model, inputs_fn(g), state, device, amp)[2]
+    return state
+
+
+def run_step(model, inputs: dict[str, np.ndarray], state, device: torch.device, amp=None):
+    """One timed frame of a recurrent model: (SR H x W x 3 float32, ms, new state)."""
+    import time
+    needs = set(model.needs())
+    batch = {k: torch.from_numpy(v[:, -1:]).to(device) for k, v in inputs.items() if k in needs}
+    ctx = torch.autocast(device_type=device.type, dtype=amp) if amp is not None else None
+    with torch.inference_mode():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        if ctx is None:
+            sr, new = model.step(batch, state)
+        else:
+            with ctx:
+                sr, new = model.step(batch, state)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        ms = 1000 * (time.perf_counter() - t0)
+    return sr[0].float().permute(1, 2, 0).cpu().numpy(), ms, new
