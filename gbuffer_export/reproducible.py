@@ -15,8 +15,9 @@ G-buffers equal up to 1 ulp; docs/clip-format.md, "Reproducibility"):
 scheduler then starts one thread), and re-executes the process once with ``personality(ADDR_NO_RANDOMIZE)`` (what
 ``setarch -R`` does), ``PYTHONHASHSEED=0`` and glibc's default allocator thresholds (``MALLOC_TUNING``). Two runs
 of the same command (same arguments, same output path: the path's length shapes the heap too) then give
-bit-identical EXRs. With more threads (the default) only 1 and 2 are
-removed and the radiance still varies.
+bit-identical EXRs on an idle machine. This is best effort: Blender keeps helper threads even then, and under CPU
+contention their interleaving (and so the radiance's noise realisation) can change; the G-buffers stay equal to
+float rounding. With more threads (the default) only 1 and 2 are removed and the radiance still varies.
 
 What stays different in every case: the layout depends on what the process did before a frame, so a frame rendered
 by a resumed run or by another ``--shard`` is a different noise realisation of the same image than in one

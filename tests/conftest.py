@@ -47,3 +47,27 @@ requires_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy is not installed (pi
 @pytest.fixture(scope="session")
 def blend_dir(tmp_path_factory):
     return tmp_path_factory.mktemp("blends")
+
+
+def assert_same_render(a: dict, b: dict) -> int:
+    """Two renders of one command, as ``{(frame, 'lvl/buffer'): array}``: the guarantee of docs/clip-format.md,
+    "Reproducibility". G-buffers agree to float rounding (flags exactly); radiance is the same image in expectation
+    (per-frame means within 3%). Returns how many radiance images are bit-identical (the usual case on an idle
+    machine with ``--threads 1``; not guaranteed under CPU contention, so not asserted)."""
+    import numpy as np
+    assert a.keys() == b.keys() and a, (sorted(a)[:4], sorted(b)[:4])
+    identical = 0
+    for k in a:
+        x, y = np.asarray(a[k]), np.asarray(b[k])
+        assert x.shape == y.shape and x.dtype == y.dtype, k
+        if k[1].endswith("radiance"):
+            fx, fy = np.isfinite(x), np.isfinite(y)
+            assert np.array_equal(fx, fy), f"{k}: non-finite pixels differ"
+            mx, my = float(x[fx].mean()), float(y[fy].mean())
+            assert abs(mx - my) <= 0.03 * max(abs(mx), abs(my), 1e-6), f"{k}: mean {mx} vs {my}"
+            identical += x.tobytes() == y.tobytes()
+        elif k[1].endswith("flags") or not np.issubdtype(x.dtype, np.floating):
+            assert np.array_equal(x, y), f"{k} differs"
+        else:
+            assert np.allclose(x, y, rtol=1e-6, atol=1e-6, equal_nan=True), f"{k} differs beyond float rounding"
+    return identical

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ENV, REPO, requires_bpy, run_cli
+from conftest import ENV, REPO, assert_same_render, requires_bpy, run_cli
 from gbuffer_export.dataset.build import read_index, split_clips
 from gbuffer_export.dataset.buffers import MODEL_BUFFERS, buffers_for_models
 from gbuffer_export.dataset.spec import SpecError, assign_split, expand, load_spec, parse_spec, Splits, stable_hash
@@ -295,9 +295,11 @@ def test_train_and_evaluate_take_a_dataset(tiny, tmp_path):
 
 @requires_bpy
 @pytest.mark.bpy
-def test_the_same_spec_renders_bit_identical_clips(tmp_path):
+def test_the_same_spec_renders_the_same_clips(tmp_path):
     """One Cycles thread per worker, the worker re-executed without address randomisation: rendering a spec twice
-    into the same folder gives the same bytes of radiance, not just the same geometry."""
+    into the same folder gives the same clips (G-buffers to float rounding, radiance in expectation; bit-identical
+    on an idle machine, see docs/clip-format.md, "Reproducibility")."""
+    from gbuffer_export import open_clip
     spec = tmp_path / "s.toml"
     spec.write_text('[dataset]\nname = "rep"\n[render]\nframes = 2\nhr_size = "64x32"\nhr_spp = 4\nlr_spp = 2\n'
                     'gbuffer_spp = 1\nhr_denoise = false\n[[source]]\nkind = "builtin"\nseeds = "3:3"\n'
@@ -309,7 +311,12 @@ def test_the_same_spec_renders_bit_identical_clips(tmp_path):
         out.rename(tmp_path / run)
     files = sorted((tmp_path / "a" / "clips").rglob("*.exr"))
     assert len(files) == 2 * 2 * 8  # 2 frames, 2 levels, the default buffers
-    for f in files:
-        x = read_exr_channels(f)
-        y = read_exr_channels(tmp_path / "b" / f.relative_to(tmp_path / "a"))
-        assert all(np.array_equal(x[k], y[k], equal_nan=True) for k in x), f
+    clips = sorted(p.parent for p in (tmp_path / "a" / "clips").rglob("manifest.json"))
+    assert clips
+
+    def buffers(clip):
+        c = open_clip(clip)
+        return {(f, f"{lvl}/{b}"): c.read(f, f"{lvl}/{b}") for f in c.frames for lvl in ("hr", "lr")
+                for b in c.manifest["buffers"]}
+    for clip in clips:
+        assert_same_render(buffers(clip), buffers(tmp_path / "b" / clip.relative_to(tmp_path / "a")))
