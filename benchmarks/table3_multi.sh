@@ -1,5 +1,6 @@
 #!/bin/bash
-# FuseSR Table 3 ablation trained on several scenes (docs/training.md, section "Session 4"): the 4 built-in clips of
+# FuseSR Table 3 ablation trained on several scenes (not in docs/results.md: its last run predates upsampling by
+# class and the guided base; it also renders the "unseen glTF-scene clips" of docs/results.md): the 4 built-in clips of
 # benchmarks/table3_clean.sh plus 3 glTF assets that are not in its test set (Fox, GlassVaseFlowers,
 # AnisotropyRotationTest), evaluated on table3_clean's unseen test clips, on the 2 held-out frames of every training
 # clip, and on unseen clips of the glTF training scenes (another orbit seed, other frames).

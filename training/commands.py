@@ -44,7 +44,7 @@ def register(subparsers) -> None:
         "evaluate", formatter_class=FMT, help="score a model against the HR ground truth",
         description="Evaluate a checkpoint or a non-learned model on clips: PSNR/SSIM on the declared tonemap, "
                     "PSNR on linear HDR (peak 1), HDR-FLIP, temporal PSNR, warping error, ms per frame. "
-                    "Writes JSON (docs/training.md describes every key).")
+                    "Writes JSON (docs/evaluation.md describes every key).")
     add_model_source(p)
     p.add_argument("--data", nargs="+", required=True, metavar="CLIP",
                    help="clip directories, or dataset folders (their --split)")

@@ -2,7 +2,7 @@
 
 - HDR input transform: ``log1p`` (sign-preserving log(1 + |x|)) or ``none``; models feed transformed radiance /
   irradiance to their convolutions and invert the transform on their output.
-- The evaluation tonemap (one operator for every model, see docs/training.md): Reinhard's global operator
+- The evaluation tonemap (one operator for every model, see docs/evaluation.md): Reinhard's global operator
   x / (1 + x) per channel on linear radiance (negative values clamped to 0), then the sRGB OETF (IEC 61966-2-1).
   Output in [0, 1], float.
 - Depth normalisation: 'ratio' d / (d + ref) with ref the median finite depth of the current frame (LR level,
