@@ -17,7 +17,8 @@ Checks, in order:
                emission >= 0; only known flag bits;
     motion     stored motion against ``reprojection_motion`` from the stored depth and cameras on static surface
                pixels (neither MOVING nor ALPHA: an alpha-blended pixel's Vector pass averages the layers its samples
-               stopped at, its depth is sample 0's), and against the rotation-only motion on background pixels (fractions within tolerance).
+               stopped at, its depth is sample 0's), and against the rotation-only motion on background pixels (fractions within tolerance);
+               ``motion_next`` the same way towards the next camera (``gbuffer_export.forward_motion``).
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ import OpenEXR
 from .clip import FRAMES_DIR, MANIFEST, ClipError, buffer_path, frame_name, load_manifest
 from .conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, Flag, reprojection_motion
 from .demod import RADIANCE_CAP
+from .forward_motion import CODES as _FORWARD_MOTION_CODES, check_motion_next
 
 ERROR = "error"
 WARNING = "warning"
@@ -85,6 +87,7 @@ CODES: dict[str, str] = {
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",
+    **_FORWARD_MOTION_CODES,  # motion_next (gbuffer_export.forward_motion)
 }
 
 _KNOWN_FLAG_BITS = 0
@@ -871,6 +874,11 @@ class _Validator:
                         continue
                     surface = self.check_values(f, lvl, b)
                     mst = self.check_motion(f, lvl, b, cams.get(lvl), surface)
+                    for code, msg, det in check_motion_next(  # motion_next: gbuffer_export.forward_motion
+                            b, cams.get(lvl), h["frame_data"][f].get(lvl), surface, tol=self.opt.tol_px(lvl),
+                            min_fraction=self.opt.motion_min_fraction, min_pixels=self.opt.min_pixels,
+                            background_min_fraction=self.opt.background_min_fraction):
+                        self.add(code, msg, frame=f, key=f"{lvl}/motion_next", **det)
                     self.accumulate(lvl, b, surface, mst)
                     if mst:
                         per[lvl] = mst
