@@ -113,18 +113,17 @@ class Clip:
 
     def camera(self, frame: int, level: str) -> dict[str, np.ndarray]:
         """``world_from_camera`` (4x4), ``intrinsics`` (fx, fy, cx, cy) and ``jitter`` (dx, dy) of a frame and
-        level, plus ``prev_world_from_camera`` and ``prev_intrinsics`` (the camera of frame - 1)."""
+        level, plus ``prev_world_from_camera`` and ``prev_intrinsics`` (the camera of frame - 1) and, in clips with
+        ``motion_next``, ``next_world_from_camera`` and ``next_intrinsics`` (the camera of frame + 1)."""
         try:
             rec = self.frame_data[str(frame)][level]
         except KeyError:
             raise ClipError(f"{self.path}: no camera for frame {frame}, level {level!r}") from None
-        return {
-            "world_from_camera": np.asarray(rec["world_from_camera"], dtype=np.float64),
-            "intrinsics": np.asarray(rec["intrinsics"], dtype=np.float64),
-            "jitter": np.asarray(rec["jitter"], dtype=np.float64),
-            "prev_world_from_camera": np.asarray(rec["prev_world_from_camera"], dtype=np.float64),
-            "prev_intrinsics": np.asarray(rec["prev_intrinsics"], dtype=np.float64),
-        }
+        names = ("world_from_camera", "intrinsics", "jitter", "prev_world_from_camera", "prev_intrinsics")
+        out = {n: np.asarray(rec[n], dtype=np.float64) for n in names}
+        out.update({n: np.asarray(rec[n], dtype=np.float64) for n in ("next_world_from_camera", "next_intrinsics")
+                    if n in rec})
+        return out
 
     def record(self, frame: int) -> dict:
         """The manifest's whole record of a frame (cameras, spp, seeds, timings)."""

@@ -22,6 +22,11 @@ Motion
     ``p + motion`` is where the same surface point was in frame t-1 (backward vector, jitter excluded).
     Background pixels carry the motion caused by the camera's rotation (points at infinity).
 
+Forward motion (``motion_next``)
+    The same units, axes and jitter rule, pointing to frame t+1: ``p + motion_next`` is where the surface seen at
+    p will be in frame t+1. On a clip's last frame it points to frame t+1 as Blender evaluates the scene there
+    (past the last key, animation holds its value), so consumers pair it only with an existing frame t+1.
+
 Jitter (dx, dy)
     Pixels of the level, image coordinates. The radiance sample of pixel centre p was taken at
     image position ``p + (dx, dy)`` of the un-jittered camera described by the intrinsics.
@@ -67,12 +72,15 @@ BUFFERS: dict[str, BufferSpec] = {
                    "pre-integrated BRDF (directional albedo) per pixel; 1 on background"),
         BufferSpec("motion", ("X", "Y"), "float32",
                    "backward motion in pixels of the level, image coords: p_prev = p + motion"),
+        BufferSpec("motion_next", ("X", "Y"), "float32",
+                   "forward motion in pixels of the level, image coords: p_next = p + motion_next"),
         BufferSpec("flags", ("F",), "uint32", "per-pixel bit mask, see Flag"),
     )
 }
 
 #: Buffers the default model (FuseSR) consumes; what ``blendsr render`` writes unless told otherwise. Material
-#: parameters (roughness, metallic, specular) are rendered only when asked for or when a table fbeta needs them.
+#: parameters (roughness, metallic, specular) are rendered only when asked for or when a table fbeta needs them;
+#: ``motion_next`` (free to render: the Vector pass holds it) only when asked for (it costs disk).
 DEFAULT_BUFFERS: tuple[str, ...] = (
     "radiance", "albedo", "normal", "depth", "emission", "fbeta", "motion", "flags",
 )

@@ -1,7 +1,7 @@
 """A synthetic clip written without Blender: an analytic ray-cast scene (checkered ground, spheres, sky) seen by a
 moving pinhole camera. Every buffer is exact and consistent with the conventions, so tests of validation,
 loading and training can run with numpy only. It is not a renderer substitute: radiance is simple diffuse
-shading (fbeta = albedo), and the scene is static (motion is pure reprojection).
+shading (fbeta = albedo), and the scene is static (motion and motion_next are pure reprojection).
 """
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
     }
     wr = ClipWriter(path, header)
     for i, f in enumerate(frames):
-        m, m_prev = camera_at(f), camera_at(f - 1)
+        m, m_prev, m_next = camera_at(f), camera_at(f - 1), camera_at(f + 1)
         record = {}
         for lvl, (lw, lh) in sizes.items():
             k = scale_intrinsics(k_hr, lw / w)
@@ -142,11 +142,14 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
                 "emission": np.zeros_like(g["albedo"]),
                 "fbeta": np.where(np.isfinite(depth)[..., None], g["albedo"], 1.0),
                 "motion": reprojection_motion(depth, k, m, k, m_prev, jit),
+                "motion_next": reprojection_motion(depth, k, m, k, m_next, jit),
                 "flags": g["flags"],
             }
             for b in header["buffers"]:
                 wr.write_buffer(f, lvl, b, bufs[b])
             record[lvl] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k,
                            "prev_intrinsics": k, "jitter": jit, "spp": 1, "seed": 0, "seconds": {}}
+            if "motion_next" in header["buffers"]:
+                record[lvl].update(next_world_from_camera=m_next, next_intrinsics=k)
         wr.commit_frame(f, record)
     return Path(path)

@@ -7,6 +7,7 @@ Kinds:
   nocamera  basic without camera
   empty     camera and world only
   ortho     basic with an orthographic camera
+  occluder  a box sliding sideways in front of a wall (known disocclusions), camera panning slowly
 """
 from __future__ import annotations
 
@@ -88,6 +89,34 @@ def furnace():
     cam.location, cam.rotation_euler = (0, -9, 0), (1.5708, 0, 0)
 
 
+def occluder():
+    """A 1.5 m box 6 m from the camera slides +0.5 m in x per frame in front of a wall 10 m away that fills the
+    view; the camera turns by 0.2 degrees per frame. Frame t shows wall pixels the box covered in frame t-1."""
+    import bpy
+    bpy.ops.mesh.primitive_plane_add(size=40, location=(0, 2, 0), rotation=(1.5708, 0, 0))
+    wall = _principled("wall")
+    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 30
+    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    bpy.context.object.data.materials.append(wall)
+    bpy.ops.mesh.primitive_cube_add(location=(-2.0, -2, 0), size=1.5)
+    box = bpy.context.object
+    box.data.materials.append(_principled("box", **{"Base Color": (0.8, 0.2, 0.1, 1)}))
+    box.keyframe_insert("location", frame=0)
+    box.location = (3.0, -2, 0)
+    box.keyframe_insert("location", frame=10)
+    _world((0.5, 0.5, 0.5))
+    cam = _camera(animated=False)
+    cam.location, cam.rotation_euler = (0, -8, 0), (1.5708, 0, 0)
+    cam.keyframe_insert("rotation_euler", frame=0)
+    cam.rotation_euler = (1.5708, 0, 0.035)
+    cam.keyframe_insert("rotation_euler", frame=10)
+    for ob in (box, cam):
+        for fc in ob.animation_data.action.fcurves if hasattr(ob.animation_data.action, "fcurves") else ():
+            for kp in fc.keyframe_points:
+                kp.interpolation = "LINEAR"
+
+
 def main(kind: str, out: str) -> None:
     import bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -103,6 +132,8 @@ def main(kind: str, out: str) -> None:
         _camera()
     elif kind == "ortho":
         basic(ortho=True)
+    elif kind == "occluder":
+        occluder()
     else:
         raise SystemExit(f"unknown kind {kind}")
     sc.frame_start, sc.frame_end = 1, 10

@@ -8,7 +8,7 @@ import pytest
 
 from conftest import make_blend, requires_bpy, run_cli
 from gbuffer_export import open_clip
-from gbuffer_export.conventions import Flag, reprojection_motion
+from gbuffer_export.conventions import Flag, backward_warp, reprojection_motion
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 FAST = ["--hr-spp", "4", "--lr-spp", "2", "--gbuffer-spp", "1", "--no-progress"]
@@ -83,6 +83,32 @@ def test_first_frame_motion_is_meaningful(basic_clip):
     cam = clip.camera(2, "hr")
     assert not np.allclose(cam["world_from_camera"], cam["prev_world_from_camera"])
     assert np.abs(clip.read(2, "hr/motion")).max() > 0.5
+
+
+def test_motion_next_matches_reprojection_and_the_next_frames_motion(basic_clip):
+    """motion_next (the Vector pass's Z, W) points to frame t+1: it equals reprojection to the next camera on static
+    pixels and the rotation-only field on background, and chaining it with frame t+1's backward motion comes back
+    to p everywhere the surface stays visible, the moving cube included."""
+    clip = open_clip(basic_clip)
+    assert "motion_next" in clip.buffers
+    for lvl in ("hr", "lr"):
+        for f in clip.frames:
+            cam = clip.camera(f, lvl)
+            depth = clip.read(f, f"{lvl}/depth")[..., 0]
+            flags = clip.read(f, f"{lvl}/flags")[..., 0]
+            mn = clip.read(f, f"{lvl}/motion_next")
+            ref = reprojection_motion(depth, cam["intrinsics"], cam["world_from_camera"], cam["next_intrinsics"],
+                                      cam["next_world_from_camera"], cam["jitter"])
+            err = np.linalg.norm(mn - ref, axis=-1)
+            static = np.isfinite(depth) & ((flags & int(Flag.MOVING)) == 0)
+            assert np.mean(err[static] < 0.05) > 0.95, (lvl, f, np.median(err[static]))
+            assert np.mean(err[~np.isfinite(depth)] < 0.01) > 0.99
+            if f + 1 in clip.frames and lvl == "hr":  # round trip t -> t+1 -> t on the moving cube
+                back, valid = backward_warp(clip.read(f + 1, "hr/motion"), mn)  # motion_{t+1} at p + mn
+                moving = ((flags & int(Flag.MOVING)) != 0) & valid
+                trip = np.linalg.norm(mn + back, axis=-1)
+                assert moving.sum() > 20 and np.median(trip[moving]) < 0.1, np.median(trip[moving])
+                assert np.abs(mn[moving]).max() > 0.2  # the cube moves between frames
 
 
 def test_jitter_sign(basic_blend, tmp_path):

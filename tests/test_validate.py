@@ -258,6 +258,13 @@ CASES = {
     "flags-range": (_unknown_flag, ERROR, 2, "hr/flags"),
     "motion-reprojection": (_motion_offset, ERROR, 2, "hr/motion"),
     "background-motion": (_background_motion_zero, ERROR, 2, "hr/motion"),
+    # motion_next (gbuffer_export.forward_motion): the motion's corruptions, and a record without the next camera
+    "motion-next-reprojection": (lambda c: _motion_offset(c, key="lr/motion_next", offset=(0.0, 0.5)), ERROR, 2,
+                                 "lr/motion_next"),
+    "motion-next-background": (lambda c: edit_buffer(c, 2, "hr/motion_next", lambda a: np.where(
+        ~surface(c, 2)[..., None], -a, a).astype(np.float32)), ERROR, 2, "hr/motion_next"),
+    "next-camera": (lambda c: edit_record(c, 3, lambda r: r["lr"].pop("next_intrinsics")), ERROR, 3,
+                    "lr/motion_next"),
 }
 
 

@@ -3,7 +3,7 @@
 Dihedral transforms (the 8 symmetries of a square crop) are written as an optional transpose (swap image x and y)
 followed by optional flips of x and of y. Image-space vectors follow the image:
 
-- motion and the LR jitter (x right, y down, pixels): transpose swaps (x, y); flip x negates x; flip y negates y.
+- motion, motion_next and the LR jitter (x right, y down, pixels): transpose swaps (x, y); flip x negates x; flip y negates y.
   (The jitter is the offset of a pixel's sample from its centre, so it turns with the image like a motion vector.)
 - camera-space normals (+X right, +Y up, +Z toward the viewer): their image direction is (X, -Y), so transpose maps
   (X, Y, Z) -> (-Y, -X, Z), flip x negates X, flip y negates Y. Z is unchanged (each transform is a mirror or
@@ -98,6 +98,6 @@ def apply(key: str, a: np.ndarray, aug: Augmentation, unit: np.ndarray | None = 
         a = np.flip(a, axis=h_ax)
         if name == "normal":
             a = a * np.array([1, -1, 1], dtype=a.dtype)
-    if name == "motion":
+    if name in ("motion", "motion_next"):
         a = apply_vector(a, aug)
     return np.ascontiguousarray(a)

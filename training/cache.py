@@ -11,8 +11,8 @@ directory is given or the clip is not writable. The cache identity hashes the by
 cache format version, the demodulation eps and the non-finite policy: when any of them changes the cache is wiped
 and rebuilt. Arrays are added lazily (``ensure``), each under a file lock, written to a temporary name and renamed.
 
-Stored dtypes: radiance, irradiance, emission, fbeta_used, depth and motion as float32 (float16 overflows above
-65504 and loses motion precision); flags uint32; the other G-buffers float16. Derived buffers:
+Stored dtypes: radiance, irradiance, emission, fbeta_used, depth, motion and motion_next as float32 (float16
+overflows above 65504 and loses motion precision); flags uint32; the other G-buffers float16. Derived buffers:
 ``irradiance`` and ``fbeta_used`` = ``gbuffer_export.demod.demodulate(radiance, emission, fbeta, flags, eps)``.
 """
 from __future__ import annotations
@@ -35,7 +35,8 @@ from gbuffer_export.demod import RADIANCE_CAP, demodulate
 CACHE_VERSION = 2  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
-FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion")
+FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion",
+                   "motion_next")
 
 
 class NonFiniteError(ClipError):

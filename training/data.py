@@ -201,7 +201,7 @@ def frame_window(source, frame: int, spec: BatchSpec) -> dict[str, np.ndarray]:
         stack = []
         for f in wanted[t - n:]:
             a = source.read(max(f, first_ok), key).astype(np.float32)
-            if f < first_ok and key.endswith("/motion"):
+            if f < first_ok and key.endswith(("/motion", "/motion_next")):
                 a = np.zeros_like(a)
             stack.append(a.transpose(2, 0, 1))
         out[key] = np.stack(stack)[None]

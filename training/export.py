@@ -67,12 +67,12 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
         level, name = k.split("/")
         hh, ww = (h, w) if level == "hr" else (h // s, w // s)
         n = t if level == "lr" else 1
-        c = {"depth": 1, "motion": 2}.get(name, 3)
+        c = {"depth": 1, "motion": 2, "motion_next": 2}.get(name, 3)
         a = rng.random((1, n, c, hh, ww), dtype=np.float32)
         if name == "depth":
             a = 1.0 + 10.0 * a
             a[..., : hh // 4, :] = np.inf  # a band of background
-        elif name == "motion":
+        elif name in ("motion", "motion_next"):
             a = 4.0 * (a - 0.5)
         elif name == "normal":
             a = a - 0.5

@@ -61,7 +61,7 @@ def plan_passes(buffers, fbeta: str, aov_names) -> PassPlan:
     return PassPlan(
         depth=need_gbuf,  # background mask for every G-buffer
         normal="normal" in b or table_fbeta,
-        vector="motion" in b,
+        vector="motion" in b or "motion_next" in b,  # one Vector pass holds both
         colors="fbeta" in b and fbeta == "cycles",
         emit="emission" in b,
         index="flags" in b or "fbeta" in b,
@@ -320,8 +320,9 @@ def camera_intrinsics(cam, scene, width: int, height: int) -> tuple[float, float
 # ----------------------------------------------------------------------------------------------
 
 def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitter, flag_lut: np.ndarray,
-            fbeta_source: str) -> dict[str, np.ndarray]:
-    """Turn Cycles passes of one level into clip buffers (see conventions)."""
+            fbeta_source: str, m_next=None, k_next=None) -> dict[str, np.ndarray]:
+    """Turn Cycles passes of one level into clip buffers (see conventions). ``m_next``, ``k_next``: the camera of
+    frame t+1, needed for ``motion_next``."""
     out = {}
     depth = passes["Depth"][..., 0].astype(np.float64) if plan.depth else None
     bg = depth >= BACKGROUND_DEPTH if depth is not None else None
@@ -336,6 +337,13 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
         h, w = mv.shape[:2]
         bgm = background_motion(h, w, k, m, k_prev, m_prev, jitter)
         out["motion"] = np.where(bg[..., None], bgm, mv)
+    if "motion_next" in buffers:
+        # Vector Z, W = p(t) - p(t+1) with y up: p_next - p = (-Z, +W) in image coordinates (y down)
+        vec = passes["Vector"]
+        mv = np.stack([-vec[..., 2], vec[..., 3]], axis=-1).astype(np.float64)
+        h, w = mv.shape[:2]
+        bgm = background_motion(h, w, k, m, k_next, m_next, jitter)
+        out["motion_next"] = np.where(bg[..., None], bgm, mv)
     flags = None
     if plan.index:
         mat_index = np.rint(passes["Material Index"][..., 0]).astype(np.int64)
@@ -484,6 +492,12 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     scene.frame_set(frame - 1)
     m_prev = camera_pose(cam)
     k_prev_hr = camera_intrinsics(cam, scene, w, h)
+    m_next = k_next_hr = k_next_lr = None
+    if "motion_next" in cfg.buffers:  # the camera of frame t+1 (Cycles' Vector pass evaluates it too)
+        scene.frame_set(frame + 1)
+        m_next = camera_pose(cam)
+        k_next_hr = camera_intrinsics(cam, scene, w, h)
+        k_next_lr = scale_intrinsics(k_next_hr, 1 / cfg.scale)
     scene.frame_set(frame)
     m = camera_pose(cam)
     k_hr = camera_intrinsics(cam, scene, w, h)
@@ -509,7 +523,8 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
         seconds["gbuffer"] = time.perf_counter() - t
         t = time.perf_counter()
         hr_out = convert(passes, plan, gbuf_buffers, m=m, k=k_hr, m_prev=m_prev, k_prev=k_prev_hr,
-                         jitter=(0.0, 0.0), flag_lut=flag_lut, fbeta_source=cfg.fbeta)
+                         jitter=(0.0, 0.0), flag_lut=flag_lut, fbeta_source=cfg.fbeta, m_next=m_next,
+                         k_next=k_next_hr)
         seconds["convert"] = time.perf_counter() - t
     set_passes(view_layer, PassPlan())
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1], filter_type=HR_REFERENCE_FILTER[0], bounces=True,
@@ -527,6 +542,8 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
                     "prev_intrinsics": k_prev_hr, "jitter": [0.0, 0.0], "spp": cfg.hr_spp,
                     "seed": settings_hr["seed"], "gbuffer_seed": pass_seed(cfg.seed, frame, 0) if plan.any else None,
                     "seconds": seconds}
+    if m_next is not None:
+        record["hr"].update(next_world_from_camera=m_next, next_intrinsics=k_next_hr)
 
     # --- LR: one point-sampled render with its own G-buffer passes -----------------------------------------
     jit = halton_jitter(index) if cfg.jitter == "halton" else (0.0, 0.0)
@@ -548,7 +565,7 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
     lr_out = convert(passes, plan, gbuf_buffers, m=m, k=k_lr, m_prev=m_prev, k_prev=k_prev_lr, jitter=jit,
-                     flag_lut=flag_lut, fbeta_source=cfg.fbeta) if plan.any else {}
+                     flag_lut=flag_lut, fbeta_source=cfg.fbeta, m_next=m_next, k_next=k_next_lr) if plan.any else {}
     lr_out["radiance"] = passes["Combined"][..., :3]
     seconds["convert"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -558,4 +575,6 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     record["lr"] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k_lr,
                     "prev_intrinsics": k_prev_lr, "jitter": list(jit), "spp": cfg.lr_spp,
                     "seed": settings_lr["seed"], "seconds": seconds}
+    if m_next is not None:
+        record["lr"].update(next_world_from_camera=m_next, next_intrinsics=k_next_lr)
     return record

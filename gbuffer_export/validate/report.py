@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import LEVELS
+from ..forward_motion import CODES as _FORWARD_MOTION_CODES
 from .options import ValidationOptions
 
 
@@ -59,6 +60,7 @@ CODES: dict[str, str] = {
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",
+    **_FORWARD_MOTION_CODES,  # motion_next (gbuffer_export.forward_motion)
 }
 
 
