@@ -199,7 +199,7 @@ class NSRR(SRModel):
         return upsample(frame(batch, "lr/motion", back), self.scale, "bilinear", j) * self.scale
 
     def gbuffer_input(self, batch: dict, dtype) -> torch.Tensor:
-        return torch.cat([current(batch, f"hr/{name}")[:, :c].to(dtype) for name, c in GBUFFERS], dim=1)
+        return torch.cat([current(batch, f"hr/{name}").to(dtype) for name, _ in GBUFFERS], dim=1)
 
     def reconstruct(self, cur: torch.Tensor, prev: list[torch.Tensor], batch: dict) -> torch.Tensor:
         """HR radiance (B, 3, H, W) from the current and the warped previous features (B, 12, H, W) each."""
