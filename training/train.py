@@ -301,7 +301,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     recurrent = is_recurrent(model)
     window = (cfg.data.window or DEFAULT_WINDOW) if recurrent else 0
     if not recurrent and (cfg.data.window or cfg.data.detach_every):
-        raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s), not "
+        raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s, nsrr-fec), not "
                           f"{cfg.model.name!r}")
     spec = BatchSpec.for_model(model, temporal=temporal and (not recurrent or cfg.loss.temporal == "warped"),
                                window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,

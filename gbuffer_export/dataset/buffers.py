@@ -27,6 +27,8 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "fusesr-fast": _DEMOD + ("depth", "normal"),
     "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
     "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
+    "nsrr": ("radiance", "depth", "motion"),
+    "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
 }
 
 #: batch key (without level) -> the clip buffers it is made from.

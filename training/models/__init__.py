@@ -46,6 +46,12 @@ MODELS: dict[str, ModelInfo] = {
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
                              "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)"),
+    "nsrr": ModelInfo("training.models.nsrr_fec", "NSRR", True,
+                      "NSRR (Xiao et al. 2020): LR RGB-D features zero-upsampled at the jittered sample positions, "
+                      "4 history frames warped at HR and reweighted, HR U-Net (535 K params)"),
+    "nsrr-fec": ModelInfo("training.models.nsrr_fec", "NSRRFEC", True,
+                          "NSRR with feature enhancement and caching (Zhong et al. 2023): Y'CbCr features cached "
+                          "as the recurrent state (4 HR maps, each warped once per frame), HR G-buffer features"),
 }
 
 
