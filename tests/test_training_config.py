@@ -1,6 +1,7 @@
 """Training configuration: the shared [model] keys, each model's own [model.<name>] table, the legacy rule for old
 flat keys, and every shipped or example configuration and checkpoint still loading."""
 import dataclasses
+import re
 import subprocess
 import sys
 import tomllib
@@ -190,3 +191,29 @@ def test_train_prints_a_note_for_the_table_of_another_model(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "note: defaults: [model.rdg] is not used (model.name is 'fusesr-l')" in err
     assert "no training clips" in err
+
+
+def test_docs_configuration_lists_every_key_and_every_models_table():
+    from typing import get_type_hints
+
+    from training.config import TrainConfig
+    text = (ROOT / "docs" / "configuration.md").read_text()
+    sections = re.split(r"\n## ", text)
+    hints = get_type_hints(TrainConfig)
+    for section, cls in ((f.name, hints[f.name]) for f in dataclasses.fields(TrainConfig)):
+        body = next(s for s in sections if s.startswith(f"`[{section}]`"))
+        for f in dataclasses.fields(cls):
+            if f.name != "options":
+                assert f"| `{f.name}` |" in body, (section, f.name)
+    for name, info in MODELS.items():
+        fields = dataclasses.fields(info.options)
+        if not fields:
+            assert f"`{name}`" in text, name
+            continue
+        head = next(h for h in re.findall(r"\n### (.*)\n", text) if f"`[model.{name}]`" in h)
+        body = text.split(f"\n### {head}\n")[1].split("\n### ")[0]
+        for f in fields:
+            assert f"| `{f.name}` |" in body, (name, f.name)
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    cfg = config_from_dict(tomllib.loads(block))
+    assert cfg.model.options == FuseSRLightOptions(width=48) and cfg.model.jitter is True
