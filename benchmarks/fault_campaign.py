@@ -267,8 +267,8 @@ BAD_INPUTS: list[BadInput] = [
                                                      str(f.root / "t1"), "--set", "data.bogus=1"], quick=True),
     BadInput("train: wrong type", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
                                              str(f.root / "t2"), "--set", "data.crop=\"big\""]),
-    BadInput("train: unknown option of the model", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip),
-                                                              "-o", str(f.root / "t2b"), "--set", "model.fusesr.zap=1"]),
+    BadInput("train: unknown option of the model", lambda f: [
+        "train", "--model", "fusesr", "--data", str(f.clip), "-o", str(f.root / "t2b"), "--set", "model.fusesr.zap=1"]),
     BadInput("train: --set without =", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
                                                   str(f.root / "t3"), "--set", "data.crop"]),
     BadInput("train: unknown model", lambda f: ["train", "--model", "srgan9000", "--data", str(f.clip), "-o",
