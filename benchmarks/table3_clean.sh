@@ -50,7 +50,8 @@ for v in "true true" "false true" "true false" "false false"; do
   elif [ ! -f "$run/summary.json" ]; then
     $B train --model fusesr --data $TRAIN -o "$run" --config examples/train_config.toml --max-steps "$STEPS" \
       --set data.val_frames=2 --set data.crop="$CROP" --set data.batch_size=4 --set 'run.amp="none"' \
-      --set 'model.norm="none"' --set model.hr_gbuffer=$1 --set model.demodulation=$2 --set run.progress=false \
+      --set 'model.fusesr.norm="none"' --set model.fusesr.hr_gbuffer=$1 --set model.fusesr.demodulation=$2 \
+      --set run.progress=false \
       --set "data.reflectance_range=${REFLECTANCE:-[0.5, 2.0]}"
   fi
   $B evaluate --checkpoint "$run/checkpoints/last.pt" --data $TEST --json "$run.eval.json"

@@ -8,7 +8,7 @@
 # Usage: benchmarks/table3_multi.sh OUT_DIR   (OUT_DIR of a finished benchmarks/table3_clean.sh run, same settings;
 #        about 10 min of rendering + 4 x 17 min of training on 2 cores)
 # Environment: as table3_clean.sh (STEPS SIZE TRAIN_FRAMES TEST_FRAMES CROP HR_SPP LR_SPP SHARED), and
-# VARIANTS="true,true false,true true,false false,false" (model.hr_gbuffer,model.demodulation), SEED=0.
+# VARIANTS="true,true false,true true,false false,false" (model.fusesr.hr_gbuffer,model.fusesr.demodulation), SEED=0.
 # A smoke run: STEPS=2 SIZE=64x36 TRAIN_FRAMES=1:5 TEST_FRAMES=1:2 CROP=8 (after table3_clean.sh's smoke run).
 set -euo pipefail
 OUT=${1:?usage: benchmarks/table3_multi.sh OUT_DIR}
@@ -54,7 +54,8 @@ for v in ${VARIANTS:-true,true false,true true,false false,false}; do
   elif [ ! -f "$run/summary.json" ]; then
     $B train --model fusesr --data $TRAIN -o "$run" --config examples/train_config.toml --max-steps "$STEPS" \
       --set data.val_frames=2 --set data.crop="$CROP" --set data.batch_size=4 --set 'run.amp="none"' \
-      --set model.hr_gbuffer=$1 --set model.demodulation=$2 --set run.seed=$SEED --set run.progress=false \
+      --set model.fusesr.hr_gbuffer=$1 --set model.fusesr.demodulation=$2 --set run.seed=$SEED \
+      --set run.progress=false \
       --set run.minutes=60
   fi
   $B evaluate --checkpoint "$run/checkpoints/last.pt" --data $TEST --json "$run.eval.json"

@@ -62,7 +62,8 @@ def register(subparsers) -> None:
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
-                   help="configuration of a non-learned --model (TOML value), e.g. model.guide_sigma_depth=0.05")
+                   help="configuration of a non-learned --model (TOML value), e.g. "
+                        "model.demod-jbu.guide_sigma_depth=0.05")
     p.set_defaults(func=cmd_evaluate)
 
     p = subparsers.add_parser(
@@ -128,6 +129,8 @@ def cmd_train(args) -> int:
                 raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
     else:
         cfg = load_config(args.config, overrides)
+        for note in cfg.notes:
+            print(f"note: {note}", file=sys.stderr)
         if data:
             cfg.data.clips = [str(c) for c in data]
             if val and not cfg.data.val_clips:
