@@ -1,5 +1,5 @@
 """Colour spaces, through colour-science (numpy): the sRGB encoding of display images, the working spaces a clip
-may be rendered in and their conversion into the one training space.
+may be rendered in and their conversion into the one training space, and the BT.709 YCbCr matrices.
 
 A clip's colour buffers are stored in the scene-linear (working) space of the .blend that rendered them, named by
 the manifest's ``scene_linear`` (Blender 5.0 offers Linear Rec.709, its default, Linear Rec.2020 and ACEScg).
@@ -37,6 +37,28 @@ CHROMATIC_ADAPTATION = "Bradford"
 #: approximation otherwise. White maps to white (rows of the matrix sum to 1), so fbeta = 1 on background stays 1.
 #: Demodulation runs after the conversion, so radiance = fbeta * irradiance + emission holds in the training space.
 COLOUR_BUFFERS = ("radiance", "emission", "albedo", "fbeta")
+
+#: BT.709 luma weights (Kr, Kg, Kb) of ITU-R BT.709-6.
+BT709_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+def _ycbcr_matrices(kr: float, kb: float) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB -> YCbCr, YCbCr -> RGB) 3x3 full-range matrices from the luma weights Kr and Kb."""
+    kg = 1.0 - kr - kb
+    fwd = np.array([[kr, kg, kb],
+                    [-0.5 * kr / (1.0 - kb), -0.5 * kg / (1.0 - kb), 0.5],
+                    [0.5, -0.5 * kg / (1.0 - kr), -0.5 * kb / (1.0 - kr)]])
+    return fwd, np.linalg.inv(fwd)
+
+
+#: Full-range float R'G'B' -> Y'CbCr of BT.709 (no offsets, no quantisation): Y' in [0, 1], Cb and Cr in
+#: [-0.5, 0.5] for inputs in [0, 1]. ``ycbcr = rgb @ RGB_TO_YCBCR_709.T``. Applied to linear RGB it gives
+#: luminance Y and linear chroma differences. Equal to colour-science's ``RGB_to_YCbCr`` with BT.709 weights and
+#: ``out_legal=False, out_int=False`` (tested).
+RGB_TO_YCBCR_709, YCBCR_TO_RGB_709 = _ycbcr_matrices(BT709_LUMA[0], BT709_LUMA[2])
+RGB_TO_YCBCR_709.setflags(write=False)
+YCBCR_TO_RGB_709.setflags(write=False)
+
 
 def srgb_encode(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB encoding (inverse EOTF) of linear values, clipped to [0, 1] first; float64."""
@@ -77,4 +99,4 @@ def convert_buffer(name: str, arr: np.ndarray, matrix: np.ndarray | None) -> np.
 
 
 __all__ = ["TRAINING_SPACE", "DEFAULT_WORKING_SPACE", "WORKING_SPACES", "CHROMATIC_ADAPTATION", "COLOUR_BUFFERS",
-           "srgb_encode", "conversion_matrix", "convert_buffer"]
+           "BT709_LUMA", "RGB_TO_YCBCR_709", "YCBCR_TO_RGB_709", "srgb_encode", "conversion_matrix", "convert_buffer"]

@@ -1,5 +1,6 @@
-"""Colour spaces (gbuffer_export.colour_spaces) against colour-science and known values: the sRGB encoding of
-previews and of the torch evaluation tonemap."""
+"""Colour spaces (gbuffer_export.colour_spaces) against colour-science and published values: the sRGB encoding of
+previews and of the torch evaluation tonemap, the BT.709 YCbCr matrices, and the conversion of clips rendered in
+another working space into the training space (synthetic clips and an ACEScg render)."""
 from __future__ import annotations
 
 import colour
@@ -42,6 +43,18 @@ def test_torch_tonemap_matches_colour_and_differentiates():
     x = torch.tensor([0.0, 1e-4, 0.01, 1.0, 10.0], requires_grad=True)
     torch_tonemap(x).sum().backward()
     assert torch.isfinite(x.grad).all() and (x.grad > 0).all()
+
+
+def test_bt709_ycbcr_matrices_are_colours():
+    from gbuffer_export.colour_spaces import RGB_TO_YCBCR_709, YCBCR_TO_RGB_709
+    k = colour.WEIGHTS_YCBCR["ITU-R BT.709"]
+    rgb = np.random.default_rng(0).uniform(0.0, 1.0, (64, 3))
+    np.testing.assert_allclose(rgb @ RGB_TO_YCBCR_709.T, colour.RGB_to_YCbCr(rgb, K=k, out_legal=False,
+                                                                              out_int=False), atol=1e-12)
+    np.testing.assert_allclose(YCBCR_TO_RGB_709, colour.matrix_YCbCr(K=k, is_legal=False), atol=1e-12)
+    np.testing.assert_allclose(YCBCR_TO_RGB_709 @ RGB_TO_YCBCR_709, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(RGB_TO_YCBCR_709 @ [1.0, 1.0, 1.0], [1.0, 0.0, 0.0], atol=1e-12)  # grey: no chroma
+    assert not RGB_TO_YCBCR_709.flags.writeable
 
 
 # --------------------------------------------------------------------------------------------- working spaces
