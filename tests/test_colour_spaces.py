@@ -172,3 +172,22 @@ def test_clip_rendered_in_acescg_loads_as_the_rec709_render(tmp_path):
         else:  # colours of the materials: what the Rec.709 scene holds (Blender stored them converted, in float32)
             np.testing.assert_allclose(got, ref, rtol=max(tol, 1e-4), atol=max(tol, 1e-4), err_msg=key)
             assert np.abs(raw - ref).max() > 0.05, key
+
+
+# ------------------------------------------------------------------------------------------------ Delta E ITP
+
+@pytest.mark.torch
+def test_delta_e_itp_against_colour_through_xyz():
+    pytest.importorskip("torch")
+    from training.metrics import ITP_WHITE_NITS, delta_e_itp
+    rng = np.random.default_rng(1)
+    gt = rng.gamma(1.0, 0.5, (12, 16, 3))
+    sr = gt * rng.uniform(0.9, 1.1, gt.shape)
+    # independent path: Rec.709 RGB -> XYZ -> ICtCp, absolute luminance ITP_WHITE_NITS * Y
+    def ictcp(a):
+        return colour.XYZ_to_ICtCp(ITP_WHITE_NITS * colour.RGB_to_XYZ(a, "ITU-R BT.709"), method="ITU-R BT.2100-2 PQ")
+    want = np.mean(colour.delta_E(ictcp(sr), ictcp(gt), method="ITP"))
+    assert delta_e_itp(sr, gt) == pytest.approx(want, rel=1e-6)
+    assert delta_e_itp(gt, gt) == 0.0
+    grey = np.full((4, 4, 3), 1.0)  # a 1% brighter grey at 203 cd/m^2: under one just-noticeable difference
+    assert 0.0 < delta_e_itp(1.01 * grey, grey) < 1.0 < delta_e_itp(1.1 * grey, grey)
