@@ -104,6 +104,21 @@ def test_clip_read_converts_colour_buffers_only(acescg_clip):
     assert np.array_equal(clip.read(1, "hr/radiance", space="ACEScg"), clip.read(1, "hr/radiance"))
 
 
+def test_contact_sheet_shows_rec709_colours(tmp_path):
+    """The same stored values declared ACEScg and Linear Rec.709 give different contact sheets."""
+    from PIL import Image
+
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.preview import contact_sheet
+    from gbuffer_export.synthetic import make_synthetic_clip
+    sheet = {}
+    for space in ("ACEScg", "Linear Rec.709"):
+        clip = make_synthetic_clip(tmp_path / space, frames=(1,), hr_size=(64, 36), scale=4, scene_linear=space)
+        sheet[space] = np.asarray(Image.open(contact_sheet(open_clip(clip), tmp_path / f"{space}.png")), np.int16)
+    assert sheet["ACEScg"].shape == sheet["Linear Rec.709"].shape
+    assert np.abs(sheet["ACEScg"] - sheet["Linear Rec.709"]).max() > 50
+
+
 @pytest.mark.torch
 def test_training_cache_and_evaluation_see_the_training_space(acescg_clip, tmp_path):
     pytest.importorskip("torch")
