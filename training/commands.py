@@ -69,7 +69,7 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "upscale", formatter_class=FMT, help="write the super-resolved EXR sequence of a clip",
-        description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear RGB float32) and "
+        description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear Rec.709 RGB float32) and "
                     "OUT_DIR/upscale.json (model, ms per frame).")
     add_model_source(p)
     p.add_argument("--clip", required=True, help="clip directory")
