@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec
 from .exr import read_exr, write_exr
 
@@ -89,6 +90,8 @@ class Clip:
         self.buffers: tuple[str, ...] = tuple(manifest["buffers"])
         self.sizes: dict[str, tuple[int, int]] = {
             lvl: (int(v["width"]), int(v["height"])) for lvl, v in manifest["levels"].items()}
+        #: working colour space of the colour buffers (the manifest's ``scene_linear``; Blender's default if absent)
+        self.scene_linear: str = str(manifest.get("scene_linear", DEFAULT_WORKING_SPACE))
 
     def __repr__(self) -> str:
         return f"Clip({str(self.path)!r}, frames={len(self.frames)}, scale={self.scale})"
@@ -101,15 +104,25 @@ class Clip:
         level, name = split_key(key)
         return buffer_path(self.path, frame, level, name)
 
-    def read(self, frame: int, key: str) -> np.ndarray:
+    def read(self, frame: int, key: str, *, space: str | None = None) -> np.ndarray:
         """Buffer ``key`` ('hr/fbeta', 'lr/radiance', ...) of ``frame`` as H x W x C float32
-        (the ``flags`` buffer as uint32)."""
+        (the ``flags`` buffer as uint32). ``space``: a working space (e.g. ``colour_spaces.TRAINING_SPACE``) to
+        convert the colour buffers (radiance, emission, albedo, fbeta) into; None gives them as stored."""
         level, name = split_key(key)
         if name not in self.buffers:
             raise ClipError(f"{self.path}: clip has no buffer {name!r} (has {', '.join(self.buffers)})")
         if frame not in self.frame_data and str(frame) not in self.frame_data:
             raise ClipError(f"{self.path}: frame {frame} is not a finished frame of this clip")
-        return read_exr(self.path_of(frame, key), buffer_spec(name).channels)
+        a = read_exr(self.path_of(frame, key), buffer_spec(name).channels)
+        return a if space is None else convert_buffer(name, a, self.colour_matrix(space))
+
+    def colour_matrix(self, space: str) -> np.ndarray | None:
+        """3x3 matrix from the clip's working space to ``space`` (``rgb_space = M @ rgb_clip``), None when they
+        are the same. ClipError naming the manifest when ``scene_linear`` is a space blendsr cannot convert."""
+        try:
+            return conversion_matrix(self.scene_linear, space)
+        except ValueError as exc:
+            raise ClipError(f"{self.path / MANIFEST}: scene_linear: {exc}") from None
 
     def camera(self, frame: int, level: str) -> dict[str, np.ndarray]:
         """``world_from_camera`` (4x4), ``intrinsics`` (fx, fy, cx, cy) and ``jitter`` (dx, dy) of a frame and

@@ -10,6 +10,10 @@ from .colour_spaces import srgb_encode
 from .conventions import Flag
 
 
+#: Linear space whose RGB the sRGB encoding displays (the sRGB primaries are BT.709's).
+DISPLAY_SPACE = "Linear Rec.709"
+
+
 def tonemap(radiance: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """Display encoding of linear HDR radiance, the numpy reference of the evaluation tonemap
     (``training.transforms.tonemap``): Reinhard v / (1 + v) per channel, v = max(radiance * exposure, 0), then the
@@ -108,13 +112,14 @@ def labelled_grid(tiles: list[list[tuple[str, np.ndarray]]], pad: int = 4) -> np
 
 def contact_sheet(clip, path: str | Path, frames: list[int] | None = None, max_frames: int = 3) -> Path:
     """PNG contact sheet of a clip: per frame one row with LR radiance (nearest-upscaled), HR radiance and every HR
-    G-buffer the clip holds."""
+    G-buffer the clip holds; colours converted from the clip's working space to Linear Rec.709 (sRGB primaries)."""
     frames = frames or clip.frames[:: max(1, len(clip.frames) // max_frames)][:max_frames]
     rows = []
     for f in frames:
-        row = [(f"f{f} lr/radiance", upscale_nearest(visualize("radiance", clip.read(f, "lr/radiance")), clip.scale))]
+        lr = clip.read(f, "lr/radiance", space=DISPLAY_SPACE)
+        row = [(f"f{f} lr/radiance", upscale_nearest(visualize("radiance", lr), clip.scale))]
         for b in clip.buffers:
-            row.append((f"hr/{b}", visualize(b, clip.read(f, f"hr/{b}"))))
+            row.append((f"hr/{b}", visualize(b, clip.read(f, f"hr/{b}", space=DISPLAY_SPACE))))
         rows.append(row)
     save_png(path, labelled_grid(rows))
     return Path(path)

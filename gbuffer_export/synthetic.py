@@ -87,9 +87,11 @@ def _trace(width, height, k, world_from_camera, jitter):
 
 
 def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: int = 4,
-                        buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2) -> Path:
+                        buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2,
+                        scene_linear: str = "Linear Rec.709") -> Path:
     """Write a complete synthetic clip to ``path`` and return it. HR radiance is supersampled
-    ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered)."""
+    ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered).
+    ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says)."""
     from .conventions import halton_jitter
 
     w, h = hr_size
@@ -103,7 +105,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
         "scene": {"file": None, "sha256": None, "builtin": "synthetic-numpy"},
         "scale": scale, "levels": {lvl: {"width": s[0], "height": s[1]} for lvl, s in sizes.items()},
         "frames": frames, "buffers": [b for b in ALL_BUFFERS if b in buffers], "fbeta_source": "synthetic",
-        "colorspace": "Linear Rec.709", "render": {
+        "scene_linear": scene_linear, "render": {
             "jitter": "halton" if jitter else "none",
             # n x n samples spread evenly over each HR pixel: a box filter of 1 px (n = 1: a point sample)
             "hr": {"pixel_filter": "BOX" if hr_supersample > 1 else "GAUSSIAN",

@@ -8,6 +8,8 @@ Kinds:
   empty     camera and world only
   ortho     basic with an orthographic camera
   occluder  a box sliding sideways in front of a wall (known disocclusions), camera panning slowly
+  colours   basic plus an emissive cube of coloured base and emission colour (Linear Rec.709 working space)
+  acescg    colours with the blend file's working colour space changed to ACEScg (its colours converted)
 """
 from __future__ import annotations
 
@@ -134,6 +136,15 @@ def main(kind: str, out: str) -> None:
         basic(ortho=True)
     elif kind == "occluder":
         occluder()
+    elif kind in ("colours", "acescg"):
+        basic()
+        bpy.ops.mesh.primitive_cube_add(location=(-2.5, 0, 0.5), size=1)
+        bpy.context.object.data.materials.append(_principled(
+            "lamp", **{"Base Color": (0.7, 0.15, 0.05, 1), "Emission Color": (1.0, 0.35, 0.1, 1),
+                       "Emission Strength": 3.0}))
+        if kind == "acescg":
+            bpy.ops.wm.set_working_color_space(working_space="ACEScg", convert_colors=True)
+            assert bpy.data.colorspace.working_space == "ACEScg"
     else:
         raise SystemExit(f"unknown kind {kind}")
     sc.frame_start, sc.frame_end = 1, 10

@@ -87,6 +87,24 @@ def test_evaluate_json_matches_direct_computation(clip, tmp_path):
     assert res["mean"]["ms_per_frame"] == pytest.approx(np.median([r["ms_per_frame"] for r in res["per_frame"]]))
 
 
+def test_delta_e_itp_is_optional_and_scored_per_frame(clip, tmp_path):
+    from training.metrics import delta_e_itp
+    out = tmp_path / "itp.json"
+    assert main(["evaluate", "--model", "bicubic", "--data", str(clip), "--json", str(out), "--no-flip",
+                 "--frames", "2:3", "--delta-e-itp"]) == 0
+    res = json.loads(out.read_text())
+    assert res["itp_white_nits"] == 203.0
+    c = open_clip(clip)
+    for row in res["per_frame"]:
+        sr = bicubic_np(c.read(row["frame"], "lr/radiance"))
+        assert row["delta_e_itp"] == pytest.approx(delta_e_itp(sr, c.read(row["frame"], "hr/radiance")), rel=1e-3)
+    assert res["mean"]["delta_e_itp"] == pytest.approx(np.mean([r["delta_e_itp"] for r in res["per_frame"]]))
+    assert main(["evaluate", "--model", "bicubic", "--data", str(clip), "--json", str(out), "--no-flip",
+                 "--frames", "2:2"]) == 0
+    res = json.loads(out.read_text())
+    assert res["mean"]["delta_e_itp"] is None and res["itp_white_nits"] is None
+
+
 def test_flip_matches_the_evaluator_and_survives_its_exit():
     import flip_evaluator
     from training.flip_worker import FlipRunner

@@ -11,6 +11,10 @@ directory is given or the clip is not writable. The cache identity hashes the by
 cache format version, the demodulation eps and the non-finite policy: when any of them changes the cache is wiped
 and rebuilt. Arrays are added lazily (``ensure``), each under a file lock, written to a temporary name and renamed.
 
+Colour buffers (radiance, emission, albedo, fbeta) are stored in ``colour_spaces.TRAINING_SPACE`` (Linear Rec.709):
+a clip rendered in another working space (the manifest's ``scene_linear``) is converted when cached, after the
+non-finite check and before demodulation.
+
 Stored dtypes: radiance, irradiance, emission, fbeta_used, depth, motion and motion_next as float32 (float16
 overflows above 65504 and loses motion precision); flags uint32; the other G-buffers float16. Derived buffers:
 ``irradiance`` and ``fbeta_used`` = ``gbuffer_export.demod.demodulate(radiance, emission, fbeta, flags, eps)``.
@@ -29,10 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from gbuffer_export.clip import Clip, ClipError, open_clip, split_key, write_json_atomic
+from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
 
-CACHE_VERSION = 2  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite
+CACHE_VERSION = 3  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
 FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion",
@@ -112,13 +117,14 @@ class ClipCache:
     def __init__(self, clip_path: str | os.PathLike, *, eps: float = 0.01, nonfinite: str = "error",
                  cache_dir: str | os.PathLike | None = None):
         self.clip: Clip = open_clip(clip_path)
+        self.colour_matrix = self.clip.colour_matrix(TRAINING_SPACE)  # None: the clip is in the training space
         self.clip_path = Path(clip_path)
         self.eps = float(eps)
         self.nonfinite = nonfinite
         self.path = default_cache_path(self.clip_path, cache_dir)
         self.manifest_sha256 = manifest_sha256(self.clip_path)
         self.identity = hashlib.sha256(json.dumps(
-            [CACHE_VERSION, self.manifest_sha256, self.eps, nonfinite]).encode()).hexdigest()[:16]
+            [CACHE_VERSION, self.manifest_sha256, self.eps, nonfinite, TRAINING_SPACE]).encode()).hexdigest()[:16]
         self.frames = list(self.clip.frames)
         if not self.frames:
             raise ClipError(f"{self.clip_path}: clip has no finished frame")
@@ -212,7 +218,9 @@ class ClipCache:
     def _read_checked(self, frame: int, key: str) -> np.ndarray:
         a = self.clip.read(frame, key)
         where = f"{self.clip.path_of(frame, key)} (frame {frame})"
-        return check_finite(a, split_key(key)[1], where, self.nonfinite, self.index["sanitized"])
+        name = split_key(key)[1]
+        a = check_finite(a, name, where, self.nonfinite, self.index["sanitized"])
+        return convert_buffer(name, a, self.colour_matrix)
 
     def _new_array(self, key: str) -> tuple[np.ndarray, Path, Path]:
         lvl, name = key.split("/")

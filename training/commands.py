@@ -54,6 +54,8 @@ def register(subparsers) -> None:
     p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all finished frames)")
     p.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (about 4 s per 1080p frame on a CPU)")
+    p.add_argument("--delta-e-itp", action="store_true",
+                   help="also score Delta E ITP (HDR colour difference, radiance 1 shown at 203 cd/m^2)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
@@ -68,7 +70,7 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "upscale", formatter_class=FMT, help="write the super-resolved EXR sequence of a clip",
-        description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear RGB float32) and "
+        description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear Rec.709 RGB float32) and "
                     "OUT_DIR/upscale.json (model, ms per frame).")
     add_model_source(p)
     p.add_argument("--clip", required=True, help="clip directory")
@@ -189,6 +191,7 @@ def cmd_evaluate(args) -> int:
     frames = _frames(args.frames)
     result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
                             device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
+                            delta_e_itp=args.delta_e_itp,
                             save_images=args.save_images, warmup=args.warmup, progress=sys.stderr.isatty())
     write_json_atomic(args.json, result)
     m = result["mean"]

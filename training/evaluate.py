@@ -29,7 +29,7 @@ from training.inference import ClipFrames, model_device, model_inputs, run_model
 from training.recurrent import ClipState, is_recurrent, lead_in, run_step
 
 METRIC_KEYS = ("psnr", "ssim", "psnr_hdr", "flip", "tpsnr", "warp_error", "ms_per_frame")
-EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite")
+EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite", "delta_e_itp")
 
 
 def describe_device(device: torch.device) -> str:
@@ -52,11 +52,12 @@ def _mean(values):
 
 
 def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
-                   amp: torch.dtype | None = None, flip: bool = True, data_cfg=None,
+                   amp: torch.dtype | None = None, flip: bool = True, delta_e_itp: bool = False, data_cfg=None,
                    save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
                    label: str | None = None) -> dict:
     """Evaluate ``model`` on ``clips`` (paths); ``frames`` maps a clip path (as given) to the frames to score
-    (default: all). Returns {model, transform, device, mean, per_frame, ...}."""
+    (default: all). ``delta_e_itp``: also score ``metrics.delta_e_itp`` (None otherwise). Returns {model, transform,
+    device, mean, per_frame, ...}."""
     device = device or model_device(model)
     model.to(device).eval()
     eps = data_cfg.demod_eps if data_cfg is not None else getattr(model, "demod_eps", 0.01)
@@ -103,6 +104,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                        "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
                        "psnr_hdr": metrics.psnr_hdr(sr, gt),
                        "flip": runner(gt, sr) if runner is not None else None,
+                       "delta_e_itp": metrics.delta_e_itp(sr, gt) if delta_e_itp else None,
                        "tpsnr": None, "warp_error": None, "warp_error_gt": None}
                 if "hr/flags" in inputs:
                     fl = inputs["hr/flags"][0, -1, 0].astype(np.uint32)
@@ -138,6 +140,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
         "amp": str(amp).replace("torch.", "") if amp else "none",
         "scale": model.scale,
         "hdr_peak": metrics.HDR_PEAK,
+        "itp_white_nits": metrics.ITP_WHITE_NITS if delta_e_itp else None,
         "psnr_cap_db": metrics.PSNR_CAP,
         "timing": f"median over frames of the forward pass after {warmup} warm-up runs, inputs on the device",
         "flip_failures": runner.failures if runner is not None else [],

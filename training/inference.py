@@ -2,11 +2,13 @@
 
     model = load_model("demod-bilinear", scale=4)          # a model name (non-learned) or a checkpoint path
     out = upscale_frame(model, clip, frame)                # clip: a Clip, a clip directory or a ClipFrames
-    out["sr"], out["bilinear"], out["reference"]           # HR H x W x 3 float32 linear radiance
+    out["sr"], out["bilinear"], out["reference"]           # HR H x W x 3 float32 linear radiance, Linear Rec.709
     out["ms"]                                              # model time of this call, milliseconds
 
-Inputs are read straight from the clip's EXRs (``ClipFrames``): the demodulated irradiance is computed with the
-torch mirror of the demodulation (``training.demod``), with the eps the checkpoint was trained with.
+Inputs are read straight from the clip's EXRs (``ClipFrames``), colour buffers converted into the training space
+(``gbuffer_export.colour_spaces.TRAINING_SPACE``) like the training cache does: the demodulated irradiance is
+computed with the torch mirror of the demodulation (``training.demod``), with the eps the checkpoint was trained
+with.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ import numpy as np
 import torch
 
 from gbuffer_export.clip import Clip, ClipError, open_clip
+from gbuffer_export.colour_spaces import TRAINING_SPACE
 from gbuffer_export.conventions import LEVELS
 from training.cache import DERIVED, lr_jitter
 from training.config import ModelConfig
@@ -35,6 +38,7 @@ class ClipFrames:
 
     def __init__(self, clip: Clip | str | os.PathLike, eps: float = 0.01, keep: int = 64):
         self.clip = clip if isinstance(clip, Clip) else open_clip(clip)
+        self.clip.colour_matrix(TRAINING_SPACE)  # ClipError now for a working space blendsr cannot convert
         self.clip_path = Path(self.clip.path)
         self.eps = float(eps)
         self.frames = list(self.clip.frames)
@@ -65,7 +69,7 @@ class ClipFrames:
             self._put((frame, f"{level}/irradiance"), irr)
             self._put((frame, f"{level}/fbeta_used"), fbu)
             return irr if name == "irradiance" else fbu
-        a = self.clip.read(frame, key)
+        a = self.clip.read(frame, key, space=TRAINING_SPACE)
         self._put(k, a)
         return a
 

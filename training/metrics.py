@@ -7,6 +7,8 @@
 - ``warp_error``: mean |T(SR_t) - W(T(SR_t-1))| over pixels whose warp stays inside the image, W the backward warp
   with the clip's HR motion vectors of frame t, T the tonemap. ``warp_error_gt`` is the same for the ground truth
   (what disocclusions and shading changes alone give).
+- ``delta_e_itp``: mean Delta E ITP (ITU-R BT.2124) of the linear HDR images shown with radiance 1 at
+  ``ITP_WHITE_NITS`` cd/m^2 (colour-science's ICtCp, BT.2100 PQ); optional (``evaluate --delta-e-itp``).
 PSNR values are capped at ``PSNR_CAP`` dB (identical images) so that JSON stays finite.
 """
 from __future__ import annotations
@@ -21,6 +23,8 @@ from training.models.base import backward_warp
 from training.transforms import HDR_PEAK, tonemap
 
 PSNR_CAP = 100.0
+#: Luminance (cd/m^2) at which Delta E ITP shows linear radiance 1: the HDR reference white of ITU-R BT.2408.
+ITP_WHITE_NITS = 203.0
 TRANSFORM = "reinhard-srgb: sRGB_OETF(x / (1 + x)) per channel, x = max(linear radiance, 0); values in [0, 1]"
 
 
@@ -76,3 +80,19 @@ def warp_error(cur: np.ndarray, prev: np.ndarray, motion: np.ndarray) -> float |
     if n == 0:
         return None
     return float(((tonemapped(cur) - warped).abs() * valid).sum() / n)
+
+
+def delta_e_itp(sr: np.ndarray, gt: np.ndarray) -> float:
+    """Mean Delta E ITP (ITU-R BT.2124; 1 is about one just-noticeable difference) of two H x W x 3 linear
+    Linear Rec.709 images: radiance 1 is shown at ``ITP_WHITE_NITS`` cd/m^2, converted to BT.2020 and clipped to
+    the PQ range [0, 10000] cd/m^2, then ICtCp (BT.2100 PQ) and Delta E ITP per pixel, all with colour-science."""
+    import colour
+
+    from gbuffer_export.colour_spaces import TRAINING_SPACE, conversion_matrix
+    m = conversion_matrix(TRAINING_SPACE, "Linear Rec.2020")
+
+    def ictcp(a: np.ndarray) -> np.ndarray:
+        nits = np.clip(ITP_WHITE_NITS * (np.asarray(a, np.float64) @ m.T), 0.0, 10000.0)
+        return colour.RGB_to_ICtCp(nits, method="ITU-R BT.2100-2 PQ")
+
+    return float(np.mean(colour.delta_E(ictcp(sr), ictcp(gt), method="ITP")))
