@@ -55,8 +55,8 @@ ENV = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHO
 def render_args(frames: int) -> list[str]:
     return ["--hr-size", "64x36", "--frames", f"1:{frames}", "--hr-spp", "4", "--lr-spp", "2", "--seed", "3",
             "--threads", "1", "--no-progress"]
-TRAIN_SETS = ["data.crop=8", "data.batch_size=2", "model.width=8", "model.blocks=1", "run.progress=false",
-              "run.amp=\"none\"", "run.threads=1", "run.checkpoint_every=1", "run.log_every=1"]
+TRAIN_SETS = ["data.crop=8", "data.batch_size=2", "model.fusesr.width=8", "model.fusesr.blocks=1",
+              "run.progress=false", "run.amp=\"none\"", "run.threads=1", "run.checkpoint_every=1", "run.log_every=1"]
 
 
 @dataclass
@@ -267,6 +267,8 @@ BAD_INPUTS: list[BadInput] = [
                                                      str(f.root / "t1"), "--set", "data.bogus=1"], quick=True),
     BadInput("train: wrong type", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
                                              str(f.root / "t2"), "--set", "data.crop=\"big\""]),
+    BadInput("train: unknown option of the model", lambda f: [
+        "train", "--model", "fusesr", "--data", str(f.clip), "-o", str(f.root / "t2b"), "--set", "model.fusesr.zap=1"]),
     BadInput("train: --set without =", lambda f: ["train", "--model", "fusesr", "--data", str(f.clip), "-o",
                                                   str(f.root / "t3"), "--set", "data.crop"]),
     BadInput("train: unknown model", lambda f: ["train", "--model", "srgan9000", "--data", str(f.clip), "-o",

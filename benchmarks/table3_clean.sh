@@ -1,12 +1,12 @@
 #!/bin/bash
-# FuseSR Table 3 ablation on clean clips (docs/training.md, section "Clean clips"): render 4 training clips of the
+# FuseSR Table 3 ablation on clean clips (docs/results.md, "The clean-clip benchmark"): render 4 training clips of the
 # built-in scene and 4 unseen test clips (3 glTF assets + the built-in scene with another seed), evaluate the
 # non-learned baselines, train FuseSR with the 4 settings of the HR G-buffer / demodulation switches for the same
 # number of steps, evaluate each, and write the speed-against-error table and Pareto plot.
 #
 # Usage: benchmarks/table3_clean.sh OUT_DIR        (about 15 min of rendering + 4 x 14 min of training on 2 cores)
 # Environment (defaults = the documented run): STEPS=1200 SIZE=320x180 TRAIN_FRAMES=1:16 TEST_FRAMES=1:8 CROP=40
-# HR_SPP=64 LR_SPP=128 SHARED=../shared REFLECTANCE="[0.5, 2.0]" (data.reflectance_range; "[1.0, 1.0]" = session 2's
+# HR_SPP=64 LR_SPP=128 SHARED=../shared REFLECTANCE="[0.5, 2.0]" (data.reflectance_range; "[1.0, 1.0]" = the
 # runs without the tint). A smoke run: STEPS=2 SIZE=64x36 TRAIN_FRAMES=1:5 TEST_FRAMES=1:2 CROP=8.
 set -euo pipefail
 OUT=${1:?usage: benchmarks/table3_clean.sh OUT_DIR}
@@ -50,7 +50,8 @@ for v in "true true" "false true" "true false" "false false"; do
   elif [ ! -f "$run/summary.json" ]; then
     $B train --model fusesr --data $TRAIN -o "$run" --config examples/train_config.toml --max-steps "$STEPS" \
       --set data.val_frames=2 --set data.crop="$CROP" --set data.batch_size=4 --set 'run.amp="none"' \
-      --set 'model.norm="none"' --set model.hr_gbuffer=$1 --set model.demodulation=$2 --set run.progress=false \
+      --set 'model.fusesr.norm="none"' --set model.fusesr.hr_gbuffer=$1 --set model.fusesr.demodulation=$2 \
+      --set run.progress=false \
       --set "data.reflectance_range=${REFLECTANCE:-[0.5, 2.0]}"
   fi
   $B evaluate --checkpoint "$run/checkpoints/last.pt" --data $TEST --json "$run.eval.json"

@@ -1,26 +1,22 @@
 """Images a person can look at: tonemapped radiance, false-colour G-buffers and a contact sheet of a clip
-(pure numpy + Pillow)."""
+(numpy, colour-science and Pillow)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
+from .colour_spaces import srgb_encode
 from .conventions import Flag
 
 
-def srgb_oetf(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encoding of linear values in [0, 1]."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def tonemap(radiance: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """Display encoding of linear HDR radiance: Reinhard x/(1+x) per channel after ``exposure``, then sRGB.
-    Non-finite values become 0."""
+    """Display encoding of linear HDR radiance, the numpy reference of the evaluation tonemap
+    (``training.transforms.tonemap``): Reinhard v / (1 + v) per channel, v = max(radiance * exposure, 0), then the
+    sRGB encoding. NaN and -inf become 0, +inf 1e6. Float64 in [0, 1], shape of ``radiance``."""
     x = np.nan_to_num(np.asarray(radiance, np.float64) * exposure, nan=0.0, posinf=1e6, neginf=0.0)
     x = np.maximum(x, 0.0)
-    return srgb_oetf(x / (1.0 + x))
+    return srgb_encode(x / (1.0 + x))
 
 
 def normal_rgb(n: np.ndarray) -> np.ndarray:
@@ -66,7 +62,7 @@ def visualize(name: str, arr: np.ndarray) -> np.ndarray:
     if name in ("radiance", "emission"):
         return tonemap(arr)
     if name in ("albedo", "fbeta"):
-        return srgb_oetf(arr)
+        return srgb_encode(arr)
     if name == "normal":
         return normal_rgb(arr)
     if name == "depth":

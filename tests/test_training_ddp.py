@@ -53,8 +53,8 @@ def test_two_gloo_processes_train_and_agree(tmp_path):
 
 def test_batchnorm_under_cpu_ddp_warns_and_ranks_agree(tmp_path):
     """The authors' BatchNorm under gloo: per-rank statistics (SyncBatchNorm needs a GPU), said once, weights agree."""
-    proc, run = _torchrun_train(tmp_path, 3, 2, 'model.norm="batch"')
-    assert proc.stderr.count("RuntimeWarning: model.norm = 'batch' under DDP on CPU") == 1
+    proc, run = _torchrun_train(tmp_path, 3, 2, 'model.fusesr.norm="batch"')
+    assert proc.stderr.count("RuntimeWarning: model.fusesr.norm = 'batch' under DDP on CPU") == 1
     summary = json.loads((run / "summary.json").read_text())
     assert summary["ranks_agree"] is True and summary["step"] == 2
 

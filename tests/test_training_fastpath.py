@@ -44,7 +44,7 @@ def _cases():
 @pytest.mark.parametrize("name,norm", list(_cases()))
 def test_every_fast_path_matches_the_fp32_eager_reference(name, norm):
     torch.manual_seed(0)
-    ref = build_model(ModelConfig(name=name, norm=norm), 4)
+    ref = build_model(ModelConfig.of(name, **({} if norm == "none" else {"norm": norm})), 4)
     _randomise_batchnorm(ref)
     ref.eval()
     batch = {k: torch.from_numpy(v) for k, v in example_inputs(ref, None, (64, 48), seed=2).items()}
@@ -67,7 +67,7 @@ def test_every_fast_path_matches_the_fp32_eager_reference(name, norm):
 
 def test_batchnorm_folding_removes_every_batchnorm_and_keeps_the_output():
     for name in ("fusesr", "fusesr-fast"):
-        model = build_model(ModelConfig(name=name, norm="batch"), 4)
+        model = build_model(ModelConfig.of(name=name, norm="batch"), 4)
         _randomise_batchnorm(model)
         model.eval()
         n_bn = sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
@@ -78,7 +78,7 @@ def test_batchnorm_folding_removes_every_batchnorm_and_keeps_the_output():
             assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
             torch.testing.assert_close(model(batch), want, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="eval"):
-        fold_batchnorm(build_model(ModelConfig(name="fusesr-fast", norm="batch"), 4).train())
+        fold_batchnorm(build_model(ModelConfig.of(name="fusesr-fast", norm="batch"), 4).train())
 
 
 def _gen(seed=0):
@@ -146,7 +146,7 @@ def test_fusesr_fast_has_the_authors_layer_sizes_and_parameter_count():
     count = lambda mod: sum(p.numel() for p in mod.parameters())  # noqa: E731
     assert count(m) == 68188
     # the authors' configuration (BatchNorm, no jitter channels): their 68 108
-    assert count(build_model(ModelConfig(name="fusesr-fast", norm="batch", jitter=False), 4)) == 68108
+    assert count(build_model(ModelConfig.of(name="fusesr-fast", norm="batch", jitter=False), 4)) == 68108
     light = build_model(ModelConfig(name="fusesr-l"), 4)
     assert count(light) > 3.9 * count(m)
     with pytest.raises(ValueError, match="history"):
@@ -155,7 +155,7 @@ def test_fusesr_fast_has_the_authors_layer_sizes_and_parameter_count():
 
 def test_fusesr_fast_macs_per_pixel_about_4300():
     from torch.utils.flop_counter import FlopCounterMode
-    m = build_model(ModelConfig(name="fusesr-fast", remod_filter="NONE", guided_upsample=False), 4).eval()
+    m = build_model(ModelConfig.of(name="fusesr-fast", remod_filter="NONE", guided_upsample=False), 4).eval()
     batch = {k: torch.from_numpy(v) for k, v in example_inputs(m, None, (64, 32)).items()}
     counter = FlopCounterMode(display=False)
     with torch.no_grad(), counter:

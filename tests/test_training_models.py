@@ -57,8 +57,10 @@ def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
     hdepth = 1 + 5 * hr(1)
     hdepth[..., :scale, :] = float("inf")
     return {"lr/radiance": lr(3), "lr/irradiance": lr(3) * 2, "lr/depth": depth, "lr/normal": lr(3) - 0.5,
-            "lr/motion": 2 * lr(2) - 1, "lr/motion_next": 2 * lr(2) - 1, "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
-            "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3),
+            "lr/motion": 2 * lr(2) - 1, "lr/motion_next": 2 * lr(2) - 1,
+            "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
+            "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3), "hr/metallic": hr(1),
+            "hr/roughness": hr(1), "hr/specular": 0.08 * hr(1),
             "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5,
             "lr/fbeta_used": 0.05 + lr(3), "lr/fbeta": 0.05 + lr(3)}
 
@@ -99,7 +101,7 @@ def test_fusesr_remodulates_point_samples_then_applies_the_reference_filter():
     with torch.no_grad():
         a, b = plain(batch), filtered(batch)
     np.testing.assert_allclose(_np(b), pf.convolve(_np(a), pf.weights_1d("GAUSSIAN", 1.5)), rtol=1e-4, atol=1e-5)
-    nodemod = build_model(ModelConfig(name="fusesr", demodulation=False), 4)
+    nodemod = build_model(ModelConfig.of(name="fusesr", demodulation=False), 4)
     assert nodemod.remod_filter_mismatch({"render": {"hr": {"pixel_filter": "BOX", "filter_width_px": 1}}}, "c") \
         is None  # radiance models are not remodulated
     msg = plain.remod_filter_mismatch({}, "c")
@@ -134,18 +136,18 @@ def _changes_output(model, batch, key, frame_index):
 def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
     torch.manual_seed(0)
     batch = make_batch()
-    full = FuseSR(ModelConfig(name="fusesr", upsample_by_class=False, guided_upsample=False), 4).eval()
+    full = FuseSR(ModelConfig.of(name="fusesr", upsample_by_class=False, guided_upsample=False), 4).eval()
     assert full.history == 2 and full.window == 3
     assert _changes_output(full, batch, "lr/irradiance", 0)      # history frame t-2
     assert _changes_output(full, batch, "hr/albedo", -1)         # HR G-buffer branch
-    no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4).eval()
+    no_hr = FuseSR(ModelConfig.of(name="fusesr", hr_gbuffer=False), 4).eval()
     assert "hr/albedo" not in no_hr.needs() and "hr/fbeta_used" in no_hr.needs()
     assert not {"hr/depth", "hr/normal"} & set(no_hr.needs())  # no guided base without the HR G-buffers
     assert not _changes_output(no_hr, batch, "hr/albedo", -1)
-    no_demod = FuseSR(ModelConfig(name="fusesr", demodulation=False), 4).eval()
+    no_demod = FuseSR(ModelConfig.of(name="fusesr", demodulation=False), 4).eval()
     assert "lr/radiance" in no_demod.needs() and "lr/irradiance" not in no_demod.needs()
     assert not _changes_output(no_demod, batch, "lr/irradiance", -1)
-    plain = FuseSR(ModelConfig(name="fusesr", demodulation=False, hr_gbuffer=False), 4).eval()
+    plain = FuseSR(ModelConfig.of(name="fusesr", demodulation=False, hr_gbuffer=False), 4).eval()
     assert not any(k.startswith("hr/") for k in plain.needs())
     assert _changes_output(full, batch, "lr_jitter", -1)          # the current frame's jitter
     assert _changes_output(full, batch, "lr_jitter", 0)           # history alignment
@@ -162,7 +164,7 @@ def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
             + batch["hr/emission"][:, -1]  # point samples, then the ground truth's pixel filter
         np.testing.assert_allclose(_np(full(batch)), pf.convolve(_np(expect), pf.weights_1d("BLACKMAN_HARRIS", 1.5)),
                                    rtol=1e-5, atol=1e-5)
-    authors = FuseSR(ModelConfig(name="fusesr", residual=False, remod_filter="NONE"), 4).eval()
+    authors = FuseSR(ModelConfig.of(name="fusesr", residual=False, remod_filter="NONE"), 4).eval()
     with torch.no_grad():
         authors.refine.weight.zero_()
         authors.refine.bias.zero_()
@@ -248,7 +250,7 @@ def test_fusesr_hr_guide_reads_the_hr_gbuffers_at_full_resolution():
     from training.config import ConfigError
     torch.manual_seed(0)
     batch = make_batch()
-    guided = FuseSR(ModelConfig(name="fusesr", hr_guide=True, remod_filter="NONE"), 4).eval()
+    guided = FuseSR(ModelConfig.of(name="fusesr", hr_guide=True, remod_filter="NONE"), 4).eval()
     plain = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
     assert not plain.hr_guide and guided.hr_guide
     assert sum(p.numel() for p in guided.parameters()) - sum(p.numel() for p in plain.parameters()) == \
@@ -264,8 +266,8 @@ def test_fusesr_hr_guide_reads_the_hr_gbuffers_at_full_resolution():
     far = torch.ones_like(diff, dtype=torch.bool)
     far[8:13, 10:15] = False
     assert diff[far].max() == 0
-    with pytest.raises(ConfigError, match="hr_guide needs model.hr_gbuffer"):
-        ModelConfig(name="fusesr", hr_guide=True, hr_gbuffer=False).validate()
+    with pytest.raises(ConfigError, match="model.fusesr.hr_guide needs model.fusesr.hr_gbuffer"):
+        ModelConfig.of(name="fusesr", hr_guide=True, hr_gbuffer=False)
 
 
 def test_upsample_by_class_never_mixes_demodulated_and_unit_fbeta_pixels():
@@ -310,7 +312,7 @@ def test_demod_bilinear_and_fusesr_residual_upsample_by_class():
     old = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE", upsample_by_class=False), 4).eval()
     assert "lr/fbeta_used" not in old.needs() and not torch.allclose(old(batch), db(batch))
     from training.transforms import forward_transform, inverse_transform
-    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE", guided_upsample=False), 4).eval()
+    net = FuseSR(ModelConfig.of(name="fusesr", remod_filter="NONE", guided_upsample=False), 4).eval()
     with torch.no_grad():
         net.refine.weight.zero_()
         net.refine.bias.zero_()
@@ -416,19 +418,19 @@ def test_demod_jbu_and_fusesr_guided_residual():
         torch.testing.assert_close(net(batch), expect, rtol=1e-5, atol=1e-5)
     net.refine.bias.data.fill_(0.1)
     assert _changes_output(net, batch, "hr/depth", -1)  # through the guided base alone (HR branch zeroed)
-    no_guide = FuseSR(ModelConfig(name="fusesr", guided_upsample=False), 4)
+    no_guide = FuseSR(ModelConfig.of(name="fusesr", guided_upsample=False), 4)
     assert not no_guide.guided and "hr/normal" in no_guide.needs()  # still read by the HR branch
-    no_hr = FuseSR(ModelConfig(name="fusesr", hr_gbuffer=False), 4)
+    no_hr = FuseSR(ModelConfig.of(name="fusesr", hr_gbuffer=False), 4)
     assert not no_hr.guided
-    authors = FuseSR(ModelConfig(name="fusesr", residual=False), 4)  # no residual base to guide
+    authors = FuseSR(ModelConfig.of(name="fusesr", residual=False), 4)  # no residual base to guide
     assert not authors.guided and "lr/normal" in authors.needs() and "lr/fbeta_used" not in authors.needs()
 
 
 def test_guide_sigmas_are_validated():
     with pytest.raises(ConfigError, match="guide_sigma_depth"):
-        ModelConfig(guide_sigma_depth=0.0).validate()
+        ModelConfig.of(guide_sigma_depth=0.0)
     with pytest.raises(ConfigError, match="guide_sigma_normal"):
-        ModelConfig(guide_sigma_normal=float("nan")).validate()
+        ModelConfig.of(guide_sigma_normal=float("nan"))
 
 
 @pytest.mark.parametrize("hr_guide", [False, True])
@@ -437,9 +439,9 @@ def test_zero_init_refine_starts_exactly_at_the_residual_base(hr_guide):
     residual base, remodulated), and the last conv still gets a gradient."""
     batch = make_batch()
     torch.manual_seed(0)
-    net = FuseSR(ModelConfig(name="fusesr", zero_init_refine=True, hr_guide=hr_guide), 4)
+    net = FuseSR(ModelConfig.of(name="fusesr", zero_init_refine=True, hr_guide=hr_guide), 4)
     torch.manual_seed(0)
-    ref = FuseSR(ModelConfig(name="fusesr", hr_guide=hr_guide), 4)
+    ref = FuseSR(ModelConfig.of(name="fusesr", hr_guide=hr_guide), 4)
     last = ref.refine[-1] if hr_guide else ref.refine
     with torch.no_grad():
         assert last.weight.abs().sum() > 0

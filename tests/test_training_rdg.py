@@ -123,7 +123,7 @@ def test_warp_uses_the_current_frames_motion_scaled_per_level_plus_the_jitter_di
 @pytest.mark.parametrize("drop", ["normal", "brdf", "depth", "motion"])
 def test_ablation_switches_remove_a_gbuffer(drop):
     keep = [g for g in rdg_mod.GBUFFERS if g != drop]
-    model = build_model(ModelConfig(name="rdg-s", rdg_gbuffers=keep), 4).eval()
+    model = build_model(ModelConfig.of(name="rdg-s", gbuffers=keep), 4).eval()
     key = {"normal": "lr/normal", "brdf": "lr/fbeta", "depth": "lr/depth", "motion": "lr/motion"}[drop]
     assert key not in model.needs()
     batch = make_batch()
@@ -219,7 +219,7 @@ def test_truncated_backprop_equals_full_backprop_when_the_chunk_covers_the_windo
     from training.losses import Criterion
     from training.recurrent import StepWrapper, window_losses
     torch.manual_seed(0)
-    model = build_model(ModelConfig(name="rdg-s", width=8), 4)
+    model = build_model(ModelConfig.of(name="rdg-s", width=8), 4)
     batch = make_batch(frames=3)
     batch["hr/radiance"] = torch.rand(1, 3, 3, 24, 32)
     crit = Criterion(LossConfig(ssim_weight=0.0, pixel="charbonnier"))
@@ -310,12 +310,12 @@ def test_bench_models_runs_a_recurrent_checkpoint(clip, checkpoint, tmp_path):
     res = benchmark([("rdg-s (x)", str(checkpoint)), ("bicubic", "bicubic")], [str(clip)], tmp_path / "b",
                     log=lambda m: None)
     row = res["rows"][0]
-    assert row["params"] == n_params(build_model(ModelConfig(name="rdg-s", width=8), 4))
+    assert row["params"] == n_params(build_model(ModelConfig.of(name="rdg-s", width=8), 4))
     assert row["macs_per_px"] > 0 and row["tpsnr"] is not None and row["warp_error"] is not None
 
 
 def test_demodulated_rdg_remodulates_with_the_hr_fbeta():
-    cfg = ModelConfig(name="rdg-s", rdg_demod=True, remod_filter="NONE")
+    cfg = ModelConfig.of(name="rdg-s", demod=True, remod_filter="NONE")
     model = build_model(cfg, 4).eval()
     assert {"lr/irradiance", "hr/fbeta_used", "hr/emission"} <= set(model.needs())
     assert "lr/radiance" not in model.needs()

@@ -162,8 +162,10 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                  *_sets(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
+    model = ck["config"]["model"]
+    model.update(model.pop("fusesr"))  # the flat [model] table of checkpoints before per-model tables
     for key in ("jitter", "norm", "remod_filter", "remod_filter_px", "upsample_by_class", "guided_upsample"):
-        del ck["config"]["model"][key]
+        del model[key]
     del ck["config"]["data"]["reflectance_range"]
     old = tmp_path / "old.pt"
     torch.save(ck, old)

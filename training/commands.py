@@ -44,7 +44,7 @@ def register(subparsers) -> None:
         "evaluate", formatter_class=FMT, help="score a model against the HR ground truth",
         description="Evaluate a checkpoint or a non-learned model on clips: PSNR/SSIM on the declared tonemap, "
                     "PSNR on linear HDR (peak 1), HDR-FLIP, temporal PSNR, warping error, ms per frame. "
-                    "Writes JSON (docs/training.md describes every key).")
+                    "Writes JSON (docs/evaluation.md describes every key).")
     add_model_source(p)
     p.add_argument("--data", nargs="+", required=True, metavar="CLIP",
                    help="clip directories, or dataset folders (their --split)")
@@ -62,7 +62,8 @@ def register(subparsers) -> None:
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
-                   help="configuration of a non-learned --model (TOML value), e.g. model.guide_sigma_depth=0.05")
+                   help="configuration of a non-learned --model (TOML value), e.g. "
+                        "model.demod-jbu.guide_sigma_depth=0.05")
     p.set_defaults(func=cmd_evaluate)
 
     p = subparsers.add_parser(
@@ -128,6 +129,8 @@ def cmd_train(args) -> int:
                 raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
     else:
         cfg = load_config(args.config, overrides)
+        for note in cfg.notes:
+            print(f"note: {note}", file=sys.stderr)
         if data:
             cfg.data.clips = [str(c) for c in data]
             if val and not cfg.data.val_clips:

@@ -1,24 +1,26 @@
 """Typed, validated training configuration (pure Python, no torch).
 
-A configuration is read from a TOML file (sections ``[data]``, ``[model]``, ``[loss]``, ``[optim]``, ``[run]``),
-then CLI overrides are applied (``--set section.key=value``, ``--max-steps``, ...). Unknown sections or keys are
-errors that name the key, and so are values of the wrong type or outside their range. The resolved configuration
-is written to the run directory as ``config.toml`` (``to_toml``) and stored in every checkpoint (``to_dict``).
+A configuration is read from a TOML file (sections ``[data]``, ``[model]``, ``[loss]``, ``[optim]``, ``[run]``;
+``[model.<name>]`` holds model ``name``'s own options, ``training.models.options``), then CLI overrides are applied
+(``--set section.key=value``, ``--set model.NAME.key=value``, ``--max-steps``, ...). Unknown sections or keys are
+errors that name the key, and so are values of the wrong type or outside their range. Old flat model keys go
+through the legacy rule (``legacy_model_keys``). The resolved configuration is written to the run directory as
+``config.toml`` (``to_toml``) and stored in every checkpoint (``to_dict``). docs/configuration.md lists every key.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, get_args, get_origin, get_type_hints
+from typing import Any, ClassVar, get_args, get_origin, get_type_hints
 
 from gbuffer_export.config import ConfigError
 
 INPUT_TRANSFORMS = ("log1p", "none")
 LOSS_SPACES = ("log1p", "tonemap", "linear")
-NORMS = ("none", "batch")
 DEPTH_NORMS = ("ratio", "inverse")
 NONFINITE_POLICIES = ("error", "sanitize")
 SCHEDULERS = ("cosine", "constant", "step")
@@ -27,7 +29,6 @@ DEVICES = ("auto", "cpu", "cuda")
 PIXEL_LOSSES = ("l1", "charbonnier")
 TEMPORAL_LOSSES = ("warped", "difference")
 FFT_LOSSES = ("ortho", "rfft")
-RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
 
 
 @dataclass
@@ -74,30 +75,40 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    """Which network and its switches. ``scale`` is taken from the clips (all must agree)."""
+    """Which network: the keys every model shares, and the chosen model's own options (``options``, the
+    ``[model.<name>]`` table; its dataclass is ``MODELS[name].options``, ``training.models.options``)."""
 
     name: str = "fusesr"
     scale: int = 0                   # 0: from the data
     history: int = -1                # previous frames the model reads (-1: the model's default)
-    hr_gbuffer: bool = True          # FuseSR: the pixel-unshuffled HR G-buffer branch (Table 3 ablation)
-    demodulation: bool = True        # FuseSR: predict L_D and remodulate with HR F_beta (Table 3 ablation)
     input_transform: str = "log1p"   # HDR transform of radiance/irradiance inputs; outputs are inverted
     depth_norm: str = "ratio"        # 'ratio': d / (d + median_d(frame)); 'inverse': 1 / (1 + d); bg -> 1 / 0
-    width: int = 0                   # backbone channels (0: the model's default, FuseSR 128, FuseSR-L 64)
-    blocks: int = 0                  # residual blocks (0: the model's default, 6)
-    residual: bool = True            # FuseSR: add bilinear(T(L_D^LR)) before the final ReLU (not in the paper)
-    upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
-    hr_guide: bool = False           # FuseSR: the HR refinement also reads the HR G-buffers (not in the paper)
-    guided_upsample: bool = True     # FuseSR with hr_gbuffer: residual base = joint bilateral upsampling guided by
-    guide_sigma_depth: float = 0.1   #   HR depth (log depth: a relative tolerance) and camera-space normals; also
-    guide_sigma_normal: float = 0.3  #   the sigmas of demod-jbu
-    zero_init_refine: bool = False   # FuseSR: last conv starts at 0, so training starts exactly at the residual base
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
-    norm: str = "none"               # FuseSR encoder normalisation: "none" or "batch" (the authors' BatchNorm)
+    upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
     remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
     remod_filter_px: float = 1.5     # the clips' ground-truth filter (manifest render.hr), NONE: off, or explicit
-    rdg_demod: bool = False          # RDG: L_D in, remodulated with HR F_beta and emission (off: radiance, the paper)
-    rdg_gbuffers: list[str] = field(default_factory=lambda: list(RDG_GBUFFERS))  # RDG: G-buffers read (ablations)
+    options: Any = None              # the options of model ``name`` (None: its defaults)
+
+    def __post_init__(self) -> None:
+        from training.models import MODELS  # torch-free table
+        if self.options is None and self.name in MODELS:
+            self.options = MODELS[self.name].options()
+
+    @classmethod
+    def of(cls, name: str = "fusesr", **keys) -> "ModelConfig":
+        """A validated configuration of model ``name`` from shared keys and that model's options, by keyword
+        (``ModelConfig.of("fusesr", jitter=False, hr_gbuffer=False)``)."""
+        cfg = cls(name=name)
+        cfg.validate()
+        shared = [f.name for f in dataclasses.fields(cls) if f.name not in ("name", "options")]
+        own = [f.name for f in dataclasses.fields(cfg.options)]
+        for key, value in keys.items():
+            if key not in shared + own:
+                raise ConfigError(f"model {name}: no key {key!r} (known: {', '.join(shared)}; options: "
+                                  f"{', '.join(own) or 'none'})")
+            setattr(cfg if key in shared else cfg.options, key, value)
+        cfg.validate()
+        return cfg
 
     def validate(self) -> None:
         from gbuffer_export.pixel_filter import FILTERS
@@ -110,24 +121,23 @@ class ModelConfig:
             raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
         _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)
         _choice("model.depth_norm", self.depth_norm, DEPTH_NORMS)
-        _choice("model.norm", self.norm, NORMS)
         _choice("model.remod_filter", self.remod_filter, ("REFERENCE", "NONE") + FILTERS)
         if not isinstance(self.remod_filter_px, (int, float)) or not (0 < float(self.remod_filter_px) <= 4):
             raise ConfigError(f"model.remod_filter_px {self.remod_filter_px!r}: must lie in (0, 4] pixels")
         self.remod_filter_px = float(self.remod_filter_px)
-        for name in ("guide_sigma_depth", "guide_sigma_normal"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < float(v) <= 100):
-                raise ConfigError(f"model.{name} {v!r}: must lie in (0, 100]")
-            setattr(self, name, float(v))
-        if self.hr_guide and not self.hr_gbuffer:
-            raise ConfigError("model.hr_guide needs model.hr_gbuffer = true (it reads the HR G-buffers)")
-        if self.width < 0 or self.blocks < 0:
-            raise ConfigError("model.width and model.blocks must be >= 0 (0: default)")
-        for g in self.rdg_gbuffers:
-            _choice("model.rdg_gbuffers item", g, RDG_GBUFFERS)
-        if len(set(self.rdg_gbuffers)) != len(self.rdg_gbuffers):
-            raise ConfigError(f"model.rdg_gbuffers {self.rdg_gbuffers}: an item is repeated")
+        cls = MODELS[self.name].options
+        if self.options is None:
+            self.options = cls()
+        if type(self.options) is not cls:
+            raise ConfigError(f"model.{self.name}: options of type {type(self.options).__name__}, expected "
+                              f"{cls.__name__}")
+        self.options.validate(f"model.{self.name}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``[model]`` table: the shared keys, then the chosen model's options as the sub-table ``name``."""
+        d = {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "options"}
+        d[self.name] = dataclasses.asdict(self.options) if self.options is not None else {}
+        return d
 
 
 @dataclass
@@ -234,13 +244,20 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
+    #: One line each about parts of the input that were read but not used (``config_from_dict``): the tables of
+    #: other models than the chosen one, old flat keys the chosen model has no use for. Not saved.
+    notes: ClassVar[tuple[str, ...]] = ()
+
     def validate(self) -> "TrainConfig":
         for f in dataclasses.fields(self):
             getattr(self, f.name).validate()
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
-        return dataclasses.asdict(self)
+        """Nested plain types: {section: {key: value}}, the model's options as ``model.<name>`` (a dict)."""
+        d = dataclasses.asdict(self)
+        d["model"] = self.model.to_dict()
+        return d
 
     def to_toml(self) -> str:
         return dict_to_toml(self.to_dict())
@@ -301,41 +318,143 @@ def _coerce(where: str, value: Any, typ) -> Any:
     raise ConfigError(f"{where}: unsupported type {typ}")
 
 
+def _table(cls, values: dict, source: str, prefix: str, no_keys: str = "") -> Any:
+    """An instance of the dataclass ``cls`` from ``values`` (types checked); ``prefix`` names the table in messages
+    (``data``, ``model.fusesr``) and ``no_keys`` is the message's ending for a class without fields."""
+    hints = get_type_hints(cls)
+    hints = {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+    obj = cls()
+    for key, value in values.items():
+        if key not in hints:
+            raise ConfigError(f"{source}: unknown key {prefix}.{key} "
+                              f"({'known: ' + ', '.join(hints) if hints else no_keys})")
+        setattr(obj, key, _coerce(f"{source}: {prefix}.{key}", value, hints[key]))
+    return obj
+
+
+def _model_from_dict(values: dict, source: str) -> tuple[ModelConfig, list[str]]:
+    """The ``[model]`` table: shared keys, the chosen model's ``[model.<name>]`` table (old flat keys moved there by
+    ``legacy_model_keys``) and tables of other models (type-checked, then left out with a note)."""
+    from training.models import MODELS  # torch-free table
+    name = _coerce(f"{source}: model.name", values.get("name", ModelConfig.name), str)
+    if name not in MODELS:
+        raise ConfigError(f"{source}: model.name {name!r}: choose one of {', '.join(MODELS)}")
+    values, notes = legacy_model_keys(values, source)
+    shared = {f.name: f for f in dataclasses.fields(ModelConfig) if f.name != "options"}
+    hints = get_type_hints(ModelConfig)
+    cfg = ModelConfig(name=name)
+    for key, value in values.items():
+        if key in shared:
+            setattr(cfg, key, _coerce(f"{source}: model.{key}", value, hints[key]))
+        elif key in MODELS:
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: model.{key} must be a table ([model.{key}]) of model {key}'s options")
+            options = _table(MODELS[key].options, value, source, f"model.{key}",
+                             f"model {key} has no options of its own")
+            if key == name:
+                cfg.options = options
+            else:
+                options.validate(f"{source}: model.{key}")
+                notes.append(f"{source}: [model.{key}] is not used (model.name is {name!r})")
+        else:
+            raise ConfigError(f"{source}: unknown key model.{key} (known: {', '.join(k for k in shared)}, and a "
+                              f"table [model.NAME] of options for NAME one of {', '.join(MODELS)})")
+    return cfg, notes
+
+
 def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
-    """Build and validate a TrainConfig from nested dicts; unknown sections/keys raise ConfigError."""
+    """Build and validate a TrainConfig from nested dicts; unknown sections/keys raise ConfigError. Notes on what
+    was read but not used are in the result's ``notes``."""
     cfg = TrainConfig()
+    notes: list[str] = []
     for section, values in data.items():
         if section not in SECTIONS:
             raise ConfigError(f"{source}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
         if not isinstance(values, dict):
             raise ConfigError(f"{source}: [{section}] must be a table")
-        cls = _section_class(section)
-        hints = get_type_hints(cls)
-        obj = getattr(cfg, section)
-        for key, value in values.items():
-            if key not in hints:
-                raise ConfigError(f"{source}: unknown key {section}.{key} (known: {', '.join(hints)})")
-            setattr(obj, key, _coerce(f"{source}: {section}.{key}", value, hints[key]))
+        if section == "model":
+            cfg.model, notes = _model_from_dict(values, source)
+        else:
+            setattr(cfg, section, _table(_section_class(section), values, source, section))
+    cfg.notes = tuple(notes)
     return cfg.validate()
 
 
-#: Model keys added after checkpoints were first written, with the behaviour such checkpoints were trained with.
-LEGACY_MODEL_KEYS = {"jitter": False, "norm": "batch", "remod_filter": "NONE", "upsample_by_class": False,
-                     "guided_upsample": False, "zero_init_refine": False}
+#: The legacy rule's table: every ``[model]`` key of the configurations (and checkpoints) written before each model
+#: had its own table, with its name in that table and its old default. Old 0 widths/blocks meant the default.
+LEGACY_FLAT_KEYS: dict[str, tuple[str, Any]] = {
+    "hr_gbuffer": ("hr_gbuffer", True), "demodulation": ("demodulation", True), "width": ("width", 0),
+    "blocks": ("blocks", 0), "residual": ("residual", True), "hr_guide": ("hr_guide", False),
+    "guided_upsample": ("guided_upsample", True), "guide_sigma_depth": ("guide_sigma_depth", 0.1),
+    "guide_sigma_normal": ("guide_sigma_normal", 0.3), "zero_init_refine": ("zero_init_refine", False),
+    "norm": ("norm", "none"), "rdg_demod": ("demod", False),
+    "rdg_gbuffers": ("gbuffers", ["normal", "brdf", "depth", "motion"]),
+}
+
+
+def legacy_model_keys(model: dict, source: str = "config") -> tuple[dict, list[str]]:
+    """The legacy rule: a ``[model]`` table in which old flat option keys (``LEGACY_FLAT_KEYS``: ``model.hr_gbuffer``,
+    ``model.rdg_demod``, ...) are moved into the table ``[model.<name>]`` of the model in use, renamed where the
+    table names them otherwise (``rdg_demod`` -> ``demod``, ``rdg_gbuffers`` -> ``gbuffers``). A width or block
+    count of 0 (the old "model's default") is dropped. A key the model has no option for is dropped (the model never
+    read it) with a note when its value is not the old default. A key given both ways is an error. Returns the new
+    table and the notes; ``model`` is not modified."""
+    from training.models import MODELS  # torch-free table
+    name = model.get("name", ModelConfig.name)
+    if not any(k in LEGACY_FLAT_KEYS for k in model) or not isinstance(name, str) or name not in MODELS:
+        return model, []
+    out = {k: v for k, v in model.items() if k not in LEGACY_FLAT_KEYS}
+    table = out.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{source}: model.{name} must be a table ([model.{name}]) of model {name}'s options")
+    table = dict(table)
+    known = {f.name for f in dataclasses.fields(MODELS[name].options)}
+    notes = []
+    for old, value in model.items():
+        if old not in LEGACY_FLAT_KEYS:
+            continue
+        new, default = LEGACY_FLAT_KEYS[old]
+        if old in ("width", "blocks") and type(value) is int and value == 0:
+            continue
+        if new not in known:
+            if value != default:
+                notes.append(f"{source}: model.{old} is not an option of model {name} (not used)")
+            continue
+        if new in table:
+            raise ConfigError(f"{source}: model.{old} and model.{name}.{new} both given; keep model.{name}.{new}")
+        table[new] = value
+    if table or name in out:
+        out[name] = table
+    return out, notes
+
+
+#: Keys added after checkpoints were first written, with the behaviour such checkpoints were trained with: shared
+#: model keys, then options (applied to the model's table when its options have the key).
+LEGACY_MODEL_KEYS = {"jitter": False, "remod_filter": "NONE", "upsample_by_class": False}
+LEGACY_OPTION_KEYS = {"norm": "batch", "guided_upsample": False, "zero_init_refine": False}
 LEGACY_DATA_KEYS = {"reflectance_range": [1.0, 1.0]}
 
 
 def config_from_checkpoint(data: dict, source: str = "checkpoint") -> TrainConfig:
-    """``config_from_dict`` for a checkpoint's saved configuration: model keys it predates take their old behaviour
-    (``LEGACY_MODEL_KEYS``, ``LEGACY_DATA_KEYS``), so older checkpoints load and run as they were trained."""
-    model = {**LEGACY_MODEL_KEYS, **data.get("model", {})}
+    """``config_from_dict`` for a checkpoint's saved configuration. Old flat model keys go through the legacy rule
+    (``legacy_model_keys``); keys it predates take their old behaviour (``LEGACY_MODEL_KEYS``,
+    ``LEGACY_OPTION_KEYS``, ``LEGACY_DATA_KEYS``), so older checkpoints load and run as they were trained."""
+    from training.models import MODELS  # torch-free table
+    model, _ = legacy_model_keys(data.get("model", {}), source)
+    model = {**LEGACY_MODEL_KEYS, **model}
+    name = model.get("name", ModelConfig.name)
+    if isinstance(name, str) and name in MODELS and isinstance(model.get(name, {}), dict):
+        known = {f.name for f in dataclasses.fields(MODELS[name].options)}
+        missing = {k: v for k, v in LEGACY_OPTION_KEYS.items() if k in known}
+        if missing:
+            model[name] = {**missing, **model.get(name, {})}
     loader = {**LEGACY_DATA_KEYS, **data.get("data", {})}
     return config_from_dict({**data, "model": model, "data": loader}, source=source)
 
 
 def load_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
-    """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (values in TOML syntax;
-    bare words are taken as strings)."""
+    """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (``model.NAME.key=value`` for a
+    model's own option; values in TOML syntax; bare words are taken as strings)."""
     data: dict = {}
     source = "defaults"
     if path:
@@ -349,13 +468,15 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
         source = str(p)
     for item in overrides or []:
         key, sep, text = item.partition("=")
-        if not sep or "." not in key:
+        parts = [k.strip() for k in key.split(".")]
+        if not sep or len(parts) < 2 or not all(parts):
             raise ConfigError(f"--set {item!r}: expected section.key=value, e.g. data.crop=48")
-        section, _, name = key.strip().partition(".")
-        data.setdefault(section, {})
-        if not isinstance(data[section], dict):
-            raise ConfigError(f"--set {item!r}: [{section}] is not a table")
-        data[section][name] = parse_value(text.strip())
+        table = data
+        for i, part in enumerate(parts[:-1]):
+            table = table.setdefault(part, {})
+            if not isinstance(table, dict):
+                raise ConfigError(f"--set {item!r}: [{'.'.join(parts[:i + 1])}] is not a table")
+        table[parts[-1]] = parse_value(text.strip())
     return config_from_dict(data, source)
 
 
@@ -379,16 +500,29 @@ def _toml_value(v: Any) -> str:
     raise TypeError(f"cannot write {v!r} as TOML")
 
 
+def _toml_key(k: str) -> str:
+    return k if k and all(c.isascii() and (c.isalnum() or c in "-_") for c in k) else _toml_value(k)
+
+
 def dict_to_toml(d: dict[str, dict[str, Any]]) -> str:
-    """Nested {section: {key: value}} as TOML text (round-trips through tomllib)."""
+    """Nested {section: {key: value}} as TOML text (round-trips through tomllib); a dict value is a sub-table
+    ``[section.key]``."""
     lines = []
-    for section, values in d.items():
-        lines.append(f"[{section}]")
+
+    def table(name: str, values: dict) -> None:
+        lines.append(f"[{name}]")
         for k, v in values.items():
-            lines.append(f"{k} = {_toml_value(v)}")
+            if not isinstance(v, dict):
+                lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
         lines.append("")
+        for k, v in values.items():
+            if isinstance(v, dict):
+                table(f"{name}.{_toml_key(k)}", v)
+
+    for section, values in d.items():
+        table(_toml_key(section), values)
     return "\n".join(lines)
 
 
 __all__ = ["TrainConfig", "DataConfig", "ModelConfig", "LossConfig", "OptimConfig", "RunConfig", "ConfigError",
-           "load_config", "config_from_dict"]
+           "load_config", "config_from_dict", "config_from_checkpoint", "legacy_model_keys"]

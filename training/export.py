@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
 
 
@@ -67,7 +68,7 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
         level, name = k.split("/")
         hh, ww = (h, w) if level == "hr" else (h // s, w // s)
         n = t if level == "lr" else 1
-        c = {"depth": 1, "motion": 2, "motion_next": 2}.get(name, 3)
+        c = len(BUFFERS[name].channels) if name in BUFFERS else 3  # derived keys (irradiance, ...): RGB
         a = rng.random((1, n, c, hh, ww), dtype=np.float32)
         if name == "depth":
             a = 1.0 + 10.0 * a

@@ -19,8 +19,15 @@ def is_recurrent(model) -> bool:
 
 
 def frame_slice(batch: dict, i: int) -> dict:
-    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1)."""
-    return {k: v[:, i:i + 1] for k, v in batch.items()}
+    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1). Keys with
+    fewer frames (HR keys of an inference batch) end at the same current frame: their frame i - (T - T_key),
+    clamped to their first."""
+    t = window_length(batch)
+    out = {}
+    for k, v in batch.items():
+        j = max(i - (t - v.shape[1]), 0)
+        out[k] = v[:, j:j + 1]
+    return out
 
 
 def detach_state(state):

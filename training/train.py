@@ -195,9 +195,12 @@ def open_caches(clips, data_cfg, keys, dist: Dist | None = None) -> list[ClipCac
 
 # ------------------------------------------------------------------------------------------------- train
 def _comparable(cfg: TrainConfig) -> dict:
+    """``cfg.to_dict()`` with resolved clip paths, without model.scale, the model's options as dotted keys."""
     d = cfg.to_dict()
     d["data"]["clips"] = [str(Path(c).resolve()) for c in d["data"]["clips"]]
     d["model"].pop("scale")
+    options = d["model"].pop(cfg.model.name)
+    d["model"].update({f"{cfg.model.name}.{k}": v for k, v in options.items()})
     return d
 
 
@@ -301,7 +304,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     recurrent = is_recurrent(model)
     window = (cfg.data.window or DEFAULT_WINDOW) if recurrent else 0
     if not recurrent and (cfg.data.window or cfg.data.detach_every):
-        raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s), not "
+        raise ConfigError(f"data.window / data.detach_every apply to recurrent models (rdg, rdg-s, nsrr-fec), not "
                           f"{cfg.model.name!r}")
     spec = BatchSpec.for_model(model, temporal=temporal and (not recurrent or cfg.loss.temporal == "warped"),
                                window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,
@@ -349,8 +352,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
             net = model
         elif dist.main:
-            warnings.warn("model.norm = 'batch' under DDP on CPU: BatchNorm statistics are per rank (torch's "
-                          "SyncBatchNorm needs a GPU)", RuntimeWarning)
+            warnings.warn(f"model.{cfg.model.name}.norm = 'batch' under DDP on CPU: BatchNorm statistics are per "
+                          "rank (torch's SyncBatchNorm needs a GPU)", RuntimeWarning)
     if dist.enabled and not recurrent:
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)

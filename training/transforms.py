@@ -2,7 +2,7 @@
 
 - HDR input transform: ``log1p`` (sign-preserving log(1 + |x|)) or ``none``; models feed transformed radiance /
   irradiance to their convolutions and invert the transform on their output.
-- The evaluation tonemap (one operator for every model, see docs/training.md): Reinhard's global operator
+- The evaluation tonemap (one operator for every model, see docs/evaluation.md): Reinhard's global operator
   x / (1 + x) per channel on linear radiance (negative values clamped to 0), then the sRGB OETF (IEC 61966-2-1).
   Output in [0, 1], float.
 - Depth normalisation: 'ratio' d / (d + ref) with ref the median finite depth of the current frame (LR level,
@@ -35,13 +35,16 @@ def inverse_transform(y: torch.Tensor, kind: str) -> torch.Tensor:
 
 
 def srgb_oetf(x: torch.Tensor) -> torch.Tensor:
-    """sRGB OETF (IEC 61966-2-1) on linear values in [0, 1]."""
+    """sRGB encoding (IEC 61966-2-1) of linear values, clipped to [0, 1]. Written in torch so that it
+    differentiates (finite gradient at 0) and runs on the GPU; tests compare it with colour-science's
+    (``gbuffer_export.colour_spaces.srgb_encode``)."""
     x = x.clamp(0.0, 1.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308).pow(1.0 / 2.4) - 0.055)
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
-    """The evaluation tonemap: sRGB_OETF(Reinhard(max(x, 0))), Reinhard(v) = v / (1 + v); values in [0, 1]."""
+    """The evaluation tonemap: sRGB_OETF(Reinhard(max(x, 0))), Reinhard(v) = v / (1 + v); values in [0, 1].
+    Its numpy reference is ``gbuffer_export.preview.tonemap``."""
     x = torch.nan_to_num(x.float(), nan=0.0, posinf=1e30).clamp(min=0.0)
     return srgb_oetf(x / (1.0 + x))
 

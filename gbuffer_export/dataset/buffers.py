@@ -28,6 +28,8 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
     "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
     "nsrd": _DEMOD + ("depth", "normal", "motion", "motion_next"),
+    "nsrr": ("radiance", "depth", "motion"),
+    "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
 }
 
 #: batch key (without level) -> the clip buffers it is made from.

@@ -4,11 +4,17 @@ imports no torch, so the CLI and the config validation can list models cheaply.
 Contract (see ``base.SRModel``): ``model(batch) -> SR`` where ``batch`` maps keys such as ``'lr/irradiance'`` to
 tensors (B, T, C, H, W) (the last frame is the current one; LR keys hold ``model.history + 1`` frames or more,
 HR keys at least the current frame) plus ``'depth_ref'`` (B, T). SR is (B, 3, H_hr, W_hr) linear radiance.
+
+Options: a row's ``options`` is the dataclass of the model's own ``[model.<name>]`` table
+(``training.models.options``; ``NoOptions``, the default, for a model without any), built as ``cfg.options``.
 """
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
+
+from training.models.options import (DemodJBUOptions, FuseSRFastOptions, FuseSRLightOptions, FuseSROptions,
+                                     NoOptions, RDGOptions, RDGSmallOptions)
 
 
 @dataclass(frozen=True)
@@ -17,6 +23,7 @@ class ModelInfo:
     cls: str
     learned: bool
     description: str
+    options: type = NoOptions  # the dataclass of its [model.<name>] table (training.models.options)
 
 
 #: Keys a batch may lack; models then use zeros (e.g. a clip rendered without emission).
@@ -33,23 +40,31 @@ MODELS: dict[str, ModelInfo] = {
                                 "and HR emission (no training)"),
     "demod-jbu": ModelInfo("training.models.demod_jbu", "DemodJBU", False,
                            "joint bilateral upsampling of LR demodulated irradiance guided by HR depth and normals, "
-                           "remodulated with HR F_beta and HR emission (no training)"),
+                           "remodulated with HR F_beta and HR emission (no training)", DemodJBUOptions),
     "fusesr": ModelInfo("training.models.fusesr", "FuseSR", True,
                         "FuseSR H-Net (Zhong et al. 2023): LR encoder + 2 warped history frames, pixel-unshuffled "
-                        "HR G-buffers, LR fusion backbone, pixel shuffle, HR F_beta remodulation"),
+                        "HR G-buffers, LR fusion backbone, pixel shuffle, HR F_beta remodulation", FuseSROptions),
     "fusesr-l": ModelInfo("training.models.fusesr_l", "FuseSRLight", True,
-                          "FuseSR-l: no history, half-width fusion network of depthwise-separable convolutions"),
+                          "FuseSR-l: no history, half-width fusion network of depthwise-separable convolutions",
+                          FuseSRLightOptions),
     "rdg": ModelInfo("training.models.rdg", "RDG", True,
                      "RDG (Zhou et al. 2025): recurrent asymmetric U-Net, width 36, LR image with decoupled LR "
-                     "G-buffer guidance (normal, BRDF, depth, motion); state = the 3 decoder levels"),
-    "rdg-s": ModelInfo("training.models.rdg", "RDGSmall", True, "RDG-s: RDG at width 16"),
+                     "G-buffer guidance (normal, BRDF, depth, motion); state = the 3 decoder levels", RDGOptions),
+    "rdg-s": ModelInfo("training.models.rdg", "RDGSmall", True, "RDG-s: RDG at width 16", RDGSmallOptions),
     "nsrd": ModelInfo("training.models.nsrd", "NSRD", True,
-                      "NSRD (Li et al. 2024): LR demodulated irradiance, 2 warped previous frames with dual-motion-vector "
-                      "disocclusion masks, warped previous HR output, ConvLSTM (64) and an RCAB U-Net; HR F_beta "
+                      "NSRD (Li et al. 2024): LR demodulated irradiance, 2 warped previous frames with dual-motion-"
+                      "vector disocclusion masks, warped previous HR output, ConvLSTM (64) and an RCAB U-Net; HR F_beta "
                       "remodulation"),
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
-                             "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)"),
+                             "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)",
+                             FuseSRFastOptions),
+    "nsrr": ModelInfo("training.models.nsrr_fec", "NSRR", True,
+                      "NSRR (Xiao et al. 2020): LR RGB-D features zero-upsampled at the jittered sample positions, "
+                      "4 history frames warped at HR and reweighted, HR U-Net (535 K params)"),
+    "nsrr-fec": ModelInfo("training.models.nsrr_fec", "NSRRFEC", True,
+                          "NSRR with feature enhancement and caching (Zhong et al. 2023): Y'CbCr features cached "
+                          "as the recurrent state (4 HR maps, each warped once per frame), HR G-buffer features"),
 }
 
 

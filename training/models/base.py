@@ -35,8 +35,8 @@ class SRModel(nn.Module):
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
         self.by_class = bool(getattr(cfg, "upsample_by_class", False))
-        self.guided = False  # subclasses that may read the HR geometry set it from ``model.guided_upsample``
-        self.guide_sigmas = (float(cfg.guide_sigma_depth), float(cfg.guide_sigma_normal))  # defaults: ModelConfig
+        self.guided = False  # subclasses that may read the HR geometry set it and ``guide_sigmas`` from their options
+        self.guide_sigmas: tuple[float, float] | None = None  # (depth, normal) tolerances of the guided upsampling
         w1 = remod_weights(cfg)
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)
@@ -81,8 +81,9 @@ class SRModel(nn.Module):
                        demodulated: bool = True) -> torch.Tensor:
         """Upsampling of an LR input image (B, C, h, w) to HR, the base the models start from: bilinear, by class
         (``upsample_by_class``) for a ``demodulated`` L_D with ``model.upsample_by_class``, and with ``self.guided``
-        (``model.guided_upsample`` in models that read the HR G-buffers) joint bilateral upsampling guided by HR
-        depth and normals (``guided.upsample_guided``) over that. Reads ``upsample_keys(demodulated)``."""
+        (the option ``guided_upsample`` of models that read the HR G-buffers) joint bilateral upsampling guided by
+        HR depth and normals (``guided.upsample_guided``, tolerances ``guide_sigmas``) over that. Reads
+        ``upsample_keys(demodulated)``."""
         if self.fast_ops:
             from training.models import fast_ops
             by_class, bilinear, guided = fast_ops.upsample_by_class, fast_ops.upsample_bilinear, \

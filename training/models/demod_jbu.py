@@ -2,8 +2,8 @@
 
 SR = K * (JBU(L_D^LR) F_used^HR + E^HR): ``demod-bilinear`` with the bilinear step replaced by joint bilateral
 upsampling guided by HR depth and normals (``guided.upsample_guided``; Kopf et al. 2007): an HR pixel interpolates
-only the LR samples of its class that lie on a similar surface (``model.guide_sigma_depth``, relative depth, and
-``model.guide_sigma_normal``), falling back to the class-aware bilinear value where none does. It uses every HR
+only the LR samples of its class that lie on a similar surface (``model.demod-jbu.guide_sigma_depth``, relative
+depth, and ``guide_sigma_normal``), falling back to the class-aware bilinear value where none does. It uses every HR
 G-buffer a G-buffer network gets except albedo, with no training: a network with HR G-buffers that cannot beat it
 has not learned to use them.
 """
@@ -18,3 +18,4 @@ class DemodJBU(DemodBilinear):
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         self.guided = True
+        self.guide_sigmas = (cfg.options.guide_sigma_depth, cfg.options.guide_sigma_normal)

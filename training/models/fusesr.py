@@ -4,7 +4,7 @@ the authors' public code.
 Per LR frame the encoder reads 7 channels [T(L_D) 3, depth 1, normal 3] (T = the HDR input transform, L_D the
 demodulated irradiance; with ``demodulation = false`` T(radiance) instead). Encoder: 3x3 conv 7->64 + ReLU (the
 shallow feature F_s, skip-connected to the head), then 64-64-32-24-24-32-32 3x3 convs with ReLU (F_f; BatchNorm too
-with ``model.norm = "batch"``, the authors' choice: measured to hurt on unseen scenes, docs/training.md).
+with the option ``norm = "batch"``, the authors' choice; off by default, docs/training.md, "FuseSR").
 History: F_f of the ``history`` previous frames is warped to the current frame with the LR motion vectors
 (accumulated over frames), zeroed where the sample leaves the image and gated by a small attention net on
 [motion / 16, warped history depth, current depth] (sigmoid). The current F_f is expanded to 64 channels.
@@ -15,27 +15,28 @@ HR branch: [F_beta_used 3, depth 1, normal 3, albedo 3] = 10 HR channels, pixel-
 (``model.remod_filter``, default Blackman-Harris 1.5 px as BlendSR renders it; not in the paper, whose G-buffers and
 ground truth are both rasterised), or T^-1(.) without demodulation.
 
-Option (``model.hr_guide``, default off; not in the paper): the HR refinement reads the 10 HR G-buffer channels
+Options are the ``[model.fusesr]`` table (``training.models.options.FuseSROptions``; ``[model.fusesr-l]`` for
+``fusesr-l``). Option (``hr_guide``, default off; not in the paper): the HR refinement reads the 10 HR G-buffer channels
 beside the pixel-shuffled prediction (3x3 conv 13 -> 16 + ReLU, 3x3 conv 16 -> 3) instead of the 3x3 conv 3 -> 3,
-a direct full-resolution path for the HR geometry (docs/training.md, "Session 4", has the measurement).
+a direct full-resolution path for the HR geometry (docs/results.md, "FuseSR Table 3 on the clean clips").
 
-Deviation (``model.residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
+Deviation (``residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
 before the final ReLU, so the network learns a correction of the demod-bilinear baseline. Without it (the authors'
 head, ``residual = false``) the final 3-channel ReLU went dead on about a third of the output pixels in our runs and
-training stalled far below the non-learned baseline (docs/training.md has the numbers).
+training stalled far below the non-learned baseline (docs/training.md, "FuseSR").
 
 LR jitter (``model.jitter``, default on; not in the paper, whose data has none): the current frame's jitter enters
 the fusion network as 2 constant channels, the residual upsampling samples at the jittered LR positions and history
 warping adds the jitter difference to the motion (``base.history_offsets``).
 
-Guided base (``model.guided_upsample``, default on; not in the paper): with the HR branch on, the residual base is
+Guided base (``guided_upsample``, default on; not in the paper): with the HR branch on, the residual base is
 the joint bilateral upsampling of T(L_D^LR) guided by HR depth and normals (``guided.upsample_guided``, the
 ``demod-jbu`` baseline's upsampling) instead of the bilinear one, so the network corrects a base that already
-respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (docs/training.md, "Session 5").
+respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (measured: docs/results.md).
 
-Option (``model.zero_init_refine``, default off; not in the paper): the last 3x3 conv starts at zero, so a fresh
+Option (``zero_init_refine``, default off; not in the paper): the last 3x3 conv starts at zero, so a fresh
 network outputs exactly its residual base (the guided or bilinear upsampling) and training moves away from it only
-where the loss says so (docs/training.md, "Session 5", has the measurement).
+where the loss says so (docs/results.md, "FuseSR Table 3 on the clean clips", has the measurement).
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
@@ -86,24 +87,24 @@ class HistoryGate(nn.Module):
 class FuseSR(SRModel):
     learned = True
     default_history = 2
-    default_width = 128
     hr_channels = 64
     separable = False
 
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         self.history = self.default_history if cfg.history < 0 else cfg.history
-        self.demod = bool(cfg.demodulation)
-        self.use_hr = bool(cfg.hr_gbuffer)
+        opt = cfg.options  # training.models.options.FuseSROptions (FuseSRLightOptions)
+        self.demod = bool(opt.demodulation)
+        self.use_hr = bool(opt.hr_gbuffer)
         self.transform = cfg.input_transform
         self.depth_norm = cfg.depth_norm
-        self.residual = bool(cfg.residual)
+        self.residual = bool(opt.residual)
         # the guided upsampling is the residual base: it needs the HR G-buffers and the residual head
-        self.guided = bool(getattr(cfg, "guided_upsample", False)) and self.use_hr and self.residual
-        width = cfg.width or self.default_width
-        blocks = cfg.blocks or 6
+        self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
+        self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+        width, blocks = opt.width, opt.blocks
         s = self.scale
-        self.encoder = Encoder(7, getattr(cfg, "norm", "none"))
+        self.encoder = Encoder(7, opt.norm)
         self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], 64), nn.ReLU(inplace=True))
         self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
         cin = 64 + ENCODER_CHANNELS[-1] * self.history + (2 if self.use_jitter else 0)
@@ -114,11 +115,11 @@ class FuseSR(SRModel):
         self.fuse_in = nn.Sequential(make(cin, width), nn.ReLU(inplace=True))
         self.blocks = nn.Sequential(*[ResBlock(width, self.separable) for _ in range(blocks)])
         self.head = conv(width + ENCODER_CHANNELS[0], 3 * s * s)
-        self.hr_guide = bool(getattr(cfg, "hr_guide", False)) and self.use_hr
+        self.hr_guide = bool(opt.hr_guide) and self.use_hr
         # HR guidance (deviation, off by default): the refinement sees the 10 HR G-buffer channels at full resolution
         self.refine = nn.Sequential(conv(3 + 10, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
             else conv(3, 3)
-        if getattr(cfg, "zero_init_refine", False) and self.residual:  # start at the residual base (module doc)
+        if opt.zero_init_refine and self.residual:  # start at the residual base (module doc)
             last = self.refine[-1] if self.hr_guide else self.refine
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)

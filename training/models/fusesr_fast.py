@@ -3,7 +3,7 @@
 LR current frame only (no history). Layer by layer at scale s (LR resolution unless stated):
 
     encoder   7 -> 32 (3x3, ReLU) = F_s, then four depthwise-separable 3x3 convolutions 32 -> 16 -> 12 -> 12 -> 16,
-              each followed by ReLU (and BatchNorm with ``model.norm = "batch"``, as the authors)
+              each followed by ReLU (and BatchNorm with the option ``norm = "batch"``, as the authors)
     expand    16 -> 32 (3x3, ReLU)
     fuse_in   [expand, pixel-unshuffled HR F_beta (3 s^2 channels), jitter maps (2)] -> 32 (3x3, ReLU)
     blocks    6 inverted residual blocks of 32 channels, expansion 1: x + pw1x1(ReLU6(dw3x3(x))) (BatchNorm after
@@ -13,14 +13,15 @@ LR current frame only (no history). Layer by layer at scale s (LR resolution unl
 
 Unlike ``fusesr`` there is no HR G-buffer branch: the HR F_beta enters the fusion convolution unshuffled, as in the
 authors' code. The frame around the network is ``fusesr``'s: log1p input transform, ratio-normalised depth, the
-jitter maps, the residual base (``model.residual``; with ``model.guided_upsample`` the joint bilateral upsampling
+jitter maps, the residual base (``residual``; with ``guided_upsample`` the joint bilateral upsampling
 guided by HR depth and normals, which then become inputs), the final ReLU and the remodulation through the ground
-truth's pixel filter. ``model.guided_upsample = false`` reads exactly the authors' inputs (LR irradiance, depth,
+truth's pixel filter. ``guided_upsample = false`` reads exactly the authors' inputs (LR irradiance, depth,
 normal and HR F_beta) plus the jitter.
 
 Size at 4x with the defaults (``norm = "none"``): 68 188 parameters (68 108 with BatchNorm and without the two
 jitter channels, the authors' count); about 4.3 K multiply-accumulates per HR pixel (66 872 per LR pixel / 16 plus
-the 81 of the HR refinement). ``model.width`` and ``model.blocks`` change the backbone (defaults 32 and 6).
+the 81 of the HR refinement). Options: the ``[model.fusesr-fast]`` table (``training.models.options.FuseSRFastOptions``;
+``width`` and ``blocks`` change the backbone, defaults 32 and 6).
 """
 from __future__ import annotations
 
@@ -84,23 +85,21 @@ class InvertedResidual(nn.Module):
 
 class FuseSRFast(SRModel):
     learned = True
-    default_width = 32
-    default_blocks = 6
 
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         if cfg.history > 0:
             raise ValueError(f"model.history {cfg.history}: fusesr-fast reads no history (set -1 or 0)")
         self.history = 0
-        self.demod = bool(cfg.demodulation)
-        self.use_hr = bool(cfg.hr_gbuffer)
+        opt = cfg.options  # training.models.options.FuseSRFastOptions
+        self.demod = bool(opt.demodulation)
+        self.use_hr = bool(opt.hr_gbuffer)
         self.transform = cfg.input_transform
         self.depth_norm = cfg.depth_norm
-        self.residual = bool(cfg.residual)
-        self.guided = bool(getattr(cfg, "guided_upsample", False)) and self.use_hr and self.residual
-        norm = getattr(cfg, "norm", "none")
-        width = cfg.width or self.default_width
-        blocks = cfg.blocks or self.default_blocks
+        self.residual = bool(opt.residual)
+        self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
+        self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+        norm, width, blocks = opt.norm, opt.width, opt.blocks
         s = self.scale
         self.encoder = FastEncoder(7, norm)
         self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], width), nn.ReLU(inplace=True))
@@ -109,7 +108,7 @@ class FuseSRFast(SRModel):
         self.blocks = nn.Sequential(*[InvertedResidual(width, norm) for _ in range(blocks)])
         self.head = conv(width + PRIMARY, 3 * s * s)
         self.refine = conv(3, 3)
-        if getattr(cfg, "zero_init_refine", False) and self.residual:
+        if opt.zero_init_refine and self.residual:
             nn.init.zeros_(self.refine.weight)
             nn.init.zeros_(self.refine.bias)
 

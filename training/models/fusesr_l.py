@@ -8,7 +8,6 @@ from training.models.fusesr import FuseSR
 
 class FuseSRLight(FuseSR):
     learned = True
-    default_history = 0
-    default_width = 64
+    default_history = 0  # width 64: training.models.options.FuseSRLightOptions
     hr_channels = 32
     separable = True

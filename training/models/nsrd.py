@@ -222,11 +222,10 @@ class NSRD(SRModel):
         return out, new_state
 
     def forward(self, batch):
-        """Every LR frame of the batch in order from a reset state; the SR of the last one. Keys with fewer frames
-        (HR keys may hold the current frame only) are aligned at the end."""
-        t = batch["lr/irradiance"].shape[1]
+        """Every LR frame of the batch in order from a reset state; the SR of the last one (HR keys may hold the
+        current frame only: ``frame_slice`` aligns them at the end)."""
+        from training.recurrent import frame_slice
         state, sr = None, None
-        for i in range(t):
-            sub = {k: v[:, max(i - t + v.shape[1], 0):][:, :1] for k, v in batch.items()}
-            sr, state = self.step(sub, state)
+        for i in range(batch["lr/irradiance"].shape[1]):
+            sr, state = self.step(frame_slice(batch, i), state)
         return sr

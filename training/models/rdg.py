@@ -4,7 +4,8 @@ CVPR 2025), written from the paper and the layer sizes of the authors' public co
 Inputs, all LR and all of the current frame: the image T(radiance) (T = ``model.input_transform``, log1p by
 default, inverted at the output), the G-buffers normal, pre-integrated BRDF (``lr/fbeta``), depth (normalised by
 ``model.depth_norm``: d / (d + median depth of the frame), background 1) and motion; the state is the three
-decoder outputs of the previous frame. Width C = 36 (``rdg``) or 16 (``rdg-s``), ``model.width`` overrides it.
+decoder outputs of the previous frame. Width C = 36 (``rdg``) or 16 (``rdg-s``), the option ``width`` (the
+``[model.rdg]`` / ``[model.rdg-s]`` table, ``training.models.options.RDGOptions``).
 
 - Shallow 3x3 conv 3 (+2 jitter channels, below) -> C.
 - Encoder: EncodeLayer(C) [DFM + CCM, both residual], 3x3 stride-2 conv C -> 2C, EncodeLayer(2C), 3x3 stride-2 conv
@@ -39,10 +40,10 @@ Deviations from the authors' code (docs/training.md, "RDG"):
 - LR jitter (``model.jitter``, default on): the current frame's jitter enters the shallow conv as 2 constant
   channels (18 C extra parameters: 648 for RDG, 288 for RDG-s) and the jitter difference j_t - j_(t-1) is added
   to the motion of the warp, as ``base.history_offsets`` does;
-- the image enters as T(radiance), not 8-bit PNG values; with ``model.rdg_demod`` it is T(L_D), the demodulated
+- the image enters as T(radiance), not 8-bit PNG values; with the option ``demod`` it is T(L_D), the demodulated
   irradiance, and the output is remodulated with HR F_beta and emission (``SRModel.remodulate``), which makes the
   network read those two HR buffers;
-- ``model.rdg_gbuffers`` (default all of normal, brdf, depth, motion) lists the G-buffers read; a removed one is
+- the option ``gbuffers`` (default all of normal, brdf, depth, motion) lists the G-buffers read; a removed one is
   fed as zeros (the layers stay, as in the paper's ablations, whose parameter counts do not change).
 
 Recurrent interface (``training.recurrent``): ``step(batch, state, reset=None) -> (SR, state)`` on the last frame of
@@ -55,9 +56,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models.base import SRModel, backward_warp, current, depth_features
+from training.models.options import RDG_GBUFFERS as GBUFFERS  # the G-buffers RDG can read
 from training.transforms import forward_transform, inverse_transform
 
-GBUFFERS = ("normal", "brdf", "depth", "motion")
 HEADS = 4
 LEVELS = 3  # decoder levels = hidden states: 1/4, 1/2, 1 of the (padded) LR size
 PAD = 4
@@ -226,16 +227,16 @@ def resize(x: torch.Tensor, size) -> torch.Tensor:
 class RDG(SRModel):
     learned = True
     recurrent = True
-    default_width = 36
 
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         self.history = 0
         self.transform = cfg.input_transform
         self.depth_norm = cfg.depth_norm
-        self.demod = bool(getattr(cfg, "rdg_demod", False))
-        self.gbuffers = tuple(getattr(cfg, "rdg_gbuffers", GBUFFERS))
-        c = cfg.width or self.default_width
+        opt = cfg.options  # training.models.options.RDGOptions (RDGSmallOptions)
+        self.demod = bool(opt.demod)
+        self.gbuffers = tuple(opt.gbuffers)
+        c = opt.width
         self.dim = c
         self.first = nn.Conv2d(3 + (2 if self.use_jitter else 0), c, 3, padding=1)
         self.encoders = nn.ModuleList([EncodeLayer(c), EncodeLayer(2 * c)])
@@ -336,4 +337,4 @@ class RDG(SRModel):
 
 
 class RDGSmall(RDG):
-    default_width = 16
+    """RDG at width 16 (``RDGSmallOptions``)."""

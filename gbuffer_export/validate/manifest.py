@@ -1,0 +1,179 @@
+"""Checks of the clip as a whole: the manifest (JSON, schema, version, header keys, level sizes, buffer names)
+and its frames (every planned frame finished, ``frames/`` records merged, no files of unfinished frames, no
+leftover temporary files)."""
+from __future__ import annotations
+
+import json
+import re
+
+from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, load_manifest
+from ..conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION
+from .report import WARNING, Collector, as_int, json_safe
+
+_HEADER_KEYS = ("scale", "levels", "frames", "buffers", "blender_version", "blendsr_version", "scene", "render",
+                "frame_data")
+_TEMP_RE = re.compile(r"^\..+\.tmp\d+")
+
+
+def check_manifest(c: Collector) -> dict | None:
+    """The manifest as a dict, or None when it is missing, unreadable or refused by the clip reader."""
+    mpath = c.root / MANIFEST
+    if not mpath.is_file():
+        c.add("manifest-missing", f"{mpath}: no manifest (not a BlendSR clip, or no frame finished yet)")
+        return None
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        c.add("manifest-invalid", f"{mpath}: not valid JSON ({exc})")
+        return None
+    if not isinstance(manifest, dict) or manifest.get("schema") != SCHEMA:
+        c.add("manifest-invalid", f"{mpath}: not a BlendSR clip manifest (schema is not {SCHEMA!r})")
+        return None
+    version = manifest.get("schema_version")
+    if as_int(version) is None:
+        c.add("manifest-invalid", f"{mpath}: schema_version {version!r} is not an integer")
+        return None
+    if version > SCHEMA_VERSION:
+        c.add("schema-newer", f"{mpath}: schema_version {version} is newer than this blendsr reads "
+                                 f"({SCHEMA_VERSION}); upgrade blendsr", version=version)
+        return None
+    missing = [k for k in _HEADER_KEYS if k not in manifest]
+    if missing:
+        c.add("manifest-incomplete", f"{mpath}: manifest lacks {', '.join(repr(k) for k in missing)}",
+                 missing=missing)
+    try:  # the reader's own contract: anything it refuses is a finding too
+        load_manifest(c.root)
+    except ClipError as exc:
+        if not missing:
+            c.add("manifest-invalid", str(exc).splitlines()[0])
+        return None
+    return manifest
+
+
+def check_header(c: Collector, m: dict) -> dict | None:
+    """Parse scale, level sizes, buffers and planned frames; None when file checks cannot proceed."""
+    mpath = c.root / MANIFEST
+    fatal = False
+    scale = as_int(m.get("scale"))
+    if scale is None or scale < 1:
+        c.add("manifest-invalid", f"{mpath}: scale {m.get('scale')!r} is not a positive integer")
+        fatal = True
+    sizes: dict[str, tuple[int, int]] = {}
+    levels = m.get("levels")
+    if not isinstance(levels, dict):
+        c.add("manifest-invalid", f"{mpath}: levels is not an object")
+        fatal = True
+        levels = {}
+    for lvl in LEVELS:
+        v = levels.get(lvl)
+        if not isinstance(v, dict) or "width" not in v or "height" not in v:
+            c.add("manifest-incomplete", f"{mpath}: levels lacks {lvl!r} with width and height", key=lvl)
+            fatal = True
+            continue
+        w, h = as_int(v["width"]), as_int(v["height"])
+        if w is None or h is None or w < 1 or h < 1:
+            c.add("manifest-invalid", f"{mpath}: level {lvl} size {v['width']!r}x{v['height']!r} "
+                                         "is not positive integers", key=lvl)
+            fatal = True
+            continue
+        sizes[lvl] = (w, h)
+    if not fatal and (sizes["hr"][0] != sizes["lr"][0] * scale or sizes["hr"][1] != sizes["lr"][1] * scale):
+        c.add("manifest-inconsistent",
+                 f"{mpath}: hr size {sizes['hr'][0]}x{sizes['hr'][1]} != lr size "
+                 f"{sizes['lr'][0]}x{sizes['lr'][1]} x scale {scale}")
+    raw_buffers = m.get("buffers")
+    buffers: list[str] = []
+    if not isinstance(raw_buffers, list):
+        c.add("manifest-invalid", f"{mpath}: buffers is not a list")
+        fatal = True
+    else:
+        unknown = [b for b in raw_buffers if b not in BUFFERS]
+        if unknown:
+            c.add("manifest-inconsistent", f"{mpath}: unknown buffer(s) {unknown}; known: {', '.join(BUFFERS)}")
+        buffers = [b for b in raw_buffers if b in BUFFERS]
+        if "radiance" not in buffers:
+            c.add("manifest-inconsistent", f"{mpath}: buffers lack 'radiance'")
+    planned = m.get("frames")
+    if not isinstance(planned, list) or any(as_int(f) is None for f in planned):
+        c.add("manifest-invalid", f"{mpath}: frames is not a list of integers")
+        planned = []
+    planned = [as_int(f) for f in planned]
+    fd = m.get("frame_data")
+    if not isinstance(fd, dict) or any(not str(k).lstrip("-").isdigit() or not isinstance(v, dict)
+                                       for k, v in fd.items()):
+        c.add("manifest-invalid", f"{mpath}: frame_data is not an object of frame number -> record")
+        fatal = True
+    if fatal:
+        return None
+    return {"scale": scale, "sizes": sizes, "buffers": buffers, "planned": planned,
+            "frame_data": {int(k): v for k, v in fd.items()}}
+
+
+def check_frames(c: Collector, h: dict) -> list[int]:
+    """Completeness of the clip as a whole; returns the finished frames (ascending)."""
+    fd = h["frame_data"]
+    finished = sorted(fd)
+    planned = h["planned"]
+    c.stats["frames_planned"] = len(planned)
+    c.stats["frames_finished"] = len(finished)
+    if not finished:
+        c.add("no-frames", f"{c.root}: no finished frame ({len(planned)} planned)")
+    missing = [f for f in planned if f not in fd]
+    for f in missing:
+        c.add("missing-frame", f"planned frame {f} has no record (not rendered yet, or the clip is "
+                                  "half-written)", frame=f)
+    pset = set(planned)
+    for f in finished:
+        if f not in pset:
+            c.add("unplanned-frame", f"finished frame {f} is not among the {len(planned)} planned frames",
+                     frame=f, severity=WARNING)
+    # frames/ records against the manifest
+    rdir = c.root / FRAMES_DIR
+    on_disk: set[int] = set()
+    if rdir.is_dir():
+        for rp in sorted(rdir.iterdir()):
+            if _TEMP_RE.match(rp.name):
+                c.add("leftover-temp", f"{rp}: temporary file of an interrupted write", severity=WARNING)
+                continue
+            if rp.suffix != ".json" or not rp.stem.lstrip("-").isdigit():
+                continue
+            f = int(rp.stem)
+            try:
+                rec = json.loads(rp.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                c.add("incomplete-frame", f"{rp}: torn record (not valid JSON)", frame=f)
+                continue
+            on_disk.add(f)
+            if f not in fd:
+                c.add("manifest-stale", f"{rp}: frame {f} is recorded in {FRAMES_DIR}/ but not in the "
+                                           "manifest (manifest not merged)", frame=f)
+            elif json_safe(rec) != json_safe(fd[f]):
+                c.add("manifest-stale", f"{rp}: record differs from the manifest's record of frame {f}",
+                         frame=f)
+    for f in finished:
+        if f not in on_disk:
+            c.add("missing-record", f"{rdir / (frame_name(f) + '.json')}: missing; the manifest lists "
+                                       f"frame {f} but a later merge would drop it", frame=f)
+    # buffer files of frames that are not finished; temporary files
+    orphans: dict[int, list[str]] = {}
+    for lvl in LEVELS:
+        ldir = c.root / lvl
+        if not ldir.is_dir():
+            continue
+        for bdir in sorted(p for p in ldir.iterdir() if p.is_dir()):
+            for fp in bdir.iterdir():
+                if _TEMP_RE.match(fp.name):
+                    c.add("leftover-temp", f"{fp}: temporary file of an interrupted write", severity=WARNING,
+                             key=f"{lvl}/{bdir.name}")
+                    continue
+                if fp.suffix != ".exr" or not fp.stem.lstrip("-").isdigit():
+                    continue
+                f = int(fp.stem)
+                if f not in fd:
+                    orphans.setdefault(f, []).append(f"{lvl}/{bdir.name}")
+    for f in sorted(orphans):
+        keys = orphans[f]
+        c.add("incomplete-frame", f"{len(keys)} buffer file(s) of frame {f} exist ({', '.join(keys[:4])}"
+                                     f"{', ...' if len(keys) > 4 else ''}) but the frame is not finished",
+                 frame=f, files=len(keys))
+    return finished

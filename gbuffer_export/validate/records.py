@@ -1,0 +1,99 @@
+"""Checks of the frame records: cameras (4x4 rigid), intrinsics (positive focal), jitter in [-0.5, 0.5] px, spp,
+seed, seconds; hr and lr describe the same camera (lr intrinsics = hr intrinsics / scale)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..conventions import LEVELS
+from .report import Collector, as_int
+
+_RECORD_KEYS = ("world_from_camera", "prev_world_from_camera", "intrinsics", "prev_intrinsics", "jitter", "spp",
+                "seed", "seconds")
+
+
+def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict] | None:
+    """Cameras of both levels as arrays, or None where a level's record is unusable."""
+    cams: dict[str, dict] = {}
+    for lvl in LEVELS:
+        r = rec.get(lvl)
+        if not isinstance(r, dict):
+            c.add("record-incomplete", f"record lacks level {lvl!r}", frame=frame, key=lvl)
+            continue
+        missing = [k for k in _RECORD_KEYS if k not in r]
+        if missing:
+            c.add("record-incomplete", f"record lacks {', '.join(missing)}", frame=frame, key=lvl,
+                     missing=missing)
+        cam = {}
+        ok = True
+        for name in ("world_from_camera", "prev_world_from_camera"):
+            if name not in r:
+                ok = False
+                continue
+            try:
+                a = np.asarray(r[name], dtype=np.float64)
+            except (TypeError, ValueError):
+                a = np.zeros(0)
+            if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+                c.add("bad-camera", f"{name} is not a finite 4x4 matrix (shape {a.shape})", frame=frame,
+                         key=lvl)
+                ok = False
+                continue
+            rot = a[:3, :3]
+            rig = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
+            if not np.allclose(a[3], (0, 0, 0, 1), atol=1e-6) or rig > 1e-4:
+                c.add("bad-camera", f"{name} is not rigid (|R^T R - I| max {rig:.2g}, bottom row "
+                                       f"{a[3].tolist()})", frame=frame, key=lvl)
+                ok = False
+                continue
+            cam[name] = a
+        for name in ("intrinsics", "prev_intrinsics"):
+            if name not in r:
+                ok = False
+                continue
+            try:
+                k = np.asarray(r[name], dtype=np.float64)
+            except (TypeError, ValueError):
+                k = np.zeros(0)
+            if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
+                c.add("bad-camera", f"{name} {r[name]!r} is not (fx, fy, cx, cy) with positive focal",
+                         frame=frame, key=lvl)
+                ok = False
+                continue
+            cam[name] = k
+        if "jitter" in r:
+            try:
+                j = np.asarray(r["jitter"], dtype=np.float64)
+            except (TypeError, ValueError):
+                j = np.zeros(0)
+            if j.shape != (2,) or not np.all(np.isfinite(j)) or np.any(np.abs(j) > 0.5 + 1e-9):
+                c.add("jitter-range", f"jitter {r['jitter']!r} is not two numbers in [-0.5, 0.5] px",
+                         frame=frame, key=lvl)
+            else:
+                cam["jitter"] = (float(j[0]), float(j[1]))
+        if "spp" in r and (as_int(r["spp"]) is None or as_int(r["spp"]) < 1):
+            c.add("bad-record", f"spp {r['spp']!r} is not a positive integer", frame=frame, key=lvl)
+        if "seed" in r and as_int(r["seed"]) is None:
+            c.add("bad-record", f"seed {r['seed']!r} is not an integer", frame=frame, key=lvl)
+        if "seconds" in r and not (isinstance(r["seconds"], dict) or r["seconds"] is None
+                                   or (isinstance(r["seconds"], (int, float))
+                                       and not isinstance(r["seconds"], bool))):
+            c.add("bad-record", f"seconds {r['seconds']!r} is not a number or an object of timings",
+                     frame=frame, key=lvl)
+        if ok:
+            cams[lvl] = cam
+    if "hr" in cams and "lr" in cams:
+        a, b = cams["hr"], cams["lr"]
+        for name in ("world_from_camera", "prev_world_from_camera"):
+            d = float(np.max(np.abs(a[name] - b[name])))
+            if d > 1e-9 * max(1.0, float(np.max(np.abs(a[name])))):
+                c.add("level-mismatch", f"hr and lr {name} differ (max |diff| {d:.3g})", frame=frame,
+                         key="lr", max_diff=d)
+        s = h["scale"]
+        for name in ("intrinsics", "prev_intrinsics"):
+            expect = a[name] / s
+            d = float(np.max(np.abs(b[name] - expect)))
+            if d > 1e-6 * float(np.max(np.abs(expect))):
+                c.add("level-mismatch", f"lr {name} {b[name].tolist()} != hr {name} / {s} = "
+                                           f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key="lr",
+                         max_diff=d)
+    return cams

@@ -1,0 +1,141 @@
+"""The order of the checks: ``run`` takes the clip through the manifest, frame, record, file, value and motion
+checks (per frame and level) and summarises the statistics; ``validate_clip`` is the entry point."""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from ..clip import ClipError
+from ..conventions import LEVELS
+from ..forward_motion import check_motion_next
+from .files import read_level
+from .manifest import check_frames, check_header, check_manifest
+from .motion import check_motion
+from .options import ValidationOptions
+from .records import check_record
+from .report import ERROR, WARNING, Collector, ValidationReport
+from .values import check_values
+
+
+def accumulate(c: Collector, lvl: str, b: dict[str, np.ndarray], surface, mst: dict) -> None:
+    """Add one frame and level's surface fraction, radiance and motion statistics to the per-level lists."""
+    acc = c.level_acc.setdefault(lvl, {k: [] for k in (
+        "surface_fraction", "radiance_mean", "radiance_max", "static_fraction", "static_median_px",
+        "static_pixels", "background_fraction", "background_median_px", "background_pixels")})
+    if surface is not None:
+        acc["surface_fraction"].append(float(surface.mean()))
+    rad = b.get("radiance")
+    if rad is not None:
+        finite = rad[np.isfinite(rad)]
+        if finite.size:
+            acc["radiance_mean"].append(float(finite.mean()))
+            acc["radiance_max"].append(float(finite.max()))
+    for k in ("static_fraction", "static_median_px", "static_pixels", "background_fraction",
+              "background_median_px", "background_pixels"):
+        if k in mst:
+            acc[k].append(mst[k])
+
+
+def summarise(c: Collector, h: dict | None) -> None:
+    """Per-level summary statistics (means, extremes, pixel counts) into ``c.stats['levels']``."""
+    for lvl, acc in c.level_acc.items():
+        def agg(k, fn):
+            return float(fn(acc[k])) if acc[k] else None
+        c.stats["levels"][lvl] = {
+            "size": list(h["sizes"][lvl]) if h else None,
+            "surface_fraction_mean": agg("surface_fraction", np.mean),
+            "radiance_mean": agg("radiance_mean", np.mean),
+            "radiance_max": agg("radiance_max", np.max),
+            "motion": {
+                "tol_px": c.opt.tol_px(lvl),
+                "static_fraction_min": agg("static_fraction", np.min),
+                "static_fraction_mean": agg("static_fraction", np.mean),
+                "static_median_px_max": agg("static_median_px", np.max),
+                "static_pixels": int(sum(acc["static_pixels"])),
+                "background_fraction_min": agg("background_fraction", np.min),
+                "background_fraction_mean": agg("background_fraction", np.mean),
+                "background_median_px_max": agg("background_median_px", np.max),
+                "background_pixels": int(sum(acc["background_pixels"])),
+            },
+        }
+
+
+def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool) -> None:
+    """All checks of the clip into ``c``: manifest and frames once, then per selected frame its record and, per
+    level, its files, the per-buffer value checks (``check_values``) and the motion checks."""
+    manifest = check_manifest(c)
+    if manifest is None:
+        return
+    h = check_header(c, manifest)
+    if h is None:
+        return
+    finished = check_frames(c, h)
+    if frames is not None:
+        wanted = set(int(f) for f in frames)
+        selected = [f for f in finished if f in wanted]
+        if not selected and finished:
+            raise ValueError(f"{c.root}: none of the selected frames is a finished frame of this clip "
+                             f"(finished: {finished[0]}..{finished[-1]})")
+    else:
+        selected = finished
+    full = set(selected) if not quick else ({selected[0], selected[-1]} if selected else set())
+    bar = None
+    if progress and len(selected) > 3:
+        from tqdm import tqdm
+        bar = tqdm(total=len(selected), desc="validate", unit="frame", file=sys.stderr, leave=False)
+    try:
+        for f in selected:
+            cams = check_record(c, f, h["frame_data"][f], h)
+            per = {}
+            for lvl in LEVELS:
+                b = read_level(c, f, lvl, h, header_only=f not in full)
+                if f not in full:
+                    continue
+                surface = check_values(c, f, lvl, b)
+                mst = check_motion(c, f, lvl, b, cams.get(lvl), surface)
+                o = c.opt
+                for code, msg, det in check_motion_next(  # motion_next: gbuffer_export.forward_motion
+                        b, cams.get(lvl), h["frame_data"][f].get(lvl), surface, tol=o.tol_px(lvl),
+                        min_fraction=o.motion_min_fraction, min_pixels=o.min_pixels,
+                        background_min_fraction=o.background_min_fraction):
+                    c.add(code, msg, frame=f, key=f"{lvl}/motion_next", **det)
+                accumulate(c, lvl, b, surface, mst)
+                if mst:
+                    per[lvl] = mst
+            if per:
+                c.stats["per_frame"][str(f)] = per
+            c.stats["frames_checked"] += 1
+            c.stats["frames_value_checked"] += int(f in full)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    summarise(c, h)
+
+
+def validate_clip(path: str | Path, *, frames: Iterable[int] | None = None, quick: bool = False,
+                  options: ValidationOptions | None = None, progress: bool = False) -> ValidationReport:
+    """Validate the clip in directory ``path``.
+
+    frames: check only these frames' records and files (manifest-wide checks still cover the whole clip);
+        ValueError when none of them is finished.
+    quick: read pixel data (value and motion checks) of the first and last selected frame only; the other frames
+        get existence, size and channel checks from the EXR headers.
+    progress: show a tqdm bar on stderr when more than 3 frames are checked.
+    Raises ClipError only when ``path`` is not a directory; every problem of the clip is a finding.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise ClipError(f"{root}: not a directory")
+    t0 = time.perf_counter()
+    c = Collector(root, options or ValidationOptions())
+    run(c, frames, quick, progress)
+    c.stats["seconds"] = time.perf_counter() - t0
+    c.stats["errors"] = sum(f.severity == ERROR for f in c.findings)
+    c.stats["warnings"] = sum(f.severity == WARNING for f in c.findings)
+    return ValidationReport(str(root), c.findings, c.stats)
