@@ -220,3 +220,14 @@ def test_bench_models_row(clip, checkpoint, tmp_path):
     row = res["rows"][0]
     assert row["params"] == n_params(build_model(ModelConfig(name="nsrd"), 4))
     assert row["macs_per_px"] > 0 and row["tpsnr"] is not None and row["warp_error"] is not None
+
+
+@pytest.mark.parametrize("scale", [2, 4])
+def test_onnx_export_at_scales_2_and_4(scale, tmp_path):
+    """Random inputs of an odd LR size (padding inside the graph), untrained weights, state carried over 3 frames."""
+    from training.export import export_onnx
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name="nsrd"), scale).eval()
+    report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 10, scale * 7))
+    assert report["match"] and report["frames_checked"] == 3 and report["output_shape"] == [1, 3, 7 * scale,
+                                                                                              10 * scale]
