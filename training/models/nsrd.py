@@ -212,9 +212,7 @@ class NSRD(SRModel):
         out_warped, _ = backward_warp(out_prev, hr_motion)
         feats = torch.cat([self.current_conv(cur_in), *prev,
                            self.output_conv(F.pixel_unshuffle(out_warped, self.scale))], dim=1)
-        ph, pw = (-h) % PAD, (-w) % PAD
-        if ph or pw:
-            feats = F.pad(feats, (0, pw, 0, ph))
+        feats = F.pad(feats, (0, (-w) % PAD, 0, (-h) % PAD))  # always (a no-op at multiples of 4): ONNX keeps the Pad
         hid, cell = self.lstm(feats, hid, cell)
         y = F.pixel_shuffle(self.head(self.unet(hid)[:, :, :h, :w]), self.scale)
         out = self.remodulate(inverse_transform(y.float(), self.transform), batch)
