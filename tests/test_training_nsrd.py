@@ -223,11 +223,24 @@ def test_bench_models_row(clip, checkpoint, tmp_path):
 
 
 @pytest.mark.parametrize("scale", [2, 4])
-def test_onnx_export_at_scales_2_and_4(scale, tmp_path):
-    """Random inputs of an odd LR size (padding inside the graph), untrained weights, state carried over 3 frames."""
-    from training.export import export_onnx
+def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, tmp_path):
+    """Untrained weights, random inputs: exported at an LR size that needs no padding (8 x 8), checked over 3 frames,
+    then run at an odd LR size (10 x 7, padded inside the graph) against torch with the state carried."""
+    import onnxruntime as ort
+    from training.export import example_inputs, export_onnx
     torch.manual_seed(0)
     model = build_model(ModelConfig(name="nsrd"), scale).eval()
-    report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 10, scale * 7))
-    assert report["match"] and report["frames_checked"] == 3 and report["output_shape"] == [1, 3, 7 * scale,
-                                                                                              10 * scale]
+    report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
+    assert report["match"] and report["frames_checked"] == 3
+    sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
+    state, feed_state, reset = None, [np.zeros(s, np.float32) for s in model.state_shapes(7, 10)], np.ones(1, np.float32)
+    for seed in (1, 2):
+        inp = {k: v for k, v in example_inputs(model, None, (scale * 10, scale * 7), seed=seed).items()
+               if k in model.needs()}
+        with torch.no_grad():
+            ref, state = model.step({k: torch.from_numpy(v) for k, v in inp.items()}, state)
+        outs = sess.run(None, {**{k.replace("/", "_"): v for k, v in inp.items()},
+                               **{f"state_{i}": s for i, s in enumerate(feed_state)}, "reset": reset})
+        assert outs[0].shape == (1, 3, 7 * scale, 10 * scale)
+        np.testing.assert_allclose(outs[0], ref.numpy(), atol=1e-4 * float(np.abs(ref.numpy()).max()) + 1e-5)
+        feed_state, reset = outs[1:], np.zeros(1, np.float32)
