@@ -57,7 +57,7 @@ def test_parameter_counts_equal_the_authors_code():
     assert n_params(build_model(ModelConfig(name="nsrd", jitter=False), 4)) == 1_610_852
     assert n_params(build_model(ModelConfig(name="nsrd"), 4)) == 1_610_852 + 2 * 9 * 32  # jitter channels
     # scale changes the previous-output conv (3 s^2 -> 32) and the last conv (32 -> 3 s^2)
-    assert n_params(build_model(ModelConfig(name="nsrd", jitter=False), 2)) == 1_610_852 - 36 * 9 * 32 - 36 * 9 * 32 - 36
+    assert n_params(build_model(ModelConfig(name="nsrd", jitter=False), 2)) == 1_610_852 - 2 * 36 * 9 * 32 - 36
 
 
 def test_mask_is_the_numpy_cores_dual_motion_vector_mask():
@@ -233,7 +233,8 @@ def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, tmp_path):
     report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
     assert report["match"] and report["frames_checked"] == 3
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
-    state, feed_state, reset = None, [np.zeros(s, np.float32) for s in model.state_shapes(7, 10)], np.ones(1, np.float32)
+    state, reset = None, np.ones(1, np.float32)
+    feed_state = [np.zeros(s, np.float32) for s in model.state_shapes(7, 10)]
     for seed in (1, 2):
         inp = {k: v for k, v in example_inputs(model, None, (scale * 10, scale * 7), seed=seed).items()
                if k in model.needs()}
