@@ -81,5 +81,6 @@ def clip_mask(clip, frame: int, level: str, method: str = "auto", **kw) -> np.nd
     motion = clip.read(frame, f"{level}/motion")
     if method == "motion":
         return from_motion(motion, clip.read(frame - 1, f"{level}/motion_next"), **jit, **kw)
-    return from_depth(clip.read(frame, f"{level}/depth")[..., 0], motion, clip.read(frame - 1, f"{level}/depth")[..., 0],
-                      cam["intrinsics"], cam["world_from_camera"], cam["prev_world_from_camera"], **jit, **kw)
+    depth, depth_prev = (clip.read(f, f"{level}/depth")[..., 0] for f in (frame, frame - 1))
+    return from_depth(depth, motion, depth_prev, cam["intrinsics"], cam["world_from_camera"],
+                      cam["prev_world_from_camera"], **jit, **kw)

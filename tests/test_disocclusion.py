@@ -68,6 +68,13 @@ def test_methods_agree_on_a_static_synthetic_clip(tmp_path):
         assert 0.01 < a.mean() < 0.2 and np.mean(a == b) > 0.95, (a.mean(), b.mean(), np.mean(a == b))
 
 
+def test_motion_next_is_written_on_request_and_for_nsrd():
+    from gbuffer_export.conventions import DEFAULT_BUFFERS, parse_buffer_list
+    from gbuffer_export.dataset.buffers import buffers_for_models
+    assert "motion_next" not in DEFAULT_BUFFERS and "motion_next" in parse_buffer_list("all")
+    assert "motion_next" in buffers_for_models(["nsrd"]) and "motion_next" not in buffers_for_models(["fusesr"])
+
+
 def test_bad_input(tmp_path):
     clip = open_clip(make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(16, 8), scale=2,
                                          buffers=("radiance", "depth", "motion", "flags")))

@@ -57,7 +57,8 @@ def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
     hdepth = 1 + 5 * hr(1)
     hdepth[..., :scale, :] = float("inf")
     return {"lr/radiance": lr(3), "lr/irradiance": lr(3) * 2, "lr/depth": depth, "lr/normal": lr(3) - 0.5,
-            "lr/motion": 2 * lr(2) - 1, "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
+            "lr/motion": 2 * lr(2) - 1, "lr/motion_next": 2 * lr(2) - 1,
+            "hr/fbeta_used": 0.05 + hr(3), "hr/emission": 0.1 * hr(3),
             "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3), "hr/metallic": hr(1),
             "hr/roughness": hr(1), "hr/specular": 0.08 * hr(1),
             "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5,

@@ -27,6 +27,7 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "fusesr-fast": _DEMOD + ("depth", "normal"),
     "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
     "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
+    "nsrd": _DEMOD + ("depth", "normal", "motion", "motion_next"),
     "nsrr": ("radiance", "depth", "motion"),
     "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
 }

@@ -51,6 +51,10 @@ MODELS: dict[str, ModelInfo] = {
                      "RDG (Zhou et al. 2025): recurrent asymmetric U-Net, width 36, LR image with decoupled LR "
                      "G-buffer guidance (normal, BRDF, depth, motion); state = the 3 decoder levels", RDGOptions),
     "rdg-s": ModelInfo("training.models.rdg", "RDGSmall", True, "RDG-s: RDG at width 16", RDGSmallOptions),
+    "nsrd": ModelInfo("training.models.nsrd", "NSRD", True,
+                      "NSRD (Li et al. 2024): LR demodulated irradiance, 2 warped previous frames with dual-motion-"
+                      "vector disocclusion masks, warped previous HR output, ConvLSTM (64) and an RCAB U-Net; HR F_beta "
+                      "remodulation"),
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
                              "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)",
