@@ -438,6 +438,26 @@ def test_albedo_above_one_is_a_warning_below_zero_an_error(clip):
     assert f.severity == ERROR
 
 
+def test_material_values_out_of_range_on_alpha_pixels_are_a_warning(clip):
+    """Cycles accumulates material passes over alpha-blended layers (roughness 1.59 seen on GlassVaseFlowers):
+    out of range only on ALPHA-flagged pixels warns, the same values on one unflagged pixel more fail."""
+    s = surface(clip, 2) & region(HR[::-1])
+    edit_buffer(clip, 2, "hr/albedo", lambda a: np.where(s[..., None], -0.2, a))
+    (f,) = findings(validate_clip(clip), "value-range")
+    assert f.severity == ERROR
+    edit_buffer(clip, 2, "hr/flags", lambda a: np.where(s[..., None], a | np.uint32(Flag.ALPHA), a))
+    r = validate_clip(clip)
+    (f,) = findings(r, "value-range")
+    assert f.severity == WARNING and r.ok and "ALPHA" in f.message and f.details["pixels"] == int(s.sum())
+    i, j = np.argwhere(surface(clip, 2) & ~s)[0]
+
+    def one_more(a):
+        a[i, j] = -0.2
+    edit_buffer(clip, 2, "hr/albedo", one_more)
+    (f,) = findings(validate_clip(clip), "value-range")
+    assert f.severity == ERROR
+
+
 def test_half_written_clip_never_passes(clip):
     """A render interrupted in frame 4 of 4: buffers of frame 4 partly written, no record."""
     edit_manifest(clip, lambda m: m["frames"].append(4))

@@ -140,9 +140,14 @@ def check_values(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarray]) -
         if below.any() or above.any():
             rng = f"[{lo:g}, {hi:g}]" if hi is not None else f">= {lo:g}"
             vals = arr[finite]
-            # albedo above 1 can come from an HDR texture driving Base Color: suspicious, not impossible
-            sev = WARNING if (name == "albedo" and not below.any()) else ERROR
-            c.add("value-range", f"{name} outside {rng} on {int((below | above).sum())} pixel(s) (range "
-                                    f"{float(vals.min()):.4g}..{float(vals.max()):.4g})", frame=frame,
-                     key=f"{lvl}/{name}", severity=sev, pixels=int((below | above).sum()))
+            # albedo above 1 can come from an HDR texture driving Base Color: suspicious, not impossible.
+            # On ALPHA-flagged pixels Cycles accumulates the material passes (albedo, the roughness/metallic/
+            # specular AOVs) over the alpha-blended layers a sample passes, so they may leave the range there.
+            out = below | above
+            on_alpha = flags is not None and not (out & ((flags[..., 0] & np.uint32(Flag.ALPHA)) == 0)).any()
+            sev = WARNING if (name == "albedo" and not below.any()) or on_alpha else ERROR
+            where = " (all ALPHA-flagged: accumulated over alpha-blended layers)" if on_alpha else ""
+            c.add("value-range", f"{name} outside {rng} on {int(out.sum())} pixel(s) (range "
+                                    f"{float(vals.min()):.4g}..{float(vals.max()):.4g}){where}", frame=frame,
+                     key=f"{lvl}/{name}", severity=sev, pixels=int(out.sum()))
     return surface
