@@ -19,8 +19,9 @@ def is_recurrent(model) -> bool:
 
 
 def frame_slice(batch: dict, i: int) -> dict:
-    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1)."""
-    return {k: v[:, i:i + 1] for k, v in batch.items()}
+    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1; a per-batch
+    value without one, ``scale`` (B,), is kept as it is)."""
+    return {k: v[:, i:i + 1] if v.dim() >= 2 else v for k, v in batch.items()}
 
 
 def detach_state(state):

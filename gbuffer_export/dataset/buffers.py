@@ -27,6 +27,7 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "fusesr-fast": _DEMOD + ("depth", "normal"),
     "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
     "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
+    "fourier-sr": _DEMOD + ("albedo", "depth", "normal", "motion"),
 }
 
 #: batch key (without level) -> the clip buffers it is made from.

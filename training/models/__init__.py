@@ -46,6 +46,9 @@ MODELS: dict[str, ModelInfo] = {
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
                              "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)"),
+    "fourier-sr": ModelInfo("training.models.fourier_sr", "FourierSR", True,
+                            "Fourier arbitrary-scale SR (Zhang et al. 2024): one network for any scale; HR G-buffer "
+                            "frequencies x LR amplitudes (HFFM), recurrent temporal branch with soft masks (532 K)"),
 }
 
 
