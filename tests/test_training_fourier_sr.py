@@ -270,3 +270,23 @@ def test_onnx_export_takes_the_scale_as_an_input_and_matches_torch_at_two_scales
             assert got[0].shape == (1, 3, h * scale, w * scale)
             np.testing.assert_allclose(got[0], want.numpy(), rtol=1e-4, atol=1e-4 * float(want.abs().max()))
             feed, reset = got[1:], np.zeros(1, np.float32)
+
+
+def test_the_trainers_temporal_term_is_not_a_second_l1():
+    """The authors warp SR_t-1 on both sides ((SR_t - W(SR_t-1)) - (GT_t - W(SR_t-1)) = SR_t - GT_t); BlendSR's
+    ``warped`` term warps GT_t-1 for the target, so an error constant in time costs nothing there."""
+    from training.losses import temporal_loss
+    g = torch.Generator().manual_seed(5)
+    gt_prev, gt = torch.rand(1, 3, 8, 8, generator=g), torch.rand(1, 3, 8, 8, generator=g)
+    motion = torch.zeros(1, 2, 8, 8)
+    assert float(temporal_loss(gt + 0.2, gt_prev + 0.2, gt, gt_prev, motion)) < 1e-6
+    assert float((gt + 0.2 - gt).abs().mean()) == pytest.approx(0.2)
+
+
+def test_the_example_configuration_builds_fourier_sr():
+    from pathlib import Path
+
+    from training.config import load_config
+    cfg = load_config(Path(__file__).parents[1] / "examples" / "fourier_sr_config.toml", [])
+    assert cfg.model.name == "fourier-sr" and cfg.data.window == 8 and cfg.loss.temporal == "warped"
+    assert n_params(build_model(cfg.model, 4)) == 531883
