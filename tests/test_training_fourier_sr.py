@@ -290,3 +290,21 @@ def test_the_example_configuration_builds_fourier_sr():
     cfg = load_config(Path(__file__).parents[1] / "examples" / "fourier_sr_config.toml", [])
     assert cfg.model.name == "fourier-sr" and cfg.data.window == 8 and cfg.loss.temporal == "warped"
     assert n_params(build_model(cfg.model, 4)) == 531883
+
+
+@pytest.mark.parametrize("scale,lr", [(2, 40), (4, 20)])
+def test_macs_per_hr_pixel_are_the_weights_at_their_resolutions(scale, lr):
+    """Torch's flop counter against the weights: LR convolutions count 1 / s^2 per HR pixel, half-HR ones 1 / 4, the
+    last 3x3 conv 1 (docs/models/fourier_sr.md quotes these)."""
+    from torch.utils.flop_counter import FlopCounterMode
+    m = model_at(2, remod_filter="NONE")
+
+    def weights(mod):
+        return sum(p.numel() for n, p in mod.named_parameters() if n.endswith("weight"))
+    half = sum(weights(getattr(m, n)) for n in ("hr_extractor", "temporal", "fusion", "freq", "mlp", "hf_conv"))
+    want = (weights(m.lr_extractor) + weights(m.coef)) / scale ** 2 + half / 4 + weights(m.last)
+    counter = FlopCounterMode(display=False)
+    with torch.no_grad(), counter:
+        m(make_batch(lr, lr, scale, frames=1))
+    assert counter.get_total_flops() / 2 / (lr * scale) ** 2 == pytest.approx(want, rel=1e-9)
+    print(f"fourier-sr x{scale}: {want:.0f} MACs per HR pixel")
