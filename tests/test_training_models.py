@@ -62,7 +62,8 @@ def make_batch(scale=4, h=6, w=8, frames=3, seed=0, hr_frames=1):
             "hr/depth": hdepth, "hr/normal": hr(3) - 0.5, "hr/albedo": hr(3), "hr/metallic": hr(1),
             "hr/roughness": hr(1), "hr/specular": 0.08 * hr(1),
             "depth_ref": torch.full((1, frames), 3.0), "lr_jitter": torch.rand(1, frames, 2, generator=g) - 0.5,
-            "lr/fbeta_used": 0.05 + lr(3), "lr/fbeta": 0.05 + lr(3)}
+            "lr/fbeta_used": 0.05 + lr(3), "lr/fbeta": 0.05 + lr(3), "lr/albedo": lr(3),
+            "hr/motion": 2 * hr(2) - 1}
 
 
 @pytest.mark.parametrize("name", list(MODELS))

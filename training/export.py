@@ -2,7 +2,9 @@
 
 The exported graph takes the model's inputs as separate tensors in the order of ``model.needs()`` (each
 (B, T, C, H, W), 'depth_ref' (B, T), 'lr_jitter' (B, T, 2)) with dynamic batch, height and width, and returns SR (B, 3, H_hr, W_hr) linear
-radiance. A JSON sidecar ``OUT.onnx.json`` lists the inputs, their shapes and the scale.
+radiance. A JSON sidecar ``OUT.onnx.json`` lists the inputs, their shapes and the scale. An arbitrary-scale model
+(``SCALES = None``: ``fourier-sr``) has one more input, ``scale`` (B,) float32, last: the graph serves any scale with
+HR size = LR size x scale.
 
 A recurrent model (``training.recurrent``) is exported as one step with its state explicit: inputs are the
 current frame's tensors (T = 1), then ``state_0`` .. ``state_N`` (the model's ``state_shapes``) and ``reset`` (B,)
@@ -24,6 +26,19 @@ import torch
 
 from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
+
+
+def scale_keys(model) -> list[str]:
+    """``["scale"]`` for an arbitrary-scale model (its graph takes the scale as an input), else []."""
+    return ["scale"] if getattr(model, "SCALES", ()) is None else []
+
+
+def dynamic_axes_of(key: str) -> dict:
+    """The dynamic axes of an exported input: batch for per-frame values and the scale, batch and size for images."""
+    if key in FRAME_KEYS or key == "scale":
+        return {0: "batch"}
+    level = key.split("/")[0]
+    return {0: "batch", 3: f"{level}_height", 4: f"{level}_width"}
 
 
 class PositionalWrapper(torch.nn.Module):
@@ -50,10 +65,13 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
             if k not in inputs:
                 ref = inputs[next(x for x in inputs if x.startswith(k.split("/")[0] + "/"))]
                 inputs[k] = np.zeros(ref.shape[:2] + (3,) + ref.shape[3:], np.float32)
-        return {k: inputs[k] for k in keys}
+        out = {k: inputs[k] for k in keys}
+        for k in scale_keys(model):
+            out[k] = np.array([src.scale], np.float32)
+        return out
     w, h = hr_size or (128, 72)
     s = model.scale
-    if w % s or h % s:
+    if (w / s) % 1 or (h / s) % 1:
         raise ValueError(f"--hr-size {w}x{h} is not divisible by the scale {s}")
     rng = np.random.default_rng(seed)
     t = model.window
@@ -66,7 +84,7 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
             out[k] = (rng.random((1, t, 2), dtype=np.float32) - 0.5).astype(np.float32)
             continue
         level, name = k.split("/")
-        hh, ww = (h, w) if level == "hr" else (h // s, w // s)
+        hh, ww = (h, w) if level == "hr" else (round(h / s), round(w / s))
         n = t if level == "lr" else 1
         c = len(BUFFERS[name].channels) if name in BUFFERS else 3  # derived keys (irradiance, ...): RGB
         a = rng.random((1, n, c, hh, ww), dtype=np.float32)
@@ -79,6 +97,8 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
             a = a - 0.5
             a /= np.linalg.norm(a, axis=2, keepdims=True) + 1e-6
         out[k] = a.astype(np.float32)
+    for k in scale_keys(model):  # last: the graph's inputs are the model's keys, then the scale
+        out[k] = np.array([s], np.float32)
     return out
 
 
@@ -113,7 +133,8 @@ def recurrent_example_frames(model, clip: str | None, hr_size, frames: int = 3) 
                 if k not in inputs:
                     ref = inputs[next(x for x in inputs if x.startswith(k.split("/")[0] + "/"))]
                     inputs[k] = np.zeros(ref.shape[:2] + (3,) + ref.shape[3:], np.float32)
-            out.append({k: inputs[k] for k in model.needs()})
+            out.append({**{k: inputs[k] for k in model.needs()},
+                        **{k: np.array([src.scale], np.float32) for k in scale_keys(model)}})
         return out
     return [example_inputs(model, None, hr_size, seed=i) for i in range(frames)]
 
@@ -136,10 +157,7 @@ def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -
     o_names = [f"state_out_{i}" for i in range(n)]
     wrapper = StepExport(model, keys, n).eval()
     example = tuple(torch.from_numpy(frames[1][k]) for k in keys) + tuple(states[0]) + (torch.zeros(1),)
-    dyn = {}
-    for k, nm in zip(keys, names):
-        dyn[nm] = {0: "batch"} if k in FRAME_KEYS else {0: "batch", 3: f"{k.split('/')[0]}_height",
-                                                         4: f"{k.split('/')[0]}_width"}
+    dyn = {nm: dynamic_axes_of(k) for k, nm in zip(keys, names)}
     for i, st in enumerate(states[0]):
         axes = {0: "batch"} if st.dim() == 2 else {0: "batch", 2: f"state_{i}_height", 3: f"state_{i}_width"}
         dyn[s_names[i]] = axes
@@ -189,10 +207,7 @@ def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int =
     names = [k.replace("/", "_") for k in keys]
     wrapper = PositionalWrapper(model, keys).eval()
     tensors = tuple(torch.from_numpy(inputs[k]) for k in keys)
-    dyn = {}
-    for k, n in zip(keys, names):
-        dyn[n] = {0: "batch"} if k in FRAME_KEYS else {0: "batch", 3: f"{k.split('/')[0]}_height",
-                                                        4: f"{k.split('/')[0]}_width"}
+    dyn = {n: dynamic_axes_of(k) for k, n in zip(keys, names)}
     dyn["sr"] = {0: "batch", 2: "hr_height", 3: "hr_width"}
     with torch.no_grad():
         ref = wrapper(*tensors).numpy()

@@ -27,7 +27,7 @@ from training.cache import DERIVED, lr_jitter
 from training.config import ModelConfig
 from training.data import BatchSpec, frame_window
 from training.demod import demodulate
-from training.models import MODELS, build_model
+from training.models import MODELS, build_model, model_class
 from training.device import model_device  # noqa: F401  (re-exported)
 from training.models.base import upsample
 
@@ -132,9 +132,10 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         if not path.exists():
             raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
         ck = load_checkpoint(path)
-        if int(ck["scale"]) != scale:
-            raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
         cfg = config_from_checkpoint(ck["config"], source=str(path))
+        # an arbitrary-scale model (SCALES None, fourier-sr) runs at any scale with the weights of one
+        if int(ck["scale"]) != scale and model_class(cfg.model.name).SCALES is not None:
+            raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
         model = build_model(cfg.model, scale)
         model.load_state_dict(ck["model"])
         model.demod_eps = cfg.data.demod_eps

@@ -30,6 +30,7 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "nsrd": _DEMOD + ("depth", "normal", "motion", "motion_next"),
     "nsrr": ("radiance", "depth", "motion"),
     "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
+    "fourier-sr": _DEMOD + ("albedo", "depth", "normal", "motion"),
 }
 
 #: batch key (without level) -> the clip buffers it is made from.

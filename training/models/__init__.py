@@ -13,8 +13,8 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-from training.models.options import (DemodJBUOptions, FuseSRFastOptions, FuseSRLightOptions, FuseSROptions,
-                                     NoOptions, RDGOptions, RDGSmallOptions)
+from training.models.options import (DemodJBUOptions, FourierSROptions, FuseSRFastOptions, FuseSRLightOptions,
+                                     FuseSROptions, NoOptions, RDGOptions, RDGSmallOptions)
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,10 @@ MODELS: dict[str, ModelInfo] = {
     "nsrr-fec": ModelInfo("training.models.nsrr_fec", "NSRRFEC", True,
                           "NSRR with feature enhancement and caching (Zhong et al. 2023): Y'CbCr features cached "
                           "as the recurrent state (4 HR maps, each warped once per frame), HR G-buffer features"),
+    "fourier-sr": ModelInfo("training.models.fourier_sr", "FourierSR", True,
+                            "Fourier arbitrary-scale SR (Zhang et al. 2024): one network for any scale; HR G-buffer "
+                            "frequencies x LR amplitudes (HFFM), recurrent temporal branch with soft masks (532 K)",
+                            FourierSROptions),
 }
 
 

@@ -26,12 +26,19 @@ class SRModel(nn.Module):
     #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
     fast_ops = False
 
-    def __init__(self, cfg, scale: int):
+    #: Supported integer scales, or None for a model that takes any positive scale, integer or not.
+    SCALES: tuple[int, ...] | None = (2, 4, 8)
+
+    def __init__(self, cfg, scale: int | float):
         super().__init__()
-        if scale not in (2, 4, 8):
-            raise ValueError(f"scale {scale}: models support 2, 4 and 8")
+        if self.SCALES is None:  # arbitrary-scale model (fourier-sr): any s > 0; an integral s stays an int
+            if not float(scale) > 0:
+                raise ValueError(f"scale {scale}: must be > 0")
+            scale = int(scale) if float(scale).is_integer() else float(scale)
+        elif scale not in self.SCALES:
+            raise ValueError(f"scale {scale}: models support {', '.join(map(str, self.SCALES))}")
         self.cfg = cfg
-        self.scale = int(scale)
+        self.scale = scale if self.SCALES is None else int(scale)
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
         self.by_class = bool(getattr(cfg, "upsample_by_class", False))

@@ -119,3 +119,19 @@ class RDGSmallOptions(RDGOptions):
 
     width: int = 16
 
+
+
+@dataclass
+class FourierSROptions:
+    """``fourier-sr``: the thresholds of the spatial mask (Eq. 3-6; the authors' code's values)."""
+
+    mask_depth: float = 0.01    # |D - Up(d)| above it, on the normalised depth in [0, 1]
+    mask_albedo: float = 0.1    # mean over RGB of |A - Up(a)| above it
+    mask_normal: float = 0.9    # cosine between N and the normalised Up(n) below it
+
+    def validate(self, where: str) -> None:
+        for name, hi in (("mask_depth", 1.0), ("mask_albedo", 1.0), ("mask_normal", 1.0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < float(v) <= hi):
+                raise ConfigError(f"{where}.{name} {v!r}: must lie in (0, {hi:g}]")
+            setattr(self, name, float(v))
