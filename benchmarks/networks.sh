@@ -3,7 +3,8 @@
 # `blendsr bench models` table and Pareto plot on its test split (docs/results.md, "Networks on one dataset").
 #   1. renders benchmarks/networks_dataset.toml (12 clips; resumes when DATASET exists),
 #   2. trains each learned model for STEPS steps with its paper's losses (examples/*_config.toml) and the same
-#      crop, batch and optimiser length; RDG on windows of WINDOW frames,
+#      crop, batch and optimiser length; RDG on windows of WINDOW frames (the other recurrent
+#      models: their configs' windows),
 #   3. scores every model and the non-learned baselines on the test split (assets never seen in training).
 # Usage: benchmarks/networks.sh [DATASET] [RUNS] [OUT]
 #   STEPS (default 600), THREADS (1), MODELS (the learned runs, space-separated), BENCH=0: train only (to train
@@ -17,7 +18,7 @@ STEPS=${STEPS:-600}
 THREADS=${THREADS:-1}
 WINDOW=${WINDOW:-8}   # RDG windows (the paper: 15; the clips have 12 frames); nsrd and nsrr-fec: their configs
 PY=${PY:-.venv/bin/python}
-MODELS=${MODELS:-"fusesr fusesr-l rdg rdg-s rdg-s-demod rdg-s-nogbuf rdg-s-nobrdf rdg-s-nomotion nsrd nsrr nsrr-fec"}
+MODELS=${MODELS:-"fusesr fusesr-l rdg rdg-s rdg-s-demod rdg-s-nogbuf rdg-s-nobrdf rdg-s-nomotion nsrd nsrr nsrr-fec fourier-sr"}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
 B="$PY -m gbuffer_export.cli"
 $B dataset benchmarks/networks_dataset.toml -o "$DS" --workers 1 --no-progress
@@ -44,6 +45,7 @@ for M in $MODELS; do
     nsrd) train "$M" nsrd examples/nsrd_config.toml ;;
     nsrr) train "$M" nsrr examples/nsrr_fec_config.toml --set data.window=0 ;;
     nsrr-fec) train "$M" nsrr-fec examples/nsrr_fec_config.toml ;;
+    fourier-sr) train "$M" fourier-sr examples/fourier_sr_config.toml ;;
     *) echo "unknown model $M" >&2; exit 2 ;;
   esac
   base=${M%%-s-*}; [ "$base" = "$M" ] || base=rdg-s
