@@ -229,7 +229,7 @@ def check_level_sizes(hr_size: tuple[int, int], scales, option: str = "--hr-size
         if size is None:
             (wb, hb), (wa, ha) = nearest_divisible_sizes(hr_size, scales)
             near = f"{wb}x{hb} or {wa}x{ha}" if (wb, hb) != (wa, ha) else f"{wa}x{ha}"
-            raise ValueError(f"{option} {w}x{h} does not divide by scale {s:g} ({w}/{s:g} = {w / s:g}, "
+            raise ValueError(f"{option} {w}x{h} is not divisible by scale {s:g} ({w}/{s:g} = {w / s:g}, "
                              f"{h}/{s:g} = {h / s:g}); nearest sizes that every scale divides: {near}")
         out[float(s)] = size
     return out
