@@ -74,10 +74,11 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    """Which network and its switches. ``scale`` is taken from the clips (all must agree)."""
+    """Which network and its switches. ``scale``: the LR level to train on; 0 takes the scales from the clips
+    (every level of theirs for a model that takes any scale, ``SRModel.SCALES is None``)."""
 
     name: str = "fusesr"
-    scale: int = 0                   # 0: from the data
+    scale: float = 0                 # 0: from the data
     history: int = -1                # previous frames the model reads (-1: the model's default)
     hr_gbuffer: bool = True          # FuseSR: the pixel-unshuffled HR G-buffer branch (Table 3 ablation)
     demodulation: bool = True        # FuseSR: predict L_D and remodulate with HR F_beta (Table 3 ablation)
@@ -104,8 +105,9 @@ class ModelConfig:
         from training.models import MODELS  # torch-free table
         if self.name not in MODELS:
             raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}")
-        if self.scale not in (0, 2, 4, 8):
-            raise ConfigError(f"model.scale {self.scale}: must be 2, 4 or 8 (0: from the data)")
+        if self.scale != 0 and not self.scale >= 1:
+            raise ConfigError(f"model.scale {self.scale:g}: must be a scale >= 1 such as 2, 2.5 or 4 "
+                              "(0: from the data)")
         if self.history < -1 or self.history > 4:
             raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
         _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)

@@ -20,7 +20,7 @@ def is_recurrent(model) -> bool:
 
 def frame_slice(batch: dict, i: int) -> dict:
     """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1)."""
-    return {k: v[:, i:i + 1] for k, v in batch.items()}
+    return {k: v[:, i:i + 1] if v.dim() > 1 else v for k, v in batch.items()}
 
 
 def detach_state(state):
