@@ -195,3 +195,20 @@ def test_resume_needs_every_level(tmp_path):
     assert not w.is_frame_done(1)
     with pytest.raises(ClipError, match="lr_x2.5/flags was not written"):
         w.commit_frame(1, m["frame_data"]["1"])
+
+
+def test_bench_render_reports_every_level(multi_clip):
+    """``bench render``'s summary: each LR level's render seconds as a fraction of the ground truth."""
+    from gbuffer_export.commands.bench_render import summarize
+    m = json.loads((multi_clip / "manifest.json").read_text())
+    for rec in m["frame_data"].values():
+        rec["hr"]["seconds"] = {"radiance": 10.0, "gbuffer": 1.0, "convert": 0.5, "write": 0.5}
+        for lvl, sec in (("lr", 0.4), ("lr_x2.5", 0.3), ("lr_x4", 0.2)):
+            rec[lvl]["seconds"] = {"radiance": sec, "convert": 0.1, "write": 0.1}
+        rec["seconds_total"] = 14.0
+    med = summarize(m)
+    assert med["lr_render"] == pytest.approx(0.9) and med["convert_and_write"] == pytest.approx(1.6)
+    assert med["other"] == pytest.approx(14.0 - 10.0 - 1.0 - 0.9 - 1.6)
+    assert med["levels"]["lr_x2.5"] == {"scale": 2.5, "size": [32, 16], "render_s": 0.3,
+                                        "fraction_of_ground_truth": pytest.approx(0.03)}
+    assert set(med["levels"]) == {"lr", "lr_x2.5", "lr_x4"}
