@@ -311,4 +311,5 @@ class ClipWriter:
         return manifest
 
 
-__all__ = ["levels_header", "level_scales", "Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]
+__all__ = ["levels_header", "level_scales", "scale_value",
+           "Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]

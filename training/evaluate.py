@@ -123,7 +123,8 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 bad = int((~np.isfinite(sr)).sum())
                 if bad:
                     sr = np.nan_to_num(sr, nan=0.0, posinf=0.0, neginf=0.0)
-                row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms, "sr_nonfinite": bad,
+                row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
+                       "sr_nonfinite": bad,
                        "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
                        "psnr_hdr": metrics.psnr_hdr(sr, gt),
                        "flip": runner(gt, sr) if runner is not None else None,

@@ -96,7 +96,8 @@ class ClipFrames:
 def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True
                ) -> torch.nn.Module:
     """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
-    ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``). ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
+    ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``).
+    ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
     a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps``, ``config`` and
     ``n_params`` attributes. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after

@@ -576,7 +576,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     summary = {"model": cfg.model.name, "step": step, "max_steps": cfg.run.max_steps, "stopped_by": reason,
                "device": str(device), "amp": str(dtype).replace("torch.", "") if dtype else "none",
                "world_size": dist.world, "threads": torch.get_num_threads(), "batch_size": cfg.data.batch_size,
-               "crop_lr": cfg.data.crop, "scale": scale, "scales": all_scales, "params": sum(p.numel() for p in model.parameters()),
+               "crop_lr": cfg.data.crop, "scale": scale, "scales": all_scales,
+               "params": sum(p.numel() for p in model.parameters()),
                "elapsed_s": elapsed, "window": window or None, "peak_mem_mb": mem_peak or None}
     if len(step_times) > 2:
         st, dt = step_times[2:], data_times[2:]

@@ -73,7 +73,8 @@ def config_from_args(args) -> RenderConfig:
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
     return RenderConfig(
         output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
-        scale=args.scale, scales=parse_scales(args.scales), hr_spp=args.hr_spp, lr_spp=args.lr_spp, gbuffer_spp=args.gbuffer_spp,
+        scale=args.scale, scales=parse_scales(args.scales), hr_spp=args.hr_spp, lr_spp=args.lr_spp,
+        gbuffer_spp=args.gbuffer_spp,
         hr_denoise=args.hr_denoise, lr_denoise=args.lr_denoise, adaptive=args.adaptive,
         adaptive_threshold=args.adaptive_threshold, adaptive_min_samples=args.adaptive_min_samples,
         camera_path=args.camera_path, seed=args.seed, jitter=args.jitter, buffers=args.buffers, fbeta=args.fbeta,

@@ -12,4 +12,5 @@ class Bicubic(SRModel):
         return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.batch_scale(batch), "bicubic", self.frame_jitter(batch)).clamp(min=0.0)
+        return upsample(current(batch, "lr/radiance"), self.batch_scale(batch), "bicubic",
+                        self.frame_jitter(batch)).clamp(min=0.0)
