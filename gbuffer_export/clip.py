@@ -273,6 +273,8 @@ class ClipWriter:
     def write_buffer(self, frame: int, level: str, name: str, data: np.ndarray) -> None:
         """Write buffer ``name`` (H x W x C in the channel order of ``BUFFERS``) of a frame and level."""
         spec = buffer_spec(name)
+        if level not in self.header["levels"]:
+            raise ClipError(f"{self.path}: clip has no level {level!r} (has {', '.join(self.header['levels'])})")
         w, h = self.header["levels"][level]["width"], self.header["levels"][level]["height"]
         data = np.asarray(data)
         if data.ndim == 2:

@@ -195,6 +195,8 @@ def test_resume_needs_every_level(tmp_path):
     assert not w.is_frame_done(1)
     with pytest.raises(ClipError, match="lr_x2.5/flags was not written"):
         w.commit_frame(1, m["frame_data"]["1"])
+    with pytest.raises(ClipError, match="no level 'lr_x3'"):
+        w.write_buffer(1, "lr_x3", "depth", np.ones((10, 20, 1)))
 
 
 def test_bench_render_reports_every_level(multi_clip):
