@@ -214,3 +214,13 @@ def test_bench_render_reports_every_level(multi_clip):
     assert med["levels"]["lr_x2.5"] == {"scale": 2.5, "size": [32, 16], "render_s": 0.3,
                                         "fraction_of_ground_truth": pytest.approx(0.03)}
     assert set(med["levels"]) == {"lr", "lr_x2.5", "lr_x4"}
+
+
+def test_nearest_upscaling_of_the_contact_sheet_takes_any_scale():
+    from gbuffer_export.preview import upscale_nearest
+    a = np.arange(5 * 7 * 3, dtype=float).reshape(5, 7, 3)
+    assert np.array_equal(upscale_nearest(a, 4), np.repeat(np.repeat(a, 4, 0), 4, 1))
+    b = upscale_nearest(a[:4, :6], 2.5)
+    assert b.shape == (10, 15, 3)
+    _, counts = np.unique(b[0, :, 0], return_counts=True)
+    assert counts.tolist() == [2, 3, 2, 3, 2, 3]  # HR pixel j goes to LR pixel floor((j + 0.5) / 2.5)
