@@ -6,6 +6,8 @@ Layout (see ``docs/clip-format.md``)::
     CLIP/frames/000012.json               the record of frame 12, written last (the frame's commit marker)
     CLIP/<level>/<buffer>/000012.exr      one EXR per level, buffer and frame, channels from ``BUFFERS``
 
+Levels: 'hr', 'lr' (the primary scale) and, in clips rendered with several scales, 'lr_x<s>' (e.g. 'lr_x2.5').
+
 Pure numpy + json + OpenEXR: no bpy, no torch.
 """
 from __future__ import annotations
@@ -20,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
-from .conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec
+from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, is_level_name,
+                          level_name)
 from .exr import read_exr, write_exr
 
 MANIFEST = "manifest.json"
@@ -69,29 +72,68 @@ def buffer_path(root: Path, frame: int, level: str, name: str) -> Path:
 
 
 def split_key(key: str) -> tuple[str, str]:
-    """'hr/fbeta' -> ('hr', 'fbeta'), with a clear error for anything else."""
+    """'hr/fbeta' -> ('hr', 'fbeta'), 'lr_x2.5/depth' -> ('lr_x2.5', 'depth'), with a clear error for anything
+    else."""
     level, sep, name = key.partition("/")
-    if not sep or level not in LEVELS:
-        raise ClipError(f"buffer key {key!r} must be '<level>/<buffer>' with level in {LEVELS}")
+    if not sep or not is_level_name(level):
+        raise ClipError(f"buffer key {key!r} must be '<level>/<buffer>' with level hr, lr or lr_x<scale>")
     buffer_spec(name)
     return level, name
 
 
-class Clip:
-    """A rendered clip opened for reading. ``frames`` lists the finished frames in ascending order."""
+def level_scales(manifest: dict) -> dict[str, float]:
+    """Scale of every level of a manifest (hr: 1.0). Version 1 manifests have no per-level scale: their 'lr' level
+    is at the top-level ``scale``."""
+    out = {}
+    for lvl, v in manifest["levels"].items():
+        if lvl == "hr":
+            out[lvl] = 1.0
+        elif isinstance(v, dict) and "scale" in v:
+            out[lvl] = float(v["scale"])
+        elif lvl == "lr":
+            out[lvl] = float(manifest["scale"])
+    return out
 
-    def __init__(self, path: Path, manifest: dict):
+
+def levels_header(hr_size: tuple[int, int], scales) -> dict:
+    """The manifest's ``levels``: 'hr' and one LR level per scale ('lr' for the first, 'lr_x<s>' for the others),
+    each with width, height (pixels) and scale (float; hr 1.0). ValueError when a scale does not divide the size."""
+    sizes = check_level_sizes(hr_size, scales)
+    out = {"hr": {"width": int(hr_size[0]), "height": int(hr_size[1]), "scale": 1.0}}
+    for s, (w, h) in sizes.items():
+        out[level_name(s, scales[0])] = {"width": w, "height": h, "scale": float(s)}
+    return out
+
+
+def scale_value(s: float) -> int | float:
+    """An integral scale as int (what version 1 readers see), any other as float."""
+    return int(s) if float(s).is_integer() else float(s)
+
+
+class Clip:
+    """A rendered clip opened for reading. ``frames`` lists the finished frames in ascending order.
+
+    ``scale`` is the scale of the level 'lr' (int when integral), ``scales`` every LR level's scale (sorted floats),
+    ``levels`` every level's directory name, ``sizes`` (W, H) per level. ``at_scale(s)`` gives a view whose 'lr'
+    is the level at scale s."""
+
+    def __init__(self, path: Path, manifest: dict, level_dirs: dict[str, str] | None = None):
         self.path = path
         self.manifest = manifest
+        #: level name seen by the caller -> directory on disk ('lr' -> 'lr_x4' in a view of an extra level)
+        self.level_dirs: dict[str, str] = dict(level_dirs or {})
         self.frame_data: dict[str, dict] = manifest.get("frame_data", {})
         self.frames: list[int] = sorted(int(f) for f in self.frame_data)
         self.planned_frames: list[int] = list(manifest.get("frames", []))
-        self.scale: int = int(manifest["scale"])
+        self.scale: int | float = scale_value(float(manifest["scale"]))
         self.buffers: tuple[str, ...] = tuple(manifest["buffers"])
         self.sizes: dict[str, tuple[int, int]] = {
             lvl: (int(v["width"]), int(v["height"])) for lvl, v in manifest["levels"].items()}
         #: working colour space of the colour buffers (the manifest's ``scene_linear``; Blender's default if absent)
         self.scene_linear: str = str(manifest.get("scene_linear", DEFAULT_WORKING_SPACE))
+        self.levels: tuple[str, ...] = tuple(manifest["levels"])
+        self.level_scale: dict[str, float] = level_scales(manifest)
+        self.scales: list[float] = sorted(s for lvl, s in self.level_scale.items() if lvl != "hr")
 
     def __repr__(self) -> str:
         return f"Clip({str(self.path)!r}, frames={len(self.frames)}, scale={self.scale})"
@@ -100,15 +142,40 @@ class Clip:
     def complete(self) -> bool:
         return set(self.planned_frames) <= set(self.frames)
 
+    def level_at(self, scale: float) -> str:
+        """The level whose scale is ``scale``; ClipError naming the clip's scales otherwise."""
+        for lvl, s in self.level_scale.items():
+            if lvl != "hr" and abs(s - float(scale)) < 1e-9:
+                return lvl
+        raise ClipError(f"{self.path}: clip has no LR level at scale {scale:g} (has "
+                        f"{', '.join(f'{s:g}' for s in self.scales)})")
+
+    def at_scale(self, scale: float) -> "Clip":
+        """A view of this clip whose 'lr' level is the level at ``scale`` (its size, intrinsics, jitter, records);
+        'hr' is unchanged and the other LR levels are hidden. The view reads the same files."""
+        lvl = self.level_at(scale)
+        real = self.level_dirs.get(lvl, lvl)
+        if lvl == "lr" and len(self.scales) == 1:
+            return self
+        m = dict(self.manifest)
+        m["scale"] = scale_value(self.level_scale[lvl])
+        m["levels"] = {"hr": self.manifest["levels"]["hr"],
+                       "lr": {**self.manifest["levels"][lvl], "scale": self.level_scale[lvl]}}
+        m["frame_data"] = {f: {**{k: v for k, v in rec.items() if not k.startswith("lr")}, "lr": rec[lvl]}
+                           for f, rec in self.frame_data.items() if lvl in rec}
+        return Clip(self.path, m, {**self.level_dirs, "lr": real})
+
     def path_of(self, frame: int, key: str) -> Path:
         level, name = split_key(key)
-        return buffer_path(self.path, frame, level, name)
+        return buffer_path(self.path, frame, self.level_dirs.get(level, level), name)
 
     def read(self, frame: int, key: str, *, space: str | None = None) -> np.ndarray:
-        """Buffer ``key`` ('hr/fbeta', 'lr/radiance', ...) of ``frame`` as H x W x C float32
+        """Buffer ``key`` ('hr/fbeta', 'lr/radiance', 'lr_x2.5/depth', ...) of ``frame`` as H x W x C float32
         (the ``flags`` buffer as uint32). ``space``: a working space (e.g. ``colour_spaces.TRAINING_SPACE``) to
         convert the colour buffers (radiance, emission, albedo, fbeta) into; None gives them as stored."""
         level, name = split_key(key)
+        if level not in self.sizes:
+            raise ClipError(f"{self.path}: clip has no level {level!r} (has {', '.join(self.levels)})")
         if name not in self.buffers:
             raise ClipError(f"{self.path}: clip has no buffer {name!r} (has {', '.join(self.buffers)})")
         if frame not in self.frame_data and str(frame) not in self.frame_data:
@@ -139,7 +206,7 @@ class Clip:
         return out
 
     def record(self, frame: int) -> dict:
-        """The manifest's whole record of a frame (cameras, spp, seeds, timings)."""
+        """The manifest's whole record of a frame (per level: cameras, spp, seeds, timings)."""
         return self.frame_data[str(frame)]
 
 
@@ -197,7 +264,8 @@ class ClipWriter:
             if old.get("identity") != self.header["identity"]:
                 raise ClipError(f"{self.path}: holds a different clip (other scene or settings); "
                                 "choose another output directory or delete it")
-        elif any(p.name not in (FRAMES_DIR, *LEVELS) and not p.name.startswith(".") for p in self.path.iterdir()):
+        elif any(p.name not in (FRAMES_DIR, *LEVELS, *self.header["levels"]) and not p.name.startswith(".")
+                 for p in self.path.iterdir()):
             raise ClipError(f"{self.path}: directory is not empty and holds no BlendSR clip")
 
     def record_path(self, frame: int) -> Path:
@@ -213,11 +281,13 @@ class ClipWriter:
         except json.JSONDecodeError:
             return False
         return all(buffer_path(self.path, frame, lvl, b).is_file()
-                   for lvl in LEVELS for b in self.header["buffers"])
+                   for lvl in self.header["levels"] for b in self.header["buffers"])
 
     def write_buffer(self, frame: int, level: str, name: str, data: np.ndarray) -> None:
         """Write buffer ``name`` (H x W x C in the channel order of ``BUFFERS``) of a frame and level."""
         spec = buffer_spec(name)
+        if level not in self.header["levels"]:
+            raise ClipError(f"{self.path}: clip has no level {level!r} (has {', '.join(self.header['levels'])})")
         w, h = self.header["levels"][level]["width"], self.header["levels"][level]["height"]
         data = np.asarray(data)
         if data.ndim == 2:
@@ -233,7 +303,7 @@ class ClipWriter:
 
     def commit_frame(self, frame: int, record: dict) -> None:
         """Mark ``frame`` finished with its record (per level: cameras, jitter, spp, seed, seconds) and merge."""
-        for lvl in LEVELS:
+        for lvl in self.header["levels"]:
             for b in self.header["buffers"]:
                 if not buffer_path(self.path, frame, lvl, b).is_file():
                     raise ClipError(f"{self.path}: cannot commit frame {frame}: {lvl}/{b} was not written")
@@ -256,4 +326,5 @@ class ClipWriter:
         return manifest
 
 
-__all__ = ["Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]
+__all__ = ["levels_header", "level_scales", "scale_value",
+           "Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]

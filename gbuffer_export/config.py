@@ -6,7 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .conventions import DEFAULT_BUFFERS, parse_buffer_list
+from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
 
 CAMERA_PATHS = ("scene", "orbit", "walk")
 JITTERS = ("none", "halton")
@@ -44,6 +44,16 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return w, h
 
 
+def parse_scales(text: str | None) -> tuple[float, ...] | None:
+    """'2,2.5,4' -> (2.0, 2.5, 4.0); None or '' -> None (only ``--scale``)."""
+    if not text:
+        return None
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--scales {text!r}: expected comma-separated numbers, e.g. 2,2.5,4") from None
+
+
 def parse_shard(text: str | None) -> tuple[int, int]:
     """'K/N' (1-based K) -> (K, N); None -> (1, 1)."""
     if not text:
@@ -66,7 +76,8 @@ class RenderConfig:
     scene: Path | None = None              # None: the built-in default scene
     frames: tuple[int, int] | None = None  # inclusive; None: the scene's range
     hr_size: tuple[int, int] | None = None  # (W, H); None: the scene's resolution
-    scale: int = 4
+    scale: int | float = 4                  # LR = HR / scale (the level 'lr')
+    scales: tuple[float, ...] | None = None  # one LR level per scale, the first is 'lr'; None: (scale,)
     hr_spp: int = 64
     lr_spp: int = 4
     gbuffer_spp: int = 4
@@ -93,8 +104,19 @@ class RenderConfig:
         self.validate()
 
     def validate(self) -> None:
-        if not isinstance(self.scale, int) or self.scale < 1:
-            raise ConfigError(f"--scale {self.scale!r}: must be a positive integer")
+        if self.scales is None:
+            self.scales = (self.scale,)
+        opt = "--scales" if len(self.scales) > 1 else "--scale"
+        for v in self.scales:
+            try:
+                scale_fraction(v)
+            except ValueError:
+                raise ConfigError(f"{opt} {v!r}: must be a number >= 1 (a ratio of integers such as 2, 2.5 or 4)") \
+                    from None
+        if len(set(float(v) for v in self.scales)) != len(self.scales):
+            raise ConfigError(f"{opt} {','.join(f'{v:g}' for v in self.scales)}: a scale is given twice")
+        self.scales = tuple(float(v) for v in self.scales)
+        self.scale = int(self.scales[0]) if self.scales[0].is_integer() else self.scales[0]
         for name in ("hr_spp", "lr_spp", "gbuffer_spp"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
@@ -110,9 +132,7 @@ class RenderConfig:
         else:
             self.buffers = parse_buffer_list(",".join(self.buffers))
         if self.hr_size is not None:
-            w, h = self.hr_size
-            if w % self.scale or h % self.scale:
-                raise ConfigError(f"--hr-size {w}x{h} is not divisible by --scale {self.scale}")
+            self.check_size(self.hr_size, "--hr-size")
         if self.max_bounces is not None and (not isinstance(self.max_bounces, int) or self.max_bounces < 0):
             raise ConfigError(f"--max-bounces {self.max_bounces!r}: must be an integer >= 0")
         if not isinstance(self.threads, int) or self.threads < 0:
@@ -126,6 +146,13 @@ class RenderConfig:
                 raise ConfigError(f"{self.scene}: scene file not found")
             if self.scene.suffix.lower() != ".blend":
                 raise ConfigError(f"{self.scene}: not a .blend file")
+
+    def check_size(self, hr_size: tuple[int, int], what: str) -> dict[float, tuple[int, int]]:
+        """{scale: LR size} of every scale; ConfigError naming ``what`` and the nearest valid sizes otherwise."""
+        try:
+            return check_level_sizes(hr_size, self.scales, what)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)

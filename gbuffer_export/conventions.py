@@ -33,14 +33,18 @@ Jitter (dx, dy)
 """
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
 from enum import IntFlag
+from fractions import Fraction
 
 import numpy as np
 
 SCHEMA = "blendsr.clip"
-SCHEMA_VERSION = 1
-LEVELS = ("hr", "lr")
+SCHEMA_VERSION = 2  # 2: several LR levels (``levels[...]["scale"]``, ``lr_x<s>``); version 1 clips are still read
+LEVELS = ("hr", "lr")  # the levels every clip has; a clip may add LR levels named by ``level_name``
+_EXTRA_LEVEL = re.compile(r"^lr_x([0-9]+(?:\.[0-9]+)?)$")
 
 
 @dataclass(frozen=True)
@@ -171,6 +175,64 @@ def scale_intrinsics(k: tuple[float, float, float, float], factor: float) -> tup
     """Intrinsics of the same camera for an image ``factor`` times as large in each dimension."""
     fx, fy, cx, cy = k
     return fx * factor, fy * factor, cx * factor, cy * factor
+
+
+def scale_fraction(scale: float) -> Fraction:
+    """``scale`` as p/q in lowest terms (q <= 1000): 2.5 -> 5/2, 3.75 -> 15/4. ValueError for a scale that is not
+    a finite number >= 1 or has no such fraction."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale < 1:
+        raise ValueError(f"scale {scale!r} is not a number >= 1")
+    fr = Fraction(scale).limit_denominator(1000)
+    if abs(float(fr) - scale) > 1e-9 * scale:
+        raise ValueError(f"scale {scale!r} is not a ratio of integers with a denominator up to 1000")
+    return fr
+
+
+def level_name(scale: float, primary: float) -> str:
+    """Directory and record name of the LR level at ``scale`` in a clip whose primary (first) scale is
+    ``primary``: 'lr' for the primary level, 'lr_x{scale:g}' (e.g. 'lr_x2.5', 'lr_x4') for the others."""
+    return "lr" if float(scale) == float(primary) else f"lr_x{float(scale):g}"
+
+
+def is_level_name(name: str) -> bool:
+    """True for 'hr', 'lr' and 'lr_x<scale>'."""
+    return name in LEVELS or bool(_EXTRA_LEVEL.match(name))
+
+
+def lr_size(hr_size: tuple[int, int], scale: float) -> tuple[int, int] | None:
+    """(W / scale, H / scale) when both are integers, else None."""
+    fr = scale_fraction(scale)
+    w, h = hr_size
+    if (w * fr.denominator) % fr.numerator or (h * fr.denominator) % fr.numerator:
+        return None
+    return w * fr.denominator // fr.numerator, h * fr.denominator // fr.numerator
+
+
+def nearest_divisible_sizes(hr_size: tuple[int, int], scales) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The HR sizes nearest to ``hr_size`` (one at or below, one above, per axis) that every scale divides into
+    integer LR sizes: ((w_below, h_below), (w_above, h_above)); a width or height below is at least one step."""
+    step = 1
+    for s in scales:
+        step = math.lcm(step, scale_fraction(s).numerator)
+    below = tuple(max(step, v // step * step) for v in hr_size)
+    above = tuple((v // step + 1) * step if v % step else v for v in hr_size)
+    return below, above
+
+
+def check_level_sizes(hr_size: tuple[int, int], scales, option: str = "--hr-size") -> dict[float, tuple[int, int]]:
+    """{scale: (W / scale, H / scale)} for every scale; ValueError naming ``option``, the first scale that does not
+    divide the size and the nearest sizes that every scale divides otherwise."""
+    out = {}
+    w, h = hr_size
+    for s in scales:
+        size = lr_size(hr_size, s)
+        if size is None:
+            (wb, hb), (wa, ha) = nearest_divisible_sizes(hr_size, scales)
+            near = f"{wb}x{hb} or {wa}x{ha}" if (wb, hb) != (wa, ha) else f"{wa}x{ha}"
+            raise ValueError(f"{option} {w}x{h} is not divisible by scale {s:g} ({w}/{s:g} = {w / s:g}, "
+                             f"{h}/{s:g} = {h / s:g}); nearest sizes that every scale divides: {near}")
+        out[float(s)] = size
+    return out
 
 
 def pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

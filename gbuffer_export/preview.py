@@ -78,8 +78,12 @@ def visualize(name: str, arr: np.ndarray) -> np.ndarray:
     return np.repeat(np.clip(arr[..., :1], 0, 1), 3, axis=-1)
 
 
-def upscale_nearest(img: np.ndarray, factor: int) -> np.ndarray:
-    return np.repeat(np.repeat(img, factor, axis=0), factor, axis=1)
+def upscale_nearest(img: np.ndarray, factor: float) -> np.ndarray:
+    """Nearest-neighbour upscaling of H x W [x C] to round(H factor) x round(W factor); any factor >= 1."""
+    h, w = img.shape[:2]
+    ys = np.minimum(((np.arange(round(h * factor)) + 0.5) / factor).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(round(w * factor)) + 0.5) / factor).astype(np.int64), w - 1)
+    return img[ys][:, xs]
 
 
 def save_png(path: str | Path, img: np.ndarray) -> None:

@@ -59,11 +59,13 @@ def human(n: float) -> str:
     return f"{n:.3g} PB"
 
 
-def estimate_render(hr_size: tuple[int, int], scale: int, buffers, frames: int) -> RenderEstimate:
+def estimate_render(hr_size: tuple[int, int], scale, buffers, frames: int) -> RenderEstimate:
+    """Memory and disk of a render; ``scale``: one LR scale or a sequence of them (one LR level each)."""
     w, h = hr_size
-    lw, lh = w // scale, h // scale
+    scales = tuple(scale) if isinstance(scale, (tuple, list)) else (scale,)
+    lr_pixels = sum(int(w / s) * int(h / s) for s in scales)
     channels = sum(len(BUFFERS[b].channels) for b in buffers)
-    per_frame = (w * h + lw * lh) * channels * 4
+    per_frame = (w * h + lr_pixels) * channels * 4
     temp = w * h * TEMP_EXR_CHANNELS * 4
     return RenderEstimate(memory_bytes=MEMORY_BASE + MEMORY_PER_HR_PIXEL * w * h,
                           disk_bytes=per_frame * frames + (temp if frames else 0), frames=frames)
@@ -110,7 +112,7 @@ def free_disk(path: Path) -> int | None:
         return None
 
 
-def check_render_resources(hr_size: tuple[int, int], scale: int, buffers, frames: int, output: Path,
+def check_render_resources(hr_size: tuple[int, int], scale, buffers, frames: int, output: Path,
                            *, memory: int | None = None, disk: int | None = None) -> RenderEstimate:
     """Raise ResourceError when the estimate exceeds the available memory or the free disk; return it."""
     est = estimate_render(hr_size, scale, buffers, frames)

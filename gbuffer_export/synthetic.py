@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .clip import ClipWriter
+from .clip import ClipWriter, levels_header, scale_value
 from .conventions import (ALL_BUFFERS, Flag, pixel_grid, rays_camera, reprojection_motion,
                           scale_intrinsics, world_to_camera_normals)
 
@@ -86,24 +86,25 @@ def _trace(width, height, k, world_from_camera, jitter):
     return {"depth": best, "normal_world": normal, "albedo": albedo, "radiance": radiance, "flags": flags}
 
 
-def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: int = 4,
+def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: float = 4,
                         buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2,
-                        scene_linear: str = "Linear Rec.709") -> Path:
+                        scene_linear: str = "Linear Rec.709", scales=None) -> Path:
     """Write a complete synthetic clip to ``path`` and return it. HR radiance is supersampled
     ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered).
-    ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says)."""
+    ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says).
+    ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``."""
     from .conventions import halton_jitter
 
     w, h = hr_size
-    if w % scale or h % scale:
-        raise ValueError(f"hr size {w}x{h} not divisible by scale {scale}")
+    scales = tuple(float(s) for s in (scales or (scale,)))
+    levels = levels_header(hr_size, scales)
     frames = list(frames)
-    sizes = {"hr": (w, h), "lr": (w // scale, h // scale)}
+    sizes = {lvl: (v["width"], v["height"]) for lvl, v in levels.items()}
     k_hr = (0.9 * w, 0.9 * w, w / 2, h / 2)
     header = {
         "blendsr_version": "synthetic", "blender_version": None,
         "scene": {"file": None, "sha256": None, "builtin": "synthetic-numpy"},
-        "scale": scale, "levels": {lvl: {"width": s[0], "height": s[1]} for lvl, s in sizes.items()},
+        "scale": scale_value(scales[0]), "levels": levels,
         "frames": frames, "buffers": [b for b in ALL_BUFFERS if b in buffers], "fbeta_source": "synthetic",
         "scene_linear": scene_linear, "render": {
             "jitter": "halton" if jitter else "none",
@@ -119,7 +120,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
         record = {}
         for lvl, (lw, lh) in sizes.items():
             k = scale_intrinsics(k_hr, lw / w)
-            jit = halton_jitter(i) if (jitter and lvl == "lr") else (0.0, 0.0)
+            jit = halton_jitter(i) if (jitter and lvl != "hr") else (0.0, 0.0)
             g = trace(lw, lh, k, m)  # G-buffers: un-jittered pixel centres would differ from radiance; use jittered
             if jit != (0.0, 0.0):
                 g = trace(lw, lh, k, m, jit)

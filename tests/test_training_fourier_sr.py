@@ -66,7 +66,7 @@ def test_parameter_count_is_the_authors_at_every_scale():
                      "coef": 18496, "freq": 18496, "mlp": 3 * 4160 + 780, "hf_conv": 1308, "last": 84}
     assert n_params(m) == 531883 == n_params(model_at(4)) == n_params(model_at(2.5))
     assert m.phase.numel() == 32  # P(r): one weight per frequency pair, no bias
-    with pytest.raises(ValueError, match="must be > 0"):
+    with pytest.raises(ValueError, match="any scale >= 1"):
         build_model(ModelConfig(name="fourier-sr"), 0)
 
 

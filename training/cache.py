@@ -4,7 +4,8 @@ decoded inside a training step (pure numpy; no torch).
 Layout::
 
     CACHE/index.json                 identity, frames, sizes, arrays, per-frame depth reference, sanitising log
-    CACHE/<level>__<buffer>.npy      (N, H, W, C) for the N finished frames in ascending order
+    CACHE/<level>__<buffer>.npy      (N, H, W, C) for the N finished frames in ascending order (level: the clip's
+                                     directory name, 'lr_x2.5' for an extra LR level)
 
 ``CACHE`` is ``CLIP/.blendsr_cache`` (ClipWriter ignores dot-names), or ``DIR/<clip-name>-<path-hash>`` when a cache
 directory is given or the clip is not writable. The cache identity hashes the bytes of ``manifest.json``, the
@@ -112,12 +113,18 @@ def check_finite(a: np.ndarray, name: str, where: str, policy: str, log: list) -
 
 class ClipCache:
     """The cache of one clip. ``array(key)`` gives the (N, H, W, C) memmap of 'lr/irradiance' etc.;
-    ``index_of[frame]`` its row; ``depth_ref[frame]`` the median finite LR depth of a frame (scene units)."""
+    ``index_of[frame]`` its row; ``depth_ref[frame]`` the median finite LR depth of a frame (scene units).
+    ``scale``: the LR level that 'lr/...' keys read (``Clip.at_scale``); None: the clip's level 'lr'. Caches of
+    several levels of one clip share its cache directory."""
 
     def __init__(self, clip_path: str | os.PathLike, *, eps: float = 0.01, nonfinite: str = "error",
-                 cache_dir: str | os.PathLike | None = None):
-        self.clip: Clip = open_clip(clip_path)
+                 cache_dir: str | os.PathLike | None = None, scale: float | None = None):
+        base = open_clip(clip_path)
+        self.clip: Clip = base.at_scale(scale) if scale is not None else base
         self.colour_matrix = self.clip.colour_matrix(TRAINING_SPACE)  # None: the clip is in the training space
+        self._base_sizes = base.sizes
+        self._lr_dir = self.clip.level_dirs.get("lr", "lr")
+        self._depth_ref_key = "depth_ref" if self._lr_dir == "lr" else f"depth_ref:{self._lr_dir}"
         self.clip_path = Path(clip_path)
         self.eps = float(eps)
         self.nonfinite = nonfinite
@@ -164,7 +171,7 @@ class ClipCache:
                         shutil.rmtree(p) if p.is_dir() else p.unlink()
                 idx = {"version": CACHE_VERSION, "identity": self.identity, "clip": str(self.clip_path.resolve()),
                        "manifest_sha256": self.manifest_sha256, "frames": self.frames, "scale": self.scale,
-                       "sizes": self.sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
+                       "sizes": self._base_sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
                        "depth_ref": {}, "sanitized": []}
                 write_json_atomic(self.path / "index.json", idx)
             else:
@@ -188,8 +195,8 @@ class ClipCache:
     def ensure(self, keys) -> "ClipCache":
         """Build the arrays of ``keys`` that are not cached yet (and the depth reference with 'lr/depth')."""
         keys = list(dict.fromkeys(keys))
-        missing = [k for k in keys if k not in self.index["arrays"]]
-        if "lr/depth" in keys and not self.index.get("depth_ref"):
+        missing = [k for k in keys if self._real(k) not in self.index["arrays"]]
+        if "lr/depth" in keys and not self.index.get(self._depth_ref_key):
             missing.append("lr/depth")
         if not missing:
             return self
@@ -205,7 +212,8 @@ class ClipCache:
                 raise ClipError(f"{self.path}: cache changed while building; rerun")
             self.index = idx
             for k in dict.fromkeys(missing):
-                if k in self.index["arrays"] and not (k == "lr/depth" and not self.index.get("depth_ref")):
+                if self._real(k) in self.index["arrays"] and not (k == "lr/depth"
+                                                                   and not self.index.get(self._depth_ref_key)):
                     continue
                 lvl, name = k.split("/")
                 if name in DERIVED:
@@ -214,6 +222,11 @@ class ClipCache:
                     self._build(lvl, name)
                 write_json_atomic(self.path / "index.json", self.index)
         return self
+
+    def _real(self, key: str) -> str:
+        """'lr/radiance' -> 'lr_x2.5/radiance' in a cache of the level at 2.5: the key under which it is stored."""
+        level, _, name = key.partition("/")
+        return f"{self._lr_dir}/{name}" if level == "lr" else key
 
     def _read_checked(self, frame: int, key: str) -> np.ndarray:
         a = self.clip.read(frame, key)
@@ -225,8 +238,9 @@ class ClipCache:
     def _new_array(self, key: str) -> tuple[np.ndarray, Path, Path]:
         lvl, name = key.split("/")
         w, h = self.sizes[lvl]
-        final = self.path / f"{lvl}__{name}.npy"
-        tmp = self.path / f".{lvl}__{name}.npy.tmp{os.getpid()}"
+        real = self._real(key).replace("/", "__")
+        final = self.path / f"{real}.npy"
+        tmp = self.path / f".{real}.npy.tmp{os.getpid()}"
         arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=storage_dtype(name),
                                         shape=(len(self.frames), h, w, channels_of(name)))
         return arr, tmp, final
@@ -235,7 +249,7 @@ class ClipCache:
         arr.flush()
         del arr
         os.replace(tmp, final)
-        self.index["arrays"][key] = {"file": final.name, "dtype": storage_dtype(key.split("/")[1]).name}
+        self.index["arrays"][self._real(key)] = {"file": final.name, "dtype": storage_dtype(key.split("/")[1]).name}
         self._arrays.pop(key, None)
 
     def _build(self, lvl: str, name: str) -> None:
@@ -254,7 +268,7 @@ class ClipCache:
                 refs[str(f)] = float(np.median(fin)) if fin.size else 1.0
         self._commit(key, arr, tmp, final)
         if key == "lr/depth":
-            self.index["depth_ref"] = refs
+            self.index[self._depth_ref_key] = refs
 
     def _build_derived(self, lvl: str) -> None:
         have_e = "emission" in self.clip.buffers
@@ -275,14 +289,14 @@ class ClipCache:
         """Memory-mapped (N, H, W, C) array of a cached key (call ``ensure`` first)."""
         a = self._arrays.get(key)
         if a is None:
-            if key not in self.index["arrays"]:
+            if self._real(key) not in self.index["arrays"]:
                 raise ClipError(f"{self.path}: {key!r} is not cached; call ensure([{key!r}])")
-            a = np.load(self.path / self.index["arrays"][key]["file"], mmap_mode="r")
+            a = np.load(self.path / self.index["arrays"][self._real(key)]["file"], mmap_mode="r")
             self._arrays[key] = a
         return a
 
     def depth_ref(self, frame: int) -> float:
-        return float(self.index["depth_ref"].get(str(frame), 1.0))
+        return float(self.index.get(self._depth_ref_key, {}).get(str(frame), 1.0))
 
     def jitter(self, frame: int) -> np.ndarray:
         """The LR jitter (dx, dy) of a frame, LR pixels (float32 (2,)); see docs/clip-format.md."""

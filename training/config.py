@@ -76,10 +76,12 @@ class DataConfig:
 @dataclass
 class ModelConfig:
     """Which network: the keys every model shares, and the chosen model's own options (``options``, the
-    ``[model.<name>]`` table; its dataclass is ``MODELS[name].options``, ``training.models.options``)."""
+    ``[model.<name>]`` table; its dataclass is ``MODELS[name].options``, ``training.models.options``). ``scale``:
+    the LR level to train on; 0 takes the scales from the clips (every level of theirs for a model that takes any
+    scale, ``SRModel.SCALES is None``)."""
 
     name: str = "fusesr"
-    scale: int = 0                   # 0: from the data
+    scale: float = 0                 # 0: from the data
     history: int = -1                # previous frames the model reads (-1: the model's default)
     input_transform: str = "log1p"   # HDR transform of radiance/irradiance inputs; outputs are inverted
     depth_norm: str = "ratio"        # 'ratio': d / (d + median_d(frame)); 'inverse': 1 / (1 + d); bg -> 1 / 0
@@ -115,8 +117,9 @@ class ModelConfig:
         from training.models import MODELS  # torch-free table
         if self.name not in MODELS:
             raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}")
-        if self.scale not in (0, 2, 4, 8):
-            raise ConfigError(f"model.scale {self.scale}: must be 2, 4 or 8 (0: from the data)")
+        if self.scale != 0 and not self.scale >= 1:
+            raise ConfigError(f"model.scale {self.scale:g}: must be a scale >= 1 such as 2, 2.5 or 4 "
+                              "(0: from the data)")
         if self.history < -1 or self.history > 4:
             raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
         _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)

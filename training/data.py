@@ -1,10 +1,13 @@
 """Batches for training and full frames for inference (numpy; torch conversion happens in the caller).
 
-A batch maps keys ('lr/irradiance', 'hr/radiance', ...) to float32 arrays (B, T, C, H, W) plus 'depth_ref' (B, T)
-and 'lr_jitter' (B, T, 2: each LR frame's sub-pixel sample offset (dx, dy) in LR pixels, augmented like motion).
-LR keys hold ``lr_window`` consecutive frames ending at the sample's current frame; HR keys hold the last
-``hr_window`` of them. Crops are aligned across levels: an LR crop of c x c pixels at (x0, y0) pairs with the HR
-crop of (s c) x (s c) at (s x0, s y0). Motion vectors stay in pixels of their own level.
+A batch maps keys ('lr/irradiance', 'hr/radiance', ...) to float32 arrays (B, T, C, H, W) plus 'depth_ref' (B, T),
+'lr_jitter' (B, T, 2: each LR frame's sub-pixel sample offset (dx, dy) in LR pixels, augmented like motion) and
+'scale' (B,: the upscaling factor s, one per batch). LR keys hold ``lr_window`` consecutive frames ending at the
+sample's current frame; HR keys hold the last ``hr_window`` of them. Crops are aligned across levels: an LR crop of
+c x c pixels at (x0, y0) pairs with the HR crop of (s c) x (s c) at (s x0, s y0); for a non-integer s = p/q (lowest
+terms) x0, y0 and c are multiples of q, so that these are integers. Motion vectors stay in pixels of their own
+level. With caches of several scales (one ``ClipCache`` per clip and LR level) each batch first draws its scale,
+uniformly among them, then its samples among that scale's caches.
 
 Sampling is a pure function of (seed, rank, step): batch k is the same whether training ran straight or was
 resumed, and a background thread may prepare it ahead of time (``Prefetcher``).
@@ -18,12 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from gbuffer_export.clip import ClipError
+from gbuffer_export.conventions import scale_fraction
 from gbuffer_export.demod import undivided_mask
 from training.augment import Augmentation, apply, apply_vector
 from training.models import OPTIONAL_KEYS
 
 
 FRAME_KEYS = ("depth_ref", "lr_jitter")  # per-frame values, not images
+BATCH_KEYS = ("scale",)  # per-batch-element values, in every batch
 
 
 @dataclass
@@ -57,7 +62,7 @@ class BatchSpec:
     def for_model(model, targets=("hr/radiance",), temporal: bool = False, window: int = 0, **kw) -> "BatchSpec":
         """``window`` > 0 (recurrent models): every key, LR and HR, holds ``window`` consecutive frames (a target
         for every frame); ``temporal`` then only adds HR motion."""
-        keys = [k for k in model.needs() if k not in FRAME_KEYS] + list(targets)
+        keys = [k for k in model.needs() if k not in FRAME_KEYS + BATCH_KEYS] + list(targets)
         if temporal:
             keys.append("hr/motion")
         extra = 1 if temporal and not window else 0
@@ -96,8 +101,16 @@ def windows(frames: list[int], length: int) -> list[int]:
     return out
 
 
+def crop_grid(scale: float, crop: int) -> tuple[int, int]:
+    """(q, c): LR crop corners on multiples of q (the denominator of ``scale`` = p/q) and the LR crop size ``crop``
+    rounded down to a multiple of q, so that the HR corner s x0 and size s c are integers. Integer scales: (1, crop)."""
+    q = scale_fraction(float(scale)).denominator
+    return q, (crop // q) * q
+
+
 class TrainSampler:
-    """Random aligned crops of random frame windows from several cached clips."""
+    """Random aligned crops of random frame windows from several cached clips (one cache per clip and LR level;
+    each batch is of one scale)."""
 
     def __init__(self, caches, spec: BatchSpec, batch_size: int, seed: int, rank: int = 0, val_frames: int = 0):
         self.caches = caches
@@ -112,16 +125,19 @@ class TrainSampler:
             frames = c.frames[:len(c.frames) - val_frames] if val_frames else c.frames
             w, h = c.sizes["lr"]
             if spec.crop > min(w, h):
-                raise ClipError(f"{c.clip_path}: LR size {w}x{h} is smaller than data.crop = {spec.crop}; "
-                                f"--set data.crop={min(w, h)} (or less) fits it")
+                raise ClipError(f"{c.clip_path}: LR size {w}x{h} at scale {c.scale:g} is smaller than data.crop = "
+                                f"{spec.crop}; --set data.crop={min(w, h)} (or less) fits it")
+            if spec.crop and crop_grid(c.scale, spec.crop)[1] == 0:
+                raise ClipError(f"{c.clip_path}: data.crop = {spec.crop} is smaller than the crop grid of scale "
+                                f"{c.scale:g} ({crop_grid(c.scale, 1)[0]} LR pixels); raise data.crop")
             self.items += [(ci, i) for i in windows(frames, spec.lr_window)]
         if not self.items:
             raise ClipError(f"no window of {spec.lr_window} consecutive training frames in "
                             f"{', '.join(str(c.clip_path) for c in caches)} (lower history/val_frames or add frames)")
-        scales = {c.scale for c in caches}
-        if len(scales) != 1:
-            raise ClipError(f"clips have different scales {sorted(scales)}; train one scale at a time")
-        self.scale = scales.pop()
+        #: the scales of the caches (sorted) and, per scale, the items of its caches
+        self.scales: list[float] = sorted({float(c.scale) for c in caches})
+        self.items_by_scale = [[it for it in self.items if float(caches[it[0]].scale) == s] for s in self.scales]
+        self.scale = caches[0].scale if len(self.scales) == 1 else None
 
     def state_dict(self) -> dict:
         return {"seed": self.seed, "rank": self.rank, "items": len(self.items)}
@@ -130,29 +146,33 @@ class TrainSampler:
         rng = np.random.default_rng([self.seed, self.rank, int(step)])
         samples = []
         parts: dict[str, list[np.ndarray]] = {}
-        s, c = self.scale, self.spec.crop
-        all_keys = list(dict.fromkeys(k for ks in self.keys for k in ks))
+        si = int(rng.integers(len(self.scales))) if len(self.scales) > 1 else 0
+        s, items = self.scales[si], self.items_by_scale[si]
+        q, c = crop_grid(s, self.spec.crop) if self.spec.crop else (1, 0)
+        all_keys = list(dict.fromkeys(k for ci, _ in items for k in self.keys[ci]))
         for _ in range(self.batch_size):
-            ci, pos = self.items[int(rng.integers(len(self.items)))]
+            ci, pos = items[int(rng.integers(len(items)))]
             cache = self.caches[ci]
             w, h = cache.sizes["lr"]
-            y0 = int(rng.integers(h - c + 1))
-            x0 = int(rng.integers(w - c + 1))
+            y0 = q * int(rng.integers((h - c) // q + 1))
+            x0 = q * int(rng.integers((w - c) // q + 1))
             aug = Augmentation.draw(rng, self.spec.flip, self.spec.rotate, self.spec.exposure_range,
                                     self.spec.reflectance_range)
             frames = cache.frames[pos - self.spec.lr_window + 1: pos + 1]
             samples.append(Sample(str(cache.clip_path), list(frames), x0, y0, aug))
             for key in all_keys:
                 parts.setdefault(key, []).append(
-                    crop_window(cache, key, pos, self.spec, (x0, y0), aug, s) if key in self.keys[ci]
-                    else zeros_like_key(cache, key, self.spec, s))
+                    crop_window(cache, key, pos, self.spec, (x0, y0), aug, s, c) if key in self.keys[ci]
+                    else zeros_like_key(cache, key, self.spec, s, c))
             if self.spec.depth_ref:
                 refs = np.array([cache.depth_ref(f) for f in frames], dtype=np.float32)
                 parts.setdefault("depth_ref", []).append(refs)
             if self.spec.jitter:
                 jit = np.stack([cache.jitter(f) for f in frames]).astype(np.float32)
                 parts.setdefault("lr_jitter", []).append(apply_vector(jit, aug))
-        return {k: np.stack(v) for k, v in parts.items()}, samples
+        out = {k: np.stack(v) for k, v in parts.items()}
+        out["scale"] = np.full(self.batch_size, s, np.float32)
+        return out, samples
 
 
 def _window_len(key: str, spec: BatchSpec) -> int:
@@ -160,13 +180,14 @@ def _window_len(key: str, spec: BatchSpec) -> int:
 
 
 def crop_window(cache, key: str, pos: int, spec: BatchSpec, xy: tuple[int, int], aug: Augmentation,
-                scale: int) -> np.ndarray:
-    """(T, C, h, w) float32 crop of ``key`` for the window ending at row ``pos``, augmented."""
+                scale: float, crop: int | None = None) -> np.ndarray:
+    """(T, C, h, w) float32 crop of ``key`` for the window ending at row ``pos``, augmented. ``xy`` and ``crop``
+    (default ``spec.crop``) in LR pixels; HR keys are cropped at ``scale`` times them (integers: ``crop_grid``)."""
     t = _window_len(key, spec)
     x0, y0 = xy
-    c = spec.crop
+    c = spec.crop if crop is None else crop
     if key.startswith("hr/"):
-        x0, y0, c = x0 * scale, y0 * scale, c * scale
+        x0, y0, c = round(x0 * scale), round(y0 * scale), round(c * scale)
     rows, cols = slice(pos - t + 1, pos + 1), (slice(y0, y0 + c), slice(x0, x0 + c))
     a = np.asarray(cache.array(key)[(rows, *cols)], dtype=np.float32)
     unit = None
@@ -179,8 +200,9 @@ def crop_window(cache, key: str, pos: int, spec: BatchSpec, xy: tuple[int, int],
     return a.transpose(0, 3, 1, 2)
 
 
-def zeros_like_key(cache, key: str, spec: BatchSpec, scale: int) -> np.ndarray:
-    c = spec.crop * (scale if key.startswith("hr/") else 1)
+def zeros_like_key(cache, key: str, spec: BatchSpec, scale: float, crop: int | None = None) -> np.ndarray:
+    c = spec.crop if crop is None else crop
+    c = round(c * scale) if key.startswith("hr/") else c
     return np.zeros((_window_len(key, spec), 3, c, c), np.float32)
 
 
@@ -209,6 +231,7 @@ def frame_window(source, frame: int, spec: BatchSpec) -> dict[str, np.ndarray]:
         out["depth_ref"] = np.array([[source.depth_ref(max(f, first_ok)) for f in wanted]], dtype=np.float32)
     if spec.jitter:
         out["lr_jitter"] = np.stack([source.jitter(max(f, first_ok)) for f in wanted])[None].astype(np.float32)
+    out["scale"] = np.array([source.scale], np.float32)
     return out
 
 

@@ -8,6 +8,10 @@ then each frame's forward pass is timed (inputs already on the device, GPU synch
 the median over frames. Recurrent models (``training.recurrent``) run the frames in order with their state carried
 from frame to frame, reset at the clip's first frame and after a gap in the frame numbers; when the scored frames
 start later in the clip, the frames before them are run first (unscored) from the clip's start.
+
+Scales: a clip is evaluated at each of its LR levels that the model takes (``eval_scales``: every level for a model
+with ``SCALES = None``, else the level at ``model.scale``); each row carries its ``scale`` and ``per_scale`` holds
+the means per scale.
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gbuffer_export.clip import ClipError
+from gbuffer_export.clip import ClipError, open_clip
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.exr import write_exr
 from training import metrics
@@ -51,23 +55,43 @@ def _mean(values):
     return float(np.mean(vals)) if vals else None
 
 
+def eval_scales(model, clip, wanted=None) -> list[float]:
+    """The scales at which ``model`` is evaluated on ``clip`` (a Clip): ``wanted`` when given, else every LR level
+    for a model that takes any scale, else ``model.scale``. ClipError (one line) when the clip lacks a level or the
+    model cannot take it."""
+    scales = [float(s) for s in wanted] if wanted else (
+        list(clip.scales) if getattr(model, "SCALES", ()) is None else [float(model.scale)])
+    for s in scales:
+        if getattr(model, "SCALES", ()) is not None and s != float(model.scale):
+            raise ClipError(f"{clip.path}: clip scale {s:g} but the model upscales by {model.scale}")
+        if not any(abs(s - v) < 1e-9 for v in clip.scales):
+            if len(clip.scales) == 1:
+                raise ClipError(f"{clip.path}: clip scale {clip.scale} but the model upscales by {model.scale}")
+            clip.level_at(s)  # raises, naming the clip's scales
+    return scales
+
+
 def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
                    amp: torch.dtype | None = None, flip: bool = True, delta_e_itp: bool = False, data_cfg=None,
                    save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
-                   label: str | None = None) -> dict:
+                   label: str | None = None, scales: dict | None = None) -> dict:
     """Evaluate ``model`` on ``clips`` (paths); ``frames`` maps a clip path (as given) to the frames to score
-    (default: all). ``delta_e_itp``: also score ``metrics.delta_e_itp`` (None otherwise). Returns {model, transform,
-    device, mean, per_frame, ...}."""
+    (default: all); ``scales`` maps a clip path to the scales to score (default: ``eval_scales``).
+    ``delta_e_itp``: also score ``metrics.delta_e_itp`` (None otherwise). Returns {model, transform, device, mean,
+    per_scale, per_frame, ...}."""
     device = device or model_device(model)
     model.to(device).eval()
     eps = data_cfg.demod_eps if data_cfg is not None else getattr(model, "demod_eps", 0.01)
     runner = FlipRunner() if flip else None
     per_frame: list[dict] = []
     try:
-        for clip_path in clips:
-            source = ClipFrames(clip_path, eps=eps)
-            if source.scale != model.scale:
-                raise ClipError(f"{clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
+        jobs = []  # (clip path, Clip, scale), checked before anything runs
+        for c in clips:
+            base = open_clip(c)
+            jobs += [(c, base, s_) for s_ in eval_scales(model, base, (scales or {}).get(str(c)))]
+        for clip_path, base, s_clip in jobs:
+            source = ClipFrames(base.at_scale(s_clip), eps=eps)
+            state_key = f"{clip_path}@x{s_clip:g}"
             if not source.has("hr/radiance"):
                 raise ClipError(f"{clip_path}: clip has no hr/radiance to compare with")
             model.follow_reference_filter(source.clip.manifest)
@@ -82,8 +106,8 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             states = ClipState()
             if recurrent:  # the frames before the first scored one, from the clip's start (unscored)
                 for g in lead_in(source.frames, todo[0]):
-                    states.put(clip_path, g, run_step(model, model_inputs(model, source, g, False),
-                                                      states.get(clip_path, g), device, amp)[2])
+                    states.put(state_key, g, run_step(model, model_inputs(model, source, g, False),
+                                                      states.get(state_key, g), device, amp)[2])
             prev = None
             iterator = todo
             if progress:
@@ -92,15 +116,16 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             for f in iterator:
                 inputs = model_inputs(model, source, f)
                 if recurrent:  # state carried from the previous frame; reset at a clip's start or after a gap
-                    sr, ms, new = run_step(model, inputs, states.get(clip_path, f), device, amp)
-                    states.put(clip_path, f, new)
+                    sr, ms, new = run_step(model, inputs, states.get(state_key, f), device, amp)
+                    states.put(state_key, f, new)
                 else:
                     sr, ms = run_model(model, inputs, device, amp)
                 gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
                 bad = int((~np.isfinite(sr)).sum())
                 if bad:
                     sr = np.nan_to_num(sr, nan=0.0, posinf=0.0, neginf=0.0)
-                row = {"clip": str(clip_path), "frame": int(f), "ms_per_frame": ms, "sr_nonfinite": bad,
+                row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
+                       "sr_nonfinite": bad,
                        "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
                        "psnr_hdr": metrics.psnr_hdr(sr, gt),
                        "flip": runner(gt, sr) if runner is not None else None,
@@ -124,7 +149,8 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 prev = (f, sr, gt)
                 per_frame.append(row)
                 if save_images:
-                    _save(Path(save_images), Path(clip_path).name, f, sr)
+                    name = Path(clip_path).name
+                    _save(Path(save_images), name if len(base.scales) == 1 else f"{name}_x{s_clip:g}", f, sr)
     finally:
         if runner is not None:
             runner.close()
@@ -133,6 +159,12 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
     mean = {k: _mean([r[k] for r in per_frame]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
     mean["ms_per_frame"] = float(statistics.median(r["ms_per_frame"] for r in per_frame))
     mean["frames"] = len(per_frame)
+    per_scale = {}
+    for sc in sorted({r["scale"] for r in per_frame}):
+        rows = [r for r in per_frame if r["scale"] == sc]
+        m = {k: _mean([r[k] for r in rows]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
+        m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows))
+        per_scale[f"{sc:g}"] = m
     return {
         "model": label or getattr(model, "spec", type(model).__name__),
         "transform": metrics.TRANSFORM,
@@ -146,6 +178,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
         "flip_failures": runner.failures if runner is not None else [],
         "clips": [str(c) for c in clips],
         "mean": mean,
+        "per_scale": per_scale,
         "per_frame": per_frame,
     }
 

@@ -25,7 +25,7 @@ from gbuffer_export.colour_spaces import TRAINING_SPACE
 from gbuffer_export.conventions import LEVELS
 from training.cache import DERIVED, lr_jitter
 from training.config import ModelConfig
-from training.data import BatchSpec, frame_window
+from training.data import BATCH_KEYS, BatchSpec, frame_window
 from training.demod import demodulate
 from training.models import MODELS, build_model, model_class
 from training.device import model_device  # noqa: F401  (re-exported)
@@ -100,12 +100,13 @@ class ClipFrames:
 def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True
                ) -> torch.nn.Module:
     """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
-    ``scale`` must match the checkpoint's. ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
+    ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``).
+    ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
     a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps``, ``config`` and
     ``n_params`` attributes. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
-    scale = int(scale)
+    scale = int(scale) if float(scale).is_integer() else float(scale)
     if overrides and spec not in MODELS:
         raise ValueError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
     if spec in MODELS:
@@ -132,9 +133,9 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         if not path.exists():
             raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
         ck = load_checkpoint(path)
+        from training.models import model_class
         cfg = config_from_checkpoint(ck["config"], source=str(path))
-        # an arbitrary-scale model (SCALES None, fourier-sr) runs at any scale with the weights of one
-        if int(ck["scale"]) != scale and model_class(cfg.model.name).SCALES is not None:
+        if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
             raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
         model = build_model(cfg.model, scale)
         model.load_state_dict(ck["model"])
@@ -164,7 +165,7 @@ def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None 
     precision set by ``fastpath.prepare_inference``."""
     from training.fastpath import forward
     device = device or model_device(model)
-    needs = set(model.needs())
+    needs = set(model.needs()) | set(BATCH_KEYS)
     batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items() if k in needs}
     with torch.inference_mode():
         if device.type == "cuda":
@@ -184,7 +185,7 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
     the clip has it)."""
     source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
-    if source.scale != model.scale:
+    if model.SCALES is not None and source.scale != model.scale:
         raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
     model.follow_reference_filter(source.clip.manifest)
     inputs = model_inputs(model, source, int(frame))
@@ -197,7 +198,7 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     else:
         sr, ms = run_model(model, inputs)
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
-    bil = upsample(lr, model.scale, "bilinear", torch.from_numpy(source.jitter(int(frame)))[None])
+    bil = upsample(lr, source.scale, "bilinear", torch.from_numpy(source.jitter(int(frame)))[None])
     out = {"sr": np.ascontiguousarray(sr, dtype=np.float32),
            "bilinear": np.ascontiguousarray(bil[0].permute(1, 2, 0).numpy(), dtype=np.float32), "ms": float(ms)}
     if "hr/radiance" in inputs:

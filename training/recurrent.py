@@ -152,7 +152,8 @@ def run_step(model, inputs: dict[str, np.ndarray], state, device: torch.device, 
     """One timed frame of a recurrent model: (SR H x W x 3 float32, ms, new state)."""
     import time
     needs = set(model.needs())
-    batch = {k: torch.from_numpy(v[:, -1:]).to(device) for k, v in inputs.items() if k in needs}
+    batch = {k: torch.from_numpy(v[:, -1:] if v.ndim > 1 else v).to(device) for k, v in inputs.items()
+             if k in needs or k == "scale"}  # 'scale' (B,): per batch element, no time axis
     ctx = torch.autocast(device_type=device.type, dtype=amp) if amp is not None else None
     with torch.inference_mode():
         if device.type == "cuda":

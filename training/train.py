@@ -74,8 +74,9 @@ def make_loader(sampler, step: int, cfg: TrainConfig, device: torch.device):
 
 
 def drop_last(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The batch of the window that ends one frame earlier (every key loses its last frame)."""
-    return {k: v[:, :-1] for k, v in batch.items()}
+    """The batch of the window that ends one frame earlier (every key loses its last frame; per-sample values such
+    as 'scale' (B,) stay)."""
+    return {k: v[:, :-1] if v.dim() > 1 else v for k, v in batch.items()}
 
 
 def peak_memory_mb(device: torch.device) -> float:
@@ -178,12 +179,45 @@ class Dist:
             torch.distributed.destroy_process_group()
 
 
-def open_caches(clips, data_cfg, keys, dist: Dist | None = None) -> list[ClipCache]:
-    """Open (and build where needed) the caches of ``clips``; rank 0 builds first."""
+def _fmt_scales(scales) -> str:
+    return ", ".join(f"{s:g}" for s in scales)
+
+
+def training_scales(model_name: str, clips: dict, wanted: float) -> dict[str, list[float]]:
+    """{clip: the scales (LR levels) to train on}. ``wanted`` (``model.scale``) > 0: that level of every clip.
+    0: a model with ``SCALES = None`` trains on every level of every clip; any other on the one scale the clips
+    have. ConfigError (one line) when a clip lacks the wanted level, when the clips offer several scales to a
+    one-scale model, or when the model cannot take a clip's scale."""
+    from training.models import model_class
+    cls = model_class(model_name)
+    if wanted:
+        for c, clip in clips.items():
+            if not any(abs(s - wanted) < 1e-9 for s in clip.scales):
+                raise ConfigError(f"{c}: model.scale = {wanted:g} but the clip has LR levels at scale(s) "
+                                  f"{_fmt_scales(clip.scales)}")
+        out = {c: [float(wanted)] for c in clips}
+    else:
+        out = {c: list(clip.scales) for c, clip in clips.items()}
+        have = sorted({s for v in out.values() for s in v})
+        if cls.SCALES is not None and len(have) > 1:
+            raise ConfigError(f"the training clips have LR levels at scales {_fmt_scales(have)} and model "
+                              f"{model_name} trains on one scale ({cls.scales_text()}); set model.scale")
+    for c, scales in out.items():
+        for s in scales:
+            if not cls.supports_scale(s):
+                raise ConfigError(f"{c}: scale {s:g}, which model {model_name} cannot take (it supports "
+                                  f"{cls.scales_text()}); set model.scale to a level it supports or render one")
+    return out
+
+
+def open_caches(clips, data_cfg, keys, dist: Dist | None = None, scales: dict | None = None) -> list[ClipCache]:
+    """Open (and build where needed) the caches of ``clips``, one per clip and scale of ``scales`` ({clip: [s]};
+    None: each clip's level 'lr'); rank 0 builds first."""
     caches = []
     for c in clips:
-        caches.append(ClipCache(c, eps=data_cfg.demod_eps, nonfinite=data_cfg.nonfinite,
-                                cache_dir=data_cfg.cache_dir or None))
+        for s in (scales or {}).get(c, [None]):
+            caches.append(ClipCache(c, eps=data_cfg.demod_eps, nonfinite=data_cfg.nonfinite,
+                                    cache_dir=data_cfg.cache_dir or None, scale=s))
     if dist is not None and dist.enabled and not dist.main:
         dist.barrier()
     for cache in caches:
@@ -266,17 +300,17 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     np.random.seed(cfg.run.seed % 2**32)
     torch.manual_seed(cfg.run.seed)
 
-    # Data: scale from the clips, then the model, then what it reads.
+    # Data: scales from the clips and what the model takes, then the model, then what it reads.
     from gbuffer_export.clip import open_clip
     clips = {c: open_clip(c) for c in cfg.data.clips}  # manifests read once
-    scales = {clip.scale for clip in clips.values()}
-    if len(scales) != 1:
-        raise ConfigError(f"training clips have different scales {sorted(scales)}; train one scale at a time")
-    scale = scales.pop()
-    if cfg.model.scale and cfg.model.scale != scale:
-        raise ConfigError(f"model.scale = {cfg.model.scale} but the clips have scale {scale}")
-    cfg.model.scale = scale
-    fit_crop(cfg, clips, log if dist.main else None)
+    scales_of = training_scales(cfg.model.name, clips, cfg.model.scale)
+    all_scales = sorted({s for v in scales_of.values() for s in v})
+    scale = all_scales[0] if len(all_scales) == 1 else all_scales[-1]  # several: the model reads batch['scale']
+    scale = int(scale) if float(scale).is_integer() else scale
+    if len(all_scales) == 1:
+        cfg.model.scale = scale
+    fit_crop(cfg, {f"{c} (scale {s:g})" if len(all_scales) > 1 else c: clip.at_scale(s)
+                   for c, clip in clips.items() for s in scales_of[c]}, log if dist.main else None)
     if cfg.model.remod_filter == "REFERENCE":  # resolved once into the saved configuration
         from gbuffer_export.pixel_filter import reference_filter
         refs = {reference_filter(clip.manifest) for clip in clips.values()}
@@ -287,7 +321,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     model = build_model(cfg.model, scale)
     if cfg.run.init_from and not resume:  # fine-tuning: the weights of another run (its configuration must match)
         init = load_checkpoint(cfg.run.init_from)
-        if int(init["scale"]) != scale:
+        if model.SCALES is not None and float(init["scale"]) != float(scale):
             raise ConfigError(f"run.init_from {cfg.run.init_from}: trained for scale {init['scale']}, not {scale}")
         try:
             model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in init["model"].items()})
@@ -310,8 +344,10 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                                window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
-    caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist)
-    manifests = [{"clip": str(Path(c.clip_path).resolve()), "manifest_sha256": c.manifest_sha256} for c in caches]
+    caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist, scales_of)
+    manifests = list({str(Path(c.clip_path).resolve()): {"clip": str(Path(c.clip_path).resolve()),
+                                                          "manifest_sha256": c.manifest_sha256}
+                      for c in caches}.values())
     if ck is not None:
         old = {m["clip"]: m["manifest_sha256"] for m in ck["data"]}
         for m in manifests:
@@ -386,6 +422,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
 
     def state(cur_step: int, elapsed: float) -> dict:
         return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "model_name": cfg.model.name, "scale": scale,
+                "scales": all_scales,
                 "step": cur_step, "config": cfg.to_dict(), "model": unwrap(net).state_dict(),
                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                 "scaler": scaler.state_dict() if scaler is not None else None,
@@ -542,7 +579,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     summary = {"model": cfg.model.name, "step": step, "max_steps": cfg.run.max_steps, "stopped_by": reason,
                "device": str(device), "amp": str(dtype).replace("torch.", "") if dtype else "none",
                "world_size": dist.world, "threads": torch.get_num_threads(), "batch_size": cfg.data.batch_size,
-               "crop_lr": cfg.data.crop, "scale": scale, "params": sum(p.numel() for p in model.parameters()),
+               "crop_lr": cfg.data.crop, "scale": scale, "scales": all_scales,
+               "params": sum(p.numel() for p in model.parameters()),
                "elapsed_s": elapsed, "window": window or None, "peak_mem_mb": mem_peak or None}
     if len(step_times) > 2:
         st, dt = step_times[2:], data_times[2:]
@@ -590,8 +628,11 @@ def _validate(model, caches, cfg: TrainConfig, out: Path, device, dtype) -> dict
     """Evaluate the held-out last ``data.val_frames`` frames of every training clip; writes ``out``."""
     from training.evaluate import evaluate_model
     frames = {str(c.clip_path): c.frames[-cfg.data.val_frames:] for c in caches}
-    result = evaluate_model(model, [c.clip_path for c in caches], frames=frames, device=device, amp=dtype,
-                            flip=False, data_cfg=cfg.data)
+    scales: dict[str, list[float]] = {}
+    for c in caches:  # one cache per clip and scale
+        scales.setdefault(str(c.clip_path), []).append(float(c.scale))
+    result = evaluate_model(model, list(dict.fromkeys(c.clip_path for c in caches)), frames=frames, device=device,
+                            amp=dtype, flip=False, data_cfg=cfg.data, scales=scales)
     write_json_atomic(out, result)
     model.train()
     return result

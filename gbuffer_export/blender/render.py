@@ -5,8 +5,10 @@ Per frame and in this order:
      centre, nothing mixes at edges), no bounces; writes only the passes the requested buffers need.
   2. HR ground truth: ``hr_spp`` samples, Blackman-Harris 1.5 px filter (anti-aliased), the scene's light paths,
      optional adaptive sampling and denoising; Combined pass only.
-  3. LR render: ``lr_spp`` samples, point-sampled (0.01 px filter, like a rasteriser), optionally jittered by a
-     camera shift and denoised, with the LR G-buffer passes in the same render (point sampling makes them valid).
+  3. LR render, once per LR level (``cfg.scales``: 'lr' at the first scale, 'lr_x<s>' at the others): ``lr_spp``
+     samples, point-sampled (0.01 px filter, like a rasteriser), optionally jittered by a camera shift and
+     denoised, with the level's G-buffer passes in the same render (point sampling makes them valid). Each level is
+     rendered at its own size, never downsampled from HR (a downsampled image would be anti-aliased).
 Then the passes are converted to the clip's conventions (``gbuffer_export.conventions``) and written atomically.
 """
 from __future__ import annotations
@@ -24,9 +26,9 @@ import bpy
 import numpy as np
 
 from .. import __version__
-from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name
+from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name, levels_header
 from ..config import ConfigError, RenderConfig
-from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection,
+from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, level_name,
                            material_flags_for_source, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
@@ -127,8 +129,10 @@ def resolve_size(cfg: RenderConfig, scene) -> tuple[int, int]:
         return cfg.hr_size
     pct = scene.render.resolution_percentage / 100.0
     w, h = int(scene.render.resolution_x * pct), int(scene.render.resolution_y * pct)
-    if w % cfg.scale or h % cfg.scale:
-        raise ConfigError(f"scene resolution {w}x{h} is not divisible by --scale {cfg.scale}; pass --hr-size")
+    try:
+        cfg.check_size((w, h), "scene resolution")
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}; pass --hr-size") from None
     return w, h
 
 
@@ -392,10 +396,10 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     check_camera(cam, cfg)
     scene.camera = cam
     w, h = resolve_size(cfg, scene)
-    lw, lh = w // cfg.scale, h // cfg.scale
+    levels = levels_header((w, h), cfg.scales)
     undone = [f for i, f in enumerate(all_frames) if i % cfg.shard[1] == cfg.shard[0] - 1
               and not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
-    check_render_resources((w, h), cfg.scale, cfg.buffers, len(undone), cfg.output)
+    check_render_resources((w, h), cfg.scales, cfg.buffers, len(undone), cfg.output)
     ctx_vl = getattr(bpy.context, "view_layer", None)
     view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
     view_layer = view_layer or scene.view_layers[0]
@@ -421,7 +425,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         "blender_version": bpy.app.version_string,
         "scene": {**scene_info, "name": scene.name, "camera": cam.name},
         "scale": cfg.scale,
-        "levels": {"hr": {"width": w, "height": h}, "lr": {"width": lw, "height": lh}},
+        "levels": levels,
         "frames": all_frames,
         "buffers": list(cfg.buffers),
         "fbeta_source": cfg.fbeta,
@@ -457,7 +461,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         for f in bar:
             t0 = time.perf_counter()
             rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut, light_paths,
-                               (w, h), tmpdir, writer)
+                               levels, tmpdir, writer)
             rec["seconds_total"] = time.perf_counter() - t0
             writer.commit_frame(f, rec)
             if hasattr(bar, "set_postfix"):
@@ -485,23 +489,20 @@ def _progress(frames, cfg):
 
 
 def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: int, plan: PassPlan,
-                 flag_lut, light_paths, size, tmpdir: Path, writer: ClipWriter) -> dict:
-    """Render one frame at both levels, write its buffers, return its manifest record."""
-    w, h = size
-    lw, lh = w // cfg.scale, h // cfg.scale
+                 flag_lut, light_paths, levels: dict, tmpdir: Path, writer: ClipWriter) -> dict:
+    """Render one frame at every level of ``levels`` (the manifest's), write its buffers, return its record."""
+    w, h = levels["hr"]["width"], levels["hr"]["height"]
     scene.frame_set(frame - 1)
     m_prev = camera_pose(cam)
     k_prev_hr = camera_intrinsics(cam, scene, w, h)
-    m_next = k_next_hr = k_next_lr = None
+    m_next = k_next_hr = None
     if "motion_next" in cfg.buffers:  # the camera of frame t+1 (Cycles' Vector pass evaluates it too)
         scene.frame_set(frame + 1)
         m_next = camera_pose(cam)
         k_next_hr = camera_intrinsics(cam, scene, w, h)
-        k_next_lr = scale_intrinsics(k_next_hr, 1 / cfg.scale)
     scene.frame_set(frame)
     m = camera_pose(cam)
     k_hr = camera_intrinsics(cam, scene, w, h)
-    k_lr, k_prev_lr = scale_intrinsics(k_hr, 1 / cfg.scale), scale_intrinsics(k_prev_hr, 1 / cfg.scale)
     gbuf_buffers = [b for b in cfg.buffers if b != "radiance"]
     if "fbeta" in cfg.buffers and cfg.fbeta != "cycles":  # table sources read these even when not written
         gbuf_buffers += [b for b in ("albedo", "normal", "roughness", "metallic", "specular", "flags")
@@ -545,21 +546,39 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     if m_next is not None:
         record["hr"].update(next_world_from_camera=m_next, next_intrinsics=k_next_hr)
 
-    # --- LR: one point-sampled render with its own G-buffer passes -----------------------------------------
+    # --- LR: per level one point-sampled render with its own G-buffer passes ----------------------------------
     jit = halton_jitter(index) if cfg.jitter == "halton" else (0.0, 0.0)
+    for i, scale in enumerate(cfg.scales):
+        lvl = level_name(scale, cfg.scales[0])
+        record[lvl] = render_lr_level(scene, cam, view_layer, cfg, frame, lvl, i, scale,
+                                      (levels[lvl]["width"], levels[lvl]["height"]), jit, plan, flag_lut,
+                                      light_paths, gbuf_buffers, (m, k_hr, m_prev, k_prev_hr, m_next, k_next_hr),
+                                      base_shift, tmpdir, writer)
+    return record
+
+
+def render_lr_level(scene, cam, view_layer, cfg: RenderConfig, frame: int, lvl: str, i: int, scale: float,
+                    size: tuple[int, int], jit, plan: PassPlan, flag_lut, light_paths, gbuf_buffers, cams,
+                    base_shift, tmpdir: Path, writer: ClipWriter) -> dict:
+    """Render LR level ``lvl`` (the ``i``-th of ``cfg.scales``, ``size`` = HR / ``scale``) of a frame, jittered by
+    ``jit`` pixels of the level; write its buffers and return its record. Cycles seed: pass 2 + i."""
+    lw, lh = size
+    m, k_hr, m_prev, k_prev_hr, m_next, k_next_hr = cams
+    k_lr, k_prev_lr = scale_intrinsics(k_hr, 1 / scale), scale_intrinsics(k_prev_hr, 1 / scale)
+    k_next_lr = scale_intrinsics(k_next_hr, 1 / scale) if k_next_hr is not None else None
     scene.render.resolution_x, scene.render.resolution_y = lw, lh
     # shift is in units of the larger image side; +shift_x moves content left (sample at p + dx),
     # +shift_y moves content down in y-down image coordinates (sample at p - dy): see conventions.
     cam.data.shift_x = base_shift[0] + jit[0] / max(lw, lh)
     cam.data.shift_y = base_shift[1] - jit[1] / max(lw, lh)
     set_passes(view_layer, plan)
-    settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0], bounces=True,
-                               denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
-                               seed=pass_seed(cfg.seed, frame, 2), light_paths=light_paths)
+    settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
+                               bounces=True, denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
+                               seed=pass_seed(cfg.seed, frame, 2 + i), light_paths=light_paths)
     seconds = {}
     try:
         t = time.perf_counter()
-        passes = render_to(scene, tmpdir / "lr.exr")
+        passes = render_to(scene, tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
@@ -570,11 +589,11 @@ def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: i
     seconds["convert"] = time.perf_counter() - t
     t = time.perf_counter()
     for b in cfg.buffers:
-        writer.write_buffer(frame, "lr", b, lr_out[b])
+        writer.write_buffer(frame, lvl, b, lr_out[b])
     seconds["write"] = time.perf_counter() - t
-    record["lr"] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k_lr,
-                    "prev_intrinsics": k_prev_lr, "jitter": list(jit), "spp": cfg.lr_spp,
-                    "seed": settings_lr["seed"], "seconds": seconds}
+    rec = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k_lr,
+           "prev_intrinsics": k_prev_lr, "jitter": list(jit), "spp": cfg.lr_spp, "seed": settings_lr["seed"],
+           "seconds": seconds}
     if m_next is not None:
-        record["lr"].update(next_world_from_camera=m_next, next_intrinsics=k_next_lr)
-    return record
+        rec.update(next_world_from_camera=m_next, next_intrinsics=k_next_lr)
+    return rec

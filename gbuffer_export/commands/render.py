@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_shard, parse_size
+from ..config import (CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_scales, parse_shard,
+                      parse_size)
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
@@ -30,6 +31,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hr-size", default=None, metavar="WxH",
                    help="HR (target) resolution in pixels; None: the scene's resolution (default scene: 640x360)")
     p.add_argument("--scale", type=int, default=4, help="integer upscaling factor; LR = HR / scale")
+    p.add_argument("--scales", default=None, metavar="S1,S2,...",
+                   help="several LR levels, one LR render each (numbers >= 1 such as 2,2.5,4, where HR width and "
+                        "height divided by each are integers): the first is the level 'lr', the others 'lr_x<s>'; "
+                        "replaces --scale")
     p.add_argument("--hr-spp", type=int, default=64, help="samples per pixel of the HR ground truth")
     p.add_argument("--lr-spp", type=int, default=4, help="samples per pixel of the LR render")
     p.add_argument("--gbuffer-spp", type=int, default=4,
@@ -68,7 +73,8 @@ def config_from_args(args) -> RenderConfig:
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
     return RenderConfig(
         output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
-        scale=args.scale, hr_spp=args.hr_spp, lr_spp=args.lr_spp, gbuffer_spp=args.gbuffer_spp,
+        scale=args.scale, scales=parse_scales(args.scales), hr_spp=args.hr_spp, lr_spp=args.lr_spp,
+        gbuffer_spp=args.gbuffer_spp,
         hr_denoise=args.hr_denoise, lr_denoise=args.lr_denoise, adaptive=args.adaptive,
         adaptive_threshold=args.adaptive_threshold, adaptive_min_samples=args.adaptive_min_samples,
         camera_path=args.camera_path, seed=args.seed, jitter=args.jitter, buffers=args.buffers, fbeta=args.fbeta,

@@ -7,7 +7,7 @@ import json
 import re
 
 from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, load_manifest
-from ..conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION
+from ..conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, is_level_name, level_name
 from .report import WARNING, Collector, as_int, json_safe
 
 _HEADER_KEYS = ("scale", "levels", "frames", "buffers", "blender_version", "blendsr_version", "scene", "render",
@@ -54,18 +54,23 @@ def check_header(c: Collector, m: dict) -> dict | None:
     """Parse scale, level sizes, buffers and planned frames; None when file checks cannot proceed."""
     mpath = c.root / MANIFEST
     fatal = False
-    scale = as_int(m.get("scale"))
-    if scale is None or scale < 1:
-        c.add("manifest-invalid", f"{mpath}: scale {m.get('scale')!r} is not a positive integer")
+    scale = m.get("scale")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale >= 1:
+        c.add("manifest-invalid", f"{mpath}: scale {m.get('scale')!r} is not a number >= 1")
         fatal = True
     sizes: dict[str, tuple[int, int]] = {}
+    scales: dict[str, float] = {"hr": 1.0}
     levels = m.get("levels")
     if not isinstance(levels, dict):
         c.add("manifest-invalid", f"{mpath}: levels is not an object")
         fatal = True
         levels = {}
-    for lvl in LEVELS:
+    for lvl in (*LEVELS, *(k for k in levels if k not in LEVELS)):
         v = levels.get(lvl)
+        if not is_level_name(lvl):
+            c.add("manifest-invalid", f"{mpath}: level name {lvl!r} is not hr, lr or lr_x<scale>", key=lvl)
+            fatal = True
+            continue
         if not isinstance(v, dict) or "width" not in v or "height" not in v:
             c.add("manifest-incomplete", f"{mpath}: levels lacks {lvl!r} with width and height", key=lvl)
             fatal = True
@@ -77,10 +82,28 @@ def check_header(c: Collector, m: dict) -> dict | None:
             fatal = True
             continue
         sizes[lvl] = (w, h)
-    if not fatal and (sizes["hr"][0] != sizes["lr"][0] * scale or sizes["hr"][1] != sizes["lr"][1] * scale):
-        c.add("manifest-inconsistent",
-                 f"{mpath}: hr size {sizes['hr'][0]}x{sizes['hr'][1]} != lr size "
-                 f"{sizes['lr'][0]}x{sizes['lr'][1]} x scale {scale}")
+        if lvl == "hr":
+            continue
+        ls = v.get("scale", scale if lvl == "lr" else None)  # version 1: lr is at the top-level scale
+        if isinstance(ls, bool) or not isinstance(ls, (int, float)) or not ls >= 1:
+            c.add("manifest-invalid", f"{mpath}: level {lvl} scale {ls!r} is not a number >= 1", key=lvl)
+            fatal = True
+            continue
+        scales[lvl] = float(ls)
+    if not fatal:
+        for lvl, ls in scales.items():
+            if lvl == "hr":
+                continue
+            if lvl == "lr" and ls != float(scale):
+                c.add("manifest-inconsistent", f"{mpath}: level lr has scale {ls:g} but the clip's scale is "
+                                               f"{scale:g}", key=lvl)
+            elif lvl != "lr" and level_name(ls, scales["lr"]) != lvl:
+                c.add("manifest-inconsistent", f"{mpath}: level {lvl} has scale {ls:g}; its name must be "
+                                               f"{level_name(ls, scales['lr'])!r}", key=lvl)
+            (wh, hh), (wl, hl) = sizes["hr"], sizes[lvl]
+            if abs(wl * ls - wh) > 1e-6 * wh or abs(hl * ls - hh) > 1e-6 * hh:
+                c.add("manifest-inconsistent", f"{mpath}: hr size {wh}x{hh} != {lvl} size {wl}x{hl} x scale {ls:g}",
+                      key=lvl)
     raw_buffers = m.get("buffers")
     buffers: list[str] = []
     if not isinstance(raw_buffers, list):
@@ -105,7 +128,7 @@ def check_header(c: Collector, m: dict) -> dict | None:
         fatal = True
     if fatal:
         return None
-    return {"scale": scale, "sizes": sizes, "buffers": buffers, "planned": planned,
+    return {"scale": scale, "scales": scales, "sizes": sizes, "buffers": buffers, "planned": planned,
             "frame_data": {int(k): v for k, v in fd.items()}}
 
 
@@ -156,10 +179,8 @@ def check_frames(c: Collector, h: dict) -> list[int]:
                                        f"frame {f} but a later merge would drop it", frame=f)
     # buffer files of frames that are not finished; temporary files
     orphans: dict[int, list[str]] = {}
-    for lvl in LEVELS:
-        ldir = c.root / lvl
-        if not ldir.is_dir():
-            continue
+    for ldir in sorted(p for p in c.root.iterdir() if p.is_dir() and is_level_name(p.name)):
+        lvl = ldir.name
         for bdir in sorted(p for p in ldir.iterdir() if p.is_dir()):
             for fp in bdir.iterdir():
                 if _TEMP_RE.match(fp.name):

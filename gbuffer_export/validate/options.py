@@ -10,8 +10,8 @@ class ValidationOptions:
     """Tolerances of the value and motion checks.
 
     motion_tol_px: hr motion tolerance, pixels of the hr level (|stored - reprojected| <= tol counts as agreeing).
-    lr_motion_tol_px: lr tolerance in pixels of the lr level; None uses ``motion_tol_px`` (each level's motion is
-        checked against that level's own point-sampled depth, so the error sources are per pixel of the level).
+    lr_motion_tol_px: tolerance of every LR level in pixels of that level; None uses ``motion_tol_px`` (each
+        level's motion is checked against that level's own point-sampled depth, so the error sources are per pixel of the level).
     motion_min_fraction: least fraction of static surface pixels that must agree (edges may disagree).
     background_min_fraction: least fraction of background pixels that must carry the rotation-only motion.
     normal_tol / normal_min_fraction: | |n| - 1 | < normal_tol on at least this fraction of surface pixels.
@@ -51,7 +51,7 @@ class ValidationOptions:
 
     def tol_px(self, level: str) -> float:
         """Motion tolerance of ``level`` in pixels of that level."""
-        if level == "lr" and self.lr_motion_tol_px is not None:
+        if level != "hr" and self.lr_motion_tol_px is not None:
             return float(self.lr_motion_tol_px)
         return float(self.motion_tol_px)
 

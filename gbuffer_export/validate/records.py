@@ -1,10 +1,9 @@
 """Checks of the frame records: cameras (4x4 rigid), intrinsics (positive focal), jitter in [-0.5, 0.5] px, spp,
-seed, seconds; hr and lr describe the same camera (lr intrinsics = hr intrinsics / scale)."""
+seed, seconds; every level describes the same camera (an LR level's intrinsics = hr intrinsics / its scale)."""
 from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import LEVELS
 from .report import Collector, as_int
 
 _RECORD_KEYS = ("world_from_camera", "prev_world_from_camera", "intrinsics", "prev_intrinsics", "jitter", "spp",
@@ -12,9 +11,9 @@ _RECORD_KEYS = ("world_from_camera", "prev_world_from_camera", "intrinsics", "pr
 
 
 def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict] | None:
-    """Cameras of both levels as arrays, or None where a level's record is unusable."""
+    """Cameras of every level as arrays; a level whose record is unusable is left out."""
     cams: dict[str, dict] = {}
-    for lvl in LEVELS:
+    for lvl in h["sizes"]:
         r = rec.get(lvl)
         if not isinstance(r, dict):
             c.add("record-incomplete", f"record lacks level {lvl!r}", frame=frame, key=lvl)
@@ -81,19 +80,21 @@ def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict
                      frame=frame, key=lvl)
         if ok:
             cams[lvl] = cam
-    if "hr" in cams and "lr" in cams:
-        a, b = cams["hr"], cams["lr"]
+    for lvl in (k for k in cams if k != "hr"):
+        if "hr" not in cams:
+            break
+        a, b = cams["hr"], cams[lvl]
         for name in ("world_from_camera", "prev_world_from_camera"):
             d = float(np.max(np.abs(a[name] - b[name])))
             if d > 1e-9 * max(1.0, float(np.max(np.abs(a[name])))):
-                c.add("level-mismatch", f"hr and lr {name} differ (max |diff| {d:.3g})", frame=frame,
-                         key="lr", max_diff=d)
-        s = h["scale"]
+                c.add("level-mismatch", f"hr and {lvl} {name} differ (max |diff| {d:.3g})", frame=frame,
+                      key=lvl, max_diff=d)
+        s = h["scales"][lvl]
         for name in ("intrinsics", "prev_intrinsics"):
             expect = a[name] / s
             d = float(np.max(np.abs(b[name] - expect)))
             if d > 1e-6 * float(np.max(np.abs(expect))):
-                c.add("level-mismatch", f"lr {name} {b[name].tolist()} != hr {name} / {s} = "
-                                           f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key="lr",
-                         max_diff=d)
+                c.add("level-mismatch", f"{lvl} {name} {b[name].tolist()} != hr {name} / {s:g} = "
+                                        f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key=lvl,
+                      max_diff=d)
     return cams

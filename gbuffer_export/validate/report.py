@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from ..conventions import LEVELS
 from ..forward_motion import CODES as _FORWARD_MOTION_CODES
 from .options import ValidationOptions
 
@@ -126,8 +125,8 @@ class ValidationReport:
         parts = [f"{verdict}: {self.path}", f"{len(self.errors)} error(s), {len(self.warnings)} warning(s)",
                  f"{s.get('frames_checked', 0)}/{s.get('frames_finished', 0)} finished frames checked "
                  f"({s.get('frames_planned', 0)} planned)"]
-        for lvl in LEVELS:
-            m = s.get("levels", {}).get(lvl, {}).get("motion", {})
+        for lvl, lv in s.get("levels", {}).items():
+            m = lv.get("motion", {})
             if m.get("static_fraction_min") is not None:
                 parts.append(f"{lvl} motion agrees on >= {100 * m['static_fraction_min']:.1f}% of static pixels "
                              f"(worst median {m['static_median_px_max']:.3g} px)")

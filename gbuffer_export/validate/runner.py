@@ -10,7 +10,6 @@ from typing import Iterable
 import numpy as np
 
 from ..clip import ClipError
-from ..conventions import LEVELS
 from ..forward_motion import check_motion_next
 from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
@@ -91,7 +90,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
         for f in selected:
             cams = check_record(c, f, h["frame_data"][f], h)
             per = {}
-            for lvl in LEVELS:
+            for lvl in h["sizes"]:
                 b = read_level(c, f, lvl, h, header_only=f not in full)
                 if f not in full:
                     continue

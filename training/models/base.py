@@ -19,26 +19,24 @@ from training.transforms import normalize_depth
 
 
 class SRModel(nn.Module):
-    """A super-resolution model. Subclasses set ``learned``, ``history`` and implement ``needs`` and ``forward``."""
+    """A super-resolution model. Subclasses set ``learned``, ``history`` and implement ``needs`` and ``forward``.
+
+    ``SCALES``: the integer upscaling factors the model supports, or None for any scale >= 1 (integer or not); such a
+    model reads the factor of each batch from ``batch_scale(batch)`` (``batch['scale']``, (B,) float, all equal)."""
 
     learned = False
+    SCALES: tuple[int, ...] | None = (2, 4, 8)
     #: The inference fast path (``training.models.fast_ops``; ``training.fastpath.prepare_inference`` sets it):
     #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
     fast_ops = False
 
-    #: Supported integer scales, or None for a model that takes any positive scale, integer or not.
-    SCALES: tuple[int, ...] | None = (2, 4, 8)
-
-    def __init__(self, cfg, scale: int | float):
+    def __init__(self, cfg, scale: float):
         super().__init__()
-        if self.SCALES is None:  # arbitrary-scale model (fourier-sr): any s > 0; an integral s stays an int
-            if not float(scale) > 0:
-                raise ValueError(f"scale {scale}: must be > 0")
-            scale = int(scale) if float(scale).is_integer() else float(scale)
-        elif scale not in self.SCALES:
-            raise ValueError(f"scale {scale}: models support {', '.join(map(str, self.SCALES))}")
+        if not self.supports_scale(scale):
+            raise ValueError(f"scale {scale:g}: model {getattr(cfg, 'name', type(self).__name__)} supports "
+                             f"{self.scales_text()}")
         self.cfg = cfg
-        self.scale = scale if self.SCALES is None else int(scale)
+        self.scale = int(scale) if float(scale).is_integer() else float(scale)
         self.history = 0
         self.use_jitter = bool(getattr(cfg, "jitter", True))
         self.by_class = bool(getattr(cfg, "upsample_by_class", False))
@@ -48,6 +46,28 @@ class SRModel(nn.Module):
         self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
                              persistent=False)
         self.remod_taps = None if w1 is None else tuple(float(v) for v in w1)  # the same weights, for fast_ops
+
+    @classmethod
+    def supports_scale(cls, scale) -> bool:
+        """Whether the model can upscale by ``scale`` (a number)."""
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+            return False
+        if cls.SCALES is None:
+            return scale >= 1
+        return float(scale).is_integer() and int(scale) in cls.SCALES
+
+    @classmethod
+    def scales_text(cls) -> str:
+        """'2, 4 and 8' or 'any scale >= 1', for messages."""
+        if cls.SCALES is None:
+            return "any scale >= 1"
+        s = [str(v) for v in cls.SCALES]
+        return ", ".join(s[:-1]) + f" and {s[-1]}" if len(s) > 1 else s[0]
+
+    def batch_scale(self, batch: dict) -> float:
+        """The upscaling factor of ``batch``: ``batch['scale'][0]`` when the batch carries it, else ``self.scale``."""
+        s = batch.get("scale")
+        return float(s.reshape(-1)[0]) if s is not None else self.scale
 
     def follow_reference_filter(self, manifest: dict) -> None:
         """With ``model.remod_filter = "REFERENCE"`` (non-learned models; training resolves it into the checkpoint),

@@ -6,9 +6,11 @@ from training.models.base import SRModel, current, upsample
 
 class Bicubic(SRModel):
     learned = False
+    SCALES = None  # any scale >= 1: the factor of each batch (batch['scale'])
 
     def needs(self):
         return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.scale, "bicubic", self.frame_jitter(batch)).clamp(min=0.0)
+        return upsample(current(batch, "lr/radiance"), self.batch_scale(batch), "bicubic",
+                        self.frame_jitter(batch)).clamp(min=0.0)

@@ -6,10 +6,11 @@ from training.models.base import SRModel, current, upsample
 
 class Bilinear(SRModel):
     learned = False
+    SCALES = None  # any scale >= 1: the factor of each batch (batch['scale'])
     mode = "bilinear"
 
     def needs(self):
         return ("lr/radiance",) + self.jitter_keys()
 
     def forward(self, batch):
-        return upsample(current(batch, "lr/radiance"), self.scale, self.mode, self.frame_jitter(batch))
+        return upsample(current(batch, "lr/radiance"), self.batch_scale(batch), self.mode, self.frame_jitter(batch))
