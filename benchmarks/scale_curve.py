@@ -1,0 +1,99 @@
+"""PSNR against scale: score models on clips with several LR levels, each at every level it can take.
+
+    python benchmarks/scale_curve.py CLIP [CLIP ...] -o OUT --models bicubic,demod-jbu,fourier-sr:RUN/last.pt
+
+A model named NAME or NAME:CHECKPOINT; an arbitrary-scale model (``SCALES is None``: bicubic, fourier-sr) is scored
+at every level of the clips, a fixed-scale one (demod-jbu at 2 and 4, a checkpoint at its trained scale) at the
+levels it takes. Writes OUT/scale_curve.json (per model and scale: PSNR, SSIM, FLIP, ms per frame, frames),
+OUT/scale_curve.md (the table) and OUT/scale_curve.png (PSNR against scale). Used by benchmarks/scales.sh.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> tuple[str, dict]:
+    """{scale: means} of one model over the clips, at every level it takes."""
+    from training.evaluate import evaluate_model
+    from training.inference import load_model
+    from training.models import model_class
+    name, _, ck = spec.partition(":")
+    cls = model_class(name)
+    if ck:
+        from training.checkpoint import load_checkpoint
+        trained = load_checkpoint(ck)
+        scale = float(trained["scale"])
+        scales = trained.get("scales") or [scale]
+        label = f"{name} (trained at {', '.join(f'{s:g}' for s in scales)})"
+        model = load_model(ck, scale)
+    else:
+        label, model = name, None
+    per: dict[str, dict] = {}
+    for s in clip_scales:
+        if not cls.supports_scale(s):
+            continue
+        if model is None or (cls.SCALES is not None and float(model.scale) != s):
+            if ck and cls.SCALES is not None:
+                continue  # a fixed-scale checkpoint: its own scale only
+            model = load_model(ck or name, int(s) if float(s).is_integer() else s)
+        res = evaluate_model(model, clips, flip=flip, warmup=1, scales={c: [s] for c in clips})
+        per[f"{s:g}"] = {k: res["mean"].get(k) for k in ("psnr", "ssim", "flip", "ms_per_frame", "frames")}
+    return label, per
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("clips", nargs="+")
+    p.add_argument("-o", "--out", required=True, type=Path)
+    p.add_argument("--models", required=True, help="comma-separated NAME or NAME:CHECKPOINT")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-flip", action="store_true")
+    a = p.parse_args(argv)
+    import torch
+    torch.set_num_threads(a.threads)
+    from gbuffer_export import open_clip
+    clip_scales = sorted(set.intersection(*(set(open_clip(c).scales) for c in a.clips)))
+    rows = {}
+    for spec in a.models.split(","):
+        label, per = score(spec, a.clips, clip_scales, not a.no_flip)
+        rows[label] = per
+        print(label, {s: round(v["psnr"], 2) for s, v in per.items()}, flush=True)
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "scale_curve.json").write_text(json.dumps({"clips": a.clips, "scales": clip_scales, "models": rows},
+                                                       indent=1))
+    cols = [f"{s:g}" for s in clip_scales]
+    lines = ["| model | " + " | ".join(f"x{c} PSNR / SSIM / FLIP" for c in cols) + " |",
+             "|---|" + "---|" * len(cols)]
+    for label, per in rows.items():
+        cells = []
+        for c in cols:
+            v = per.get(c)
+            cells.append("-" if v is None else f"{v['psnr']:.2f} / {v['ssim']:.4f} / "
+                         + ("-" if v["flip"] is None else f"{v['flip']:.4f}"))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    ms = ["", "| model | " + " | ".join(f"x{c} ms/frame" for c in cols) + " |", "|---|" + "---|" * len(cols)]
+    for label, per in rows.items():
+        ms.append(f"| {label} | " + " | ".join("-" if c not in per else f"{per[c]['ms_per_frame']:.1f}"
+                                               for c in cols) + " |")
+    (a.out / "scale_curve.md").write_text("\n".join(lines + ms) + "\n")
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, per in rows.items():
+        xs = sorted(float(s) for s in per)
+        ax.plot(xs, [per[f"{x:g}"]["psnr"] for x in xs], marker="o", label=label)
+    ax.set_xlabel("scale factor")
+    ax.set_ylabel("PSNR (dB, evaluation tonemap)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(a.out / "scale_curve.png", dpi=120)
+    print((a.out / "scale_curve.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
