@@ -218,6 +218,8 @@ CASES = {
     "schema-newer": (lambda c: edit_manifest(c, lambda m: m.__setitem__("schema_version", SCHEMA_VERSION + 1)),
                      ERROR, None, None),
     "manifest-incomplete": (lambda c: edit_manifest(c, lambda m: m.pop("blender_version")), ERROR, None, None),
+    "manifest-colour-space": (lambda c: edit_manifest(c, lambda m: m.__setitem__("scene_linear", "AgX Log")),
+                              WARNING, None, None),
     "manifest-inconsistent": (lambda c: edit_manifest(c, lambda m: m["levels"]["hr"].__setitem__("width", 68)),
                               ERROR, None, None),
     "no-frames": (_no_frames, ERROR, None, None),

@@ -7,6 +7,7 @@ import json
 import re
 
 from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, load_manifest
+from ..colour_spaces import DEFAULT_WORKING_SPACE, WORKING_SPACES
 from ..conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, is_level_name, level_name
 from .report import WARNING, Collector, as_int, json_safe
 
@@ -58,6 +59,10 @@ def check_header(c: Collector, m: dict) -> dict | None:
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale >= 1:
         c.add("manifest-invalid", f"{mpath}: scale {m.get('scale')!r} is not a number >= 1")
         fatal = True
+    space = m.get("scene_linear", DEFAULT_WORKING_SPACE)
+    if space not in WORKING_SPACES:  # the clip reads as stored, but training cannot convert it to its space
+        c.add("manifest-colour-space", f"{mpath}: scene_linear {space!r} is not a working space training converts "
+                                       f"({', '.join(WORKING_SPACES)})", severity=WARNING)
     sizes: dict[str, tuple[int, int]] = {}
     scales: dict[str, float] = {"hr": 1.0}
     levels = m.get("levels")

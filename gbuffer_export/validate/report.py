@@ -23,6 +23,7 @@ CODES: dict[str, str] = {
     "manifest-invalid": "manifest is not valid JSON, not a BlendSR manifest, or a header value has the wrong type",
     "schema-newer": "manifest schema_version is newer than this blendsr reads",
     "manifest-incomplete": "a required header key is missing",
+    "manifest-colour-space": "scene_linear is a working space training cannot convert into its space (warning)",
     "manifest-inconsistent": "header values contradict each other (hr size != lr size * scale, unknown buffer)",
     "no-frames": "the clip has no finished frame",
     "missing-frame": "a planned frame has no record (not rendered, or the clip is half-written)",
