@@ -18,7 +18,7 @@ STEPS=${STEPS:-600}
 THREADS=${THREADS:-1}
 WINDOW=${WINDOW:-8}   # RDG windows (the paper: 15; the clips have 12 frames); nsrd and nsrr-fec: their configs
 PY=${PY:-.venv/bin/python}
-MODELS=${MODELS:-"fusesr fusesr-l rdg rdg-s rdg-s-demod rdg-s-nogbuf rdg-s-nobrdf rdg-s-nomotion nsrd nsrr nsrr-fec fourier-sr"}
+MODELS=${MODELS:-"fusesr fusesr-l rdg rdg-s rdg-s-demod rdg-s-nogbuf rdg-s-nobrdf rdg-s-nomotion nsrd nsrr nsrr-fec fourier-sr fourier-sr-lr1e-4"}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
 B="$PY -m gbuffer_export.cli"
 $B dataset benchmarks/networks_dataset.toml -o "$DS" --workers 1 --no-progress
@@ -45,10 +45,12 @@ for M in $MODELS; do
     nsrd) train "$M" nsrd examples/nsrd_config.toml ;;
     nsrr) train "$M" nsrr examples/nsrr_fec_config.toml --set data.window=0 ;;
     nsrr-fec) train "$M" nsrr-fec examples/nsrr_fec_config.toml ;;
-    fourier-sr) train "$M" fourier-sr examples/fourier_sr_config.toml ;;
+    fourier-sr) train "$M" fourier-sr examples/fourier_sr_config.toml --set optim.lr=5e-4 ;;  # 1e-4: 300k steps
+    fourier-sr-lr1e-4) train "$M" fourier-sr examples/fourier_sr_config.toml ;;             # the authors' lr
     *) echo "unknown model $M" >&2; exit 2 ;;
   esac
   base=${M%%-s-*}; [ "$base" = "$M" ] || base=rdg-s
+  [ "$M" = fourier-sr-lr1e-4 ] && base=fourier-sr
   LIST="$LIST,$base:$RUNS/$M/checkpoints/last.pt"
 done
 [ "${BENCH:-1}" = 1 ] || exit 0
