@@ -1,6 +1,7 @@
 """fourier-sr: the authors' layer sizes, Eq. 2 against a per-pixel evaluation, any scale (integer or not), the
-jittered sub-pixel offsets, the state (never remodulated), training and bit-identical resume, evaluation at a scale
-never trained on, ONNX export with the scale as an input."""
+jittered sub-pixel offsets, the state (never remodulated), evaluation at a scale never trained on, ONNX export with
+the scale as an input. State carried and reset, training, bit-identical resume, recurrent evaluation,
+upscale, the 3-frame ONNX check and ``bench models``: tests/test_recurrent_models.py."""
 import json
 import math
 
@@ -204,44 +205,19 @@ def clips(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trained(clips, tmp_path_factory):
-    """4 steps straight, and 2 + resume + 2: (straight run, split run)."""
-    from training.config import load_config
-    from training.train import train
-    root = tmp_path_factory.mktemp("runs")
-    straight = root / "straight"
-    assert main(["train", "--model", "fourier-sr", "--data", str(clips[2]), "-o", str(straight), "--max-steps", "4",
+    """A checkpoint trained (2 steps) at scale 2. Training and bit-identical resume: tests/test_recurrent_models.py."""
+    from training.checkpoint import load_checkpoint
+    run = tmp_path_factory.mktemp("runs") / "x2"
+    assert main(["train", "--model", "fourier-sr", "--data", str(clips[2]), "-o", str(run), "--max-steps", "2",
                  *_sets(SMALL)]) == 0
-    split = root / "split"
-    cfg = load_config(None, SMALL + ["run.max_steps=4", "model.name=\"fourier-sr\""])
-    cfg.data.clips = [str(clips[2])]
-    assert train(cfg, split, stop_at=2, log=lambda m: None)["step"] == 2
-    from training.checkpoint import load_checkpoint
-    half = load_checkpoint(split / "checkpoints" / "last.pt")["model"]
-    assert main(["train", "-o", str(split), "--resume"]) == 0
-    return straight, split, half
-
-
-def test_trains_and_resumes_bit_identically(trained):
-    import csv
-
-    from training.checkpoint import load_checkpoint
-    straight, split, half = trained
-    a = load_checkpoint(straight / "checkpoints" / "last.pt")
-    b = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert a["step"] == b["step"] == 4 and a["scale"] == 2
-    for k, v in a["model"].items():
-        assert torch.equal(v, b["model"][k]), k
-    assert not torch.equal(half["mlp.6.weight"], a["model"]["mlp.6.weight"])  # steps 3 and 4 moved the weights
-    rows = list(csv.DictReader(open(straight / "log.csv")))
-    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
-    assert all(math.isfinite(float(r["loss"])) and float(r["temporal"]) > 0 for r in rows)
-    summary = json.loads((straight / "summary.json").read_text())
-    assert summary["params"] == 531883 and summary["window"] == 3
+    ck = run / "checkpoints" / "last.pt"
+    assert load_checkpoint(ck)["scale"] == 2
+    return ck
 
 
 def test_evaluates_at_a_scale_it_never_trained_on(trained, clips, tmp_path):
     from training.inference import load_model
-    ck = trained[0] / "checkpoints" / "last.pt"
+    ck = trained
     out = tmp_path / "x4.json"
     assert main(["evaluate", "--checkpoint", str(ck), "--data", str(clips[4]), "--json", str(out), "--no-flip",
                  "--warmup", "0"]) == 0

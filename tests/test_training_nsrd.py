@@ -1,9 +1,7 @@
 """NSRD (training/models/nsrd.py): parameter counts, the dual-motion-vector mask against the numpy core, the warps
-(accumulated LR motion with jitter, HR motion times the scale), state carried and reset, training, bit-identical
-resume, recurrent evaluation, ONNX export with explicit state."""
-import csv
-import json
-
+(accumulated LR motion with jitter, HR motion times the scale), remodulation, ONNX export at scales 2 and 4 run at
+another size. State carried and reset, training, resume, evaluation, the 3-frame ONNX check and ``bench models``:
+tests/test_recurrent_models.py."""
 import numpy as np
 import pytest
 
@@ -11,25 +9,13 @@ torch = pytest.importorskip("torch")
 torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slower
 
 from gbuffer_export import disocclusion as np_disocclusion  # noqa: E402
-from gbuffer_export.cli import main  # noqa: E402
-from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
-from training.config import ModelConfig, load_config  # noqa: E402
+from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import nsrd as nsrd_mod  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
 from training.recurrent import frame_slice  # noqa: E402
 
 pytestmark = pytest.mark.torch
-
-SMALL = ["data.crop=8", "data.batch_size=2", "run.progress=false", "run.log_every=1", "run.amp=\"none\"",
-         "model.name=\"nsrd\"", "data.window=3", "data.detach_every=2", "loss.ssim_weight=1.0",
-         "loss.temporal_weight=1.0"]
-
-
-@pytest.fixture(scope="module")
-def clip(tmp_path_factory):
-    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 6), hr_size=(64, 36), scale=4,
-                               jitter=True)
 
 
 def make_batch(scale=4, h=6, w=8, frames=3, seed=0):
@@ -104,26 +90,6 @@ def test_warps_masks_and_hr_motion(monkeypatch):
     torch.testing.assert_close(masks[1], torch.maximum(want, real_warp(torch.ones_like(want), off1)[0]))
 
 
-def test_state_is_carried_and_reset_is_a_clip_start():
-    torch.manual_seed(0)
-    model = build_model(ModelConfig(name="nsrd"), 4).eval()
-    batch = make_batch(h=5, w=7)  # not a multiple of 4: the U-Net's padding
-    with torch.no_grad():
-        sr0, s0 = model.step(frame_slice(batch, 0), None)
-        sr1, s1 = model.step(frame_slice(batch, 1), s0)
-        fresh1, _ = model.step(frame_slice(batch, 1), None)
-        sr2, _ = model.step(frame_slice(batch, 2), s1)
-        torch.testing.assert_close(model(batch), sr2)
-        assert not torch.allclose(sr1, fresh1)  # the state matters
-        junk = [torch.randn_like(s) for s in s0]
-        r1, _ = model.step(frame_slice(batch, 1), junk, torch.ones(1))
-        r0, _ = model.step(frame_slice(batch, 1), s0, torch.zeros(1))
-    torch.testing.assert_close(r1, fresh1)
-    torch.testing.assert_close(r0, sr1)
-    assert [tuple(s.shape) for s in s0] == model.state_shapes(5, 7)
-    assert sr0.shape == (1, 3, 20, 28) and torch.isfinite(sr0).all()
-
-
 def test_output_is_remodulated_with_the_hr_fbeta_and_emission():
     model = build_model(ModelConfig(name="nsrd", remod_filter="NONE"), 4).eval()
     batch = make_batch()
@@ -132,94 +98,6 @@ def test_output_is_remodulated_with_the_hr_fbeta_and_emission():
     with torch.no_grad():
         out = model(batch)
         torch.testing.assert_close(model(other), 2 * (out - batch["hr/emission"][:, -1]) + 0.5)
-
-
-def _sets(items):
-    out = []
-    for s in items:
-        out += ["--set", s]
-    return out
-
-
-def test_trains_with_the_papers_losses_and_resumes_bit_identically(clip, tmp_path):
-    from training.train import load_checkpoint, train
-    straight = tmp_path / "straight"
-    extra = ["run.checkpoint_every=100", "optim.decay_steps=3", "data.prefetch=1"]
-    assert main(["train", "--model", "nsrd", "--data", str(clip), "-o", str(straight), "--max-steps", "3",
-                 *_sets(SMALL + extra)]) == 0
-    rows = list(csv.DictReader(open(straight / "log.csv")))
-    assert [int(r["step"]) for r in rows] == [1, 2, 3]
-    for r in rows:
-        total = float(r["pixel"]) + float(r["ssim"]) + float(r["temporal"])
-        assert float(r["loss"]) == pytest.approx(total, rel=1e-4) and float(r["temporal"]) > 0
-    split = tmp_path / "split"
-    cfg = load_config(None, SMALL + extra + ["run.max_steps=3"])
-    cfg.data.clips = [str(clip)]
-    assert train(cfg, split, stop_at=1, log=lambda m: None)["step"] == 1
-    half = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert main(["train", "-o", str(split), "--resume"]) == 0
-    a = load_checkpoint(straight / "checkpoints" / "last.pt")
-    b = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert a["step"] == b["step"] == 3
-    for k, v in a["model"].items():  # parameters and the BatchNorm's running statistics
-        assert torch.equal(v, b["model"][k]), k
-    assert not torch.equal(half["model"]["head.1.weight"], a["model"]["head.1.weight"])
-
-
-@pytest.fixture(scope="module")
-def checkpoint(clip, tmp_path_factory):
-    from training.train import train
-    cfg = load_config(None, SMALL + ["run.max_steps=1"])
-    cfg.data.clips = [str(clip)]
-    run = tmp_path_factory.mktemp("run")
-    train(cfg, run, log=lambda m: None)
-    return run / "checkpoints" / "last.pt"
-
-
-def _manual(model, clip, frames):
-    """SR of ``frames`` (consecutive, from the clip's first) by stepping the model by hand."""
-    from training.inference import ClipFrames, model_inputs
-    src = ClipFrames(clip, eps=model.demod_eps)
-    out, state = {}, None
-    with torch.no_grad():
-        for f in frames:
-            inp = model_inputs(model, src, f)
-            b = {k: torch.from_numpy(v) for k, v in inp.items() if k in model.needs()}
-            sr, state = model.step(b, state)
-            out[f] = sr[0].permute(1, 2, 0).numpy()
-    return out
-
-
-def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
-    from training import metrics
-    from training.evaluate import evaluate_model
-    from training.inference import ClipFrames, load_model
-    model = load_model(str(checkpoint), 4)
-    ref = _manual(model, clip, [1, 2, 3, 4, 5])
-    src = ClipFrames(clip)
-    for frames in ([1, 2, 3, 4, 5], [3, 4, 5]):  # scored frames starting later: the earlier ones run first
-        res = evaluate_model(model, [clip], frames={str(clip): frames}, flip=False, warmup=1)
-        assert [r["frame"] for r in res["per_frame"]] == frames
-        for row in res["per_frame"]:
-            gt = src.read(row["frame"], "hr/radiance")
-            assert row["psnr"] == pytest.approx(metrics.psnr_tm(ref[row["frame"]], gt), abs=1e-4)
-
-
-def test_onnx_export_carries_the_state_over_three_frames(clip, checkpoint, tmp_path):
-    path = tmp_path / "nsrd.onnx"
-    assert main(["export", "--checkpoint", str(checkpoint), "--onnx", str(path), "--clip", str(clip)]) == 0
-    report = json.loads(path.with_suffix(".onnx.json").read_text())
-    assert report["recurrent"] and report["frames_checked"] == 3 and report["match"], report
-    assert set(report["state"]) == {f"state_{i}" for i in range(11)} and "lr_motion_next" in report["inputs"]
-
-
-def test_bench_models_row(clip, checkpoint, tmp_path):
-    from training.bench_models import benchmark
-    res = benchmark([("nsrd (x)", str(checkpoint)), ("bicubic", "bicubic")], [str(clip)], tmp_path / "b",
-                    log=lambda m: None)
-    row = res["rows"][0]
-    assert row["params"] == n_params(build_model(ModelConfig(name="nsrd"), 4))
-    assert row["macs_per_px"] > 0 and row["tpsnr"] is not None and row["warp_error"] is not None
 
 
 @pytest.mark.parametrize("scale", [2, 4])

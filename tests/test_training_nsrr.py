@@ -1,6 +1,7 @@
 """NSRR and NSRR-FEC: parameter counts, zero upsampling at the jittered positions, Y'CbCr, accumulative warping and
-the feature cache (each cached map warped once per frame), state carried and reset, training, resume, recurrent
-evaluation, ONNX with the cache as explicit state, ``bench models``."""
+the feature cache (each cached map warped once per frame), base NSRR training and ONNX. NSRR-FEC state carried and
+reset, training, resume, recurrent evaluation, ONNX with the cache as explicit state and ``bench models``:
+tests/test_recurrent_models.py."""
 import json
 import tomllib
 from pathlib import Path
@@ -170,25 +171,6 @@ def test_cache_maps_are_warped_once_per_frame(monkeypatch):
             state = new
 
 
-def test_state_is_carried_and_reset_is_a_clip_start():
-    torch.manual_seed(0)
-    model = build_model(ModelConfig(name="nsrr-fec"), 4).eval()
-    batch = make_batch(frames=3)
-    with torch.no_grad():
-        sr0, s0 = model.step(frame_slice(batch, 0), None)
-        sr1, s1 = model.step(frame_slice(batch, 1), s0)
-        fresh1, _ = model.step(frame_slice(batch, 1), None)
-        sr2, _ = model.step(frame_slice(batch, 2), s1)
-        torch.testing.assert_close(model(batch), sr2)  # forward = every frame from a reset state
-        assert not torch.allclose(sr1, fresh1)  # the cache matters
-        junk = [torch.randn_like(s) for s in s0]
-        r1, _ = model.step(frame_slice(batch, 1), junk, torch.ones(1))
-        r0, _ = model.step(frame_slice(batch, 1), s0, torch.zeros(1))
-    torch.testing.assert_close(r1, fresh1)
-    torch.testing.assert_close(r0, sr1)
-    assert [tuple(s.shape) for s in s0] == model.state_shapes(6, 8)
-
-
 def test_gbuffers_enter_the_enhanced_model_only():
     batch = make_batch(frames=1)
     other = dict(batch, **{"hr/roughness": 1 - batch["hr/roughness"], "hr/albedo": batch["hr/albedo"] * 0.5})
@@ -231,77 +213,6 @@ def test_base_nsrr_trains_on_five_frame_windows(clip, tmp_path):
                  *_sets([s for s in SMALL if not s.startswith(("data.window", "data.detach", "model.name"))])]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["params"] == 535_023 and summary["window"] is None
-
-
-def test_train_resumes_bit_identically(clip, tmp_path):
-    from training.train import load_checkpoint, train
-    straight = tmp_path / "straight"
-    assert main(["train", "--model", "nsrr-fec", "--data", str(clip), "-o", str(straight), "--max-steps", "4",
-                 *_sets(SMALL + ["run.checkpoint_every=100", "optim.decay_steps=4", "data.prefetch=1"])]) == 0
-    summary = json.loads((straight / "summary.json").read_text())
-    assert summary["window"] == 3 and summary["params"] == 558_999
-    split = tmp_path / "split"
-    cfg = load_config(None, SMALL + ["run.checkpoint_every=100", "optim.decay_steps=4", "data.prefetch=1",
-                                     "run.max_steps=4"])
-    cfg.data.clips = [str(clip)]
-    assert train(cfg, split, stop_at=2, log=lambda m: None)["step"] == 2
-    half = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert main(["train", "-o", str(split), "--resume"]) == 0
-    a = load_checkpoint(straight / "checkpoints" / "last.pt")
-    b = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert a["step"] == b["step"] == 4
-    for k, v in a["model"].items():
-        assert torch.equal(v, b["model"][k]), k
-    assert not torch.equal(half["model"]["unet.out.weight"], a["model"]["unet.out.weight"])
-
-
-@pytest.fixture(scope="module")
-def checkpoint(clip, tmp_path_factory):
-    from training.train import train
-    cfg = load_config(None, SMALL + ["run.max_steps=1"])
-    cfg.data.clips = [str(clip)]
-    run = tmp_path_factory.mktemp("run")
-    train(cfg, run, log=lambda m: None)
-    return run / "checkpoints" / "last.pt"
-
-
-def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
-    from training import metrics
-    from training.evaluate import evaluate_model
-    from training.inference import ClipFrames, load_model, model_inputs
-    model = load_model(str(checkpoint), 4)
-    src = ClipFrames(clip, eps=model.demod_eps)
-    ref, state = {}, None
-    with torch.no_grad():  # by hand: the state reset at the clip's first frame and carried
-        for f in range(1, 7):
-            b = {k: torch.from_numpy(v) for k, v in model_inputs(model, src, f).items() if k in model.needs()}
-            sr, state = model.step(b, state)
-            ref[f] = sr[0].permute(1, 2, 0).numpy()
-    for frames in ([1, 2, 3, 4, 5, 6], [4, 5, 6]):  # scored frames starting later: the earlier ones run first
-        res = evaluate_model(model, [clip], frames={str(clip): frames}, flip=False, warmup=1)
-        assert [r["frame"] for r in res["per_frame"]] == frames
-        for row in res["per_frame"]:
-            gt = src.read(row["frame"], "hr/radiance")
-            assert row["psnr"] == pytest.approx(metrics.psnr_tm(ref[row["frame"]], gt), abs=1e-4)
-
-
-def test_onnx_export_carries_the_cache_over_three_frames(clip, checkpoint, tmp_path):
-    path = tmp_path / "nsrr_fec.onnx"
-    assert main(["export", "--checkpoint", str(checkpoint), "--onnx", str(path), "--clip", str(clip)]) == 0
-    report = json.loads(path.with_suffix(".onnx.json").read_text())
-    assert report["recurrent"] and report["frames_checked"] == 3 and report["match"]
-    assert report["state"] == {f"state_{i}": [1, 12, 40, 64] for i in range(4)}
-    assert {"hr_albedo", "hr_metallic", "hr_normal", "hr_roughness", "hr_specular"} <= set(report["inputs"])
-    assert report["inputs"]["hr_metallic"] == [1, 1, 1, 40, 64]
-
-
-def test_bench_models_row(clip, checkpoint, tmp_path):
-    from training.bench_models import benchmark
-    res = benchmark([("nsrr-fec (x)", str(checkpoint))], [str(clip)], tmp_path / "b", flip=True, log=lambda m: None)
-    row = res["rows"][0]
-    assert row["params"] == 558_999 and row["macs_per_px"] > 0
-    for key in ("psnr", "ssim", "flip", "tpsnr", "warp_error"):
-        assert row[key] is not None, key
 
 
 def test_base_nsrr_exports_to_onnx(tmp_path):

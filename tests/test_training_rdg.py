@@ -1,8 +1,6 @@
 """RDG / RDG-s and the recurrent path: parameter counts, CycleFC against the deformable-sampling definition, the
-warp's motion per level, state carried and reset, window batches, training, resume, evaluation, upscale, ONNX."""
-import csv
-import json
-
+warp's motion per level, window batches, truncated backprop. State carried and reset, training, resume, evaluation,
+upscale, ONNX and ``bench models`` of every recurrent model: tests/test_recurrent_models.py."""
 import numpy as np
 import pytest
 
@@ -11,17 +9,12 @@ torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slow
 
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
-from training.config import ModelConfig, load_config  # noqa: E402
+from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import rdg as rdg_mod  # noqa: E402
-from training.recurrent import frame_slice, lead_in  # noqa: E402
+from training.recurrent import frame_slice  # noqa: E402
 
 pytestmark = pytest.mark.torch
-
-SMALL = ["data.crop=8", "data.batch_size=2", "run.progress=false", "run.log_every=1", "run.amp=\"none\"",
-         "model.width=8", "data.window=3", "data.detach_every=2", "loss.pixel=\"charbonnier\"",
-         "loss.charbonnier_eps=1e-6", "loss.ssim_weight=0.0", "loss.temporal_weight=1.0",
-         "loss.temporal=\"difference\"", "loss.fft_weight=0.05", "loss.fft=\"rfft\""]
 
 
 @pytest.fixture(scope="module")
@@ -75,28 +68,6 @@ def test_cyclefc_is_deformable_sampling_with_the_cyclemlp_offsets(k, axis):
         ref += wt[:, ch].view(1, c, 1, 1) * shifted[:, None]
     ref += m.bias.detach().view(1, c, 1, 1)
     torch.testing.assert_close(m(x).detach(), ref, atol=1e-5, rtol=1e-5)
-
-
-def test_state_is_carried_and_reset_is_a_clip_start():
-    torch.manual_seed(0)
-    model = build_model(ModelConfig(name="rdg-s"), 4).eval()
-    batch = make_batch()
-    with torch.no_grad():
-        sr0, s0 = model.step(frame_slice(batch, 0), None)
-        sr1, s1 = model.step(frame_slice(batch, 1), s0)
-        fresh1, _ = model.step(frame_slice(batch, 1), None)
-        sr2, _ = model.step(frame_slice(batch, 2), s1)
-        # forward = every frame from a reset state, the last SR
-        torch.testing.assert_close(model(batch), sr2)
-        assert not torch.allclose(sr1, fresh1)  # the state matters
-        # reset = 1 ignores whatever state is passed; reset = 0 uses it
-        junk = [torch.randn_like(s) for s in s0]
-        r1, _ = model.step(frame_slice(batch, 1), junk, torch.ones(1))
-        r0, _ = model.step(frame_slice(batch, 1), s0, torch.zeros(1))
-    torch.testing.assert_close(r1, fresh1)
-    torch.testing.assert_close(r0, sr1)
-    assert [tuple(s.shape) for s in s0] == model.state_shapes(6, 8)
-    torch.testing.assert_close(s0[3], batch["lr_jitter"][:, 0])  # the state carries the frame's jitter
 
 
 def test_warp_uses_the_current_frames_motion_scaled_per_level_plus_the_jitter_difference(monkeypatch):
@@ -176,43 +147,6 @@ def test_window_applies_to_recurrent_models_only(clip, tmp_path):
     assert rc == 2
 
 
-def _sets(items):
-    out = []
-    for s in items:
-        out += ["--set", s]
-    return out
-
-
-def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(clip, tmp_path):
-    from training.train import load_checkpoint, train
-    straight = tmp_path / "straight"
-    assert main(["train", "--model", "rdg-s", "--data", str(clip), "-o", str(straight), "--max-steps", "4",
-                 *_sets(SMALL + ["run.checkpoint_every=100", "optim.decay_steps=4", "data.prefetch=1"])]) == 0
-    rows = list(csv.DictReader(open(straight / "log.csv")))
-    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
-    for r in rows:
-        assert float(r["mem_mb"]) > 0
-        total = float(r["pixel"]) + 0.05 * float(r["fft"]) + float(r["temporal"])
-        assert float(r["loss"]) == pytest.approx(total, rel=1e-4)
-    summary = json.loads((straight / "summary.json").read_text())
-    assert summary["peak_mem_mb"] == max(float(r["mem_mb"]) for r in rows)
-    assert summary["window"] == 3 and summary["params"] == n_params(
-        build_model(load_config(straight / "config.toml").model, 4))
-    split = tmp_path / "split"
-    cfg = load_config(None, SMALL + ["run.checkpoint_every=100", "optim.decay_steps=4", "data.prefetch=1",
-                                     "run.max_steps=4", "model.name=\"rdg-s\""])
-    cfg.data.clips = [str(clip)]
-    assert train(cfg, split, stop_at=2, log=lambda m: None)["step"] == 2
-    half = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert main(["train", "-o", str(split), "--resume"]) == 0
-    a = load_checkpoint(straight / "checkpoints" / "last.pt")
-    b = load_checkpoint(split / "checkpoints" / "last.pt")
-    assert a["step"] == b["step"] == 4
-    for k, v in a["model"].items():
-        assert torch.equal(v, b["model"][k]), k
-    assert not torch.equal(half["model"]["head.weight"], a["model"]["head.weight"])
-
-
 def test_truncated_backprop_equals_full_backprop_when_the_chunk_covers_the_window():
     """detach_every >= T: one backward of the mean loss; detach_every = 1: no gradient crosses frames."""
     from training.config import LossConfig
@@ -245,73 +179,6 @@ def test_truncated_backprop_equals_full_backprop_when_the_chunk_covers_the_windo
     loss_1, g_1 = grads(1)
     assert float(loss_1) == pytest.approx(float(ref.detach()), rel=1e-6)  # same forward values, other gradients
     assert any(not torch.allclose(a, b) for a, b in zip(g_1, g_full))
-
-
-@pytest.fixture(scope="module")
-def checkpoint(clip, tmp_path_factory):
-    from training.train import train
-    cfg = load_config(None, SMALL + ["run.max_steps=1", "model.name=\"rdg-s\""])
-    cfg.data.clips = [str(clip)]
-    run = tmp_path_factory.mktemp("run")
-    train(cfg, run, log=lambda m: None)
-    return run / "checkpoints" / "last.pt"
-
-
-def _manual(model, clip, frames):
-    """SR of ``frames`` (consecutive, from the clip's first) by stepping the model by hand."""
-    from training.inference import ClipFrames, model_inputs
-    src = ClipFrames(clip, eps=model.demod_eps)
-    out, state = {}, None
-    with torch.no_grad():
-        for f in frames:
-            inp = model_inputs(model, src, f)
-            b = {k: torch.from_numpy(v) for k, v in inp.items() if k in model.needs()}
-            sr, state = model.step(b, state)
-            out[f] = sr[0].permute(1, 2, 0).numpy()
-    return out
-
-
-def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
-    from training import metrics
-    from training.evaluate import evaluate_model
-    from training.inference import ClipFrames, load_model
-    model = load_model(str(checkpoint), 4)
-    ref = _manual(model, clip, [1, 2, 3, 4, 5])
-    src = ClipFrames(clip)
-    for frames in ([1, 2, 3, 4, 5], [3, 4, 5]):  # scored frames starting later: the earlier ones run first
-        res = evaluate_model(model, [clip], frames={str(clip): frames}, flip=False, warmup=1)
-        for row in res["per_frame"]:
-            gt = src.read(row["frame"], "hr/radiance")
-            assert row["psnr"] == pytest.approx(metrics.psnr_tm(ref[row["frame"]], gt), abs=1e-4)
-    assert lead_in([1, 2, 3, 5, 6], 6) == [5] and lead_in([1, 2, 3], 1) == []
-
-
-def test_upscale_carries_the_state_and_a_jump_reruns_from_the_clip_start(clip, checkpoint, tmp_path):
-    from training.inference import ClipFrames, load_model, upscale_frame
-    model = load_model(str(checkpoint), 4)
-    ref = _manual(model, clip, [1, 2, 3, 4])
-    src = ClipFrames(clip)
-    np.testing.assert_allclose(upscale_frame(model, src, 4)["sr"], ref[4], atol=1e-5)  # a jump
-    for f in (1, 2, 3):  # in order
-        np.testing.assert_allclose(upscale_frame(model, src, f)["sr"], ref[f], atol=1e-5)
-    assert main(["upscale", "--checkpoint", str(checkpoint), "--clip", str(clip), "-o", str(tmp_path / "up")]) == 0
-
-
-def test_onnx_export_carries_the_state_over_three_frames(clip, checkpoint, tmp_path):
-    path = tmp_path / "rdg.onnx"
-    assert main(["export", "--checkpoint", str(checkpoint), "--onnx", str(path), "--clip", str(clip)]) == 0
-    report = json.loads(path.with_suffix(".onnx.json").read_text())
-    assert report["recurrent"] and report["frames_checked"] == 3 and report["match"]
-    assert len(report["max_abs_diff_per_frame"]) == 3 and set(report["state"]) == {f"state_{i}" for i in range(4)}
-
-
-def test_bench_models_runs_a_recurrent_checkpoint(clip, checkpoint, tmp_path):
-    from training.bench_models import benchmark
-    res = benchmark([("rdg-s (x)", str(checkpoint)), ("bicubic", "bicubic")], [str(clip)], tmp_path / "b",
-                    log=lambda m: None)
-    row = res["rows"][0]
-    assert row["params"] == n_params(build_model(ModelConfig.of(name="rdg-s", width=8), 4))
-    assert row["macs_per_px"] > 0 and row["tpsnr"] is not None and row["warp_error"] is not None
 
 
 def test_demodulated_rdg_remodulates_with_the_hr_fbeta():
