@@ -260,7 +260,7 @@ CASES = {
     "flags-range": (_unknown_flag, ERROR, 2, "hr/flags"),
     "motion-reprojection": (_motion_offset, ERROR, 2, "hr/motion"),
     "background-motion": (_background_motion_zero, ERROR, 2, "hr/motion"),
-    # motion_next (gbuffer_export.forward_motion): the motion's corruptions, and a record without the next camera
+    # motion_next (validate/motion.py): the motion's corruptions, and a record without the next camera
     "motion-next-reprojection": (lambda c: _motion_offset(c, key="lr/motion_next", offset=(0.0, 0.5)), ERROR, 2,
                                  "lr/motion_next"),
     "motion-next-background": (lambda c: edit_buffer(c, 2, "hr/motion_next", lambda a: np.where(

@@ -17,7 +17,7 @@ Checks, in the order ``runner.run`` calls them (one module per family):
                on background; material buffers in [0, 1]; emission >= 0; only known flag bits;
     motion     (``motion``) stored motion against ``reprojection_motion`` on static surface pixels and against the
                rotation-only motion on background pixels (fractions within tolerance); ``motion_next`` the same
-               way towards the next camera (``gbuffer_export.forward_motion``).
+               way towards the next camera.
 Findings, the report and the run's state are in ``report``, the tolerances in ``options``.
 """
 from __future__ import annotations

@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from ..forward_motion import CODES as _FORWARD_MOTION_CODES
 from .options import ValidationOptions
 
 
@@ -60,7 +59,10 @@ CODES: dict[str, str] = {
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",
-    **_FORWARD_MOTION_CODES,  # motion_next (gbuffer_export.forward_motion)
+    "next-camera": "a clip with motion_next lacks a rigid next_world_from_camera or a valid next_intrinsics",
+    "motion-next-reprojection": "stored motion_next disagrees with reprojection to the next camera on static "
+                                "surfaces",
+    "motion-next-background": "background motion_next is not the rotation-only motion to the next camera",
 }
 
 

@@ -10,10 +10,9 @@ from typing import Iterable
 import numpy as np
 
 from ..clip import ClipError
-from ..forward_motion import check_motion_next
 from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
-from .motion import check_motion
+from .motion import check_motion, check_motion_next
 from .options import ValidationOptions
 from .records import check_record
 from .report import ERROR, WARNING, Collector, ValidationReport
@@ -96,12 +95,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                     continue
                 surface = check_values(c, f, lvl, b)
                 mst = check_motion(c, f, lvl, b, cams.get(lvl), surface)
-                o = c.opt
-                for code, msg, det in check_motion_next(  # motion_next: gbuffer_export.forward_motion
-                        b, cams.get(lvl), h["frame_data"][f].get(lvl), surface, tol=o.tol_px(lvl),
-                        min_fraction=o.motion_min_fraction, min_pixels=o.min_pixels,
-                        background_min_fraction=o.background_min_fraction):
-                    c.add(code, msg, frame=f, key=f"{lvl}/motion_next", **det)
+                check_motion_next(c, f, lvl, b, cams.get(lvl), h["frame_data"][f].get(lvl), surface)
                 accumulate(c, lvl, b, surface, mst)
                 if mst:
                     per[lvl] = mst
