@@ -15,29 +15,27 @@ from pathlib import Path
 
 
 def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> tuple[str, dict]:
-    """{scale: means} of one model over the clips, at every level it takes."""
+    """(label, {scale: means}) of one model over the clips, at every level it takes: a checkpoint of a fixed-scale
+    model at its trained scale, an arbitrary-scale one at every level, a non-learned model at every level it
+    supports (one instance per scale)."""
+    from training.checkpoint import load_checkpoint
     from training.evaluate import evaluate_model
     from training.inference import load_model
     from training.models import model_class
     name, _, ck = spec.partition(":")
     cls = model_class(name)
+    label = name
     if ck:
-        from training.checkpoint import load_checkpoint
         trained = load_checkpoint(ck)
-        scale = float(trained["scale"])
-        scales = trained.get("scales") or [scale]
-        label = f"{name} (trained at {', '.join(f'{s:g}' for s in scales)})"
-        model = load_model(ck, scale)
+        label = f"{name} (trained at {', '.join(f'{s:g}' for s in trained.get('scales') or [trained['scale']])})"
+        model = load_model(ck, trained["scale"])
+        scales = clip_scales if cls.SCALES is None else [float(trained["scale"])]
+        models = {s: model for s in scales}
     else:
-        label, model = name, None
-    per: dict[str, dict] = {}
-    for s in clip_scales:
-        if not cls.supports_scale(s):
-            continue
-        if model is None or (cls.SCALES is not None and float(model.scale) != s):
-            if ck and cls.SCALES is not None:
-                continue  # a fixed-scale checkpoint: its own scale only
-            model = load_model(ck or name, int(s) if float(s).is_integer() else s)
+        models = {s: load_model(name, int(s) if float(s).is_integer() else s)
+                  for s in clip_scales if cls.supports_scale(s)}
+    per = {}
+    for s, model in models.items():
         res = evaluate_model(model, clips, flip=flip, warmup=1, scales={c: [s] for c in clips})
         per[f"{s:g}"] = {k: res["mean"].get(k) for k in ("psnr", "ssim", "flip", "ms_per_frame", "frames")}
     return label, per
