@@ -4,7 +4,7 @@ Management 34(3), 2023), written from the papers. docs/models/nsrr_fec.md lists 
 
 Per LR frame the RGB-D input is [T(radiance) 3, depth 1] (T = ``model.input_transform``, log1p by default; depth
 normalised by ``model.depth_norm`` with the current frame's reference). Colour: the current frame's T(radiance)
-goes through the BT.709 R'G'B' -> Y'CbCr matrix (full range, chroma centred at 0; from ``colour``), the network's
+goes through the BT.709 R'G'B' -> Y'CbCr matrix (full range, chroma centred at 0; ``gbuffer_export.colour_spaces``), the network's
 3 output channels through its inverse, then T^-1. T first: BT.709 defines Y'CbCr on non-linear R'G'B', and T is the
 project's non-linear encoding of HDR radiance (the matrix applied to linear radiance would give log a signed
 chroma to compress).
@@ -37,12 +37,12 @@ the input: 17 channels) into the reconstruction input.
 """
 from __future__ import annotations
 
-import colour
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from gbuffer_export.colour_spaces import RGB_TO_YCBCR_709, YCBCR_TO_RGB_709
 from training.models.base import SRModel, backward_warp, current, depth_features, frame, jitter, upsample
 from training.transforms import forward_transform, inverse_transform
 
@@ -57,9 +57,9 @@ PAD = 4                          # two 2x2 max-pools
 
 
 def ycbcr_matrices() -> tuple[np.ndarray, np.ndarray]:
-    """(R'G'B' -> Y'CbCr, Y'CbCr -> R'G'B') 3x3 float64: ITU-R BT.709 weights, full range, chroma centred at 0."""
-    to_rgb = colour.matrix_YCbCr(K=colour.WEIGHTS_YCBCR["ITU-R BT.709"], is_legal=False, is_int=False)
-    return np.linalg.inv(to_rgb), np.asarray(to_rgb, dtype=np.float64)
+    """(R'G'B' -> Y'CbCr, Y'CbCr -> R'G'B') 3x3 float64: ITU-R BT.709 weights, full range, chroma centred at 0
+    (``gbuffer_export.colour_spaces``, tested there against colour-science)."""
+    return RGB_TO_YCBCR_709, YCBCR_TO_RGB_709
 
 
 def apply_matrix(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
