@@ -71,3 +71,25 @@ def assert_same_render(a: dict, b: dict) -> int:
         else:
             assert np.allclose(x, y, rtol=1e-6, atol=1e-6, equal_nan=True), f"{k} differs beyond float rounding"
     return identical
+
+
+def edit_manifest(clip: Path, fn) -> None:
+    """Apply ``fn`` to a clip's manifest (a dict) and write it back atomically."""
+    import json
+
+    from gbuffer_export.clip import write_json_atomic
+    m = json.loads((clip / "manifest.json").read_text())
+    fn(m)
+    write_json_atomic(clip / "manifest.json", m)
+
+
+def edit_record(clip: Path, frame: int, fn) -> None:
+    """Apply ``fn`` to a frame's record both in the manifest and in frames/ (so they stay merged)."""
+    import json
+
+    from gbuffer_export.clip import write_json_atomic
+    edit_manifest(clip, lambda m: fn(m["frame_data"][str(frame)]))
+    rp = clip / "frames" / f"{frame:06d}.json"
+    rec = json.loads(rp.read_text())
+    fn(rec)
+    write_json_atomic(rp, rec)

@@ -7,6 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import edit_manifest, edit_record
+
 from gbuffer_export import open_clip
 from gbuffer_export.clip import ClipError, buffer_path, write_json_atomic
 from gbuffer_export.conventions import (BUFFERS, check_level_sizes, level_name, lr_size, nearest_divisible_sizes,
@@ -31,20 +33,6 @@ def clip(multi_clip, tmp_path):
     dst = tmp_path / "clip"
     shutil.copytree(multi_clip, dst)
     return dst
-
-
-def edit_manifest(clip, fn):
-    m = json.loads((clip / "manifest.json").read_text())
-    fn(m)
-    write_json_atomic(clip / "manifest.json", m)
-
-
-def edit_record(clip, frame, fn):
-    edit_manifest(clip, lambda m: fn(m["frame_data"][str(frame)]))
-    rp = clip / "frames" / f"{frame:06d}.json"
-    rec = json.loads(rp.read_text())
-    fn(rec)
-    write_json_atomic(rp, rec)
 
 
 # ---------------------------------------------------------------------------------------------- sizes and names

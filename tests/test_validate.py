@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import requires_bpy, run_cli
+from conftest import edit_manifest, edit_record, requires_bpy, run_cli
 from gbuffer_export.cli import main
 from gbuffer_export.clip import ClipError, buffer_path, write_json_atomic
 from gbuffer_export.conventions import BUFFERS, SCHEMA_VERSION, Flag
@@ -56,21 +56,6 @@ def write(clip, frame, key, arr, channels=None):
 
 def surface(clip, frame, lvl="hr"):
     return (read(clip, frame, f"{lvl}/flags")[..., 0] & np.uint32(Flag.BACKGROUND)) == 0
-
-
-def edit_manifest(clip, fn):
-    m = json.loads((clip / "manifest.json").read_text())
-    fn(m)
-    write_json_atomic(clip / "manifest.json", m)
-
-
-def edit_record(clip, frame, fn):
-    """Apply ``fn`` to a frame's record both in the manifest and in frames/ (so they stay merged)."""
-    edit_manifest(clip, lambda m: fn(m["frame_data"][str(frame)]))
-    rp = clip / "frames" / f"{frame:06d}.json"
-    rec = json.loads(rp.read_text())
-    fn(rec)
-    write_json_atomic(rp, rec)
 
 
 def edit_buffer(clip, frame, key, fn):
