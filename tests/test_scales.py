@@ -10,7 +10,7 @@ import pytest
 from conftest import edit_manifest, edit_record
 
 from gbuffer_export import open_clip
-from gbuffer_export.clip import ClipError, buffer_path, write_json_atomic
+from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.conventions import (BUFFERS, check_level_sizes, level_name, lr_size, nearest_divisible_sizes,
                                         reprojection_motion, scale_fraction)
 from gbuffer_export.exr import read_exr, write_exr

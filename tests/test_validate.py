@@ -12,7 +12,7 @@ import pytest
 
 from conftest import edit_manifest, edit_record, requires_bpy, run_cli
 from gbuffer_export.cli import main
-from gbuffer_export.clip import ClipError, buffer_path, write_json_atomic
+from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.conventions import BUFFERS, SCHEMA_VERSION, Flag
 from gbuffer_export.exr import read_exr, write_exr
 from gbuffer_export.synthetic import make_synthetic_clip
