@@ -71,7 +71,8 @@ BUFFERS: dict[str, BufferSpec] = {
         BufferSpec("specular", ("Y",), "float32",
                    "dielectric F0 = ((ior-1)/(ior+1))^2 * 2 * specular_ior_level, clamped to [0, 1]"),
         BufferSpec("emission", ("R", "G", "B"), "float32",
-                   "emitted radiance seen directly, so that radiance = fbeta * L_D + emission"),
+                   "emitted radiance seen directly (a surface's emission; on background the environment), so that "
+                   "radiance = fbeta * L_D + emission"),
         BufferSpec("fbeta", ("R", "G", "B"), "float32",
                    "pre-integrated BRDF (directional albedo) per pixel; 1 on background"),
         BufferSpec("motion", ("X", "Y"), "float32",

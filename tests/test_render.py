@@ -168,6 +168,20 @@ def test_resume_and_shards(basic_blend, tmp_path):
     assert (out / "lr" / "motion" / "000003.exr").is_file() and open_clip(out).complete
 
 
+def test_background_emission_is_the_environment(basic_clip):
+    """On background pixels the emission buffer holds the sky the camera sees (the basic scene's uniform world of
+    (0.6, 0.7, 1.0)), so radiance - emission, the demodulated L_D there, is 0; surfaces keep their own emission."""
+    clip = open_clip(basic_clip)
+    assert clip.manifest["render"]["gbuffer"]["emission_background"] == "environment"
+    for lvl in ("hr", "lr"):
+        em, rad = clip.read(3, f"{lvl}/emission"), clip.read(3, f"{lvl}/radiance")
+        bg = (clip.read(3, f"{lvl}/flags")[..., 0] & int(Flag.BACKGROUND)) != 0
+        assert np.allclose(em[bg], [0.6, 0.7, 1.0], rtol=1e-4), lvl
+        assert np.all(em[~bg] == 0.0), lvl  # nothing in the basic scene emits
+        if lvl == "lr":  # point-sampled: radiance is exactly the sky there
+            assert np.abs(rad[bg] - em[bg]).max() < 1e-4
+
+
 def test_white_furnace(blend_dir, tmp_path):
     """Objects invisible to secondary rays under a uniform white world: radiance / fbeta = 1."""
     scene = make_blend("furnace", blend_dir / "furnace.blend")

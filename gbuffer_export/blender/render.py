@@ -198,10 +198,11 @@ def set_passes(view_layer, plan: PassPlan) -> None:
     vl.use_pass_vector = plan.vector
     vl.use_pass_diffuse_color = vl.use_pass_glossy_color = vl.use_pass_transmission_color = plan.colors
     vl.use_pass_emit = plan.emit
+    vl.use_pass_environment = plan.emit  # the emission buffer's background pixels (conventions: emission)
     vl.use_pass_material_index = plan.index
     vl.use_pass_object_index = plan.index
     for name in ("use_pass_mist", "use_pass_position", "use_pass_uv", "use_pass_ambient_occlusion",
-                 "use_pass_shadow", "use_pass_environment"):
+                 "use_pass_shadow"):
         if hasattr(vl, name):
             setattr(vl, name, False)
     for name in ("use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_glossy_direct",
@@ -363,7 +364,9 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
             arr = passes[aov][..., :3] if b in mats.AOV_COLOR else passes[aov][..., :1]
             out[b] = np.where(bg[..., None], 0.0, arr)
     if "emission" in buffers:
-        out["emission"] = np.where(bg[..., None], 0.0, np.maximum(passes["Emission"][..., :3], 0.0))
+        # surfaces: their emission; background: the environment seen directly (conventions: emission)
+        out["emission"] = np.maximum(np.where(bg[..., None], passes["Environment"][..., :3],
+                                              passes["Emission"][..., :3]), 0.0)
     if "fbeta" in buffers:
         if fbeta_source == "cycles":
             fb = (passes["Diffuse Color"][..., :3] + passes["Glossy Color"][..., :3]
@@ -440,7 +443,8 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
             "lr": {"spp": cfg.lr_spp, "denoise": cfg.lr_denoise, "pixel_filter": POINT_FILTER[0],
                    "filter_width_px": POINT_FILTER[1]},
             "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
-                        "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes"},
+                        "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
+                        "emission_background": "environment" if plan.emit else None},
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
         },
