@@ -1,21 +1,22 @@
 #!/usr/bin/env bash
 # Remake the shipped pretrained weights (training/weights/*.pt + .json):
-#   1. render the dataset of examples/dataset_small.toml (25 clips; resumes when DATASET exists),
+#   1. render the dataset of $SPEC (default examples/dataset_medium.toml, 61 clips; resumes when DATASET exists),
 #   2. train fusesr and fusesr-l on its train split with benchmarks/pretrain.toml,
 #   3. score them and the non-learned baselines on its test split (assets never seen in training),
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
-# Usage: benchmarks/pretrain.sh [DATASET] [RUNS]
+# Usage: [SPEC=spec.toml] benchmarks/pretrain.sh [DATASET] [RUNS]
 #        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 2000 and 2500 as shipped; THREADS: torch threads)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-DS=${1:-datasets/small}
+SPEC=${SPEC:-examples/dataset_medium.toml}
+DS=${1:-datasets/medium}
 RUNS=${2:-runs/pretrain}
 FUSESR_STEPS=${FUSESR_STEPS:-2000}
 FUSESR_L_STEPS=${FUSESR_L_STEPS:-2500}
 THREADS=${THREADS:-1}
 PY=${PY:-.venv/bin/python}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
-$PY -m gbuffer_export.cli dataset examples/dataset_small.toml -o "$DS" --workers 2
+$PY -m gbuffer_export.cli dataset "$SPEC" -o "$DS" --workers 2
 $PY -m gbuffer_export.cli validate "$DS" --quick --no-progress
 for M in fusesr fusesr-l; do
   R="$RUNS/${M//-/_}"

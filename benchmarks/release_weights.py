@@ -60,9 +60,9 @@ def main(argv=None) -> int:
         s = {**score(str(ck)), "steps": int(load_checkpoint(ck)["step"])}
         meta = {
             "model": name, "scale": 4, "date": out["date"],
-            "dataset": {"spec_file": "examples/dataset_small.toml", "spec_sha256": index["spec"]["sha256"],
+            "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
                         "name": index["name"], "train_clips": train, "test_clips": out["test_clips"]},
-            "commands": ["benchmarks/pretrain.sh " + " ".join(map(str, (a.dataset, a.runs))),
+            "commands": [f"SPEC={index['spec']['file']} benchmarks/pretrain.sh {a.dataset} {a.runs}",
                          f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
                          f"--max-steps {s['steps']} --set run.threads=1"],
             "config": "benchmarks/pretrain.toml",

@@ -320,3 +320,28 @@ def test_the_same_spec_renders_the_same_clips(tmp_path):
                 for b in c.manifest["buffers"]}
     for clip in clips:
         assert_same_render(buffers(clip), buffers(tmp_path / "b" / clip.relative_to(tmp_path / "a")))
+
+
+@pytest.mark.parametrize("spec_file", sorted((REPO / "examples").glob("dataset_*.toml"))
+                         + [REPO / "benchmarks" / "networks_dataset.toml"], ids=lambda p: p.name)
+def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
+    """Every dataset spec the project ships parses, expands to uniquely named clips, and no training clip shows a
+    test asset (as its main asset or as clutter). The medium spec contains the small one's clips exactly."""
+    if not (REPO.parent / "shared" / "scenes").is_dir():
+        pytest.skip("../shared/scenes is not present")
+    jobs = expand(load_spec(spec_file))
+    assert len({j.id for j in jobs}) == len(jobs)
+    test_assets = {Path(j.asset).stem for j in jobs if j.split == "test" and j.asset}
+    assert test_assets, spec_file
+    for j in jobs:
+        if j.split != "test":
+            shown = [Path(p).stem for p in ([j.asset] if j.asset else []) + list(j.clutter)]
+            assert not test_assets & set(shown), (j.id, shown)
+    if spec_file.name == "dataset_medium.toml":
+        small = {j.id: j for j in expand(load_spec(spec_file.parent / "dataset_small.toml"))}
+        medium = {j.id: j for j in jobs}
+        assert small.keys() <= medium.keys() and len(medium) == 61
+        for cid, j in small.items():
+            assert (medium[cid].seed, medium[cid].hdri, medium[cid].clutter, medium[cid].split) == \
+                (j.seed, j.hdri, j.clutter, j.split)
+        assert {j.id for j in jobs if j.split == "test"} == {c for c, j in small.items() if j.split == "test"}
