@@ -180,6 +180,8 @@ def test_background_emission_is_the_environment(basic_clip):
         assert np.all(em[~bg] == 0.0), lvl  # nothing in the basic scene emits
         if lvl == "lr":  # point-sampled: radiance is exactly the sky there
             assert np.abs(rad[bg] - em[bg]).max() < 1e-4
+    from gbuffer_export.validate import validate_clip
+    assert not [f for f in validate_clip(basic_clip).findings if f.code == "emission-background"]
 
 
 def test_white_furnace(blend_dir, tmp_path):

@@ -207,6 +207,9 @@ CASES = {
                               WARNING, None, None),
     "manifest-inconsistent": (lambda c: edit_manifest(c, lambda m: m["levels"]["hr"].__setitem__("width", 68)),
                               ERROR, None, None),
+    # the synthetic clip writes emission 0 on its sky: declaring that emission holds the environment contradicts it
+    "emission-background": (lambda c: edit_manifest(c, lambda m: m["render"].__setitem__(
+        "gbuffer", {"emission_background": "environment"})), ERROR, None, "lr/emission"),
     "no-frames": (_no_frames, ERROR, None, None),
     "missing-frame": (_missing_frame, ERROR, 2, None),
     "unplanned-frame": (lambda c: edit_manifest(c, lambda m: m["frames"].remove(3)), WARNING, 3, None),

@@ -56,6 +56,8 @@ CODES: dict[str, str] = {
     "fbeta-background": "fbeta is not 1 on background pixels",
     "value-range": "a material buffer outside its range (albedo/roughness/metallic/specular [0,1], emission >= 0)",
     "flags-range": "flags hold unknown bits",
+    "emission-background": "on a point-sampled LR level, radiance is not the environment that emission holds on "
+                           "background (render.gbuffer.emission_background = \"environment\")",
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",

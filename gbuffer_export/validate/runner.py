@@ -16,7 +16,7 @@ from .motion import check_motion, check_motion_next
 from .options import ValidationOptions
 from .records import check_record
 from .report import ERROR, WARNING, Collector, ValidationReport
-from .values import check_values
+from .values import check_background_emission, check_values
 
 
 def accumulate(c: Collector, lvl: str, b: dict[str, np.ndarray], surface, mst: dict) -> None:
@@ -72,6 +72,9 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     if h is None:
         return
     finished = check_frames(c, h)
+    render = manifest.get("render") if isinstance(manifest.get("render"), dict) else {}
+    env_bg = isinstance(render.get("gbuffer"), dict) and render["gbuffer"].get("emission_background") == "environment"
+    lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
     if frames is not None:
         wanted = set(int(f) for f in frames)
         selected = [f for f in finished if f in wanted]
@@ -94,6 +97,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                 if f not in full:
                     continue
                 surface = check_values(c, f, lvl, b)
+                if env_bg and lvl != "hr" and not lr_denoised:  # point-sampled, not denoised: L_D = 0 on the sky
+                    check_background_emission(c, f, lvl, b, surface)
                 mst = check_motion(c, f, lvl, b, cams.get(lvl), surface)
                 check_motion_next(c, f, lvl, b, cams.get(lvl), h["frame_data"][f].get(lvl), surface)
                 accumulate(c, lvl, b, surface, mst)
