@@ -26,6 +26,11 @@ def run_cli(*args, timeout=600, check=False) -> subprocess.CompletedProcess:
     return proc
 
 
+def set_args(items) -> list[str]:
+    """``--set`` arguments for the CLI: ["a=1", "b=2"] -> ["--set", "a=1", "--set", "b=2"]."""
+    return [a for s in items for a in ("--set", s)]
+
+
 def make_blend(kind: str, path: Path) -> Path:
     """Build one of the fixtures of tests/scenes.py into ``path`` (in a subprocess)."""
     proc = subprocess.run([sys.executable, str(SCENES_SCRIPT), kind, str(path)], capture_output=True, text=True,

@@ -17,6 +17,7 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.recurrent import lead_in  # noqa: E402
+from conftest import set_args  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -53,10 +54,6 @@ MODELS = list(CASES)
 
 def n_params(m):
     return sum(p.numel() for p in m.parameters())
-
-
-def _sets(items):
-    return [x for s in items for x in ("--set", s)]
 
 
 def small(name):
@@ -105,7 +102,7 @@ def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name
     case = CASES[name]
     straight = tmp_path / "straight"
     assert main(["train", "--model", name, "--data", str(clip), "-o", str(straight), "--max-steps", "4",
-                 *_sets(small(name) + RESUME)]) == 0
+                 *set_args(small(name) + RESUME)]) == 0
     rows = list(csv.DictReader(open(straight / "log.csv")))
     assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
     for r in rows:

@@ -12,15 +12,12 @@ torch.set_num_threads(1)
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.checkpoint import CheckpointError, load_checkpoint  # noqa: E402
+from conftest import set_args  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
 SMALL = ["data.batch_size=2", "model.width=8", "model.blocks=1", "run.progress=false", "run.amp=\"none\"",
          "run.threads=0"]
-
-
-def _sets(items):
-    return [a for s in items for a in ("--set", s)]
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +58,7 @@ def test_a_malicious_checkpoint_is_refused_with_one_line_and_runs_nothing(clip, 
 def test_real_checkpoints_load_weights_only_including_version_1_numpy_rng(clip, tmp_path):
     run = tmp_path / "run"
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *_sets(SMALL + ["data.crop=8"])]) == 0
+                 *set_args(SMALL + ["data.crop=8"])]) == 0
     last = run / "checkpoints" / "last.pt"
     ck = load_checkpoint(last)
     assert ck["version"] == 2 and isinstance(ck["rng"]["numpy"], dict)
@@ -88,12 +85,12 @@ def test_a_file_that_is_not_a_checkpoint_is_one_line(clip, tmp_path, capsys):
 def test_default_crop_shrinks_to_small_clips_with_a_note_and_a_set_crop_names_one_that_fits(clip, tmp_path, capsys):
     run = tmp_path / "run"  # LR 16x9: the default data.crop = 64 does not fit
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *_sets(SMALL)]) == 0
+                 *set_args(SMALL)]) == 0
     err = capsys.readouterr().err
     assert "note: data.crop 64 -> 9" in err
     assert load_checkpoint(run / "checkpoints" / "last.pt")["config"]["data"]["crop"] == 9
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "r2"), "--max-steps", "1",
-                 *_sets(SMALL + ["data.crop=20"])]) == 2
+                 *set_args(SMALL + ["data.crop=20"])]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--set data.crop=9" in err and str(clip) in err, err
 
@@ -111,7 +108,7 @@ def test_implausible_radiance_falls_under_the_nonfinite_policy(tmp_path, capsys)
     with pytest.raises(NonFiniteError, match=r"frame 2.*1 NaN/Inf or implausible"):
         ClipCache(clip).ensure(["lr/radiance"])
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
-                 *_sets(SMALL)]) == 2
+                 *set_args(SMALL)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "implausible" in err[-1] and str(c.path_of(2, "lr/radiance")) in err[-1]
     with pytest.warns(RuntimeWarning, match="implausible"):

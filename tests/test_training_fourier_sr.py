@@ -17,16 +17,13 @@ from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import fourier_sr as fsr  # noqa: E402
 from training.transforms import inverse_transform  # noqa: E402
+from conftest import set_args  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
 SMALL = ["data.crop=8", "data.batch_size=2", "run.progress=false", "run.log_every=1", "run.amp=\"none\"",
          "data.window=3", "data.detach_every=2", "loss.ssim_weight=0.0", "loss.temporal_weight=0.3",
          "run.checkpoint_every=100", "optim.decay_steps=4", "data.prefetch=1"]
-
-
-def _sets(items):
-    return [x for s in items for x in ("--set", s)]
 
 
 def make_batch(h=6, w=8, scale=2.0, frames=2, seed=0, with_scale=True):
@@ -209,7 +206,7 @@ def trained(clips, tmp_path_factory):
     from training.checkpoint import load_checkpoint
     run = tmp_path_factory.mktemp("runs") / "x2"
     assert main(["train", "--model", "fourier-sr", "--data", str(clips[2]), "-o", str(run), "--max-steps", "2",
-                 *_sets(SMALL)]) == 0
+                 *set_args(SMALL)]) == 0
     ck = run / "checkpoints" / "last.pt"
     assert load_checkpoint(ck)["scale"] == 2
     return ck

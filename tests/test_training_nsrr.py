@@ -18,6 +18,7 @@ from training.config import ModelConfig, load_config  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import nsrr_fec as nsrr_mod  # noqa: E402
 from training.recurrent import frame_slice  # noqa: E402
+from conftest import set_args  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -200,17 +201,10 @@ def test_example_config_is_the_papers_setting():
     assert set(raw) == {"data", "model", "loss", "optim", "run"}
 
 
-def _sets(items):
-    out = []
-    for s in items:
-        out += ["--set", s]
-    return out
-
-
 def test_base_nsrr_trains_on_five_frame_windows(clip, tmp_path):
     out = tmp_path / "base"
     assert main(["train", "--model", "nsrr", "--data", str(clip), "-o", str(out), "--max-steps", "2",
-                 *_sets([s for s in SMALL if not s.startswith(("data.window", "data.detach", "model.name"))])]) == 0
+                 *set_args([s for s in SMALL if not s.startswith(("data.window", "data.detach", "model.name"))])]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["params"] == 535_023 and summary["window"] is None
 

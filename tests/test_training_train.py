@@ -12,6 +12,7 @@ from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import config_from_checkpoint, load_config  # noqa: E402
 from training.train import TrainingError, load_checkpoint, train  # noqa: E402
+from conftest import set_args  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -24,17 +25,10 @@ def clip(tmp_path_factory):
     return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 6), hr_size=(64, 36), scale=4)
 
 
-def _sets(items):
-    out = []
-    for s in items:
-        out += ["--set", s]
-    return out
-
-
 def test_train_cli_writes_config_log_checkpoint_and_summary(clip, tmp_path):
     run = tmp_path / "run"
     rc = main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "3",
-               *_sets(SMALL + ["run.checkpoint_every=2", "loss.temporal_weight=0.5", "loss.fft_weight=0.1",
+               *set_args(SMALL + ["run.checkpoint_every=2", "loss.temporal_weight=0.5", "loss.fft_weight=0.1",
                                "loss.pixel=\"charbonnier\""])])
     assert rc == 0
     cfg = load_config(run / "config.toml")
@@ -121,7 +115,7 @@ def test_perceptual_loss_needs_a_user_file_and_uses_it(clip, tmp_path):
         VGGFeatures.from_file(bad)
     run = tmp_path / "r1"
     assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *_sets(SMALL + ["loss.perceptual_weight=0.5", f"loss.vgg_weights=\"{weights}\""])]) == 0
+                 *set_args(SMALL + ["loss.perceptual_weight=0.5", f"loss.vgg_weights=\"{weights}\""])]) == 0
     row = next(csv.DictReader(open(run / "log.csv")))
     assert float(row["perceptual"]) > 0
 
@@ -147,7 +141,7 @@ def test_bf16_autocast_step_on_cpu(clip, tmp_path):
 def test_max_steps_and_minutes_combine_whichever_comes_first(clip, tmp_path, capsys):
     run = tmp_path / "run"
     rc = main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(run), "--max-steps", "2",
-               "--minutes", "30", *_sets(SMALL)])
+               "--minutes", "30", *set_args(SMALL)])
     assert rc == 0
     cfg = load_config(run / "config.toml")
     assert cfg.run.max_steps == 2 and cfg.run.minutes == 30
@@ -160,7 +154,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     from training.inference import load_model
     run = tmp_path / "run"
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *_sets(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
+                 *set_args(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
     model = ck["config"]["model"]
     model.update(model.pop("fusesr"))  # the flat [model] table of checkpoints before per-model tables
@@ -179,7 +173,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
 
 def test_training_refuses_a_remodulation_filter_other_than_the_ground_truths(clip, tmp_path, capsys):
     code = main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
-                 *_sets(SMALL + ['model.remod_filter="BLACKMAN_HARRIS"', "model.remod_filter_px=2.0"])])
+                 *set_args(SMALL + ['model.remod_filter="BLACKMAN_HARRIS"', "model.remod_filter_px=2.0"])])
     err = capsys.readouterr().err
     assert code != 0 and f"{clip}: the ground truth was rendered with the BOX 1 px pixel filter" in err
     assert not (tmp_path / "run" / "checkpoints").exists()
@@ -188,6 +182,6 @@ def test_training_refuses_a_remodulation_filter_other_than_the_ground_truths(cli
 def test_reference_filter_is_resolved_from_the_clips_into_the_checkpoint(clip, tmp_path):
     run = tmp_path / "run"
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *_sets(SMALL)]) == 0
+                 *set_args(SMALL)]) == 0
     saved = load_checkpoint(run / "checkpoints" / "last.pt")["config"]["model"]
     assert (saved["remod_filter"], saved["remod_filter_px"]) == ("BOX", 1.0)  # the synthetic clip's 2x2 supersampling
