@@ -108,6 +108,12 @@ def add_object(scene, name: str, bm, material, location=(0.0, 0.0, 0.0), rotatio
     mesh = bpy.data.meshes.new(name)
     bm.to_mesh(mesh)
     bm.free()
+    return link_mesh(scene, name, mesh, material, location, rotation)
+
+
+def link_mesh(scene, name: str, mesh, material, location, rotation):
+    """An object of ``mesh`` with ``material`` as its only material, placed and linked to ``scene``."""
+    mesh.materials.clear()
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     obj.location = location
@@ -132,10 +138,4 @@ def text_object(scene, name: str, body: str, size: float, material, location, ro
     mesh.name = name
     bpy.data.objects.remove(tmp)
     bpy.data.curves.remove(curve)
-    mesh.materials.clear()
-    mesh.materials.append(material)
-    obj = bpy.data.objects.new(name, mesh)
-    obj.location = location
-    obj.rotation_euler = rotation
-    scene.collection.objects.link(obj)
-    return obj
+    return link_mesh(scene, name, mesh, material, location, rotation)
