@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import Flag, reprojection_motion
+from .records import floats, intrinsics_ok, pose_problem
 from .report import Collector, fmt_frac
 
 NEXT_KEYS = ("next_world_from_camera", "next_intrinsics")
@@ -88,15 +89,11 @@ def next_camera(record: dict) -> tuple[np.ndarray, np.ndarray] | str:
     missing = [k for k in NEXT_KEYS if k not in record]
     if missing:
         return f"record lacks {', '.join(missing)} (needed by motion_next)"
-    try:
-        m = np.asarray(record["next_world_from_camera"], dtype=np.float64)
-        k = np.asarray(record["next_intrinsics"], dtype=np.float64)
-    except (TypeError, ValueError):
-        return "next_world_from_camera / next_intrinsics are not numbers"
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)) or \
-            float(np.max(np.abs(m[:3, :3].T @ m[:3, :3] - np.eye(3)))) > 1e-4:
-        return f"next_world_from_camera is not a finite rigid 4x4 matrix (shape {m.shape})"
-    if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
+    m, k = floats(record["next_world_from_camera"]), floats(record["next_intrinsics"])
+    problem = pose_problem(m)
+    if problem:
+        return f"next_world_from_camera {problem}"
+    if not intrinsics_ok(k):
         return f"next_intrinsics {record['next_intrinsics']!r} is not (fx, fy, cx, cy) with positive focal"
     return m, k
 

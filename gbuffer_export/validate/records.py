@@ -10,6 +10,30 @@ _RECORD_KEYS = ("world_from_camera", "prev_world_from_camera", "intrinsics", "pr
                 "seed", "seconds")
 
 
+def floats(value) -> np.ndarray:
+    """``value`` as a float64 array; an empty one when it is not numeric (the shape checks then fail)."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return np.zeros(0)
+
+
+def pose_problem(a: np.ndarray) -> str | None:
+    """Why ``a`` is not a camera pose (a finite rigid 4x4 world_from_camera), or None."""
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        return f"is not a finite 4x4 matrix (shape {a.shape})"
+    rot = a[:3, :3]
+    rig = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
+    if not np.allclose(a[3], (0, 0, 0, 1), atol=1e-6) or rig > 1e-4:
+        return f"is not rigid (|R^T R - I| max {rig:.2g}, bottom row {a[3].tolist()})"
+    return None
+
+
+def intrinsics_ok(k: np.ndarray) -> bool:
+    """``k`` is finite (fx, fy, cx, cy) with positive focal lengths."""
+    return k.shape == (4,) and bool(np.all(np.isfinite(k))) and k[0] > 0 and k[1] > 0
+
+
 def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict] | None:
     """Cameras of every level as arrays; a level whose record is unusable is left out."""
     cams: dict[str, dict] = {}
@@ -28,20 +52,10 @@ def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict
             if name not in r:
                 ok = False
                 continue
-            try:
-                a = np.asarray(r[name], dtype=np.float64)
-            except (TypeError, ValueError):
-                a = np.zeros(0)
-            if a.shape != (4, 4) or not np.all(np.isfinite(a)):
-                c.add("bad-camera", f"{name} is not a finite 4x4 matrix (shape {a.shape})", frame=frame,
-                         key=lvl)
-                ok = False
-                continue
-            rot = a[:3, :3]
-            rig = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
-            if not np.allclose(a[3], (0, 0, 0, 1), atol=1e-6) or rig > 1e-4:
-                c.add("bad-camera", f"{name} is not rigid (|R^T R - I| max {rig:.2g}, bottom row "
-                                       f"{a[3].tolist()})", frame=frame, key=lvl)
+            a = floats(r[name])
+            problem = pose_problem(a)
+            if problem:
+                c.add("bad-camera", f"{name} {problem}", frame=frame, key=lvl)
                 ok = False
                 continue
             cam[name] = a
@@ -49,21 +63,15 @@ def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict
             if name not in r:
                 ok = False
                 continue
-            try:
-                k = np.asarray(r[name], dtype=np.float64)
-            except (TypeError, ValueError):
-                k = np.zeros(0)
-            if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
+            k = floats(r[name])
+            if not intrinsics_ok(k):
                 c.add("bad-camera", f"{name} {r[name]!r} is not (fx, fy, cx, cy) with positive focal",
                          frame=frame, key=lvl)
                 ok = False
                 continue
             cam[name] = k
         if "jitter" in r:
-            try:
-                j = np.asarray(r["jitter"], dtype=np.float64)
-            except (TypeError, ValueError):
-                j = np.zeros(0)
+            j = floats(r["jitter"])
             if j.shape != (2,) or not np.all(np.isfinite(j)) or np.any(np.abs(j) > 0.5 + 1e-9):
                 c.add("jitter-range", f"jitter {r['jitter']!r} is not two numbers in [-0.5, 0.5] px",
                          frame=frame, key=lvl)
