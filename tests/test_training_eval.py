@@ -13,6 +13,7 @@ from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.clip import open_clip  # noqa: E402
 from gbuffer_export.conventions import backward_warp  # noqa: E402
 from gbuffer_export.exr import read_exr  # noqa: E402
+from gbuffer_export.regions import pixel_regions  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.models import MODELS  # noqa: E402
@@ -75,6 +76,13 @@ def test_evaluate_json_matches_direct_computation(clip, tmp_path):
         b = torch.from_numpy(tm(gt).astype(np.float32).transpose(2, 0, 1))[None]
         assert row["ssim"] == pytest.approx(float(ssim(a, b, data_range=1.0)), abs=1e-4)
         assert 0 < row["flip"] < 1 and row["ms_per_frame"] > 0
+        regions = pixel_regions(c.read(f, "hr/flags"), c.read(f, "hr/depth"))
+        sq = ((tm(sr) - tm(gt)) ** 2).mean(-1)
+        assert sum(v["fraction"] for v in row["regions"].values()) == pytest.approx(1.0)
+        for name, m in regions.items():
+            assert row["regions"][name]["fraction"] == pytest.approx(m.mean())
+            assert row["regions"][name]["err_share"] == pytest.approx(sq[m].sum() / sq.sum(), abs=1e-4)
+            assert row["regions"][name]["psnr"] == pytest.approx(psnr(tm(sr)[m], tm(gt)[m]), abs=1e-3)
         if prev is None:
             assert row["tpsnr"] is None and row["warp_error"] is None
         else:
@@ -84,6 +92,8 @@ def test_evaluate_json_matches_direct_computation(clip, tmp_path):
             assert row["warp_error"] == pytest.approx(np.abs(tm(sr) - w)[v].mean(), rel=1e-4)
         prev = (sr, gt)
     assert res["mean"]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in res["per_frame"]]))
+    assert res["mean"]["regions"]["silhouette"]["psnr"] == \
+        pytest.approx(np.mean([r["regions"]["silhouette"]["psnr"] for r in res["per_frame"]]))
     assert res["mean"]["ms_per_frame"] == pytest.approx(np.median([r["ms_per_frame"] for r in res["per_frame"]]))
 
 

@@ -198,6 +198,10 @@ def cmd_evaluate(args) -> int:
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
           f"FLIP {m['flip'] if m['flip'] is None else round(m['flip'], 4)}  {m['ms_per_frame']:.2f} ms/frame  "
           f"({m['frames']} frames, {result['device']}) -> {args.json}")
+    if m.get("regions"):
+        print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
+            f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
+            for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
     return 0
 
 

@@ -27,6 +27,7 @@ import torch
 from gbuffer_export.clip import ClipError, open_clip
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.exr import write_exr
+from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
 from training import metrics
 from training.flip_worker import FlipRunner
 from training.inference import ClipFrames, model_device, model_inputs, run_model
@@ -139,6 +140,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                     row["psnr_unflagged"] = metrics.psnr_tm(sr, gt, ~flagged)
                 else:
                     row.update(flagged_fraction=None, psnr_flagged=None, psnr_unflagged=None)
+                row["regions"] = _regions(source, f, sr, gt)
                 if prev is not None and prev[0] == f - 1:
                     _, sr_p, gt_p = prev
                     row["tpsnr"] = metrics.tpsnr(sr, sr_p, gt, gt_p)
@@ -159,11 +161,13 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
     mean = {k: _mean([r[k] for r in per_frame]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
     mean["ms_per_frame"] = float(statistics.median(r["ms_per_frame"] for r in per_frame))
     mean["frames"] = len(per_frame)
+    mean["regions"] = _region_means(per_frame)
     per_scale = {}
     for sc in sorted({r["scale"] for r in per_frame}):
         rows = [r for r in per_frame if r["scale"] == sc]
         m = {k: _mean([r[k] for r in rows]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
-        m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows))
+        m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows),
+                 regions=_region_means(rows))
         per_scale[f"{sc:g}"] = m
     return {
         "model": label or getattr(model, "spec", type(model).__name__),
@@ -181,6 +185,28 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
         "per_scale": per_scale,
         "per_frame": per_frame,
     }
+
+
+def _regions(source, frame: int, sr: np.ndarray, gt: np.ndarray) -> dict | None:
+    """{region: {fraction, psnr, err_share}} of one frame (``gbuffer_export.regions``); None without HR flags and
+    depth."""
+    if not (source.has("hr/flags") and source.has("hr/depth")):
+        return None
+    regions = pixel_regions(source.read(frame, "hr/flags"), source.read(frame, "hr/depth"))
+    sq = ((metrics.tonemapped(sr) - metrics.tonemapped(gt)) ** 2).mean(dim=1)[0].numpy()
+    return {name: {"fraction": v["fraction"], "err_share": v["err_share"],
+                   "psnr": metrics.psnr_from_mse(v["mse"]) if v["mse"] is not None else None}
+            for name, v in error_breakdown(sq, regions).items()}
+
+
+def _region_means(rows: list[dict]) -> dict | None:
+    """The per-frame ``regions`` averaged over the frames that have them (each value over the frames where it is
+    not None); None when no frame has them."""
+    have = [r["regions"] for r in rows if r.get("regions")]
+    if not have:
+        return None
+    return {name: {k: _mean([h[name][k] for h in have]) for k in ("fraction", "psnr", "err_share")}
+            for name in REGIONS}
 
 
 def _save(root: Path, clip_name: str, frame: int, sr: np.ndarray) -> None:

@@ -1,0 +1,83 @@
+"""Pixel regions of an HR frame, for breaking an error down by where it lies (pure numpy).
+
+A super-resolution model remodulates with point-sampled HR G-buffers while the ground truth is averaged over its
+pixel filter, so the models of this field err most where a pixel straddles two surfaces. ``pixel_regions`` splits a
+frame into four disjoint regions from its flags and depth; each pixel gets the first that applies:
+
+- ``silhouette``: within ``EDGE_PX`` pixels (8-neighbourhood) of a boundary between background and a surface, on
+  either side of it (object outlines against the sky, the horizon);
+- ``depth_edge``: a surface pixel within ``EDGE_PX`` pixels of a depth discontinuity (one object in front of
+  another): the second difference of inverse depth along x or y, centred on the pixel, exceeds ``DEPTH_EDGE_RATIO``
+  times its inverse depth. Inverse depth is affine in the image on any plane, so a plane seen at a grazing angle
+  has no depth edge however fast its depth grows;
+- ``background``: the other background pixels (``Flag.BACKGROUND``);
+- ``interior``: the other surface pixels.
+
+``training.evaluate`` scores every region (``regions`` in the JSON of ``blendsr evaluate``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .conventions import Flag
+
+REGIONS = ("silhouette", "depth_edge", "background", "interior")
+EDGE_PX = 1
+DEPTH_EDGE_RATIO = 0.05
+
+
+def _neighbourhood(a: np.ndarray, reduce, fill) -> np.ndarray:
+    """``reduce`` (np.maximum or np.minimum) of ``a`` (H x W) over each pixel's 3 x 3 neighbourhood; outside the
+    image counts as ``fill``."""
+    p = np.pad(a, 1, constant_values=fill)
+    h, w = a.shape
+    out = a.copy()
+    for dy in range(3):
+        for dx in range(3):
+            out = reduce(out, p[dy:dy + h, dx:dx + w])
+    return out
+
+
+def dilate(mask: np.ndarray, px: int = EDGE_PX) -> np.ndarray:
+    """``mask`` (H x W bool) grown by ``px`` pixels in the 8-neighbourhood."""
+    out = np.asarray(mask, bool)
+    for _ in range(px):
+        out = _neighbourhood(out, np.maximum, False)
+    return out
+
+
+def pixel_regions(flags: np.ndarray, depth: np.ndarray) -> dict[str, np.ndarray]:
+    """The regions of one frame: {name: H x W bool} for every name of ``REGIONS``, disjoint and covering the frame.
+    ``flags``: H x W (or H x W x 1) uint32 ``conventions.Flag`` bits; ``depth``: H x W (or H x W x 1) distance
+    along the view axis in metres (inf on background)."""
+    fl = np.asarray(flags).reshape(np.shape(flags)[:2]).astype(np.uint32)
+    d = np.asarray(depth, np.float64).reshape(np.shape(depth)[:2])
+    if fl.shape != d.shape:
+        raise ValueError(f"flags {fl.shape} and depth {d.shape} differ in size")
+    bg = (fl & np.uint32(Flag.BACKGROUND)) != 0
+    boundary = (dilate(bg, 1) & ~bg) | (dilate(~bg, 1) & bg)  # the pixels on either side of a bg/surface boundary
+    silhouette = dilate(boundary, EDGE_PX - 1)
+    inv = np.where(bg | ~np.isfinite(d) | (d <= 0), np.nan, 1.0 / np.where(d > 0, d, 1.0))
+    jump = np.zeros_like(bg)
+    with np.errstate(invalid="ignore"):
+        # inverse depth is affine in the image on a plane, so its second difference is 0 there and large across a
+        # discontinuity (both pixels next to the step); NaN (background) compares False
+        jump[:, 1:-1] |= np.abs(inv[:, :-2] - 2 * inv[:, 1:-1] + inv[:, 2:]) > DEPTH_EDGE_RATIO * inv[:, 1:-1]
+        jump[1:-1, :] |= np.abs(inv[:-2, :] - 2 * inv[1:-1, :] + inv[2:, :]) > DEPTH_EDGE_RATIO * inv[1:-1, :]
+    depth_edge = dilate(jump, EDGE_PX - 1) & ~bg & ~silhouette
+    return {"silhouette": silhouette, "depth_edge": depth_edge, "background": bg & ~silhouette,
+            "interior": ~bg & ~silhouette & ~depth_edge}
+
+
+def error_breakdown(sq_err: np.ndarray, regions: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Per region of ``regions``: ``fraction`` of the pixels, ``mse`` (mean of ``sq_err``, H x W, over the region;
+    None when empty) and ``err_share`` (its part of the frame's summed ``sq_err``; None when that sum is 0)."""
+    e = np.asarray(sq_err, np.float64)
+    total = float(e.sum())
+    out = {}
+    for name, m in regions.items():
+        n = int(m.sum())
+        s = float(e[m].sum())
+        out[name] = {"fraction": n / m.size, "mse": s / n if n else None,
+                     "err_share": s / total if total > 0 else None}
+    return out
