@@ -5,13 +5,13 @@
 #   3. score them and the non-learned baselines on its test split (assets never seen in training),
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
 # Usage: [SPEC=spec.toml] benchmarks/pretrain.sh [DATASET] [RUNS]
-#        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 4000 and 2500 as shipped; THREADS: torch threads)
+#        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500 as shipped; THREADS: torch threads)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SPEC=${SPEC:-examples/dataset_medium.toml}
 DS=${1:-datasets/medium}
 RUNS=${2:-runs/pretrain}
-FUSESR_STEPS=${FUSESR_STEPS:-4000}
+FUSESR_STEPS=${FUSESR_STEPS:-8000}
 FUSESR_L_STEPS=${FUSESR_L_STEPS:-2500}
 THREADS=${THREADS:-1}
 PY=${PY:-.venv/bin/python}
