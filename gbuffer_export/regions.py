@@ -57,7 +57,7 @@ def pixel_regions(flags: np.ndarray, depth: np.ndarray) -> dict[str, np.ndarray]
     bg = (fl & np.uint32(Flag.BACKGROUND)) != 0
     boundary = (dilate(bg, 1) & ~bg) | (dilate(~bg, 1) & bg)  # the pixels on either side of a bg/surface boundary
     silhouette = dilate(boundary, EDGE_PX - 1)
-    inv = np.where(bg | ~np.isfinite(d) | (d <= 0), np.nan, 1.0 / np.where(d > 0, d, 1.0))
+    inv = 1.0 / np.where(bg | ~np.isfinite(d) | (d <= 0), np.nan, d)  # NaN off the surfaces
     jump = np.zeros_like(bg)
     with np.errstate(invalid="ignore"):
         # inverse depth is affine in the image on a plane, so its second difference is 0 there and large across a
