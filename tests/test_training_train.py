@@ -185,3 +185,51 @@ def test_reference_filter_is_resolved_from_the_clips_into_the_checkpoint(clip, t
                  *set_args(SMALL)]) == 0
     saved = load_checkpoint(run / "checkpoints" / "last.pt")["config"]["model"]
     assert (saved["remod_filter"], saved["remod_filter_px"]) == ("BOX", 1.0)  # the synthetic clip's 2x2 supersampling
+
+
+def test_ema_weights_are_the_moving_average_and_resume_bit_identically(clip, tmp_path):
+    """optim.ema_decay: the checkpoint's ema_model equals the average recomputed from every step's trained
+    weights; resume keeps it bit-identical; inference and release use it."""
+    d = 0.75
+    over = SMALL + ["optim.decay_steps=4", "run.max_steps=4", "run.checkpoint_every=1", "run.keep_checkpoints=10",
+                    "data.prefetch=1", f"optim.ema_decay={d}", "model.name=\"fusesr\""]
+    straight = tmp_path / "straight"
+    cfg = load_config(None, over)
+    cfg.data.clips = [str(clip)]
+    summary = train(cfg, straight, log=lambda m: None)
+    assert summary["weights"] == "ema"
+    steps = [load_checkpoint(straight / "checkpoints" / f"step_{k:08d}.pt") for k in range(1, 5)]
+    last = load_checkpoint(straight / "checkpoints" / "last.pt")
+    assert last["ema_updates"] == 4
+    for name, v in last["ema_model"].items():
+        if not v.is_floating_point():
+            continue
+        expect = steps[0]["model"][name].double()
+        for ck in steps[1:]:
+            expect = d * expect + (1 - d) * ck["model"][name].double()
+        assert torch.allclose(v.double(), expect, rtol=1e-5, atol=1e-6), name
+    assert not torch.equal(last["ema_model"]["head.weight"], last["model"]["head.weight"])
+    # interrupted at step 2 and resumed: the same average, bit for bit
+    split = tmp_path / "split"
+    cfg2 = load_config(None, over)
+    cfg2.data.clips = [str(clip)]
+    train(cfg2, split, stop_at=2, log=lambda m: None)
+    assert main(["train", "-o", str(split), "--resume"]) == 0
+    b = load_checkpoint(split / "checkpoints" / "last.pt")
+    for k, v in last["ema_model"].items():
+        assert torch.equal(v, b["ema_model"][k]), k
+    # what inference and the shipped-weights writer read
+    from training.inference import load_model
+    model = load_model(str(straight / "checkpoints" / "last.pt"), 4)
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, last["ema_model"][k]), k
+    from training.release import release
+    release(straight / "checkpoints" / "last.pt", tmp_path / "w.pt", {})
+    slim = load_checkpoint(tmp_path / "w.pt")
+    assert torch.equal(slim["model"]["head.weight"], last["ema_model"]["head.weight"].half())
+
+
+def test_ema_decay_out_of_range_is_refused():
+    from gbuffer_export.config import ConfigError
+    with pytest.raises(ConfigError, match="optim.ema_decay"):
+        load_config(None, ["optim.ema_decay=1.0", "model.name=\"fusesr\""])

@@ -60,6 +60,12 @@ def restore_numpy_rng(state) -> None:
     np.random.set_state(state)
 
 
+def inference_weights(ck: dict) -> dict:
+    """The weights a checkpoint is used with: its moving average (``ema_model``, written when the run had
+    ``optim.ema_decay`` > 0) when it holds one, else the trained weights (``model``)."""
+    return ck.get("ema_model") or ck["model"]
+
+
 def save_checkpoint(path: Path, state: dict) -> None:
     """Write ``state`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path = Path(path)

@@ -196,6 +196,7 @@ class OptimConfig:
     step_every: int = 10000          # 'step': multiply by step_gamma every N steps
     step_gamma: float = 0.5
     grad_clip: float = 0.0           # max gradient norm (0: off)
+    ema_decay: float = 0.0           # exponential moving average of the weights (0: off; e.g. 0.999)
 
     def validate(self) -> None:
         if not (self.lr > 0 and math.isfinite(self.lr)):
@@ -207,6 +208,8 @@ class OptimConfig:
         for name in ("weight_decay", "min_lr_ratio", "grad_clip", "step_gamma"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"optim.{name}: must be >= 0")
+        if not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"optim.ema_decay {self.ema_decay}: must be in [0, 1) (0: off)")
         if self.warmup_steps < 0 or self.step_every < 1 or self.decay_steps < 0:
             raise ConfigError("optim.warmup_steps and optim.decay_steps must be >= 0, optim.step_every >= 1")
 

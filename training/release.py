@@ -12,12 +12,12 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     digest) to ``out`` with suffix .json; ValueError when the file would exceed 10 MB."""
     import torch
 
-    from training.checkpoint import load_checkpoint
+    from training.checkpoint import inference_weights, load_checkpoint
     from training.train import param_digest
     ck = load_checkpoint(checkpoint)
     slim = {"format": ck["format"], "version": ck.get("version", 1), "model_name": ck.get("model_name"),
             "config": ck["config"], "scale": ck["scale"], "step": ck.get("step"),
-            "model": {k: (v.half() if v.is_floating_point() else v) for k, v in ck["model"].items()},
+            "model": {k: (v.half() if v.is_floating_point() else v) for k, v in inference_weights(ck).items()},
             "weights_dtype": "float16"}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -33,8 +33,8 @@ import torch
 from gbuffer_export.clip import write_json_atomic
 from gbuffer_export.config import ConfigError
 from training.cache import ClipCache
-from training.checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_checkpoint,  # noqa: F401
-                                 numpy_rng_state, restore_numpy_rng, save_checkpoint)
+from training.checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, inference_weights,  # noqa: F401
+                                 load_checkpoint, numpy_rng_state, restore_numpy_rng, save_checkpoint)
 from training.config import TrainConfig, config_from_checkpoint
 from training.data import BatchSpec, Prefetcher, TrainSampler
 from training.device import amp_dtype, autocast, cpu_bf16_supported, resolve_device  # noqa: F401  (re-exported)
@@ -115,6 +115,20 @@ def param_digest(model: torch.nn.Module, params_only: bool = False) -> str:
         h.update(k.encode())
         h.update(v.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
+
+
+def make_ema(model: torch.nn.Module, decay: float, ck: dict | None):
+    """The exponential moving average of ``model``'s weights and buffers (torch.optim.swa_utils.AveragedModel),
+    restored from the checkpoint ``ck`` when resuming; None when ``decay`` is 0. After update k the average is
+    w_1 for k = 1, else decay * avg + (1 - decay) * w_k."""
+    if not decay:
+        return None
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
+    if ck is not None and ck.get("ema_model") is not None:
+        ema.module.load_state_dict(ck["ema_model"])
+        ema.n_averaged.fill_(int(ck["ema_updates"]))
+    return ema
 
 
 def fit_crop(cfg: TrainConfig, clips: dict, log=None) -> None:
@@ -324,7 +338,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         if model.SCALES is not None and float(init["scale"]) != float(scale):
             raise ConfigError(f"run.init_from {cfg.run.init_from}: trained for scale {init['scale']}, not {scale}")
         try:
-            model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in init["model"].items()})
+            model.load_state_dict({k: v.float() if v.is_floating_point() else v
+                                   for k, v in inference_weights(init).items()})
         except RuntimeError as exc:
             raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                               f"with this configuration ({str(exc).splitlines()[0]})") from None
@@ -378,6 +393,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         elapsed_before = float(ck.get("elapsed_s", 0.0))
         if ck["sampler"]["seed"] != sampler.seed:
             raise ConfigError(f"{last}: sampler seed differs from the checkpoint's")
+    ema = make_ema(model, cfg.optim.ema_decay, ck)
     dtype = amp_dtype(cfg.run.amp, device)
     scaler = torch.amp.GradScaler("cuda") if (dtype == torch.float16 and device.type == "cuda") else None
     if ck is not None and scaler is not None and ck.get("scaler"):
@@ -424,6 +440,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "model_name": cfg.model.name, "scale": scale,
                 "scales": all_scales,
                 "step": cur_step, "config": cfg.to_dict(), "model": unwrap(net).state_dict(),
+                "ema_model": ema.module.state_dict() if ema is not None else None,
+                "ema_updates": int(ema.n_averaged) if ema is not None else 0,
                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                 "scaler": scaler.state_dict() if scaler is not None else None,
                 "rng": {"torch": torch.get_rng_state(), "numpy": numpy_rng_state(), "python": random.getstate(),
@@ -431,6 +449,10 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                 "sampler": {**sampler.state_dict(), "next_step": cur_step}, "data": manifests,
                 "world_size": dist.world, "elapsed_s": elapsed, "device": str(device),
                 "amp": str(dtype).replace("torch.", "") if dtype else "none"}
+
+    def evaluated() -> torch.nn.Module:
+        """The weights the run's evaluations use: the moving average when there is one."""
+        return ema.module if ema is not None else unwrap(net)
 
     def checkpoint(cur_step: int, elapsed: float, numbered: bool) -> None:
         if not dist.main:
@@ -517,6 +539,8 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             else:
                 optimizer.step()
             scheduler.step()
+            if ema is not None:
+                ema.update_parameters(model)
             step += 1
             t2 = time.perf_counter()
             step_times.append(t2 - t0)
@@ -546,9 +570,9 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                 checkpoint(step, elapsed, numbered=True)
             if cfg.run.eval_every and step % cfg.run.eval_every == 0 and dist.main:
                 if cfg.data.val_frames:
-                    _validate(unwrap(net), caches, cfg, run_dir / f"val_step_{step:08d}.json", device, dtype)
+                    _validate(evaluated(), caches, cfg, run_dir / f"val_step_{step:08d}.json", device, dtype)
                 if cfg.data.val_clips:
-                    _validate_clips(unwrap(net), cfg, run_dir / f"val_clips_step_{step:08d}.json", device, dtype)
+                    _validate_clips(evaluated(), cfg, run_dir / f"val_clips_step_{step:08d}.json", device, dtype)
                 net.train()
             stop_time = bool(cfg.run.minutes) and elapsed - elapsed_before >= 60 * cfg.run.minutes
             stop_now = dist.any(stop_time or stop_requested["flag"] or (stop_at is not None and step >= stop_at))
@@ -603,11 +627,12 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
         if not summary["ranks_agree"]:
             warnings.warn(f"DDP ranks hold different weights: {digests}", RuntimeWarning)
     summary["param_digest"] = param_digest(unwrap(net))
+    summary["weights"] = "ema" if ema is not None else "trained"  # what inference, evaluation and release use
     if dist.main:
         if cfg.data.val_frames and reason in ("max_steps", "minutes"):
-            summary["val"] = _validate(unwrap(net), caches, cfg, run_dir / "val.json", device, dtype)["mean"]
+            summary["val"] = _validate(evaluated(), caches, cfg, run_dir / "val.json", device, dtype)["mean"]
         if cfg.data.val_clips and reason in ("max_steps", "minutes"):
-            summary["val_clips"] = _validate_clips(unwrap(net), cfg, run_dir / "val_clips.json", device, dtype)["mean"]
+            summary["val_clips"] = _validate_clips(evaluated(), cfg, run_dir / "val_clips.json", device, dtype)["mean"]
         write_json_atomic(run_dir / "summary.json", summary)
         log(f"trained {cfg.model.name} to step {step} ({reason}) in {elapsed:.1f} s; checkpoint {last}")
     dist.barrier()
