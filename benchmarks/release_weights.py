@@ -1,10 +1,11 @@
-"""Score trained runs and the baselines on a dataset's test split and write the shipped float16 weights.
+"""Score trained runs and the baselines on a dataset's val and test splits and write the shipped float16 weights.
 
     .venv/bin/python benchmarks/release_weights.py DATASET RUNS
 
 Expects RUNS/fusesr and RUNS/fusesr_l (``benchmarks/pretrain.sh`` makes them). Writes
 training/weights/{fusesr_x4,fusesr_l_x4}.pt and .json (dataset spec and index digest, commands, scores of the
-model and of bicubic, demod-bilinear and demod-jbu on the same test clips) and RUNS/release.json.
+model and of bicubic, demod-bilinear and demod-jbu on the same test clips, and on the val clips when the dataset has
+a val split: the scenes that choose between trainings, while the test assets only report) and RUNS/release.json.
 """
 from __future__ import annotations
 
@@ -34,13 +35,14 @@ def main(argv=None) -> int:
     from training.release import release
 
     test = [str(c) for c in split_clips(a.dataset, "test")]
+    val = [str(c) for c in split_clips(a.dataset, "val")]
     train = [c.name for c in split_clips(a.dataset, "train")]
     index = read_index(a.dataset)
 
-    def score(spec: str) -> dict:
-        r = evaluate_model(load_model(spec, 4), test, flip=False)
+    def score(spec: str, clips: list[str] = test) -> dict:
+        r = evaluate_model(load_model(spec, 4), clips, flip=False)
         per = {}
-        for c in test:
+        for c in clips:
             vals = [f["psnr"] for f in r["per_frame"] if f["clip"] == c]
             per[Path(c).name] = round(sum(vals) / len(vals), 3)
         return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
@@ -48,9 +50,10 @@ def main(argv=None) -> int:
                 "per_clip": per, "frames": r["mean"]["frames"]}
 
     baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
-    out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset), "test_clips": [Path(c).name
-                                                                                                 for c in test],
-           "baselines": baselines, "models": {}}
+    val_baselines = {m: score(m, val) for m in ("demod-bilinear", "demod-jbu")} if val else {}
+    out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
+           "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
+           "baselines": baselines, "val_baselines": val_baselines, "models": {}}
     for name, file in PRETRAINED.items():
         run = a.runs / name.replace("-", "_")
         ck = run / "checkpoints" / "last.pt"
@@ -61,7 +64,8 @@ def main(argv=None) -> int:
         meta = {
             "model": name, "scale": 4, "date": out["date"],
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
-                        "name": index["name"], "train_clips": train, "test_clips": out["test_clips"]},
+                        "name": index["name"], "train_clips": train, "val_clips": out["val_clips"],
+                        "test_clips": out["test_clips"]},
             "commands": [f"SPEC={index['spec']['file']} benchmarks/pretrain.sh {a.dataset} {a.runs}",
                          f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
                          f"--max-steps {s['steps']} --set run.threads=1"],
@@ -70,6 +74,9 @@ def main(argv=None) -> int:
                                      name: s, **baselines},
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
         }
+        if val:
+            meta["scores_on_val_split"] = {"metric": meta["scores_on_test_split"]["metric"],
+                                           name: score(str(ck), val), **val_baselines}
         meta = release(ck, WEIGHTS_DIR / file, meta)
         out["models"][name] = meta
         print(f"{name}: test PSNR {s['psnr']:.2f} dB (demod-jbu {baselines['demod-jbu']['psnr']:.2f}, "

@@ -326,7 +326,8 @@ def test_the_same_spec_renders_the_same_clips(tmp_path):
                          + [REPO / "benchmarks" / "networks_dataset.toml"], ids=lambda p: p.name)
 def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
     """Every dataset spec the project ships parses, expands to uniquely named clips, and no training clip shows a
-    test asset (as its main asset or as clutter). The medium spec contains the small one's clips exactly."""
+    test asset (as its main asset or as clutter). The medium spec contains the small one's clips exactly, plus its
+    own, and holds out 6 built-in scenes as its val split."""
     if not (REPO.parent / "shared" / "scenes").is_dir():
         pytest.skip("../shared/scenes is not present")
     jobs = expand(load_spec(spec_file))
@@ -340,7 +341,8 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
     if spec_file.name == "dataset_medium.toml":
         small = {j.id: j for j in expand(load_spec(spec_file.parent / "dataset_small.toml"))}
         medium = {j.id: j for j in jobs}
-        assert small.keys() <= medium.keys() and len(medium) == 61
+        assert small.keys() <= medium.keys() and len(medium) == 67
+        assert sorted(j.id for j in jobs if j.split == "val") == [f"builtin_val-s{s:04d}" for s in range(36, 42)]
         for cid, j in small.items():
             assert (medium[cid].seed, medium[cid].hdri, medium[cid].clutter, medium[cid].split) == \
                 (j.seed, j.hdri, j.clutter, j.split)
