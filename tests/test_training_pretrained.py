@@ -87,3 +87,9 @@ def test_installed_weights_match_their_metadata(name):
     scores = meta["scores_on_test_split"]
     assert scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(meta["gain_over_demod_jbu_db"],
                                                                                 abs=1e-3)
+    ds = meta["dataset"]
+    splits = [set(ds["train_clips"]), set(ds.get("val_clips", [])), set(ds["test_clips"])]
+    assert all(not (a & b) for i, a in enumerate(splits) for b in splits[i + 1:]), "a clip in two splits"
+    if ds.get("val_clips"):
+        val = meta["scores_on_val_split"]
+        assert set(val[name]["per_clip"]) == set(ds["val_clips"]) == set(val["demod-jbu"]["per_clip"])
