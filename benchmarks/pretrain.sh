@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Remake the shipped pretrained weights (training/weights/*.pt + .json):
-#   1. render the dataset of $SPEC (default examples/dataset_medium.toml, 61 clips; resumes when DATASET exists),
+#   1. render the dataset of $SPEC (default examples/dataset_medium.toml, 67 clips; resumes when DATASET exists),
 #   2. train fusesr and fusesr-l on its train split with benchmarks/pretrain.toml,
-#   3. score them and the non-learned baselines on its test split (assets never seen in training),
+#   3. score them and the non-learned baselines on its val split (scenes that choose between trainings) and its test
+#      split (assets never seen in training),
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
 # Usage: [SPEC=spec.toml] benchmarks/pretrain.sh [DATASET] [RUNS]
 #        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500 as shipped; THREADS: torch threads)
