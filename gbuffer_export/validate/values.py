@@ -159,11 +159,12 @@ def check_values(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarray]) -
 #: max(1, |radiance|) in some channel; the check fails when more than ``BG_EMISSION_MAX_FRACTION`` of the checked
 #: background pixels do (a pixel whose centre sees the sky but some of whose samples hit thin geometry disagrees
 #: legitimately). Not checked: background pixels within ``BG_ALPHA_HALO_PX`` pixels of an ALPHA-flagged surface
-#: (Cycles writes depth, index and normal only for surfaces at least as opaque as the view layer's alpha threshold,
-#: 0.5, so the fringe of an alpha-blended leaf is background in the G-buffer while its light is in the radiance:
-#: up to 22% of the background pixels of the shared GlassVaseFlowers clips, all within 2 px of ALPHA-flagged
-#: pixels). Fewer than ``BG_EMISSION_MIN_BAD`` disagreeing pixels never fail (a fraction of a handful says nothing:
-#: one thin-geometry pixel among the 8 background pixels of a frame is 12.5%).
+#: (bpy's ViewLayer.pass_alpha_threshold, 0.5 by default: "Z, Index, normal, UV and vector passes are only
+#: affected by surfaces with alpha transparency equal to or higher than this threshold", so the fringe of an
+#: alpha-blended leaf is background in the G-buffer while its light is in the radiance: up to 22% of the background
+#: pixels of the shared GlassVaseFlowers clips, all but at most 2 per frame within 2 px of ALPHA-flagged pixels).
+#: Fewer than ``BG_EMISSION_MIN_BAD`` disagreeing pixels never fail (a fraction of a handful says nothing: one
+#: thin-geometry pixel among the 8 background pixels of a frame is 12.5%).
 BG_EMISSION_TOL = 0.01
 BG_EMISSION_MAX_FRACTION = 0.1
 BG_ALPHA_HALO_PX = 2
@@ -180,7 +181,7 @@ def check_background_emission(c: Collector, frame: int, lvl: str, b: dict[str, n
     bg = ~surface
     flags = b.get("flags")
     if flags is not None:
-        alpha = (np.asarray(flags).reshape(bg.shape).astype(np.uint32) & np.uint32(Flag.ALPHA)) != 0
+        alpha = (flags[..., 0].astype(np.uint32) & np.uint32(Flag.ALPHA)) != 0
         if alpha.any():
             bg = bg & ~dilate(alpha, BG_ALPHA_HALO_PX)
     if not bg.any():
