@@ -8,7 +8,17 @@ from pathlib import Path
 
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
 
-CAMERA_PATHS = ("scene", "orbit", "walk")
+CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
+#: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
+LEVEL_CAMERA_PATHS = ("walk", "fly")
+LIGHTS = ("scene", "sky")
+DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
+SCENE_SUFFIXES = (".blend", ".gltf", ".glb", ".usd", ".usda", ".usdc", ".usdz")
+
+
+def camera_path_ok(value: str) -> bool:
+    """``value`` is one of CAMERA_PATHS, ``scene:*`` or ``scene:NAME``."""
+    return value in CAMERA_PATHS or (value.startswith("scene:") and len(value) > len("scene:"))
 JITTERS = ("none", "halton")
 FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
 
@@ -86,7 +96,9 @@ class RenderConfig:
     adaptive: bool = False
     adaptive_threshold: float = 0.01
     adaptive_min_samples: int = 0
-    camera_path: str = "scene"
+    camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
+    light: str = "scene"                    # scene: as the file is (refused when unlit); sky: add a sun and sky
+    device: str = "auto"                    # Cycles device: auto picks a GPU when Cycles sees one
     seed: int = 0
     jitter: str = "halton"
     buffers: tuple[str, ...] = DEFAULT_BUFFERS
@@ -121,8 +133,13 @@ class RenderConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ConfigError(f"--{name.replace('_', '-')} {v!r}: must be a positive integer")
-        if self.camera_path not in CAMERA_PATHS:
-            raise ConfigError(f"--camera-path {self.camera_path!r}: choose one of {', '.join(CAMERA_PATHS)}")
+        if not camera_path_ok(self.camera_path):
+            raise ConfigError(f"--camera-path {self.camera_path!r}: choose one of {', '.join(CAMERA_PATHS)}, "
+                              "scene:NAME or scene:*")
+        if self.light not in LIGHTS:
+            raise ConfigError(f"--light {self.light!r}: choose one of {', '.join(LIGHTS)}")
+        if self.device not in DEVICES:
+            raise ConfigError(f"--device {self.device!r}: choose one of {', '.join(DEVICES)}")
         if self.jitter not in JITTERS:
             raise ConfigError(f"--jitter {self.jitter!r}: choose one of {', '.join(JITTERS)}")
         if self.fbeta not in FBETA_SOURCES:
@@ -144,8 +161,8 @@ class RenderConfig:
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")
-            if self.scene.suffix.lower() != ".blend":
-                raise ConfigError(f"{self.scene}: not a .blend file")
+            if self.scene.suffix.lower() not in SCENE_SUFFIXES:
+                raise ConfigError(f"{self.scene}: not a scene file (one of {', '.join(SCENE_SUFFIXES)})")
 
     def check_size(self, hr_size: tuple[int, int], what: str) -> dict[float, tuple[int, int]]:
         """{scale: LR size} of every scale; ConfigError naming ``what`` and the nearest valid sizes otherwise."""

@@ -18,20 +18,31 @@ from ..config import RenderConfig
 from ..dataset.spec import ClipJob
 
 
-def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False) -> RenderConfig:
+def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False,
+                  device: str = "auto") -> RenderConfig:
+    """The clip's render configuration; a ``kind = "scene"`` job renders its file as it is (``render_clip``)."""
     r = job.render
-    return RenderConfig(output=clip_dir, scene=None, frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]),
+    scene_kw = {}
+    if job.kind == "scene":
+        scene_kw = dict(scene=Path(job.asset), camera_path=job.camera, light=job.light or "scene",
+                        extra={"region": job.region, "camera_index": job.camera_index or 0,
+                               "variation": job.variation})
+    return RenderConfig(output=clip_dir, **{"scene": None, "camera_path": "scene", **scene_kw},
+                        frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]), device=device,
                         scale=int(r["scale"]), hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
                         gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
-                        lr_denoise=bool(r["lr_denoise"]), camera_path="scene", seed=int(job.seed),
+                        lr_denoise=bool(r["lr_denoise"]), seed=int(job.seed),
                         jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],
                         threads=int(r.get("threads") or threads), progress=progress)
 
 
-def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False) -> Path:
+def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False, device: str = "auto") -> Path:
     """Render (or resume) ``job`` into ``clip_dir``."""
-    from .render import render_loaded_scene
-    cfg = render_config(job, Path(clip_dir), threads, progress)
+    from .render import render_clip, render_loaded_scene
+    cfg = render_config(job, Path(clip_dir), threads, progress, device)
+    if job.kind == "scene":
+        return render_clip(cfg, {"dataset_clip": job.id, "licence": job.licence, "region": job.region,
+                                 "scene_id": job.scene_id})
     frames = cfg.frames
     world = {"hdri": job.hdri, "rotation_deg": job.hdri_rotation_deg, "strength": job.hdri_strength}
     if job.kind == "builtin":
@@ -77,12 +88,13 @@ def main(argv=None) -> int:
     p.add_argument("clip_dir", type=Path)
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--progress", action="store_true")
+    p.add_argument("--device", default="auto")
     a = p.parse_args(argv)
     if argv is None:
         prepare_process(a.threads)
     job = ClipJob.from_json(json.loads(a.job.read_text()))
     try:
-        render_job(job, a.clip_dir, a.threads, a.progress)
+        render_job(job, a.clip_dir, a.threads, a.progress, a.device)
     except (ValueError, FileNotFoundError) as exc:
         print(f"blendsr: error: {job.id}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
               file=sys.stderr)

@@ -92,19 +92,20 @@ def check_blend_file(path: Path) -> None:
 # ----------------------------------------------------------------------------------------------
 
 def load_scene(cfg: RenderConfig):
-    """Open the .blend (or build the default scene) and return (scene, scene_info for the manifest)."""
+    """Open the scene file (or build the default scene) and return (scene, scene_info for the manifest)."""
     if cfg.scene is None:
         from .default_scene import build_default_scene
         frames = cfg.frames or (1, 48)
         res = cfg.hr_size or (640, 360)
         scene = build_default_scene(seed=cfg.seed, frames=(min(frames[0], 1), max(frames[1], 48)), resolution=res)
         return scene, {"file": None, "sha256": None, "builtin": "default", "seed": cfg.seed}
-    check_blend_file(cfg.scene)
+    from .scene_setup import load_scene_file
+    if cfg.scene.suffix.lower() == ".blend":
+        check_blend_file(cfg.scene)
     try:
-        bpy.ops.wm.open_mainfile(filepath=str(cfg.scene), load_ui=False)
+        scene = load_scene_file(cfg.scene)
     except RuntimeError as exc:
         raise ConfigError(f"{cfg.scene}: Blender could not open it ({str(exc).splitlines()[0]})") from None
-    scene = bpy.context.scene
     return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None}
 
 
@@ -119,7 +120,7 @@ def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
     if cfg.frames is None:
         return list(range(start, end + 1))
     a, b = cfg.frames
-    if cfg.scene is not None and cfg.camera_path == "scene" and (a < start or b > end):
+    if cfg.scene is not None and cfg.camera_path.startswith("scene") and (a < start or b > end):
         raise ConfigError(f"--frames {a}:{b} is outside the scene's range {start}:{end}")
     return list(range(a, b + 1))
 
@@ -136,14 +137,24 @@ def resolve_size(cfg: RenderConfig, scene) -> tuple[int, int]:
     return w, h
 
 
+def uses_level_camera(cfg: RenderConfig) -> bool:
+    """fly always, and walk in a user's scene file, move inside the level (``level_cameras``); orbit and the
+    built-in scene's walk frame the scene's bounds (``camera_paths``)."""
+    return cfg.camera_path == "fly" or (cfg.camera_path == "walk" and cfg.scene is not None)
+
+
 def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
+    """The clip's camera and its report for the manifest (the planned path's rules and measurements)."""
+    if uses_level_camera(cfg):
+        from .scene_setup import make_level_camera
+        return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
+                                 region=cfg.extra.get("region"))
     if cfg.camera_path in ("orbit", "walk"):
         from .camera_paths import make_camera_path
-        return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed)
-    cam = scene.camera
-    if cam is None:
-        raise ConfigError(f"{cfg.scene or 'scene'}: the scene has no camera; pass --camera-path orbit or walk")
-    return cam
+        return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}
+    from .scene_setup import pick_scene_camera
+    cam = pick_scene_camera(scene, cfg.camera_path, cfg.scene or "scene", int(cfg.extra.get("camera_index", 0)))
+    return cam, {"kind": "scene", "choice": cfg.camera_path, "name": cam.name}
 
 
 def check_camera(cam, cfg: RenderConfig) -> None:
@@ -158,11 +169,13 @@ def check_camera(cam, cfg: RenderConfig) -> None:
 # Render settings
 # ----------------------------------------------------------------------------------------------
 
-def base_settings(scene, view_layer, cfg: RenderConfig) -> None:
-    """Settings common to every pass: Cycles on the CPU, raw linear float EXR output, no post-processing."""
+def base_settings(scene, view_layer, cfg: RenderConfig) -> dict:
+    """Settings common to every pass: Cycles on ``cfg.device``, raw linear float EXR output, no post-processing.
+    Returns the device Cycles renders on (for the manifest)."""
+    from .scene_setup import select_device
     r = scene.render
     r.engine = "CYCLES"
-    scene.cycles.device = "CPU"
+    device = select_device(scene, cfg.device)
     r.resolution_percentage = 100
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
     r.use_border = False
@@ -188,6 +201,7 @@ def base_settings(scene, view_layer, cfg: RenderConfig) -> None:
         vl.use = vl == view_layer
     if cfg.max_bounces is not None:
         scene.cycles.max_bounces = cfg.max_bounces
+    return device
 
 
 def set_passes(view_layer, plan: PassPlan) -> None:
@@ -384,10 +398,11 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
 # The clip
 # ----------------------------------------------------------------------------------------------
 
-def render_clip(cfg: RenderConfig) -> Path:
-    """Render (or resume) the clip described by ``cfg`` and return its directory."""
+def render_clip(cfg: RenderConfig, info: dict | None = None) -> Path:
+    """Render (or resume) the clip described by ``cfg`` and return its directory (``info``: more manifest
+    ``scene`` entries, e.g. a dataset clip's id)."""
     scene, scene_info = load_scene(cfg)
-    return render_loaded_scene(cfg, scene, scene_info)
+    return render_loaded_scene(cfg, scene, {**scene_info, **(info or {})})
 
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
@@ -395,7 +410,8 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
     all_frames = resolve_frames(cfg, scene)
-    cam = setup_camera(cfg, scene, all_frames)
+    light = prepare_light(cfg, scene)
+    cam, camera_report = setup_camera(cfg, scene, all_frames)
     check_camera(cam, cfg)
     scene.camera = cam
     w, h = resolve_size(cfg, scene)
@@ -419,7 +435,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     for ob in renderable_meshes(scene):
         ob.pass_index = 1 if ob in moving else 0
 
-    base_settings(scene, view_layer, cfg)
+    device = base_settings(scene, view_layer, cfg)
     light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
     shard_k, shard_n = cfg.shard
     my_frames = [f for i, f in enumerate(all_frames) if i % shard_n == shard_k - 1]
@@ -433,9 +449,12 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         "buffers": list(cfg.buffers),
         "fbeta_source": cfg.fbeta,
         "camera_path": cfg.camera_path,
+        "camera": camera_report,
+        "light": light,
         "scene_linear": _scene_linear_name(),
         "render": {
-            "engine": "CYCLES", "device": "CPU", "seed": cfg.seed, "jitter": cfg.jitter,
+            "engine": "CYCLES", "device": device["device"], "device_names": device["names"],
+            "device_requested": device["requested"], "seed": cfg.seed, "jitter": cfg.jitter,
             "hr": {"spp": cfg.hr_spp, "denoise": cfg.hr_denoise, "adaptive": cfg.adaptive,
                    "adaptive_threshold": cfg.adaptive_threshold if cfg.adaptive else None,
                    "adaptive_min_samples": cfg.adaptive_min_samples if cfg.adaptive else None,
@@ -476,6 +495,20 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
             p.unlink()
         tmpdir.rmdir()
     return cfg.output
+
+
+def prepare_light(cfg: RenderConfig, scene) -> dict:
+    """``cfg.light`` "sky": add a default sun and sky; "scene": keep the file's light, refused when nothing lights
+    it. Returns the manifest's ``light`` record."""
+    from .scene_setup import add_sky, apply_variation, check_lit
+    if cfg.light == "sky":
+        out = {**add_sky(scene, cfg.seed), "scene_sources": check_lit(scene, cfg.scene or "scene", "sky")}
+    else:
+        out = {"light": "scene", "scene_sources": check_lit(scene, cfg.scene or "scene", "scene")}
+    variation = apply_variation(scene, cfg.extra.get("variation"))
+    if variation:
+        out["variation"] = variation
+    return out
 
 
 def _scene_linear_name() -> str:

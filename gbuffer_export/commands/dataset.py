@@ -35,6 +35,9 @@ def register(subparsers) -> None:
                    help="render only the buffers these models read, plus radiance and motion for evaluation "
                         "(default: the spec's buffers)")
     p.add_argument("--limit", type=int, default=None, help="render at most N clips in this run")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"),
+                   help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
+                        "(recorded in each clip's manifest)")
     p.add_argument("--dry-run", action="store_true", help="print the clips the spec expands to and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
@@ -47,12 +50,14 @@ def run(args) -> int:
     spec = load_spec(args.spec)
     if args.dry_run:
         for j in expand(spec):
-            print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} hdri={Path(j.hdri).name} "
-                  f"strength={j.hdri_strength} clutter={[Path(c).stem for c in j.clutter]}")
+            where = (f"scene={Path(j.asset).name} region={j.region['cell'] if j.region else None} light={j.light}"
+                     if j.kind == "scene" else f"hdri={Path(j.hdri).name} strength={j.hdri_strength} "
+                     f"clutter={[Path(c).stem for c in j.clutter]}")
+            print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} {where}")
         return 0
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
-                      buffers_for=models, progress=not args.no_progress, limit=args.limit)
+                      buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device)
     index = build_dataset(spec, args.output, opts)
     print(f"blendsr: {args.output}: {summary(index)}")
     failed = [c for c in index["clips"] if c["state"] == "failed"]

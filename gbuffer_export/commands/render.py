@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import (CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_scales, parse_shard,
-                      parse_size)
+from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, RenderConfig, parse_frames, parse_scales,
+                      parse_shard, parse_size)
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
@@ -24,7 +24,9 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", nargs="?", type=Path, default=None, help="the .blend file; omitted: the built-in default scene")
+    p.add_argument("scene", nargs="?", type=Path, default=None,
+                   help="the scene: .blend, .gltf/.glb or .usd* (kept as it is: world, lights, materials, animation); "
+                        "omitted: the built-in default scene")
     p.add_argument("-o", "--output", required=True, type=Path, help="clip directory to create or resume")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="inclusive frame range; None: the scene's range (default scene: 1:48)")
@@ -47,8 +49,18 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="adaptive sampling for the HR ground truth (hr-spp becomes the maximum)")
     p.add_argument("--adaptive-threshold", type=float, default=0.01, help="Cycles' adaptive noise threshold")
     p.add_argument("--adaptive-min-samples", type=int, default=0, help="adaptive minimum samples (0 = automatic)")
-    p.add_argument("--camera-path", choices=CAMERA_PATHS, default="scene",
-                   help="scene: the file's own camera; orbit/walk: a generated, seeded path framed from the bounds")
+    p.add_argument("--camera-path", default="scene", metavar="KIND",
+                   help="scene: the file's active camera; scene:NAME: the camera NAME; scene:*: the active camera, "
+                        "else the first by name; walk: an eye 1.6 m above the floor walking at 1.4 m/s inside the "
+                        "level; fly: a free path at 3 m/s inside the level (both keep 0.25 m from every triangle and "
+                        "look at content; docs/rendering.md); orbit: an arc around the scene's bounds (the built-in "
+                        "scene's walk is a loop framed from its bounds)")
+    p.add_argument("--light", choices=LIGHTS, default="scene",
+                   help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
+                        "physical sky, sun direction drawn from --seed (recorded in the manifest)")
+    p.add_argument("--device", choices=DEVICES, default="auto",
+                   help="Cycles device: auto uses a GPU when Cycles sees one (OptiX, CUDA, HIP, Metal, oneAPI), "
+                        "else the CPU; the device and its name go into the manifest")
     p.add_argument("--seed", type=int, default=0, help="seed of the default scene, camera paths and Cycles noise")
     p.add_argument("--jitter", choices=JITTERS, default="halton",
                    help="sub-pixel jitter of the LR frames (Halton 2,3, period 16), in LR pixels")
@@ -77,7 +89,8 @@ def config_from_args(args) -> RenderConfig:
         gbuffer_spp=args.gbuffer_spp,
         hr_denoise=args.hr_denoise, lr_denoise=args.lr_denoise, adaptive=args.adaptive,
         adaptive_threshold=args.adaptive_threshold, adaptive_min_samples=args.adaptive_min_samples,
-        camera_path=args.camera_path, seed=args.seed, jitter=args.jitter, buffers=args.buffers, fbeta=args.fbeta,
+        camera_path=args.camera_path, light=args.light, device=args.device, seed=args.seed, jitter=args.jitter,
+        buffers=args.buffers, fbeta=args.fbeta,
         shard=parse_shard(args.shard), max_bounces=args.max_bounces, threads=args.threads,
         progress=not args.no_progress)
 

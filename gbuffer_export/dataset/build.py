@@ -54,6 +54,7 @@ class RunOptions:
     buffers_for: tuple[str, ...] = ()  # --for-models: the models whose buffers are rendered (recorded)
     progress: bool = True
     limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
+    device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
 
     def validate(self) -> None:
         if self.executor not in EXECUTORS:
@@ -176,13 +177,13 @@ def _die_with_parent() -> None:  # runs in the child before exec (Linux): SIGKIL
         pass
 
 
-def job_command(job_path: Path, clip_dir: Path, threads: int) -> list[str]:
+def job_command(job_path: Path, clip_dir: Path, threads: int, device: str = "auto") -> list[str]:
     return [sys.executable, "-m", "gbuffer_export.blender.dataset_job", str(job_path), str(clip_dir),
-            "--threads", str(threads)]
+            "--threads", str(threads), "--device", device]
 
 
 def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
-                    cpu: int | None = None) -> tuple[int, str]:
+                    cpu: int | None = None, device: str = "auto") -> tuple[int, str]:
     """Render one clip in a child process (on core ``cpu`` when given and ``threads`` is 1); returns (exit code,
     the last line of its stderr)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
@@ -192,7 +193,7 @@ def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
     repo = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     with open(log_path, "w") as log:
-        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads), stdout=subprocess.DEVNULL,
+        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads, device), stdout=subprocess.DEVNULL,
                               stderr=log, env=env, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     lines = [ln for ln in Path(log_path).read_text(errors="replace").splitlines()
              if ln.strip() and not ln.startswith(("render:", "\r"))]
@@ -239,7 +240,7 @@ def _local_map(todo, run_one, workers: int, on_done) -> None:
                 on_done(futures[fut], *fut.result())
 
 
-def _ray_map(todo, root: Path, threads: int, address: str | None, on_done) -> None:
+def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, device: str = "auto") -> None:
     try:
         import ray
     except ImportError:
@@ -252,7 +253,7 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done) -> No
     try:
         remote = ray.remote(num_cpus=max(1, threads))(run_job_process)
         refs = {remote.remote(str(root / "jobs" / f"{j.id}.json"), str(root / "clips" / j.id),
-                              str(root / "logs" / f"{j.id}.log"), threads): j for j in todo}
+                              str(root / "logs" / f"{j.id}.log"), threads, None, device): j for j in todo}
         pending = list(refs)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
@@ -334,13 +335,13 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         def run_one(job: ClipJob, slot: int):
             cpu = cores[slot % len(cores)] if threads == 1 and cores else None  # one core per worker slot
             return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
-                                   str(root / "logs" / f"{job.id}.log"), threads, cpu)
+                                   str(root / "logs" / f"{job.id}.log"), threads, cpu, opts.device)
 
         t0 = time.perf_counter()
         if opts.executor == "local":
             _local_map(todo, run_one, opts.workers, on_done)
         else:
-            _ray_map(todo, root, threads, opts.address, on_done)
+            _ray_map(todo, root, threads, opts.address, on_done, opts.device)
         if bar is not None:
             bar.close()
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,

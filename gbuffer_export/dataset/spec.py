@@ -17,7 +17,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import CAMERA_PATHS, FBETA_SOURCES, JITTERS, ConfigError, parse_size
+from ..config import FBETA_SOURCES, JITTERS, LIGHTS, SCENE_SUFFIXES, ConfigError, camera_path_ok, parse_size
 from ..conventions import DEFAULT_BUFFERS, parse_buffer_list
 
 SPLITS = ("train", "val", "test")
@@ -26,6 +26,9 @@ ASSET_SUFFIXES = (".gltf", ".glb", ".blend")
 BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
 #: Camera kinds a source may draw from; ``scene`` keeps the built-in scene's own designed camera (builtin only).
 SOURCE_CAMERAS = ("orbit", "walk", "scene")
+#: Camera kinds of ``kind = "scene"`` sources: inside the level (walk, fly), around it (orbit), or the file's own
+#: cameras (scene: the active one; scene:*: each clip the next of the file's cameras by name; scene:NAME).
+SCENE_SOURCE_CAMERAS = ("walk", "fly", "orbit", "scene", "scene:*", "scene:NAME")
 HDRI_SUFFIXES = (".hdr", ".exr")
 
 
@@ -109,6 +112,26 @@ class Source:
     target_size_m: float = 1.5                    # assets: largest side after normalisation
     licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
     sun: bool = True                              # builtin: keep the sun lamp
+    clips_per_scene: int = 4                      # scene: clips per scene file
+    light: str = "scene"                          # scene: "scene" (the file's) or "sky" (add a sun and sky)
+    regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
+    region_val: int = 0                           # scene: grid cells whose clips are val
+    region_test: int = 0                          # scene: grid cells whose clips are test
+    variation: "Variation" = None                 # scene: opt-in changes of light (None: the file's light as is)
+
+
+@dataclass(frozen=True)
+class Variation:
+    """Opt-in, recorded variation of a scene's light that keeps its look (``kind = "scene"``): multipliers drawn
+    log-uniformly in ``world_strength`` (the world's background strength) and ``light_strength`` (every lamp's
+    energy); ``sun_elevation_deg``: the sun lamps' (and an added sky's) elevation drawn uniformly, azimuth
+    uniformly in [0, 360); ``hdri``: a replacement pool for a world that is an environment texture, rotated
+    uniformly about +Z. Empty ranges / pools: unchanged."""
+
+    world_strength: tuple[float, float] | None = None
+    light_strength: tuple[float, float] | None = None
+    sun_elevation_deg: tuple[float, float] | None = None
+    hdri: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -140,7 +163,10 @@ _DATASET_KEYS = ("name", "seed")
 _RENDER_KEYS = tuple(f.name for f in dataclasses.fields(RenderSettings))
 _SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
-                "clutter", "target_size_m", "licence", "sun", *_RENDER_KEYS)
+                "clutter", "target_size_m", "licence", "sun", "clips_per_scene", "light", "regions", "region_val",
+                "region_test", "world_strength", "light_strength", "sun_elevation_deg", *_RENDER_KEYS)
+_SCENE_ONLY = ("clips_per_scene", "light", "regions", "region_val", "region_test", "world_strength",
+               "light_strength", "sun_elevation_deg")
 
 
 def _check_keys(table: dict, known, where: str, spec_path) -> None:
@@ -263,22 +289,29 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             raise SpecError(f"{spec_path}: {where}: expected a table")
         _check_keys(t, _SOURCE_KEYS, where, spec_path)
         kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path)
-        if kind not in ("builtin", "assets"):
-            raise SpecError(f"{spec_path}: {where}.kind = {kind!r}: choose builtin or assets")
-        sname = _typed(t.get("name", kind if kind == "builtin" else f"assets{i}"), str, f"{where}.name", spec_path)
+        if kind not in ("builtin", "assets", "scene"):
+            raise SpecError(f"{spec_path}: {where}.kind = {kind!r}: choose builtin, assets or scene")
+        sname = _typed(t.get("name", kind if kind == "builtin" else f"{kind}{i}"), str, f"{where}.name", spec_path)
         if sname in names or not sname.replace("-", "").replace("_", "").isalnum():
             raise SpecError(f"{spec_path}: {where}.name = {sname!r}: must be unique, letters, digits, - and _")
         names.add(sname)
         render = _render_settings(defaults, t, where, spec_path)
+        if kind != "scene":
+            for k in _SCENE_ONLY:
+                if k in t:
+                    raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"scene\"")
+        split = t.get("split")
+        if split is not None and split not in SPLITS:
+            raise SpecError(f"{spec_path}: {where}.split = {split!r}: choose one of {', '.join(SPLITS)}")
+        if kind == "scene":
+            sources.append(_scene_source(t, sname, render, split, where, spec_path))
+            continue
         cameras = _str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path)
         for c in cameras:
             if c not in SOURCE_CAMERAS:
                 raise SpecError(f"{spec_path}: {where}.cameras: {c!r}: choose from {', '.join(SOURCE_CAMERAS)}")
         if kind == "assets" and "scene" in cameras:
             raise SpecError(f"{spec_path}: {where}.cameras: 'scene' is for kind = \"builtin\" only")
-        split = t.get("split")
-        if split is not None and split not in SPLITS:
-            raise SpecError(f"{spec_path}: {where}.split = {split!r}: choose one of {', '.join(SPLITS)}")
         kw = dict(name=sname, kind=kind, render=render, cameras=cameras, split=split)
         if kind == "builtin":
             for k in ("paths", "clips_per_asset", "clutter", "target_size_m", "licence"):
@@ -309,6 +342,63 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
         sources.append(Source(**kw))
     return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
                        path=Path(spec_path) if spec_path != "<spec>" else None)
+
+
+def _grid(v, where, spec_path) -> tuple[int, int]:
+    """'NxM', [N, M] or N (N x N)."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        v = [v, v]
+    elif isinstance(v, str):
+        try:
+            v = [int(x) for x in v.lower().split("x")]
+        except ValueError:
+            v = None
+    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+            and 1 <= v[0] <= 16 and 1 <= v[1] <= 16):
+        raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'NxM' (1 to 16 cells a side), e.g. \"3x3\"")
+    return v[0], v[1]
+
+
+def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str, spec_path) -> "Source":
+    """A ``kind = "scene"`` source: the user's scene files kept as they are (docs/dataset.md)."""
+    for k in ("seeds", "sun", "clips_per_asset", "clutter", "target_size_m", "hdri_strength"):
+        if k in t:
+            raise SpecError(f"{spec_path}: {where}.{k}: not for kind = \"scene\" (a scene keeps its own world)")
+    paths = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
+    if not paths:
+        raise SpecError(f"{spec_path}: {where}: kind = \"scene\" needs paths = [scene files or folders]")
+    cameras = _str_list(t.get("cameras", ["walk", "fly"]), f"{where}.cameras", spec_path)
+    for c in cameras:
+        if not camera_path_ok(c) or c == "scene:":
+            raise SpecError(f"{spec_path}: {where}.cameras: {c!r}: choose from {', '.join(SCENE_SOURCE_CAMERAS)}")
+    clips = _typed(t.get("clips_per_scene", 4), int, f"{where}.clips_per_scene", spec_path)
+    light = _typed(t.get("light", "scene"), str, f"{where}.light", spec_path)
+    if light not in LIGHTS:
+        raise SpecError(f"{spec_path}: {where}.light = {light!r}: choose one of {', '.join(LIGHTS)}")
+    regions = _grid(t.get("regions", [1, 1]), f"{where}.regions", spec_path)
+    rv = _typed(t.get("region_val", 0), int, f"{where}.region_val", spec_path)
+    rt = _typed(t.get("region_test", 0), int, f"{where}.region_test", spec_path)
+    if clips < 1 or rv < 0 or rt < 0 or rv + rt >= regions[0] * regions[1] and (rv or rt):
+        raise SpecError(f"{spec_path}: {where}: need clips_per_scene >= 1 and region_val + region_test below the "
+                        f"{regions[0] * regions[1]} cells of regions (the rest train)")
+    if (rv or rt) and split is not None:
+        raise SpecError(f"{spec_path}: {where}: split and region_val/region_test exclude each other")
+    if (rv or rt) and any(c not in ("walk", "fly") for c in cameras):
+        raise SpecError(f"{spec_path}: {where}.cameras: regions split a level by where its cameras stand, so only "
+                        "walk and fly (whose paths stay in their region) go with region_val/region_test")
+    var = Variation(
+        world_strength=_range(t["world_strength"], f"{where}.world_strength", spec_path) if "world_strength" in t
+        else None,
+        light_strength=_range(t["light_strength"], f"{where}.light_strength", spec_path) if "light_strength" in t
+        else None,
+        sun_elevation_deg=_range(t["sun_elevation_deg"], f"{where}.sun_elevation_deg", spec_path)
+        if "sun_elevation_deg" in t else None,
+        hdri=_str_list(t.get("hdri", []), f"{where}.hdri", spec_path))
+    if var.sun_elevation_deg is not None and var.sun_elevation_deg[1] > 90:
+        raise SpecError(f"{spec_path}: {where}.sun_elevation_deg: need 0 < low <= high <= 90")
+    return Source(name=name, kind="scene", render=render, cameras=cameras, split=split, paths=paths,
+                  clips_per_scene=clips, light=light, regions=regions, region_val=rv, region_test=rt,
+                  variation=var, licence=t.get("licence", {}) if isinstance(t.get("licence", {}), dict) else {})
 
 
 def load_spec(path: str | Path) -> DatasetSpec:
@@ -358,25 +448,28 @@ def _resolve(p: str, base: Path | None) -> Path:
 
 
 def find_assets(source: Source, base: Path | None, spec_path) -> list[Path]:
-    """The asset files of a source, sorted by stem: files as given, folders searched recursively."""
+    """The asset (or, for ``kind = "scene"``, scene) files of a source, sorted by stem: files as given, folders
+    searched recursively."""
+    suffixes = SCENE_SUFFIXES if source.kind == "scene" else ASSET_SUFFIXES
+    what = "scene" if source.kind == "scene" else "glTF, GLB or .blend"
     out: dict[str, Path] = {}
     for p in source.paths:
         path = _resolve(p, base)
         if path.is_file():
             files = [path]
         elif path.is_dir():
-            files = sorted(f for f in path.rglob("*") if f.suffix.lower() in ASSET_SUFFIXES and f.is_file())
+            files = sorted(f for f in path.rglob("*") if f.suffix.lower() in suffixes and f.is_file())
         else:
             raise SpecError(f"{spec_path}: source {source.name!r}: {path}: no such file or folder")
         for f in files:
-            if f.suffix.lower() not in ASSET_SUFFIXES:
-                raise SpecError(f"{spec_path}: source {source.name!r}: {f}: not a glTF, GLB or .blend file")
+            if f.suffix.lower() not in suffixes:
+                raise SpecError(f"{spec_path}: source {source.name!r}: {f}: not a {what} file")
             if f.stem in out and out[f.stem] != f:
                 raise SpecError(f"{spec_path}: source {source.name!r}: two assets named {f.stem!r} "
                                 f"({out[f.stem]}, {f}): asset stems must be unique")
             out[f.stem] = f
     if not out:
-        raise SpecError(f"{spec_path}: source {source.name!r}: no .gltf, .glb or .blend files under its paths")
+        raise SpecError(f"{spec_path}: source {source.name!r}: no {what} files under its paths")
     return [out[k] for k in sorted(out)]
 
 
@@ -448,6 +541,11 @@ class ClipJob:
     target_size_m: float = 1.5
     sun: bool = True
     licence: dict = field(default_factory=dict)
+    # kind = "scene" only (None elsewhere, so that older indexes compare equal):
+    light: str | None = None          # scene | sky
+    camera_index: int | None = None   # scene:*: which of the file's cameras (by name, cycling)
+    region: dict | None = None        # {"grid": [nx, ny], "cell": [i, j], "cells": {split: [[i, j], ...]}}
+    variation: dict | None = None     # the drawn light variation (docs/dataset.md)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -468,6 +566,9 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
     base = spec.path.parent.resolve() if spec.path else None
     jobs: list[ClipJob] = []
     for src in spec.sources:
+        if src.kind == "scene":
+            jobs += _expand_scene(src, spec, base)
+            continue
         hdris = find_hdris(src.environment, base, spec.path, src.name)
         if src.kind == "builtin":
             for s in range(src.seeds[0], src.seeds[1] + 1):
@@ -508,6 +609,65 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
     if dup:
         raise SpecError(f"{spec.path}: clip ids collide ({', '.join(dup[:3])}): rename a source or an asset")
     return jobs
+
+
+def region_cells(src: Source, spec_seed: int, stem: str) -> dict[str, list[list[int]]]:
+    """The grid cells of each split of one scene: a seeded shuffle of the ``regions`` grid gives its first
+    ``region_test`` cells to test, the next ``region_val`` to val, the rest to train."""
+    import random
+    nx, ny = src.regions
+    cells = [[i, j] for j in range(ny) for i in range(nx)]
+    random.Random(stable_hash("regions", spec_seed, src.name, stem)).shuffle(cells)
+    t, v = src.region_test, src.region_val
+    return {"test": cells[:t], "val": cells[t:t + v], "train": cells[t + v:]}
+
+
+def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[ClipJob]:
+    """The clips of a ``kind = "scene"`` source: ``clips_per_scene`` per file. With split regions, clip k stands
+    in cell k of the order test cells, val cells, train cells (cycling), so the first clips cover every split."""
+    jobs = []
+    var = src.variation or Variation()
+    hdris = find_hdris(Environment(hdri=var.hdri), base, spec.path, src.name) if var.hdri else []
+    for a in find_assets(src, base, spec.path):
+        lic = dict(read_asset_licence(a))
+        if a.stem in src.licence:
+            lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
+        split_regions = bool(src.region_val or src.region_test)
+        cells = region_cells(src, spec.seed, a.stem) if split_regions else None
+        order = [(sp, c) for sp in ("test", "val", "train") for c in (cells or {}).get(sp, [])]
+        for k in range(src.clips_per_scene):
+            cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
+            seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
+            rng = _draw(seed)
+            camera = rng.choice(src.cameras)
+            if split_regions:
+                split, cell = order[k % len(order)]
+                region = {"grid": list(src.regions), "cell": cell, "cells": cells}
+                scene_id = f"{a.stem}@cell{cell[0]}-{cell[1]}"
+            else:
+                split = assign_split(a.stem, spec.splits, src.split, spec.seed)
+                region, scene_id = None, a.stem
+            jobs.append(ClipJob(
+                id=cid, source=src.name, kind="scene", scene_id=scene_id, split=split, seed=seed,
+                render=src.render.to_json(), camera=camera, asset=str(a), hdri=None, licence=lic, light=src.light,
+                camera_index=k if camera == "scene:*" else None, region=region,
+                variation=_draw_variation(var, hdris, rng)))
+    return jobs
+
+
+def _draw_variation(var: Variation, hdris: list[str], rng) -> dict | None:
+    out = {}
+    if var.world_strength:
+        out["world_strength"] = round(_loguniform(rng, *var.world_strength), 4)
+    if var.light_strength:
+        out["light_strength"] = round(_loguniform(rng, *var.light_strength), 4)
+    if var.sun_elevation_deg:
+        out["sun_elevation_deg"] = round(rng.uniform(*var.sun_elevation_deg), 3)
+        out["sun_azimuth_deg"] = round(rng.uniform(0.0, 360.0), 3)
+    if hdris:
+        out["hdri"] = rng.choice(hdris)
+        out["hdri_rotation_deg"] = round(rng.uniform(0.0, 360.0), 3)
+    return out or None
 
 
 def _loguniform(rng, lo: float, hi: float) -> float:

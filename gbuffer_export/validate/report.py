@@ -58,6 +58,11 @@ CODES: dict[str, str] = {
     "flags-range": "flags hold unknown bits",
     "emission-background": "on a point-sampled LR level, radiance is not the environment that emission holds on "
                            "background (render.gbuffer.emission_background = \"environment\")",
+    "black-frame": "radiance is zero, or not finite, on every pixel of a frame (an unlit scene)",
+    # level cameras (manifest camera.kind walk or fly)
+    "camera-view": "a level camera's HR frame is half background or more, or its median depth exceeds the level",
+    "camera-motion": "a level camera moves faster than declared, or its planned clearance is below its rule",
+    "camera-region": "a level camera's eye leaves the region of its split",
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",

@@ -10,6 +10,7 @@ from typing import Iterable
 import numpy as np
 
 from ..clip import ClipError
+from .camera import check_black_frame, check_level_motion, check_level_view, level_report
 from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
 from .motion import check_motion, check_motion_next
@@ -75,6 +76,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     render = manifest.get("render") if isinstance(manifest.get("render"), dict) else {}
     env_bg = isinstance(render.get("gbuffer"), dict) and render["gbuffer"].get("emission_background") == "environment"
     lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
+    level_cam = level_report(manifest)
     if frames is not None:
         wanted = set(int(f) for f in frames)
         selected = [f for f in finished if f in wanted]
@@ -97,6 +99,11 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                 if f not in full:
                     continue
                 surface = check_values(c, f, lvl, b)
+                check_black_frame(c, f, lvl, b)
+                if lvl == "hr" and level_cam is not None:
+                    view = check_level_view(c, f, b, level_cam)
+                    if view:
+                        c.stats.setdefault("camera_view", {})[str(f)] = view
                 if env_bg and lvl != "hr" and not lr_denoised:  # point-sampled, not denoised: L_D = 0 on the sky
                     check_background_emission(c, f, lvl, b, surface)
                 mst = check_motion(c, f, lvl, b, cams.get(lvl), surface)
@@ -113,6 +120,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     finally:
         if bar is not None:
             bar.close()
+    if level_cam is not None:
+        check_level_motion(c, selected, h["frame_data"], level_cam)
     summarise(c, h)
 
 

@@ -1,0 +1,352 @@
+"""Camera paths that move *inside* a level: a walking eye and a flying camera (numpy + :class:`LevelGeometry`).
+
+No bpy here: the planner sees the level only as triangles (``level_geometry``), so it is tested on synthetic rooms
+and runs unchanged on any level. Units: metres and seconds in :class:`PathRules`, converted to scene units with
+the scene's unit scale; one step is one frame at the scene's fps.
+
+walk
+    The eye stands ``eye_height_m`` above a walkable floor (a surface within 45 degrees of horizontal, found with
+    downward rays), moves at ``walk_speed_mps``, its heading turns smoothly (an angular velocity that drifts
+    randomly, bounded by ``max_turn_deg_s``) and steers towards open space when a wall is ahead; a step up or
+    down of more than ``max_step_m`` is not walkable.
+fly
+    A free 3D path (a drone or spectator camera) at ``fly_speed_mps`` with bounded yaw and pitch rates, between
+    ``min_fly_height_m`` above the floor and the top of the level's content box.
+
+Every path keeps ``clearance_m`` from every triangle on the whole segment between consecutive eyes (checked as
+exact point-to-triangle distances of the eyes against ``clearance + step / 2``, which bounds every point of the
+segment), never starts inside a closed mesh, stays in its allowed region (``Region``), and is re-drawn when its
+view lacks content on any frame: more than ``max_background`` of a 16x9 grid of view rays missing the level or
+hitting beyond its extent (sky, a skybox, a far ground plane), or a median view depth below
+``min_view_depth_m`` (staring at a wall) or above the extent. Of the first ``candidates`` paths that meet every
+rule, the one whose view rays hit the most steep surfaces (walls, props: not floor, not sky) is kept, so a walk
+in a town looks at its streets rather than at an empty field.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .level_geometry import LevelGeometry
+
+UP = np.array([0.0, 0.0, 1.0])
+WALKABLE_COS = math.cos(math.radians(45.0))  # a surface within 45 degrees of horizontal is floor
+LEVEL_KINDS = ("walk", "fly")
+
+
+class PathError(ValueError):
+    """No path meets the rules (one line naming the level and the rule that failed most)."""
+
+
+@dataclass(frozen=True)
+class PathRules:
+    """What a level camera path must do. Metres, seconds, degrees."""
+
+    eye_height_m: float = 1.6
+    walk_speed_mps: float = 1.4
+    fly_speed_mps: float = 3.0
+    max_turn_deg_s: float = 45.0
+    clearance_m: float = 0.25
+    max_step_m: float = 0.4
+    min_fly_height_m: float = 1.0
+    min_view_depth_m: float = 0.75
+    max_background: float = 0.45
+    pitch_deg: tuple[float, float] = (-14.0, 2.0)
+    tries: int = 60
+    candidates: int = 4
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["pitch_deg"] = list(self.pitch_deg)
+        return d
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where a clip's eyes may stand: the cells ``cells`` of an ``nx`` x ``ny`` grid over the box ``lo``..``hi``
+    (x, y in scene units). None cells: anywhere in the box."""
+
+    lo: tuple[float, float]
+    hi: tuple[float, float]
+    nx: int = 1
+    ny: int = 1
+    cells: tuple[tuple[int, int], ...] | None = None
+
+    def cell_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) integer cell indices of points (N, 2); -1 outside the box."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        lo, hi = np.array(self.lo), np.array(self.hi)
+        u = (xy - lo) / np.maximum(hi - lo, 1e-12) * np.array([self.nx, self.ny])
+        idx = np.floor(u).astype(int)
+        out = (u < 0).any(axis=1) | (idx[:, 0] >= self.nx) | (idx[:, 1] >= self.ny)
+        idx[out] = -1
+        return idx
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        idx = self.cell_of(xy)
+        ok = (idx >= 0).all(axis=1)
+        if self.cells is not None:
+            allowed = {tuple(c) for c in self.cells}
+            ok &= np.array([tuple(i) in allowed for i in idx])
+        return ok
+
+    def sample(self, rng, n: int) -> np.ndarray:
+        """``n`` uniform (x, y) points in the allowed cells."""
+        cells = list(self.cells) if self.cells is not None else [(i, j) for i in range(self.nx) for j in range(self.ny)]
+        pick = rng.integers(0, len(cells), size=n)
+        c = np.array([cells[k] for k in pick], np.float64)
+        lo, hi = np.array(self.lo), np.array(self.hi)
+        size = (hi - lo) / np.array([self.nx, self.ny])
+        return lo + (c + rng.random((n, 2))) * size
+
+    def to_json(self) -> dict:
+        return {"lo": list(self.lo), "hi": list(self.hi), "grid": [self.nx, self.ny],
+                "cells": [list(c) for c in self.cells] if self.cells is not None else None}
+
+
+@dataclass
+class LevelPath:
+    """A planned path: eyes and look-at targets (N, 3) in scene units for frames ``start-1 .. end``, and its report."""
+
+    kind: str
+    eyes: np.ndarray
+    targets: np.ndarray
+    report: dict
+
+
+# ----------------------------------------------------------------------------------------------
+# Views
+# ----------------------------------------------------------------------------------------------
+
+def view_dirs(forward: np.ndarray, hfov: float, vfov: float, nx: int = 16, ny: int = 9) -> np.ndarray:
+    """Unit rays (nx*ny, 3) through a grid of pixel centres of a camera looking along ``forward`` (world +Z up),
+    ``hfov``/``vfov`` half angles in radians."""
+    f = forward / np.linalg.norm(forward)
+    right = np.cross(f, UP)
+    if np.linalg.norm(right) < 1e-9:
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    u = (np.arange(nx) + 0.5) / nx * 2 - 1
+    v = (np.arange(ny) + 0.5) / ny * 2 - 1
+    uu, vv = np.meshgrid(u * math.tan(hfov), v * math.tan(vfov))
+    d = f[None] + uu.reshape(-1, 1) * right[None] + vv.reshape(-1, 1) * up[None]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov: float, vfov: float) -> dict:
+    """Per frame: background fraction (rays missing or beyond the extent) and median depth along the view axis of
+    the rays that hit (metres; inf when none does)."""
+    bg, med, steep = [], [], []
+    for e, t in zip(eyes, targets):
+        f = (t - e) / np.linalg.norm(t - e)
+        d = view_dirs(f, hfov, vfov)
+        dist, tri = geom.first_hits(np.repeat(e[None], len(d), axis=0), d)
+        hit = dist <= geom.extent
+        bg.append(1.0 - hit.mean())
+        z = dist[hit] * (d[hit] @ f)
+        med.append(float(np.median(z)) * geom.metres_per_unit if hit.any() else math.inf)
+        steep.append(float((np.abs(geom.normals[tri[hit]][:, 2]) < WALKABLE_COS).sum()) / len(d))
+    return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Floors and free space
+# ----------------------------------------------------------------------------------------------
+
+def floors_below(geom: LevelGeometry, xy: np.ndarray, z_top: float) -> np.ndarray:
+    """Heights of the walkable surfaces (normal within 45 degrees of vertical, either side) under (x, y), from
+    top to bottom."""
+    d, tri = geom.all_hits(np.array([xy[0], xy[1], z_top]), -UP)
+    if len(d) == 0:
+        return np.zeros(0)
+    flat = np.abs(geom.normals[tri][:, 2]) > WALKABLE_COS
+    return z_top - d[flat]
+
+
+def floor_under(geom: LevelGeometry, p: np.ndarray, reach: float) -> float | None:
+    """Height of the first surface below ``p`` within ``reach`` if it is walkable, else None."""
+    dist, tri = geom.first_hits(p[None], -UP[None])
+    if tri[0] < 0 or dist[0] > reach or abs(geom.normals[tri[0]][2]) < WALKABLE_COS:
+        return None
+    return float(p[2] - dist[0])
+
+
+def free_distance(geom: LevelGeometry, p: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    dist, _ = geom.first_hits(np.repeat(p[None], len(dirs), axis=0), dirs)
+    return dist
+
+
+def _heading_dirs(theta: np.ndarray, pitch: np.ndarray | float = 0.0) -> np.ndarray:
+    theta = np.atleast_1d(theta)
+    pitch = np.broadcast_to(pitch, theta.shape)
+    return np.stack([np.cos(pitch) * np.cos(theta), np.cos(pitch) * np.sin(theta), np.sin(pitch)], axis=1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Path drawing
+# ----------------------------------------------------------------------------------------------
+
+class _Smooth:
+    """A smooth random signal in [-1, 1]: an Ornstein-Uhlenbeck process, correlation time ``tau`` steps."""
+
+    def __init__(self, rng, tau: float):
+        self.rng, self.a, self.v = rng, math.exp(-1.0 / max(tau, 1.0)), float(rng.uniform(-1, 1))
+
+    def __call__(self) -> float:
+        self.v = self.a * self.v + math.sqrt(1 - self.a ** 2) * float(self.rng.normal()) * 0.6
+        return max(-1.0, min(1.0, self.v))
+
+
+def _start_points(geom, region: Region, rng, kind: str, rules: PathRules, n: int = 48):
+    """Candidate starting eyes (list of (3,) arrays) in the region, with their floor height."""
+    lo, hi = geom.content_bounds()
+    top = geom.bounds()[1][2] + geom.units(1.0)
+    eye_h = geom.units(rules.eye_height_m)
+    out = []
+    for xy in region.sample(rng, n):
+        floors = floors_below(geom, xy, top)
+        floors = floors[(floors >= lo[2] - geom.units(2.0)) & (floors <= hi[2])]
+        if len(floors) == 0:
+            continue
+        zf = float(floors[rng.integers(0, len(floors))])
+        if kind == "walk":
+            z = zf + eye_h
+        else:
+            zmin = zf + geom.units(rules.min_fly_height_m)
+            zmax = max(zmin, hi[2])
+            z = float(rng.uniform(zmin, zmax))
+        out.append((np.array([xy[0], xy[1], z]), zf))
+    return out
+
+
+def _valid_eye(geom, p, clearance, rules) -> bool:
+    return bool(geom.nearest_distance(p[None])[0] >= clearance and not geom.inside_closed_mesh(p))
+
+
+def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rng, rules: PathRules):
+    """One candidate path of ``n`` eyes (or None with a reason)."""
+    speed = geom.units(rules.walk_speed_mps if kind == "walk" else rules.fly_speed_mps) / fps  # units per frame
+    clearance = geom.units(rules.clearance_m)
+    need = clearance + 0.5 * speed
+    max_turn = math.radians(rules.max_turn_deg_s) / fps
+    starts = _start_points(geom, region, rng, kind, rules)
+    starts = [s for s in starts if _valid_eye(geom, s[0], need, rules)]
+    if not starts:
+        return None, "no free standing point in the region"
+    p, zf = starts[0]
+    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter).
+    thetas = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+    free = free_distance(geom, p, _heading_dirs(thetas))
+    best = np.argsort(-np.minimum(free, geom.extent))[:6]
+    theta = float(thetas[rng.choice(best)]) + float(rng.uniform(-0.1, 0.1))
+    climb = 0.0
+    turn, look_yaw, look_pitch, climb_noise = _Smooth(rng, 1.5 * fps), _Smooth(rng, fps), _Smooth(rng, fps), \
+        _Smooth(rng, 2 * fps)
+    eye_h = geom.units(rules.eye_height_m)
+    lo_c, hi_c = geom.content_bounds()
+    eyes, looks = [p.copy()], []
+    ahead = max(geom.units(1.5), 12 * speed)
+    for i in range(n):
+        # look direction for the current eye
+        pitch = math.radians(rules.pitch_deg[0] + (rules.pitch_deg[1] - rules.pitch_deg[0]) * 0.5 * (look_pitch() + 1))
+        yaw = theta + math.radians(12.0) * look_yaw()
+        looks.append(_heading_dirs(np.array([yaw]), pitch)[0])
+        if i == n - 1:
+            break
+        # steer: random drift plus avoidance of what is ahead
+        cand = theta + np.linspace(-max_turn, max_turn, 7)
+        pitch_move = climb if kind == "fly" else 0.0
+        dirs = _heading_dirs(cand, pitch_move)
+        free = free_distance(geom, p, dirs)
+        pref = theta + max_turn * turn()
+        score = np.minimum(free, ahead) - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
+        order = np.argsort(-score)
+        moved = False
+        for k in order:
+            d = dirs[k]
+            q = p + speed * d
+            if free[k] < speed + need or not region.contains(q[None, :2])[0]:
+                continue
+            if kind == "walk":
+                f = floor_under(geom, q + UP * geom.units(rules.max_step_m), eye_h + geom.units(2 * rules.max_step_m))
+                if f is None or abs(f - zf) > geom.units(rules.max_step_m):
+                    continue
+                zf = f
+                q[2] = eyes[-1][2] + np.clip(zf + eye_h - eyes[-1][2], -speed, speed)
+            else:
+                f = floor_under(geom, q, geom.extent)
+                low = (f if f is not None else lo_c[2]) + geom.units(rules.min_fly_height_m)
+                if q[2] < low or q[2] > hi_c[2] + geom.units(2.0):
+                    continue
+            if geom.nearest_distance(q[None])[0] < need:
+                continue
+            theta, p, moved = float(cand[k]), q, True
+            break
+        if not moved:
+            return None, "walked into a dead end"
+        if kind == "fly":
+            climb = float(np.clip(climb + math.radians(4.0) / fps * climb_noise() * 4, -0.35, 0.35))
+            if p[2] < lo_c[2] + geom.units(rules.min_fly_height_m) + 2 * speed:
+                climb = abs(climb)
+        eyes.append(p.copy())
+    eyes = np.array(eyes)
+    return (eyes, eyes + np.array(looks)), None
+
+
+def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, hfov: float,
+                    vfov: float, region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
+    """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
+    ``rules.tries`` draws. ``hfov``/``vfov``: half angles of the camera in radians."""
+    if kind not in LEVEL_KINDS:
+        raise ValueError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
+    if region is None:
+        lo, hi = geom.content_bounds()
+        region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, LEVEL_KINDS.index(kind), 7])
+    reasons: dict[str, int] = {}
+    found: list[LevelPath] = []
+    for t in range(rules.tries):
+        drawn, why = _draw(geom, kind, n_frames, fps, region, rng, rules)
+        if drawn is None:
+            reasons[why] = reasons.get(why, 0) + 1
+            continue
+        eyes, targets = drawn
+        vs = view_stats(geom, eyes, targets, hfov, vfov)
+        extent_m = geom.extent * geom.metres_per_unit
+        why = None
+        if vs["background"].max() > rules.max_background:
+            why = "looks at the sky or background"
+        elif vs["median_depth_m"].min() < rules.min_view_depth_m:
+            why = "stares at a surface closer than min_view_depth_m"
+        elif vs["median_depth_m"].max() > extent_m:
+            why = "looks beyond the level's extent"
+        if why:
+            reasons[why] = reasons.get(why, 0) + 1
+            continue
+        step = np.linalg.norm(np.diff(eyes, axis=0), axis=1) * geom.metres_per_unit
+        nominal = rules.walk_speed_mps if kind == "walk" else rules.fly_speed_mps  # walk: horizontal, rises <= it
+        clear = geom.nearest_distance(eyes) * geom.metres_per_unit
+        report = {"kind": kind, "seed": int(seed), "try": t, "fps": fps, "metres_per_unit": geom.metres_per_unit,
+                  "speed_m_per_frame": float(np.median(step)) if len(step) else 0.0,
+                  "speed_max_m_per_frame": float(step.max()) if len(step) else 0.0,
+                  "speed_mps": float(np.median(step)) * fps if len(step) else 0.0,
+                  "declared_speed_mps": nominal, "declared_max_speed_mps": nominal * (math.sqrt(2.0) if
+                                                                                      kind == "walk" else 1.0),
+                  "clearance_m": float(clear.min()), "min_clearance_rule_m": rules.clearance_m,
+                  "median_depth_m": float(np.median(vs["median_depth_m"])),
+                  "background_fraction_max": float(vs["background"].max()),
+                  "background_fraction_mean": float(vs["background"].mean()),
+                  "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
+                  "structure_fraction_mean": float(vs["structure"].mean()), "candidates_drawn": len(found) + 1,
+                  "ray_engine": geom.engine}
+        found.append(LevelPath(kind, eyes, targets, report))
+        if len(found) >= rules.candidates:
+            break
+    if found:  # the valid path that sees the most walls and objects (not only floor and sky)
+        return max(found, key=lambda p: p.report["structure_fraction_mean"])
+    worst = max(reasons, key=reasons.get) if reasons else "no attempt"
+    raise PathError(f"no {kind} path meets the rules after {rules.tries} tries (most often: {worst}; "
+                    f"{', '.join(f'{k}: {v}' for k, v in sorted(reasons.items()))})")

@@ -1,0 +1,174 @@
+"""The triangles of a level and the queries camera planning needs (trimesh + Embree; bpy only in ``from_scene``).
+
+:class:`LevelGeometry` holds the evaluated world-space triangles of every renderable object (instances, modifiers,
+armatures and shape keys applied, at one frame) and answers ray and distance queries on them:
+
+- rays: ``trimesh``'s Embree engine (``embreex``, installed with the ``[render]`` extra) when it imports, else
+  trimesh's own (rtree-based) engine. Embree casts about 10^5 rays per second on this 2-core machine against
+  about 400 for trimesh's own on an 80 k-triangle mesh (measured 2026-11-25), and a path plan casts a few
+  thousand rays per try, so Embree is what makes planning on real levels take seconds.
+- nearest distance: ``trimesh.proximity.closest_point`` (exact point-to-triangle distance; no ray engine does
+  this).
+
+Distances are in scene units; :attr:`LevelGeometry.metres_per_unit` converts (the scene's unit scale).
+A level's *content box* (:meth:`LevelGeometry.content_bounds`) is the 1st-99th percentile box of its triangle
+centroids: a 2 km ground plane or a skybox (few, huge triangles) does not widen it, while streets and rooms (many
+triangles) define it. Its diagonal is the level's *extent*.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "SURFACE", "META", "FONT"})
+
+
+def _ray_engine(mesh):
+    try:
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+        return RayMeshIntersector(mesh), "embree"
+    except Exception:  # embreex missing or failing to load: trimesh's own engine gives the same answers, slower
+        from trimesh.ray.ray_triangle import RayMeshIntersector
+        return RayMeshIntersector(mesh), "trimesh"
+
+
+@dataclass
+class LevelGeometry:
+    """World-space triangles (``vertices`` (V, 3) float64, ``faces`` (F, 3) int64) with ray and distance queries."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    metres_per_unit: float = 1.0
+    names: list = field(default_factory=list)
+
+    def __post_init__(self):
+        import trimesh
+        self.vertices = np.asarray(self.vertices, np.float64)
+        self.faces = np.asarray(self.faces, np.int64)
+        if len(self.faces) == 0:
+            raise ValueError("the level has no renderable triangles")
+        self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
+        keep = self.mesh.area_faces > 0
+        if not keep.all():  # degenerate triangles have no normal and break Embree's winding test
+            self.mesh = trimesh.Trimesh(self.vertices, self.faces[keep], process=False)
+        self.normals = np.asarray(self.mesh.face_normals, np.float64)
+        self.rays, self.engine = _ray_engine(self.mesh)
+        lo, hi = self.content_bounds()
+        self.extent = float(np.linalg.norm(hi - lo))
+
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.mesh.faces))
+
+    def units(self, metres: float) -> float:
+        """``metres`` in scene units."""
+        return metres / self.metres_per_unit
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.mesh.bounds[0].copy(), self.mesh.bounds[1].copy()
+
+    def content_bounds(self, pct: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) (3,): the ``pct``..``100-pct`` percentile box of the triangle centroids (see module doc)."""
+        c = self.mesh.triangles_center
+        return np.percentile(c, pct, axis=0), np.percentile(c, 100.0 - pct, axis=0)
+
+    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to the first hit along each unit ray (inf on a miss) and the triangle hit (-1 on a miss)."""
+        origins = np.asarray(origins, np.float64).reshape(-1, 3)
+        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+        dist = np.full(len(origins), np.inf)
+        tri = np.full(len(origins), -1, dtype=np.int64)
+        if len(origins) == 0:
+            return dist, tri
+        t, r, loc = self.rays.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+        if len(t):
+            d = np.linalg.norm(loc - origins[r], axis=1)
+            order = np.argsort(-d)  # keep the nearest when an engine reports several per ray
+            dist[r[order]] = d[order]
+            tri[r[order]] = t[order]
+        return dist, tri
+
+    def all_hits(self, origin: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every hit along one ray, sorted by distance: (distances, triangles)."""
+        t, r, loc = self.rays.intersects_id(np.asarray(origin, np.float64)[None], np.asarray(direction,
+                                            np.float64)[None], multiple_hits=True, return_locations=True)
+        if len(t) == 0:
+            return np.zeros(0), np.zeros(0, np.int64)
+        d = np.linalg.norm(loc - np.asarray(origin)[None], axis=1)
+        o = np.argsort(d)
+        return d[o], np.asarray(t)[o]
+
+    def nearest_distance(self, points: np.ndarray) -> np.ndarray:
+        """Exact distance (scene units) from each point (N, 3) to the nearest triangle."""
+        import trimesh
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        _, dist, _ = trimesh.proximity.closest_point(self.mesh, points)
+        return np.asarray(dist, np.float64)
+
+    def inside_closed_mesh(self, point: np.ndarray, n_dirs: int = 26, frac: float = 0.5) -> bool:
+        """True when more than ``frac`` of rays in ``n_dirs`` directions first hit the back of a triangle: the point
+        is inside a solid object (a pillar, a car body). Rays that hit a front face or nothing leave it outside, so
+        rooms and skyboxes whose faces look inwards are the space a camera lives in."""
+        d = sphere_directions(n_dirs)
+        dist, tri = self.first_hits(np.repeat(np.asarray(point, np.float64)[None], len(d), axis=0), d)
+        hit = tri >= 0
+        back = np.zeros(len(d), dtype=bool)
+        back[hit] = np.einsum("ij,ij->i", self.normals[tri[hit]], d[hit]) > 0
+        return bool(back.mean() > frac)
+
+
+def sphere_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (a Fibonacci lattice), (n, 3)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.pi * (1.0 + 5 ** 0.5) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def metres_per_unit(scene) -> float:
+    """Metres per Blender unit of ``scene`` (its unit scale; 1 when the unit system is NONE)."""
+    us = scene.unit_settings
+    return float(us.scale_length) if us.system != "NONE" and us.scale_length > 0 else 1.0
+
+
+def from_scene(scene, frame: int | None = None) -> LevelGeometry:
+    """The evaluated triangles of every renderable object of ``scene`` at ``frame`` (default: the current one)."""
+    import bpy
+
+    if frame is not None:
+        scene.frame_set(int(frame))
+    dg = bpy.context.evaluated_depsgraph_get() if scene == bpy.context.scene else scene.view_layers[0].depsgraph
+    verts, faces, names = [], [], []
+    offset = 0
+    for inst in dg.object_instances:
+        ob = inst.object
+        orig = ob.original
+        if ob.type not in GEOMETRY_TYPES or orig.hide_render or any(c.hide_render for c in orig.users_collection):
+            continue
+        if inst.is_instance and inst.parent is not None and inst.parent.original.hide_render:
+            continue
+        try:
+            me = ob.to_mesh()
+        except RuntimeError:
+            continue
+        try:
+            me.calc_loop_triangles()
+            n, nt = len(me.vertices), len(me.loop_triangles)
+            if n == 0 or nt == 0:
+                continue
+            v = np.empty(n * 3, dtype=np.float64)
+            me.vertices.foreach_get("co", v)
+            t = np.empty(nt * 3, dtype=np.int64)
+            me.loop_triangles.foreach_get("vertices", t)
+        finally:
+            ob.to_mesh_clear()
+        m = np.array(inst.matrix_world, dtype=np.float64)
+        verts.append(v.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
+        faces.append(t.reshape(-1, 3) + offset)
+        names.append(orig.name)
+        offset += n
+    if not verts:
+        raise ValueError(f"scene {scene.name!r} has no renderable triangles")
+    return LevelGeometry(np.concatenate(verts), np.concatenate(faces), metres_per_unit(scene), sorted(set(names)))

@@ -1,0 +1,367 @@
+"""A user's scene as it is (bpy layer): load a .blend, glTF/GLB or USD file, check it can render, pick its cameras,
+light it on request, key cameras that move inside it, and choose Cycles' device.
+
+BlendSR overrides only what its clip contract owns (size, samples, passes, camera, jitter); the world, lights,
+materials, animation and visibility stay the file's. Every check is a one-line ``ConfigError`` naming the file
+and the fix.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..config import DEVICES, SCENE_SUFFIXES, ConfigError
+LEVEL_CAMERA_NAME = "BlendSR Level Camera"
+#: Level cameras: a 24 mm lens on a 36 mm sensor (horizontal field of view 73.7 degrees, as games use).
+LEVEL_LENS_MM = 24.0
+SKY_SUN_STRENGTH = 4.0      # W/m^2 of the added sun lamp
+SKY_STRENGTH = 0.35         # multiplier of Blender's physical sky (its radiance is in daylight units)
+GPU_TYPES = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")
+
+
+# ----------------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------------
+
+def load_scene_file(path: Path):
+    """Open ``path`` (a .blend directly; glTF/GLB and USD imported into an empty file) and return its scene."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".blend":
+        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+        return bpy.context.scene
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    try:
+        if suffix in (".gltf", ".glb"):
+            result = bpy.ops.import_scene.gltf(filepath=str(path))
+        elif suffix in (".usd", ".usda", ".usdc", ".usdz"):
+            if not hasattr(bpy.ops.wm, "usd_import"):
+                raise ConfigError(f"{path}: this bpy build has no USD importer")
+            result = bpy.ops.wm.usd_import(filepath=str(path))
+        else:
+            raise ConfigError(f"{path}: not a scene file ({', '.join(SCENE_SUFFIXES)})")
+    except RuntimeError as exc:
+        raise ConfigError(f"{path}: the importer failed ({str(exc).splitlines()[0]})") from None
+    if "FINISHED" not in result:
+        raise ConfigError(f"{path}: the importer failed ({result})")
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
+    return scene
+
+
+# ----------------------------------------------------------------------------------------------
+# Cameras
+# ----------------------------------------------------------------------------------------------
+
+def scene_cameras(scene) -> list:
+    """The file's camera objects in ``scene``, sorted by name (BlendSR's own left out)."""
+    return sorted((ob for ob in scene.objects if ob.type == "CAMERA" and not ob.name.startswith("BlendSR ")),
+                  key=lambda ob: ob.name)
+
+
+def _names(cams, limit: int = 8) -> str:
+    names = [c.name for c in cams]
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def pick_scene_camera(scene, choice: str, where, index: int = 0):
+    """The camera ``choice`` names: ``scene`` (the active one), ``scene:NAME``, or ``scene:*`` (the active one,
+    else the ``index``-th of the file's cameras by name, cycling)."""
+    cams = scene_cameras(scene)
+    name = choice.split(":", 1)[1] if ":" in choice else None
+    if name and name != "*":
+        ob = scene.objects.get(name)
+        if ob is None or ob.type != "CAMERA":
+            raise ConfigError(f"{where}: no camera named {name!r} in the scene"
+                              + (f" (cameras: {_names(cams)})" if cams else " (it has no cameras)"))
+        return ob
+    if name == "*" and cams:
+        return cams[index % len(cams)] if index or scene.camera is None else scene.camera
+    if scene.camera is not None:
+        return scene.camera
+    if cams:
+        raise ConfigError(f"{where}: the scene has {len(cams)} camera(s) but none is active ({_names(cams)}); "
+                          "pass --camera-path scene:NAME or scene:*")
+    raise ConfigError(f"{where}: the scene has no camera; pass --camera-path walk, fly or orbit")
+
+
+def ensure_level_camera(scene):
+    """The perspective camera ``BlendSR Level Camera`` (24 mm lens, 36 mm sensor), linked to ``scene``."""
+    cam = bpy.data.objects.get(LEVEL_CAMERA_NAME)
+    if cam is None or cam.type != "CAMERA":
+        cam = bpy.data.objects.new(LEVEL_CAMERA_NAME, bpy.data.cameras.new(LEVEL_CAMERA_NAME))
+    if cam.name not in scene.objects:
+        scene.collection.objects.link(cam)
+    cam.parent = None
+    cam.constraints.clear()
+    cam.scale = (1.0, 1.0, 1.0)
+    d = cam.data
+    d.type, d.lens_unit, d.lens, d.sensor_fit, d.sensor_width = "PERSP", "MILLIMETERS", LEVEL_LENS_MM, "AUTO", 36.0
+    d.shift_x = d.shift_y = 0.0
+    d.dof.use_dof = False
+    return cam
+
+
+def scene_fps(scene) -> float:
+    return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
+
+
+def level_region(geom, spec: dict):
+    """The ``Region`` of a dataset clip: cell ``spec["cell"]`` of a ``spec["grid"]`` grid over the level's content
+    box (x, y)."""
+    from .level_cameras import Region
+    lo, hi = geom.content_bounds()
+    nx, ny = spec["grid"]
+    return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), int(nx), int(ny),
+                  (tuple(int(v) for v in spec["cell"]),))
+
+
+def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None):
+    """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
+    returns (camera, report for the manifest). The level's geometry is taken at the first frame."""
+    from .camera_paths import half_fov, key_look_at
+    from .level_cameras import PathRules, plan_level_path
+    from .level_geometry import from_scene
+
+    start, end = int(frames[0]), int(frames[1])
+    cam = ensure_level_camera(scene)
+    cam.animation_data_clear()
+    geom = from_scene(scene, start)
+    hfov, vfov = half_fov(scene, cam.data)
+    if isinstance(region, dict):
+        region = level_region(geom, region)
+    path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, hfov, vfov, region,
+                           rules or PathRules())
+    key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
+    lo, hi = geom.bounds()
+    cam.data.clip_start = geom.units(0.05)
+    cam.data.clip_end = max(float(np.linalg.norm(hi - lo)) * 1.1, geom.units(100.0))
+    cam["blendsr_camera_path"] = kind
+    cam["blendsr_camera_seed"] = int(seed)
+    scene.camera = cam
+    scene.frame_set(start)
+    return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
+                 "triangles": geom.n_triangles}
+
+
+# ----------------------------------------------------------------------------------------------
+# Light
+# ----------------------------------------------------------------------------------------------
+
+def _socket_value(sock):
+    v = getattr(sock, "default_value", None)
+    return tuple(v) if v is not None and hasattr(v, "__len__") else v
+
+
+def world_emits(scene) -> bool:
+    """Whether the world lights the scene: a Background or Emission node with a non-zero strength whose colour
+    is linked (a texture) or not black."""
+    w = scene.world
+    if w is None:
+        return False
+    nt = w.node_tree
+    if nt is None:
+        return any(c > 0 for c in w.color)
+    for n in nt.nodes:
+        if n.type not in ("BACKGROUND", "EMISSION") or n.mute:
+            continue
+        s = n.inputs.get("Strength")
+        c = n.inputs.get("Color")
+        strong = s is None or s.is_linked or (_socket_value(s) or 0) > 0
+        bright = c is None or c.is_linked or any(x > 0 for x in (_socket_value(c) or (0,))[:3])
+        if strong and bright and n.outputs[0].is_linked:
+            return True
+    return False
+
+
+def material_emits(mat) -> bool:
+    if mat is None or mat.node_tree is None:
+        return False
+    for n in mat.node_tree.nodes:
+        if n.mute:
+            continue
+        if n.type == "EMISSION":
+            s, c = n.inputs.get("Strength"), n.inputs.get("Color")
+        elif n.type == "BSDF_PRINCIPLED":
+            s, c = n.inputs.get("Emission Strength"), n.inputs.get("Emission Color")
+        else:
+            continue
+        if s is None or c is None:
+            continue
+        if (s.is_linked or (_socket_value(s) or 0) > 0) and (c.is_linked or any(x > 0 for x in _socket_value(c)[:3])):
+            return True
+    return False
+
+
+def light_sources(scene) -> dict:
+    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects, and whether
+    the world emits."""
+    lamps = [ob for ob in scene.objects if ob.type == "LIGHT" and not ob.hide_render and ob.data.energy > 0]
+    emissive = {s.material.name for ob in scene.objects if ob.type == "MESH" and not ob.hide_render
+                for s in ob.material_slots if material_emits(s.material)}
+    return {"lamps": len(lamps), "sun_lamps": sum(ob.data.type == "SUN" for ob in lamps),
+            "emissive_materials": len(emissive), "world": world_emits(scene)}
+
+
+def check_lit(scene, where, light: str) -> dict:
+    """ConfigError when nothing lights the scene and ``light`` is "scene"; the light sources otherwise."""
+    src = light_sources(scene)
+    if light == "scene" and not (src["lamps"] or src["emissive_materials"] or src["world"]):
+        raise ConfigError(f"{where}: the scene has no lights, no emissive material and a black world, so every "
+                          "frame would be black; pass --light sky (a default sun and sky, recorded in the manifest)")
+    return src
+
+
+def add_sky(scene, seed: int = 0) -> dict:
+    """Light ``scene`` with a sun lamp and Blender's physical sky (multiple scattering) whose sun points the same
+    way: elevation 25-60 degrees and azimuth drawn from ``seed``. Returns what was added (for the manifest)."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 5])
+    elev, azim = float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.0, 360.0))
+    world = bpy.data.worlds.new("BlendSR Sky")
+    world.use_nodes = True
+    nt = world.node_tree
+    nt.nodes.clear()
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    sky.sky_type = "MULTIPLE_SCATTERING"
+    sky.sun_disc = False  # the sun lamp is the sun: sharp shadows, sampled directly
+    sky.sun_elevation, sky.sun_rotation = math.radians(elev), math.radians(azim)
+    bg = nt.nodes.new("ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = SKY_STRENGTH
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    scene.world = world
+    lamp = bpy.data.lights.new("BlendSR Sun", "SUN")
+    lamp.energy = SKY_SUN_STRENGTH
+    lamp.angle = math.radians(0.53)
+    ob = bpy.data.objects.new("BlendSR Sun", lamp)
+    # A sun lamp shines along its -Z: point it from the sky position (elevation, azimuth about +Z from +Y).
+    ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
+    scene.collection.objects.link(ob)
+    return {"light": "sky", "sun_elevation_deg": elev, "sun_azimuth_deg": azim, "sun_strength_w_m2": SKY_SUN_STRENGTH,
+            "sky": "MULTIPLE_SCATTERING", "sky_strength": SKY_STRENGTH}
+
+
+def apply_variation(scene, variation: dict | None) -> dict:
+    """Apply a drawn light variation (``dataset.spec.Variation``) to ``scene``; returns what changed."""
+    if not variation:
+        return {}
+    done = {}
+    world = scene.world
+    nodes = world.node_tree.nodes if world is not None and world.node_tree is not None else []
+    if "world_strength" in variation:
+        bgs = [n for n in nodes if n.type == "BACKGROUND"]
+        for n in bgs:
+            n.inputs["Strength"].default_value *= variation["world_strength"]
+        done["world_strength"] = {"multiplier": variation["world_strength"], "nodes": len(bgs)}
+    lamps = [ob for ob in scene.objects if ob.type == "LIGHT"]
+    if "light_strength" in variation:
+        for ob in lamps:
+            ob.data.energy *= variation["light_strength"]
+        done["light_strength"] = {"multiplier": variation["light_strength"], "lamps": len(lamps)}
+    if "sun_elevation_deg" in variation:
+        elev, azim = variation["sun_elevation_deg"], variation["sun_azimuth_deg"]
+        suns = [ob for ob in lamps if ob.data.type == "SUN"]
+        for ob in suns:
+            ob.rotation_mode = "XYZ"
+            ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
+        for n in nodes:
+            if n.type == "TEX_SKY":
+                n.sun_elevation, n.sun_rotation = math.radians(elev), math.radians(azim)
+        done["sun"] = {"elevation_deg": elev, "azimuth_deg": azim, "sun_lamps": len(suns)}
+    if "hdri" in variation:
+        envs = [n for n in nodes if n.type == "TEX_ENVIRONMENT"]
+        if envs:
+            from .default_scene import hdri_path
+            img = bpy.data.images.load(str(hdri_path(variation["hdri"])), check_existing=True)
+            for n in envs:
+                n.image = img
+                mapping = n.inputs["Vector"].links[0].from_node if n.inputs["Vector"].is_linked else None
+                if mapping is not None and mapping.type == "MAPPING":
+                    mapping.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
+                else:
+                    tc = world.node_tree.nodes.new("ShaderNodeTexCoord")
+                    mp = world.node_tree.nodes.new("ShaderNodeMapping")
+                    mp.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
+                    world.node_tree.links.new(tc.outputs["Generated"], mp.inputs["Vector"])
+                    world.node_tree.links.new(mp.outputs["Vector"], n.inputs["Vector"])
+        done["hdri"] = {"file": variation["hdri"], "rotation_deg": variation["hdri_rotation_deg"],
+                        "applied": bool(envs)}
+    return done
+
+
+# ----------------------------------------------------------------------------------------------
+# Device
+# ----------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def _quiet_fds():
+    """Silence file descriptors 1 and 2: probing a GPU backend that is absent makes Cycles print a warning
+    ("CUEW initialization failed") into the terminal and its progress bars (BLENDSR_VERBOSE=1 keeps it)."""
+    if os.environ.get("BLENDSR_VERBOSE"):
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            os.dup2(devnull.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
+
+
+def _gpu_devices(kind: str) -> list:
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    with _quiet_fds():
+        try:
+            prefs.compute_device_type = kind
+        except TypeError:  # this build has no such backend
+            return []
+        try:
+            prefs.refresh_devices()
+        except (AttributeError, RuntimeError):
+            pass
+        return [d for d in prefs.devices if d.type == kind]
+
+
+def select_device(scene, requested: str) -> dict:
+    """Set Cycles' device: ``cpu``, a GPU backend by name, or ``auto`` (the first backend of OptiX, CUDA, HIP,
+    Metal, oneAPI that has a device, else the CPU). ConfigError when a named backend has no device."""
+    if requested not in DEVICES:
+        raise ConfigError(f"--device {requested!r}: choose one of {', '.join(DEVICES)}")
+    kinds = GPU_TYPES if requested == "auto" else (() if requested == "cpu" else (requested.upper(),))
+    for kind in kinds:
+        devs = _gpu_devices(kind)
+        if devs:
+            for d in bpy.context.preferences.addons["cycles"].preferences.devices:
+                d.use = d.type == kind
+            scene.cycles.device = "GPU"
+            return {"device": kind, "names": [d.name for d in devs], "requested": requested}
+    if requested not in ("auto", "cpu"):
+        raise ConfigError(f"--device {requested}: Cycles sees no {requested.upper()} device here; "
+                          "use --device cpu or auto")
+    scene.cycles.device = "CPU"
+    return {"device": "CPU", "names": [_cpu_name()], "requested": requested}
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+    return platform.processor() or "CPU"
