@@ -24,6 +24,7 @@ CORE_COMMANDS = {
     "render": "gbuffer_export.commands.render",
     "dataset": "gbuffer_export.commands.dataset",
     "validate": "gbuffer_export.commands.validate",
+    "preview": "gbuffer_export.commands.preview",
     "lut": "gbuffer_export.commands.lut",
     "bench": "gbuffer_export.commands.bench",
     "demo": "gbuffer_export.commands.demo",

@@ -127,3 +127,43 @@ def contact_sheet(clip, path: str | Path, frames: list[int] | None = None, max_f
         rows.append(row)
     save_png(path, labelled_grid(rows))
     return Path(path)
+
+
+def _fit(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """``img`` resized (nearest) to h x w."""
+    ys = np.minimum((np.arange(h) + 0.5) * img.shape[0] / h, img.shape[0] - 1).astype(np.int64)
+    xs = np.minimum((np.arange(w) + 0.5) * img.shape[1] / w, img.shape[1] - 1).astype(np.int64)
+    return img[ys][:, xs]
+
+
+def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=None) -> tuple[Path, int]:
+    """PNG contact sheet of a dataset: one row per finished clip (index order, or only ``splits``) with its first
+    and last frame's HR radiance at ``width`` pixels wide, labelled with the clip id, camera kind and split.
+    Returns (path, clips shown); ValueError when the dataset has no finished clip."""
+    from .clip import ClipError, open_clip
+    from .dataset.build import read_index
+    root = Path(root)
+    index = read_index(root)
+    rows = []
+    for c in index["clips"]:
+        if splits and c.get("split") not in splits:
+            continue
+        try:
+            clip = open_clip(root / c["path"])
+        except ClipError:
+            continue
+        if not clip.frames:
+            continue
+        row = []
+        for f in (clip.frames[0], clip.frames[-1]):
+            img = visualize("radiance", clip.read(f, "hr/radiance", space=DISPLAY_SPACE))
+            h = max(1, round(img.shape[0] * width / img.shape[1]))
+            label = f"{c['id']} f{f}" if f == clip.frames[0] else f"{c.get('camera')} {c.get('split')} f{f}"
+            row.append((label, _fit(img, h, width)))
+        rows.append(row)
+    if not rows:
+        raise ValueError(f"{root}: no finished clip to show")
+    h = max(r[0][1].shape[0] for r in rows)
+    rows = [[(lab, _fit(img, h, width)) for lab, img in r] for r in rows]
+    save_png(path, labelled_grid(rows))
+    return Path(path), len(rows)

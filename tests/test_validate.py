@@ -195,8 +195,21 @@ def _radiance_channels(clip, channels):
     write(clip, 2, "hr/radiance", full[..., :len(channels)], channels)
 
 
+def _level_camera(clip, **over):
+    """Declare the clip's camera a level walk (validate/camera.py) with a report whose rules its frames break."""
+    report = {"kind": "walk", "rules": {"clearance_m": 0.25}, "metres_per_unit": 1.0, "fps": 24.0,
+              "level_extent_m": 1e6, "declared_max_speed_mps": 1e6, "clearance_m": 1.0,
+              "min_clearance_rule_m": 0.25, "region": None, **over}
+    edit_manifest(clip, lambda m: m.__setitem__("camera", report))
+
+
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).
 CASES = {
+    "black-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", np.zeros_like), ERROR, 2, "hr/radiance"),
+    "camera-view": (lambda c: _level_camera(c, level_extent_m=1e-3), ERROR, 2, "hr/depth"),
+    "camera-motion": (lambda c: _level_camera(c, clearance_m=0.1), ERROR, None, None),
+    "camera-region": (lambda c: _level_camera(c, region={"lo": [1e3, 1e3], "hi": [2e3, 2e3], "grid": [1, 1],
+                                                         "cells": None}), ERROR, 2, "hr"),
     "manifest-missing": (lambda c: (c / "manifest.json").unlink(), ERROR, None, None),
     "manifest-invalid": (lambda c: (c / "manifest.json").write_text('{"schema": "blendsr.clip", '), ERROR, None,
                          None),

@@ -52,7 +52,7 @@ class PathRules:
     max_step_m: float = 0.4
     min_fly_height_m: float = 1.0
     min_view_depth_m: float = 0.75
-    max_background: float = 0.45
+    max_background: float = 0.4
     pitch_deg: tuple[float, float] = (-14.0, 2.0)
     tries: int = 60
     candidates: int = 4

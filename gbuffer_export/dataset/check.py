@@ -1,7 +1,9 @@
 """``blendsr validate DATASET``: every clip of a dataset validated, plus the index's own invariants (pure numpy).
 
 Index checks: every clip listed exists and is finished; no scene or asset id lies in two splits; no clip's clutter
-comes from an asset of another split (a test asset never appears in a training clip); every clip records a licence.
+comes from an asset of another split (a test asset never appears in a training clip); every clip records a licence;
+a level split into regions gives each split its own cells and every clip a cell of its split (each clip's own
+validation then checks that its camera stays in that cell).
 """
 from __future__ import annotations
 
@@ -39,8 +41,32 @@ class DatasetReport:
         return {"path": self.path, "ok": self.ok, "clips": self.clips, "index_errors": self.index_errors}
 
 
-def index_errors(root: Path, index: dict) -> list[str]:
+def region_errors(index: dict) -> list[str]:
+    """Split regions of ``kind = "scene"`` clips: per scene file, the cells of different splits are disjoint, the
+    same for every clip, and each clip's cell is one of its split's."""
     errs = []
+    layout: dict[str, dict] = {}
+    for c in index["clips"]:
+        reg = c.get("region")
+        if c.get("kind") != "scene" or not reg:
+            continue
+        cells = {k: {tuple(x) for x in v} for k, v in (reg.get("cells") or {}).items()}
+        key = str(c.get("asset"))
+        if layout.setdefault(key, {"grid": reg.get("grid"), "cells": cells}) != {"grid": reg.get("grid"),
+                                                                                 "cells": cells}:
+            errs.append(f"clip {c['id']}: its scene's split regions differ from another clip's of {Path(key).name}")
+        splits = sorted(cells)
+        for i, a in enumerate(splits):
+            for b in splits[i + 1:]:
+                if cells[a] & cells[b]:
+                    errs.append(f"clip {c['id']}: regions {sorted(cells[a] & cells[b])} are in both {a} and {b}")
+        if tuple(reg.get("cell") or ()) not in cells.get(c["split"], set()):
+            errs.append(f"clip {c['id']} ({c['split']}) stands in cell {reg.get('cell')}, not a {c['split']} region")
+    return sorted(set(errs))
+
+
+def index_errors(root: Path, index: dict) -> list[str]:
+    errs = region_errors(index)
     split_of: dict[str, str] = {}
     asset_split: dict[str, str] = {}
     for c in index["clips"]:

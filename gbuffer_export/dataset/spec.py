@@ -623,8 +623,9 @@ def region_cells(src: Source, spec_seed: int, stem: str) -> dict[str, list[list[
 
 
 def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[ClipJob]:
-    """The clips of a ``kind = "scene"`` source: ``clips_per_scene`` per file. With split regions, clip k stands
-    in cell k of the order test cells, val cells, train cells (cycling), so the first clips cover every split."""
+    """The clips of a ``kind = "scene"`` source: ``clips_per_scene`` per file, clip k with camera kind k of
+    ``cameras`` (cycling). With split regions, clip k stands in cell k of the order test cells, val cells, train
+    cells (cycling), so the first clips cover every split."""
     jobs = []
     var = src.variation or Variation()
     hdris = find_hdris(Environment(hdri=var.hdri), base, spec.path, src.name) if var.hdri else []
@@ -639,7 +640,7 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
             cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
             seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
             rng = _draw(seed)
-            camera = rng.choice(src.cameras)
+            camera = src.cameras[k % len(src.cameras)]  # cycling: every kind appears once clips >= kinds
             if split_regions:
                 split, cell = order[k % len(order)]
                 region = {"grid": list(src.regions), "cell": cell, "cells": cells}
