@@ -113,11 +113,17 @@ def free_disk(path: Path) -> int | None:
 
 
 def check_render_resources(hr_size: tuple[int, int], scale, buffers, frames: int, output: Path,
-                           *, memory: int | None = None, disk: int | None = None) -> RenderEstimate:
-    """Raise ResourceError when the estimate exceeds the available memory or the free disk; return it."""
+                           *, memory: int | None = None, disk: int | None = None, scene_bytes: int = 0,
+                           scene: str | None = None) -> RenderEstimate:
+    """Raise ResourceError when the estimate (plus ``scene_bytes``, the scene's own geometry and textures in
+    Cycles) exceeds the available memory or the free disk; return it."""
     est = estimate_render(hr_size, scale, buffers, frames)
     w, h = hr_size
     memory = available_memory() if memory is None else memory
+    if memory is not None and scene_bytes and est.memory_bytes + scene_bytes > memory:
+        raise ResourceError(f"{scene or 'scene'}: its geometry and textures need about {human(scene_bytes)} in "
+                            f"Cycles, the frames {human(est.memory_bytes)}, and {human(memory)} is available; render "
+                            "it on a machine with more memory or hide objects from rendering")
     if memory is not None and est.memory_bytes > memory:
         raise ResourceError(f"--hr-size {w}x{h}: rendering needs about {human(est.memory_bytes)} of memory and "
                             f"{human(memory)} is available; lower --hr-size")

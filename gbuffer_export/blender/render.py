@@ -418,7 +418,9 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     levels = levels_header((w, h), cfg.scales)
     undone = [f for i, f in enumerate(all_frames) if i % cfg.shard[1] == cfg.shard[0] - 1
               and not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
-    check_render_resources((w, h), cfg.scales, cfg.buffers, len(undone), cfg.output)
+    from .scene_setup import scene_memory_bytes
+    check_render_resources((w, h), cfg.scales, cfg.buffers, len(undone), cfg.output,
+                           scene_bytes=scene_memory_bytes(scene), scene=str(cfg.scene or "scene"))
     ctx_vl = getattr(bpy.context, "view_layer", None)
     view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
     view_layer = view_layer or scene.view_layers[0]

@@ -150,6 +150,22 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
                  "triangles": geom.n_triangles}
 
 
+#: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).
+BYTES_PER_TRIANGLE = 250
+
+
+def scene_memory_bytes(scene) -> int:
+    """Rough memory of ``scene`` in Cycles: its image textures (float images at 16 bytes a pixel, others 4) and
+    its meshes' triangles (``BYTES_PER_TRIANGLE``; instances counted once per use)."""
+    images = sum(im.size[0] * im.size[1] * (16 if im.is_float else 4) for im in bpy.data.images
+                 if im.users and im.size[0] > 0)
+    tris = 0
+    for ob in scene.objects:
+        if ob.type == "MESH" and not ob.hide_render and ob.data is not None:
+            tris += sum(max(len(p.vertices) - 2, 0) for p in ob.data.polygons)
+    return int(images + tris * BYTES_PER_TRIANGLE)
+
+
 # ----------------------------------------------------------------------------------------------
 # Light
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,103 @@
+"""``kind = "scene"`` dataset sources (gbuffer_export/dataset/spec.py) and the scene memory check: pure Python."""
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from gbuffer_export.config import ConfigError, RenderConfig
+from gbuffer_export.dataset.spec import SpecError, expand, parse_spec, region_cells
+from gbuffer_export.resources import ResourceError, check_render_resources
+
+
+@pytest.fixture()
+def level(tmp_path):
+    (tmp_path / "a").mkdir()
+    for name in ("a/hall.blend", "a/street.glb", "a/notes.txt"):
+        (tmp_path / name).write_bytes(b"x")
+    return tmp_path / "a"
+
+
+def _spec(level, **kw):
+    src = {"kind": "scene", "name": "lv", "paths": [str(level)], **kw}
+    return parse_spec({"source": [src]})
+
+
+def test_scene_files_clips_cameras_and_regions(level):
+    jobs = expand(_spec(level, clips_per_scene=5, cameras=["walk", "fly"], regions="3x2", region_test=1,
+                        region_val=1))
+    assert [j.id for j in jobs[:2]] == ["lv-hall-00", "lv-hall-01"] and len(jobs) == 10  # .txt is not a scene
+    hall = [j for j in jobs if j.id.startswith("lv-hall")]
+    assert [j.camera for j in hall] == ["walk", "fly", "walk", "fly", "walk"]
+    assert [j.split for j in hall] == ["test", "val", "train", "train", "train"]
+    cells = hall[0].region["cells"]
+    assert sorted(map(tuple, cells["test"] + cells["val"] + cells["train"])) == [(i, j) for i in range(3)
+                                                                                  for j in range(2)]
+    for j in hall:
+        assert j.region["cell"] in cells[j.split] and j.scene_id == f"hall@cell{j.region['cell'][0]}-" \
+                                                                    f"{j.region['cell'][1]}"
+    assert {j.kind for j in jobs} == {"scene"} and all(j.light == "scene" for j in jobs)
+    again = expand(_spec(level, clips_per_scene=5, cameras=["walk", "fly"], regions="3x2", region_test=1,
+                         region_val=1))
+    assert [j.to_json() for j in again] == [j.to_json() for j in jobs]
+
+
+def test_region_cells_are_disjoint_and_seeded(level):
+    src = _spec(level, regions="4x4", region_test=2, region_val=3).sources[0]
+    a, b = region_cells(src, 0, "hall"), region_cells(src, 1, "hall")
+    assert (len(a["test"]), len(a["val"]), len(a["train"])) == (2, 3, 11)
+    flat = [tuple(c) for v in a.values() for c in v]
+    assert len(flat) == len(set(flat)) == 16 and a != b
+
+
+def test_without_regions_the_scene_is_one_split_and_variation_is_recorded(level):
+    spec = parse_spec({"splits": {"test": ["street"]}, "source": [
+        {"kind": "scene", "name": "lv", "paths": [str(level)], "cameras": ["scene:*"], "light": "sky",
+         "clips_per_scene": 3, "world_strength": [0.5, 2.0], "sun_elevation_deg": [10, 40]}]})
+    jobs = expand(spec)
+    assert {j.split for j in jobs if "street" in j.id} == {"test"} and {j.split for j in jobs if "hall" in j.id} == \
+        {"train"}
+    assert [j.camera_index for j in jobs[:3]] == [0, 1, 2] and jobs[0].light == "sky"
+    for j in jobs:
+        v = j.variation
+        assert 0.5 <= v["world_strength"] <= 2.0 and 10 <= v["sun_elevation_deg"] <= 40
+        assert 0 <= v["sun_azimuth_deg"] < 360
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"regions": "0x3"}, "regions"),
+    ({"regions": "2x2", "region_test": 4}, "region_val + region_test below the 4 cells"),
+    ({"regions": "2x2", "region_test": 1, "cameras": ["walk", "scene:*"]}, "only walk and fly"),
+    ({"regions": "2x2", "region_test": 1, "split": "train"}, "exclude each other"),
+    ({"cameras": ["dolly"]}, "cameras: 'dolly'"),
+    ({"light": "moon"}, "light = 'moon'"),
+    ({"clutter": 2}, "not for kind = \"scene\""),
+    ({"sun_elevation_deg": [10, 95]}, "sun_elevation_deg"),
+])
+def test_bad_scene_sources_are_one_line_errors(level, kw, message):
+    with pytest.raises(SpecError, match=re.escape(message)) as e:
+        _spec(level, **kw)
+    assert "\n" not in str(e.value)
+
+
+def test_scene_keys_belong_to_scene_sources(level):
+    with pytest.raises(SpecError, match='regions: only for kind = "scene"'):
+        parse_spec({"source": [{"kind": "builtin", "seeds": "0:1", "regions": "2x2"}]})
+
+
+def test_render_config_takes_scene_files_cameras_lights_devices(level, tmp_path):
+    cfg = RenderConfig(output=tmp_path / "o", scene=level / "street.glb", camera_path="scene:Cam 2", light="sky",
+                       device="cpu")
+    assert cfg.camera_path == "scene:Cam 2"
+    for kw, msg in (({"camera_path": "dolly"}, "--camera-path 'dolly'"), ({"light": "moon"}, "--light 'moon'"),
+                    ({"device": "tpu"}, "--device 'tpu'"), ({"scene": level / "notes.txt"}, "not a scene file")):
+        with pytest.raises(ConfigError, match=msg):
+            RenderConfig(output=tmp_path / "o", **{"scene": level / "hall.blend", **kw})
+
+
+def test_scene_memory_above_the_machine_is_refused_naming_the_scene(tmp_path):
+    with pytest.raises(ResourceError, match=r"city.blend: its geometry and textures need about 40 GB"):
+        check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, memory=16 * 10**9, disk=10**12,
+                               scene_bytes=40 * 10**9, scene="city.blend")
+    check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, memory=16 * 10**9, disk=10**12,
+                           scene_bytes=10**9, scene="city.blend")
