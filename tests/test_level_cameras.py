@@ -135,6 +135,43 @@ def test_content_box_ignores_a_huge_ground_plane_and_inside_test():
     assert np.all(np.abs(p.eyes[:, :2]) < 6)
 
 
+def _parts(*meshes) -> LevelGeometry:
+    m = trimesh.util.concatenate(meshes)
+    owner = np.concatenate([np.full(len(x.faces), i) for i, x in enumerate(meshes)])
+    return LevelGeometry(np.asarray(m.vertices), np.asarray(m.faces), owner=owner)
+
+
+def test_a_skybox_object_does_not_widen_the_content_box_and_encloses_the_camera():
+    """A 2 km skybox sphere of many triangles around a street of boxes: left out of the content box, and the
+    camera walks among the boxes inside it (the skybox looks inwards)."""
+    sky = trimesh.creation.icosphere(subdivisions=4, radius=1000.0)
+    sky.invert()
+    floor = trimesh.creation.box(extents=(30.0, 30.0, 0.1))
+    floor.apply_translation([0, 0, -0.05])
+    blocks = []
+    for k in range(6):
+        b = trimesh.creation.box(extents=(4.0, 4.0, 6.0))
+        b.apply_translation([-10.0 + 4.0 * (k % 3) * 2.0, 6.0 if k < 3 else -6.0, 3.0])
+        blocks.append(b)
+    g = _parts(floor, *blocks, sky)
+    lo, hi = g.content_bounds()
+    assert np.all(hi - lo < 40) and len(sky.faces) > 0.5 * g.n_triangles
+    p = plan_level_path(g, "walk", 13, FPS, 2, HFOV, VFOV)
+    assert np.all(np.abs(p.eyes[:, :2]) < 16)
+
+
+def test_a_room_with_outward_normals_is_still_a_room():
+    """Blender's default cube scaled into a room (normals outwards): the eye inside is not 'inside a solid'."""
+    room = trimesh.creation.box(extents=(10.0, 8.0, 3.0))
+    room.apply_translation([0, 0, 1.5])
+    shelf = trimesh.creation.box(extents=(4.0, 0.4, 2.0))
+    shelf.apply_translation([0, 3.6, 1.0])
+    g = _parts(room, shelf)
+    assert not g.inside_closed_mesh(np.array([0.0, 0.0, 1.6]))
+    assert g.inside_closed_mesh(np.array([0.0, 3.6, 1.0]))  # inside the shelf
+    plan_level_path(g, "walk", 9, FPS, 0, HFOV, VFOV)
+
+
 def test_no_floor_in_the_region_is_a_one_line_error(room):
     far = Region((100.0, 100.0), (110.0, 110.0))
     with pytest.raises(PathError, match="no walk path meets the rules after 5 tries") as e:

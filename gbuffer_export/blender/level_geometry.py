@@ -12,7 +12,8 @@ armatures and shape keys applied, at one frame) and answers ray and distance que
 
 Distances are in scene units; :attr:`LevelGeometry.metres_per_unit` converts (the scene's unit scale).
 A level's *content box* (:meth:`LevelGeometry.content_bounds`) is the 1st-99th percentile box of its triangle
-centroids: a 2 km ground plane or a skybox (few, huge triangles) does not widen it, while streets and rooms (many
+centroids, leaving out objects that enclose all the others (a ground plane, a skybox: an x-y box at least 3x as wide
+and deep as the others' around their centre): a 2 km ground plane or a skybox does not widen it, while streets and rooms (many
 triangles) define it. Its diagonal is the level's *extent*.
 """
 from __future__ import annotations
@@ -41,6 +42,7 @@ class LevelGeometry:
     faces: np.ndarray
     metres_per_unit: float = 1.0
     names: list = field(default_factory=list)
+    owner: np.ndarray | None = None  # (F,) index of the object each triangle belongs to (None: one object)
 
     def __post_init__(self):
         import trimesh
@@ -48,10 +50,14 @@ class LevelGeometry:
         self.faces = np.asarray(self.faces, np.int64)
         if len(self.faces) == 0:
             raise ValueError("the level has no renderable triangles")
+        owner = np.zeros(len(self.faces), np.int64) if self.owner is None else np.asarray(self.owner, np.int64)
         self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         keep = self.mesh.area_faces > 0
         if not keep.all():  # degenerate triangles have no normal and break Embree's winding test
             self.mesh = trimesh.Trimesh(self.vertices, self.faces[keep], process=False)
+            owner = owner[keep]
+        self.owner = owner
+        self._content_mask = self._not_enclosing()
         self.normals = np.asarray(self.mesh.face_normals, np.float64)
         self.rays, self.engine = _ray_engine(self.mesh)
         lo, hi = self.content_bounds()
@@ -68,9 +74,34 @@ class LevelGeometry:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self.mesh.bounds[0].copy(), self.mesh.bounds[1].copy()
 
-    def content_bounds(self, pct: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) (3,): the ``pct``..``100-pct`` percentile box of the triangle centroids (see module doc)."""
+    def _not_enclosing(self) -> np.ndarray:
+        """(F,) bool: False on the triangles of *enclosing* objects, whose x-y box is at least 3x as wide and 3x as
+        deep as the other objects' united box and holds its centre (a ground plane, a skybox); a room's walls,
+        about as large as what they hold, stay content."""
         c = self.mesh.triangles_center
+        ids = np.unique(self.owner)
+        if len(ids) < 2:
+            return np.ones(len(c), dtype=bool)
+        boxes = {i: (c[self.owner == i].min(axis=0), c[self.owner == i].max(axis=0)) for i in ids}
+        tri = self.mesh.triangles
+        full = {i: (tri[self.owner == i].reshape(-1, 3).min(axis=0), tri[self.owner == i].reshape(-1, 3).max(axis=0))
+                for i in ids}
+        mask = np.ones(len(c), dtype=bool)
+        for i in ids:
+            others = [full[j] for j in ids if j != i]
+            lo = np.min([b[0] for b in others], axis=0)
+            hi = np.max([b[1] for b in others], axis=0)
+            blo, bhi = full[i]
+            centre = 0.5 * (lo + hi)
+            if np.all(bhi[:2] - blo[:2] >= 3 * np.maximum(hi[:2] - lo[:2], 1e-9)) \
+                    and np.all(blo[:2] <= centre[:2]) and np.all(bhi[:2] >= centre[:2]):
+                mask[self.owner == i] = False
+        return mask if mask.any() else np.ones(len(c), dtype=bool)
+
+    def content_bounds(self, pct: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) (3,): the ``pct``..``100-pct`` percentile box of the triangle centroids of every object that
+        does not enclose the others (see module doc)."""
+        c = self.mesh.triangles_center[self._content_mask]
         return np.percentile(c, pct, axis=0), np.percentile(c, 100.0 - pct, axis=0)
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,16 +137,21 @@ class LevelGeometry:
         _, dist, _ = trimesh.proximity.closest_point(self.mesh, points)
         return np.asarray(dist, np.float64)
 
-    def inside_closed_mesh(self, point: np.ndarray, n_dirs: int = 26, frac: float = 0.5) -> bool:
-        """True when more than ``frac`` of rays in ``n_dirs`` directions first hit the back of a triangle: the point
-        is inside a solid object (a pillar, a car body). Rays that hit a front face or nothing leave it outside, so
-        rooms and skyboxes whose faces look inwards are the space a camera lives in."""
+    def inside_closed_mesh(self, point: np.ndarray, n_dirs: int = 26, frac: float = 0.5,
+                           solid_m: float = 1.5) -> bool:
+        """True when more than ``frac`` of rays in ``n_dirs`` directions first hit the back of a triangle and those
+        hits are close (median within ``solid_m`` metres): the point is inside a solid object (a pillar, a car
+        body). Rays that hit a front face or nothing leave it outside, so rooms and skyboxes whose faces look
+        inwards are the space a camera lives in, and so is a room modelled with outward normals (its back faces
+        are metres away)."""
         d = sphere_directions(n_dirs)
         dist, tri = self.first_hits(np.repeat(np.asarray(point, np.float64)[None], len(d), axis=0), d)
         hit = tri >= 0
         back = np.zeros(len(d), dtype=bool)
         back[hit] = np.einsum("ij,ij->i", self.normals[tri[hit]], d[hit]) > 0
-        return bool(back.mean() > frac)
+        if back.mean() <= frac:
+            return False
+        return bool(np.median(dist[back]) * self.metres_per_unit <= solid_m)
 
 
 def sphere_directions(n: int) -> np.ndarray:
@@ -140,7 +176,7 @@ def from_scene(scene, frame: int | None = None) -> LevelGeometry:
     if frame is not None:
         scene.frame_set(int(frame))
     dg = bpy.context.evaluated_depsgraph_get() if scene == bpy.context.scene else scene.view_layers[0].depsgraph
-    verts, faces, names = [], [], []
+    verts, faces, names, owner = [], [], [], []
     offset = 0
     for inst in dg.object_instances:
         ob = inst.object
@@ -167,8 +203,10 @@ def from_scene(scene, frame: int | None = None) -> LevelGeometry:
         m = np.array(inst.matrix_world, dtype=np.float64)
         verts.append(v.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
         faces.append(t.reshape(-1, 3) + offset)
-        names.append(orig.name)
+        owner.append(np.full(nt, len(names)))
+        names.append(orig.name if not inst.is_instance else f"{orig.name}#{len(names)}")
         offset += n
     if not verts:
         raise ValueError(f"scene {scene.name!r} has no renderable triangles")
-    return LevelGeometry(np.concatenate(verts), np.concatenate(faces), metres_per_unit(scene), sorted(set(names)))
+    return LevelGeometry(np.concatenate(verts), np.concatenate(faces), metres_per_unit(scene), names,
+                         np.concatenate(owner))
