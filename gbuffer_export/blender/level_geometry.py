@@ -7,8 +7,9 @@ armatures and shape keys applied, at one frame) and answers ray and distance que
   trimesh's own (rtree-based) engine. Embree casts about 10^5 rays per second on this 2-core machine against
   about 400 for trimesh's own on an 80 k-triangle mesh (measured 2026-11-25), and a path plan casts a few
   thousand rays per try, so Embree is what makes planning on real levels take seconds.
-- nearest distance: ``trimesh.proximity.closest_point`` (exact point-to-triangle distance; no ray engine does
-  this).
+- nearest distance (exact point-to-triangle): Blender's ``mathutils.bvhtree.BVHTree`` when bpy is importable,
+  else ``trimesh.proximity.closest_point``. On a 1.3 M-triangle mesh BVHTree answers a query in 1-50 ms after a
+  9 s build; trimesh took 1-4 s per query (measured 2026-11-25), too slow for a planner that asks once per step.
 
 Distances are in scene units; :attr:`LevelGeometry.metres_per_unit` converts (the scene's unit scale).
 A level's *content box* (:meth:`LevelGeometry.content_bounds`) is the 1st-99th percentile box of its triangle
@@ -60,6 +61,7 @@ class LevelGeometry:
         self._content_mask = self._not_enclosing()
         self.normals = np.asarray(self.mesh.face_normals, np.float64)
         self.rays, self.engine = _ray_engine(self.mesh)
+        self._bvh = None
         lo, hi = self.content_bounds()
         self.extent = float(np.linalg.norm(hi - lo))
 
@@ -132,10 +134,18 @@ class LevelGeometry:
 
     def nearest_distance(self, points: np.ndarray) -> np.ndarray:
         """Exact distance (scene units) from each point (N, 3) to the nearest triangle."""
-        import trimesh
         points = np.asarray(points, np.float64).reshape(-1, 3)
-        _, dist, _ = trimesh.proximity.closest_point(self.mesh, points)
-        return np.asarray(dist, np.float64)
+        if self._bvh is None:
+            self._bvh = _bvh_tree(self.mesh) or False
+        if self._bvh is False:
+            import trimesh
+            _, dist, _ = trimesh.proximity.closest_point(self.mesh, points)
+            return np.asarray(dist, np.float64)
+        out = np.empty(len(points))
+        for i, p in enumerate(points):
+            hit = self._bvh.find_nearest(p.tolist())
+            out[i] = hit[3] if hit[0] is not None else np.inf
+        return out
 
     def inside_closed_mesh(self, point: np.ndarray, n_dirs: int = 26, frac: float = 0.5,
                            solid_m: float = 1.5) -> bool:
@@ -152,6 +162,17 @@ class LevelGeometry:
         if back.mean() <= frac:
             return False
         return bool(np.median(dist[back]) * self.metres_per_unit <= solid_m)
+
+
+def _bvh_tree(mesh):
+    """Blender's BVH over the triangles, or None without bpy."""
+    try:
+        import bpy  # noqa: F401  (mathutils comes with the bpy module)
+        from mathutils.bvhtree import BVHTree
+    except ImportError:
+        return None
+    return BVHTree.FromPolygons(np.asarray(mesh.vertices).tolist(), np.asarray(mesh.faces).tolist(),
+                                all_triangles=True)
 
 
 def sphere_directions(n: int) -> np.ndarray:
