@@ -112,21 +112,28 @@ def scene_fps(scene) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
 
 
-def level_region(geom, spec: dict):
-    """The ``Region`` of a dataset clip: cell ``spec["cell"]`` of a ``spec["grid"]`` grid over the level's content
-    box (x, y)."""
+def level_regions(geom, spec: dict) -> list:
+    """The ``Region``s a dataset clip may use, in order: its cell ``spec["cell"]`` of a ``spec["grid"]`` grid over
+    the level's content box (x, y), then every cell of its split (``spec["cells"][spec["split"]]``)."""
     from .level_cameras import Region
     lo, hi = geom.content_bounds()
     nx, ny = spec["grid"]
-    return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), int(nx), int(ny),
-                  (tuple(int(v) for v in spec["cell"]),))
+
+    def region(cells):
+        return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), int(nx), int(ny),
+                      tuple(tuple(int(v) for v in c) for c in cells))
+    out = [region([spec["cell"]])]
+    split_cells = (spec.get("cells") or {}).get(spec.get("split"), [])
+    if len(split_cells) > 1:
+        out.append(region(split_cells))
+    return out
 
 
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
     returns (camera, report for the manifest). The level's geometry is taken at the first frame."""
     from .camera_paths import half_fov, key_look_at
-    from .level_cameras import PathRules, plan_level_path
+    from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
 
     start, end = int(frames[0]), int(frames[1])
@@ -134,10 +141,15 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     cam.animation_data_clear()
     geom = from_scene(scene, start)
     hfov, vfov = half_fov(scene, cam.data)
-    if isinstance(region, dict):
-        region = level_region(geom, region)
-    path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, hfov, vfov, region,
-                           rules or PathRules())
+    regions = level_regions(geom, region) if isinstance(region, dict) else [region]
+    for k, reg in enumerate(regions):
+        try:
+            path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, hfov, vfov, reg,
+                                   rules or PathRules())
+            break
+        except PathError:
+            if k == len(regions) - 1:
+                raise
     key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
     lo, hi = geom.bounds()
     cam.data.clip_start = geom.units(0.05)

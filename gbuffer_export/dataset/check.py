@@ -41,9 +41,10 @@ class DatasetReport:
         return {"path": self.path, "ok": self.ok, "clips": self.clips, "index_errors": self.index_errors}
 
 
-def region_errors(index: dict) -> list[str]:
+def region_errors(index: dict, root: Path | None = None) -> list[str]:
     """Split regions of ``kind = "scene"`` clips: per scene file, the cells of different splits are disjoint, the
-    same for every clip, and each clip's cell is one of its split's."""
+    same for every clip, each clip's cell is one of its split's, and the cells its camera was allowed (its
+    manifest's ``camera.region``) are its split's."""
     errs = []
     layout: dict[str, dict] = {}
     for c in index["clips"]:
@@ -62,11 +63,23 @@ def region_errors(index: dict) -> list[str]:
                     errs.append(f"clip {c['id']}: regions {sorted(cells[a] & cells[b])} are in both {a} and {b}")
         if tuple(reg.get("cell") or ()) not in cells.get(c["split"], set()):
             errs.append(f"clip {c['id']} ({c['split']}) stands in cell {reg.get('cell')}, not a {c['split']} region")
+        used = _manifest_cells(root / c["path"]) if root is not None and c.get("path") else None
+        if used is not None and not used <= cells.get(c["split"], set()):
+            errs.append(f"clip {c['id']} ({c['split']}): its camera used cells {sorted(used)} outside its split's")
     return sorted(set(errs))
 
 
+def _manifest_cells(clip: Path) -> set | None:
+    import json
+    try:
+        reg = json.loads((clip / "manifest.json").read_text())["camera"]["region"]
+        return {tuple(x) for x in reg["cells"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def index_errors(root: Path, index: dict) -> list[str]:
-    errs = region_errors(index)
+    errs = region_errors(index, root)
     split_of: dict[str, str] = {}
     asset_split: dict[str, str] = {}
     for c in index["clips"]:

@@ -624,8 +624,9 @@ def region_cells(src: Source, spec_seed: int, stem: str) -> dict[str, list[list[
 
 def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[ClipJob]:
     """The clips of a ``kind = "scene"`` source: ``clips_per_scene`` per file, clip k with camera kind k of
-    ``cameras`` (cycling). With split regions, clip k stands in cell k of the order test cells, val cells, train
-    cells (cycling), so the first clips cover every split."""
+    ``cameras`` (cycling). With split regions, clip k starts in cell k of the order test cells, val cells, train
+    cells (cycling), so the first clips cover every split; its path stays in that cell, or, when no path fits there,
+    in the cells of its split (the renderer decides: the index does not know the geometry)."""
     jobs = []
     var = src.variation or Variation()
     hdris = find_hdris(Environment(hdri=var.hdri), base, spec.path, src.name) if var.hdri else []
@@ -643,7 +644,7 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
             camera = src.cameras[k % len(src.cameras)]  # cycling: every kind appears once clips >= kinds
             if split_regions:
                 split, cell = order[k % len(order)]
-                region = {"grid": list(src.regions), "cell": cell, "cells": cells}
+                region = {"grid": list(src.regions), "cell": cell, "split": split, "cells": cells}
                 scene_id = f"{a.stem}@cell{cell[0]}-{cell[1]}"
             else:
                 split = assign_split(a.stem, spec.splits, src.split, spec.seed)
