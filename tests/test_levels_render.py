@@ -164,3 +164,11 @@ region_test = 1
     (ds / "dataset.json").write_text(json.dumps(index))
     v = run_cli("validate", ds)
     assert v.returncode == 1 and "not a test region" in v.stdout
+
+
+def test_walk_around_a_single_object_is_refused_naming_orbit(tmp_path):
+    robot = shared_or_skip("scenes/blend/RobotExpressive.blend")
+    r = run_cli("render", robot, "-o", tmp_path / "r", "--camera-path", "walk", "--frames", "1:2", *TINY)
+    assert r.returncode == 2 and not (tmp_path / "r").exists()
+    line = r.stderr.strip().splitlines()[-1]
+    assert "RobotExpressive.blend: no walk path meets the rules" in line and "--camera-path orbit" in line

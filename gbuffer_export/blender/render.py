@@ -146,9 +146,14 @@ def uses_level_camera(cfg: RenderConfig) -> bool:
 def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
     """The clip's camera and its report for the manifest (the planned path's rules and measurements)."""
     if uses_level_camera(cfg):
+        from .level_cameras import PathError
         from .scene_setup import make_level_camera
-        return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                 region=cfg.extra.get("region"))
+        try:
+            return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
+                                     region=cfg.extra.get("region"))
+        except PathError as exc:
+            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
+                              "framed by --camera-path orbit") from None
     if cfg.camera_path in ("orbit", "walk"):
         from .camera_paths import make_camera_path
         return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}
