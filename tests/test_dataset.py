@@ -332,8 +332,11 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
         pytest.skip("../shared/scenes is not present")
     jobs = expand(load_spec(spec_file))
     assert len({j.id for j in jobs}) == len(jobs)
-    test_assets = {Path(j.asset).stem for j in jobs if j.split == "test" and j.asset}
-    assert test_assets, spec_file
+    # levels (kind = "scene") are split by region: their cells, not their files, are disjoint
+    from gbuffer_export.dataset.check import region_errors
+    assert region_errors({"clips": [j.to_json() for j in jobs]}) == []
+    test_assets = {Path(j.asset).stem for j in jobs if j.split == "test" and j.asset and j.kind != "scene"}
+    assert test_assets or {j.split for j in jobs if j.kind == "scene"} >= {"train", "test"}, spec_file
     for j in jobs:
         if j.split != "test":
             shown = [Path(p).stem for p in ([j.asset] if j.asset else []) + list(j.clutter)]
@@ -347,3 +350,12 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
             assert (medium[cid].seed, medium[cid].hdri, medium[cid].clutter, medium[cid].split) == \
                 (j.seed, j.hdri, j.clutter, j.split)
         assert {j.id for j in jobs if j.split == "test"} == {c for c, j in small.items() if j.split == "test"}
+    if spec_file.name == "dataset_large.toml":  # the medium dataset's clips, unchanged, then its own
+        medium = expand(load_spec(spec_file.parent / "dataset_medium.toml"))
+        assert [j.to_json() for j in jobs[:len(medium)]] == [j.to_json() for j in medium]
+        assert len(test_assets) >= 5 and "SheenCloth" not in test_assets  # sheen is also in training
+        levels: dict[str, set] = {}
+        for j in jobs:
+            if j.kind == "scene":
+                levels.setdefault(Path(j.asset).stem, set()).add(j.split)
+        assert len(levels) == 3 and all(v == {"train", "val", "test"} for v in levels.values())
