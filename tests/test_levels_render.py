@@ -172,3 +172,16 @@ def test_walk_around_a_single_object_is_refused_naming_orbit(tmp_path):
     assert r.returncode == 2 and not (tmp_path / "r").exists()
     line = r.stderr.strip().splitlines()[-1]
     assert "RobotExpressive.blend: no walk path meets the rules" in line and "--camera-path orbit" in line
+
+
+def test_render_takes_the_light_variation_and_records_it(tmp_path):
+    garage = shared_or_skip(GARAGE)
+    out = tmp_path / "v"
+    r = run_cli("render", garage, "-o", out, "--camera-path", "scene", "--frames", "1:1", "--sun", "35,120",
+                "--light-strength", "0.5", "--world-strength", "2", *TINY)
+    assert r.returncode == 0, r.stderr[-2000:]
+    v = _manifest(out)["light"]["variation"]
+    assert v["sun"] == {"elevation_deg": 35.0, "azimuth_deg": 120.0, "sun_lamps": 1}
+    assert v["light_strength"] == {"multiplier": 0.5, "lamps": 2} and v["world_strength"]["multiplier"] == 2.0
+    bad = run_cli("render", garage, "-o", tmp_path / "b", "--sun", "95,0", *TINY)
+    assert bad.returncode == 2 and "--sun '95,0': elevation" in bad.stderr

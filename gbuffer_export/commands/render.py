@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, RenderConfig, parse_frames, parse_scales,
-                      parse_shard, parse_size)
+from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, ConfigError, RenderConfig, parse_frames,
+                      parse_scales, parse_shard, parse_size)
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
@@ -58,6 +58,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--light", choices=LIGHTS, default="scene",
                    help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
                         "physical sky, sun direction drawn from --seed (recorded in the manifest)")
+    p.add_argument("--world-strength", type=float, default=None, metavar="X",
+                   help="multiply the world's background strength by X (recorded in the manifest)")
+    p.add_argument("--light-strength", type=float, default=None, metavar="X",
+                   help="multiply every lamp's energy by X (recorded in the manifest)")
+    p.add_argument("--sun", default=None, metavar="ELEV,AZIM",
+                   help="point the sun lamps (and an added sky) from elevation ELEV and azimuth AZIM, in degrees "
+                        "(time of day; recorded in the manifest)")
     p.add_argument("--device", choices=DEVICES, default="auto",
                    help="Cycles device: auto uses a GPU when Cycles sees one (OptiX, CUDA, HIP, Metal, oneAPI), "
                         "else the CPU; the device and its name go into the manifest")
@@ -79,7 +86,30 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def variation_from_args(args) -> dict | None:
+    """The light variation of ``--world-strength``, ``--light-strength`` and ``--sun`` (the keys of a dataset's
+    drawn variation, docs/dataset.md); ConfigError on a bad value."""
+    import math
+    out = {}
+    for key in ("world_strength", "light_strength"):
+        v = getattr(args, key, None)
+        if v is not None:
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"--{key.replace('_', '-')} {v}: must be a finite number >= 0")
+            out[key] = v
+    if getattr(args, "sun", None):
+        try:
+            elev, azim = (float(x) for x in args.sun.split(","))
+        except ValueError:
+            raise ConfigError(f"--sun {args.sun!r}: expected ELEV,AZIM in degrees, e.g. 35,120") from None
+        if not (0 < elev <= 90 and math.isfinite(azim)):
+            raise ConfigError(f"--sun {args.sun!r}: elevation must be in (0, 90] degrees")
+        out.update(sun_elevation_deg=elev, sun_azimuth_deg=azim % 360.0)
+    return out or None
+
+
 def config_from_args(args) -> RenderConfig:
+    variation = variation_from_args(args)
     if getattr(args, "for_models", None):
         from ..dataset.buffers import buffers_for_models
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
@@ -92,7 +122,7 @@ def config_from_args(args) -> RenderConfig:
         camera_path=args.camera_path, light=args.light, device=args.device, seed=args.seed, jitter=args.jitter,
         buffers=args.buffers, fbeta=args.fbeta,
         shard=parse_shard(args.shard), max_bounces=args.max_bounces, threads=args.threads,
-        progress=not args.no_progress)
+        progress=not args.no_progress, extra={"variation": variation} if variation else {})
 
 
 def run(args) -> int:
