@@ -6,13 +6,17 @@ import json
 import sys
 from pathlib import Path
 
-FMT = argparse.ArgumentDefaultsHelpFormatter
+from gbuffer_export.extras import HelpFormatter, require
+
+FMT = HelpFormatter
 
 
 def add_model_source(p: argparse.ArgumentParser) -> None:
     """--checkpoint CK | --model NAME, exactly one: the model that evaluate, upscale and export run."""
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
+    g.add_argument("--checkpoint", metavar="CK",
+                   help="checkpoint file of 'blendsr train', or pretrained:NAME for the shipped weights "
+                        "(pretrained:fusesr, pretrained:fusesr-l; training/pretrained.py)")
     g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear, demod-jbu")
 
 
@@ -103,6 +107,7 @@ def _frames(text: str | None):
 
 
 def cmd_train(args) -> int:
+    require("blendsr train", "train")
     from training.config import load_config
     from training.models import MODELS
     if args.list_models:
@@ -173,6 +178,7 @@ def _scale_of(clips) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    require("blendsr evaluate", "train")
     import torch
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
@@ -206,6 +212,7 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_upscale(args) -> int:
+    require("blendsr upscale", "train")
     from gbuffer_export.clip import open_clip, write_json_atomic
     from gbuffer_export.exr import write_exr
     from training.inference import ClipFrames, load_model, upscale_frame
@@ -231,6 +238,7 @@ def cmd_upscale(args) -> int:
 
 
 def cmd_export(args) -> int:
+    require("blendsr export", "train", "export")
     from training.export import export_onnx
     from training.inference import load_model
     from gbuffer_export.config import parse_size

@@ -17,8 +17,7 @@ this machine belongs to, ray://HOST:10001 for a remote one; none: a local one is
 filesystem every node sees. The same spec gives the same clips on either executor (per-clip seeds)."""
 
 
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
+from ..extras import HelpFormatter as _Formatter
 
 
 def register(subparsers) -> None:
@@ -50,6 +49,8 @@ def run(args) -> int:
             print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} hdri={Path(j.hdri).name} "
                   f"strength={j.hdri_strength} clutter={[Path(c).stem for c in j.clutter]}")
         return 0
+    from ..extras import require
+    require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
                       buffers_for=models, progress=not args.no_progress, limit=args.limit)

@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from ..extras import HelpFormatter
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output folder")
@@ -98,6 +100,6 @@ def _training_half():
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="render, validate, train briefly and evaluate on the built-in scene",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       description=__doc__, formatter_class=HelpFormatter)
     add_arguments(p)
     p.set_defaults(func=run)

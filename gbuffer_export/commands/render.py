@@ -7,6 +7,7 @@ from pathlib import Path
 from ..config import (CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_scales, parse_shard,
                       parse_size)
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
+from ..extras import HelpFormatter as _HelpFormatter, require
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
 as EXR sequences plus a JSON manifest (docs/clip-format.md).
@@ -19,8 +20,8 @@ Rerunning the same command resumes: finished frames are skipped. --shard K/N ren
 the K-th, so N processes can fill one clip; their manifests merge."""
 
 
-class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's line breaks and appends each option's default."""
+class HelpFormatter(_HelpFormatter):
+    """Keeps the description's line breaks and shows each option's default once."""
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
@@ -83,6 +84,7 @@ def config_from_args(args) -> RenderConfig:
 
 
 def run(args) -> int:
+    require("blendsr render", "render")
     cfg = config_from_args(args)
     if getattr(args, "own_process", False):
         from ..reproducible import prepare_render_process

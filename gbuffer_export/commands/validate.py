@@ -19,8 +19,7 @@ object (ok, errors, warnings, findings, stats) on stdout. Exit code 0: no errors
 2: CLIP_DIR is not a directory or an option is invalid."""
 
 
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's paragraphs and shows defaults."""
+from ..extras import HelpFormatter as _Formatter  # noqa: E402  (the description's paragraphs; defaults once)
 
 
 def register(subparsers) -> None:
