@@ -46,7 +46,7 @@ def import_optional(modname: str):
     try:
         return importlib.import_module(modname)
     except ModuleNotFoundError as exc:
-        if exc.name and modname.startswith(exc.name):
+        if exc.name and (modname == exc.name or modname.startswith(exc.name + ".")):
             return None
         if exc.name and extra_of(exc.name):
             return MissingModule(modname, exc)
@@ -63,8 +63,9 @@ class MissingModule:
     def add_stub(self, sub, name: str) -> None:
         from .extras import MissingExtra, missing_module_message
         msg = f"blendsr {name}: {missing_module_message(self.exc)}"
-        p = sub.add_parser(name, help=f"(not available: {msg.split(': ', 1)[1]})", add_help=False)
-        p.add_argument("args", nargs=argparse.REMAINDER)
+        p = sub.add_parser(name, help=f"(not available: {msg.split(': ', 1)[1]})", add_help=False,
+                           prefix_chars="\0")  # every argument (even -h) is taken, so that running it fails
+        p.add_argument("args", nargs="*")
 
         def fail(args):
             raise MissingExtra(msg)
