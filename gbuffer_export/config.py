@@ -67,6 +67,12 @@ def parse_shard(text: str | None) -> tuple[int, int]:
     return k, n
 
 
+#: Frames the built-in default scene is defined on (inclusive): its animation (camera arc with a period of 160-240
+#: frames, rolling ball) is keyed from start - 1, so frame 0 has no previous frame; 1000 frames (42 s at 24 fps) bound
+#: what one clip of it may cost. Rendered by default: 1:48.
+BUILTIN_SCENE_FRAMES = (1, 1000)
+
+
 @dataclass
 class RenderConfig:
     """Everything ``render_clip`` needs. Sizes in pixels, sample counts per pixel, adaptive threshold is
@@ -141,6 +147,10 @@ class RenderConfig:
             raise ConfigError(f"--adaptive-min-samples {self.adaptive_min_samples!r}: must be an integer >= 0")
         if not (0 <= self.adaptive_threshold < 1):
             raise ConfigError(f"--adaptive-threshold {self.adaptive_threshold}: must be in [0, 1)")
+        if self.scene is None and self.frames is not None:
+            (a, b), (lo, hi) = self.frames, BUILTIN_SCENE_FRAMES
+            if a < lo or b > hi:
+                raise ConfigError(f"--frames {a}:{b} is outside the built-in scene's range {lo}:{hi}")
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")

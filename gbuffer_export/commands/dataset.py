@@ -28,7 +28,8 @@ def register(subparsers) -> None:
     p.add_argument("--executor", default="local", choices=("local", "ray"), help="where the clips render")
     p.add_argument("--workers", type=int, default=1, help="clips rendered at once by the local executor")
     p.add_argument("--threads", type=int, default=0,
-                   help="Cycles threads per clip (0: cores / workers locally, 1 per task on Ray)")
+                   help="Cycles threads per clip; 0: this machine's cores / --workers locally, 1 on Ray (each task "
+                        "asks for --threads CPUs, at least 1; Ray runs as many tasks at once as the cluster has CPUs)")
     p.add_argument("--address", default=None, help="Ray cluster address (auto, ray://HOST:10001); none: start one")
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="render only the buffers these models read, plus radiance and motion for evaluation "

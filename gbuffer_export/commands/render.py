@@ -28,7 +28,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", type=Path, default=None, help="the .blend file; omitted: the built-in default scene")
     p.add_argument("-o", "--output", required=True, type=Path, help="clip directory to create or resume")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="inclusive frame range; None: the scene's range (default scene: 1:48)")
+                   help="inclusive frame range; omitted: the scene's range (built-in scene: 1:48, at most 1:1000)")
     p.add_argument("--hr-size", default=None, metavar="WxH",
                    help="HR (target) resolution in pixels; None: the scene's resolution (default scene: 640x360)")
     p.add_argument("--scale", type=int, default=4, help="integer upscaling factor; LR = HR / scale")

@@ -1,0 +1,95 @@
+"""Issue 31, interface: Ray threads as the help says, frames of the built-in scene checked, commands write only
+where asked, errors that name the flag or the option to use."""
+from __future__ import annotations
+
+import argparse
+import os
+
+import pytest
+
+from gbuffer_export.cli import main
+
+
+# ------------------------------------------------------------------------------------------ Ray --threads 0
+def test_threads_zero_is_one_per_ray_task_and_cores_over_workers_locally():
+    from gbuffer_export.dataset.build import RunOptions
+    assert RunOptions(executor="ray", threads=0, workers=4).clip_threads() == 1
+    assert RunOptions(executor="ray", threads=3).clip_threads() == 3
+    assert RunOptions(executor="local", threads=0, workers=2).clip_threads() == max(1, (os.cpu_count() or 1) // 2)
+    assert RunOptions(executor="local", threads=5, workers=2).clip_threads() == 5
+
+
+def test_dataset_help_says_what_threads_zero_does():
+    from gbuffer_export.cli import build_parser
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    text = " ".join(sub.choices["dataset"].format_help().split())
+    assert "0: this machine's cores / --workers locally, 1 on Ray" in text
+
+
+# ---------------------------------------------------------------------------------- built-in scene frames
+@pytest.mark.parametrize("frames", ["0:1", "1:100000", "-3:2"])
+def test_frames_outside_the_builtin_scene_are_refused_in_one_line(frames, tmp_path, capsys):
+    code = main(["render", "-o", str(tmp_path / "r"), f"--frames={frames}", "--hr-size", "64x36"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "outside the built-in scene's range 1:1000" in err[0]
+    assert not (tmp_path / "r").exists()
+
+
+def test_builtin_scene_range_edges_are_accepted(tmp_path):
+    from gbuffer_export.config import BUILTIN_SCENE_FRAMES, RenderConfig
+    lo, hi = BUILTIN_SCENE_FRAMES
+    assert RenderConfig(output=tmp_path / "a", frames=(lo, lo)).frames == (lo, lo)
+    assert RenderConfig(output=tmp_path / "b", frames=(hi - 1, hi)).frames == (hi - 1, hi)
+
+
+# --------------------------------------------------------------------------------- writing where asked
+def test_bench_brdf_rewrites_no_docs_by_default():
+    from gbuffer_export.commands import bench_brdf
+    p = argparse.ArgumentParser()
+    bench_brdf.add_arguments(p)
+    assert p.parse_args([]).docs is None
+    assert str(p.parse_args(["--docs", "docs/brdf.md"]).docs) == "docs/brdf.md"
+
+
+@pytest.mark.torch
+def test_bench_models_without_output_writes_nothing(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("torch")
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "models", "--models", "nosuchmodel"]) == 2
+    assert main(["bench", "models", "--models", "bilinear", "--size", "64x36", "--repeats", "1",
+                 "--warmup", "0", "--device", "cpu", "--peak-tflops", "1", "--bandwidth-gbs", "1"]) == 0
+    assert "bilinear" in capsys.readouterr().out
+    assert list(tmp_path.iterdir()) == [], "nothing written without -o"
+    assert main(["bench", "models", "--models", "bilinear", "--size", "64x36", "--repeats", "1", "--warmup", "0",
+                 "--device", "cpu", "--peak-tflops", "1", "--bandwidth-gbs", "1", "-o", "b"]) == 0
+    assert (tmp_path / "b" / "bench_speed.json").is_file()
+
+
+# ---------------------------------------------------------------------------- errors naming what to use
+@pytest.mark.torch
+def test_device_cuda_without_a_gpu_names_the_flag():
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is available")
+    from gbuffer_export.config import ConfigError
+    from training.device import resolve_device
+    with pytest.raises(ConfigError, match=r"^--device cuda: no CUDA device"):
+        resolve_device("cuda")
+    with pytest.raises(ConfigError, match=r"^run.device cuda: no CUDA device"):
+        resolve_device("cuda", "run.device")
+
+
+@pytest.mark.torch
+def test_nsrr_fec_on_default_clips_names_for_models(tmp_path, capsys):
+    pytest.importorskip("torch")
+    from gbuffer_export.conventions import DEFAULT_BUFFERS
+    from gbuffer_export.synthetic import make_synthetic_clip
+    assert "metallic" not in DEFAULT_BUFFERS
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), buffers=DEFAULT_BUFFERS)
+    code = main(["train", "--model", "nsrr-fec", "--data", str(clip), "-o", str(tmp_path / "run"),
+                 "--max-steps", "1", "--set", "data.val_frames=0", "--set", "data.window=2",
+                 "--set", "data.crop=8", "--set", "data.batch_size=1"])
+    err = capsys.readouterr().err
+    assert code == 2, err[-2000:]
+    assert "--for-models nsrr-fec" in err.strip().splitlines()[-1]
