@@ -93,3 +93,37 @@ def test_nsrr_fec_on_default_clips_names_for_models(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2, err[-2000:]
     assert "--for-models nsrr-fec" in err.strip().splitlines()[-1]
+
+
+# ------------------------------------------------------------------------------- Cycles' device warnings
+PROBE = """
+import bpy
+from gbuffer_export.blender.devices import probe_devices
+if {probe}:
+    probe_devices()
+bpy.context.preferences.addons["cycles"].preferences.get_devices()
+"""
+
+
+@pytest.mark.bpy
+def test_cycles_gpu_library_warnings_never_reach_the_progress_bar():
+    """Cycles logs 'CUEW initialization failed' on stdout the first time it enumerates devices; the render probes
+    once before its progress bar, with the absent-GPU-library warnings dropped, and Cycles does not log them again."""
+    import subprocess
+    import sys
+
+    from conftest import HAVE_BPY, REPO
+    if not HAVE_BPY:
+        pytest.skip("bpy is not installed")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    plain = subprocess.run([sys.executable, "-c", PROBE.format(probe=False)], capture_output=True, text=True,
+                           env=env, timeout=120)
+    probed = subprocess.run([sys.executable, "-c", PROBE.format(probe=True)], capture_output=True, text=True,
+                            env=env, timeout=120)
+    assert probed.returncode == 0, probed.stderr[-2000:]
+    assert "initialization failed" not in probed.stdout + probed.stderr
+    if "initialization failed" not in plain.stdout + plain.stderr:
+        pytest.skip("Cycles found every GPU library here (nothing to drop)")
+    from gbuffer_export.blender.devices import ABSENT_GPU_LIBRARY
+    assert all(ABSENT_GPU_LIBRARY.search(ln) for ln in (plain.stdout + plain.stderr).splitlines()
+               if "initialization failed" in ln)

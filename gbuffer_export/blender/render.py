@@ -486,6 +486,8 @@ def _scene_linear_name() -> str:
 
 
 def _progress(frames, cfg):
+    from .devices import probe_devices
+    probe_devices()  # Cycles' GPU-library warnings now (dropped), not inside the first frame's bar
     if not cfg.progress:
         return frames
     from tqdm import tqdm
