@@ -127,3 +127,14 @@ def test_cycles_gpu_library_warnings_never_reach_the_progress_bar():
     from gbuffer_export.blender.devices import ABSENT_GPU_LIBRARY
     assert all(ABSENT_GPU_LIBRARY.search(ln) for ln in (plain.stdout + plain.stderr).splitlines()
                if "initialization failed" in ln)
+
+
+@pytest.mark.torch
+def test_export_of_a_fixed_scale_baseline_matches(tmp_path, capsys):
+    """bicubic's graph never reads its 'scale' input; the exporter drops it and the check feeds only the graph's
+    inputs (it failed with 'Invalid input name: scale')."""
+    pytest.importorskip("onnxruntime")
+    assert main(["export", "--model", "bicubic", "--onnx", str(tmp_path / "b.onnx"), "--hr-size", "32x16"]) == 0
+    import json
+    report = json.loads((tmp_path / "b.onnx.json").read_text())
+    assert report["match"] and "scale" not in report["inputs"]
