@@ -57,3 +57,4 @@ def test_checkpoint_refusal_still_one_line_without_get_unsafe_globals(tmp_path, 
     monkeypatch.delattr(torch.serialization, "get_unsafe_globals_in_checkpoint")
     with pytest.raises(CheckpointError, match="refused"):
         load_checkpoint(path)
+
