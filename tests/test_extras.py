@@ -86,13 +86,17 @@ def test_train_only_install_names_render_and_export(tmp_path):
     assert_names_extra(proc, "render")
     proc = blendsr_without(("render",), "bench", "render", tmp_path=tmp_path)
     assert_names_extra(proc, "render")
+    proc = blendsr_without(("render",), "demo", "-o", "d", tmp_path=tmp_path)
+    assert_names_extra(proc, "render")
+    proc = blendsr_without(("render",), "bench", "brdf", tmp_path=tmp_path)
+    assert_names_extra(proc, "render")
     proc = blendsr_without(("render",), "dataset", REPO / "examples" / "dataset_small.toml", "-o", "ds",
                            tmp_path=tmp_path)
     assert_names_extra(proc, "render")
     proc = blendsr_without(("cluster",), "dataset", REPO / "examples" / "dataset_small.toml", "-o", "ds",
                            "--executor", "ray", tmp_path=tmp_path)
     assert_names_extra(proc, "cluster")
-    assert not (tmp_path / "ds").exists()
+    assert not (tmp_path / "ds").exists() and not (tmp_path / "d").exists()
 
 
 def test_a_plugin_command_importing_a_missing_extra_is_listed_and_names_it(tmp_path):
@@ -185,3 +189,17 @@ def test_formatter_appends_a_default_only_when_the_help_has_none():
     assert "(default: the first) --d" in text
     assert "default: False" not in text
     assert textwrap.dedent("").strip() == ""
+
+
+def test_core_commands_work_without_any_extra(tmp_path):
+    from gbuffer_export.synthetic import make_synthetic_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=(1, 2), hr_size=(64, 36))
+    none = ("render", "train", "export", "cluster")
+    proc = blendsr_without(none, "validate", clip, tmp_path=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    proc = blendsr_without(none, "lut", "-o", "lut.exr", "--size", "8", "--samples", "16", "--workers", "1",
+                           tmp_path=tmp_path)
+    assert proc.returncode == 0 and (tmp_path / "lut.exr").is_file(), proc.stderr[-2000:]
+    proc = blendsr_without(none, "dataset", REPO / "examples" / "dataset_small.toml", "-o", "ds", "--dry-run",
+                           tmp_path=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]

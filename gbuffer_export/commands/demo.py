@@ -54,6 +54,8 @@ def run(args) -> int:
     from ..preview import contact_sheet
     from ..validate import validate_clip
 
+    from ..extras import require
+    require("blendsr demo", "render")  # renders first; the training half runs only with [train] (see above)
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
     clips = {"train": (out / "clips" / "train_seed0", 0),
