@@ -73,6 +73,17 @@ def parse_shard(text: str | None) -> tuple[int, int]:
 BUILTIN_SCENE_FRAMES = (1, 1000)
 
 
+def check_builtin_frames(frames: tuple[int, int] | None) -> None:
+    """ConfigError (one line) when ``frames`` lie outside ``BUILTIN_SCENE_FRAMES``; None (the default 1:48) passes.
+    Called where the built-in scene is chosen (``blendsr render`` without a scene, ``load_scene``), not by
+    ``RenderConfig`` itself: ``scene=None`` there also stands for a scene already open (the add-on, dataset jobs)."""
+    if frames is None:
+        return
+    (a, b), (lo, hi) = frames, BUILTIN_SCENE_FRAMES
+    if a < lo or b > hi:
+        raise ConfigError(f"--frames {a}:{b} is outside the built-in scene's range {lo}:{hi}")
+
+
 @dataclass
 class RenderConfig:
     """Everything ``render_clip`` needs. Sizes in pixels, sample counts per pixel, adaptive threshold is
@@ -147,10 +158,6 @@ class RenderConfig:
             raise ConfigError(f"--adaptive-min-samples {self.adaptive_min_samples!r}: must be an integer >= 0")
         if not (0 <= self.adaptive_threshold < 1):
             raise ConfigError(f"--adaptive-threshold {self.adaptive_threshold}: must be in [0, 1)")
-        if self.scene is None and self.frames is not None:
-            (a, b), (lo, hi) = self.frames, BUILTIN_SCENE_FRAMES
-            if a < lo or b > hi:
-                raise ConfigError(f"--frames {a}:{b} is outside the built-in scene's range {lo}:{hi}")
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")

@@ -36,11 +36,16 @@ def test_frames_outside_the_builtin_scene_are_refused_in_one_line(frames, tmp_pa
     assert not (tmp_path / "r").exists()
 
 
-def test_builtin_scene_range_edges_are_accepted(tmp_path):
-    from gbuffer_export.config import BUILTIN_SCENE_FRAMES, RenderConfig
+def test_builtin_scene_range_edges_are_accepted_and_open_scenes_keep_theirs(tmp_path):
+    from gbuffer_export.config import BUILTIN_SCENE_FRAMES, ConfigError, RenderConfig, check_builtin_frames
     lo, hi = BUILTIN_SCENE_FRAMES
-    assert RenderConfig(output=tmp_path / "a", frames=(lo, lo)).frames == (lo, lo)
-    assert RenderConfig(output=tmp_path / "b", frames=(hi - 1, hi)).frames == (hi - 1, hi)
+    check_builtin_frames((lo, lo))
+    check_builtin_frames((hi - 1, hi))
+    check_builtin_frames(None)
+    with pytest.raises(ConfigError, match="outside the built-in scene's range"):
+        check_builtin_frames((hi, hi + 1))
+    # scene=None also stands for a scene already open (the add-on, dataset jobs): its own range is not checked here
+    assert RenderConfig(output=tmp_path / "a", frames=(0, 2500)).frames == (0, 2500)
 
 
 # --------------------------------------------------------------------------------- writing where asked

@@ -7,6 +7,7 @@ from pathlib import Path
 from ..config import (CAMERA_PATHS, FBETA_SOURCES, JITTERS, RenderConfig, parse_frames, parse_scales, parse_shard,
                       parse_size)
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
+from ..config import check_builtin_frames
 from ..extras import HelpFormatter as _HelpFormatter, require
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
@@ -69,6 +70,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args) -> RenderConfig:
+    if args.scene is None:
+        check_builtin_frames(parse_frames(args.frames))
     if getattr(args, "for_models", None):
         from ..dataset.buffers import buffers_for_models
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
