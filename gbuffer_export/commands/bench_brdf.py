@@ -24,9 +24,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..extras import HelpFormatter
-
 import numpy as np
+
+from ..extras import HelpFormatter
 
 SOURCES = ("cycles", "lut", "lut-paper", "model")
 DOC_BEGIN = "<!-- bench-brdf:begin (written by 'blendsr bench brdf') -->"

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..extras import HelpFormatter as _Formatter
+
 HELP = """Render a dataset: many clips from one spec (built-in scene seeds, folders of glTF/GLB/.blend assets in
 generated environments), split by scene or asset into train/val/test, indexed in DATASET/dataset.json with each
 clip's split, source, seed, licence, settings and state. Rerunning the same command finishes missing or partial
@@ -12,12 +14,10 @@ clips only; a run killed at any moment loses at most the frames in flight. The s
 docs/dataset.md; an example: examples/dataset_small.toml.
 
 Executors: 'local' runs --workers clip processes on this machine (each with --threads Cycles threads; default: the
-cores divided by the workers). 'ray' submits one task per clip to a Ray cluster (--address: 'auto' for the cluster
+cores divided by the workers). 'ray' submits one task per clip to a Ray cluster (--threads Cycles threads and as
+many CPUs per task; default 1, so the cluster renders as many clips at once as it has CPUs; --address: 'auto' for the cluster
 this machine belongs to, ray://HOST:10001 for a remote one; none: a local one is started); DATASET must be on a
 filesystem every node sees. The same spec gives the same clips on either executor (per-clip seeds)."""
-
-
-from ..extras import HelpFormatter as _Formatter
 
 
 def register(subparsers) -> None:
