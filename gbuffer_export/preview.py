@@ -172,7 +172,8 @@ def legend_strip(width: int) -> np.ndarray:
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
     wheel = motion_rgb(np.stack([xx, yy], axis=-1) / r, max_px=1.0) * (np.hypot(xx, yy) <= r)[..., None]
     canvas.paste(Image.fromarray((wheel * 255 + 0.5).astype(np.uint8)), (4, 18))
-    draw.text((4 + 2 * r + 6, 18), "motion: hue = direction (as on this wheel), brightness = length, full at", fill=(255, 255, 255))
+    draw.text((4 + 2 * r + 6, 18), "motion: hue = direction (as on this wheel), brightness = length, full at",
+              fill=(255, 255, 255))
     draw.text((4 + 2 * r + 6, 30), "the px in the tile's label", fill=(255, 255, 255))
     x0 = 4 + 2 * r + 6 + 6 * 74
     ramp = np.repeat(np.linspace(1.0, 0.0, 60)[None, :, None], 10, axis=0).repeat(3, axis=-1)

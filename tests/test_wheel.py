@@ -32,7 +32,8 @@ pytestmark = [pytest.mark.bpy, pytest.mark.wheel, requires_bpy, pytest.mark.time
 
 
 def _tracked_copy(dest: Path) -> Path:
-    files = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO, capture_output=True, check=True).stdout
+    files = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
+                           capture_output=True, check=True).stdout
     names = [n for n in files.decode().split("\0") if n]
     if not names:
         pytest.skip("not a git checkout")

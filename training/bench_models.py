@@ -4,9 +4,9 @@ With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT
 ``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
 products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). With
-``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot OUT/pareto.png (PSNR against
-ms per frame, the non-dominated models joined), with the roofline columns of the speed mode (below) for one frame of
-the clips.
+``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
+OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
+mode (below) for one frame of the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
@@ -16,7 +16,8 @@ run with their initial weights (speed does not depend on the weights). Times are
 their ratios are measured side by side). The table gives MACs, the bytes a frame must move (inputs read once,
 output written once) and the roofline estimate max(2 MACs / peak, bytes / bandwidth) with the measured/roofline
 ratio; peak and bandwidth come from ``--peak-tflops``/``--bandwidth-gbs``, by default from ``DEVICE_PEAKS`` for
-known GPUs and measured (a large matmul and a large copy) elsewhere. With ``-o OUT`` it writes OUT/bench_speed.json, .csv and .md; without ``-o`` nothing is written. torch and matplotlib are imported inside
+known GPUs and measured (a large matmul and a large copy) elsewhere. With ``-o OUT`` it writes
+OUT/bench_speed.json, .csv and .md; without ``-o`` nothing is written. torch and matplotlib are imported inside
 ``run``.
 """
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 Cycles enumerates its GPU back-ends the first time it is asked for devices (a render, the preferences) and logs a
 warning for each library it cannot open ("CUEW initialization failed: Error opening the library", "HIPEW ...") on
-standard output (descriptor 1; CLOG's) - on a CPU-only machine, in the middle of the first frame's progress bar on a
-terminal. ``probe_devices`` asks once, before the bar, with descriptors 1 and 2 captured: the warnings about absent GPU libraries (expected on a CPU render)
-are dropped, any other line is printed as it was. Cycles remembers the result, so later renders print nothing.
+standard output (descriptor 1; CLOG's) - on a CPU-only machine, in the middle of the first frame's progress bar on
+a terminal. ``probe_devices`` asks once, before the bar, with descriptors 1 and 2 captured: the warnings about
+absent GPU libraries (expected on a CPU render) are dropped, any other line is printed as it was. Cycles remembers
+the result, so later renders print nothing.
 """
 from __future__ import annotations
 

@@ -17,7 +17,8 @@ Executors: 'local' runs --workers clip processes on this machine (each with --th
 cores divided by the workers). 'ray' submits one task per clip to a Ray cluster (--threads Cycles threads and as
 many CPUs per task; default 1, so the cluster renders as many clips at once as it has CPUs; --address: 'auto'
 for the cluster this machine belongs to, ray://HOST:10001 for a remote one; none: a local one is started);
-DATASET must be on a filesystem every node sees. The same spec gives the same clips on either executor (per-clip seeds)."""
+DATASET must be on a filesystem every node sees. The same spec gives the same clips on either executor (per-clip
+seeds)."""
 
 
 def register(subparsers) -> None:
