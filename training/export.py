@@ -15,8 +15,8 @@ multiple of 4 with amounts fixed at export: the graph serves LR sizes with the e
 (sidecar ``lr_size_mod4``). Uses the TorchScript-based
 exporter (``dynamo=False``): the dynamo exporter needs onnxscript, which is not a dependency; the plan to move to it
 is in docs/evaluation.md ("torch versions and the ONNX exporter"). Only the legacy exporter's own deprecation
-warnings and the tracer's warnings (Python values frozen into the graph: the check against onnxruntime below
-catches what matters) are hidden; anything else is shown.
+warnings, its constant-folding notes and the tracer's warnings (Python values frozen into the graph: the check
+against onnxruntime below catches what matters) are hidden; anything else is shown.
 """
 from __future__ import annotations
 
@@ -35,11 +35,12 @@ from training.data import FRAME_KEYS, BatchSpec, frame_window
 @contextlib.contextmanager
 def _legacy_exporter_warnings():
     """Hide the TorchScript exporter's deprecation notices ('legacy TorchScript-based ONNX export', 'The feature
-    will be removed') and torch.jit.TracerWarning; other warnings pass."""
+    will be removed'), torch.jit.TracerWarning and its constant-folding notes; other warnings pass."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r".*(legacy TorchScript-based ONNX export|The feature will be "
                                                   r"removed)", category=DeprecationWarning)
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", message=r"Constant folding - ", category=UserWarning)  # an optimiser note
         yield
 
 
