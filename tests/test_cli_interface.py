@@ -143,3 +143,23 @@ def test_export_of_a_fixed_scale_baseline_matches(tmp_path, capsys):
     import json
     report = json.loads((tmp_path / "b.onnx.json").read_text())
     assert report["match"] and "scale" not in report["inputs"]
+
+
+# ---------------------------------------------------------------------------------------- progress
+@pytest.mark.torch
+def test_upscale_evaluate_and_bench_models_show_progress_unless_told(tmp_path, capsys):
+    """Progress bars on stderr (not only in a terminal), per frame of each clip and model; --no-progress: none."""
+    pytest.importorskip("torch")
+    from gbuffer_export.synthetic import make_synthetic_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36))
+    runs = {"upscale": ["upscale", "--model", "bilinear", "--clip", str(clip), "-o", str(tmp_path / "u")],
+            "evaluate": ["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "e.json"),
+                         "--no-flip", "--warmup", "0"],
+            "bench": ["bench", "models", "--models", "bilinear", "--data", str(clip), "--warmup", "0",
+                      "--peak-tflops", "1", "--bandwidth-gbs", "1"]}
+    for name, args in runs.items():
+        assert main(args) == 0, name
+        err = capsys.readouterr().err
+        assert "3/3" in err and "frame" in err, (name, err[-500:])
+        assert main([*args, "--no-progress"]) == 0, name
+        assert "3/3" not in capsys.readouterr().err, name

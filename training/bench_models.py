@@ -82,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="autocast (with --data; --precision takes precedence)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bars on stderr (per model and clip with --data; preparing and timing "
+                             "without)")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -164,7 +167,8 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
 
 def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None = None, device=None, amp=None,
               flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
-              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0) -> dict:
+              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0,
+              progress: bool = False) -> dict:
     """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips``; write the table files
     and ``pareto.png`` under ``out``; return {device, scale, rows, results}."""
     from training.commands import _scale_of
@@ -189,7 +193,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
             prepare_inference(model, device, precision or "fp32", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
-                             label=label)
+                             label=label, progress=progress)
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
@@ -255,7 +259,7 @@ def run(args) -> int:
         speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
                         precisions=precisions or ["fp32"], compiles=compiles, warmup=args.warmup,
                         repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-                        reference=args.eager_reference)
+                        reference=args.eager_reference, progress=not args.no_progress)
         if args.output:
             print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
@@ -266,10 +270,20 @@ def run(args) -> int:
     benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
               args.output, frames=frames, device=device, amp=amp_dtype(args.amp, device), flip=args.flip,
               warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0],
-              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs)
+              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress)
     if args.output:
         print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
     return 0
+
+
+def _bar(items, desc: str, unit: str, on: bool):
+    """``items``, under a tqdm bar on stderr when ``on``."""
+    if not on:
+        return items
+    import sys
+
+    from tqdm import tqdm
+    return tqdm(items, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
 
 
 def _precisions(text: str | None) -> list[str] | None:
@@ -384,8 +398,9 @@ def _timer(device):
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
                     precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
-                    log=print) -> dict:
-    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md}; return the result."""
+                    log=print, progress: bool = False) -> dict:
+    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
+    return the result. ``progress``: bars on stderr while the models are prepared and while they are timed."""
     import copy
     import statistics
 
@@ -414,7 +429,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
     timer = _timer(device)
     runners = []  # every (model, variant) is prepared first, then all are timed round-robin: side by side
-    for label, spec in models:
+    for label, spec in _bar(models, "prepare", "model", progress):
         name = label.split(" ")[0]
         if spec == name:
             base = build_model(ModelConfig(name=name, scale=scale), scale).eval()
@@ -443,7 +458,8 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             for _ in range(max(warmup, 1)):
                 forward(r["module"], r["batch"])
             _sync(device)
-        for _ in range(repeats):  # round-robin: every model and variant sees the same machine state
+        for _ in _bar(range(repeats), f"time {len(runners)} variants", "round", progress):  # round-robin: every
+            # model and variant sees the same machine state
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
     records = []

@@ -70,6 +70,7 @@ def register(subparsers) -> None:
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
                    help="configuration of a non-learned --model (TOML value), e.g. "
                         "model.demod-jbu.guide_sigma_depth=0.05")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (one per clip)")
     p.set_defaults(func=cmd_evaluate)
 
     p = subparsers.add_parser(
@@ -84,6 +85,7 @@ def register(subparsers) -> None:
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
     p.add_argument("--compile", action="store_true", help="torch.compile the inference fast path")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_upscale)
 
     p = subparsers.add_parser(
@@ -198,7 +200,7 @@ def cmd_evaluate(args) -> int:
     result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
                             device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
                             delta_e_itp=args.delta_e_itp,
-                            save_images=args.save_images, warmup=args.warmup, progress=sys.stderr.isatty())
+                            save_images=args.save_images, warmup=args.warmup, progress=not args.no_progress)
     write_json_atomic(args.json, result)
     m = result["mean"]
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
@@ -227,7 +229,12 @@ def cmd_upscale(args) -> int:
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     times = {}
-    for f in frames:
+    iterator = frames
+    if not args.no_progress:
+        from tqdm import tqdm
+        iterator = tqdm(frames, desc=f"upscale {Path(args.clip).name}", unit="frame", file=sys.stderr,
+                        dynamic_ncols=True)
+    for f in iterator:
         r = upscale_frame(model, source, f)
         write_exr(out / f"{f:06d}.exr", {c: r["sr"][..., i] for i, c in enumerate("RGB")})
         times[str(f)] = r["ms"]
