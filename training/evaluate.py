@@ -114,7 +114,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             if progress:
                 from tqdm import tqdm
                 iterator = tqdm(todo, desc=f"{label or 'evaluate'} {Path(clip_path).name}", unit="frame",
-                                file=sys.stderr, dynamic_ncols=True, leave=False)
+                                file=sys.stderr, dynamic_ncols=True)
             for f in iterator:
                 inputs = model_inputs(model, source, f)
                 if recurrent:  # state carried from the previous frame; reset at a clip's start or after a gap
