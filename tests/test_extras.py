@@ -203,3 +203,14 @@ def test_core_commands_work_without_any_extra(tmp_path):
     proc = blendsr_without(none, "dataset", REPO / "examples" / "dataset_small.toml", "-o", "ds", "--dry-run",
                            tmp_path=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_extras_table_matches_pyproject():
+    """gbuffer_export.extras.EXTRAS names the import of every package of each extra in pyproject.toml (tomli-w
+    aside: training.config falls back to its own writer without it, so its absence is no reason to stop)."""
+    import tomllib
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    optional = {"tomli_w"}
+    for extra, mods in EXTRAS.items():
+        names = {re.split(r"[<>=!~\[ ;]", d, maxsplit=1)[0].strip().lower().replace("-", "_") for d in deps[extra]}
+        assert names - optional == set(mods), extra
