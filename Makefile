@@ -15,7 +15,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml Makefile
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install --quiet --disable-pip-version-check --upgrade pip
-	# torch first, pinned to the CPU wheel; blendsr's own range (torch>=2.2) is then already satisfied.
+	# torch first, pinned to the CPU wheel; blendsr's own range (torch>=2.5) is then already satisfied.
 	$(VPY) -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
 	$(VPY) -m pip install --quiet --disable-pip-version-check -e ".[dev]"
 	@touch $(STAMP)

@@ -5,9 +5,11 @@ exposes ``register(subparsers)``, which adds its parser(s) and sets ``func`` (ca
 returning an exit code). The core ships render, dataset, validate, lut, bench and demo; the torch layer adds
 train, evaluate, upscale and export from its own entry; another package adds commands the same way without touching
 this file. ``blendsr bench`` reads the group ``blendsr.bench`` likewise (modules with ``add_arguments(parser)`` and
-``run(args)``). A module whose own import fails for lack of an optional extra (torch, bpy) is skipped. Command
-modules import neither bpy nor torch at module level, so ``blendsr --help`` is fast and works with any subset of
-the extras installed.
+``run(args)``). Command modules import neither bpy nor torch at module level, so ``blendsr --help`` is fast and
+lists every command with any subset of the extras installed; each command checks the extras it needs when it runs
+(``gbuffer_export.extras.require``) and names the one to install in one line (exit 2). A module whose own import
+fails for lack of an extra's module (another package's command importing torch at module level) is listed as a
+command that says which extra to install.
 
 Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error).
 """
@@ -39,14 +41,36 @@ def entry_modules(group: str, core: dict[str, str] | None = None) -> dict[str, s
 
 
 def import_optional(modname: str):
-    """Import a command module; None when the module itself (not one of its dependencies) is absent, or when an
-    optional extra it needs (torch, bpy) is not installed."""
+    """Import a command module; None when the module itself (not one of its dependencies) is absent; a
+    ``MissingModule`` (with the ModuleNotFoundError) when it needs an optional extra's module that is not installed."""
+    from .extras import extra_of
     try:
         return importlib.import_module(modname)
     except ModuleNotFoundError as exc:
-        if exc.name and (modname.startswith(exc.name) or exc.name.split(".")[0] in ("torch", "bpy")):
+        if exc.name and (modname == exc.name or modname.startswith(exc.name + ".")):
             return None
+        if exc.name and extra_of(exc.name):
+            return MissingModule(modname, exc)
         raise
+
+
+class MissingModule:
+    """Stands for a command module that cannot be imported for lack of an extra: ``add_stub`` registers a command
+    under the entry's name that accepts any arguments and fails with the one-line hint."""
+
+    def __init__(self, modname: str, exc: ModuleNotFoundError):
+        self.modname, self.exc = modname, exc
+
+    def add_stub(self, sub, name: str) -> None:
+        from .extras import MissingExtra, missing_module_message
+        msg = f"blendsr {name}: {missing_module_message(self.exc)}"
+        p = sub.add_parser(name, help=f"(not available: {msg.split(': ', 1)[1]})", add_help=False,
+                           prefix_chars="\0")  # every argument (even -h) is taken, so that running it fails
+        p.add_argument("args", nargs="*")
+
+        def fail(args):
+            raise MissingExtra(msg)
+        p.set_defaults(func=fail)
 
 
 class UsageError(Exception):
@@ -64,12 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"blendsr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     seen = set()
-    for modname in entry_modules("blendsr.commands", CORE_COMMANDS).values():
+    for name, modname in entry_modules("blendsr.commands", CORE_COMMANDS).items():
         if modname in seen:  # one module may register several commands
             continue
         seen.add(modname)
         mod = import_optional(modname)
-        if mod is not None:
+        if isinstance(mod, MissingModule):
+            mod.add_stub(sub, name)
+        elif mod is not None:
             mod.register(sub)
     return parser
 
@@ -86,6 +112,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as exc:  # an extra's module imported late inside a command: name the extra
+        from .extras import missing_module_message
+        if missing_module_message(exc) is None:
+            raise
+        print(f"blendsr: error: {missing_module_message(exc)}", file=sys.stderr)
+        return 2
     except (UsageError, ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"blendsr: error: {msg}", file=sys.stderr)

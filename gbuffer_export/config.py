@@ -77,6 +77,23 @@ def parse_shard(text: str | None) -> tuple[int, int]:
     return k, n
 
 
+#: Frames the built-in default scene is defined on (inclusive): its animation (camera arc with a period of 160-240
+#: frames, rolling ball) is keyed from start - 1, so frame 0 has no previous frame; 1000 frames (42 s at 24 fps) bound
+#: what one clip of it may cost. Rendered by default: 1:48.
+BUILTIN_SCENE_FRAMES = (1, 1000)
+
+
+def check_builtin_frames(frames: tuple[int, int] | None) -> None:
+    """ConfigError (one line) when ``frames`` lie outside ``BUILTIN_SCENE_FRAMES``; None (the default 1:48) passes.
+    Called where the built-in scene is chosen (``blendsr render`` without a scene, ``load_scene``), not by
+    ``RenderConfig`` itself: ``scene=None`` there also stands for a scene already open (the add-on, dataset jobs)."""
+    if frames is None:
+        return
+    (a, b), (lo, hi) = frames, BUILTIN_SCENE_FRAMES
+    if a < lo or b > hi:
+        raise ConfigError(f"--frames {a}:{b} is outside the built-in scene's range {lo}:{hi}")
+
+
 @dataclass
 class RenderConfig:
     """Everything ``render_clip`` needs. Sizes in pixels, sample counts per pixel, adaptive threshold is

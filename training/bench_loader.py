@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from gbuffer_export.extras import require
+    require("blendsr bench loader", "train")
     import torch
 
     from gbuffer_export.synthetic import make_synthetic_clip

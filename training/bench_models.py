@@ -3,10 +3,10 @@
 With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of
 ``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
-products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). Writes
-OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot OUT/pareto.png (PSNR against
-ms per frame, the non-dominated models joined), with the roofline columns of the speed mode (below) for one frame of
-the clips.
+products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). With
+``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
+OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
+mode (below) for one frame of the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
@@ -16,7 +16,8 @@ run with their initial weights (speed does not depend on the weights). Times are
 their ratios are measured side by side). The table gives MACs, the bytes a frame must move (inputs read once,
 output written once) and the roofline estimate max(2 MACs / peak, bytes / bandwidth) with the measured/roofline
 ratio; peak and bandwidth come from ``--peak-tflops``/``--bandwidth-gbs``, by default from ``DEVICE_PEAKS`` for
-known GPUs and measured (a large matmul and a large copy) elsewhere. Writes OUT/bench_speed.json, .csv and .md. torch and matplotlib are imported inside
+known GPUs and measured (a large matmul and a large copy) elsewhere. With ``-o OUT`` it writes
+OUT/bench_speed.json, .csv and .md; without ``-o`` nothing is written. torch and matplotlib are imported inside
 ``run``.
 """
 from __future__ import annotations
@@ -72,13 +73,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bandwidth-gbs", type=float, default=0.0,
                         help="device memory bandwidth for the roofline, GB/s (0: DEVICE_PEAKS, else measured)")
     parser.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
-    parser.add_argument("-o", "--output", default="bench-models", metavar="DIR", help="output directory")
+    parser.add_argument("-o", "--output", default=None, metavar="DIR",
+                        help="write the JSON, CSV and markdown tables (and pareto.png with --data) here; default: "
+                             "print the table only, write nothing")
     parser.add_argument("--flip", action="store_true", help="also compute HDR-FLIP (slow on CPU)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where models run")
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                         help="autocast (with --data; --precision takes precedence)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bars on stderr (per model and clip with --data; preparing and timing "
+                             "without)")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -161,7 +167,8 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
 
 def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None = None, device=None, amp=None,
               flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
-              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0) -> dict:
+              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0,
+              progress: bool = False) -> dict:
     """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips``; write the table files
     and ``pareto.png`` under ``out``; return {device, scale, rows, results}."""
     from training.commands import _scale_of
@@ -172,8 +179,6 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
 
     scale = _scale_of(clips)
     device = device or resolve_device("auto")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     rows, results = [], []
     peaks: dict = {}
     for label, spec in models:
@@ -188,7 +193,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
             prepare_inference(model, device, precision or "fp32", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
-                             label=label)
+                             label=label, progress=progress)
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
@@ -210,6 +215,16 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         results.append(res)
         log(f"{label:24s} {row['ms_per_frame']:9.2f} ms  PSNR {row['psnr']:6.2f} dB  SSIM {row['ssim']:.4f}")
     device_name = results[0]["device"]
+    md = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        md.append("| " + " | ".join(_fmt(r.get(k)) for k in COLUMNS) + " |")
+    table = "\n".join(md)
+    log(table)
+    result = {"device": device_name, "scale": scale, "rows": rows, "results": results, "table": table}
+    if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
+        return result
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale, "peaks": peaks,
                                                        "clips": [str(c) for c in clips], "rows": rows,
                                                        "transform": results[0]["transform"]}, indent=1) + "\n")
@@ -218,17 +233,14 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         w.writeheader()
         for r in rows:
             w.writerow({k: r.get(k) for k in COLUMNS})
-    md = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    for r in rows:
-        md.append("| " + " | ".join(_fmt(r.get(k)) for k in COLUMNS) + " |")
-    table = "\n".join(md)
     (out / "bench_models.md").write_text(f"Device: {device_name}; scale {scale}\n\n{table}\n")
     plot(rows, out / "pareto.png", device_name)
-    log(table)
-    return {"device": device_name, "scale": scale, "rows": rows, "results": results, "table": table}
+    return result
 
 
 def run(args) -> int:
+    from gbuffer_export.extras import require
+    require("blendsr bench models", "train")
     import torch
 
     from gbuffer_export.config import parse_frames
@@ -247,8 +259,9 @@ def run(args) -> int:
         speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
                         precisions=precisions or ["fp32"], compiles=compiles, warmup=args.warmup,
                         repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-                        reference=args.eager_reference)
-        print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
+                        reference=args.eager_reference, progress=not args.no_progress)
+        if args.output:
+            print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
     if len(precisions or []) > 1 or len(compiles) > 1:
         raise ValueError("--data: one --precision and one --compile setting at a time")
@@ -257,9 +270,20 @@ def run(args) -> int:
     benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
               args.output, frames=frames, device=device, amp=amp_dtype(args.amp, device), flip=args.flip,
               warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0],
-              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs)
-    print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
+              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress)
+    if args.output:
+        print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
     return 0
+
+
+def _bar(items, desc: str, unit: str, on: bool):
+    """``items``, under a tqdm bar on stderr when ``on``."""
+    if not on:
+        return items
+    import sys
+
+    from tqdm import tqdm
+    return tqdm(items, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
 
 
 def _precisions(text: str | None) -> list[str] | None:
@@ -374,8 +398,9 @@ def _timer(device):
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
                     precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
-                    log=print) -> dict:
-    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md}; return the result."""
+                    log=print, progress: bool = False) -> dict:
+    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
+    return the result. ``progress``: bars on stderr while the models are prepared and while they are timed."""
     import copy
     import statistics
 
@@ -404,7 +429,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
     timer = _timer(device)
     runners = []  # every (model, variant) is prepared first, then all are timed round-robin: side by side
-    for label, spec in models:
+    for label, spec in _bar(models, "prepare", "model", progress):
         name = label.split(" ")[0]
         if spec == name:
             base = build_model(ModelConfig(name=name, scale=scale), scale).eval()
@@ -433,7 +458,8 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             for _ in range(max(warmup, 1)):
                 forward(r["module"], r["batch"])
             _sync(device)
-        for _ in range(repeats):  # round-robin: every model and variant sees the same machine state
+        for _ in _bar(range(repeats), f"time {len(runners)} variants", "round", progress):  # round-robin: every
+            # model and variant sees the same machine state
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
     records = []
@@ -449,28 +475,31 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
             f"x{rec['ratio']:.0f})")
     del runners
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     device_name = describe_device(device)
     meta = {"device": device_name, "size": [w, h], "scale": scale, "batch": 1, "warmup": warmup,
             "repeats": repeats, "timing": "median of the repeats; " + ("CUDA events" if device.type == "cuda"
                                                                        else "perf_counter"),
             "threads": torch.get_num_threads() if device.type == "cpu" else None, "peaks": peaks,
             "torch": torch.__version__}
+    table = speed_table(records, [vl for vl, _ in variants])
+    log(table)
+    result = {**meta, "rows": records, "table": table}
+    if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
+        return result
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
     with open(out / "bench_speed.csv", "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
         wr.writeheader()
         for r in records:
             wr.writerow(r)
-    table = speed_table(records, [vl for vl, _ in variants])
     peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
                          for k, v in peaks.items())
     (out / "bench_speed.md").write_text(f"Device: {device_name}; HR {w}x{h}, scale {scale}, batch 1; "
                                         f"{meta['timing']} of {repeats} after {warmup} warm-up; roofline peaks: "
                                         f"{peak_txt}\n\n{table}\n")
-    log(table)
-    return {**meta, "rows": records, "table": table}
+    return result
 
 
 def speed_table(records: list[dict], variants: list[str]) -> str:

@@ -6,13 +6,17 @@ import json
 import sys
 from pathlib import Path
 
-FMT = argparse.ArgumentDefaultsHelpFormatter
+from gbuffer_export.extras import HelpFormatter, require
+
+FMT = HelpFormatter
 
 
 def add_model_source(p: argparse.ArgumentParser) -> None:
     """--checkpoint CK | --model NAME, exactly one: the model that evaluate, upscale and export run."""
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--checkpoint", metavar="CK", help="checkpoint file of 'blendsr train'")
+    g.add_argument("--checkpoint", metavar="CK",
+                   help="checkpoint file of 'blendsr train', or pretrained:NAME for the shipped weights "
+                        "(pretrained:fusesr, pretrained:fusesr-l; training/pretrained.py)")
     g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear, demod-jbu")
 
 
@@ -66,6 +70,7 @@ def register(subparsers) -> None:
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
                    help="configuration of a non-learned --model (TOML value), e.g. "
                         "model.demod-jbu.guide_sigma_depth=0.05")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (one per clip)")
     p.set_defaults(func=cmd_evaluate)
 
     p = subparsers.add_parser(
@@ -80,6 +85,7 @@ def register(subparsers) -> None:
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
     p.add_argument("--compile", action="store_true", help="torch.compile the inference fast path")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_upscale)
 
     p = subparsers.add_parser(
@@ -103,6 +109,7 @@ def _frames(text: str | None):
 
 
 def cmd_train(args) -> int:
+    require("blendsr train", "train")
     from training.config import load_config
     from training.models import MODELS
     if args.list_models:
@@ -173,6 +180,7 @@ def _scale_of(clips) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    require("blendsr evaluate", "train")
     import torch
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
@@ -192,7 +200,7 @@ def cmd_evaluate(args) -> int:
     result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
                             device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
                             delta_e_itp=args.delta_e_itp,
-                            save_images=args.save_images, warmup=args.warmup, progress=sys.stderr.isatty())
+                            save_images=args.save_images, warmup=args.warmup, progress=not args.no_progress)
     write_json_atomic(args.json, result)
     m = result["mean"]
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
@@ -206,6 +214,7 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_upscale(args) -> int:
+    require("blendsr upscale", "train")
     from gbuffer_export.clip import open_clip, write_json_atomic
     from gbuffer_export.exr import write_exr
     from training.inference import ClipFrames, load_model, upscale_frame
@@ -220,7 +229,12 @@ def cmd_upscale(args) -> int:
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     times = {}
-    for f in frames:
+    iterator = frames
+    if not args.no_progress:
+        from tqdm import tqdm
+        iterator = tqdm(frames, desc=f"upscale {Path(args.clip).name}", unit="frame", file=sys.stderr,
+                        dynamic_ncols=True)
+    for f in iterator:
         r = upscale_frame(model, source, f)
         write_exr(out / f"{f:06d}.exr", {c: r["sr"][..., i] for i, c in enumerate("RGB")})
         times[str(f)] = r["ms"]
@@ -231,6 +245,7 @@ def cmd_upscale(args) -> int:
 
 
 def cmd_export(args) -> int:
+    require("blendsr export", "train", "export")
     from training.export import export_onnx
     from training.inference import load_model
     from gbuffer_export.config import parse_size

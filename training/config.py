@@ -494,13 +494,22 @@ def parse_value(text: str) -> Any:
         return text
 
 
+#: TOML basic-string escapes; other control characters are written as \uXXXX.
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def _toml_string(v: str) -> str:
+    return '"' + "".join(_TOML_ESCAPES.get(c) or (f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c)
+                         for c in v) + '"'
+
+
 def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return _toml_string(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")
@@ -512,7 +521,16 @@ def _toml_key(k: str) -> str:
 
 def dict_to_toml(d: dict[str, dict[str, Any]]) -> str:
     """Nested {section: {key: value}} as TOML text (round-trips through tomllib); a dict value is a sub-table
-    ``[section.key]``."""
+    ``[section.key]``. Written by tomli-w (the ``[train]`` extra); in an environment made before it was a
+    dependency, by ``_dict_to_toml`` (the same escapes: every control character, newlines included)."""
+    try:
+        import tomli_w
+    except ModuleNotFoundError:
+        return _dict_to_toml(d)
+    return tomli_w.dumps(d)
+
+
+def _dict_to_toml(d: dict[str, dict[str, Any]]) -> str:
     lines = []
 
     def table(name: str, values: dict) -> None:

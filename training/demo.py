@@ -8,8 +8,9 @@ side-by-side image.
     run_<model>/           the fine-tuning run (config, log, checkpoints; resumed when the demo runs again)
     bench/                 bench_models.{json,csv,md} and pareto.png
     pareto.png             copy of bench/pareto.png
-    side_by_side.png       LR (nearest), bicubic, demod-bilinear, the best learned model, ground truth of a middle
-                           test frame (tonemapped with the evaluation tonemap)
+    side_by_side.png       LR (nearest), bicubic, demod-jbu, the best learned model, ground truth of a middle
+                           test frame (tonemapped with the evaluation tonemap): whole frames with PSNR, the crop
+                           where they differ most at full resolution, and why bicubic rings
 
 and returns a JSON-ready summary.
 """
@@ -70,12 +71,13 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
 
 
 def side_by_side(checkpoint: str, clip: str, path: Path, label: str | None = None) -> Path:
-    """LR (nearest-neighbour), bicubic, demod-bilinear, the model and the ground truth of the clip's middle frame."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """LR (nearest-neighbour), bicubic, demod-jbu, the model and the ground truth of the clip's middle frame: the
+    whole frames, each under its name and PSNR, then the crop where they differ most at full resolution (each pixel
+    drawn 2x2 for frames up to 960 wide), and a note on what the PSNR is and why bicubic rings
+    (``gbuffer_export.preview.comparison_sheet``)."""
     import numpy as np
 
+    from gbuffer_export.preview import comparison_sheet, save_png
     from training import metrics
     from training.inference import ClipFrames, load_model, upscale_frame
 
@@ -91,16 +93,23 @@ def side_by_side(checkpoint: str, clip: str, path: Path, label: str | None = Non
         ref = r.get("reference")
     if ref is not None:
         panels.append(("ground truth", ref))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 2.2), dpi=120)
-    for ax, (label, img) in zip(axes, panels):
-        tm = metrics.tonemapped(img)[0].permute(1, 2, 0).numpy()
-        title = label
-        if ref is not None and label != "ground truth" and img.shape == ref.shape:
-            title += f"\n{metrics.psnr_tm(img, ref):.2f} dB"
-        ax.imshow(np.clip(tm, 0, 1))
-        ax.set_title(title, fontsize=8)
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    shown, psnr = [], {}
+    for name, img in panels:
+        lines = [name]
+        if ref is not None and name != "ground truth" and img.shape == ref.shape:
+            psnr[name] = float(metrics.psnr_tm(img, ref))
+            lines.append(f"PSNR {psnr[name]:.2f} dB")
+        elif name == "ground truth":
+            lines.append(f"frame {frame}")
+        shown.append((lines, metrics.tonemapped(img)[0].permute(1, 2, 0).numpy()))
+    below = psnr.get("bicubic", 0.0) < psnr.get("LR (nearest)", 0.0)
+    notes = [f"{Path(clip).name}, frame {frame}, x{src.scale}. PSNR on the tonemapped frame (Reinhard, sRGB) "
+             "against the ground truth, this frame only.",
+             "bicubic rings, as it must on HDR radiance: its kernel has negative lobes, so next to an emitter "
+             "(radiance far above its surroundings) it undershoots below 0 and is clamped to 0, a black halo"
+             + (" - which is why it scores below nearest neighbour here." if below else ".")
+             + " demod-jbu and the learned models upsample demodulated irradiance (emission subtracted first) "
+               "and do not ring there."]
+    w = shown[0][1].shape[1]
+    save_png(path, comparison_sheet(shown, zoom=2 if w <= 960 else 1, notes=notes))
     return path

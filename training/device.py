@@ -9,11 +9,14 @@ import torch
 from training.config import ConfigError
 
 
-def resolve_device(name: str) -> torch.device:
+def resolve_device(name: str, option: str = "--device") -> torch.device:
+    """'auto' | 'cpu' | 'cuda' -> a device; ``option`` names where the value came from in the error (the CLI flag,
+    or the configuration key 'run.device' of training)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("run.device = 'cuda' but no CUDA device is available")
+        raise ConfigError(f"{option} cuda: no CUDA device is available to torch {torch.__version__} "
+                          f"(use {option} auto or cpu)")
     return torch.device(name)
 
 

@@ -113,7 +113,8 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             iterator = todo
             if progress:
                 from tqdm import tqdm
-                iterator = tqdm(todo, desc=f"evaluate {Path(clip_path).name}", unit="frame")
+                iterator = tqdm(todo, desc=f"{label or 'evaluate'} {Path(clip_path).name}", unit="frame",
+                                file=sys.stderr, dynamic_ncols=True)
             for f in iterator:
                 inputs = model_inputs(model, source, f)
                 if recurrent:  # state carried from the previous frame; reset at a clip's start or after a gap

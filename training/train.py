@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gbuffer_export.clip import write_json_atomic
+from gbuffer_export.clip import ClipError, write_json_atomic
 from gbuffer_export.config import ConfigError
 from training.cache import ClipCache
 from training.checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, inference_weights,  # noqa: F401
@@ -163,7 +163,7 @@ class Dist:
         self.rank = int(os.environ.get("RANK", "0"))
         self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         self.enabled = self.world > 1
-        device = resolve_device(device_name)
+        device = resolve_device(device_name, "run.device")
         if device.type == "cuda" and self.enabled:
             device = torch.device("cuda", self.local_rank)
             torch.cuda.set_device(device)
@@ -359,7 +359,14 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                                window=window, crop=cfg.data.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
-    caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist, scales_of)
+    try:
+        caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist, scales_of)
+    except ClipError as exc:
+        if "has no buffer" not in str(exc):
+            raise
+        raise ClipError(f"{exc}; model {cfg.model.name!r} reads more buffers than these clips have: render them "
+                        f"with 'blendsr render --for-models {cfg.model.name}' (or 'blendsr dataset ... "
+                        f"--for-models {cfg.model.name}')") from None
     manifests = list({str(Path(c.clip_path).resolve()): {"clip": str(Path(c.clip_path).resolve()),
                                                           "manifest_sha256": c.manifest_sha256}
                       for c in caches}.values())

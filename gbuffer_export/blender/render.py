@@ -94,7 +94,9 @@ def check_blend_file(path: Path) -> None:
 def load_scene(cfg: RenderConfig):
     """Open the scene file (or build the default scene) and return (scene, scene_info for the manifest)."""
     if cfg.scene is None:
+        from ..config import check_builtin_frames
         from .default_scene import build_default_scene
+        check_builtin_frames(cfg.frames)
         frames = cfg.frames or (1, 48)
         res = cfg.hr_size or (640, 360)
         scene = build_default_scene(seed=cfg.seed, frames=(min(frames[0], 1), max(frames[1], 48)), resolution=res)
@@ -526,6 +528,8 @@ def _scene_linear_name() -> str:
 
 
 def _progress(frames, cfg):
+    from .devices import probe_devices
+    probe_devices()  # Cycles' GPU-library warnings now (dropped), not inside the first frame's bar
     if not cfg.progress:
         return frames
     from tqdm import tqdm

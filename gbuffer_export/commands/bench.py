@@ -15,13 +15,17 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
                        description="Benchmarks. Each prints a table and can save JSON; numbers are medians.")
     bsub = p.add_subparsers(dest="bench", metavar="KIND")
-    from ..cli import entry_modules, import_optional
+    from ..cli import MissingModule, entry_modules, import_optional
+    from ..extras import HelpFormatter
     for name, modname in entry_modules("blendsr.bench", CORE_BENCHES).items():
         mod = import_optional(modname)
         if mod is None:
             continue
+        if isinstance(mod, MissingModule):
+            mod.add_stub(bsub, name)
+            continue
         bp = bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0],
-                             description=mod.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                             description=mod.__doc__, formatter_class=HelpFormatter)
         mod.add_arguments(bp)
         bp.set_defaults(func=mod.run)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])

@@ -10,7 +10,7 @@ Metrics per material and level, over pixels and channels: rel-MAE = mean |F - T|
 bias = (mean F - mean T) / max(mean T, 0.01); the truth's own noise floor (mean |T_seed1 - T_seed2| / 2, same
 denominator: what noise adds to rel-MAE) is reported beside them. At HR also after a second-order model of the HR
 pixel filter (the truth is filtered, the G-buffers are point-sampled). Also the per-frame time of each table source. Writes JSON, a PNG chart and (optionally) the
-results block of docs/brdf.md.
+results block of a markdown file (--docs docs/brdf.md in a checkout; never by default).
 """
 from __future__ import annotations
 
@@ -26,13 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..extras import HelpFormatter
+
 SOURCES = ("cycles", "lut", "lut-paper", "model")
 DOC_BEGIN = "<!-- bench-brdf:begin (written by 'blendsr bench brdf') -->"
 DOC_END = "<!-- bench-brdf:end -->"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    p.formatter_class = HelpFormatter
     p.add_argument("--out", type=Path, default=Path("bench_results/brdf"),
                    help="folder for brdf.json and brdf.png")
     p.add_argument("--work", type=Path, default=None,
@@ -43,8 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, default=1024, help="samples per pixel per seed, both levels")
     p.add_argument("--seeds", type=int, default=2, help="independent renders (>= 2 measures the truth's noise)")
     p.add_argument("--sources", default=",".join(SOURCES), help="comma-separated F_beta sources to compare")
-    p.add_argument("--docs", default="docs/brdf.md",
-                   help="markdown file whose results block is replaced; '' to skip")
+    p.add_argument("--docs", type=Path, default=None, metavar="FILE.md",
+                   help="also replace the results block of this markdown file (the project's is docs/brdf.md); "
+                        "default: no file is rewritten")
     p.add_argument("--threads", type=int, default=0, help="render threads (0 = all cores)")
 
 
@@ -410,6 +413,9 @@ def update_docs(path: Path, block: str) -> None:
 def run(args) -> int:
     from ..clip import open_clip
     from ..config import parse_size
+    from ..extras import require
+    require("blendsr bench brdf", "render")  # renders in subprocesses with bpy
+    require("blendsr bench brdf (its chart)", "train", modules=("matplotlib",))
 
     sources = tuple(s.strip() for s in args.sources.split(",") if s.strip())
     bad = [s for s in sources if s not in SOURCES]

@@ -117,6 +117,8 @@ def run_for_models(args) -> int:
 
 
 def run(args) -> int:
+    from ..extras import require
+    require("blendsr bench render", "render")
     if args.for_models:
         return run_for_models(args)
     try:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..extras import HelpFormatter as _Formatter
+
 HELP = """Render a dataset: many clips from one spec (built-in scene seeds, folders of glTF/GLB/.blend assets in
 generated environments), split by scene or asset into train/val/test, indexed in DATASET/dataset.json with each
 clip's split, source, seed, licence, settings and state. Rerunning the same command finishes missing or partial
@@ -12,13 +14,11 @@ clips only; a run killed at any moment loses at most the frames in flight. The s
 docs/dataset.md; an example: examples/dataset_small.toml.
 
 Executors: 'local' runs --workers clip processes on this machine (each with --threads Cycles threads; default: the
-cores divided by the workers). 'ray' submits one task per clip to a Ray cluster (--address: 'auto' for the cluster
-this machine belongs to, ray://HOST:10001 for a remote one; none: a local one is started); DATASET must be on a
-filesystem every node sees. The same spec gives the same clips on either executor (per-clip seeds)."""
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
+cores divided by the workers). 'ray' submits one task per clip to a Ray cluster (--threads Cycles threads and as
+many CPUs per task; default 1, so the cluster renders as many clips at once as it has CPUs; --address: 'auto'
+for the cluster this machine belongs to, ray://HOST:10001 for a remote one; none: a local one is started);
+DATASET must be on a filesystem every node sees. The same spec gives the same clips on either executor (per-clip
+seeds)."""
 
 
 def register(subparsers) -> None:
@@ -29,7 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("--executor", default="local", choices=("local", "ray"), help="where the clips render")
     p.add_argument("--workers", type=int, default=1, help="clips rendered at once by the local executor")
     p.add_argument("--threads", type=int, default=0,
-                   help="Cycles threads per clip (0: cores / workers locally, 1 per task on Ray)")
+                   help="Cycles threads per clip; 0: this machine's cores / --workers locally, 1 on Ray (each task "
+                        "asks for --threads CPUs, at least 1; Ray runs as many tasks at once as the cluster has CPUs)")
     p.add_argument("--address", default=None, help="Ray cluster address (auto, ray://HOST:10001); none: start one")
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="render only the buffers these models read, plus radiance and motion for evaluation "
@@ -55,6 +56,8 @@ def run(args) -> int:
                      f"clutter={[Path(c).stem for c in j.clutter]}")
             print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} {where}")
         return 0
+    from ..extras import require
+    require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
                       buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device)

@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+from ..extras import HelpFormatter
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output folder")
@@ -55,6 +57,8 @@ def run(args) -> int:
     from ..preview import contact_sheet
     from ..validate import validate_clip
 
+    from ..extras import require
+    require("blendsr demo", "render")  # renders first; the training half runs only with [train] (see above)
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
     seed = args.test_seed
@@ -102,6 +106,6 @@ def _training_half():
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="render, validate, train briefly and evaluate on the built-in scene",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       description=__doc__, formatter_class=HelpFormatter)
     add_arguments(p)
     p.set_defaults(func=run)

@@ -5,6 +5,8 @@ import argparse
 import time
 from pathlib import Path
 
+from ..extras import HelpFormatter
+
 HELP = """Compute the split-sum table of the pre-integrated BRDF, F_beta = (1-m) c + F0 A(NoV, r) + B(NoV, r),
 and write it as a float32 EXR with channels A and B.
 
@@ -16,7 +18,7 @@ literally: alpha = roughness, k = (alpha + 1)^2 / 8; used by '--fbeta lut-paper'
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("lut", help="write the split-sum BRDF table (EXR, channels A and B)",
-                              description=HELP, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                              description=HELP, formatter_class=HelpFormatter)
     p.add_argument("-o", "--output", required=True, type=Path, help="EXR file to write (atomically)")
     p.add_argument("--size", type=int, default=256, help="table size N in texels per side (N x N)")
     p.add_argument("--samples", type=int, default=16384, help="Hammersley samples per texel")

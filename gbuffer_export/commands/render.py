@@ -6,7 +6,9 @@ from pathlib import Path
 
 from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, ConfigError, RenderConfig, parse_frames,
                       parse_scales, parse_shard, parse_size)
+from ..config import check_builtin_frames
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
+from ..extras import HelpFormatter as _HelpFormatter, require
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
 as EXR sequences plus a JSON manifest (docs/clip-format.md).
@@ -19,8 +21,8 @@ Rerunning the same command resumes: finished frames are skipped. --shard K/N ren
 the K-th, so N processes can fill one clip; their manifests merge."""
 
 
-class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's line breaks and appends each option's default."""
+class HelpFormatter(_HelpFormatter):
+    """Keeps the description's line breaks and shows each option's default once."""
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,7 +31,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "omitted: the built-in default scene")
     p.add_argument("-o", "--output", required=True, type=Path, help="clip directory to create or resume")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="inclusive frame range; None: the scene's range (default scene: 1:48)")
+                   help="inclusive frame range; omitted: the scene's range (built-in scene: 1:48, at most 1:1000)")
     p.add_argument("--hr-size", default=None, metavar="WxH",
                    help="HR (target) resolution in pixels; None: the scene's resolution (default scene: 640x360)")
     p.add_argument("--scale", type=int, default=4, help="integer upscaling factor; LR = HR / scale")
@@ -110,6 +112,8 @@ def variation_from_args(args) -> dict | None:
 
 def config_from_args(args) -> RenderConfig:
     variation = variation_from_args(args)
+    if args.scene is None:
+        check_builtin_frames(parse_frames(args.frames))
     if getattr(args, "for_models", None):
         from ..dataset.buffers import buffers_for_models
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
@@ -126,6 +130,7 @@ def config_from_args(args) -> RenderConfig:
 
 
 def run(args) -> int:
+    require("blendsr render", "render")
     cfg = config_from_args(args)
     if getattr(args, "own_process", False):
         from ..reproducible import prepare_render_process

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from ..extras import HelpFormatter as _Formatter
+
 HELP = """Check a clip directory: manifest and frame records, every buffer file of every finished frame at both
 levels (exists, readable EXR, level size, channels, sample type), values (finite; depth > 0 on surfaces and +inf
 on background; unit normals; fbeta in [0, 1.05] on surfaces and 1 on background; material buffers in [0, 1];
@@ -17,10 +19,6 @@ unfinished frames) never passes.
 Prints one line per finding ('ERROR frame 12 hr/normal: ... [code]') and a summary line; with --json one JSON
 object (ok, errors, warnings, findings, stats) on stdout. Exit code 0: no errors (warnings allowed); 1: errors;
 2: CLIP_DIR is not a directory or an option is invalid."""
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's paragraphs and shows defaults."""
 
 
 def register(subparsers) -> None:

@@ -45,7 +45,8 @@ class DatasetError(ValueError):
 @dataclass(frozen=True)
 class RunOptions:
     """How to execute: ``workers`` clips at a time (local) or as many as the Ray cluster schedules, each clip's
-    Cycles render on ``threads`` threads (0: the machine's cores divided by ``workers``)."""
+    Cycles render on ``threads`` threads (0: locally the machine's cores divided by ``workers``; on Ray 1, so that
+    the cluster runs one clip per CPU it has: see ``clip_threads``)."""
 
     executor: str = "local"
     workers: int = 1
@@ -63,6 +64,16 @@ class RunOptions:
             raise SpecError(f"--workers {self.workers}: must be at least 1")
         if self.threads < 0:
             raise SpecError(f"--threads {self.threads}: must be >= 0")
+
+    def clip_threads(self) -> int:
+        """Cycles threads of each clip. ``threads`` 0 means: locally, this machine's cores divided by ``workers``;
+        on Ray, 1 (each task asks Ray for ``num_cpus=1``, and Ray runs as many at once as the cluster's nodes have
+        CPUs; the submitting machine's cores say nothing about the nodes')."""
+        if self.threads:
+            return self.threads
+        if self.executor == "ray":
+            return 1
+        return max(1, (os.cpu_count() or 1) // self.workers)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -244,7 +255,8 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, devic
     try:
         import ray
     except ImportError:
-        raise SpecError("--executor ray needs the 'ray' package: pip install 'blendsr[cluster]'") from None
+        from ..extras import install_hint
+        raise SpecError(f"--executor ray needs the 'ray' package: {install_hint('cluster')}") from None
     started = False
     if not ray.is_initialized():
         ray.init(address=address or "local", include_dashboard=False, log_to_driver=False,
@@ -304,11 +316,12 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
         if opts.limit is not None:
             todo = todo[:opts.limit]
-        threads = opts.threads or max(1, (os.cpu_count() or 1) // opts.workers)
+        threads = opts.clip_threads()
         n_done = len(jobs) - len([e for e in index["clips"] if e["state"] != "done"])
         print(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "
-              f"({opts.executor}, {opts.workers if opts.executor == 'local' else 'cluster'} workers, "
-              f"{threads} threads each)", file=sys.stderr)
+              f"({opts.executor}, " + (f"{opts.workers} workers, {threads} threads each)" if opts.executor == "local"
+                                       else f"{threads} thread(s) and CPU(s) per task, as many tasks at once as "
+                                            f"the cluster has CPUs)"), file=sys.stderr)
         by_id = {e["id"]: e for e in index["clips"]}
         mutex = threading.Lock()
         bar = None

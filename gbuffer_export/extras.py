@@ -1,0 +1,87 @@
+"""Optional extras: which modules each extra of ``pyproject.toml`` provides, and the one-line check every CLI command
+runs before it starts (``require``), so that a partial install names the extra to install instead of a traceback.
+
+BlendSR is not published on a package index: the hint installs from a checkout (``pip install '.[train]'``) or from a
+built wheel (README, "Install").
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+
+#: extra -> the top-level modules it installs (import names), as in pyproject.toml's optional-dependencies.
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "render": ("bpy", "trimesh", "rtree", "scipy"),
+    "train": ("torch", "matplotlib", "pytorch_msssim", "flip_evaluator"),
+    "export": ("onnx", "onnxruntime"),
+    "cluster": ("ray",),
+}
+
+
+class MissingExtra(ValueError):
+    """An optional extra a command needs is not installed (a ValueError: the CLI prints it as one line, exit 2)."""
+
+
+def installed(module: str) -> bool:
+    """True when ``module`` can be imported (found on the path; not imported, so bpy/torch start nothing)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a blocked module, or one in sys.modules without a spec
+        return False
+
+
+def install_hint(extra: str) -> str:
+    return f"install the [{extra}] extra: pip install '.[{extra}]' (from a BlendSR checkout or with the wheel)"
+
+
+def extra_of(module: str) -> str | None:
+    """The extra that installs the top-level module ``module`` (None: not an extra's)."""
+    top = module.split(".")[0]
+    return next((e for e, mods in EXTRAS.items() if top in mods), None)
+
+
+def require(what: str, *extras: str, modules: tuple[str, ...] | None = None) -> None:
+    """Raise MissingExtra naming the first extra (of ``extras``, in order) with a module that is not installed.
+
+    ``what`` names the command in the message ("blendsr train"); ``modules`` restricts the check to these modules
+    (default: every module of each extra), e.g. ``require("blendsr bench brdf", "train", modules=("matplotlib",))``.
+    """
+    for extra in extras:
+        mods = EXTRAS[extra] if modules is None else tuple(m for m in modules if extra_of(m) == extra)
+        missing = [m for m in mods if not installed(m)]
+        if missing:
+            raise MissingExtra(f"{what} needs {', '.join(missing)}, which is not installed: {install_hint(extra)}")
+
+
+def missing_module_message(exc: ModuleNotFoundError) -> str | None:
+    """The one-line hint for a ModuleNotFoundError of an extra's module raised inside a command (None: not one)."""
+    extra = extra_of(exc.name or "")
+    if extra is None:
+        return None
+    return f"no module named '{exc.name}': {install_hint(extra)}"
+
+
+#: help text that already states its default: "default: X", "(default X)", "defaults to", "%(default)s"
+_SAYS_DEFAULT = re.compile(r"\bdefault\s*:|\(default\b|\bdefaults? to\b|%\(default\)", re.IGNORECASE)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's line breaks and shows each option's default exactly once: appended as
+    ``(default: X)`` unless the help already says its default, the default is None (nothing to show: the help says
+    what omitting the option means) or the option is a flag."""
+
+    def _get_help_string(self, action):
+        help = action.help or ""
+        if _SAYS_DEFAULT.search(help):
+            return help
+        if action.default is None or action.default is argparse.SUPPRESS or action.default is False:
+            return help
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._HelpAction,
+                               argparse._VersionAction)):
+            return help
+        if action.default == [] or action.default == "":
+            return help
+        if not action.option_strings and action.nargs not in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
+            return help
+        return f"{help} (default: %(default)s)"
