@@ -195,8 +195,27 @@ def _radiance_channels(clip, channels):
     write(clip, 2, "hr/radiance", full[..., :len(channels)], channels)
 
 
+def _linked_buffer(clip):
+    """hr/albedo of frame 2 replaced by a link to a copy outside the clip."""
+    src = buffer_path(clip, 2, "hr", "albedo")
+    outside = clip.parent / "outside_albedo.exr"
+    shutil.copyfile(src, outside)
+    src.unlink()
+    src.symlink_to(outside)
+
+
+def _moved_prev_camera(clip):
+    """Frame 3's previous camera is not frame 2's camera (a frame of another render)."""
+    def fn(r):
+        for lvl in r.values():
+            lvl["prev_world_from_camera"][0][3] += 0.25
+    edit_record(clip, 3, fn)
+
+
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).
 CASES = {
+    "unsafe-link": (_linked_buffer, ERROR, 2, "hr/albedo"),
+    "mixed-clip": (_moved_prev_camera, ERROR, 3, "hr"),
     "manifest-missing": (lambda c: (c / "manifest.json").unlink(), ERROR, None, None),
     "manifest-invalid": (lambda c: (c / "manifest.json").write_text('{"schema": "blendsr.clip", '), ERROR, None,
                          None),

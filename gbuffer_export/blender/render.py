@@ -16,8 +16,10 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +31,7 @@ from .. import __version__
 from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name, levels_header
 from ..config import ConfigError, RenderConfig
 from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, level_name,
-                           material_flags_for_source, scale_intrinsics, world_to_camera_normals)
+                           material_flags_for_source, pass_seed, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from ..resources import check_render_resources
@@ -250,10 +252,6 @@ LIGHT_PATH_KEYS = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmis
                    "transparent_max_bounces")
 
 
-def pass_seed(seed: int, frame: int, level: int) -> int:
-    return (seed * 1000003 + frame * 7 + level) % (2 ** 31 - 1)
-
-
 # ----------------------------------------------------------------------------------------------
 # Reading passes
 # ----------------------------------------------------------------------------------------------
@@ -294,10 +292,50 @@ def quiet_stdout():
         os.close(saved)
 
 
+_SIGINTS = [0]  # Ctrl-C presses seen while ``stop_on_sigint`` is active
+
+
+@contextlib.contextmanager
+def stop_on_sigint():
+    """Make Ctrl-C (SIGINT) stop a render. Python's own handler raises KeyboardInterrupt inside Cycles' render
+    callback, where bpy prints and swallows it and the render goes on; this handler only counts the press, and
+    ``check_interrupt`` (after every Cycles pass) raises KeyboardInterrupt in the frame loop: the frame in flight
+    is dropped, finished frames stay. A second Ctrl-C exits at once (exit 130; the clip stays consistent, as after
+    kill -9). Installed only in the main thread; the previous handler is restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_sigint(signum, frame):
+        _SIGINTS[0] += 1
+        if _SIGINTS[0] > 1:
+            os.write(2, b"\nblendsr: interrupted again; stopping now (rerun the same command to resume)\n")
+            os._exit(130)
+        os.write(2, b"\nblendsr: interrupted; stopping after the render pass in progress (Ctrl-C again to stop "
+                    b"at once)\n")
+
+    _SIGINTS[0] = 0
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _SIGINTS[0] = 0
+
+
+def check_interrupt() -> None:
+    """KeyboardInterrupt when Ctrl-C was pressed during ``stop_on_sigint``."""
+    if _SIGINTS[0]:
+        raise KeyboardInterrupt
+
+
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
-        bpy.ops.render.render(write_still=True, scene=scene.name)
+        result = bpy.ops.render.render(write_still=True, scene=scene.name)
+    check_interrupt()
+    if "CANCELLED" in result:
+        raise KeyboardInterrupt  # Blender cancelled the render (its own break flag)
     if not path.is_file():
         raise RuntimeError(f"Cycles wrote no output to {path}")
     return read_passes(path)
@@ -454,27 +492,33 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         "shard": [shard_k, shard_n],
         "command": " ".join(sys.argv),
     }
-    writer = ClipWriter(cfg.output, header)
-    todo = [f for f in my_frames if not writer.is_frame_done(f)]
-    skipped = len(my_frames) - len(todo)
-    if skipped:
-        print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
-    tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
-    try:
-        bar = _progress(todo, cfg)
-        for f in bar:
-            t0 = time.perf_counter()
-            rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut, light_paths,
-                               levels, tmpdir, writer)
-            rec["seconds_total"] = time.perf_counter() - t0
-            writer.commit_frame(f, rec)
-            if hasattr(bar, "set_postfix"):
-                bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
-        writer.merge()
-    finally:
-        for p in tmpdir.glob("*"):
-            p.unlink()
-        tmpdir.rmdir()
+    with ClipWriter(cfg.output, header) as writer, stop_on_sigint():  # one writer per clip until the end
+        todo = [f for f in my_frames if not writer.is_frame_done(f)]
+        skipped = len(my_frames) - len(todo)
+        if skipped:
+            print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done",
+                  file=sys.stderr)
+        tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
+        try:
+            bar = _progress(todo, cfg)
+            for f in bar:
+                check_interrupt()
+                t0 = time.perf_counter()
+                try:
+                    rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut,
+                                       light_paths, levels, tmpdir, writer)
+                except KeyboardInterrupt:
+                    writer.discard_frame(f)  # the partial frame is never committed
+                    raise
+                rec["seconds_total"] = time.perf_counter() - t0
+                writer.commit_frame(f, rec)
+                if hasattr(bar, "set_postfix"):
+                    bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
+            writer.merge()
+        finally:
+            for p in tmpdir.glob("*"):
+                p.unlink()
+            tmpdir.rmdir()
     return cfg.output
 
 
