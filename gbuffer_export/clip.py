@@ -312,6 +312,7 @@ def open_clip(path: str | os.PathLike) -> Clip:
     root = Path(path)
     if not root.is_dir():
         raise ClipError(f"{root}: not a directory")
+    check_no_links(root, root / FRAMES_DIR)  # a clip with links inside is refused as a whole
     return Clip(root, load_manifest(root))
 
 
