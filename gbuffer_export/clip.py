@@ -96,7 +96,7 @@ def resolve_inside(root: str | os.PathLike, rel, *, source: str | os.PathLike, e
     return root / rel
 
 
-def _open_nofollow(path: Path, flags: int):
+def open_nofollow(path: Path, flags: int):
     """``os.open`` that refuses a symbolic link at ``path`` (UnsafePathError)."""
     try:
         return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644)
@@ -114,7 +114,7 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     with contextlib.suppress(FileNotFoundError):
         os.unlink(tmp)  # a leftover (or a planted link) of the same name
-    with os.fdopen(_open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
+    with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
         json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
         f.write("\n")
         f.flush()
@@ -350,7 +350,7 @@ class ClipWriter:
     def _flock(self, name: str, mode: int) -> int | None:
         """Open ``CLIP/name`` (never through a link) and flock it with ``mode`` (non-blocking unless ``mode``
         lacks LOCK_NB); the open descriptor, or None when the lock is held elsewhere."""
-        fd = _open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+        fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
         try:
             fcntl.flock(fd, mode)
         except BlockingIOError:

@@ -258,3 +258,25 @@ def test_dataset_cli_refuses_an_infeasible_ray_request_in_one_line(tmp_path, mon
                "--threads", "4", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and "blendsr: error: --threads 4: no node" in err and "Traceback" not in err
+
+
+def test_a_dataset_folder_with_links_out_is_refused_before_rendering(tmp_path):
+    """Resuming a dataset folder whose clips/, .lock or a log links out: refused, nothing written outside."""
+    from gbuffer_export.dataset.build import RunOptions, build_dataset
+    from gbuffer_export.dataset.spec import load_spec
+    spec = tmp_path / "s.toml"
+    spec.write_text('[dataset]\nname = "r"\nseed = 1\n[render]\nframes = 1\nhr_size = "16x8"\nscale = 2\n'
+                    '[[source]]\nname = "b"\nkind = "builtin"\nseeds = "0:0"\nsplit = "train"\n')
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "precious").write_text("keep")
+    for i, (name, target) in enumerate((("clips", outside), (".lock", outside / "precious"),
+                                        ("logs/b-s0000.log", outside / "precious"))):
+        ds = tmp_path / f"ds{i}"
+        (ds / name).parent.mkdir(parents=True, exist_ok=True)
+        (ds / name).symlink_to(target)
+        with pytest.raises(ClipError, match="symbolic link") as err:
+            build_dataset(load_spec(spec), ds, RunOptions(progress=False, limit=0))
+        assert "\n" not in str(err.value)
+        assert sorted(p.name for p in outside.iterdir()) == ["precious"]
+        assert (outside / "precious").read_text() == "keep"

@@ -28,7 +28,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..clip import ClipError, open_clip, resolve_inside, write_json_atomic
+from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
 INDEX = "dataset.json"
@@ -215,7 +215,7 @@ class _Lock:
 
     def __init__(self, root: Path):
         import fcntl
-        self.f = open(root / ".lock", "w")
+        self.f = open(open_nofollow(root / ".lock", os.O_WRONLY | os.O_CREAT), "w")
         try:
             fcntl.flock(self.f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -327,7 +327,9 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                                    "spec into another folder")
     lock = _Lock(root)
     try:
-        for j in jobs:
+        for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
+            for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
+                check_no_links(root, root / sub)
             jp = root / "jobs" / f"{j.id}.json"
             if not jp.is_file() or json.loads(jp.read_text()) != j.to_json():
                 write_json_atomic(jp, j.to_json())
