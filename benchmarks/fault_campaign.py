@@ -1060,7 +1060,7 @@ def signal_render(root: Path, tally: Tally, signals: int, rng: random.Random, fr
                 time.sleep(0.02)
             time.sleep(rng.uniform(0.0, 0.5))
         else:  # during startup: loading bpy, building the scene, or the first frame
-            time.sleep(rng.uniform(0.5, 4.0))
+            time.sleep(rng.uniform(0.8, 4.0))  # (before 0.8 s: Python itself starts, before blendsr runs)
         first = time.perf_counter() - t0
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGINT)

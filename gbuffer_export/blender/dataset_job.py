@@ -81,8 +81,10 @@ def main(argv=None) -> int:
     if argv is None:
         prepare_process(a.threads)
     job = ClipJob.from_json(json.loads(a.job.read_text()))
+    from ..interrupt import stop_on_sigint
     try:
-        render_job(job, a.clip_dir, a.threads, a.progress)
+        with stop_on_sigint():
+            render_job(job, a.clip_dir, a.threads, a.progress)
     except KeyboardInterrupt:  # Ctrl-C: the render stopped between passes; finished frames stay
         print(f"blendsr: {job.id}: interrupted", file=sys.stderr)
         return 130

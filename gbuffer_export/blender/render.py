@@ -16,10 +16,8 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import signal
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +31,7 @@ from ..config import ConfigError, RenderConfig
 from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, level_name,
                            material_flags_for_source, pass_seed, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
+from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from ..resources import check_render_resources
 from . import materials as mats
@@ -292,43 +291,6 @@ def quiet_stdout():
         os.close(saved)
 
 
-_SIGINTS = [0]  # Ctrl-C presses seen while ``stop_on_sigint`` is active
-
-
-@contextlib.contextmanager
-def stop_on_sigint():
-    """Make Ctrl-C (SIGINT) stop a render. Python's own handler raises KeyboardInterrupt inside Cycles' render
-    callback, where bpy prints and swallows it and the render goes on; this handler only counts the press, and
-    ``check_interrupt`` (after every Cycles pass) raises KeyboardInterrupt in the frame loop: the frame in flight
-    is dropped, finished frames stay. A second Ctrl-C exits at once (exit 130; the clip stays consistent, as after
-    kill -9). Installed only in the main thread; the previous handler is restored afterwards."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_sigint(signum, frame):
-        _SIGINTS[0] += 1
-        if _SIGINTS[0] > 1:
-            os.write(2, b"\nblendsr: interrupted again; stopping now (rerun the same command to resume)\n")
-            os._exit(130)
-        os.write(2, b"\nblendsr: interrupted; stopping after the render pass in progress (Ctrl-C again to stop "
-                    b"at once)\n")
-
-    _SIGINTS[0] = 0
-    previous = signal.signal(signal.SIGINT, on_sigint)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        _SIGINTS[0] = 0
-
-
-def check_interrupt() -> None:
-    """KeyboardInterrupt when Ctrl-C was pressed during ``stop_on_sigint``."""
-    if _SIGINTS[0]:
-        raise KeyboardInterrupt
-
-
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
@@ -423,9 +385,12 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
 # ----------------------------------------------------------------------------------------------
 
 def render_clip(cfg: RenderConfig) -> Path:
-    """Render (or resume) the clip described by ``cfg`` and return its directory."""
-    scene, scene_info = load_scene(cfg)
-    return render_loaded_scene(cfg, scene, scene_info)
+    """Render (or resume) the clip described by ``cfg`` and return its directory. Ctrl-C stops it between Cycles
+    passes (``gbuffer_export.interrupt``)."""
+    with stop_on_sigint():
+        scene, scene_info = load_scene(cfg)
+        check_interrupt()
+        return render_loaded_scene(cfg, scene, scene_info)
 
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
