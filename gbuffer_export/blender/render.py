@@ -457,33 +457,33 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         "shard": [shard_k, shard_n],
         "command": " ".join(sys.argv),
     }
-    with ClipWriter(cfg.output, header) as writer, stop_on_sigint():  # one writer per clip until the end
-        todo = [f for f in my_frames if not writer.is_frame_done(f)]
-        skipped = len(my_frames) - len(todo)
-        if skipped:
-            print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done",
-                  file=sys.stderr)
-        tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
-        try:
-            bar = _progress(todo, cfg)
-            for f in bar:
-                check_interrupt()
-                t0 = time.perf_counter()
-                try:
-                    rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut,
-                                       light_paths, levels, tmpdir, writer)
-                except KeyboardInterrupt:
-                    writer.discard_frame(f)  # the partial frame is never committed
-                    raise
-                rec["seconds_total"] = time.perf_counter() - t0
-                writer.commit_frame(f, rec)
-                if hasattr(bar, "set_postfix"):
-                    bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
-            writer.merge()
-        finally:
-            for p in tmpdir.glob("*"):
-                p.unlink()
-            tmpdir.rmdir()
+    writer = ClipWriter(cfg.output, header)  # one writer per clip: held until writer.close() below
+    todo = [f for f in my_frames if not writer.is_frame_done(f)]
+    skipped = len(my_frames) - len(todo)
+    if skipped:
+        print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
+    tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
+    try:
+        bar = _progress(todo, cfg)
+        for f in bar:
+            check_interrupt()  # Ctrl-C (render_clip, dataset_job: gbuffer_export.interrupt)
+            t0 = time.perf_counter()
+            try:
+                rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut,
+                                   light_paths, levels, tmpdir, writer)
+            except KeyboardInterrupt:
+                writer.discard_frame(f)  # the partial frame is never committed
+                raise
+            rec["seconds_total"] = time.perf_counter() - t0
+            writer.commit_frame(f, rec)
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
+        writer.merge()
+    finally:
+        for p in tmpdir.glob("*"):
+            p.unlink()
+        tmpdir.rmdir()
+        writer.close()
     return cfg.output
 
 
