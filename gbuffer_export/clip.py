@@ -96,8 +96,8 @@ def resolve_inside(root: str | os.PathLike, rel, *, source: str | os.PathLike, e
     return root / rel
 
 
-def open_nofollow(path: Path, flags: int):
-    """``os.open`` that refuses a symbolic link at ``path`` (UnsafePathError)."""
+def open_nofollow(path: Path, flags: int) -> int:
+    """``os.open`` (mode 0o644) that refuses a symbolic link at ``path`` (UnsafePathError, one line)."""
     try:
         return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644)
     except OSError as exc:
@@ -516,6 +516,6 @@ class ClipWriter:
         return manifest
 
 
-__all__ = ["levels_header", "level_scales", "scale_value", "check_no_links", "resolve_inside",
+__all__ = ["levels_header", "level_scales", "scale_value", "check_no_links", "resolve_inside", "open_nofollow",
            "Clip", "ClipError", "ClipBusyError", "UnsafePathError", "ClipWriter", "open_clip", "load_manifest",
            "write_json_atomic", "BUFFERS"]

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, check_no_links, open_clip, split_key,
-                                 write_json_atomic)
+from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, check_no_links, open_clip, open_nofollow,
+                                 split_key, write_json_atomic)
 from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
@@ -172,7 +172,7 @@ class ClipCache:
     @contextmanager
     def _lock(self):
         self.path.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path / ".lock", os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        fd = open_nofollow(self.path / ".lock", os.O_RDWR | os.O_CREAT)
         with open(fd, "a+") as fh:
             fcntl.flock(fh, fcntl.LOCK_EX)
             try:
@@ -201,7 +201,11 @@ class ClipCache:
                        "manifest_sha256": self.manifest_sha256, "frames": self.frames, "scale": self.scale,
                        "sizes": self._base_sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
                        "depth_ref": {}, "sanitized": []}
-                write_json_atomic(self.path / "index.json", idx)
+                try:
+                    write_json_atomic(self.path / "index.json", idx)
+                except OSError as exc:
+                    self._raise_if_full(exc)
+                    raise
             else:
                 self.rebuilt = False
             return idx
@@ -251,13 +255,17 @@ class ClipCache:
                         self._build(lvl, name)
                     write_json_atomic(self.path / "index.json", self.index)
             except OSError as exc:
-                if exc.errno in NO_SPACE:
-                    raise CacheSpaceError(f"{self.path}: no space left for the training cache ({exc.strerror}); "
-                                          "free space there or set data.cache_dir to a folder with room") from None
+                self._raise_if_full(exc)
                 raise
             finally:
                 self._discard_tmp()
         return self
+
+    def _raise_if_full(self, exc: OSError) -> None:
+        """CacheSpaceError (one line) when ``exc`` says the cache's filesystem is full."""
+        if exc.errno in NO_SPACE:
+            raise CacheSpaceError(f"{self.path}: no space left for the training cache ({exc.strerror}); free space "
+                                  "there or set data.cache_dir to a folder with room") from None
 
     def _real(self, key: str) -> str:
         """'lr/radiance' -> 'lr_x2.5/radiance' in a cache of the level at 2.5: the key under which it is stored."""
@@ -280,7 +288,7 @@ class ClipCache:
         dtype, shape = storage_dtype(name), (len(self.frames), h, w, channels_of(name))
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)  # a leftover (or a planted link) is never written through
-        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        fd = open_nofollow(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL)
         try:
             with open(fd, "r+b", closefd=False) as fh:
                 np.lib.format.write_array_header_1_0(fh, {"descr": np.lib.format.dtype_to_descr(dtype),
