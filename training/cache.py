@@ -98,7 +98,10 @@ def default_cache_path(clip_path: Path, cache_dir: str | os.PathLike | None = No
     if cache_dir:
         return Path(cache_dir) / tag
     if os.access(clip_path, os.W_OK):
-        return check_no_links(clip_path, clip_path / CACHE_DIRNAME)  # never written through a link
+        if (clip_path / CACHE_DIRNAME).is_symlink():  # never written through a link out of the clip
+            raise UnsafePathError(f"{clip_path / CACHE_DIRNAME}: is a symbolic link; the cache is never written "
+                                  "through a link (remove it; set data.cache_dir to keep the cache elsewhere)")
+        return clip_path / CACHE_DIRNAME
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "blendsr"
     return base / tag
 
