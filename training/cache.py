@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, check_no_links, open_clip, open_nofollow,
-                                 split_key, write_json_atomic)
+from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, open_clip, open_nofollow, split_key,
+                                 write_json_atomic)
 from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
