@@ -350,7 +350,10 @@ class ClipWriter:
     def _flock(self, name: str, mode: int) -> int | None:
         """Open ``CLIP/name`` (never through a link) and flock it with ``mode`` (non-blocking unless ``mode``
         lacks LOCK_NB); the open descriptor, or None when the lock is held elsewhere."""
-        fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+        try:
+            fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+        except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
+            raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
         try:
             fcntl.flock(fd, mode)
         except BlockingIOError:
