@@ -386,7 +386,7 @@ class ClipWriter:
                                 "for it to finish")
         self._fds.append(fd)
         for other in sorted(self.path.glob(f"{LOCK}.shard-*of*")):
-            if other.name.endswith(f"of{n}") or other.is_symlink():
+            if other.name.rpartition("of")[2] == str(n) or other.is_symlink():
                 continue
             probe = self._flock(other.name, fcntl.LOCK_EX | fcntl.LOCK_NB)
             if probe is None:
