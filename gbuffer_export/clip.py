@@ -407,7 +407,7 @@ class ClipWriter:
             os.close(fd)
 
     def close(self) -> None:
-        """Release the clip (its locks); the writer cannot write afterwards."""
+        """Release the clip (its locks) for the next writer; idempotent."""
         fds, self._fds = getattr(self, "_fds", []), []
         for fd in fds:
             with contextlib.suppress(OSError):
