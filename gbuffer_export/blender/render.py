@@ -294,10 +294,8 @@ def quiet_stdout():
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
-        result = bpy.ops.render.render(write_still=True, scene=scene.name)
-    check_interrupt()
-    if "CANCELLED" in result:
-        raise KeyboardInterrupt  # Blender cancelled the render (its own break flag)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    check_interrupt()  # Ctrl-C during the pass: stop here (its 'CANCELLED' result means a refused render instead)
     if not path.is_file():
         raise RuntimeError(f"Cycles wrote no output to {path}")
     return read_passes(path)
