@@ -24,6 +24,21 @@ Parts (each prints its counts; the totals come last):
    frames of a resumed process are another noise realisation.
 4. **Add-on operators** (bpy): a missing checkpoint, a malicious checkpoint, an output folder that is a file and a
    scene without a camera each give an ERROR report, never a traceback.
+5. **Concurrent writers**: a second ``ClipWriter`` of a clip (same settings, other settings before the first frame,
+   the same shard, an unsharded writer beside shards, shards of another N) must be refused; with ``--races``: two
+   ``blendsr render`` processes started together into one new folder (other seeds, then the same command) must give
+   one exit 0 and one one-line exit 2, and a clip that validates with no ``mixed-clip`` finding; two shards together
+   must fill one valid clip.
+6. **Traversal and symlinks**: ``dataset.json`` clip paths that leave the dataset (``..``, absolute, through a link,
+   empty, not a string) through ``validate`` (exit 1), ``train`` and ``evaluate`` (exit 2), and links inside a clip
+   (a buffer, the manifest, ``frames/``, ``.blendsr_cache``; with ``--races`` a resumed render whose ``hr/radiance``
+   is a link) must be refused, and nothing outside may be read or written (``escapes`` counts the failures).
+7. **Signals during render** (``--signals N``): SIGINT (Ctrl-C, to the process group) at a random moment of a
+   render must stop it with exit 130, no traceback, no partial frame and no temporary folder; the rerun must finish
+   a clip that validates (each counts as a fault survived).
+8. **Full filesystem**: the training cache on a 1 MB tmpfs (root mounts one; otherwise only the simulated case) and
+   a simulated ENOSPC from ``posix_fallocate`` must stop training with one line (exit 2), no SIGBUS and no stray
+   temporary file.
 
 ``--quick`` runs the subset ``tests/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -74,6 +89,7 @@ class Tally:
     results_differ: int = 0      # final weights or first-process frames not bit-identical, or resumed frames off
     frames_bit_identical: int = 0  # render frames of a killed first process equal to the uninterrupted run's
     frames_resumed: int = 0      # render frames of resumed processes checked (see module doc)
+    escapes: int = 0             # security failures: something outside a dataset or clip folder read or written
     failures: list = field(default_factory=list)
 
     def fail(self, what: str) -> None:
@@ -84,7 +100,7 @@ class Tally:
 
     def bad(self) -> int:
         return (self.tracebacks + self.wrong_exit + self.no_error_line + self.corrupt_clips + self.lost_frames
-                + self.changed_frames + self.results_differ + (self.faults - self.faults_survived))
+                + self.changed_frames + self.results_differ + self.escapes + (self.faults - self.faults_survived))
 
 
 # ------------------------------------------------------------------------------------------------------ fixtures
@@ -792,9 +808,345 @@ def addon_inputs(fx: Fixtures, tally: Tally, log=print, cases: int | None = None
         tally.fail("the malicious checkpoint ran code in the add-on")
 
 
+# ------------------------------------------------------------------------------------------- concurrent writers
+def _outcome(tally: Tally, label: str, code: int, err: str, expect, escaped: bool = False, log=print) -> bool:
+    """Count one case: its exit code must be in ``expect``, a refusal (2) must print 'error:', nothing may print a
+    traceback. Returns whether it was clean."""
+    tally.inputs_tried += 1
+    problems = []
+    if escaped or TRACEBACK in err:
+        tally.tracebacks += 1
+        problems.append("traceback")
+    if code not in expect:
+        tally.wrong_exit += 1
+        problems.append(f"exit {code}, expected {expect}")
+    if code == 2 and "error:" not in err:
+        tally.no_error_line += 1
+        problems.append("no 'error:' line")
+    if problems:
+        last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
+        tally.fail(f"{label}: {', '.join(problems)}: {last[0][:200]}")
+    log(f"  {'FAIL' if problems else 'ok  '} {label}: exit {code}")
+    return not problems
+
+
+def _writer_header(clip: Path, **changes) -> dict:
+    from gbuffer_export.clip import load_manifest
+    h = {k: v for k, v in load_manifest(clip).items() if k not in ("frame_data", "identity")}
+    h.update(changes)
+    return h
+
+
+def concurrent_writers(fx: Fixtures, tally: Tally, races: int = 0, log=print) -> None:
+    """Part 5 (see module doc)."""
+    from gbuffer_export.clip import ClipError, ClipWriter
+    work = fx.root / "concurrent"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    clip = work / "clip"
+    shutil.copytree(fx.clip, clip, ignore=shutil.ignore_patterns(".blendsr_cache"))
+    h = _writer_header(clip)
+    cases = [  # (label, header of the writer already running, header of the second one)
+        ("same settings", h, h),
+        ("other settings, nothing rendered yet", None, {**h, "render": {**h["render"], "seed": 99}}),
+        ("the same shard twice", {**h, "shard": [1, 2]}, {**h, "shard": [1, 2]}),
+        ("an unsharded writer beside a shard", {**h, "shard": [2, 2]}, h),
+        ("a shard beside an unsharded writer", h, {**h, "shard": [1, 2]}),
+        ("shards of another N", {**h, "shard": [1, 2]}, {**h, "shard": [2, 3]}),
+    ]
+    for label, first_h, second_h in cases:
+        target = clip
+        if first_h is None:  # a new folder claimed by a first writer that has not finished a frame
+            target = work / f"new{len(label)}"
+            first = ClipWriter(target, h)
+        else:
+            first = ClipWriter(target, first_h)
+        try:
+            try:
+                ClipWriter(target, second_h).close()
+                code, err = 0, ""
+            except ClipError as exc:
+                code, err = 2, f"blendsr: error: {exc}"
+            except Exception:  # noqa: BLE001 - counted as a traceback
+                code, err = 1, traceback.format_exc()
+        finally:
+            first.close()
+        _outcome(tally, f"concurrent writer: {label}", code, err, (2,), log=log)
+    with ClipWriter(clip, {**h, "shard": [1, 2]}), ClipWriter(clip, {**h, "shard": [2, 2]}):
+        pass  # two shards of one N share the clip
+    for r in range(races):
+        render_race(work / f"race{r}", tally, random.Random(r), log=log)
+
+
+def _render_proc(out: Path, *args) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(out), *args], cwd=REPO,
+                            env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def render_race(work: Path, tally: Tally, rng: random.Random, frames: int = 3, log=print) -> None:
+    """Two renders into one new folder (other seeds; the same command; two shards), started within 0.5 s."""
+    from gbuffer_export.validate import validate_clip
+    base = render_args(frames)
+    i = base.index("--seed")
+    variants = [("other seeds", [base[:i] + ["--seed", "0"] + base[i + 2:], base[:i] + ["--seed", "5"] + base[i + 2:]],
+                 [0, 2]),
+                ("the same command twice", [base, base], [0, 2]),
+                ("two shards", [base + ["--shard", "1/2"], base + ["--shard", "2/2"]], [0, 0])]
+    for label, argvs, expect in variants:
+        out = work / label.replace(" ", "_")
+        procs = []
+        for argv in argvs:
+            procs.append(_render_proc(out, *argv))
+            time.sleep(rng.uniform(0.0, 0.5))
+        results = [(p.wait(timeout=600), p.stderr.read()) for p in procs]
+        codes = sorted(rc for rc, _ in results)
+        tally.inputs_tried += 1
+        errs = "".join(e for _, e in results)
+        ok = True
+        if TRACEBACK in errs:
+            tally.tracebacks += 1
+            ok = False
+        if codes != expect:
+            tally.wrong_exit += 1
+            ok = False
+        for rc, e in results:
+            if rc == 2 and (len(e.strip().splitlines()) != 1 or str(out) not in e):
+                tally.no_error_line += 1
+                ok = False
+        rep = validate_clip(out, quick=True) if (out / "manifest.json").is_file() else None
+        if rep is None or not rep.ok or any(f.code == "mixed-clip" for f in rep.findings):
+            tally.corrupt_clips += 1
+            ok = False
+        if not ok:
+            tally.fail(f"render race, {label}: exits {codes} (expected {expect}), "
+                       f"{rep.summary_line() if rep else 'no clip'}: {errs.strip()[-300:]}")
+        log(f"  {'ok  ' if ok else 'FAIL'} render race, {label}: exits {codes}")
+
+
+# ------------------------------------------------------------------------------------- traversal and symlinks
+TRAVERSAL_PATHS = ["../outside", "ABS", "clips/../../outside", "clips/link", "clips/good/../../../outside", "", None,
+                   42, "clips/good/../link"]
+
+
+def _snapshot(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*"))}
+
+
+def traversal_inputs(fx: Fixtures, tally: Tally, quick: bool = False, races: int = 0, log=print) -> None:
+    """Part 6 (see module doc)."""
+    from gbuffer_export.dataset.build import INDEX, SCHEMA
+    work = fx.root / "traversal"
+    if work.exists():
+        shutil.rmtree(work)
+    outside = work / "outside"
+    shutil.copytree(fx.clip, outside, ignore=shutil.ignore_patterns(".blendsr_cache"))
+    before = _snapshot(outside)
+
+    def check_outside(label: str) -> None:
+        if _snapshot(outside) != before:
+            tally.escapes += 1
+            tally.fail(f"{label}: the folder outside the dataset changed (written through the index)")
+            shutil.rmtree(outside)
+            shutil.copytree(fx.clip, outside, ignore=shutil.ignore_patterns(".blendsr_cache"))
+
+    paths = TRAVERSAL_PATHS[:4] if quick else TRAVERSAL_PATHS
+    for n, bad in enumerate(paths):
+        ds = work / f"ds{n}" / "data"
+        (ds / "clips").mkdir(parents=True)
+        shutil.copytree(fx.clip, ds / "clips" / "good", ignore=shutil.ignore_patterns(".blendsr_cache"))
+        (ds / "clips" / "link").symlink_to(outside, target_is_directory=True)
+        value = str(outside) if bad == "ABS" else bad
+        entries = [{"id": "evil", "path": value, "split": s, "scene_id": f"e{s}", "frames_planned": 4,
+                    "licence": {"licence": "CC0-1.0"}} for s in ("train", "test")]
+        (ds / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": 1, "name": "t", "seed": 0,
+                                            "splits": {}, "clips": entries}))
+        for cmd, argv, expect in (
+                ("validate", ["validate", str(ds), "--no-progress"], (1,)),
+                ("train", ["train", "--model", "fusesr", "--data", str(ds), "-o", str(work / f"run{n}"),
+                           "--max-steps", "1", *sum((["--set", x] for x in TRAIN_SETS), [])], (2,)),
+                ("evaluate", ["evaluate", "--model", "bicubic", "--data", str(ds), "--json",
+                              str(work / f"e{n}.json"), "--no-flip"], (2,))):
+            code, err, escaped = run_inproc(argv)
+            label = f"traversal: {cmd} with clip path {value!r}"
+            _outcome(tally, label, code, err, expect, escaped, log)
+            if code == 0:
+                tally.escapes += 1
+                tally.fail(f"{label}: accepted (read the clip outside the dataset)")
+            check_outside(label)
+
+    def link(rel: str, target: Path):
+        def mutate(clip: Path):
+            p = clip / rel
+            if p.is_dir():
+                shutil.copytree(p, target)
+                shutil.rmtree(p)
+            else:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(p, target)
+                p.unlink()
+            p.symlink_to(target, target_is_directory=target.is_dir())
+        return mutate
+
+    links = [("a buffer", "hr/radiance/000002.exr"), ("the manifest", "manifest.json"), ("frames/", "frames"),
+             ("a level folder", "lr")]
+    for label, rel in links[:2] if quick else links:
+        target = work / "link_targets" / label.replace(" ", "_").replace("/", "")
+        clip = fx.variant(f"link_{label.replace(' ', '_').replace('/', '')}", link(rel, target))
+        for cmd, argv, expect in (("validate", ["validate", str(clip), "--no-progress"], (1,)),
+                                  ("train", ["train", "--model", "fusesr", "--data", str(clip), "-o",
+                                             str(work / f"runl{len(label)}"), "--max-steps", "1",
+                                             *sum((["--set", x] for x in TRAIN_SETS), [])], (2,))):
+            code, err, escaped = run_inproc(argv)
+            _outcome(tally, f"symlink: {cmd} of a clip with {label} as a link", code, err, expect, escaped, log)
+            if code == 0:
+                tally.escapes += 1
+                tally.fail(f"symlink: {cmd} read {label} through a link")
+    # the training cache folder itself a link out of the clip
+    cache_target = work / "cache_target"
+    cache_target.mkdir()
+
+    def cache_link(clip: Path):
+        (clip / ".blendsr_cache").symlink_to(cache_target, target_is_directory=True)
+    clip = fx.variant("cache_link", cache_link)
+    code, err, escaped = run_inproc(["train", "--model", "fusesr", "--data", str(clip), "-o", str(work / "runc"),
+                                     "--max-steps", "1", *sum((["--set", x] for x in TRAIN_SETS), [])])
+    _outcome(tally, "symlink: train with .blendsr_cache a link out of the clip", code, err, (2,), escaped, log)
+    if any(cache_target.iterdir()):
+        tally.escapes += 1
+        tally.fail("symlink: the training cache was written through a link out of the clip")
+    if races:
+        resume_through_link(work, tally, log)
+
+
+def resume_through_link(work: Path, tally: Tally, log=print) -> None:
+    """A resumed render whose hr/radiance folder is a link out of the clip: refused, nothing written outside."""
+    clip = work / "render_link"
+    args = render_args(2)
+    proc = cli(["render", "-o", str(clip), *args])
+    if proc.returncode != 0:
+        tally.fail(f"render for the link case failed: {proc.stderr[-300:]}")
+        return
+    outside = work / "render_link_outside"
+    shutil.copytree(clip / "hr" / "radiance", outside)
+    shutil.rmtree(clip / "hr" / "radiance")
+    (clip / "hr" / "radiance").symlink_to(outside, target_is_directory=True)
+    (clip / "frames" / "000002.json").unlink()
+    before = _snapshot(outside)
+    proc = cli(["render", "-o", str(clip), *args])
+    _outcome(tally, "symlink: resumed render whose hr/radiance is a link", proc.returncode, proc.stderr, (2,), log=log)
+    if _snapshot(outside) != before:
+        tally.escapes += 1
+        tally.fail("symlink: a resumed render wrote through a link out of the clip")
+
+
+# ------------------------------------------------------------------------------------------ signals during render
+def signal_render(root: Path, tally: Tally, signals: int, rng: random.Random, frames: int = 4, log=print) -> None:
+    """Part 7 (see module doc)."""
+    from gbuffer_export.validate import validate_clip
+    work = root / "signals"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    args = render_args(frames)
+    for r in range(signals):
+        clip = work / f"clip{r}"
+        proc = _render_proc(clip, *args)
+        t0 = time.perf_counter()
+        if r % 2 == 0:  # after the first frame, at a random moment of a later frame's passes
+            while not list((clip / "frames").glob("*.json")) and proc.poll() is None and \
+                    time.perf_counter() - t0 < 300:
+                time.sleep(0.02)
+            time.sleep(rng.uniform(0.0, 0.5))
+        else:  # during startup: loading bpy, building the scene, or the first frame
+            time.sleep(rng.uniform(0.8, 4.0))  # (before 0.8 s: Python itself starts, before blendsr runs)
+        first = time.perf_counter() - t0
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+        try:
+            rc = proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            rc = None
+        err = proc.stderr.read()
+        tally.faults += 1
+        ok = True
+        if rc not in (130, 0) or TRACEBACK in err:
+            ok = False
+            tally.tracebacks += int(TRACEBACK in err)
+            tally.fail(f"signals round {r}: SIGINT gave exit {rc}: {err.strip()[-300:]}")
+        if list(clip.glob(".render-*")):
+            ok = False
+            tally.fail(f"signals round {r}: a temporary folder stayed behind")
+        if (clip / "manifest.json").is_file():
+            rep = validate_clip(clip, quick=True)
+            extra = {f.code for f in rep.findings} - {"missing-frame", "no-frames"}
+            if extra:
+                ok = False
+                tally.corrupt_clips += 1
+                tally.fail(f"signals round {r}: the interrupted clip has {sorted(extra)}")
+        done = cli(["render", "-o", str(clip), *args])
+        rep = validate_clip(clip, quick=True) if done.returncode == 0 else None
+        if rep is None or not rep.ok:
+            ok = False
+            tally.corrupt_clips += 1
+            tally.fail(f"signals round {r}: the rerun did not finish a valid clip: {done.stderr.strip()[-300:]}")
+        tally.faults_survived += int(ok)
+        log(f"  {'ok  ' if ok else 'FAIL'} signals round {r}: SIGINT at {first:.1f} s -> exit {rc}, rerun "
+            f"{'valid' if rep is not None and rep.ok else 'INVALID'}")
+
+
+# -------------------------------------------------------------------------------------------- full filesystem
+def full_filesystem(fx: Fixtures, tally: Tally, log=print) -> None:
+    """Part 8 (see module doc)."""
+    import errno
+    from unittest import mock
+
+    from gbuffer_export.clip import ClipError
+    from training.cache import ClipCache
+    work = fx.root / "fullfs"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+
+    def no_space(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    with mock.patch.object(os, "posix_fallocate", no_space):
+        try:
+            ClipCache(fx.clip, cache_dir=work / "sim").ensure(["lr/radiance", "hr/radiance"])
+            code, err = 0, ""
+        except ClipError as exc:
+            code, err = 2, f"blendsr: error: {exc}"
+        except Exception:  # noqa: BLE001
+            code, err = 1, traceback.format_exc()
+    _outcome(tally, "full filesystem: cache with a simulated ENOSPC", code, err, (2,), log=log)
+    if [p for p in (work / "sim").rglob("*") if ".tmp" in p.name]:
+        tally.fail("full filesystem: a temporary cache file stayed behind (simulated)")
+    mnt = work / "mnt"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True).returncode:
+        log("  (no tmpfs: mounting needs root; the real full-filesystem case is skipped)")
+        return
+    try:
+        from gbuffer_export.synthetic import make_synthetic_clip
+        big = make_synthetic_clip(work / "big", frames=range(1, 5), hr_size=(256, 144), scale=4, hr_supersample=1)
+        proc = cli(["train", "--model", "fusesr", "--data", str(big), "-o", str(work / "run"), "--max-steps", "1",
+                    *sum((["--set", x] for x in TRAIN_SETS if not x.startswith("data.crop")), []),
+                    "--set", f'data.cache_dir="{mnt}"'])
+        _outcome(tally, "full filesystem: training cache on a 1 MB tmpfs", proc.returncode, proc.stderr, (2,),
+                 log=log)
+        if [p for p in mnt.rglob("*") if ".tmp" in p.name]:
+            tally.fail("full filesystem: a temporary cache file stayed behind on the tmpfs")
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
-             parts=("bad", "random", "render", "train", "addon"), log=print) -> Tally:
+             parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs"),
+             signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
     tally.log = log
@@ -814,6 +1166,18 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "addon" in parts:
         log("add-on operators:")
         addon_inputs(fx, tally, log)
+    if "concurrent" in parts:
+        log("concurrent writers:")
+        concurrent_writers(fx, tally, races=0 if quick else races, log=log)
+    if "traversal" in parts:
+        log("traversal and symlinks:")
+        traversal_inputs(fx, tally, quick=quick, races=0 if quick else races, log=log)
+    if "signals" in parts and signals:
+        log("signals during render:")
+        signal_render(out, tally, signals, rng, log=log)
+    if "fullfs" in parts:
+        log("full filesystem:")
+        full_filesystem(fx, tally, log=log)
     return tally
 
 
@@ -823,13 +1187,17 @@ def main(argv=None) -> int:
     p.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (render, train)")
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
-    p.add_argument("--parts", default="bad,random,render,train,addon", help="comma-separated parts to run")
+    p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs",
+                   help="comma-separated parts to run")
+    p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
+    p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "
+                                                        "through a link (part 6); 0: in-process cases only")
     p.add_argument("--seed", type=int, default=0, help="seed of the kill times")
     p.add_argument("--json", type=Path, help="write the counts here")
     args = p.parse_args(argv)
     t0 = time.perf_counter()
     tally = campaign(args.output, kills=args.kills, examples=args.examples, quick=args.quick, seed=args.seed,
-                     parts=tuple(args.parts.split(",")))
+                     parts=tuple(args.parts.split(",")), signals=args.signals, races=args.races)
     counts = {k: v for k, v in asdict(tally).items() if k != "failures"}
     counts["seconds"] = round(time.perf_counter() - t0, 1)
     print("counts: " + ", ".join(f"{k} {v}" for k, v in counts.items()))

@@ -8,11 +8,18 @@ Layout (see ``docs/clip-format.md``)::
 
 Levels: 'hr', 'lr' (the primary scale) and, in clips rendered with several scales, 'lr_x<s>' (e.g. 'lr_x2.5').
 
+One writer per clip: ``ClipWriter`` holds ``CLIP/.lock`` (flock) for its lifetime: exclusively, or shared by the
+processes of one ``--shard K/N`` split (each also holding ``CLIP/.lock.shard-KofN`` exclusively); the header is
+claimed and ``manifest.json`` merged under ``CLIP/.lock.manifest``. Nothing is read or written through a symbolic
+link inside a clip (``check_no_links``); dataset indexes resolve their paths with ``resolve_inside``.
+
 Pure numpy + json + OpenEXR: no bpy, no torch.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
+import errno
 import hashlib
 import json
 import os
@@ -26,8 +33,15 @@ from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, 
                           level_name)
 from .exr import read_exr, write_exr
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: no locking (BlendSR renders on Linux)
+    fcntl = None
+
 MANIFEST = "manifest.json"
 FRAMES_DIR = "frames"
+LOCK = ".lock"                      # held by every writer of the clip for its whole run
+MANIFEST_LOCK = ".lock.manifest"    # held while the header is claimed or the manifest merged
 #: Header keys that may differ between the processes rendering one clip (shards) or between reruns.
 VOLATILE_KEYS = ("shard", "created", "frame_data", "identity", "command")
 
@@ -36,12 +50,71 @@ class ClipError(ValueError):
     """A clip that cannot be opened or written as asked. The message is one line naming the path."""
 
 
+class ClipBusyError(ClipError):
+    """Another process is writing the clip (one writer per clip)."""
+
+
+class UnsafePathError(ClipError):
+    """A path from an index or manifest that leaves its folder, or a symbolic link inside a clip."""
+
+
+def check_no_links(root: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """``path`` when no existing component of it below ``root`` is a symbolic link (``root`` itself may be one:
+    the user chose it); UnsafePathError naming the link otherwise. Nothing inside a clip is read or written through
+    a link, so a clip (or a resumed render) never reaches outside its folder."""
+    root, path = Path(root), Path(path)
+    try:
+        rel = path.relative_to(root)
+    except ValueError:
+        raise UnsafePathError(f"{path}: is outside {root}") from None
+    p = root
+    for part in rel.parts:
+        p = p / part
+        if p.is_symlink():
+            raise UnsafePathError(f"{p}: is a symbolic link; BlendSR reads and writes nothing through links inside a "
+                                  "clip (replace it with the file or folder itself)")
+    return path
+
+
+def resolve_inside(root: str | os.PathLike, rel, *, source: str | os.PathLike, entry: str) -> Path:
+    """The one rule for every path an index or manifest names (a dataset.json clip ``path``, ...): ``rel`` must be a
+    relative path that, with symbolic links resolved, stays inside ``root``. Returns ``root / rel``; UnsafePathError
+    naming ``source`` (the file that holds the path) and ``entry`` (which of its entries) otherwise. A file from
+    someone else can therefore never make BlendSR read or write outside the folder that holds it."""
+    where = f"{source}: {entry}"
+    if not isinstance(rel, str) or not rel.strip():
+        raise UnsafePathError(f"{where}: path {rel!r} is not a non-empty relative path")
+    if "\x00" in rel or os.path.isabs(rel) or Path(rel).is_absolute():
+        raise UnsafePathError(f"{where}: path {rel!r} is absolute; paths in an index are relative to its folder")
+    root = Path(root)
+    base = root.resolve()
+    target = (root / rel).resolve()
+    if target != base and base not in target.parents:
+        raise UnsafePathError(f"{where}: path {rel!r} leads outside {root} (to {target}); refused")
+    if target == base:
+        raise UnsafePathError(f"{where}: path {rel!r} is the folder itself, not an entry inside it")
+    return root / rel
+
+
+def open_nofollow(path: Path, flags: int) -> int:
+    """``os.open`` (mode 0o644) that refuses a symbolic link at ``path`` (UnsafePathError, one line)."""
+    try:
+        return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UnsafePathError(f"{path}: is a symbolic link; refused") from None
+        raise
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
-    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename."""
+    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename (a link at ``path`` is replaced,
+    never written through)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "w") as f:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)  # a leftover (or a planted link) of the same name
+    with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
         json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
         f.write("\n")
         f.flush()
@@ -180,7 +253,7 @@ class Clip:
             raise ClipError(f"{self.path}: clip has no buffer {name!r} (has {', '.join(self.buffers)})")
         if frame not in self.frame_data and str(frame) not in self.frame_data:
             raise ClipError(f"{self.path}: frame {frame} is not a finished frame of this clip")
-        a = read_exr(self.path_of(frame, key), buffer_spec(name).channels)
+        a = read_exr(check_no_links(self.path, self.path_of(frame, key)), buffer_spec(name).channels)
         return a if space is None else convert_buffer(name, a, self.colour_matrix(space))
 
     def colour_matrix(self, space: str) -> np.ndarray | None:
@@ -214,6 +287,8 @@ def load_manifest(path: str | os.PathLike) -> dict:
     """Read and minimally check ``CLIP/manifest.json``; ClipError with a one-line reason otherwise."""
     root = Path(path)
     mpath = root / MANIFEST if root.is_dir() or not root.suffix else root
+    if mpath.is_symlink():
+        check_no_links(mpath.parent, mpath)
     if not mpath.is_file():
         raise ClipError(f"{mpath}: no manifest (not a BlendSR clip, or nothing finished yet)")
     try:
@@ -237,12 +312,20 @@ def open_clip(path: str | os.PathLike) -> Clip:
     root = Path(path)
     if not root.is_dir():
         raise ClipError(f"{root}: not a directory")
+    check_no_links(root, root / FRAMES_DIR)  # a clip with links inside is refused as a whole
     return Clip(root, load_manifest(root))
 
 
 class ClipWriter:
     """Writes a clip atomically and resumably. Each buffer file is renamed into place when complete; a frame
-    counts as finished only once its record ``frames/NNNNNN.json`` exists, and that is written last."""
+    counts as finished only once its record ``frames/NNNNNN.json`` exists, and that is written last.
+
+    One writer per clip: the writer holds ``CLIP/.lock`` until ``close()`` (or the end of a ``with`` block):
+    exclusively, or, for a shard of ``header['shard'] = [K, N]`` with N > 1, shared with the other shards of the
+    same N while holding its own ``.lock.shard-KofN`` exclusively. A second writer is refused (ClipBusyError) before
+    it writes anything. The header is claimed under ``.lock.manifest``: the first writer writes ``manifest.json``
+    at once, so a writer with other settings then finds it and is refused ("holds a different clip"): a clip never
+    mixes frames of two renders. Nothing is written through a symbolic link inside the clip."""
 
     def __init__(self, path: str | os.PathLike, header: dict):
         self.path = Path(path)
@@ -250,8 +333,94 @@ class ClipWriter:
         self.header.setdefault("schema", SCHEMA)
         self.header.setdefault("schema_version", SCHEMA_VERSION)
         self.header["identity"] = header_identity(self.header)
+        self._fds: list[int] = []
         self._check_existing()
         self.path.mkdir(parents=True, exist_ok=True)
+        try:
+            self._lock_writer()
+            with self._manifest_lock():
+                self._check_existing()  # again, now that no other writer can claim the folder
+                if not (self.path / MANIFEST).is_file():
+                    self._merge()  # the claim: the header is on disk before any frame
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------------------------------ locking
+    def _flock(self, name: str, mode: int) -> int | None:
+        """Open ``CLIP/name`` (never through a link) and flock it with ``mode`` (non-blocking unless ``mode``
+        lacks LOCK_NB); the open descriptor, or None when the lock is held elsewhere."""
+        try:
+            fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+        except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
+            raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
+        try:
+            fcntl.flock(fd, mode)
+        except BlockingIOError:
+            os.close(fd)
+            return None
+        except BaseException:
+            os.close(fd)
+            raise
+        return fd
+
+    def _lock_writer(self) -> None:
+        if fcntl is None:
+            return
+        k, n = (self.header.get("shard") or [1, 1])[:2]
+        busy = (f"{self.path}: another 'blendsr render' is writing this clip; wait for it to finish or choose "
+                "another output directory")
+        if n <= 1:
+            fd = self._flock(LOCK, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if fd is None:
+                raise ClipBusyError(busy)
+            self._fds.append(fd)
+            return
+        fd = self._flock(LOCK, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        if fd is None:  # an unsharded writer holds it
+            raise ClipBusyError(busy)
+        self._fds.append(fd)
+        fd = self._flock(f"{LOCK}.shard-{k}of{n}", fcntl.LOCK_EX | fcntl.LOCK_NB)
+        if fd is None:
+            raise ClipBusyError(f"{self.path}: another 'blendsr render --shard {k}/{n}' is writing this clip; wait "
+                                "for it to finish")
+        self._fds.append(fd)
+        for other in sorted(self.path.glob(f"{LOCK}.shard-*of*")):
+            if other.name.rpartition("of")[2] == str(n) or other.is_symlink():
+                continue
+            probe = self._flock(other.name, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if probe is None:
+                m = other.name.rpartition("of")[2]
+                raise ClipBusyError(f"{self.path}: shards of another split (--shard K/{m}) are writing this clip; "
+                                    f"every shard of one clip must use the same N (this is {k}/{n})")
+            os.close(probe)
+
+    @contextlib.contextmanager
+    def _manifest_lock(self):
+        if fcntl is None:
+            yield
+            return
+        fd = self._flock(MANIFEST_LOCK, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            os.close(fd)
+
+    def close(self) -> None:
+        """Release the clip (its locks) for the next writer; idempotent."""
+        fds, self._fds = getattr(self, "_fds", []), []
+        for fd in fds:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def __enter__(self) -> "ClipWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        self.close()
 
     def _check_existing(self) -> None:
         if not self.path.exists():
@@ -259,7 +428,7 @@ class ClipWriter:
         if not self.path.is_dir():
             raise ClipError(f"{self.path}: exists and is not a directory")
         mpath = self.path / MANIFEST
-        if mpath.is_file():
+        if mpath.is_file() or mpath.is_symlink():
             old = load_manifest(self.path)
             if old.get("identity") != self.header["identity"]:
                 raise ClipError(f"{self.path}: holds a different clip (other scene or settings); "
@@ -268,20 +437,26 @@ class ClipWriter:
                  for p in self.path.iterdir()):
             raise ClipError(f"{self.path}: directory is not empty and holds no BlendSR clip")
 
+    def _target(self, path: Path) -> Path:
+        """``path`` inside the clip, checked: no folder on the way is a link (the file itself, if a link, is
+        replaced by the atomic rename, never written through)."""
+        check_no_links(self.path, path.parent)
+        return path
+
     def record_path(self, frame: int) -> Path:
         return self.path / FRAMES_DIR / f"{frame_name(frame)}.json"
 
     def is_frame_done(self, frame: int) -> bool:
         """True when the frame's record and every buffer file it lists exist."""
         rp = self.record_path(frame)
-        if not rp.is_file():
+        if not rp.is_file() or rp.is_symlink():
             return False
         try:
             json.loads(rp.read_text())
         except json.JSONDecodeError:
             return False
-        return all(buffer_path(self.path, frame, lvl, b).is_file()
-                   for lvl in self.header["levels"] for b in self.header["buffers"])
+        paths = [buffer_path(self.path, frame, lvl, b) for lvl in self.header["levels"] for b in self.header["buffers"]]
+        return all(p.is_file() and not p.is_symlink() for p in paths)
 
     def write_buffer(self, frame: int, level: str, name: str, data: np.ndarray) -> None:
         """Write buffer ``name`` (H x W x C in the channel order of ``BUFFERS``) of a frame and level."""
@@ -298,7 +473,7 @@ class ClipWriter:
             data = data.astype(np.uint32)
         else:
             data = data.astype(np.float32)
-        write_exr(buffer_path(self.path, frame, level, name),
+        write_exr(self._target(buffer_path(self.path, frame, level, name)),
                   {c: data[..., i] for i, c in enumerate(spec.channels)})
 
     def commit_frame(self, frame: int, record: dict) -> None:
@@ -307,15 +482,33 @@ class ClipWriter:
             for b in self.header["buffers"]:
                 if not buffer_path(self.path, frame, lvl, b).is_file():
                     raise ClipError(f"{self.path}: cannot commit frame {frame}: {lvl}/{b} was not written")
-        write_json_atomic(self.record_path(frame), record)
+        write_json_atomic(self._target(self.record_path(frame)), record)
         self.merge()
 
+    def discard_frame(self, frame: int) -> None:
+        """Remove the buffer files of an unfinished ``frame`` (an interrupted render's partial frame); a finished
+        frame (its record exists) is left alone."""
+        if self.record_path(frame).is_file():
+            return
+        for lvl in self.header["levels"]:
+            for b in self.header["buffers"]:
+                p = buffer_path(self.path, frame, lvl, b)
+                with contextlib.suppress(OSError, ClipError):
+                    self._target(p).unlink()
+
     def merge(self) -> dict:
-        """Rewrite ``manifest.json`` from the header and every frame record present (shards merge here)."""
+        """Rewrite ``manifest.json`` from the header and every frame record present (shards merge here, one at a
+        time)."""
+        with self._manifest_lock():
+            return self._merge()
+
+    def _merge(self) -> dict:
         data = {}
-        rdir = self.path / FRAMES_DIR
+        rdir = check_no_links(self.path, self.path / FRAMES_DIR)
         if rdir.is_dir():
             for rp in sorted(rdir.glob("*.json")):
+                if rp.is_symlink():
+                    continue  # never read through a link; the frame is rendered again
                 try:
                     data[str(int(rp.stem))] = json.loads(rp.read_text())
                 except (ValueError, json.JSONDecodeError):
@@ -326,5 +519,6 @@ class ClipWriter:
         return manifest
 
 
-__all__ = ["levels_header", "level_scales", "scale_value",
-           "Clip", "ClipError", "ClipWriter", "open_clip", "load_manifest", "write_json_atomic", "BUFFERS"]
+__all__ = ["levels_header", "level_scales", "scale_value", "check_no_links", "resolve_inside", "open_nofollow",
+           "Clip", "ClipError", "ClipBusyError", "UnsafePathError", "ClipWriter", "open_clip", "load_manifest",
+           "write_json_atomic", "BUFFERS"]

@@ -220,6 +220,12 @@ def nearest_divisible_sizes(hr_size: tuple[int, int], scales) -> tuple[tuple[int
     return below, above
 
 
+def pass_seed(seed: int, frame: int, level: int) -> int:
+    """Cycles seed of one render pass of a frame: ``level`` 0 is the HR G-buffer pass, 1 the HR ground truth,
+    2 + i the i-th LR level (in the order of the manifest's ``levels``). ``validate`` checks every record by it."""
+    return (seed * 1000003 + frame * 7 + level) % (2 ** 31 - 1)
+
+
 def check_level_sizes(hr_size: tuple[int, int], scales, option: str = "--hr-size") -> dict[float, tuple[int, int]]:
     """{scale: (W / scale, H / scale)} for every scale; ValueError naming ``option``, the first scale that does not
     divide the size and the nearest sizes that every scale divides otherwise."""

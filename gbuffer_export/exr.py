@@ -41,6 +41,8 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *, half:
     if attributes:
         header.update(attributes)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)  # a leftover (or a planted link) of the same name is never written through
     try:
         with OpenEXR.File(header, out) as f:
             f.write(str(tmp))

@@ -155,4 +155,5 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
             if "motion_next" in header["buffers"]:
                 record[lvl].update(next_world_from_camera=m_next, next_intrinsics=k)
         wr.commit_frame(f, record)
+    wr.close()
     return Path(path)

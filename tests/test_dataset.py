@@ -359,3 +359,31 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
             if j.kind == "scene":
                 levels.setdefault(Path(j.asset).stem, set()).add(j.split)
         assert len(levels) == 3 and all(v == {"train", "val", "test"} for v in levels.values())
+
+
+
+def test_ray_task_no_node_can_hold_is_refused_in_one_line(tmp_path):
+    """Issue 26: on a real local Ray cluster of one 1-CPU node, --threads 2 asks for a task Ray can never schedule:
+    refused in one line before anything is submitted (it used to wait forever at 0%)."""
+    pytest.importorskip("ray")
+    spec = tmp_path / "s.toml"
+    spec.write_text('[dataset]\nname = "r"\nseed = 1\n[render]\nframes = 1\nhr_size = "16x8"\nscale = 2\n'
+                    '[[source]]\nname = "b"\nkind = "builtin"\nseeds = "0:0"\nsplit = "train"\n')
+    code = f"""
+import sys, ray
+ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+from gbuffer_export.cli import main
+try:
+    rc = main(["dataset", {str(spec)!r}, "-o", {str(tmp_path / 'ds')!r}, "--executor", "ray", "--threads", "2",
+               "--no-progress"])
+finally:
+    ray.shutdown()
+sys.exit(rc)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=ENV, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    err = [ln for ln in proc.stderr.splitlines() if ln.startswith("blendsr: error:")]
+    assert err == ["blendsr: error: --threads 2: no node of the local Ray cluster has 2 CPUs (the largest has 1), so "
+                   "its tasks could never run; pass --threads 1 or fewer"], proc.stderr[-2000:]
+    assert not list((tmp_path / "ds" / "clips").glob("*/manifest.json"))

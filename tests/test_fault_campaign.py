@@ -49,3 +49,26 @@ def test_render_killed_and_resumed_validates_with_every_frame(tmp_path):
     fc.render_kills(tmp_path, tally, kills=1, rng=random.Random(2), frames=2, log=lambda m: None)
     assert tally.faults == 1 and tally.results_compared == 1
     _clean(tally)
+
+
+def test_issue26_families_concurrent_writers_traversal_and_full_filesystem(fixtures, capsys):
+    """Fast forms of parts 5, 6 and 8: in-process writers, index paths and links, a full cache filesystem."""
+    tally = fc.Tally()
+    fc.concurrent_writers(fixtures, tally, races=0, log=lambda m: None)
+    fc.traversal_inputs(fixtures, tally, quick=True, log=lambda m: None)
+    fc.full_filesystem(fixtures, tally, log=lambda m: None)
+    with capsys.disabled():
+        print(f"\ncampaign (concurrent writers, traversal and symlinks, full filesystem): {tally.inputs_tried} "
+              f"cases, {tally.tracebacks} tracebacks, {tally.wrong_exit} wrong exits, {tally.escapes} escapes")
+    assert tally.inputs_tried >= 6 + 12 + 5 + 1
+    _clean(tally)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_issue26_family_signals_during_render(tmp_path):
+    """Fast form of part 7: one SIGINT during a render, then the rerun finishes a valid clip."""
+    tally = fc.Tally()
+    fc.signal_render(tmp_path, tally, signals=1, rng=random.Random(3), frames=3, log=lambda m: None)
+    assert tally.faults == 1
+    _clean(tally)

@@ -1,6 +1,14 @@
-"""Reliability of rendering: absurd sizes are refused up front; the same command gives bit-identical EXRs."""
+"""Reliability of rendering: absurd sizes are refused up front; the same command gives bit-identical EXRs; one
+writer per clip; Ctrl-C stops a render."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
 import pytest
-from conftest import assert_same_render, requires_bpy, run_cli
+from conftest import ENV, REPO, assert_same_render, requires_bpy, run_cli
 
 from gbuffer_export.conventions import DEFAULT_BUFFERS
 from gbuffer_export.resources import ResourceError, check_render_resources, estimate_render
@@ -110,3 +118,65 @@ def test_unflagged_pixels_match_the_furnace_for_every_fbeta_source(tmp_path):
         else:
             assert (trusted & layered).sum() == layered.sum()  # Cycles' passes carry them
     assert within["model"] >= 0.95 and within["cycles"] >= 0.95, within
+
+
+TINY = ["--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1", "--threads", "1", "--no-progress"]
+
+
+def _render(out, *args):
+    return subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(out), *TINY, *args],
+                            cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_two_renders_into_one_new_folder_never_make_a_mixed_clip(tmp_path):
+    """Issue 26: two renders with other settings started together into one new folder. One writes the clip, the
+    other is refused in one line naming the folder (exit 2); the clip validates and holds only the winner's frames."""
+    from gbuffer_export.validate import validate_clip
+    out = tmp_path / "c"
+    procs = [_render(out, "--frames", "1:4", "--seed", str(seed)) for seed in (0, 5)]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    codes = sorted(rc for rc, _ in results)
+    assert codes == [0, 2], results
+    err = next(e for rc, e in results if rc == 2)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("blendsr: error: ") and str(out) in lines[0], lines
+    assert "Traceback" not in err
+    winner = (0, 5)[[rc for rc, _ in results].index(0)]
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["render"]["seed"] == winner and sorted(map(int, m["frame_data"])) == [1, 2, 3, 4]
+    rep = validate_clip(out, quick=True)
+    assert rep.ok, rep.summary_line()
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_ctrl_c_stops_a_render_keeping_finished_frames(tmp_path):
+    """SIGINT (Ctrl-C) during a render: it stops after the Cycles pass in flight with the resume line and exit 130;
+    finished frames stay, the partial frame leaves no file and no temporary folder remains."""
+    from gbuffer_export.validate import validate_clip
+    out = tmp_path / "c"
+    proc = _render(out, "--frames", "1:40")
+    deadline = time.time() + 240
+    while not list((out / "frames").glob("*.json")) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.stderr.read()[-2000:]
+    os.killpg(proc.pid, signal.SIGINT)  # what the terminal does on Ctrl-C: the whole process group
+    t0 = time.time()
+    try:
+        rc = proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise
+    err = proc.stderr.read()
+    assert rc == 130, err[-2000:]
+    assert time.time() - t0 < 30 and "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert err.strip().splitlines()[-1] == "blendsr: interrupted; rerun the same command to resume"
+    done = sorted(int(p.stem) for p in (out / "frames").glob("*.json"))
+    assert 1 <= len(done) < 40
+    assert not list(out.glob(".render-*"))
+    rep = validate_clip(out, quick=True)
+    codes = {f.code for f in rep.findings}
+    assert codes == {"missing-frame"}, [f.line() for f in rep.findings if f.code != "missing-frame"]

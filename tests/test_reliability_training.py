@@ -115,3 +115,72 @@ def test_implausible_radiance_falls_under_the_nonfinite_policy(tmp_path, capsys)
         cache = ClipCache(clip, nonfinite="sanitize").ensure(["lr/radiance"])
     assert cache.read(2, "lr/radiance")[3, 4, 0] == RADIANCE_CAP
     assert cache.index["sanitized"][0]["count"] == 1
+
+
+# ------------------------------------------------------------------------------ issue 26: the cache's filesystem
+
+def _no_space(fd, offset, length):
+    raise OSError(28, "No space left on device")
+
+
+def test_a_full_cache_filesystem_is_one_line_with_no_stray_file(clip, tmp_path, monkeypatch, capsys):
+    """The cache reserves each array (posix_fallocate) before mapping it: a full filesystem is a one-line error
+    (exit 2), not a SIGBUS while writing the map, and leaves no temporary file."""
+    from gbuffer_export.clip import ClipError
+    from training.cache import ClipCache
+    monkeypatch.setattr(os, "posix_fallocate", _no_space)
+    cache_dir = tmp_path / "cache"
+    with pytest.raises(ClipError, match="no space left for the training cache") as err:
+        ClipCache(clip, cache_dir=cache_dir).ensure(["lr/radiance"])
+    assert "\n" not in str(err.value)
+    assert not [p for p in cache_dir.rglob("*") if ".tmp" in p.name or p.suffix == ".npy"]
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *set_args(SMALL + [f'data.cache_dir="{cache_dir}"'])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("blendsr: error: ") and "no space left" in err[-1]
+
+
+def test_training_on_a_full_tmpfs_stops_with_one_line_not_sigbus(tmp_path):
+    """A real small filesystem (a 1 MB tmpfs; needs root) holding the cache of a 1.8 MB array."""
+    import subprocess
+    import sys
+    from conftest import ENV, REPO
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip("mounting a tmpfs is not permitted here (needs root); the monkeypatched test covers the logic")
+    try:
+        clip = make_synthetic_clip(tmp_path / "big", frames=range(1, 5), hr_size=(256, 144), scale=4,
+                                   hr_supersample=1)
+        proc = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", "train", "--model", "fusesr",
+                               "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                               *set_args(SMALL + [f'data.cache_dir="{mnt}"'])],
+                              cwd=REPO, env=ENV, capture_output=True, text=True, timeout=300)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+        assert lines[-1].startswith("blendsr: error: ") and "no space left" in lines[-1], lines
+        assert "Traceback" not in proc.stderr
+        assert not [p for p in mnt.rglob("*") if ".tmp" in p.name]
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+# ------------------------------------------------------------------------------ issue 26: dataset index paths
+
+def test_train_and_evaluate_refuse_an_index_path_outside_the_dataset(clip, tmp_path, capsys):
+    import json
+    import shutil
+    from gbuffer_export.dataset.build import INDEX, SCHEMA
+    outside = tmp_path / "outside_clip"
+    shutil.copytree(clip, outside, ignore=shutil.ignore_patterns(".blendsr_cache"))
+    ds = tmp_path / "ds" / "sub"
+    ds.mkdir(parents=True)
+    entries = [{"id": "evil", "path": "../../outside_clip", "split": s, "frames_planned": 3} for s in ("train", "test")]
+    (ds / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": 1, "clips": entries}))
+    assert main(["train", "--model", "fusesr", "--data", str(ds), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *set_args(SMALL)]) == 2
+    assert main(["evaluate", "--model", "bicubic", "--data", str(ds), "--json", str(tmp_path / "e.json"),
+                 "--no-flip"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(str(ds / INDEX) in e and "clip 'evil'" in e and "outside" in e for e in err), err
+    assert not (outside / ".blendsr_cache").exists() and not (tmp_path / "e.json").exists()

@@ -203,6 +203,23 @@ def _level_camera(clip, **over):
     edit_manifest(clip, lambda m: m.__setitem__("camera", report))
 
 
+def _linked_buffer(clip):
+    """hr/albedo of frame 2 replaced by a link to a copy outside the clip."""
+    src = buffer_path(clip, 2, "hr", "albedo")
+    outside = clip.parent / "outside_albedo.exr"
+    shutil.copyfile(src, outside)
+    src.unlink()
+    src.symlink_to(outside)
+
+
+def _moved_prev_camera(clip):
+    """Frame 3's previous camera is not frame 2's camera (a frame of another render)."""
+    def fn(r):
+        for lvl in r.values():
+            lvl["prev_world_from_camera"][0][3] += 0.25
+    edit_record(clip, 3, fn)
+
+
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).
 CASES = {
     "black-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", np.zeros_like), ERROR, 2, "hr/radiance"),
@@ -210,6 +227,8 @@ CASES = {
     "camera-motion": (lambda c: _level_camera(c, clearance_m=0.1), ERROR, None, None),
     "camera-region": (lambda c: _level_camera(c, region={"lo": [1e3, 1e3], "hi": [2e3, 2e3], "grid": [1, 1],
                                                          "cells": None}), ERROR, 2, "hr"),
+    "unsafe-link": (_linked_buffer, ERROR, 2, "hr/albedo"),
+    "mixed-clip": (_moved_prev_camera, ERROR, 3, "hr"),
     "manifest-missing": (lambda c: (c / "manifest.json").unlink(), ERROR, None, None),
     "manifest-invalid": (lambda c: (c / "manifest.json").write_text('{"schema": "blendsr.clip", '), ERROR, None,
                          None),

@@ -22,6 +22,8 @@ overflows above 65504 and loses motion precision); flags uint32; the other G-buf
 """
 from __future__ import annotations
 
+import contextlib
+import errno
 import fcntl
 import hashlib
 import json
@@ -33,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gbuffer_export.clip import Clip, ClipError, open_clip, split_key, write_json_atomic
+from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, open_clip, open_nofollow, split_key,
+                                 write_json_atomic)
 from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
@@ -47,6 +50,29 @@ FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", 
 
 class NonFiniteError(ClipError):
     """A buffer holds NaN/Inf where it must not (message names the file and frame)."""
+
+
+class CacheSpaceError(ClipError):
+    """The cache's filesystem has no room for an array (message names the folder and the size)."""
+
+
+#: errno values that mean "the filesystem is full" (disk or quota)
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def reserve(fd: int, size: int, what: Path) -> None:
+    """Allocate ``size`` bytes of the open file ``fd`` now (``os.posix_fallocate``), so that writing into its memory
+    map can never hit a full filesystem (SIGBUS, which kills the process with no message). CacheSpaceError when
+    the filesystem cannot hold it; filesystems without fallocate support are left as they are."""
+    try:
+        os.posix_fallocate(fd, 0, size)
+    except OSError as exc:
+        if exc.errno in NO_SPACE:
+            raise CacheSpaceError(f"{what.parent}: no space left for the training cache ({size / 1e6:.1f} MB for "
+                                  f"{what.name}); free space there or set data.cache_dir to a folder with room"
+                                  ) from None
+        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+            raise
 
 
 def storage_dtype(name: str) -> np.dtype:
@@ -72,6 +98,9 @@ def default_cache_path(clip_path: Path, cache_dir: str | os.PathLike | None = No
     if cache_dir:
         return Path(cache_dir) / tag
     if os.access(clip_path, os.W_OK):
+        if (clip_path / CACHE_DIRNAME).is_symlink():  # never written through a link out of the clip
+            raise UnsafePathError(f"{clip_path / CACHE_DIRNAME}: is a symbolic link; the cache is never written "
+                                  "through a link (remove it; set data.cache_dir to keep the cache elsewhere)")
         return clip_path / CACHE_DIRNAME
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "blendsr"
     return base / tag
@@ -139,13 +168,15 @@ class ClipCache:
         self.scale = self.clip.scale
         self.sizes = self.clip.sizes
         self._arrays: dict[str, np.ndarray] = {}
+        self._tmp: set[Path] = set()
         self.index = self._load_or_reset()
 
     # -------------------------------------------------------------------------------------------- index
     @contextmanager
     def _lock(self):
         self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.path / ".lock", "a+") as fh:
+        fd = open_nofollow(self.path / ".lock", os.O_RDWR | os.O_CREAT)
+        with open(fd, "a+") as fh:
             fcntl.flock(fh, fcntl.LOCK_EX)
             try:
                 yield
@@ -173,7 +204,11 @@ class ClipCache:
                        "manifest_sha256": self.manifest_sha256, "frames": self.frames, "scale": self.scale,
                        "sizes": self._base_sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
                        "depth_ref": {}, "sanitized": []}
-                write_json_atomic(self.path / "index.json", idx)
+                try:
+                    write_json_atomic(self.path / "index.json", idx)
+                except OSError as exc:
+                    self._raise_if_full(exc)
+                    raise
             else:
                 self.rebuilt = False
             return idx
@@ -211,17 +246,29 @@ class ClipCache:
             if idx is None or idx.get("identity") != self.identity:
                 raise ClipError(f"{self.path}: cache changed while building; rerun")
             self.index = idx
-            for k in dict.fromkeys(missing):
-                if self._real(k) in self.index["arrays"] and not (k == "lr/depth"
-                                                                   and not self.index.get(self._depth_ref_key)):
-                    continue
-                lvl, name = k.split("/")
-                if name in DERIVED:
-                    self._build_derived(lvl)
-                else:
-                    self._build(lvl, name)
-                write_json_atomic(self.path / "index.json", self.index)
+            try:
+                for k in dict.fromkeys(missing):
+                    if self._real(k) in self.index["arrays"] and not (k == "lr/depth"
+                                                                       and not self.index.get(self._depth_ref_key)):
+                        continue
+                    lvl, name = k.split("/")
+                    if name in DERIVED:
+                        self._build_derived(lvl)
+                    else:
+                        self._build(lvl, name)
+                    write_json_atomic(self.path / "index.json", self.index)
+            except OSError as exc:
+                self._raise_if_full(exc)
+                raise
+            finally:
+                self._discard_tmp()
         return self
+
+    def _raise_if_full(self, exc: OSError) -> None:
+        """CacheSpaceError (one line) when ``exc`` says the cache's filesystem is full."""
+        if exc.errno in NO_SPACE:
+            raise CacheSpaceError(f"{self.path}: no space left for the training cache ({exc.strerror}); free space "
+                                  "there or set data.cache_dir to a folder with room") from None
 
     def _real(self, key: str) -> str:
         """'lr/radiance' -> 'lr_x2.5/radiance' in a cache of the level at 2.5: the key under which it is stored."""
@@ -241,14 +288,38 @@ class ClipCache:
         real = self._real(key).replace("/", "__")
         final = self.path / f"{real}.npy"
         tmp = self.path / f".{real}.npy.tmp{os.getpid()}"
-        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=storage_dtype(name),
-                                        shape=(len(self.frames), h, w, channels_of(name)))
+        dtype, shape = storage_dtype(name), (len(self.frames), h, w, channels_of(name))
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)  # a leftover (or a planted link) is never written through
+        fd = open_nofollow(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL)
+        try:
+            with open(fd, "r+b", closefd=False) as fh:
+                np.lib.format.write_array_header_1_0(fh, {"descr": np.lib.format.dtype_to_descr(dtype),
+                                                          "fortran_order": False, "shape": shape})
+                offset = fh.tell()
+            reserve(fd, offset + int(np.prod(shape)) * dtype.itemsize, final)  # before a byte is mapped
+            arr = np.memmap(tmp, dtype=dtype, mode="r+", offset=offset, shape=shape)
+        except BaseException:
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+        os.close(fd)
+        self._tmp.add(tmp)
         return arr, tmp, final
+
+    def _discard_tmp(self) -> None:
+        """Remove the temporary arrays of a build that failed (no stray files)."""
+        for t in self._tmp:
+            with contextlib.suppress(OSError):
+                t.unlink()
+        self._tmp.clear()
 
     def _commit(self, key: str, arr: np.ndarray, tmp: Path, final: Path) -> None:
         arr.flush()
         del arr
         os.replace(tmp, final)
+        self._tmp.discard(tmp)
         self.index["arrays"][self._real(key)] = {"file": final.name, "dtype": storage_dtype(key.split("/")[1]).name}
         self._arrays.pop(key, None)
 
@@ -291,7 +362,11 @@ class ClipCache:
         if a is None:
             if self._real(key) not in self.index["arrays"]:
                 raise ClipError(f"{self.path}: {key!r} is not cached; call ensure([{key!r}])")
-            a = np.load(self.path / self.index["arrays"][self._real(key)]["file"], mmap_mode="r")
+            f = self.path / str(self.index["arrays"][self._real(key)]["file"])
+            if f.parent != self.path or f.is_symlink():
+                raise UnsafePathError(f"{self.path / 'index.json'}: array {f.name!r} is not a plain file of the "
+                                      "cache; delete the cache folder")
+            a = np.load(f, mmap_mode="r")
             self._arrays[key] = a
         return a
 
@@ -313,4 +388,5 @@ def lr_jitter(clip: Clip, frame: int) -> np.ndarray:
     return np.asarray(clip.camera(frame, "lr")["jitter"], dtype=np.float32)
 
 
-__all__ = ["ClipCache", "lr_jitter", "NonFiniteError", "default_cache_path", "check_finite", "CACHE_VERSION"]
+__all__ = ["ClipCache", "lr_jitter", "NonFiniteError", "CacheSpaceError", "default_cache_path", "check_finite",
+           "CACHE_VERSION"]

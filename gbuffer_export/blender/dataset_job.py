@@ -93,8 +93,13 @@ def main(argv=None) -> int:
     if argv is None:
         prepare_process(a.threads)
     job = ClipJob.from_json(json.loads(a.job.read_text()))
+    from ..interrupt import stop_on_sigint
     try:
-        render_job(job, a.clip_dir, a.threads, a.progress, a.device)
+        with stop_on_sigint():
+            render_job(job, a.clip_dir, a.threads, a.progress, a.device)
+    except KeyboardInterrupt:  # Ctrl-C: the render stopped between passes; finished frames stay
+        print(f"blendsr: {job.id}: interrupted", file=sys.stderr)
+        return 130
     except (ValueError, FileNotFoundError) as exc:
         print(f"blendsr: error: {job.id}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
               file=sys.stderr)

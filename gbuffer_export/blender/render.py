@@ -29,8 +29,9 @@ from .. import __version__
 from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name, levels_header
 from ..config import ConfigError, RenderConfig
 from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, level_name,
-                           material_flags_for_source, scale_intrinsics, world_to_camera_normals)
+                           material_flags_for_source, pass_seed, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
+from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from ..resources import check_render_resources
 from . import materials as mats
@@ -271,10 +272,6 @@ LIGHT_PATH_KEYS = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmis
                    "transparent_max_bounces")
 
 
-def pass_seed(seed: int, frame: int, level: int) -> int:
-    return (seed * 1000003 + frame * 7 + level) % (2 ** 31 - 1)
-
-
 # ----------------------------------------------------------------------------------------------
 # Reading passes
 # ----------------------------------------------------------------------------------------------
@@ -319,6 +316,7 @@ def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
+    check_interrupt()  # Ctrl-C during the pass: stop here (its 'CANCELLED' result means a refused render instead)
     if not path.is_file():
         raise RuntimeError(f"Cycles wrote no output to {path}")
     return read_passes(path)
@@ -407,9 +405,12 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
 
 def render_clip(cfg: RenderConfig, info: dict | None = None) -> Path:
     """Render (or resume) the clip described by ``cfg`` and return its directory (``info``: more manifest
-    ``scene`` entries, e.g. a dataset clip's id)."""
-    scene, scene_info = load_scene(cfg)
-    return render_loaded_scene(cfg, scene, {**scene_info, **(info or {})})
+    ``scene`` entries, e.g. a dataset clip's id). Ctrl-C stops it between Cycles passes
+    (``gbuffer_export.interrupt``)."""
+    with stop_on_sigint():
+        scene, scene_info = load_scene(cfg)
+        check_interrupt()
+        return render_loaded_scene(cfg, scene, {**scene_info, **(info or {})})
 
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
@@ -482,7 +483,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         "shard": [shard_k, shard_n],
         "command": " ".join(sys.argv),
     }
-    writer = ClipWriter(cfg.output, header)
+    writer = ClipWriter(cfg.output, header)  # one writer per clip: held until writer.close() below
     todo = [f for f in my_frames if not writer.is_frame_done(f)]
     skipped = len(my_frames) - len(todo)
     if skipped:
@@ -491,9 +492,14 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     try:
         bar = _progress(todo, cfg)
         for f in bar:
+            check_interrupt()  # Ctrl-C (render_clip, dataset_job: gbuffer_export.interrupt)
             t0 = time.perf_counter()
-            rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut, light_paths,
-                               levels, tmpdir, writer)
+            try:
+                rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut,
+                                   light_paths, levels, tmpdir, writer)
+            except KeyboardInterrupt:
+                writer.discard_frame(f)  # the partial frame is never committed
+                raise
             rec["seconds_total"] = time.perf_counter() - t0
             writer.commit_frame(f, rec)
             if hasattr(bar, "set_postfix"):
@@ -503,6 +509,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         for p in tmpdir.glob("*"):
             p.unlink()
         tmpdir.rmdir()
+        writer.close()
     return cfg.output
 
 

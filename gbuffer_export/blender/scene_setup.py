@@ -369,6 +369,8 @@ def select_device(scene, requested: str) -> dict:
     Metal, oneAPI that has a device, else the CPU). ConfigError when a named backend has no device."""
     if requested not in DEVICES:
         raise ConfigError(f"--device {requested!r}: choose one of {', '.join(DEVICES)}")
+    from .devices import probe_devices
+    probe_devices()  # once per process: Cycles' warnings about absent GPU libraries are dropped
     kinds = GPU_TYPES if requested == "auto" else (() if requested == "cpu" else (requested.upper(),))
     for kind in kinds:
         devs = _gpu_devices(kind)

@@ -135,8 +135,11 @@ def run(args) -> int:
     if getattr(args, "own_process", False):
         from ..reproducible import prepare_render_process
         prepare_render_process(cfg.threads)  # --threads 1: bit-identical EXRs for the same command
-    from ..blender.render import render_clip  # imports bpy
-    out = render_clip(cfg)
+    from ..interrupt import check_interrupt, stop_on_sigint
+    with stop_on_sigint():  # Ctrl-C while bpy starts or Cycles renders: a clean stop (exit 130), not a crash
+        from ..blender.render import render_clip  # imports bpy
+        check_interrupt()
+        out = render_clip(cfg)
     print(f"blendsr: wrote {out}")
     return 0
 

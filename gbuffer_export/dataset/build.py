@@ -28,7 +28,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..clip import ClipError, open_clip, write_json_atomic
+from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
 INDEX = "dataset.json"
@@ -139,6 +139,16 @@ def read_index(root: str | os.PathLike) -> dict:
     return d
 
 
+def clip_dir(root: str | os.PathLike, entry) -> Path:
+    """The folder of one ``clips`` entry of ``root/dataset.json``, by the one rule for index paths
+    (``clip.resolve_inside``): its ``path`` is relative and, links resolved, inside the dataset folder; a one-line
+    error naming dataset.json and the entry otherwise. Every reader of the index goes through here."""
+    root = Path(root)
+    if not isinstance(entry, dict):
+        raise DatasetError(f"{root / INDEX}: a clips entry is not an object ({entry!r:.60})")
+    return resolve_inside(root, entry.get("path"), source=root / INDEX, entry=f"clip {entry.get('id', '?')!r}")
+
+
 def is_dataset(path: str | os.PathLike) -> bool:
     return (Path(path) / INDEX).is_file()
 
@@ -151,9 +161,9 @@ def split_clips(root: str | os.PathLike, split: str, done_only: bool = True) -> 
     idx = read_index(root)
     out = []
     for c in idx["clips"]:
-        if c.get("split") != split:
+        if not isinstance(c, dict) or c.get("split") != split:
             continue
-        path = root / c["path"]
+        path = clip_dir(root, c)
         if done_only and clip_state(path, int(c.get("frames_planned", 0)))[0] != "done":
             continue
         out.append(path)
@@ -217,7 +227,7 @@ class _Lock:
 
     def __init__(self, root: Path):
         import fcntl
-        self.f = open(root / ".lock", "w")
+        self.f = open(open_nofollow(root / ".lock", os.O_WRONLY | os.O_CREAT), "w")
         try:
             fcntl.flock(self.f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -251,7 +261,30 @@ def _local_map(todo, run_one, workers: int, on_done) -> None:
                 on_done(futures[fut], *fut.result())
 
 
-def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, device: str = "auto") -> None:
+def fit_ray_threads(nodes: list, threads: int, explicit: bool, address: str | None) -> int:
+    """The threads (= CPUs) one clip's Ray task asks for, checked against the cluster's alive nodes (``ray.nodes()``)
+    before anything is submitted: a task asking for more CPUs than any node has would wait forever (Ray's
+    'infeasible' task). An explicit ``--threads`` that no node can hold is refused (DatasetError, one line); the
+    automatic choice is lowered to the largest node's CPUs."""
+    cpus = [float((n.get("Resources") or {}).get("CPU", 0)) for n in nodes if isinstance(n, dict) and n.get("Alive")]
+    largest = int(max(cpus, default=0))
+    where = f"the Ray cluster at {address}" if address else "the local Ray cluster"
+    if largest < 1:
+        raise DatasetError(f"{where}: no alive node offers a CPU, so no clip could ever run")
+    if max(1, threads) > largest:
+        if explicit:
+            raise DatasetError(f"--threads {threads}: no node of {where} has {threads} CPUs (the largest has "
+                               f"{largest}), so its tasks could never run; pass --threads {largest} or fewer")
+        print(f"blendsr: {threads} threads per clip lowered to {largest}, the CPUs of the largest node of {where}",
+              file=sys.stderr)
+        return largest
+    return threads
+
+
+def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, explicit: bool = True,
+             device: str = "auto") -> None:
+    if not todo:
+        return
     try:
         import ray
     except ImportError:
@@ -263,6 +296,7 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, devic
                  runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
         started = True
     try:
+        threads = fit_ray_threads(ray.nodes(), threads, explicit, address)
         remote = ray.remote(num_cpus=max(1, threads))(run_job_process)
         refs = {remote.remote(str(root / "jobs" / f"{j.id}.json"), str(root / "clips" / j.id),
                               str(root / "logs" / f"{j.id}.log"), threads, None, device): j for j in todo}
@@ -307,7 +341,9 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                                    "spec into another folder")
     lock = _Lock(root)
     try:
-        for j in jobs:
+        for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
+            for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
+                check_no_links(root, root / sub)
             jp = root / "jobs" / f"{j.id}.json"
             if not jp.is_file() or json.loads(jp.read_text()) != j.to_json():
                 write_json_atomic(jp, j.to_json())
@@ -354,7 +390,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         if opts.executor == "local":
             _local_map(todo, run_one, opts.workers, on_done)
         else:
-            _ray_map(todo, root, threads, opts.address, on_done, opts.device)
+            _ray_map(todo, root, threads, opts.address, on_done, explicit=bool(opts.threads), device=opts.device)
         if bar is not None:
             bar.close()
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,

@@ -10,7 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .build import clip_state, read_index
+from ..clip import ClipError
+from .build import clip_dir, clip_state, read_index
 
 
 @dataclass
@@ -96,7 +97,12 @@ def index_errors(root: Path, index: dict) -> list[str]:
                 errs.append(f"clip {c['id']} ({c['split']}) uses {Path(cl).stem} of the {s} split as clutter")
         if not c.get("licence", {}).get("licence"):
             errs.append(f"clip {c['id']}: no licence recorded")
-        state, _ = clip_state(root / c["path"], int(c.get("frames_planned", 0)))
+        try:
+            path = clip_dir(root, c)
+        except ClipError as exc:  # a path outside the dataset: reported, never read
+            errs.append(str(exc))
+            continue
+        state, _ = clip_state(path, int(c.get("frames_planned", 0)))
         if state != "done":
             errs.append(f"clip {c['id']} is {state} (rerun 'blendsr dataset' to finish it)")
     return errs
@@ -108,14 +114,21 @@ def validate_dataset(root, options=None, quick: bool = False, progress: bool = T
     root = Path(root)
     index = read_index(root)
     rep = DatasetReport(str(root), index_errors=index_errors(root, index))
-    clips = [c for c in index["clips"] if (root / c["path"] / "manifest.json").is_file()]
+    clips = []
+    for c in index["clips"]:
+        try:
+            path = clip_dir(root, c)
+        except ClipError:
+            continue  # an index error (index_errors)
+        if (path / "manifest.json").is_file():
+            clips.append((c, path))
     it = clips
     if progress:
         from tqdm import tqdm
         import sys
         it = tqdm(clips, desc="validate", unit="clip", file=sys.stderr, dynamic_ncols=True)
-    for c in it:
-        r = validate_clip(root / c["path"], quick=quick, options=options, progress=False)
+    for c, path in it:
+        r = validate_clip(path, quick=quick, options=options, progress=False)
         first = r.errors[0].line() if r.errors else ""
         rep.clips[c["id"]] = {"ok": r.ok, "errors": len(r.errors), "warnings": len(r.warnings),
                               "first_error": first}

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from ..clip import buffer_path
+from ..clip import UnsafePathError, buffer_path, check_no_links
 from ..conventions import BUFFERS
 from .report import WARNING, Collector
 
@@ -56,6 +56,11 @@ def read_level(c: Collector, frame: int, lvl: str, h: dict, header_only: bool) -
         spec = BUFFERS[name]
         key = f"{lvl}/{name}"
         path = buffer_path(c.root, frame, lvl, name)
+        try:
+            check_no_links(c.root, path)
+        except UnsafePathError as exc:
+            c.add("unsafe-link", str(exc), frame=frame, key=key)
+            continue
         if not path.is_file():
             c.add("missing-buffer", f"{path}: missing", frame=frame, key=key)
             continue

@@ -19,6 +19,9 @@ _TEMP_RE = re.compile(r"^\..+\.tmp\d+")
 def check_manifest(c: Collector) -> dict | None:
     """The manifest as a dict, or None when it is missing, unreadable or refused by the clip reader."""
     mpath = c.root / MANIFEST
+    if mpath.is_symlink():
+        c.add("unsafe-link", f"{mpath}: is a symbolic link; BlendSR reads nothing through links inside a clip")
+        return None
     if not mpath.is_file():
         c.add("manifest-missing", f"{mpath}: no manifest (not a BlendSR clip, or no frame finished yet)")
         return None
@@ -158,8 +161,13 @@ def check_frames(c: Collector, h: dict) -> list[int]:
     # frames/ records against the manifest
     rdir = c.root / FRAMES_DIR
     on_disk: set[int] = set()
-    if rdir.is_dir():
+    if rdir.is_symlink():
+        c.add("unsafe-link", f"{rdir}: is a symbolic link; its records are not read")
+    elif rdir.is_dir():
         for rp in sorted(rdir.iterdir()):
+            if rp.is_symlink():
+                c.add("unsafe-link", f"{rp}: is a symbolic link; not read")
+                continue
             if _TEMP_RE.match(rp.name):
                 c.add("leftover-temp", f"{rp}: temporary file of an interrupted write", severity=WARNING)
                 continue
@@ -186,7 +194,9 @@ def check_frames(c: Collector, h: dict) -> list[int]:
     orphans: dict[int, list[str]] = {}
     for ldir in sorted(p for p in c.root.iterdir() if p.is_dir() and is_level_name(p.name)):
         lvl = ldir.name
-        for bdir in sorted(p for p in ldir.iterdir() if p.is_dir()):
+        if ldir.is_symlink():
+            continue  # read_level reports the link at every buffer under it
+        for bdir in sorted(p for p in ldir.iterdir() if p.is_dir() and not p.is_symlink()):
             for fp in bdir.iterdir():
                 if _TEMP_RE.match(fp.name):
                     c.add("leftover-temp", f"{fp}: temporary file of an interrupted write", severity=WARNING,

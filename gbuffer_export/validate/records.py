@@ -1,9 +1,12 @@
 """Checks of the frame records: cameras (4x4 rigid), intrinsics (positive focal), jitter in [-0.5, 0.5] px, spp,
-seed, seconds; every level describes the same camera (an LR level's intrinsics = hr intrinsics / its scale)."""
+seed, seconds; every level describes the same camera (an LR level's intrinsics = hr intrinsics / its scale); every
+record belongs to the render the header describes (its spp and Cycles seeds, ``check_against_header``) and its
+previous camera is the camera of the frame before (a clip never mixes frames of two renders)."""
 from __future__ import annotations
 
 import numpy as np
 
+from ..conventions import pass_seed
 from .report import Collector, as_int
 
 _RECORD_KEYS = ("world_from_camera", "prev_world_from_camera", "intrinsics", "prev_intrinsics", "jitter", "spp",
@@ -106,3 +109,57 @@ def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict
                                         f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key=lvl,
                       max_diff=d)
     return cams
+
+
+def _header_spp(render: dict, part: str) -> int | None:
+    v = render.get(part)
+    return as_int(v.get("spp")) if isinstance(v, dict) else None
+
+
+def check_against_header(c: Collector, frame: int, rec: dict, h: dict, render: dict, prev: dict | None) -> None:
+    """A frame record from another render than the header's (a mixed clip: two renders wrote one folder) is an
+    error: every level's ``spp`` must be the header's (``render.hr.spp``, ``render.lr.spp``), its Cycles ``seed``
+    ``conventions.pass_seed(render.seed, frame, pass)`` (pass 0: the HR G-buffer, 1: HR, 2 + i: the i-th LR level)
+    and, when the frame before is finished too (``prev``: its record), its ``prev_world_from_camera`` and
+    ``prev_intrinsics`` the ``world_from_camera`` and ``intrinsics`` of that frame. Headers without ``render.seed``
+    or spp (synthetic clips) skip those checks."""
+    render = render if isinstance(render, dict) else {}
+    seed = as_int(render.get("seed"))
+    lr_levels = [lvl for lvl in h["sizes"] if lvl != "hr"]
+    hint = "the frame comes from another render (a mixed clip); render the clip again into an empty folder"
+    for lvl in h["sizes"]:
+        r = rec.get(lvl)
+        if not isinstance(r, dict):
+            continue
+        part = "hr" if lvl == "hr" else "lr"
+        want = _header_spp(render, part)
+        got = as_int(r.get("spp"))
+        if want is not None and got is not None and got != want:
+            c.add("mixed-clip", f"{lvl} record says {got} spp but the header's render.{part}.spp is {want}: {hint}",
+                  frame=frame, key=lvl)
+        if seed is None:
+            continue
+        seeds = [("seed", 1 if lvl == "hr" else 2 + lr_levels.index(lvl))]
+        if lvl == "hr" and r.get("gbuffer_seed") is not None:
+            seeds.append(("gbuffer_seed", 0))
+        for name, pass_index in seeds:
+            got = as_int(r.get(name))
+            expect = pass_seed(seed, frame, pass_index)
+            if got is not None and got != expect:
+                c.add("mixed-clip", f"{lvl} {name} {got} is not frame {frame}'s seed under the header's render.seed "
+                                    f"{seed} ({expect}): {hint}", frame=frame, key=lvl)
+    if not isinstance(prev, dict):
+        return
+    for lvl in h["sizes"]:
+        r, p = rec.get(lvl), prev.get(lvl)
+        if not isinstance(r, dict) or not isinstance(p, dict):
+            continue
+        for mine, theirs, tol in (("prev_world_from_camera", "world_from_camera", 1e-6),
+                                  ("prev_intrinsics", "intrinsics", 1e-6)):
+            a, b = floats(r.get(mine)), floats(p.get(theirs))
+            if a.shape != b.shape or a.size == 0 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+                continue  # malformed cameras are reported by check_record
+            d = float(np.max(np.abs(a - b)))
+            if d > tol * max(1.0, float(np.max(np.abs(b)))):
+                c.add("mixed-clip", f"{lvl} {mine} differs from frame {frame - 1}'s {theirs} (max |diff| {d:.3g}): "
+                                    f"{hint}", frame=frame, key=lvl, max_diff=d)

@@ -31,6 +31,9 @@ CODES: dict[str, str] = {
     "missing-record": "a frame of the manifest has no frames/ record (a later merge would drop it)",
     "incomplete-frame": "buffer files or a torn record of a frame that is not finished",
     "leftover-temp": "a temporary file of an interrupted write",
+    "unsafe-link": "a symbolic link inside the clip (manifest, record, level folder or buffer): never read",
+    "mixed-clip": "a frame record from another render than the header's (spp, Cycles seed, or previous camera != "
+                  "the frame before's camera): two renders wrote one folder",
     # frame records
     "record-incomplete": "a frame record lacks a level or a key",
     "bad-camera": "a camera matrix or intrinsics is malformed (shape, non-finite, not rigid, focal <= 0)",

@@ -15,7 +15,7 @@ from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
 from .motion import check_motion, check_motion_next
 from .options import ValidationOptions
-from .records import check_record
+from .records import check_against_header, check_record
 from .report import ERROR, WARNING, Collector, ValidationReport
 from .values import check_background_emission, check_values
 
@@ -93,6 +93,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     try:
         for f in selected:
             cams = check_record(c, f, h["frame_data"][f], h)
+            check_against_header(c, f, h["frame_data"][f], h, render, h["frame_data"].get(f - 1))
             per = {}
             for lvl in h["sizes"]:
                 b = read_level(c, f, lvl, h, header_only=f not in full)
