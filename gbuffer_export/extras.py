@@ -12,7 +12,7 @@ import re
 
 #: extra -> the top-level modules it installs (import names), as in pyproject.toml's optional-dependencies.
 EXTRAS: dict[str, tuple[str, ...]] = {
-    "render": ("bpy", "trimesh", "rtree", "scipy"),
+    "render": ("bpy", "trimesh", "rtree", "scipy", "embreex"),
     "train": ("torch", "matplotlib", "pytorch_msssim", "flip_evaluator"),
     "export": ("onnx", "onnxruntime"),
     "cluster": ("ray",),
@@ -24,7 +24,11 @@ class MissingExtra(ValueError):
 
 
 def installed(module: str) -> bool:
-    """True when ``module`` can be imported (found on the path; not imported, so bpy/torch start nothing)."""
+    """True when ``module`` can be imported (found on the path; not imported, so bpy/torch start nothing), or is
+    imported already."""
+    import sys
+    if sys.modules.get(module) is not None:
+        return True
     try:
         return importlib.util.find_spec(module) is not None
     except (ImportError, ValueError):  # a blocked module, or one in sys.modules without a spec

@@ -1,8 +1,9 @@
 """``blendsr preview DATASET -o SHEET.png``: a contact sheet of a dataset, to see it at a glance."""
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+
+from ..extras import HelpFormatter
 
 HELP = """Write a contact sheet of a dataset: one row per finished clip with the HR radiance of its first and last
 frame (tonemapped: Reinhard, then sRGB), labelled with the clip's id, camera kind (walk, fly, orbit, scene...)
@@ -11,7 +12,7 @@ and split."""
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("preview", help="contact sheet of a dataset's clips (first and last frames)",
-                              description=HELP, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                              description=HELP, formatter_class=HelpFormatter)
     p.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder (holding dataset.json)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="SHEET.png", help="PNG to write")
     p.add_argument("--width", type=int, default=256, help="width of each frame on the sheet, in pixels")
