@@ -120,13 +120,13 @@ def check_render_resources(hr_size: tuple[int, int], scale, buffers, frames: int
     est = estimate_render(hr_size, scale, buffers, frames)
     w, h = hr_size
     memory = available_memory() if memory is None else memory
+    if memory is not None and est.memory_bytes > memory:
+        raise ResourceError(f"--hr-size {w}x{h}: rendering needs about {human(est.memory_bytes)} of memory and "
+                            f"{human(memory)} is available; lower --hr-size")
     if memory is not None and scene_bytes and est.memory_bytes + scene_bytes > memory:
         raise ResourceError(f"{scene or 'scene'}: its geometry and textures need about {human(scene_bytes)} in "
                             f"Cycles, the frames {human(est.memory_bytes)}, and {human(memory)} is available; render "
                             "it on a machine with more memory or hide objects from rendering")
-    if memory is not None and est.memory_bytes > memory:
-        raise ResourceError(f"--hr-size {w}x{h}: rendering needs about {human(est.memory_bytes)} of memory and "
-                            f"{human(memory)} is available; lower --hr-size")
     disk = free_disk(output) if disk is None else disk
     if disk is not None and est.disk_bytes > disk:
         raise ResourceError(f"{output}: {frames} frame(s) of {w}x{h} with {len(list(buffers))} buffers need up to "
