@@ -1,11 +1,11 @@
 """``blendsr demo``: the whole story on this machine, small enough to run in minutes.
 
-1. render two small clips of one scene of the built-in generator that no shipped weights were trained on (its
-own camera path, and an orbit around it: other views of the same scene), 2. validate them, 3. write a PNG contact
-sheet, then, when the training extras are installed, 4. fine-tune the shipped pretrained FuseSR-l briefly on the
-orbit clip, as a user fine-tunes on their own scene (or train it from scratch when no weights are installed),
-5. evaluate the pretrained models, the fine-tuned one and the baselines on the other clip, whose camera path the
-fine-tune never saw,
+1. render two small clips of one scene of the built-in generator that no shipped weights were trained on, along
+its camera path: the frames to score, and the frames right after them (the same scene and camera moving on),
+2. validate them, 3. write a PNG contact sheet, then, when the training extras are installed, 4. fine-tune the
+shipped pretrained FuseSR-l briefly on the later frames, as a user fine-tunes on their own scene (or train it from
+scratch when no weights are installed), 5. evaluate the pretrained models, the fine-tuned one and the baselines on
+the frames the fine-tune never saw,
 6. write the speed-against-error table, the Pareto plot and a side-by-side image (LR, bicubic, demod-jbu, the best
 learned model, ground truth)."""
 from __future__ import annotations
@@ -24,7 +24,8 @@ from ..extras import HelpFormatter
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--hr-size", default="256x144", help="HR resolution WxH in pixels")
-    p.add_argument("--frames", default="1:12", help="frames A:B of each clip")
+    p.add_argument("--frames", default="1:12",
+                   help="frames A:B of the clip to score; the fine-tuning clip is as many frames right after them")
     p.add_argument("--hr-spp", type=int, default=32, help="ground-truth samples per pixel")
     p.add_argument("--hr-denoise", action=argparse.BooleanOptionalAction, default=True,
                    help="denoise the ground truth with OpenImageDenoise")
@@ -61,13 +62,16 @@ def run(args) -> int:
     require("blendsr demo", "render")  # renders first; the training half runs only with [train] (see above)
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
+    from ..config import parse_frames
     seed = args.test_seed
-    clips = {"finetune": (out / "clips" / f"finetune_seed{seed}_orbit", "orbit"),
-             "test": (out / "clips" / f"test_seed{seed}", "scene")}
-    t = _step(f"render two clips of built-in scene {seed}: an orbit (to fine-tune on) and its own camera (to score)")
-    for _, (path, camera) in clips.items():
-        _cli("render", "-o", path, "--seed", seed, "--camera-path", camera, "--hr-size", args.hr_size,
-             "--frames", args.frames, "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu",
+    a, b = parse_frames(args.frames)
+    later = f"{b + 1}:{2 * b - a + 1}"
+    clips = {"test": (out / "clips" / f"test_seed{seed}", args.frames),
+             "finetune": (out / "clips" / f"finetune_seed{seed}_frames{later.replace(':', '-')}", later)}
+    t = _step(f"render built-in scene {seed}: frames {args.frames} (to score) and {later} (to fine-tune on)")
+    for _, (path, frames) in clips.items():
+        _cli("render", "-o", path, "--seed", seed, "--hr-size", args.hr_size, "--frames", frames,
+             "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu",
              "--hr-denoise" if args.hr_denoise else "--no-hr-denoise")
     print(f"   {time.perf_counter() - t:.0f} s")
     _step("validate")
