@@ -42,7 +42,8 @@ def uv_to_motion(motion_uv: np.ndarray) -> np.ndarray:
 
 
 def view_depth_to_device(z: np.ndarray, near: float, far: float) -> np.ndarray:
-    """View depth (> 0, +inf on background) -> forward-Z device depth in [0, 1] (0 at near, 1 at far)."""
+    """View depth (> 0, +inf on background) -> forward-Z device depth in [0, 1] (0 at near, 1 at far).
+    Surfaces must lie before the far plane: a depth of 1 reads back as background (``depth_planes`` leaves room)."""
     z = np.asarray(z, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = far * (z - near) / (z * (far - near))

@@ -247,7 +247,7 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
             k = tuple(v * f for v in cam[1])
             record[lvl] = {"world_from_camera": cam[0], "prev_world_from_camera": pcam[0], "intrinsics": k,
                            "prev_intrinsics": tuple(v * f for v in pcam[1]), "jitter": [float(x) for x in jit],
-                           "spp": None, "seed": None, "seconds": {}}
+                           "spp": 1, "seed": 0, "seconds": {}}
         wr.commit_frame(j, record)
         prev = cam
     return Path(out)
