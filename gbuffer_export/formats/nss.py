@@ -108,6 +108,7 @@ def export_clip(clip_path, out, seq: int, *, framerate: int = DEFAULT_FRAMERATE)
             "Jitter": {"X": float(jit[0]), "Y": float(jit[1])},
             "NormalizedPerRatioJitter": per_ratio,
             "CameraCut": j == 0,
+            "Exposure": 1.0,  # optional in the specification; the model gym's NSSDataset reads the feature
             "BlendSRFrame": int(f),
         })
     meta = {
