@@ -26,12 +26,12 @@ if [ ! -x "$VENV/bin/python" ]; then
   if [ -n "${NGMG_REUSE_SITE:-}" ]; then
     echo "$NGMG_REUSE_SITE" > "$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/blendsr-reuse.pth"
     "$VENV/bin/pip" install -q --no-deps ng-model-gym
-    "$VENV/bin/pip" install -q safetensors torcheval tqdm pydantic rich typer click psutil lpips
+    "$VENV/bin/pip" install -q safetensors torcheval tqdm pydantic rich typer click psutil
   else
     "$VENV/bin/pip" install -q ng-model-gym
   fi
 fi
-"$VENV/bin/pip" show ng-model-gym | head -2
+"$VENV/bin/python" -c "import importlib.metadata as m; print('ng-model-gym', m.version('ng-model-gym'))"
 
 if [ -z "${NGMG_REPO:-}" ]; then
   NGMG_REPO=$VENV/src/neural-graphics-model-gym

@@ -6,17 +6,19 @@ import argparse
 import sys
 from pathlib import Path
 
-FORMATS = ("nss",)
+FORMATS = ("nss", "rdg")
 
 HELP = """Write BlendSR clips (or every finished clip of a dataset folder) as Arm's NSS capture layout
 (neural-graphics-model-gym's docs/nss/nss_dataset_specification.md): one sequence per clip (0000.json, ...),
 ground_truth/ and motion_gt/ at HR, x<ratio>/color, depth, motion for every LR level. Colour becomes linear
 Rec.709 half RGBA, depth forward-Z device depth with the sequence's near/far planes, motion UV units (current -
-previous). See docs/formats.md for every mapping and what is lost."""
+previous). --format rdg writes the layout of the RDG authors' loader (basicsr/data/render_dataset.py): GT/ and
+LR/<scene>/{Image,Normal,BRDF,Depth,Motion,Emit}/000.{png,exr} and its meta-info files. See docs/formats.md for
+every mapping and what is lost."""
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export-dataset", help="write clips as another trainer's dataset layout (NSS)",
+    p = subparsers.add_parser("export-dataset", help="write clips as another trainer's dataset layout (NSS, RDG)",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sources", nargs="+", type=Path, metavar="DATASET_OR_CLIP",
                    help="clip folders and/or dataset folders (holding dataset.json)")
@@ -40,9 +42,14 @@ def run_export(args) -> int:
     from ..clip import ClipError
     from ..dataset.build import DatasetError
     from ..formats.nss import NssError, export_nss
+    from ..formats.rdg import export_rdg
+    report = lambda c, j: print(f"blendsr: {c} -> {j}", file=sys.stderr)
     try:
-        paths = export_nss(args.sources, args.output, framerate=args.framerate,
-                           progress=lambda c, j: print(f"blendsr: {c} -> {j}", file=sys.stderr))
+        if args.format == "rdg":
+            scenes = export_rdg(args.sources, args.output, progress=report)
+            print(f"blendsr: wrote {len(scenes)} RDG scene(s) to {args.output}")
+            return 0
+        paths = export_nss(args.sources, args.output, framerate=args.framerate, progress=report)
     except (ClipError, DatasetError, NssError) as exc:
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 1

@@ -121,3 +121,44 @@ def depth_planes(depths) -> tuple[float, float]:
     if not math.isfinite(lo):
         return 0.1, 1000.0
     return 0.5 * lo, 2.0 * hi
+
+
+# ----------------------------------------------------------------------------------------------
+# RDG (the RDG authors' basicsr/data/render_dataset.py and basicsr/utils/render_data_util.py)
+# ----------------------------------------------------------------------------------------------
+# Their loader reads Motion with OpenCV, negates the second channel ("correct the Y direction") and warps the
+# previous frame by sampling it at p + motion (pixels): the file holds BlendSR's backward motion with y up
+# (Blender's Vector-pass orientation). Image is an 8-bit PNG divided by 255; Depth, BRDF and Emit are min-max
+# normalised per image by the loader, Normal mapped from [-1, 1] to [0, 1]: their absolute scale is not used.
+
+def motion_to_rdg(motion_px: np.ndarray) -> np.ndarray:
+    """BlendSR backward motion (pixels, y down) -> RDG's stored motion (pixels, y up)."""
+    m = np.asarray(motion_px, np.float64).copy()
+    m[..., 1] *= -1
+    return m
+
+
+def rdg_to_motion(stored: np.ndarray) -> np.ndarray:
+    """RDG's stored motion -> BlendSR backward motion (the inverse of ``motion_to_rdg``)."""
+    return motion_to_rdg(stored)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 transfer; values clipped to [0, 1] first:
+    Blender's 'Standard' view transform, no tone curve)."""
+    x = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1])."""
+    x = np.asarray(encoded, np.float64)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+
+
+def depth_for_rdg(depth: np.ndarray) -> np.ndarray:
+    """View depth with +inf on background -> finite depth: background gets the frame's largest surface depth
+    (their loader min-max normalises depth per image, so an infinite or 1e10 background would flatten it)."""
+    d = np.asarray(depth, np.float64)
+    fin = np.isfinite(d)
+    return np.where(fin, d, d[fin].max() if fin.any() else 1.0)
