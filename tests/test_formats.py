@@ -180,3 +180,45 @@ def test_reprojection_through_exported_matrices_on_a_render(tmp_path_factory):
             assert static.sum() > 50
             within = np.mean(np.hypot(err[..., 0], err[..., 1])[static] <= 0.01)
             assert within >= 0.99, (ratio, j, within)
+
+
+# ----------------------------------------------------------------------------------------------
+# RDG
+# ----------------------------------------------------------------------------------------------
+
+def test_rdg_layout_and_encodings(synthetic_export, tmp_path):
+    from gbuffer_export.conventions import backward_warp
+    from gbuffer_export.formats import rdg
+    from gbuffer_export.formats.png import read_png
+    clip_path, _ = synthetic_export
+    out = tmp_path / "rdg"
+    scenes = rdg.export_rdg([clip_path], out)
+    scene = next(iter(scenes))
+    clip = open_clip(clip_path)
+    assert (out / "meta_info_train.txt").read_text().split() == [scene, "4", "0", "0"]
+    assert (out / "meta_info_test.txt").read_text().split() == [scene, "4", "0"]
+    for root, lvl in (("GT", "hr"), ("LR", "lr"), ("LR_x4", "lr_x4")):
+        base = out / root / scene
+        assert sorted(p.name for p in base.iterdir()) == sorted(["Image", *scenes[scene]])
+        f = clip.frames[2]
+        img = read_png(base / "Image" / "002.png")
+        try:  # an independent PNG decoder, where installed
+            from PIL import Image
+            assert np.array_equal(np.asarray(Image.open(base / "Image" / "002.png").convert("RGB")), img)
+        except ImportError:
+            pass
+        lin = np.clip(clip.read(f, f"{lvl}/radiance"), 0, 1)
+        assert np.abs(cv.srgb_decode(img / 255.0) - lin).max() < 0.02  # 8-bit sRGB steps
+        # Motion as their loader reads it (second channel negated) is BlendSR's backward motion: warping frame
+        # t-1 with it reproduces frame t where BlendSR's own warp does.
+        stored = read_exr(base / "Motion" / "002.exr", ("R", "G", "B"))
+        loaded = stored[..., :2] * np.array([1, -1])
+        assert np.allclose(loaded, clip.read(f, f"{lvl}/motion"), atol=1e-5) and not stored[..., 2].any()
+        warped, _ = backward_warp(clip.read(clip.frames[1], f"{lvl}/radiance"), loaded)
+        ref, _ = backward_warp(clip.read(clip.frames[1], f"{lvl}/radiance"), clip.read(f, f"{lvl}/motion"))
+        assert np.allclose(warped, ref, atol=1e-4)
+        d = read_exr(base / "Depth" / "002.exr", ("R", "G", "B"))
+        assert np.isfinite(d).all() and np.array_equal(d[..., 0], d[..., 2])
+        n = read_exr(base / "Normal" / "002.exr", ("R", "G", "B"))
+        r = clip.camera(f, lvl)["world_from_camera"][:3, :3]
+        assert np.allclose(n @ r, clip.read(f, f"{lvl}/normal"), atol=1e-5)  # world space, rotated back
