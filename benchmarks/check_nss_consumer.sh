@@ -11,7 +11,10 @@
 #   NGMG_REPO=...         a checkout of arm/neural-graphics-model-gym (default: git clone into $VENV/src)
 #   NGMG_REUSE_SITE=...   a site-packages holding torch, numpy and OpenEXR to reuse (e.g. BlendSR's venv's);
 #                         then ng-model-gym is installed with --no-deps plus its light dependencies, instead of
-#                         the full pinned set (torch 2.11 with CUDA, executorch, ...: gigabytes)
+#                         the full pinned set (torch 2.11 with CUDA, executorch, ...: gigabytes). executorch 1.2.0
+#                         (the model gym's export path) and torchvision (torcheval's FID) do not import against
+#                         another torch (aten.transpose.Dimname / torchvision::nms), so this mode replaces both
+#                         with empty stub modules ($VENV/stubs/sitecustomize.py): the data code never calls them.
 #   PY=python3.11         the interpreter (ng-model-gym needs Python 3.10-3.12)
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
@@ -26,7 +29,28 @@ if [ ! -x "$VENV/bin/python" ]; then
   if [ -n "${NGMG_REUSE_SITE:-}" ]; then
     echo "$NGMG_REUSE_SITE" > "$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/blendsr-reuse.pth"
     "$VENV/bin/pip" install -q --no-deps ng-model-gym
-    "$VENV/bin/pip" install -q safetensors torcheval tqdm pydantic rich typer click psutil
+    "$VENV/bin/pip" install -q safetensors torcheval tqdm pydantic rich typer click psutil gputil gpustat \
+      memory-profiler ruamel.yaml tabulate joblib cloudpickle slangtorch
+    "$VENV/bin/pip" install -q --no-deps torchao==0.17.0 tosa-tools==2026.2.1
+    mkdir -p "$VENV/stubs"
+    cat > "$VENV/stubs/sitecustomize.py" <<'STUB'
+import importlib.abc, importlib.machinery, sys, types
+class _Any(types.ModuleType):
+    __path__ = []
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return type(name, (), {"__init__": lambda self, *a, **k: None, "__call__": lambda self, *a, **k: None})
+class _Stubs(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in ("executorch", "torchvision"):
+            return importlib.machinery.ModuleSpec(name, self, is_package=True)
+    def create_module(self, spec):
+        return _Any(spec.name)
+    def exec_module(self, module):
+        pass
+sys.meta_path.insert(0, _Stubs())
+STUB
   else
     "$VENV/bin/pip" install -q ng-model-gym
   fi
@@ -38,6 +62,7 @@ if [ -z "${NGMG_REPO:-}" ]; then
   [ -d "$NGMG_REPO" ] || git clone -q --depth 1 https://github.com/arm/neural-graphics-model-gym "$NGMG_REPO"
 fi
 
+[ -d "$VENV/stubs" ] && export PYTHONPATH=$VENV/stubs
 EXPORT=${1:-}
 if [ -z "$EXPORT" ]; then
   (cd "$REPO" && PYTHONPATH=$REPO "$BLENDSR_PY" -m gbuffer_export.cli render -o "$WORK/clip" --hr-size 64x36 \
@@ -81,4 +106,5 @@ m = x["motion"] if isinstance(x, dict) and "motion" in x else None
 if m is not None:
     print("motion (pixels, as the model gym reads it): |max|", float(m.abs().max()))
 print("OK: ng-model-gym's NSSDataset loaded the BlendSR export")
+
 PY
