@@ -140,16 +140,22 @@ def test_import_gives_a_blendsr_clip(synthetic_export, tmp_path):
                        atol=1e-6)
 
 
-def exported_reprojection_error(out, ratio: str, j: int):
+def exported_reprojection_error(out, ratio: str | None, j: int, hr_device_depth=None):
     """Pixels: exported motion minus the reprojection of the exported depth through the exported ViewProjection
-    matrices of frames j and j - 1 (nothing of BlendSR's own conventions), at the jittered sample positions."""
+    matrices of frames j and j - 1 (nothing of BlendSR's own conventions), at the jittered sample positions.
+    ``ratio`` None: the HR ``motion_gt`` (NSS has no HR depth: ``hr_device_depth`` gives it)."""
     meta = json.loads((out / "0000.json").read_text())
     rec, prev = meta["Frames"][j], meta["Frames"][j - 1]
     fn = f"{j:04d}.exr"
-    d = read_exr(out / f"x{ratio}" / "depth" / "0000" / fn, ("R",))[..., 0].astype(np.float64)
-    uv = read_exr(out / f"x{ratio}" / "motion" / "0000" / fn, ("R", "G")).astype(np.float64)
+    if ratio is None:
+        d = np.asarray(hr_device_depth, np.float64)
+        uv = read_exr(out / "motion_gt" / "0000" / fn, ("R", "G")).astype(np.float64)
+        nj = {"X": 0.0, "Y": 0.0}
+    else:
+        d = read_exr(out / f"x{ratio}" / "depth" / "0000" / fn, ("R",))[..., 0].astype(np.float64)
+        uv = read_exr(out / f"x{ratio}" / "motion" / "0000" / fn, ("R", "G")).astype(np.float64)
+        nj = rec["NormalizedPerRatioJitter"][meta["UpscalingRatiosIndices"][f"x{ratio}_index"]]
     h, w = d.shape
-    nj = rec["NormalizedPerRatioJitter"][meta["UpscalingRatiosIndices"][f"x{ratio}_index"]]
     xs, ys = pixel_grid(h, w)
     xs, ys = xs + nj["X"] * w, ys + nj["Y"] * h
     ndc = np.stack([2 * xs / w - 1, 1 - 2 * ys / h, d, np.ones_like(d)], -1)
@@ -180,6 +186,15 @@ def test_reprojection_through_exported_matrices_on_a_render(tmp_path_factory):
             assert static.sum() > 50
             within = np.mean(np.hypot(err[..., 0], err[..., 1])[static] <= 0.01)
             assert within >= 0.99, (ratio, j, within)
+    meta = json.loads((out / "0000.json").read_text())
+    for j in (1, 2):  # HR motion_gt, with the clip's HR depth in the exported near/far convention
+        rec = meta["Frames"][j]
+        z = c.read(c.frames[j], "hr/depth")[..., 0]
+        err, surface = exported_reprojection_error(
+            out, None, j, cv.view_depth_to_device(z, rec["CameraNearPlane"], rec["CameraFarPlane"]))
+        flags = c.read(c.frames[j], "hr/flags")[..., 0]
+        static = surface & ((flags & int(Flag.MOVING | Flag.ALPHA | Flag.BACKGROUND)) == 0)
+        assert np.mean(np.hypot(err[..., 0], err[..., 1])[static] <= 0.01) >= 0.99
 
 
 # ----------------------------------------------------------------------------------------------
