@@ -30,6 +30,7 @@ CORE_COMMANDS = {
     "lut": "gbuffer_export.commands.lut",
     "bench": "gbuffer_export.commands.bench",
     "demo": "gbuffer_export.commands.demo",
+    "export-dataset": "gbuffer_export.commands.export_dataset",  # also registers import-nss
 }
 
 
