@@ -9,14 +9,38 @@ this file. ``blendsr bench`` reads the group ``blendsr.bench`` likewise (modules
 modules import neither bpy nor torch at module level, so ``blendsr --help`` is fast and works with any subset of
 the extras installed.
 
-Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error).
+Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error), 130
+interrupted, 70 an internal error (a bug in BlendSR: the traceback, then one line asking to report it).
+
+The error boundary (``main``): bad input is ``gbuffer_export.errors.BlendSRError`` (every typed error of BlendSR
+subclasses it), a missing/existing/not-a-folder path, a file that does not parse (JSON, TOML, text encoding) and a
+filesystem fault (read-only file system, no space left, permission denied, quota): one line
+``blendsr: error: PATH: read-only file system`` and exit 2. Anything else is a bug and says so.
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import json
 import sys
+import traceback
 from importlib import metadata
+
+from .errors import BlendSRError
+
+#: Exit code of an internal error (a bug in BlendSR), sysexits.h's EX_SOFTWARE.
+EXIT_INTERNAL = 70
+
+#: Filesystem faults the user can fix (errno -> what the one-line error says).
+FILESYSTEM_ERRNOS = {
+    errno.EROFS: "read-only file system",
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EFBIG: "file too large",
+}
 
 #: The core's own commands, in the order ``--help`` lists them (used as is when blendsr's metadata is not
 #: installed, e.g. a source tree on PYTHONPATH); commands of other packages follow in name order.
@@ -49,7 +73,7 @@ def import_optional(modname: str):
         raise
 
 
-class UsageError(Exception):
+class UsageError(BlendSRError):
     """Bad input: printed as one line 'blendsr: error: ...' with exit code 2."""
 
 
@@ -86,10 +110,45 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
-    except (UsageError, ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"blendsr: error: {msg}", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - the one error boundary of the CLI
+        line = bad_input_line(exc)
+        if line is None:
+            traceback.print_exc()
+            print(f"blendsr: internal error (a bug, please report it with the traceback above): "
+                  f"{type(exc).__name__}: {_first_line(exc)}", file=sys.stderr)
+            return EXIT_INTERNAL
+        print(f"blendsr: error: {line}", file=sys.stderr)
         return 2
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def filesystem_message(exc: BaseException) -> str | None:
+    """'PATH: read-only file system' for a filesystem fault the user can fix (see FILESYSTEM_ERRNOS), else None.
+    Looks through ``__cause__``/``__context__`` so a fault re-raised by a library is still recognised."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in FILESYSTEM_ERRNOS:
+            where = exc.filename if exc.filename is not None else None
+            what = FILESYSTEM_ERRNOS[exc.errno]
+            return f"{where}: {what}" if where is not None else what
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def bad_input_line(exc: BaseException) -> str | None:
+    """The one-line message of an exception that is the user's to fix, or None for a bug."""
+    fs = filesystem_message(exc)
+    if fs is not None:
+        return fs
+    if isinstance(exc, (BlendSRError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)):
+        return _first_line(exc)
+    if isinstance(exc, (json.JSONDecodeError, UnicodeDecodeError)) or type(exc).__name__ == "TOMLDecodeError":
+        return f"{type(exc).__name__}: {_first_line(exc)}"
+    return None
 
 
 if __name__ == "__main__":

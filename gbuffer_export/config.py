@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import BlendSRError
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
@@ -23,7 +24,7 @@ JITTERS = ("none", "halton")
 FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
 
 
-class ConfigError(ValueError):
+class ConfigError(BlendSRError):
     """An invalid configuration value; the message names the option."""
 
 

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gbuffer_export.errors import BlendSRError
+
 CHECKPOINT_FORMAT = "blendsr.checkpoint"
 CHECKPOINT_VERSION = 2
 
@@ -41,7 +43,7 @@ def _numpy_globals() -> list:
 ALLOWED_GLOBALS = _numpy_globals()
 
 
-class CheckpointError(ValueError):
+class CheckpointError(BlendSRError):
     """A file is not a loadable BlendSR checkpoint (the message names it and says why, on one line)."""
 
 

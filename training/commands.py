@@ -5,6 +5,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from gbuffer_export.errors import BlendSRError
 
 FMT = argparse.ArgumentDefaultsHelpFormatter
 
@@ -110,7 +111,7 @@ def cmd_train(args) -> int:
             print(f"{name:16s} {'learned' if info.learned else 'fixed  '}  {info.description}")
         return 0
     if not args.output:
-        raise ValueError("train: -o RUN_DIR is required")
+        raise BlendSRError("train: -o RUN_DIR is required")
     overrides = list(args.set)
     if args.model:
         overrides.append(f'model.name="{args.model}"')
@@ -128,7 +129,7 @@ def cmd_train(args) -> int:
             ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
             saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
             if sorted(str(Path(c).resolve()) for c in data) != saved:
-                raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
+                raise BlendSRError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
     else:
         cfg = load_config(args.config, overrides)
         for note in cfg.notes:
@@ -138,7 +139,7 @@ def cmd_train(args) -> int:
             if val and not cfg.data.val_clips:
                 cfg.data.val_clips = [str(c) for c in val]
         if not args.resume and not args.model and not args.config:
-            raise ValueError("train: --model NAME is required (or model.name in --config)")
+            raise BlendSRError("train: --model NAME is required (or model.name in --config)")
     from training.train import TrainingError, train
     try:
         train(cfg, args.output, resume=args.resume, run_overrides=run_overrides,
@@ -161,14 +162,14 @@ def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
     try:
         return expand_data_paths(paths, split)
     except DatasetError as exc:
-        raise ValueError(str(exc)) from None
+        raise BlendSRError(str(exc)) from None
 
 
 def _scale_of(clips) -> int:
     from gbuffer_export.clip import open_clip
     scales = {open_clip(c).scale for c in clips}
     if len(scales) != 1:
-        raise ValueError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
+        raise BlendSRError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
     return scales.pop()
 
 

@@ -32,7 +32,7 @@ from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_fr
                            material_flags_for_source, scale_intrinsics, world_to_camera_normals)
 from ..exr import read_exr_channels
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
-from ..resources import check_render_resources
+from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
 
 BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
@@ -313,13 +313,34 @@ def quiet_stdout():
         os.close(saved)
 
 
+def _check_disk_after_write(path: Path, scene) -> None:
+    """Raise ENOSPC naming ``path``'s folder when it has less free space than Cycles' temporary EXR needs: a full
+    disk while Cycles writes leaves no file or a truncated one, which is not the user's EXR to blame."""
+    import errno
+    import shutil
+    r = scene.render
+    need = int(r.resolution_x * r.resolution_y * r.resolution_percentage / 100 * TEMP_EXR_CHANNELS * 4)
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return
+    if free < need:
+        raise OSError(errno.ENOSPC, f"No space left on device (Cycles' temporary EXR needs about {need} bytes, "
+                                    f"{free} free)", str(path.parent))
+
+
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     if not path.is_file():
+        _check_disk_after_write(path, scene)
         raise RuntimeError(f"Cycles wrote no output to {path}")
-    return read_passes(path)
+    try:
+        return read_passes(path)
+    except (ValueError, OSError):
+        _check_disk_after_write(path, scene)
+        raise
 
 
 def camera_pose(cam) -> np.ndarray:

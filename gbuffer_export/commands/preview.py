@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from ..errors import BlendSRError
 
 HELP = """Write a contact sheet of a dataset: one row per finished clip with the HR radiance of its first and last
 frame (tonemapped: Reinhard, then sRGB), labelled with the clip's id, camera kind (walk, fly, orbit, scene...)
@@ -22,7 +23,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..preview import dataset_sheet
     if args.width < 16:
-        raise ValueError(f"--width {args.width}: must be at least 16 pixels")
+        raise BlendSRError(f"--width {args.width}: must be at least 16 pixels")
     splits = [s.strip() for s in args.splits.split(",")] if args.splits else None
     path, n = dataset_sheet(args.dataset, args.output, args.width, splits)
     print(f"blendsr: wrote {path} ({n} clips)")

@@ -28,6 +28,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import BlendSRError
 from ..clip import ClipError, open_clip, write_json_atomic
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
@@ -38,7 +39,7 @@ STATES = ("pending", "partial", "done", "failed")
 EXECUTORS = ("local", "ray")
 
 
-class DatasetError(ValueError):
+class DatasetError(BlendSRError):
     """A dataset folder that cannot be used as asked; one line naming the path."""
 
 
