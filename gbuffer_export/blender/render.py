@@ -427,8 +427,57 @@ def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitt
 def render_clip(cfg: RenderConfig, info: dict | None = None) -> Path:
     """Render (or resume) the clip described by ``cfg`` and return its directory (``info``: more manifest
     ``scene`` entries, e.g. a dataset clip's id)."""
+    if cfg.frames is not None and cfg.hr_size is not None:  # refuse a runaway before building the scene
+        check_render_resources(cfg.hr_size, cfg.scales, cfg.buffers, frames_left(cfg), cfg.output,
+                               scene=str(cfg.scene or "scene"))
     scene, scene_info = load_scene(cfg)
     return render_loaded_scene(cfg, scene, {**scene_info, **(info or {})})
+
+
+def remove_stale_scratch(clip_dir: Path, max_age_s: float = 86400.0) -> list[Path]:
+    """Remove the ``.render-PID-*`` scratch folders of renders that died (their process is gone) and old ones of
+    the earlier ``.render-*`` form (untouched for ``max_age_s``); a live shard's folder is kept. Returns them."""
+    import shutil
+    gone = []
+    for d in clip_dir.glob(".render-*"):
+        if not d.is_dir() or d.is_symlink():
+            continue
+        parts = d.name.split("-")
+        if len(parts) >= 3 and parts[1].isdigit():
+            pid = int(parts[1])
+            alive = pid != os.getpid()  # this process renders one clip at a time: its own folder is stale
+            if alive:
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    alive = False
+                except PermissionError:
+                    pass
+        else:
+            try:
+                alive = time.time() - d.stat().st_mtime < max_age_s
+            except OSError:
+                continue
+        if not alive:
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+    return gone
+
+
+def frames_left(cfg: RenderConfig) -> int:
+    """How many frames of ``cfg.frames`` this shard still renders (its finished frame records subtracted),
+    counted without listing the range: a runaway ``--frames 1:1000000`` is refused at once."""
+    a, b = cfg.frames
+    k, n = cfg.shard
+    mine = range(a, b + 1)[k - 1::n]
+    done = 0
+    fdir = cfg.output / FRAMES_DIR
+    if fdir.is_dir():
+        for e in os.scandir(fdir):
+            stem, dot, ext = e.name.partition(".")
+            if ext == "json" and stem.isdigit() and int(stem) in mine:
+                done += 1
+    return len(mine) - done
 
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
@@ -506,7 +555,8 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     skipped = len(my_frames) - len(todo)
     if skipped:
         print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
-    tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
+    remove_stale_scratch(cfg.output)
+    tmpdir = Path(tempfile.mkdtemp(prefix=f".render-{os.getpid()}-", dir=cfg.output))
     try:
         bar = _progress(todo, cfg)
         for f in bar:

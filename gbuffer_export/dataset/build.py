@@ -126,7 +126,26 @@ def read_index(root: str | os.PathLike) -> dict:
         raise DatasetError(f"{p}: schema_version {d.get('schema_version')!r} is newer than this blendsr reads")
     if not isinstance(d.get("clips"), list):
         raise DatasetError(f"{p}: index lacks its 'clips' list")
+    check_index_entries(p, d["clips"])
     return d
+
+
+def check_index_entries(p: Path, clips: list) -> None:
+    """Every clip entry of an index has the keys its readers use, of the right type; DatasetError naming the
+    index file, the entry and the key otherwise (never a KeyError)."""
+    for i, c in enumerate(clips):
+        if not isinstance(c, dict):
+            raise DatasetError(f"{p}: clips[{i}] is not an object")
+        name = f"clips[{i}]" + (f" ({c['id']})" if isinstance(c.get("id"), str) else "")
+        for key in ("id", "path", "split"):
+            if not isinstance(c.get(key), str) or not c[key]:
+                what = "lacks" if key not in c else f"has {key} = {c[key]!r}, not a string:"
+                raise DatasetError(f"{p}: {name} {what} {key!r}" if key not in c else f"{p}: {name} {what}")
+        if c["split"] not in SPLITS:
+            raise DatasetError(f"{p}: {name}: split {c['split']!r} is not one of {', '.join(SPLITS)}")
+        fp = c.get("frames_planned", 0)
+        if not isinstance(fp, int) or isinstance(fp, bool) or fp < 0:
+            raise DatasetError(f"{p}: {name}: frames_planned = {fp!r} is not an integer >= 0")
 
 
 def is_dataset(path: str | os.PathLike) -> bool:

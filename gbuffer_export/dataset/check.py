@@ -97,8 +97,13 @@ def index_errors(root: Path, index: dict) -> list[str]:
         if not c.get("licence", {}).get("licence"):
             errs.append(f"clip {c['id']}: no licence recorded")
         state, _ = clip_state(root / c["path"], int(c.get("frames_planned", 0)))
-        if state != "done":
+        if state != "done" and (c.get("state") == "failed" or c.get("error")):
+            err = str(c.get("error") or "").strip().splitlines()
+            errs.append(f"clip {c['id']} failed{': ' + err[-1] if err else ''} (fix it and rerun 'blendsr dataset')")
+        elif state != "done":
             errs.append(f"clip {c['id']} is {state} (rerun 'blendsr dataset' to finish it)")
+    if not index["clips"]:
+        errs.append("the index lists no clips (nothing to train or evaluate on)")
     return errs
 
 
