@@ -115,3 +115,46 @@ def test_implausible_radiance_falls_under_the_nonfinite_policy(tmp_path, capsys)
         cache = ClipCache(clip, nonfinite="sanitize").ensure(["lr/radiance"])
     assert cache.read(2, "lr/radiance")[3, 4, 0] == RADIANCE_CAP
     assert cache.index["sanitized"][0]["count"] == 1
+
+
+def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, monkeypatch):
+    """Issue 26 item 12: the message must not name a last.pt that was never written."""
+    from training.config import load_config
+    from training.models.fusesr_l import FuseSRLight
+    from training.train import TrainingError, train
+    real = FuseSRLight.forward
+    monkeypatch.setattr(FuseSRLight, "forward", lambda self, batch: real(self, batch) * float("nan"))
+    cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "run.max_steps=3"])
+    cfg.data.clips = [str(clip)]
+    with pytest.raises(TrainingError) as err:
+        train(cfg, tmp_path / "nan", log=lambda m: None)
+    assert "last.pt" not in str(err.value) and "no checkpoint was written" in str(err.value)
+    assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()
+
+
+def test_the_progress_bar_of_a_minutes_run_counts_time_not_a_million_steps():
+    """Issue 26 item 12: a --minutes run's bar counts the budget's seconds."""
+    from training.config import load_config
+    from training.train import progress_kwargs
+    cfg = load_config(None, ["run.minutes=2"])
+    assert progress_kwargs(cfg, 0) == {"total": 120, "initial": 0, "unit": "s"}
+    cfg = load_config(None, ["run.max_steps=50"])
+    assert progress_kwargs(cfg, 7) == {"total": 50, "initial": 7, "unit": "step"}
+
+
+def test_a_clip_without_fbeta_names_the_missing_buffers_not_the_derived_one(tmp_path, capsys):
+    """Issue 26 item 12: 'lr/irradiance' is computed from lr/radiance and lr/fbeta; the error names what is missing."""
+    bare = make_synthetic_clip(tmp_path / "bare", frames=range(1, 3), hr_size=(64, 36), scale=4,
+                               buffers=("radiance", "depth", "motion", "flags", "normal", "albedo", "roughness",
+                                        "metallic", "emission"))
+    assert main(["train", "--model", "fusesr", "--data", str(bare), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *set_args(SMALL)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "'lr/fbeta'" in err and "from which 'lr/irradiance' is computed" in err, err
+
+
+def test_bench_models_help_lists_each_compile_choice_once(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "models", "--help"])
+    out = capsys.readouterr().out
+    assert "{off,on,off,on}" not in out and "{off,on,both}" in out

@@ -62,8 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", default=None,
                         help="comma-separated precisions to time: fp32, bf16, fp16, auto (default fp32; with --data "
                              "one precision, default from --amp)")
-    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "off,on"),
-                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); off,on: both")
+    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "both", "off,on"),
+                        metavar="{off,on,both}",
+                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); both (or off,on): "
+                             "measure without and with")
     parser.add_argument("--eager-reference", action="store_true",
                         help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
     parser.add_argument("--repeats", type=int, default=30, help="timed runs per variant (speed mode)")
@@ -241,7 +243,7 @@ def run(args) -> int:
     from training.commands import _dataset_clips
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     precisions = _precisions(args.precision)
-    compiles = {"off": [False], "on": [True], "off,on": [False, True]}[args.compile]
+    compiles = {"off": [False], "on": [True], "both": [False, True], "off,on": [False, True]}[args.compile]
     if not args.data:
         from training.models import MODELS
         models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
