@@ -220,14 +220,22 @@ def cmd_upscale(args) -> int:
     frames = _frames(args.frames) or clip.frames
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    times = {}
+    times, nonfinite = {}, {}
+    from training.evaluate import sanitize_output
     for f in frames:
         r = upscale_frame(model, source, f)
-        write_exr(out / f"{f:06d}.exr", {c: r["sr"][..., i] for i, c in enumerate("RGB")})
+        sr, bad = sanitize_output(r["sr"])  # never an EXR with NaN pixels: 0 there, a warning, upscale.json says so
+        if bad:
+            nonfinite[str(f)] = bad
+            print(f"warning: {out / f'{f:06d}.exr'}: the model output {bad} non-finite value(s) (NaN/Inf), written "
+                  "as 0", file=sys.stderr)
+        write_exr(out / f"{f:06d}.exr", {c: sr[..., i] for i, c in enumerate("RGB")})
         times[str(f)] = r["ms"]
     write_json_atomic(out / "upscale.json", {"model": model.spec, "clip": str(args.clip), "scale": clip.scale,
-                                            "frames": [int(f) for f in frames], "ms": times})
-    print(f"wrote {len(frames)} frames to {out}")
+                                            "frames": [int(f) for f in frames], "ms": times,
+                                            "nonfinite_values": nonfinite})
+    print(f"wrote {len(frames)} frames to {out}"
+          + (f" ({len(nonfinite)} with non-finite model output set to 0)" if nonfinite else ""))
     return 0
 
 
