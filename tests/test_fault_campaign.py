@@ -49,3 +49,14 @@ def test_render_killed_and_resumed_validates_with_every_frame(tmp_path):
     fc.render_kills(tmp_path, tally, kills=1, rng=random.Random(2), frames=2, log=lambda m: None)
     assert tally.faults == 1 and tally.results_compared == 1
     _clean(tally)
+
+
+@pytest.mark.torch
+def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures):
+    """Issue 26: the families 'huge specs' and 'non-finite values through evaluate and upscale' (quick subset)."""
+    tally = fc.Tally()
+    lines = []
+    fc.huge_and_nonfinite(fixtures, tally, quick=True, log=lines.append)
+    assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
+    print("\n".join(lines))
+    _clean(tally)
