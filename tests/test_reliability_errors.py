@@ -136,3 +136,27 @@ def test_a_full_disk_under_cycles_is_not_blamed_on_the_exr(tmpfs):
         _check_disk_after_write(full / "hr_radiance.exr", scene)
     assert info.value.errno == errno.ENOSPC and info.value.filename == str(full)
     assert cli.bad_input_line(info.value) == f"{full}: no space left on device"
+
+
+def test_a_checkpoint_saved_to_a_full_disk_is_enospc_naming_the_folder(tmpfs):
+    """torch.save reports a full disk as a RuntimeError ('unexpected pos'); save_checkpoint says what it was."""
+    torch = pytest.importorskip("torch")
+    from training.checkpoint import save_checkpoint
+    full = tmpfs(size="64k")
+    with pytest.raises(OSError) as info:
+        save_checkpoint(full / "checkpoints" / "last.pt", {"w": torch.zeros(100_000)})
+    assert info.value.errno == errno.ENOSPC
+    assert cli.bad_input_line(info.value) == f"{full / 'checkpoints'}: no space left on device"
+    assert not list((full / "checkpoints").iterdir())  # no temporary left behind
+
+
+def test_train_into_a_read_only_folder_is_one_line(tmpfs, tmp_path, capsys):
+    pytest.importorskip("torch")
+    from gbuffer_export.synthetic import make_synthetic_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
+    ro = tmpfs(ro=True)
+    rc = cli.main(["train", "--model", "fusesr", "--data", str(clip), "-o",
+                   str(ro / "run"), "--max-steps", "1", "--set", "run.progress=false"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert err.splitlines()[-1] == f"blendsr: error: {ro / 'run'}: read-only file system"

@@ -74,11 +74,35 @@ def save_checkpoint(path: Path, state: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        torch.save(state, tmp)
+        try:
+            torch.save(state, tmp)
+        except RuntimeError as exc:  # torch reports a failed write as "unexpected pos", not as the OSError it was
+            full = _write_fault(tmp)
+            if full is not None:
+                raise full from exc
+            raise
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _write_fault(tmp: Path) -> OSError | None:
+    """The filesystem fault behind a failed torch.save into ``tmp``: ENOSPC when the folder's disk is (nearly) full,
+    EROFS/EACCES when it cannot be written; None when neither explains it."""
+    import errno
+    import shutil
+    folder = tmp.parent
+    try:
+        written = tmp.stat().st_size if tmp.exists() else 0
+        free = shutil.disk_usage(folder).free
+    except OSError as exc:
+        return exc
+    if free < max(1 << 20, written // 8):
+        return OSError(errno.ENOSPC, f"No space left on device ({free} bytes free)", str(folder))
+    if not os.access(folder, os.W_OK):
+        return OSError(errno.EACCES, "Permission denied", str(folder))
+    return None
 
 
 def _unsafe_globals(path: Path) -> list[str]:
