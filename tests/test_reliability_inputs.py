@@ -170,3 +170,19 @@ def test_an_lr_size_under_blenders_minimum_is_refused_up_front(tmp_path):
         RenderConfig(output=tmp_path / "c", hr_size=(64, 32), scales=(2, 16))
     with pytest.raises(SpecError, match="4 px"):
         load_spec(_spec(tmp_path, 'scale = 4\n[[source]]\nkind = "builtin"\nseeds = "0:1"\nhr_size = "12x12"\n'))
+
+
+@requires_bpy
+def test_the_next_render_removes_scratch_folders_of_dead_renders(tmp_path):
+    """Issue 26 item 10: .render-PID-* folders of a render that died are removed; a live shard's are kept."""
+    import os
+    import subprocess
+    from gbuffer_export.blender.render import remove_stale_scratch
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    clip = tmp_path / "c"
+    (clip / f".render-{dead.pid}-abc").mkdir(parents=True)
+    (clip / f".render-{dead.pid}-abc" / "hr_radiance.exr").write_bytes(b"x")
+    (clip / f".render-{os.getppid()}-def").mkdir()
+    assert remove_stale_scratch(clip) == [clip / f".render-{dead.pid}-abc"]
+    assert sorted(p.name for p in clip.iterdir()) == [f".render-{os.getppid()}-def"]

@@ -158,3 +158,20 @@ def test_bench_models_help_lists_each_compile_choice_once(capsys):
         main(["bench", "models", "--help"])
     out = capsys.readouterr().out
     assert "{off,on,off,on}" not in out and "{off,on,both}" in out
+
+
+def test_checkpoint_temporaries_of_a_dead_run_are_removed_by_the_next_save(tmp_path):
+    """Issue 26 item 10: a run killed while saving leaves .last.pt.tmpPID; the next save removes it (a live
+    process's temporary is kept)."""
+    import subprocess
+    from training.checkpoint import save_checkpoint
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    d = tmp_path / "checkpoints"
+    d.mkdir()
+    stale = d / f".last.pt.tmp{dead.pid}"
+    stale.write_bytes(b"half")
+    live = d / f".step_00000002.pt.tmp{os.getppid()}"
+    live.write_bytes(b"half")
+    save_checkpoint(d / "last.pt", {"w": torch.zeros(3)})
+    assert not stale.exists() and live.exists() and (d / "last.pt").is_file()

@@ -85,6 +85,24 @@ def save_checkpoint(path: Path, state: dict) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+    remove_stale_temporaries(path.parent)
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove ``.NAME.pt.tmpPID`` files of processes that are gone (a run killed while saving); returns them."""
+    gone = []
+    for f in Path(folder).glob(".*.tmp*"):
+        pid = f.name.rsplit(".tmp", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid() or not f.is_file():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            f.unlink(missing_ok=True)
+            gone.append(f)
+        except PermissionError:
+            pass
+    return gone
 
 
 def _write_fault(tmp: Path) -> OSError | None:
