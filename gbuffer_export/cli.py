@@ -132,9 +132,8 @@ def filesystem_message(exc: BaseException) -> str | None:
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
         if isinstance(exc, OSError) and exc.errno in FILESYSTEM_ERRNOS:
-            where = exc.filename if exc.filename is not None else None
             what = FILESYSTEM_ERRNOS[exc.errno]
-            return f"{where}: {what}" if where is not None else what
+            return f"{exc.filename}: {what}" if exc.filename is not None else what
         exc = exc.__cause__ or exc.__context__
     return None
 

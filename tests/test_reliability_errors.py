@@ -160,3 +160,13 @@ def test_train_into_a_read_only_folder_is_one_line(tmpfs, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2, err
     assert err.splitlines()[-1] == f"blendsr: error: {ro / 'run'}: read-only file system"
+
+
+def test_export_into_a_read_only_folder_is_one_line(tmpfs, capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    ro = tmpfs(ro=True)
+    rc = cli.main(["export", "--model", "bicubic", "--onnx", str(ro / "x.onnx"), "--hr-size", "64x36"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert err.splitlines()[-1] == f"blendsr: error: {ro / 'x.onnx'}: read-only file system"
