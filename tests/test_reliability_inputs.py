@@ -186,3 +186,12 @@ def test_the_next_render_removes_scratch_folders_of_dead_renders(tmp_path):
     (clip / f".render-{os.getppid()}-def").mkdir()
     assert remove_stale_scratch(clip) == [clip / f".render-{dead.pid}-abc"]
     assert sorted(p.name for p in clip.iterdir()) == [f".render-{os.getppid()}-def"]
+
+
+def test_a_million_frames_per_clip_are_refused_by_dataset_before_anything_starts(tmp_path):
+    spec = _spec(tmp_path, '[[source]]\nkind = "builtin"\nseeds = "0:1"\nframes = 100000000\n')
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "spec.toml: clip builtin-s0000:" in last and "100000000 frame(s)" in last
+    assert not (tmp_path / "ds").exists()

@@ -288,6 +288,25 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, devic
             ray.shutdown()
 
 
+def check_clip_resources(jobs, root: Path, spec_path) -> None:
+    """Refuse, before anything starts, render settings of which one clip alone exceeds the free disk under
+    ``root`` (``frames = 1000000``, say): ResourceError naming the spec. Memory is the workers' to check (a Ray
+    cluster's nodes are not this machine)."""
+    from ..resources import ResourceError, check_render_resources
+    seen = set()
+    for j in jobs:
+        r = j.render
+        key = (tuple(r["hr_size"]), r["scale"], tuple(r["buffers"]), r["frames"])
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            check_render_resources(tuple(r["hr_size"]), r["scale"], r["buffers"], r["frames"], root,
+                                   memory=1 << 62)
+        except ResourceError as exc:
+            raise ResourceError(f"{spec_path}: clip {j.id}: {exc}") from None
+
+
 def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
     """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
     opts.validate()
@@ -299,6 +318,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         from .buffers import buffers_for_models
         need = buffers_for_models(opts.buffers_for)
         jobs = [dataclasses.replace(j, render={**j.render, "buffers": list(need)}) for j in jobs]
+    check_clip_resources(jobs, root, spec.path)
     root.mkdir(parents=True, exist_ok=True)
     old = None
     if (root / INDEX).is_file():
