@@ -20,27 +20,12 @@ filesystem fault (read-only file system, no space left, permission denied, quota
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib
-import json
 import sys
 import traceback
 from importlib import metadata
 
-from .errors import BlendSRError
-
-#: Exit code of an internal error (a bug in BlendSR), sysexits.h's EX_SOFTWARE.
-EXIT_INTERNAL = 70
-
-#: Filesystem faults the user can fix (errno -> what the one-line error says).
-FILESYSTEM_ERRNOS = {
-    errno.EROFS: "read-only file system",
-    errno.ENOSPC: "no space left on device",
-    errno.EDQUOT: "disk quota exceeded",
-    errno.EACCES: "permission denied",
-    errno.EPERM: "operation not permitted",
-    errno.EFBIG: "file too large",
-}
+from .errors import EXIT_INTERNAL, FILESYSTEM_ERRNOS, BlendSRError, bad_input_line, first_line  # noqa: F401
 
 #: The core's own commands, in the order ``--help`` lists them (used as is when blendsr's metadata is not
 #: installed, e.g. a source tree on PYTHONPATH); commands of other packages follow in name order.
@@ -115,39 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         if line is None:
             traceback.print_exc()
             print(f"blendsr: internal error (a bug, please report it with the traceback above): "
-                  f"{type(exc).__name__}: {_first_line(exc)}", file=sys.stderr)
+                  f"{type(exc).__name__}: {first_line(exc)}", file=sys.stderr)
             return EXIT_INTERNAL
         print(f"blendsr: error: {line}", file=sys.stderr)
         return 2
-
-
-def _first_line(exc: BaseException) -> str:
-    return str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
-
-
-def filesystem_message(exc: BaseException) -> str | None:
-    """'PATH: read-only file system' for a filesystem fault the user can fix (see FILESYSTEM_ERRNOS), else None.
-    Looks through ``__cause__``/``__context__`` so a fault re-raised by a library is still recognised."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in FILESYSTEM_ERRNOS:
-            what = FILESYSTEM_ERRNOS[exc.errno]
-            return f"{exc.filename}: {what}" if exc.filename is not None else what
-        exc = exc.__cause__ or exc.__context__
-    return None
-
-
-def bad_input_line(exc: BaseException) -> str | None:
-    """The one-line message of an exception that is the user's to fix, or None for a bug."""
-    fs = filesystem_message(exc)
-    if fs is not None:
-        return fs
-    if isinstance(exc, (BlendSRError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)):
-        return _first_line(exc)
-    if isinstance(exc, (json.JSONDecodeError, UnicodeDecodeError)) or type(exc).__name__ == "TOMLDecodeError":
-        return f"{type(exc).__name__}: {_first_line(exc)}"
-    return None
 
 
 if __name__ == "__main__":
