@@ -209,7 +209,7 @@ class ClipCache:
                     if name in DERIVED else []
                 what = (f"{' and '.join(map(repr, lacking))} (from which {k!r} is computed)" if lacking
                         else repr(k))
-                raise ClipError(f"{self.clip_path}: clip lacks {what} (has {', '.join(self.clip.buffers)})")
+                raise ClipError(f"{self.clip_path}: clip has no buffer {what} (has {', '.join(self.clip.buffers)})")
         with self._lock():
             idx = self._read_index()
             if idx is None or idx.get("identity") != self.identity:
