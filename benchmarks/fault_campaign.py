@@ -39,6 +39,11 @@ Parts (each prints its counts; the totals come last):
 8. **Full filesystem**: the training cache on a 1 MB tmpfs (root mounts one; otherwise only the simulated case) and
    a simulated ENOSPC from ``posix_fallocate`` must stop training with one line (exit 2), no SIGBUS and no stray
    temporary file.
+9. **Huge specs and non-finite values** (``HUGE_AND_NONFINITE``, part ``huge``): specs of a million clips
+   (seeds, clips per asset/scene), samples above Cycles' cap, inf/nan floats, a test asset in a train source, a
+   million frames, an LR frame under 4 px: each refused in one line within ``RUNAWAY_S`` seconds; NaN/Inf in the
+   ground truth refused by ``evaluate`` naming the file; NaN/Inf in an LR input: ``evaluate`` warns and writes
+   finite JSON, ``upscale`` warns and writes finite EXRs.
 
 ``--quick`` runs the subset ``tests/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -406,6 +411,142 @@ def bad_inputs(fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
     if (fx.root / "PWNED").exists():
         tally.fail("the malicious checkpoint ran code")
         tally.tracebacks += 1
+
+
+# ------------------------------------------------------------------- huge specs; non-finite values (issue 26)
+#: A case must be answered within this many seconds (a runaway otherwise: counted as a wrong exit).
+RUNAWAY_S = 60
+
+
+def _spec_file(fx: Fixtures, name: str, source: str, render: str = "") -> Path:
+    p = fx.root / f"{name}.toml"
+    p.write_text(f'[dataset]\nname = "{name}"\n[render]\nhr_size = "64x36"\nframes = 2\n{render}'
+                 f'[[source]]\n{source}')
+    return p
+
+
+def _asset_dir(fx: Fixtures) -> Path:
+    d = fx.root / "assets"
+    d.mkdir(exist_ok=True)
+    (d / "Chair.gltf").write_text('{"asset": {"version": "2.0"}}')
+    (d / "Lamp.gltf").write_text('{"asset": {"version": "2.0"}}')
+    return d
+
+
+def _ds(fx: Fixtures, name: str, source: str, render: str = "", extra=()) -> list[str]:
+    return ["dataset", str(_spec_file(fx, name, source, render)), "-o", str(fx.root / f"ds_{name}"), "--dry-run",
+            *extra]
+
+
+def _sr_finite(out: Path) -> str | None:
+    from gbuffer_export.exr import read_exr
+    import numpy as np
+    for f in sorted(out.glob("*.exr")):
+        if not np.isfinite(read_exr(f, ("R", "G", "B"))).all():
+            return f"{f} holds non-finite pixels"
+    return None
+
+
+def _eval_json_finite(path: Path) -> str | None:
+    try:
+        json.loads(path.read_text(), parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    except (OSError, ValueError) as exc:
+        return f"{path}: {exc}"
+    return None
+
+
+#: name, argv(fx), expected exit codes, quick, in-process, extra check(fx, code, stderr) -> problem or None.
+HUGE_AND_NONFINITE = [
+    # huge specs: refused in one line, at once (before anything is expanded, built or rendered)
+    ("spec: a million builtin seeds", lambda f: _ds(f, "seeds1m", 'kind = "builtin"\nseeds = "0:999999"\n'),
+     (2,), True, True, None),
+    ("spec: a million clips per asset", lambda f: (_asset_dir(f), _ds(f, "cpa1m", 'kind = "assets"\npaths = '
+                                                   '["assets"]\nclips_per_asset = 1000000\n'))[1],
+     (2,), True, True, None),
+    ("spec: a million clips per scene", lambda f: (_asset_dir(f), _ds(f, "cps1m", 'kind = "scene"\npaths = '
+                                                   '["assets"]\nclips_per_scene = 1000000\n'))[1],
+     (2,), False, True, None),
+    ("spec: hr_spp above Cycles' cap", lambda f: _ds(f, "spp", 'kind = "builtin"\nseeds = "0:1"\n',
+                                                       "hr_spp = 1000000000\n"), (2,), True, True, None),
+    ("spec: hdri_strength = inf", lambda f: _ds(f, "inf", 'kind = "builtin"\nseeds = "0:1"\nhdri_strength = inf\n'),
+     (2,), True, True, None),
+    ("spec: target_size_m = nan", lambda f: (_asset_dir(f), _ds(f, "nan", 'kind = "assets"\npaths = ["assets"]\n'
+                                                              'target_size_m = nan\n'))[1], (2,), False, True, None),
+    ("spec: a test asset in a train source", lambda f: (_asset_dir(f), _ds(
+        f, "leak", 'kind = "assets"\npaths = ["assets"]\nsplit = "train"\n', "[splits]\ntest = [\"Lamp\"]\n"))[1],
+     (2,), True, True, None),
+    ("render: a million frames", lambda f: _r("-o", str(f.root / "h1"), "--hr-size", "64x36", "--frames",
+                                              "1:100000000", "--threads", "1"), (2,), True, False, None),
+    ("render: a billion samples", lambda f: _r("-o", str(f.root / "h2"), "--hr-size", "64x36", "--frames", "1:1",
+                                               "--hr-spp", "1000000000"), (2,), False, False, None),
+    ("render: LR under 4 px", lambda f: _r("-o", str(f.root / "h3"), "--hr-size", "12x12", "--frames", "1:1"),
+     (2,), False, False, None),
+    # non-finite values through evaluate and upscale
+    ("evaluate: Inf in the ground truth", lambda f: [
+        "evaluate", "--model", "bilinear", "--data", str(f.variant("gt_inf", lambda c: _edit_exr(
+            c, 2, "hr/radiance", lambda a: _set(a, (3, 4, 0), float("inf"))))), "--json", str(f.root / "n1.json")],
+     (2,), True, True, lambda f, code, err: None if "000002.exr" in err else "the error names no file"),
+    ("evaluate: NaN in the ground truth", lambda f: [
+        "evaluate", "--model", "bicubic", "--data", str(f.variant("gt_nan", lambda c: _edit_exr(
+            c, 1, "hr/radiance", lambda a: _set(a, (5, 5, 1), float("nan"))))), "--json", str(f.root / "n2.json")],
+     (2,), False, True, lambda f, code, err: None if "000001.exr" in err else "the error names no file"),
+    ("evaluate: NaN in an LR input (model output NaN)", lambda f: [
+        "evaluate", "--model", "bilinear", "--data", str(f.variant("lr_nan", lambda c: _edit_exr(
+            c, 2, "lr/radiance", lambda a: _set(a, (3, 4, 0), float("nan"))))), "--json", str(f.root / "n3.json"),
+        "--no-flip"],
+     (0,), True, True, lambda f, code, err: ("no warning" if "warning:" not in err else
+                                             _eval_json_finite(f.root / "n3.json"))),
+    ("upscale: NaN in an LR input", lambda f: [
+        "upscale", "--model", "bilinear", "--clip", str(f.variant("lr_nan", None)), "-o", str(f.root / "n4")],
+     (0,), True, True, lambda f, code, err: ("no warning" if "warning:" not in err else
+                                             _sr_finite(f.root / "n4"))),
+    ("upscale: Inf in an LR input", lambda f: [
+        "upscale", "--model", "bicubic", "--clip", str(f.variant("lr_inf", lambda c: _edit_exr(
+            c, 1, "lr/radiance", lambda a: _set(a, (2, 2, 2), float("inf"))))), "-o", str(f.root / "n5")],
+     (0,), False, True, lambda f, code, err: ("no warning" if "warning:" not in err else
+                                             _sr_finite(f.root / "n5"))),
+]
+
+
+def huge_and_nonfinite(fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
+    """Huge specs and non-finite values through evaluate and upscale (issue 26): refused in one line within
+    RUNAWAY_S seconds, or accepted with a warning and finite results."""
+    for name, argv_of, expect, is_quick, inproc, check in HUGE_AND_NONFINITE:
+        if quick and not is_quick:
+            continue
+        argv = argv_of(fx)
+        t0 = time.perf_counter()
+        if inproc:
+            code, err, escaped = run_inproc(argv)
+        else:
+            try:
+                proc = cli(argv, timeout=RUNAWAY_S * 3)
+                code, err, escaped = proc.returncode, proc.stderr, False
+            except subprocess.TimeoutExpired:
+                code, err, escaped = -9, "runaway", False
+        took = time.perf_counter() - t0
+        tally.inputs_tried += 1
+        problems = []
+        if escaped or TRACEBACK in err:
+            tally.tracebacks += 1
+            problems.append("traceback")
+        if code not in expect:
+            tally.wrong_exit += 1
+            problems.append(f"exit {code}, expected {expect}")
+        elif took > RUNAWAY_S:
+            tally.wrong_exit += 1
+            problems.append(f"runaway: {took:.0f} s")
+        if code == 2 and "error:" not in err:
+            tally.no_error_line += 1
+            problems.append("no 'error:' line")
+        extra = check(fx, code, err) if check is not None and code in expect else None
+        if extra:
+            tally.results_differ += 1
+            problems.append(extra)
+        if problems:
+            last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
+            tally.fail(f"{name}: {', '.join(problems)}: {last[0][:200]}")
+        log(f"  {'FAIL' if problems else 'ok  '} {name}: exit {code} ({took:.1f} s)")
 
 
 # ------------------------------------------------------------------------------------------------ random inputs
@@ -1145,7 +1286,8 @@ def full_filesystem(fx: Fixtures, tally: Tally, log=print) -> None:
 
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
-             parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs"),
+             parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs",
+                    "huge"),
              signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
@@ -1154,6 +1296,9 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "bad" in parts:
         log("bad inputs:")
         bad_inputs(fx, tally, quick, log)
+    if "huge" in parts:
+        log("huge specs, non-finite values through evaluate and upscale:")
+        huge_and_nonfinite(fx, tally, quick, log)
     if "random" in parts:
         log("random inputs (hypothesis):")
         random_inputs(fx, tally, examples, log)
@@ -1187,7 +1332,7 @@ def main(argv=None) -> int:
     p.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (render, train)")
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
-    p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs",
+    p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge",
                    help="comma-separated parts to run")
     p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
     p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "

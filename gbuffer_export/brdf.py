@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import BlendSRError
 from .brdf_common import cache_dir, hammersley, load_or_generate_file, radical_inverse_base2  # noqa: F401
 from .conventions import Flag, pixel_grid, rays_camera
 
@@ -64,11 +65,11 @@ class LutSpec:
 
     def __post_init__(self):
         if not (isinstance(self.size, (int, np.integer)) and 2 <= self.size <= 4096):
-            raise ValueError(f"LUT size {self.size!r} must be an integer in [2, 4096]")
+            raise BlendSRError(f"LUT size {self.size!r} must be an integer in [2, 4096]")
         if not (isinstance(self.samples, (int, np.integer)) and 1 <= self.samples <= 1 << 22):
-            raise ValueError(f"LUT samples {self.samples!r} must be an integer in [1, {1 << 22}]")
+            raise BlendSRError(f"LUT samples {self.samples!r} must be an integer in [1, {1 << 22}]")
         if self.convention not in CONVENTIONS:
-            raise ValueError(f"LUT convention {self.convention!r} must be one of {', '.join(CONVENTIONS)}")
+            raise BlendSRError(f"LUT convention {self.convention!r} must be one of {', '.join(CONVENTIONS)}")
 
     @property
     def key(self) -> str:
@@ -101,7 +102,7 @@ def alpha_k(roughness, convention: str = "ibl"):
         return alpha, alpha / 2.0
     if convention == "paper":
         return r, (r + 1.0) ** 2 / 8.0
-    raise ValueError(f"unknown table convention {convention!r}; use one of {', '.join(CONVENTIONS)}")
+    raise BlendSRError(f"unknown table convention {convention!r}; use one of {', '.join(CONVENTIONS)}")
 
 
 def _row_ab(nov: np.ndarray, alpha: float, k: float, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +359,7 @@ def compute_fbeta(source: str, gbuf: dict[str, np.ndarray], intrinsics, jitter=(
     intrinsics (fx, fy, cx, cy) and jitter (dx, dy) in pixels of this level. ``lut`` overrides the cached table
     (for 'lut'/'lut-paper')."""
     if source not in SOURCES:
-        raise ValueError(f"unknown F_beta source {source!r}; use one of {', '.join(SOURCES)} "
+        raise BlendSRError(f"unknown F_beta source {source!r}; use one of {', '.join(SOURCES)} "
                          "('cycles' comes from the renderer's colour passes)")
     mat = material_from_gbuf(gbuf)
     nov = compute_nov(gbuf["normal"], intrinsics, jitter).astype(np.float64)

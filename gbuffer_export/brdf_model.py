@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from .errors import BlendSRError
 
 #: Bump when the model tables change.
 MODEL_VERSION = 1
@@ -51,9 +52,9 @@ class ModelSpec:
     def __post_init__(self):
         for name in ("n_rough", "n_mu", "n_z"):
             if not 2 <= getattr(self, name) <= 1024:
-                raise ValueError(f"model table {name} must be in [2, 1024]")
+                raise BlendSRError(f"model table {name} must be in [2, 1024]")
         if not 16 <= self.samples <= 1 << 20:
-            raise ValueError("model table samples must be in [16, 2^20]")
+            raise BlendSRError("model table samples must be in [16, 2^20]")
 
     @property
     def key(self) -> str:
@@ -216,12 +217,12 @@ def load_model_tables(path: str | os.PathLike, spec: ModelSpec) -> ModelTables:
             t = ModelTables(spec, z["e"], z["e_avg"], z["s5"], z["s_ior"])
             version = int(z["version"])
     except (OSError, KeyError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path}: unreadable model tables ({exc})") from None
+        raise BlendSRError(f"{path}: unreadable model tables ({exc})") from None
     if (version != MODEL_VERSION or t.e.shape != (spec.n_rough, spec.n_mu)
             or t.s_ior.shape != (spec.n_rough, spec.n_mu, spec.n_z) or t.e_avg.shape != (spec.n_rough,)):
-        raise ValueError(f"{path}: model tables do not match {spec}")
+        raise BlendSRError(f"{path}: model tables do not match {spec}")
     if not all(np.all(np.isfinite(a)) for a in (t.e, t.e_avg, t.s5, t.s_ior)):
-        raise ValueError(f"{path}: model tables hold non-finite values")
+        raise BlendSRError(f"{path}: model tables hold non-finite values")
     return t
 
 

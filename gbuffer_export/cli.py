@@ -11,14 +11,23 @@ lists every command with any subset of the extras installed; each command checks
 fails for lack of an extra's module (another package's command importing torch at module level) is listed as a
 command that says which extra to install.
 
-Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error).
+Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error), 130
+interrupted, 70 an internal error (a bug in BlendSR: the traceback, then one line asking to report it).
+
+The error boundary (``main``): bad input is ``gbuffer_export.errors.BlendSRError`` (every typed error of BlendSR
+subclasses it), a missing/existing/not-a-folder path, a file that does not parse (JSON, TOML, text encoding) and a
+filesystem fault (read-only file system, no space left, permission denied, quota): one line
+``blendsr: error: PATH: read-only file system`` and exit 2. Anything else is a bug and says so.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+import traceback
 from importlib import metadata
+
+from .errors import EXIT_INTERNAL, FILESYSTEM_ERRNOS, BlendSRError, bad_input_line, first_line  # noqa: F401
 
 #: The core's own commands, in the order ``--help`` lists them (used as is when blendsr's metadata is not
 #: installed, e.g. a source tree on PYTHONPATH); commands of other packages follow in name order.
@@ -74,7 +83,7 @@ class MissingModule:
         p.set_defaults(func=fail)
 
 
-class UsageError(Exception):
+class UsageError(BlendSRError):
     """Bad input: printed as one line 'blendsr: error: ...' with exit code 2."""
 
 
@@ -102,8 +111,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:  # Ctrl-C while the command modules load: nothing started yet
+        print("blendsr: interrupted", file=sys.stderr)
+        return 130
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -113,15 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
-    except ModuleNotFoundError as exc:  # an extra's module imported late inside a command: name the extra
+    except Exception as exc:  # noqa: BLE001 - the one error boundary of the CLI
         from .extras import missing_module_message
-        if missing_module_message(exc) is None:
-            raise
-        print(f"blendsr: error: {missing_module_message(exc)}", file=sys.stderr)
-        return 2
-    except (UsageError, ValueError, FileNotFoundError, FileExistsError, NotADirectoryError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"blendsr: error: {msg}", file=sys.stderr)
+        # an extra's module imported late inside a command names the extra; other bad input is typed
+        line = (missing_module_message(exc) if isinstance(exc, ModuleNotFoundError) else None) or bad_input_line(exc)
+        if line is None:
+            traceback.print_exc()
+            print(f"blendsr: internal error (a bug, please report it with the traceback above): "
+                  f"{type(exc).__name__}: {first_line(exc)}", file=sys.stderr)
+            return EXIT_INTERNAL
+        print(f"blendsr: error: {line}", file=sys.stderr)
         return 2
 
 

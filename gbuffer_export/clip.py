@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from .errors import BlendSRError
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, is_level_name,
                           level_name)
@@ -46,7 +47,7 @@ MANIFEST_LOCK = ".lock.manifest"    # held while the header is claimed or the ma
 VOLATILE_KEYS = ("shard", "created", "frame_data", "identity", "command")
 
 
-class ClipError(ValueError):
+class ClipError(BlendSRError):
     """A clip that cannot be opened or written as asked. The message is one line naming the path."""
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+from .errors import BlendSRError
 
 #: The RGB space of every colour buffer that training and evaluation see: scene-referred linear RGB with the
 #: ITU-R BT.709 (= sRGB) primaries and D65 white; Blender's name, as the manifest's ``scene_linear`` writes it.
@@ -82,7 +83,7 @@ def conversion_matrix(src: str, dst: str = TRAINING_SPACE) -> np.ndarray | None:
     same space. ValueError naming the space when one is not in ``WORKING_SPACES``."""
     for name in (src, dst):
         if name not in WORKING_SPACES:
-            raise ValueError(f"working colour space {name!r} is not one blendsr converts (known: "
+            raise BlendSRError(f"working colour space {name!r} is not one blendsr converts (known: "
                              f"{', '.join(WORKING_SPACES)})")
     if src == dst:
         return None

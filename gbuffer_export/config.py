@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import BlendSRError
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
@@ -23,7 +24,13 @@ JITTERS = ("none", "halton")
 FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
 
 
-class ConfigError(ValueError):
+#: Cycles' cap on samples per pixel (2^24): a larger request would be rendered at the cap and recorded wrongly.
+MAX_SPP = 16_777_216
+#: Blender's smallest render size in pixels (a side under it is rendered at 4 px, not at the size asked).
+MIN_RENDER_PX = 4
+
+
+class ConfigError(BlendSRError):
     """An invalid configuration value; the message names the option."""
 
 
@@ -150,6 +157,9 @@ class RenderConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ConfigError(f"--{name.replace('_', '-')} {v!r}: must be a positive integer")
+            if v > MAX_SPP:
+                raise ConfigError(f"--{name.replace('_', '-')} {v}: Cycles renders at most {MAX_SPP} samples per "
+                                  "pixel")
         if not camera_path_ok(self.camera_path):
             raise ConfigError(f"--camera-path {self.camera_path!r}: choose one of {', '.join(CAMERA_PATHS)}, "
                               "scene:NAME or scene:*")
@@ -184,9 +194,15 @@ class RenderConfig:
     def check_size(self, hr_size: tuple[int, int], what: str) -> dict[float, tuple[int, int]]:
         """{scale: LR size} of every scale; ConfigError naming ``what`` and the nearest valid sizes otherwise."""
         try:
-            return check_level_sizes(hr_size, self.scales, what)
+            sizes = check_level_sizes(hr_size, self.scales, what)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        for s, (w, h) in sizes.items():
+            if min(w, h) < MIN_RENDER_PX:
+                raise ConfigError(f"{what} {hr_size[0]}x{hr_size[1]} at scale {s:g} gives an LR frame of {w}x{h}: "
+                                  f"Blender renders no side under {MIN_RENDER_PX} pixels (use a larger {what} or a "
+                                  "smaller scale)")
+        return sizes
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)

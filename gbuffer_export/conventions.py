@@ -40,6 +40,7 @@ from enum import IntFlag
 from fractions import Fraction
 
 import numpy as np
+from .errors import BlendSRError
 
 SCHEMA = "blendsr.clip"
 SCHEMA_VERSION = 2  # 2: several LR levels (``levels[...]["scale"]``, ``lr_x<s>``); version 1 clips are still read
@@ -140,7 +141,7 @@ def buffer_spec(name: str) -> BufferSpec:
     try:
         return BUFFERS[name]
     except KeyError:
-        raise ValueError(f"unknown buffer {name!r}; known buffers: {', '.join(BUFFERS)}") from None
+        raise BlendSRError(f"unknown buffer {name!r}; known buffers: {', '.join(BUFFERS)}") from None
 
 
 def parse_buffer_list(text: str) -> tuple[str, ...]:
@@ -182,10 +183,10 @@ def scale_fraction(scale: float) -> Fraction:
     """``scale`` as p/q in lowest terms (q <= 1000): 2.5 -> 5/2, 3.75 -> 15/4. ValueError for a scale that is not
     a finite number >= 1 or has no such fraction."""
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale < 1:
-        raise ValueError(f"scale {scale!r} is not a number >= 1")
+        raise BlendSRError(f"scale {scale!r} is not a number >= 1")
     fr = Fraction(scale).limit_denominator(1000)
     if abs(float(fr) - scale) > 1e-9 * scale:
-        raise ValueError(f"scale {scale!r} is not a ratio of integers with a denominator up to 1000")
+        raise BlendSRError(f"scale {scale!r} is not a ratio of integers with a denominator up to 1000")
     return fr
 
 
@@ -236,7 +237,7 @@ def check_level_sizes(hr_size: tuple[int, int], scales, option: str = "--hr-size
         if size is None:
             (wb, hb), (wa, ha) = nearest_divisible_sizes(hr_size, scales)
             near = f"{wb}x{hb} or {wa}x{ha}" if (wb, hb) != (wa, ha) else f"{wa}x{ha}"
-            raise ValueError(f"{option} {w}x{h} is not divisible by scale {s:g} ({w}/{s:g} = {w / s:g}, "
+            raise BlendSRError(f"{option} {w}x{h} is not divisible by scale {s:g} ({w}/{s:g} = {w / s:g}, "
                              f"{h}/{s:g} = {h / s:g}); nearest sizes that every scale divides: {near}")
         out[float(s)] = size
     return out

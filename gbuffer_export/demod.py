@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import BlendSRError
 from .conventions import UNTRUSTED, Flag
 
 #: Largest magnitude kept in radiance/emission; +-Inf become +-RADIANCE_CAP (scene-linear units).
@@ -83,7 +84,7 @@ def sanitize(values: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
 def _check_eps(eps: float) -> float:
     eps = float(eps)
     if not (np.isfinite(eps) and EPS_MIN <= eps <= 1.0):
-        raise ValueError(f"demodulation eps {eps!r} must lie in [{EPS_MIN}, 1]")
+        raise BlendSRError(f"demodulation eps {eps!r} must lie in [{EPS_MIN}, 1]")
     return eps
 
 

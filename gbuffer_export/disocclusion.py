@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import BlendSRError
 from .conventions import backward_warp, transform_points, unproject
 
 #: Round-trip tolerance of ``from_motion``, pixels of the level (NSRD's code gates each component at 0.1 px).
@@ -73,9 +74,9 @@ def clip_mask(clip, frame: int, level: str, method: str = "auto", **kw) -> np.nd
     if method == "auto":
         method = "motion" if "motion_next" in clip.buffers else "depth"
     if method not in ("motion", "depth"):
-        raise ValueError(f"disocclusion method {method!r}: choose motion, depth or auto")
+        raise BlendSRError(f"disocclusion method {method!r}: choose motion, depth or auto")
     if frame - 1 not in clip.frames or frame not in clip.frames:
-        raise ValueError(f"{clip.path}: frames {frame - 1} and {frame} must both be finished for a disocclusion mask")
+        raise BlendSRError(f"{clip.path}: frames {frame - 1} and {frame} must both be finished for a disocclusion mask")
     cam, cam_prev = clip.camera(frame, level), clip.camera(frame - 1, level)
     jit = dict(jitter=cam["jitter"], jitter_prev=cam_prev["jitter"])
     motion = clip.read(frame, f"{level}/motion")

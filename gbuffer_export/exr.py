@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from .errors import BlendSRError
+
 HALF_MAX = 65504.0
 
 
-class ExrError(ValueError):
+class ExrError(BlendSRError):
     """A file that is not a readable EXR, or lacks what the caller asked for. The message names the file."""
 
 

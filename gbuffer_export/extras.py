@@ -10,6 +10,8 @@ import argparse
 import importlib.util
 import re
 
+from .errors import BlendSRError
+
 #: extra -> the top-level modules it installs (import names), as in pyproject.toml's optional-dependencies.
 EXTRAS: dict[str, tuple[str, ...]] = {
     "render": ("bpy", "trimesh", "rtree", "scipy", "embreex"),
@@ -19,8 +21,8 @@ EXTRAS: dict[str, tuple[str, ...]] = {
 }
 
 
-class MissingExtra(ValueError):
-    """An optional extra a command needs is not installed (a ValueError: the CLI prints it as one line, exit 2)."""
+class MissingExtra(BlendSRError):
+    """An optional extra a command needs is not installed (bad input: the CLI prints it as one line, exit 2)."""
 
 
 def installed(module: str) -> bool:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from .errors import BlendSRError
 
 FILTERS = ("BOX", "GAUSSIAN", "BLACKMAN_HARRIS")
 
@@ -82,9 +83,9 @@ def reference_filter(manifest: dict) -> tuple[str, float]:
 def _check(filter_type: str, width_px: float) -> str:
     ft = str(filter_type).upper()
     if ft not in FILTERS:
-        raise ValueError(f"pixel filter {filter_type!r}: choose one of {', '.join(FILTERS)}")
+        raise BlendSRError(f"pixel filter {filter_type!r}: choose one of {', '.join(FILTERS)}")
     if not (float(width_px) > 0):
-        raise ValueError(f"pixel filter width {width_px!r}: must be > 0 pixels")
+        raise BlendSRError(f"pixel filter width {width_px!r}: must be > 0 pixels")
     return ft
 
 

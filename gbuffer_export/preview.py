@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import BlendSRError
 from .colour_spaces import srgb_encode
 from .conventions import Flag
 
@@ -239,7 +240,7 @@ def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=N
             row.append((label, _fit(img, h, width)))
         rows.append(row)
     if not rows:
-        raise ValueError(f"{root}: no finished clip to show")
+        raise BlendSRError(f"{root}: no finished clip to show")
     h = max(r[0][1].shape[0] for r in rows)
     rows = [[(lab, _fit(img, h, width)) for lab, img in r] for r in rows]
     save_png(path, labelled_grid(rows))

@@ -116,7 +116,10 @@ def test_hash_split_rule_is_stable_and_near_its_fractions():
     assert abs(got.count("test") / 2000 - 0.2) < 0.03 and abs(got.count("val") / 2000 - 0.1) < 0.03
     assert stable_hash("a", 1) == stable_hash("a", 1) != stable_hash("a", 2)
     assert assign_split("x", Splits(test=("x",)), None, 0) == "test"
-    assert assign_split("x", Splits(test=("x",)), "train", 0) == "train"  # a source may force its split
+    assert assign_split("y", Splits(test=("x",)), "train", 0) == "train"  # a source may force its split
+    assert assign_split("x", Splits(test=("x",)), "test", 0) == "test"
+    with pytest.raises(SpecError, match="listed under \\[splits\\] test"):  # but never a test asset into train
+        assign_split("x", Splits(test=("x",)), "train", 0)
 
 
 def test_for_models_buffers():

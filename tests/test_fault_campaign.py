@@ -71,4 +71,14 @@ def test_issue26_family_signals_during_render(tmp_path):
     tally = fc.Tally()
     fc.signal_render(tmp_path, tally, signals=1, rng=random.Random(3), frames=3, log=lambda m: None)
     assert tally.faults == 1
+
+
+@pytest.mark.torch
+def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures):
+    """Issue 26: the families 'huge specs' and 'non-finite values through evaluate and upscale' (quick subset)."""
+    tally = fc.Tally()
+    lines = []
+    fc.huge_and_nonfinite(fixtures, tally, quick=True, log=lines.append)
+    assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
+    print("\n".join(lines))
     _clean(tally)

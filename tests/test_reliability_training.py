@@ -184,3 +184,63 @@ def test_train_and_evaluate_refuse_an_index_path_outside_the_dataset(clip, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(str(ds / INDEX) in e and "clip 'evil'" in e and "outside" in e for e in err), err
     assert not (outside / ".blendsr_cache").exists() and not (tmp_path / "e.json").exists()
+
+
+def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, monkeypatch):
+    """Issue 26 item 12: the message must not name a last.pt that was never written."""
+    from training.config import load_config
+    from training.models.fusesr_l import FuseSRLight
+    from training.train import TrainingError, train
+    real = FuseSRLight.forward
+    monkeypatch.setattr(FuseSRLight, "forward", lambda self, batch: real(self, batch) * float("nan"))
+    cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "run.max_steps=3"])
+    cfg.data.clips = [str(clip)]
+    with pytest.raises(TrainingError) as err:
+        train(cfg, tmp_path / "nan", log=lambda m: None)
+    assert "last.pt" not in str(err.value) and "no checkpoint was written" in str(err.value)
+    assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()
+
+
+def test_the_progress_bar_of_a_minutes_run_counts_time_not_a_million_steps():
+    """Issue 26 item 12: a --minutes run's bar counts the budget's seconds."""
+    from training.config import load_config
+    from training.train import progress_kwargs
+    cfg = load_config(None, ["run.minutes=2"])
+    assert progress_kwargs(cfg, 0) == {"total": 120, "initial": 0, "unit": "s"}
+    cfg = load_config(None, ["run.max_steps=50"])
+    assert progress_kwargs(cfg, 7) == {"total": 50, "initial": 7, "unit": "step"}
+
+
+def test_a_clip_without_fbeta_names_the_missing_buffers_not_the_derived_one(tmp_path, capsys):
+    """Issue 26 item 12: 'lr/irradiance' is computed from lr/radiance and lr/fbeta; the error names what is missing."""
+    bare = make_synthetic_clip(tmp_path / "bare", frames=range(1, 3), hr_size=(64, 36), scale=4,
+                               buffers=("radiance", "depth", "motion", "flags", "normal", "albedo", "roughness",
+                                        "metallic", "emission"))
+    assert main(["train", "--model", "fusesr", "--data", str(bare), "-o", str(tmp_path / "run"), "--max-steps", "1",
+                 *set_args(SMALL)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "'lr/fbeta'" in err and "from which 'lr/irradiance' is computed" in err, err
+
+
+def test_bench_models_help_lists_each_compile_choice_once(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "models", "--help"])
+    out = capsys.readouterr().out
+    assert "{off,on,off,on}" not in out and "{off,on,both}" in out
+
+
+def test_checkpoint_temporaries_of_a_dead_run_are_removed_by_the_next_save(tmp_path):
+    """Issue 26 item 10: a run killed while saving leaves .last.pt.tmpPID; the next save removes it (a live
+    process's temporary is kept)."""
+    import subprocess
+    from training.checkpoint import save_checkpoint
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    d = tmp_path / "checkpoints"
+    d.mkdir()
+    stale = d / f".last.pt.tmp{dead.pid}"
+    stale.write_bytes(b"half")
+    live = d / f".step_00000002.pt.tmp{os.getppid()}"
+    live.write_bytes(b"half")
+    save_checkpoint(d / "last.pt", {"w": torch.zeros(3)})
+    assert not stale.exists() and live.exists() and (d / "last.pt").is_file()

@@ -266,6 +266,8 @@ CASES = {
     "bad-dtype": (lambda c: write(c, 2, "hr/flags", read(c, 2, "hr/flags").astype(np.float32)), ERROR, 2,
                   "hr/flags"),
     "non-finite": (_nan_radiance, ERROR, 2, "hr/radiance"),
+    "negative-radiance": (lambda c: edit_buffer(c, 2, "hr/radiance", lambda a: np.where(
+        surface(c, 2)[..., None], -np.abs(a) - 0.1, a).astype(np.float32)), ERROR, 2, "hr/radiance"),
     "implausible-value": (lambda c: edit_buffer(c, 2, "lr/radiance", lambda a: a.__setitem__((3, 4, 0), 1e30)),
                           WARNING, 2, "lr/radiance"),
     "depth-range": (lambda c: _depth_where(c, -1.0, True), ERROR, 2, "hr/depth"),
@@ -307,6 +309,34 @@ def test_corruption_fires_its_code(clip, code):
     line = hits[0].line()
     assert line.startswith(hits[0].severity.upper()) and "\n" not in line and f"[{code}]" in line
     json.dumps(r.to_dict(), allow_nan=False)
+
+
+def test_half_float_radiance_fails(clip):
+    """The format says float32 for radiance (half overflows at 65504): a half radiance file is bad-dtype."""
+    arr = read(clip, 2, "hr/radiance")
+    write_exr(buffer_path(clip, 2, "hr", "radiance"), {ch: arr[..., i] for i, ch in enumerate("RGB")}, half=True)
+    r = validate_clip(clip)
+    assert not r.ok
+    assert [(f.code, f.frame, f.key) for f in r.errors] == [("bad-dtype", 2, "hr/radiance")]
+
+
+def test_a_little_negative_radiance_from_a_denoiser_passes(clip):
+    s = surface(clip, 2)
+    idx = np.argwhere(s)[:2]
+
+    def fn(a):
+        a[idx[:, 0], idx[:, 1]] = -0.01
+    edit_buffer(clip, 2, "hr/radiance", fn)
+    assert not findings(validate_clip(clip), "negative-radiance")
+
+
+def test_a_render_scratch_folder_is_a_warning(clip):
+    (clip / ".render-999999-abc").mkdir()
+    (clip / ".render-999999-abc" / "hr_radiance.exr").write_bytes(b"x")
+    r = validate_clip(clip)
+    assert r.ok
+    assert [f.code for f in r.warnings] == ["leftover-temp"]
+    assert ".render-999999-abc" in r.warnings[0].line()
 
 
 def test_value_corruptions_fire_only_their_code(clip):

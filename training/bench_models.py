@@ -28,6 +28,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from gbuffer_export.errors import BlendSRError
 
 COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "psnr_hdr", "flip", "tpsnr",
            "warp_error", "roofline_ms", "ratio")
@@ -62,8 +63,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", default=None,
                         help="comma-separated precisions to time: fp32, bf16, fp16, auto (default fp32; with --data "
                              "one precision, default from --amp)")
-    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "off,on"),
-                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); off,on: both")
+    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "both", "off,on"),
+                        metavar="{off,on,both}",
+                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); both (or off,on): "
+                             "measure without and with")
     parser.add_argument("--eager-reference", action="store_true",
                         help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
     parser.add_argument("--repeats", type=int, default=30, help="timed runs per variant (speed mode)")
@@ -101,12 +104,12 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
             continue
         name, sep, path = item.partition(":")
         if name not in MODELS:
-            raise ValueError(f"--models: unknown model {name!r}; choose among {', '.join(MODELS)}")
+            raise BlendSRError(f"--models: unknown model {name!r}; choose among {', '.join(MODELS)}")
         if MODELS[name].learned and not sep and need_checkpoints:
-            raise ValueError(f"--models: {name!r} is learned; write {name}:CHECKPOINT")
+            raise BlendSRError(f"--models: {name!r} is learned; write {name}:CHECKPOINT")
         out.append((checkpoint_label(name, path) if sep else name, path if sep else name))
     if not out:
-        raise ValueError("--models: no model given")
+        raise BlendSRError("--models: no model given")
     return out
 
 
@@ -186,7 +189,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         if spec != name:
             ck_name = load_checkpoint(spec)["model_name"]
             if ck_name != name:
-                raise ValueError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
+                raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
         model = load_model(spec, scale).to(device)
         if precision is not None or compile:
             from training.fastpath import prepare_inference
@@ -252,7 +255,7 @@ def run(args) -> int:
     from training.commands import _dataset_clips
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     precisions = _precisions(args.precision)
-    compiles = {"off": [False], "on": [True], "off,on": [False, True]}[args.compile]
+    compiles = {"off": [False], "on": [True], "both": [False, True], "off,on": [False, True]}[args.compile]
     if not args.data:
         from training.models import MODELS
         models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
@@ -264,7 +267,7 @@ def run(args) -> int:
             print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
     if len(precisions or []) > 1 or len(compiles) > 1:
-        raise ValueError("--data: one --precision and one --compile setting at a time")
+        raise BlendSRError("--data: one --precision and one --compile setting at a time")
     rng = parse_frames(args.frames)
     frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
     benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
@@ -293,7 +296,7 @@ def _precisions(text: str | None) -> list[str] | None:
     out = [p.strip() for p in text.split(",") if p.strip()]
     bad = [p for p in out if p not in ("fp32", "bf16", "fp16", "auto")]
     if bad or not out:
-        raise ValueError(f"--precision {text!r}: comma-separated fp32, bf16, fp16, auto")
+        raise BlendSRError(f"--precision {text!r}: comma-separated fp32, bf16, fp16, auto")
     return out
 
 
@@ -302,7 +305,7 @@ def _size(text: str) -> tuple[int, int]:
     try:
         return parse_size(text)
     except ValueError as exc:
-        raise ValueError(str(exc).replace("--hr-size", "--size")) from None
+        raise BlendSRError(str(exc).replace("--hr-size", "--size")) from None
 
 
 # ------------------------------------------------------------------------------------------------ speed mode
@@ -417,7 +420,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     device = device or resolve_device("auto")
     w, h = size
     if w % scale or h % scale:
-        raise ValueError(f"--size {w}x{h} is not divisible by the scale {scale}")
+        raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
     variants = ([("fp32 eager reference", None)] if reference else []) + \
         [(f"{p}{' compiled' if c else ''}", (p, c)) for c in compiles for p in precisions]
     peaks = {}

@@ -44,6 +44,8 @@ from gbuffer_export.demod import RADIANCE_CAP, demodulate
 CACHE_VERSION = 3  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
+#: The clip buffers the derived ones are computed from (``demodulate``; emission and flags are optional).
+DERIVED_FROM = ("radiance", "fbeta")
 FLOAT32_BUFFERS = ("radiance", "irradiance", "emission", "fbeta_used", "fbeta", "depth", "motion",
                    "motion_next")
 
@@ -238,9 +240,11 @@ class ClipCache:
         for k in missing:
             if not self.has(k):
                 lvl, _, name = k.partition("/")
-                need = "radiance and fbeta" if name in DERIVED else name
-                raise ClipError(f"{self.clip_path}: clip has no buffer {need!r} needed for {k!r} "
-                                f"(has {', '.join(self.clip.buffers)})")
+                lacking = [f"{lvl}/{b}" for b in DERIVED_FROM if b not in self.clip.buffers] \
+                    if name in DERIVED else []
+                what = (f"{' and '.join(map(repr, lacking))} (from which {k!r} is computed)" if lacking
+                        else repr(k))
+                raise ClipError(f"{self.clip_path}: clip has no buffer {what} (has {', '.join(self.clip.buffers)})")
         with self._lock():
             idx = self._read_index()
             if idx is None or idx.get("identity") != self.identity:
@@ -388,5 +392,5 @@ def lr_jitter(clip: Clip, frame: int) -> np.ndarray:
     return np.asarray(clip.camera(frame, "lr")["jitter"], dtype=np.float32)
 
 
-__all__ = ["ClipCache", "lr_jitter", "NonFiniteError", "CacheSpaceError", "default_cache_path", "check_finite",
-           "CACHE_VERSION"]
+__all__ = ["DERIVED_FROM", "ClipCache", "lr_jitter", "NonFiniteError", "CacheSpaceError", "default_cache_path",
+           "check_finite", "CACHE_VERSION"]

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gbuffer_export.errors import BlendSRError
+
 CHECKPOINT_FORMAT = "blendsr.checkpoint"
 CHECKPOINT_VERSION = 2
 
@@ -41,7 +43,7 @@ def _numpy_globals() -> list:
 ALLOWED_GLOBALS = _numpy_globals()
 
 
-class CheckpointError(ValueError):
+class CheckpointError(BlendSRError):
     """A file is not a loadable BlendSR checkpoint (the message names it and says why, on one line)."""
 
 
@@ -72,11 +74,53 @@ def save_checkpoint(path: Path, state: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        torch.save(state, tmp)
+        try:
+            torch.save(state, tmp)
+        except RuntimeError as exc:  # torch reports a failed write as "unexpected pos", not as the OSError it was
+            full = _write_fault(tmp)
+            if full is not None:
+                raise full from exc
+            raise
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+    remove_stale_temporaries(path.parent)
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove ``.NAME.pt.tmpPID`` files of processes that are gone (a run killed while saving); returns them."""
+    gone = []
+    for f in Path(folder).glob(".*.tmp*"):
+        pid = f.name.rsplit(".tmp", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid() or not f.is_file():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            f.unlink(missing_ok=True)
+            gone.append(f)
+        except PermissionError:
+            pass
+    return gone
+
+
+def _write_fault(tmp: Path) -> OSError | None:
+    """The filesystem fault behind a failed torch.save into ``tmp``: ENOSPC when the folder's disk is (nearly) full,
+    EROFS/EACCES when it cannot be written; None when neither explains it."""
+    import errno
+    import shutil
+    folder = tmp.parent
+    try:
+        written = tmp.stat().st_size if tmp.exists() else 0
+        free = shutil.disk_usage(folder).free
+    except OSError as exc:
+        return exc
+    if free < max(1 << 20, written // 8):
+        return OSError(errno.ENOSPC, f"No space left on device ({free} bytes free)", str(folder))
+    if not os.access(folder, os.W_OK):
+        return OSError(errno.EACCES, "Permission denied", str(folder))
+    return None
 
 
 def _unsafe_globals(path: Path) -> list[str]:

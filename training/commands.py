@@ -5,6 +5,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from gbuffer_export.errors import BlendSRError
 
 from gbuffer_export.extras import HelpFormatter, require
 
@@ -117,7 +118,7 @@ def cmd_train(args) -> int:
             print(f"{name:16s} {'learned' if info.learned else 'fixed  '}  {info.description}")
         return 0
     if not args.output:
-        raise ValueError("train: -o RUN_DIR is required")
+        raise BlendSRError("train: -o RUN_DIR is required")
     overrides = list(args.set)
     if args.model:
         overrides.append(f'model.name="{args.model}"')
@@ -135,7 +136,7 @@ def cmd_train(args) -> int:
             ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
             saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
             if sorted(str(Path(c).resolve()) for c in data) != saved:
-                raise ValueError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
+                raise BlendSRError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
     else:
         cfg = load_config(args.config, overrides)
         for note in cfg.notes:
@@ -145,7 +146,7 @@ def cmd_train(args) -> int:
             if val and not cfg.data.val_clips:
                 cfg.data.val_clips = [str(c) for c in val]
         if not args.resume and not args.model and not args.config:
-            raise ValueError("train: --model NAME is required (or model.name in --config)")
+            raise BlendSRError("train: --model NAME is required (or model.name in --config)")
     from training.train import TrainingError, train
     try:
         train(cfg, args.output, resume=args.resume, run_overrides=run_overrides,
@@ -168,14 +169,14 @@ def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
     try:
         return expand_data_paths(paths, split)
     except DatasetError as exc:
-        raise ValueError(str(exc)) from None
+        raise BlendSRError(str(exc)) from None
 
 
 def _scale_of(clips) -> int:
     from gbuffer_export.clip import open_clip
     scales = {open_clip(c).scale for c in clips}
     if len(scales) != 1:
-        raise ValueError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
+        raise BlendSRError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
     return scales.pop()
 
 
@@ -228,7 +229,8 @@ def cmd_upscale(args) -> int:
     frames = _frames(args.frames) or clip.frames
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    times = {}
+    times, nonfinite = {}, {}
+    from training.evaluate import sanitize_output
     iterator = frames
     if not args.no_progress:
         from tqdm import tqdm
@@ -236,11 +238,18 @@ def cmd_upscale(args) -> int:
                         dynamic_ncols=True)
     for f in iterator:
         r = upscale_frame(model, source, f)
-        write_exr(out / f"{f:06d}.exr", {c: r["sr"][..., i] for i, c in enumerate("RGB")})
+        sr, bad = sanitize_output(r["sr"])  # never an EXR with NaN pixels: 0 there, a warning, upscale.json says so
+        if bad:
+            nonfinite[str(f)] = bad
+            print(f"warning: {out / f'{f:06d}.exr'}: the model output {bad} non-finite value(s) (NaN/Inf), written "
+                  "as 0", file=sys.stderr)
+        write_exr(out / f"{f:06d}.exr", {c: sr[..., i] for i, c in enumerate("RGB")})
         times[str(f)] = r["ms"]
     write_json_atomic(out / "upscale.json", {"model": model.spec, "clip": str(args.clip), "scale": clip.scale,
-                                            "frames": [int(f) for f in frames], "ms": times})
-    print(f"wrote {len(frames)} frames to {out}")
+                                            "frames": [int(f) for f in frames], "ms": times,
+                                            "nonfinite_values": nonfinite})
+    print(f"wrote {len(frames)} frames to {out}"
+          + (f" ({len(nonfinite)} with non-finite model output set to 0)" if nonfinite else ""))
     return 0
 
 

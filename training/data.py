@@ -24,6 +24,7 @@ from gbuffer_export.clip import ClipError
 from gbuffer_export.conventions import scale_fraction
 from gbuffer_export.demod import undivided_mask
 from training.augment import Augmentation, apply, apply_vector
+from training.cache import DERIVED, DERIVED_FROM
 from training.models import OPTIONAL_KEYS
 
 
@@ -87,7 +88,12 @@ def present_keys(source, keys) -> list[str]:
         if source.has(k):
             out.append(k)
         elif k not in OPTIONAL_KEYS:
-            raise ClipError(f"{source.clip_path}: clip lacks {k!r}, which the model needs "
+            lvl, _, name = k.partition("/")
+            lacking = [f"{lvl}/{b}" for b in DERIVED_FROM if b not in source.clip.buffers] \
+                if name in DERIVED else []
+            what = (f"{' and '.join(map(repr, lacking))} (from which {k!r} is computed)" if lacking
+                    else repr(k))
+            raise ClipError(f"{source.clip_path}: clip lacks {what}, which the model needs "
                             f"(has {', '.join(source.clip.buffers)})")
     return out
 

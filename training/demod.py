@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from gbuffer_export.errors import BlendSRError
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.demod import DEFAULT_EPS, EPS_MIN, FBETA_MAX, RADIANCE_CAP
 
@@ -40,7 +41,7 @@ def fbeta_for_division(fbeta: torch.Tensor, flags: torch.Tensor | None = None, e
     """The F_beta that demodulation divides by: (..., 3, H, W) float64 holding float32-representable values."""
     eps = float(eps)
     if not (EPS_MIN <= eps <= 1.0):
-        raise ValueError(f"demodulation eps {eps!r} must lie in [{EPS_MIN}, 1]")
+        raise BlendSRError(f"demodulation eps {eps!r} must lie in [{EPS_MIN}, 1]")
     f = fbeta.to(torch.float64)
     if f.shape[-3] == 1:
         f = f.expand(*f.shape[:-3], 3, *f.shape[-2:])

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gbuffer_export.clip import ClipError, open_clip
+from gbuffer_export.clip import ClipError, buffer_path, open_clip
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.exr import write_exr
 from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
@@ -85,6 +85,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
     eps = data_cfg.demod_eps if data_cfg is not None else getattr(model, "demod_eps", 0.01)
     runner = FlipRunner() if flip else None
     per_frame: list[dict] = []
+    warnings: list[str] = []
     try:
         jobs = []  # (clip path, Clip, scale), checked before anything runs
         for c in clips:
@@ -123,9 +124,13 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                 else:
                     sr, ms = run_model(model, inputs, device, amp)
                 gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
-                bad = int((~np.isfinite(sr)).sum())
+                check_ground_truth(gt, clip_path, f)
+                sr, bad = sanitize_output(sr)
                 if bad:
-                    sr = np.nan_to_num(sr, nan=0.0, posinf=0.0, neginf=0.0)
+                    msg = (f"{clip_path} frame {f} (x{s_clip:g}): the model output {bad} non-finite value(s) "
+                           "(NaN/Inf), scored as 0; its scores are not the model's")
+                    warnings.append(msg)
+                    print(f"warning: {msg}", file=sys.stderr)
                 row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
                        "sr_nonfinite": bad,
                        "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
@@ -181,11 +186,32 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
         "psnr_cap_db": metrics.PSNR_CAP,
         "timing": f"median over frames of the forward pass after {warmup} warm-up runs, inputs on the device",
         "flip_failures": runner.failures if runner is not None else [],
+        "sr_nonfinite_frames": sum(1 for r in per_frame if r["sr_nonfinite"]),
+        "warnings": warnings,
         "clips": [str(c) for c in clips],
         "mean": mean,
         "per_scale": per_scale,
         "per_frame": per_frame,
     }
+
+
+def check_ground_truth(gt: np.ndarray, clip_path, frame: int) -> None:
+    """A ground truth with NaN/Inf gives scores that mean nothing: ClipError naming its file."""
+    bad = ~np.isfinite(gt)
+    if bad.any():
+        path = buffer_path(Path(clip_path), frame, "hr", "radiance")
+        raise ClipError(f"{path}: the ground truth holds {int(bad.sum())} non-finite value(s) "
+                        f"({int(np.isnan(gt).sum())} NaN, {int(np.isinf(gt).sum())} Inf); re-render the frame or "
+                        "leave it out with --frames")
+
+
+def sanitize_output(sr: np.ndarray) -> tuple[np.ndarray, int]:
+    """(``sr`` with NaN/Inf replaced by 0, how many there were): a model output is never scored or written with
+    non-finite pixels; the caller warns and records the count."""
+    bad = int((~np.isfinite(sr)).sum())
+    if bad:
+        sr = np.nan_to_num(sr, nan=0.0, posinf=0.0, neginf=0.0)
+    return sr, bad
 
 
 def _regions(source, frame: int, sr: np.ndarray, gt: np.ndarray) -> dict | None:

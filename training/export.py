@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gbuffer_export.errors import BlendSRError
 from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
 
@@ -88,7 +89,7 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
     w, h = hr_size or (128, 72)
     s = model.scale
     if (w / s) % 1 or (h / s) % 1:
-        raise ValueError(f"--hr-size {w}x{h} is not divisible by the scale {s}")
+        raise BlendSRError(f"--hr-size {w}x{h} is not divisible by the scale {s}")
     rng = np.random.default_rng(seed)
     t = model.window
     out = {}
@@ -140,7 +141,7 @@ def recurrent_example_frames(model, clip: str | None, hr_size, frames: int = 3) 
         from training.inference import ClipFrames
         src = ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
         if len(src.frames) < frames:
-            raise ValueError(f"{clip}: the check needs {frames} consecutive frames, the clip has {len(src.frames)}")
+            raise BlendSRError(f"{clip}: the check needs {frames} consecutive frames, the clip has {len(src.frames)}")
         spec = BatchSpec.for_model(model, targets=())
         out = []
         for f in src.frames[-frames:]:

@@ -21,6 +21,7 @@ from contextlib import nullcontext
 
 import torch
 import torch.nn as nn
+from gbuffer_export.errors import BlendSRError
 
 PRECISIONS = ("fp32", "bf16", "fp16", "auto")
 
@@ -28,7 +29,7 @@ PRECISIONS = ("fp32", "bf16", "fp16", "auto")
 def precision_dtype(precision: str, device: torch.device) -> torch.dtype | None:
     """Autocast dtype of a precision name on ``device`` (None: fp32)."""
     if precision not in PRECISIONS:
-        raise ValueError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+        raise BlendSRError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
     from training.device import amp_dtype
     return amp_dtype({"fp32": "none"}.get(precision, precision), device)
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gbuffer_export.errors import BlendSRError
 from gbuffer_export.clip import Clip, ClipError, open_clip
 from gbuffer_export.colour_spaces import TRAINING_SPACE
 from gbuffer_export.conventions import LEVELS
@@ -108,14 +109,14 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     moving the model to set the precision or compile)."""
     scale = int(scale) if float(scale).is_integer() else float(scale)
     if overrides and spec not in MODELS:
-        raise ValueError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
+        raise BlendSRError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
     if spec in MODELS:
         if MODELS[spec].learned:
-            raise ValueError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
+            raise BlendSRError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
                              "'blendsr train', not its name")
         bad = [o for o in overrides if not o.strip().startswith("model.")]
         if bad:
-            raise ValueError(f"--set {bad[0]!r}: only model.KEY=VALUE applies to a non-learned model")
+            raise BlendSRError(f"--set {bad[0]!r}: only model.KEY=VALUE applies to a non-learned model")
         if overrides:
             from training.config import load_config
             cfg = load_config(None, [*overrides, f'model.name="{spec}"']).model
@@ -136,7 +137,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         from training.models import model_class
         cfg = config_from_checkpoint(ck["config"], source=str(path))
         if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
-            raise ValueError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
+            raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
         model = build_model(cfg.model, scale)
         model.load_state_dict(inference_weights(ck))
         model.demod_eps = cfg.data.demod_eps

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from pytorch_msssim import ssim as _ssim
 
+from gbuffer_export.errors import BlendSRError
 from training.models.base import backward_warp
 from training.transforms import HDR_PEAK, tonemap
 
@@ -59,7 +60,7 @@ def psnr_tm(sr: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> f
 def ssim_tm(sr: np.ndarray, gt: np.ndarray) -> float:
     a, b = tonemapped(sr), tonemapped(gt)
     if min(a.shape[-2:]) < 11:
-        raise ValueError(f"SSIM needs images of at least 11 x 11 pixels, got {tuple(a.shape[-2:])}")
+        raise BlendSRError(f"SSIM needs images of at least 11 x 11 pixels, got {tuple(a.shape[-2:])}")
     return float(_ssim(a, b, data_range=1.0, size_average=True))
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from gbuffer_export.errors import BlendSRError
 from training.pretrained import MAX_BYTES
 
 
@@ -26,7 +27,7 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     size = tmp.stat().st_size
     if size > MAX_BYTES:
         tmp.unlink()
-        raise ValueError(f"{out}: {size} bytes exceeds the 10 MB limit for shipped weights")
+        raise BlendSRError(f"{out}: {size} bytes exceeds the 10 MB limit for shipped weights")
     tmp.replace(out)
     from training.inference import load_model
     model = load_model(str(out), int(ck["scale"]))

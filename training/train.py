@@ -57,6 +57,14 @@ class TrainingError(RuntimeError):
 
 # ------------------------------------------------------------------------------------------------- devices
 # ------------------------------------------------------------------------------------------------- helpers
+def progress_kwargs(cfg, step: int) -> dict:
+    """tqdm's total/initial/unit: a ``run.minutes`` budget counts seconds of that budget (its steps are unknown:
+    counting to ``run.max_steps`` would show an ETA of days), otherwise steps up to ``run.max_steps``."""
+    if cfg.run.minutes:
+        return {"total": max(int(round(60 * cfg.run.minutes)), 1), "initial": 0, "unit": "s"}
+    return {"total": cfg.run.max_steps, "initial": step, "unit": "step"}
+
+
 def to_device(batch: dict, device: torch.device) -> dict[str, torch.Tensor]:
     """numpy arrays or (pinned) CPU tensors -> tensors on ``device`` (asynchronous copies where pinned)."""
     return {k: (v if isinstance(v, torch.Tensor) else torch.from_numpy(v)).to(device, non_blocking=True)
@@ -488,8 +496,7 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
     bar = None
     if cfg.run.progress and dist.main:
         from tqdm import tqdm
-        bar = tqdm(total=cfg.run.max_steps, initial=step, desc=f"train {cfg.model.name}", unit="step",
-                   dynamic_ncols=True)
+        bar = tqdm(**progress_kwargs(cfg, step), desc=f"train {cfg.model.name}", dynamic_ncols=True)
     prefetch = make_loader(sampler, step, cfg, device)
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True  # fixed crop size: cuDNN picks its fastest algorithms once
@@ -525,7 +532,9 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
                 bad_sr = not bool(torch.isfinite(sr).all())
                 raise TrainingError(f"loss became {loss.item()} at step {step + 1} (rank {dist.rank}; "
                                     f"{'the model output' if bad_sr else 'a loss term'} is not finite; batch: "
-                                    f"{where}); training stopped, last checkpoint: {last}")
+                                    f"{where}); training stopped, "
+                                    + (f"last checkpoint: {last}" if last.is_file() else "no checkpoint was written "
+                                       "before it"))
             if not recurrent:
                 optimizer.zero_grad(set_to_none=True)
                 backward(loss)
@@ -554,8 +563,12 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             data_times.append(t1 - t0)
             elapsed = elapsed_before + (t2 - t_start)
             if bar is not None:
-                bar.update(1)
-                post = {"loss": f"{loss.item():.4f}",
+                if cfg.run.minutes:  # a time budget: the bar counts its seconds, the postfix the steps
+                    bar.update(max(min(int(elapsed - elapsed_before), bar.total) - bar.n, 0))
+                else:
+                    bar.update(1)
+                post = {"step": step} if cfg.run.minutes else {}
+                post |= {"loss": f"{loss.item():.4f}",
                         "samples_s": f"{cfg.data.batch_size * dist.world / (t2 - t0):.1f}"}
                 if cfg.run.minutes:  # the time budget often ends the run long before max_steps (bar's ETA)
                     post["min_left"] = f"{max(cfg.run.minutes - (elapsed - elapsed_before) / 60, 0):.1f}"

@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import torch
+from gbuffer_export.errors import BlendSRError
 
 #: Peak used by PSNR on linear HDR values: psnr_hdr = 10 log10(HDR_PEAK^2 / MSE) (scene-linear units).
 HDR_PEAK = 1.0
@@ -22,7 +23,7 @@ def forward_transform(x: torch.Tensor, kind: str) -> torch.Tensor:
         return torch.sign(x) * torch.log(1.0 + x.abs())  # log(1 + x), not log1p: ONNX has no Log1p
     if kind == "none":
         return x
-    raise ValueError(f"unknown input transform {kind!r}")
+    raise BlendSRError(f"unknown input transform {kind!r}")
 
 
 def inverse_transform(y: torch.Tensor, kind: str) -> torch.Tensor:
@@ -31,7 +32,7 @@ def inverse_transform(y: torch.Tensor, kind: str) -> torch.Tensor:
         return torch.sign(y) * (torch.exp(y.abs().clamp(max=80.0)) - 1.0)  # no Expm1 in ONNX
     if kind == "none":
         return y
-    raise ValueError(f"unknown input transform {kind!r}")
+    raise BlendSRError(f"unknown input transform {kind!r}")
 
 
 def srgb_oetf(x: torch.Tensor) -> torch.Tensor:
@@ -59,7 +60,7 @@ def normalize_depth(depth: torch.Tensor, ref: torch.Tensor | float, kind: str) -
     if kind == "inverse":
         out = 1.0 / (1.0 + d)
         return torch.where(finite, out, torch.zeros_like(out))
-    raise ValueError(f"unknown depth normalisation {kind!r}")
+    raise BlendSRError(f"unknown depth normalisation {kind!r}")
 
 
 def loss_space(x: torch.Tensor, kind: str) -> torch.Tensor:
@@ -70,4 +71,4 @@ def loss_space(x: torch.Tensor, kind: str) -> torch.Tensor:
         return tonemap(x)
     if kind == "linear":
         return x
-    raise ValueError(f"unknown loss space {kind!r}")
+    raise BlendSRError(f"unknown loss space {kind!r}")

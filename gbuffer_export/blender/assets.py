@@ -23,6 +23,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ..errors import BlendSRError
 from .camera_paths import GROUND_PROPERTY, GEOMETRY_TYPES, make_camera_path, object_boxes
 from .default_scene import hdri_path, make_world
 
@@ -31,7 +32,7 @@ CAMERA_TRIES = 8
 MIN_VISIBLE_FRACTION = 0.75
 
 
-class AssetError(ValueError):
+class AssetError(BlendSRError):
     """An asset that cannot be imported or placed; the message is one line naming the file."""
 
 

@@ -17,6 +17,7 @@ import bpy
 import numpy as np
 from bpy_extras import anim_utils
 from mathutils import Euler, Matrix
+from ..errors import BlendSRError
 
 CAMERA_NAME = "BlendSR Camera"
 CAMERA_KINDS = ("orbit", "walk")
@@ -105,7 +106,7 @@ def scene_bounds(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     (evaluated: modifiers, armatures and animation at the current frame). ValueError when there is none."""
     boxes = object_boxes(scene)
     if not boxes:
-        raise ValueError(f"scene {scene.name!r} has no renderable geometry to frame")
+        raise BlendSRError(f"scene {scene.name!r} has no renderable geometry to frame")
     return np.min([b.lo for b in boxes], axis=0), np.max([b.hi for b in boxes], axis=0)
 
 
@@ -131,7 +132,7 @@ def framing_sphere(boxes: list[Box]) -> tuple[np.ndarray, float]:
     ground). The radius is at least 1e-6."""
     use = [b for b in boxes if not b.ground] or boxes
     if not use:
-        raise ValueError("nothing to frame: the scene has no renderable geometry")
+        raise BlendSRError("nothing to frame: the scene has no renderable geometry")
     lo = np.min([b.lo for b in use], axis=0)
     hi = np.max([b.hi for b in use], axis=0)
     return 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
@@ -196,7 +197,7 @@ def key_channels(obj: bpy.types.ID, frames, channels: dict[str, np.ndarray], act
         if values.ndim == 1:
             values = values[:, None]
         if values.shape[0] != frames.shape[0]:
-            raise ValueError(f"{path}: {values.shape[0]} values for {frames.shape[0]} frames")
+            raise BlendSRError(f"{path}: {values.shape[0]} values for {frames.shape[0]} frames")
         for i in range(values.shape[1]):
             fc = cb.fcurves.new(path, index=i)
             fc.keyframe_points.add(len(frames))
@@ -355,10 +356,10 @@ def make_camera_path(scene: bpy.types.Scene, kind: str, frames: tuple[int, int],
     radius outside every object's box (united over the clip's frames) and above the ground.
     The same (scene, kind, frames, seed) gives the same keys."""
     if kind not in CAMERA_KINDS:
-        raise ValueError(f"camera path {kind!r}: choose one of {', '.join(CAMERA_KINDS)}")
+        raise BlendSRError(f"camera path {kind!r}: choose one of {', '.join(CAMERA_KINDS)}")
     start, end = int(frames[0]), int(frames[1])
     if end < start:
-        raise ValueError(f"camera path frames {start}:{end}: end before start")
+        raise BlendSRError(f"camera path frames {start}:{end}: end before start")
     cam = _ensure_camera(scene)
     old = cam.animation_data.action if cam.animation_data else None
     cam.animation_data_clear()
@@ -366,7 +367,7 @@ def make_camera_path(scene: bpy.types.Scene, kind: str, frames: tuple[int, int],
         bpy.data.actions.remove(old)
     boxes = [b for b in clip_boxes(scene, (start, end)) if b.name != cam.name]
     if not boxes:
-        raise ValueError(f"scene {scene.name!r} has no renderable geometry to frame")
+        raise BlendSRError(f"scene {scene.name!r} has no renderable geometry to frame")
     c, radius = framing_sphere(boxes)
     floor = ground_height(boxes)
     frames_all = np.arange(start - 1, end + 1)

@@ -100,9 +100,16 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:  # Ctrl-C: the render stopped between passes; finished frames stay
         print(f"blendsr: {job.id}: interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"blendsr: error: {job.id}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-              file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - the worker's error boundary, as the CLI's (gbuffer_export.errors)
+        from ..errors import EXIT_INTERNAL, bad_input_line, first_line
+        line = bad_input_line(exc)
+        if line is None:
+            import traceback
+            traceback.print_exc()
+            print(f"blendsr: internal error (a bug, please report it with the traceback above): {job.id}: "
+                  f"{type(exc).__name__}: {first_line(exc)}", file=sys.stderr)
+            return EXIT_INTERNAL
+        print(f"blendsr: error: {job.id}: {line}", file=sys.stderr)
         return 2
     return 0
 

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..errors import BlendSRError
 from .level_geometry import LevelGeometry
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -36,7 +37,7 @@ WALKABLE_COS = math.cos(math.radians(45.0))  # a surface within 45 degrees of ho
 LEVEL_KINDS = ("walk", "fly")
 
 
-class PathError(ValueError):
+class PathError(BlendSRError):
     """No path meets the rules (one line naming the level and the rule that failed most)."""
 
 
@@ -301,7 +302,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
     """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
     ``rules.tries`` draws. ``hfov``/``vfov``: half angles of the camera in radians."""
     if kind not in LEVEL_KINDS:
-        raise ValueError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
+        raise BlendSRError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
     if region is None:
         lo, hi = geom.content_bounds()
         region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from ..errors import BlendSRError
 
 GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "SURFACE", "META", "FONT"})
 
@@ -50,7 +51,7 @@ class LevelGeometry:
         self.vertices = np.asarray(self.vertices, np.float64)
         self.faces = np.asarray(self.faces, np.int64)
         if len(self.faces) == 0:
-            raise ValueError("the level has no renderable triangles")
+            raise BlendSRError("the level has no renderable triangles")
         owner = np.zeros(len(self.faces), np.int64) if self.owner is None else np.asarray(self.owner, np.int64)
         self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         keep = self.mesh.area_faces > 0
@@ -228,6 +229,6 @@ def from_scene(scene, frame: int | None = None) -> LevelGeometry:
         names.append(orig.name if not inst.is_instance else f"{orig.name}#{len(names)}")
         offset += n
     if not verts:
-        raise ValueError(f"scene {scene.name!r} has no renderable triangles")
+        raise BlendSRError(f"scene {scene.name!r} has no renderable triangles")
     return LevelGeometry(np.concatenate(verts), np.concatenate(faces), metres_per_unit(scene), names,
                          np.concatenate(owner))

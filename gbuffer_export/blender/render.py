@@ -33,7 +33,7 @@ from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_fr
 from ..exr import read_exr_channels
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
-from ..resources import check_render_resources
+from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
 
 BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
@@ -312,14 +312,35 @@ def quiet_stdout():
         os.close(saved)
 
 
+def _check_disk_after_write(path: Path, scene) -> None:
+    """Raise ENOSPC naming ``path``'s folder when it has less free space than Cycles' temporary EXR needs: a full
+    disk while Cycles writes leaves no file or a truncated one, which is not the user's EXR to blame."""
+    import errno
+    import shutil
+    r = scene.render
+    need = int(r.resolution_x * r.resolution_y * r.resolution_percentage / 100 * TEMP_EXR_CHANNELS * 4)
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return
+    if free < need:
+        raise OSError(errno.ENOSPC, f"No space left on device (Cycles' temporary EXR needs about {need} bytes, "
+                                    f"{free} free)", str(path.parent))
+
+
 def render_to(scene, path: Path) -> dict[str, np.ndarray]:
     scene.render.filepath = str(path)
     with quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     check_interrupt()  # Ctrl-C during the pass: stop here (its 'CANCELLED' result means a refused render instead)
     if not path.is_file():
+        _check_disk_after_write(path, scene)
         raise RuntimeError(f"Cycles wrote no output to {path}")
-    return read_passes(path)
+    try:
+        return read_passes(path)
+    except (ValueError, OSError):
+        _check_disk_after_write(path, scene)
+        raise
 
 
 def camera_pose(cam) -> np.ndarray:
@@ -407,10 +428,59 @@ def render_clip(cfg: RenderConfig, info: dict | None = None) -> Path:
     """Render (or resume) the clip described by ``cfg`` and return its directory (``info``: more manifest
     ``scene`` entries, e.g. a dataset clip's id). Ctrl-C stops it between Cycles passes
     (``gbuffer_export.interrupt``)."""
+    if cfg.frames is not None and cfg.hr_size is not None:  # refuse a runaway before building the scene
+        check_render_resources(cfg.hr_size, cfg.scales, cfg.buffers, frames_left(cfg), cfg.output,
+                               scene=str(cfg.scene or "scene"))
     with stop_on_sigint():
         scene, scene_info = load_scene(cfg)
         check_interrupt()
         return render_loaded_scene(cfg, scene, {**scene_info, **(info or {})})
+
+
+def remove_stale_scratch(clip_dir: Path, max_age_s: float = 86400.0) -> list[Path]:
+    """Remove the ``.render-PID-*`` scratch folders of renders that died (their process is gone) and old ones of
+    the earlier ``.render-*`` form (untouched for ``max_age_s``); a live shard's folder is kept. Returns them."""
+    import shutil
+    gone = []
+    for d in clip_dir.glob(".render-*"):
+        if not d.is_dir() or d.is_symlink():
+            continue
+        parts = d.name.split("-")
+        if len(parts) >= 3 and parts[1].isdigit():
+            pid = int(parts[1])
+            alive = pid != os.getpid()  # this process renders one clip at a time: its own folder is stale
+            if alive:
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    alive = False
+                except PermissionError:
+                    pass
+        else:
+            try:
+                alive = time.time() - d.stat().st_mtime < max_age_s
+            except OSError:
+                continue
+        if not alive:
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+    return gone
+
+
+def frames_left(cfg: RenderConfig) -> int:
+    """How many frames of ``cfg.frames`` this shard still renders (its finished frame records subtracted),
+    counted without listing the range: a runaway ``--frames 1:1000000`` is refused at once."""
+    a, b = cfg.frames
+    k, n = cfg.shard
+    mine = range(a, b + 1)[k - 1::n]
+    done = 0
+    fdir = cfg.output / FRAMES_DIR
+    if fdir.is_dir():
+        for e in os.scandir(fdir):
+            stem, dot, ext = e.name.partition(".")
+            if ext == "json" and stem.isdigit() and int(stem) in mine:
+                done += 1
+    return len(mine) - done
 
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
@@ -488,7 +558,8 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     skipped = len(my_frames) - len(todo)
     if skipped:
         print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
-    tmpdir = Path(tempfile.mkdtemp(prefix=".render-", dir=cfg.output))
+    remove_stale_scratch(cfg.output)
+    tmpdir = Path(tempfile.mkdtemp(prefix=f".render-{os.getpid()}-", dir=cfg.output))
     try:
         bar = _progress(todo, cfg)
         for f in bar:

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from ..errors import BlendSRError
 
 from ..extras import HelpFormatter
 
@@ -420,14 +421,14 @@ def run(args) -> int:
     sources = tuple(s.strip() for s in args.sources.split(",") if s.strip())
     bad = [s for s in sources if s not in SOURCES]
     if bad or not sources:
-        raise ValueError(f"--sources {args.sources!r}: choose from {', '.join(SOURCES)}")
+        raise BlendSRError(f"--sources {args.sources!r}: choose from {', '.join(SOURCES)}")
     size = parse_size(args.hr_size)
     if size[0] % args.scale or size[1] % args.scale:
-        raise ValueError(f"--hr-size {args.hr_size} is not divisible by --scale {args.scale}")
+        raise BlendSRError(f"--hr-size {args.hr_size} is not divisible by --scale {args.scale}")
     if args.seeds < 1 or args.spp < 1:
-        raise ValueError("--seeds and --spp must be >= 1")
+        raise BlendSRError("--seeds and --spp must be >= 1")
     if args.reuse and args.work is None:
-        raise ValueError("--reuse needs --work")
+        raise BlendSRError("--reuse needs --work")
     tmp = None
     work = args.work
     if work is None:

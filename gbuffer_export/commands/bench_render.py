@@ -13,6 +13,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from ..errors import BlendSRError
+
 
 def add_arguments(p) -> None:
     p.add_argument("scene", nargs="?", default=None, help=".blend to benchmark (default: the built-in scene)")
@@ -81,7 +83,8 @@ def _render(args, buffers: str):
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if proc.returncode != 0:
-            raise RuntimeError(proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "render failed")
+            last = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "render failed"
+            raise (BlendSRError if proc.returncode == 2 else RuntimeError)(last)  # 2: the render refused its input
         manifest = json.loads((out / "manifest.json").read_text())
         nbytes = sum(p.stat().st_size for p in out.rglob("*.exr"))
     return manifest, nbytes / max(len(manifest["frame_data"]), 1), wall, cmd

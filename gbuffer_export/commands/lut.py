@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from ..errors import BlendSRError
 
 from ..extras import HelpFormatter
 
@@ -34,9 +35,9 @@ def run(args) -> int:
 
     spec = LutSpec(size=args.size, samples=args.samples, convention=args.convention)
     if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers {args.workers}: must be >= 1")
+        raise BlendSRError(f"--workers {args.workers}: must be >= 1")
     if args.output.suffix.lower() != ".exr":
-        raise ValueError(f"{args.output}: output must be an .exr file")
+        raise BlendSRError(f"{args.output}: output must be an .exr file")
     t0 = time.perf_counter()
     lut = generate_lut(spec, workers=args.workers)
     seconds = time.perf_counter() - t0

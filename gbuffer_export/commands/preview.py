@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from ..errors import BlendSRError
 
 from ..extras import HelpFormatter
 
@@ -23,7 +24,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..preview import dataset_sheet
     if args.width < 16:
-        raise ValueError(f"--width {args.width}: must be at least 16 pixels")
+        raise BlendSRError(f"--width {args.width}: must be at least 16 pixels")
     splits = [s.strip() for s in args.splits.split(",")] if args.splits else None
     path, n = dataset_sheet(args.dataset, args.output, args.width, splits)
     print(f"blendsr: wrote {path} ({n} clips)")

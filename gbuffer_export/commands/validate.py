@@ -6,6 +6,7 @@ import contextlib
 import json
 import sys
 from pathlib import Path
+from ..errors import BlendSRError
 
 from ..extras import HelpFormatter as _Formatter
 
@@ -80,7 +81,7 @@ def run_dataset(args, options) -> int:
     """Validate every clip of a dataset folder and its index; one line per failing clip and one summary."""
     from ..dataset.check import validate_dataset
     if args.frames:
-        raise ValueError(f"{args.clip}: --frames applies to one clip, not to a dataset")
+        raise BlendSRError(f"{args.clip}: --frames applies to one clip, not to a dataset")
     with contextlib.redirect_stdout(sys.stderr):
         report = validate_dataset(args.clip, options=options, quick=args.quick, progress=not args.no_progress)
     if args.json:

@@ -9,6 +9,7 @@ emission, fbeta and flags; ``depth_ref`` from LR depth.
 """
 from __future__ import annotations
 
+from ..errors import BlendSRError
 from ..conventions import ALL_BUFFERS
 
 #: Buffers every clip keeps: the ground truth (radiance) and HR motion for tPSNR and the warping error.
@@ -59,6 +60,6 @@ def buffers_for_models(models) -> tuple[str, ...]:
     for m in models:
         name = m.split(":", 1)[0].strip()
         if name not in MODEL_BUFFERS:
-            raise ValueError(f"--for-models: unknown model {name!r}; known: {', '.join(MODEL_BUFFERS)}")
+            raise BlendSRError(f"--for-models: unknown model {name!r}; known: {', '.join(MODEL_BUFFERS)}")
         need.update(MODEL_BUFFERS[name])
     return tuple(b for b in ALL_BUFFERS if b in need)

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
+from ..errors import BlendSRError
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
 INDEX = "dataset.json"
@@ -38,7 +39,7 @@ STATES = ("pending", "partial", "done", "failed")
 EXECUTORS = ("local", "ray")
 
 
-class DatasetError(ValueError):
+class DatasetError(BlendSRError):
     """A dataset folder that cannot be used as asked; one line naming the path."""
 
 
@@ -136,6 +137,7 @@ def read_index(root: str | os.PathLike) -> dict:
         raise DatasetError(f"{p}: schema_version {d.get('schema_version')!r} is newer than this blendsr reads")
     if not isinstance(d.get("clips"), list):
         raise DatasetError(f"{p}: index lacks its 'clips' list")
+    check_index_entries(p, d["clips"])
     return d
 
 
@@ -147,6 +149,24 @@ def clip_dir(root: str | os.PathLike, entry) -> Path:
     if not isinstance(entry, dict):
         raise DatasetError(f"{root / INDEX}: a clips entry is not an object ({entry!r:.60})")
     return resolve_inside(root, entry.get("path"), source=root / INDEX, entry=f"clip {entry.get('id', '?')!r}")
+
+
+def check_index_entries(p: Path, clips: list) -> None:
+    """Every clip entry of an index has the keys its readers use, of the right type; DatasetError naming the
+    index file, the entry and the key otherwise (never a KeyError)."""
+    for i, c in enumerate(clips):
+        if not isinstance(c, dict):
+            raise DatasetError(f"{p}: clips[{i}] is not an object")
+        name = f"clips[{i}]" + (f" ({c['id']})" if isinstance(c.get("id"), str) else "")
+        for key in ("id", "path", "split"):
+            if not isinstance(c.get(key), str) or not c[key]:
+                what = "lacks" if key not in c else f"has {key} = {c[key]!r}, not a string:"
+                raise DatasetError(f"{p}: {name} {what} {key!r}" if key not in c else f"{p}: {name} {what}")
+        if c["split"] not in SPLITS:
+            raise DatasetError(f"{p}: {name}: split {c['split']!r} is not one of {', '.join(SPLITS)}")
+        fp = c.get("frames_planned", 0)
+        if not isinstance(fp, int) or isinstance(fp, bool) or fp < 0:
+            raise DatasetError(f"{p}: {name}: frames_planned = {fp!r} is not an integer >= 0")
 
 
 def is_dataset(path: str | os.PathLike) -> bool:
@@ -314,6 +334,25 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
             ray.shutdown()
 
 
+def check_clip_resources(jobs, root: Path, spec_path) -> None:
+    """Refuse, before anything starts, render settings of which one clip alone exceeds the free disk under
+    ``root`` (``frames = 1000000``, say): ResourceError naming the spec. Memory is the workers' to check (a Ray
+    cluster's nodes are not this machine)."""
+    from ..resources import ResourceError, check_render_resources
+    seen = set()
+    for j in jobs:
+        r = j.render
+        key = (tuple(r["hr_size"]), r["scale"], tuple(r["buffers"]), r["frames"])
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            check_render_resources(tuple(r["hr_size"]), r["scale"], r["buffers"], r["frames"], root,
+                                   memory=1 << 62)
+        except ResourceError as exc:
+            raise ResourceError(f"{spec_path}: clip {j.id}: {exc}") from None
+
+
 def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
     """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
     opts.validate()
@@ -325,6 +364,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         from .buffers import buffers_for_models
         need = buffers_for_models(opts.buffers_for)
         jobs = [dataclasses.replace(j, render={**j.render, "buffers": list(need)}) for j in jobs]
+    check_clip_resources(jobs, root, spec.path)
     root.mkdir(parents=True, exist_ok=True)
     old = None
     if (root / INDEX).is_file():

@@ -103,8 +103,13 @@ def index_errors(root: Path, index: dict) -> list[str]:
             errs.append(str(exc))
             continue
         state, _ = clip_state(path, int(c.get("frames_planned", 0)))
-        if state != "done":
+        if state != "done" and (c.get("state") == "failed" or c.get("error")):
+            err = str(c.get("error") or "").strip().splitlines()
+            errs.append(f"clip {c['id']} failed{': ' + err[-1] if err else ''} (fix it and rerun 'blendsr dataset')")
+        elif state != "done":
             errs.append(f"clip {c['id']} is {state} (rerun 'blendsr dataset' to finish it)")
+    if not index["clips"]:
+        errs.append("the index lists no clips (nothing to train or evaluate on)")
     return errs
 
 

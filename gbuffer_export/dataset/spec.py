@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import FBETA_SOURCES, JITTERS, LIGHTS, SCENE_SUFFIXES, ConfigError, camera_path_ok, parse_size
+from ..config import MAX_SPP, MIN_RENDER_PX, FBETA_SOURCES, JITTERS, LIGHTS, SCENE_SUFFIXES, ConfigError, camera_path_ok, parse_size
 from ..conventions import DEFAULT_BUFFERS, parse_buffer_list
 
 SPLITS = ("train", "val", "test")
@@ -34,6 +36,11 @@ HDRI_SUFFIXES = (".hdr", ".exr")
 
 class SpecError(ConfigError):
     """An invalid dataset spec; the message names the file and the key."""
+
+
+#: The most clips one spec may expand to (checked from the seed ranges, clips per asset/scene and the number of
+#: assets before anything is expanded): a larger dataset is several specs.
+MAX_CLIPS = 100_000
 
 
 # ----------------------------------------------------------------------------------------------
@@ -66,10 +73,15 @@ class RenderSettings:
         w, h = self.hr_size
         if w % self.scale or h % self.scale:
             raise SpecError(f"{where}.hr_size = {w}x{h}: not divisible by scale {self.scale}")
+        if min(w, h) // self.scale < MIN_RENDER_PX:
+            raise SpecError(f"{where}.hr_size = {w}x{h}: the LR frame at scale {self.scale} is "
+                            f"{w // self.scale}x{h // self.scale}; Blender renders no side under {MIN_RENDER_PX} px")
         for k in ("hr_spp", "lr_spp", "gbuffer_spp"):
             v = getattr(self, k)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise SpecError(f"{where}.{k} = {v!r}: must be a positive integer")
+            if v > MAX_SPP:
+                raise SpecError(f"{where}.{k} = {v!r}: Cycles renders at most {MAX_SPP} samples per pixel")
         if self.jitter not in JITTERS:
             raise SpecError(f"{where}.jitter = {self.jitter!r}: choose one of {', '.join(JITTERS)}")
         if self.fbeta not in FBETA_SOURCES:
@@ -180,6 +192,8 @@ def _typed(value, kind, where: str, spec_path):
     ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool) and kind in (int, float))
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if kind is float and ok and not math.isfinite(value):
+        raise SpecError(f"{spec_path}: {where} = {value!r}: must be a finite number")
     if not ok:
         names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
         raise SpecError(f"{spec_path}: {where} = {value!r}: expected {names}")
@@ -229,7 +243,8 @@ def _str_list(v, where, spec_path) -> tuple[str, ...]:
 
 def _range(v, where, spec_path) -> tuple[float, float]:
     if isinstance(v, (int, float)) and not isinstance(v, bool):
-        return float(v), float(v)
+        x = _typed(v, float, where, spec_path)  # finite
+        return x, x
     if not (isinstance(v, list) and len(v) == 2):
         raise SpecError(f"{spec_path}: {where} = {v!r}: expected [low, high]")
     lo, hi = (_typed(x, float, where, spec_path) for x in v)
@@ -423,11 +438,17 @@ def stable_hash(*parts) -> int:
     return int.from_bytes(h[:8], "big") >> 1
 
 
-def assign_split(scene_id: str, splits: Splits, forced: str | None, dataset_seed: int) -> str:
-    """The split of one scene: the source's forced split, an explicit list, else the hash rule."""
+def assign_split(scene_id: str, splits: Splits, forced: str | None, dataset_seed: int, *, spec_path=None,
+                 source: str | None = None) -> str:
+    """The split of one scene: the source's forced split, an explicit list, else the hash rule. A forced split
+    that contradicts the explicit lists (a test asset in a ``split = "train"`` source: a leak) is a SpecError."""
+    stem = scene_id
+    listed = "test" if stem in splits.test else "val" if stem in splits.val else None
+    if forced and listed and forced != listed:
+        raise SpecError(f"{spec_path}: source {source!r} has split = {forced!r} but holds {scene_id!r}, listed "
+                        f"under [splits] {listed}: take it out of the source or of the list")
     if forced:
         return forced
-    stem = scene_id
     if stem in splits.test:
         return "test"
     if stem in splits.val:
@@ -485,7 +506,13 @@ def find_hdris(env: Environment, base: Path | None, spec_path, source_name: str)
             continue
         path = _resolve(h, base)
         if path.is_dir():
-            out += sorted(str(f) for f in path.iterdir() if f.suffix.lower() in HDRI_SUFFIXES)
+            for f in sorted(path.iterdir()):
+                if f.suffix.lower() not in HDRI_SUFFIXES:
+                    continue
+                if not f.is_file():
+                    raise SpecError(f"{spec_path}: source {source_name!r}: hdri {f}: not a file (a folder named "
+                                    f"like an HDRI)")
+                out.append(str(f))
         elif path.is_file() and path.suffix.lower() in HDRI_SUFFIXES:
             out.append(str(path))
         else:
@@ -561,9 +588,31 @@ def _draw(seed: int):
     return random.Random(seed)
 
 
+def count_clips(spec: DatasetSpec, base: Path | None = None) -> int:
+    """How many clips ``expand`` makes, from the seed ranges, clips per asset/scene and the asset files, without
+    expanding (SpecError above MAX_CLIPS, naming the source that passes it)."""
+    total = 0
+    for src in spec.sources:
+        if src.kind == "builtin":
+            n = src.seeds[1] - src.seeds[0] + 1
+        else:
+            per = src.clips_per_scene if src.kind == "scene" else src.clips_per_asset
+            if total + per > MAX_CLIPS:  # before looking for the files
+                n = per
+            else:
+                n = per * len(find_assets(src, base, spec.path))
+        total += n
+        if total > MAX_CLIPS:
+            raise SpecError(f"{spec.path}: source {src.name!r} brings the spec to {total} clips or more; one spec "
+                            f"makes at most {MAX_CLIPS} (split it into several specs)")
+    return total
+
+
 def expand(spec: DatasetSpec) -> list[ClipJob]:
-    """Every clip of the spec, in a fixed order (source by source). Pure and deterministic."""
+    """Every clip of the spec, in a fixed order (source by source). Pure and deterministic. At most MAX_CLIPS
+    clips (counted before anything is expanded)."""
     base = spec.path.parent.resolve() if spec.path else None
+    count_clips(spec, base)
     jobs: list[ClipJob] = []
     for src in spec.sources:
         if src.kind == "scene":
@@ -578,14 +627,16 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                 rng = _draw(seed)
                 jobs.append(ClipJob(
                     id=cid, source=src.name, kind="builtin", scene_id=scene_id,
-                    split=assign_split(scene_id, spec.splits, src.split, spec.seed), seed=s,
+                    split=assign_split(scene_id, spec.splits, src.split, spec.seed, spec_path=spec.path,
+                                       source=src.name), seed=s,
                     render=src.render.to_json(), camera=rng.choice(src.cameras),
                     hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
                     licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
             continue
         assets = find_assets(src, base, spec.path)
-        split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed) for a in assets}
+        split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
+                                         source=src.name) for a in assets}
         for a in assets:
             lic = dict(read_asset_licence(a))
             if a.stem in src.licence:
@@ -604,8 +655,8 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                     hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
                     target_size_m=src.target_size_m, licence=lic))
-    ids = [j.id for j in jobs]
-    dup = sorted({i for i in ids if ids.count(i) > 1})
+    counts = Counter(j.id for j in jobs)
+    dup = sorted(i for i, n in counts.items() if n > 1)
     if dup:
         raise SpecError(f"{spec.path}: clip ids collide ({', '.join(dup[:3])}): rename a source or an asset")
     return jobs
@@ -647,7 +698,8 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
                 region = {"grid": list(src.regions), "cell": cell, "split": split, "cells": cells}
                 scene_id = f"{a.stem}@cell{cell[0]}-{cell[1]}"
             else:
-                split = assign_split(a.stem, spec.splits, src.split, spec.seed)
+                split = assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
+                                     source=src.name)
                 region, scene_id = None, a.stem
             jobs.append(ClipJob(
                 id=cid, source=src.name, kind="scene", scene_id=scene_id, split=split, seed=seed,

@@ -100,5 +100,9 @@ def read_level(c: Collector, frame: int, lvl: str, h: dict, header_only: bool) -
                 c.add("bad-dtype", f"{path}: {name} stored as {arrs[0].dtype}, must be float (half or "
                                       "float32)", frame=frame, key=key)
                 continue
+            if name == "radiance" and any(a.dtype != np.float32 for a in arrs):
+                c.add("bad-dtype", f"{path}: radiance stored as {arrs[0].dtype}, must be float32 (half overflows "
+                                   "at 65504)", frame=frame, key=key)
+                continue
             out[name] = np.stack([a.astype(np.float32, copy=False) for a in arrs], axis=-1)
     return out

@@ -158,6 +158,9 @@ def check_frames(c: Collector, h: dict) -> list[int]:
         if f not in pset:
             c.add("unplanned-frame", f"finished frame {f} is not among the {len(planned)} planned frames",
                      frame=f, severity=WARNING)
+    for tp in sorted(c.root.glob(".render-*")):  # the renderer's scratch folders (render.py removes its own)
+        c.add("leftover-temp", f"{tp}: scratch folder of an interrupted render (the next render of this clip "
+                               "removes it)", severity=WARNING)
     # frames/ records against the manifest
     rdir = c.root / FRAMES_DIR
     on_disk: set[int] = set()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from ..errors import BlendSRError
 
 
 @dataclass(frozen=True)
@@ -38,16 +39,16 @@ class ValidationOptions:
         for name in ("motion_tol_px", "normal_tol", "fbeta_max", "range_eps", "background_eps"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"validation option {name}={v!r}: must be a positive number")
+                raise BlendSRError(f"validation option {name}={v!r}: must be a positive number")
         if self.lr_motion_tol_px is not None and not (math.isfinite(self.lr_motion_tol_px)
                                                       and self.lr_motion_tol_px > 0):
-            raise ValueError(f"validation option lr_motion_tol_px={self.lr_motion_tol_px!r}: must be positive")
+            raise BlendSRError(f"validation option lr_motion_tol_px={self.lr_motion_tol_px!r}: must be positive")
         for name in ("motion_min_fraction", "background_min_fraction", "normal_min_fraction", "fbeta_max_outside"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
-                raise ValueError(f"validation option {name}={v!r}: must be a fraction in [0, 1]")
+                raise BlendSRError(f"validation option {name}={v!r}: must be a fraction in [0, 1]")
         if not (isinstance(self.min_pixels, int) and self.min_pixels >= 1):
-            raise ValueError(f"validation option min_pixels={self.min_pixels!r}: must be an integer >= 1")
+            raise BlendSRError(f"validation option min_pixels={self.min_pixels!r}: must be an integer >= 1")
 
     def tol_px(self, level: str) -> float:
         """Motion tolerance of ``level`` in pixels of that level."""

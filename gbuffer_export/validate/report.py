@@ -30,7 +30,8 @@ CODES: dict[str, str] = {
     "manifest-stale": "a frames/ record is absent from the manifest or differs from it (manifest not merged)",
     "missing-record": "a frame of the manifest has no frames/ record (a later merge would drop it)",
     "incomplete-frame": "buffer files or a torn record of a frame that is not finished",
-    "leftover-temp": "a temporary file of an interrupted write",
+    "leftover-temp": "a temporary file or .render-* folder of an interrupted write (warning; the next render of the "
+                     "clip removes it)",
     "unsafe-link": "a symbolic link inside the clip (manifest, record, level folder or buffer): never read",
     "mixed-clip": "a frame record from another render than the header's (spp, Cycles seed, or previous camera != "
                   "the frame before's camera): two renders wrote one folder",
@@ -49,6 +50,7 @@ CODES: dict[str, str] = {
     "bad-dtype": "a buffer file has the wrong sample type (flags must be uint32, others float)",
     # values
     "non-finite": "NaN or Inf in a buffer (Inf allowed only in depth on background)",
+    "negative-radiance": "radiance below 0 on more than 1% of the surface pixels (light is never negative)",
     "implausible-value": "radiance or emission beyond +-RADIANCE_CAP (1e9), which no scene produces (warning)",
     "depth-range": "depth <= 0 on a surface pixel",
     "depth-inf-on-surface": "depth is +inf where flags do not mark background (or not finite where no flags)",

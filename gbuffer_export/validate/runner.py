@@ -9,6 +9,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..errors import BlendSRError
 from ..clip import ClipError
 from .camera import check_black_frame, check_level_motion, check_level_view, level_report
 from .files import read_level
@@ -81,7 +82,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
         wanted = set(int(f) for f in frames)
         selected = [f for f in finished if f in wanted]
         if not selected and finished:
-            raise ValueError(f"{c.root}: none of the selected frames is a finished frame of this clip "
+            raise BlendSRError(f"{c.root}: none of the selected frames is a finished frame of this clip "
                              f"(finished: {finished[0]}..{finished[-1]})")
     else:
         selected = finished

@@ -18,6 +18,12 @@ for _f in Flag:
     _KNOWN_FLAG_BITS |= int(_f)
 
 
+#: ``negative-radiance``: a surface pixel is negative when a channel is below -NEGATIVE_RADIANCE_TOL (a denoiser's
+#: rounding may dip just under 0); the check fails when more than NEGATIVE_RADIANCE_MAX_FRACTION of them are.
+NEGATIVE_RADIANCE_TOL = 1e-4
+NEGATIVE_RADIANCE_MAX_FRACTION = 0.01
+
+
 def check_values(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarray]) -> np.ndarray | None:
     """Value checks of one frame and level; returns the surface mask (H x W bool) or None when unknown."""
     o = c.opt
@@ -68,6 +74,14 @@ def check_values(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarray]) -
             c.add("non-finite", f"{int(px.sum())} of {px.size} pixel(s) non-finite ({n_nan} NaN, {n_inf} "
                                    "Inf)", frame=frame, key=f"{lvl}/{name}", pixels=int(px.sum()),
                      nan=n_nan, inf=n_inf)
+        if name == "radiance" and surface is not None and surface.shape == arr.shape[:2] and surface.any():
+            with np.errstate(invalid="ignore"):
+                neg = (arr < -NEGATIVE_RADIANCE_TOL).any(axis=-1) & surface
+            n_neg, n_surf = int(neg.sum()), int(surface.sum())
+            if n_neg > NEGATIVE_RADIANCE_MAX_FRACTION * n_surf:
+                c.add("negative-radiance", f"radiance is negative on {n_neg} of {n_surf} surface pixel(s) (min "
+                                           f"{float(np.nanmin(arr[neg])):.4g}); light is never negative",
+                      frame=frame, key=f"{lvl}/{name}", pixels=n_neg)
         if name in ("radiance", "emission"):
             with np.errstate(invalid="ignore"):
                 huge = (np.abs(arr) > RADIANCE_CAP).any(axis=-1)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
+from gbuffer_export.errors import BlendSRError
 from training.models.options import (DemodJBUOptions, FourierSROptions, FuseSRFastOptions, FuseSRLightOptions,
                                      FuseSROptions, NoOptions, RDGOptions, RDGSmallOptions)
 
@@ -77,7 +78,7 @@ def model_class(name: str):
     try:
         info = MODELS[name]
     except KeyError:
-        raise ValueError(f"unknown model {name!r}; choose one of {', '.join(MODELS)}") from None
+        raise BlendSRError(f"unknown model {name!r}; choose one of {', '.join(MODELS)}") from None
     return getattr(importlib.import_module(info.module), info.cls)
 
 

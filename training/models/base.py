@@ -12,6 +12,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from gbuffer_export.errors import BlendSRError
 from training.models import OPTIONAL_KEYS
 from training.models.guided import GUIDE_KEYS, guide_features, upsample_guided
 from training.models.resample import upsample  # noqa: F401  (re-exported: models import it from here)
@@ -33,7 +34,7 @@ class SRModel(nn.Module):
     def __init__(self, cfg, scale: float):
         super().__init__()
         if not self.supports_scale(scale):
-            raise ValueError(f"scale {scale:g}: model {getattr(cfg, 'name', type(self).__name__)} supports "
+            raise BlendSRError(f"scale {scale:g}: model {getattr(cfg, 'name', type(self).__name__)} supports "
                              f"{self.scales_text()}")
         self.cfg = cfg
         self.scale = int(scale) if float(scale).is_integer() else float(scale)

@@ -29,6 +29,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from gbuffer_export.errors import BlendSRError
 from training.models.base import SRModel, conv, current, depth_features, frame
 from training.transforms import forward_transform, inverse_transform
 
@@ -89,7 +90,7 @@ class FuseSRFast(SRModel):
     def __init__(self, cfg, scale: int):
         super().__init__(cfg, scale)
         if cfg.history > 0:
-            raise ValueError(f"model.history {cfg.history}: fusesr-fast reads no history (set -1 or 0)")
+            raise BlendSRError(f"model.history {cfg.history}: fusesr-fast reads no history (set -1 or 0)")
         self.history = 0
         opt = cfg.options  # training.models.options.FuseSRFastOptions
         self.demod = bool(opt.demodulation)

@@ -42,6 +42,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from gbuffer_export.errors import BlendSRError
 from gbuffer_export.colour_spaces import RGB_TO_YCBCR_709, YCBCR_TO_RGB_709
 from training.models.base import SRModel, backward_warp, current, depth_features, frame, jitter, upsample
 from training.transforms import forward_transform, inverse_transform
@@ -157,7 +158,7 @@ class NSRR(SRModel):
         super().__init__(cfg, scale)
         n = HISTORY if cfg.history < 0 else int(cfg.history)
         if not 1 <= n <= 4:
-            raise ValueError(f"model.history {cfg.history}: {cfg.name} needs 1..4 previous frames")
+            raise BlendSRError(f"model.history {cfg.history}: {cfg.name} needs 1..4 previous frames")
         self.n_prev = n
         self.history = 0 if getattr(self, "recurrent", False) else n
         self.transform = cfg.input_transform

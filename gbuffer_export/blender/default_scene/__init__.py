@@ -18,6 +18,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ...errors import BlendSRError
 from .layout import TABLE_TOP_Z, animated_camera, courtyard, rolling_ball, table_and_props
 from .lights import STUDIOLIGHTS, hdri_path, make_world, seeded_world, studiolight_path, sun_lamp
 from .materials import make_materials
@@ -58,10 +59,10 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     ``bpy.context.scene``). Engine and sampling are left at the factory values; the caller sets them."""
     start, end = int(frames[0]), int(frames[1])
     if end < start:
-        raise ValueError(f"frames {start}:{end}: end is before start")
+        raise BlendSRError(f"frames {start}:{end}: end is before start")
     w, h = int(resolution[0]), int(resolution[1])
     if w <= 0 or h <= 0:
-        raise ValueError(f"resolution {w}x{h}: must be positive")
+        raise BlendSRError(f"resolution {w}x{h}: must be positive")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = start, end

@@ -8,6 +8,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ...errors import BlendSRError
 from ..camera_paths import look_at_matrix
 
 #: Environments (files ``<name>.exr`` in bpy's ``studiolights/world``) the seed picks from.
@@ -50,7 +51,7 @@ def make_world(scene, image_path, rot_z: float = 0.0, strength: float = 1.0) -> 
 
     w, h = img.size
     if w <= 0 or h <= 0:
-        raise ValueError(f"{image_path}: the HDRI could not be read")
+        raise BlendSRError(f"{image_path}: the HDRI could not be read")
     px = np.empty(w * h * 4, dtype=np.float32)
     img.pixels.foreach_get(px)
     px = px.reshape(h, w, 4)[..., :3].astype(np.float64)  # row 0 is the bottom (v = 0)
