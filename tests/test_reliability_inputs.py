@@ -89,9 +89,11 @@ def test_samples_above_the_cycles_cap_are_refused(tmp_path):
 
 @requires_bpy
 def test_a_million_frames_are_refused_before_the_scene_is_built(tmp_path):
+    from conftest import make_blend
+    blend = make_blend("basic", tmp_path / "s.blend")  # a scene file: the built-in scene refuses frames > 1000 first
     t0 = time.perf_counter()
-    proc = run_cli("render", "-o", tmp_path / "c", "--hr-size", "64x36", "--frames", "1:100000000", "--hr-spp", "2",
-                   "--lr-spp", "1", "--threads", "1", timeout=120)
+    proc = run_cli("render", blend, "-o", tmp_path / "c", "--hr-size", "64x36", "--frames", "1:100000000",
+                   "--camera-path", "orbit", "--hr-spp", "2", "--lr-spp", "1", "--threads", "1", timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "100000000 frame(s)" in proc.stderr.strip().splitlines()[-1]
     assert time.perf_counter() - t0 < 60
