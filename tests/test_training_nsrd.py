@@ -126,14 +126,14 @@ def test_zero_initialised_residual_head_is_demod_bilinear(transform):
         ModelConfig.of("nsrd", zero_init_head=True)
 
 
-@pytest.mark.parametrize("scale", [2, 4])
-def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, tmp_path):
+@pytest.mark.parametrize("scale,residual", [(2, False), (4, False), (4, True)])
+def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, residual, tmp_path):
     """Untrained weights, random inputs: exported at an LR size that needs no padding (8 x 8), checked over 3 frames,
     then run at an odd LR size (10 x 7, padded inside the graph) against torch with the state carried."""
     import onnxruntime as ort
     from training.export import example_inputs, export_onnx
     torch.manual_seed(0)
-    model = build_model(ModelConfig(name="nsrd"), scale).eval()
+    model = build_model(ModelConfig.of("nsrd", residual=residual), scale).eval()
     report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
     assert report["match"] and report["frames_checked"] == 3
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
