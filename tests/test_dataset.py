@@ -326,7 +326,8 @@ def test_the_same_spec_renders_the_same_clips(tmp_path):
 
 
 @pytest.mark.parametrize("spec_file", sorted((REPO / "examples").glob("dataset_*.toml"))
-                         + [REPO / "benchmarks" / "networks_dataset.toml"], ids=lambda p: p.name)
+                         + [REPO / "benchmarks" / n for n in ("networks_dataset.toml", "nsrd_base_dataset.toml")],
+                         ids=lambda p: p.name)
 def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
     """Every dataset spec the project ships parses, expands to uniquely named clips, and no training clip shows a
     test asset (as its main asset or as clutter). The medium spec contains the small one's clips exactly, plus its

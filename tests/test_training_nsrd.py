@@ -100,14 +100,40 @@ def test_output_is_remodulated_with_the_hr_fbeta_and_emission():
         torch.testing.assert_close(model(other), 2 * (out - batch["hr/emission"][:, -1]) + 0.5)
 
 
-@pytest.mark.parametrize("scale", [2, 4])
-def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, tmp_path):
+@pytest.mark.parametrize("transform", ["log1p", "none"])
+def test_zero_initialised_residual_head_is_demod_bilinear(transform):
+    """residual + zero_init_head: a fresh network's every frame is demod-bilinear's (the base, a deviation)."""
+    batch = make_batch()
+    batch["lr/fbeta_used"] = torch.ones_like(batch["lr/irradiance"])
+    batch["lr/fbeta_used"][..., 0, 1:3, 2:5] = 0.3  # a few demodulated pixels beside F_used = 1 ones (by class)
+    batch["hr/fbeta_used"][..., 0, :8, :] = 1.0
+    cfg = ModelConfig.of("nsrd", residual=True, zero_init_head=True, input_transform=transform)
+    model = build_model(cfg, 4).eval()
+    base = build_model(ModelConfig.of("demod-bilinear"), 4).eval()
+    assert set(base.needs()) <= set(model.needs())
+    assert n_params(model) == 1_610_852 + 2 * 9 * 32  # the option adds no parameter
+    state = None
+    with torch.no_grad():
+        for i in range(batch["lr/irradiance"].shape[1]):
+            cur = frame_slice(batch, i)
+            sr, state = model.step(cur, state)
+            want = base(cur)
+            if transform == "none":
+                assert torch.equal(sr, want)
+            else:  # exp(log(1 + x)) - 1 rounds
+                torch.testing.assert_close(sr, want, rtol=2e-6, atol=1e-6)
+    with pytest.raises(Exception, match="zero_init_head"):
+        ModelConfig.of("nsrd", zero_init_head=True)
+
+
+@pytest.mark.parametrize("scale,residual", [(2, False), (4, False), (4, True)])
+def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, residual, tmp_path):
     """Untrained weights, random inputs: exported at an LR size that needs no padding (8 x 8), checked over 3 frames,
     then run at an odd LR size (10 x 7, padded inside the graph) against torch with the state carried."""
     import onnxruntime as ort
     from training.export import example_inputs, export_onnx
     torch.manual_seed(0)
-    model = build_model(ModelConfig(name="nsrd"), scale).eval()
+    model = build_model(ModelConfig.of("nsrd", residual=residual), scale).eval()
     report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
     assert report["match"] and report["frames_checked"] == 3
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])

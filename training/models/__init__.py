@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from gbuffer_export.errors import BlendSRError
 from training.models.options import (DemodJBUOptions, FourierSROptions, FuseSRFastOptions, FuseSRLightOptions,
-                                     FuseSROptions, NoOptions, RDGOptions, RDGSmallOptions)
+                                     FuseSROptions, NoOptions, NSRDOptions, RDGOptions, RDGSmallOptions)
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ MODELS: dict[str, ModelInfo] = {
     "nsrd": ModelInfo("training.models.nsrd", "NSRD", True,
                       "NSRD (Li et al. 2024): LR demodulated irradiance, 2 warped previous frames with dual-motion-"
                       "vector disocclusion masks, warped previous HR output, ConvLSTM (64) and an RCAB U-Net; HR F_beta "
-                      "remodulation"),
+                      "remodulation", NSRDOptions),
     "fusesr-fast": ModelInfo("training.models.fusesr_fast", "FuseSRFast", True,
                              "FuseSR-fast (the authors' FuseSR_Fast): no history, 32-16-12-12-16 separable encoder, "
                              "unshuffled HR F_beta, 32-wide backbone of 6 inverted residual blocks (68 K params)",

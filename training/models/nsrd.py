@@ -29,6 +29,11 @@ its disocclusion mask, the jitters of frames t and t-1, and whether a previous f
 Parameters at 4x without jitter: 1,610,852 = the authors' code (their Table 2's 1610.79 K omits the BatchNorm's 64);
 the jitter adds 2 x 9 x 32 = 576. Deviations from the authors' code: docs/models/nsrd.md.
 
+Deviation (``[model.nsrd]`` ``residual``, default off = the authors' head): the head's output is added to
+T(demod-bilinear's upsampling of L_D) (``SRModel.upsample_input``: bilinear by class at the jittered positions), so
+the network learns a correction of ``demod-bilinear``; ``zero_init_head`` starts the last conv at 0, so a fresh
+network is exactly that baseline. The state's previous output is then the sum.
+
 Recurrent interface (``training.recurrent``): ``step(batch, state, reset=None) -> (SR, state)`` on the last frame of
 ``batch``; ``forward(batch)`` runs every frame of the batch from a reset state and returns the last SR.
 """
@@ -145,10 +150,16 @@ class NSRD(SRModel):
         self.lstm = ConvLSTM(FEATS * (PREVIOUS + 2), HIDDEN)
         self.unet = UNet(HIDDEN)
         self.head = nn.Sequential(conv(HIDDEN, FEATS), conv(FEATS, 3 * s * s))
+        opt = cfg.options
+        self.residual = bool(opt.residual)
+        if opt.zero_init_head:  # a fresh network outputs its residual base: demod-bilinear (module doc)
+            nn.init.zeros_(self.head[-1].weight)
+            nn.init.zeros_(self.head[-1].bias)
 
     def needs(self):
-        return ("lr/irradiance", "lr/normal", "lr/depth", "depth_ref", "lr/motion", "lr/motion_next",
-                "hr/fbeta_used", "hr/emission") + self.jitter_keys()
+        keys = ("lr/irradiance", "lr/normal", "lr/depth", "depth_ref", "lr/motion", "lr/motion_next",
+                "hr/fbeta_used", "hr/emission") + (self.upsample_keys() if self.residual else ())
+        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def state_shapes(self, lr_h: int, lr_w: int, batch: int = 1) -> list[tuple[int, ...]]:
         """Shapes of the state for an LR frame of lr_h x lr_w (module doc): hidden, cell (padded to a multiple of
@@ -215,6 +226,9 @@ class NSRD(SRModel):
         feats = F.pad(feats, (0, (-w) % PAD, 0, (-h) % PAD))  # always (a no-op at multiples of 4): ONNX keeps the Pad
         hid, cell = self.lstm(feats, hid, cell)
         y = F.pixel_shuffle(self.head(self.unet(hid)[:, :, :h, :w]), self.scale)
+        if self.residual:  # a correction of T(demod-bilinear's upsampled L_D); not in the paper (module doc)
+            base = self.upsample_input(current(batch, "lr/irradiance"), batch, jt)
+            y = y + forward_transform(base, self.transform).to(y.dtype)
         out = self.remodulate(inverse_transform(y.float(), self.transform), batch)
         new_state = [hid, cell, y, x, x1, motion, motion_next, new_mask, j, j1, torch.ones_like(seen)]
         return out, new_state

@@ -97,6 +97,18 @@ class FuseSRLightOptions(FuseSROptions):
 
 
 @dataclass
+class NSRDOptions:
+    """``nsrd``: deviations from the authors' head (docs/models/nsrd.md, "Base"); both off is the authors' network."""
+
+    residual: bool = False           # add T(demod-bilinear L_D) to the head's output: the network learns a correction
+    zero_init_head: bool = False     # with residual: the last conv starts at 0, so a fresh network is demod-bilinear
+
+    def validate(self, where: str) -> None:
+        if self.zero_init_head and not self.residual:
+            raise ConfigError(f"{where}.zero_init_head needs {where}.residual = true (it starts at the residual base)")
+
+
+@dataclass
 class RDGOptions:
     """``rdg``: width and the inputs of the ablations."""
 
