@@ -120,6 +120,9 @@ def draw_blendsr(layout, context) -> None:
         row.enabled = st.ok
         row.scale_y = 1.4
         row.operator("blendsr.export_dataset", icon="EXPORT")
+    row = layout.row()
+    row.enabled = st.ok
+    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
     if s.last_export:
         layout.label(text=f"Last export: {s.last_export}")
 
