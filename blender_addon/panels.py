@@ -95,6 +95,8 @@ def draw_blendsr(layout, context) -> None:
     box = layout.box()
     box.label(text="Camera and buffers", icon="CAMERA_DATA")
     box.prop(s, "camera_path")
+    box.prop(s, "light")
+    box.prop(s, "device")
     box.prop(s, "jitter")
     box.prop(s, "buffers")
     box.prop(s, "fbeta_source")
