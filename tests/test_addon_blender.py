@@ -254,7 +254,8 @@ def test_panels_draw_with_library(tmp_path):
         assert {"output_dir", "scale", "hr_spp", "lr_spp", "camera_path", "buffers", "fbeta_source", "jitter",
                 "frame_start", "frame_end", "hr_width", "hr_height", "checkpoint", "with_reference"} <= drawn
         ops = [e for e in log if e[0] == "operator"]
-        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale"} and all(e[2] for e in ops)
+        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale",
+                                         "blendsr.create_camera_paths"} and all(e[2] for e in ops)
         assert any(e[0] == "open" and e[2] >= 1 for e in log), "nested layouts are drawn"
         labels = [e[1] for e in log if e[0] == "label"]
         # default buffers x 2 levels x 2 frames; size from the channel counts (float32).
