@@ -333,8 +333,42 @@ def run_external_inference(python: str, clip_dir: str, frame: int, spec: str, wi
             out["metric"] = r.get("metric", "")
     return out
 
+class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
+    """Key the library's generated walk/fly paths (``scene_setup.make_level_camera``) as animated cameras named
+    "BlendSR <kind> NN", one per clip, so that they can be seen and edited before rendering (camera_path
+    "scene:NAME" renders from one)."""
+    bl_idname = "blendsr.create_camera_paths"
+    bl_label = "Create camera paths"
+    bl_options = {"REGISTER", "UNDO"}
 
-CLASSES = (BLENDSR_OT_export_dataset, BLENDSR_OT_preview_upscale)
+    kinds: bpy.props.StringProperty(name="Kinds", default="walk,fly")
+    clips: bpy.props.IntProperty(name="Clips", default=2, min=1, max=64)
+    seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
+
+    def execute(self, context):
+        from gbuffer_export.blender.scene_setup import make_level_camera
+
+        scene = context.scene
+        kinds = [k.strip() for k in self.kinds.split(",") if k.strip() in ("walk", "fly")] or ["walk"]
+        old_camera = scene.camera
+        frames = (scene.frame_start, scene.frame_end)
+        made = []
+        for i in range(self.clips):
+            kind = kinds[i % len(kinds)]
+            cam, _ = make_level_camera(scene, kind, frames, self.seed + i)
+            name = f"BlendSR {kind} {i:02d}"
+            stale = bpy.data.objects.get(name)
+            if stale is not None and stale is not cam:
+                bpy.data.objects.remove(stale, do_unlink=True)
+            cam.name = name
+            cam.data.name = name
+            made.append(name)
+        scene.camera = old_camera or bpy.data.objects.get(made[0])
+        self.report({"INFO"}, f"created {', '.join(made)}")
+        return {"FINISHED"}
+
+
+CLASSES = (BLENDSR_OT_export_dataset, BLENDSR_OT_preview_upscale, BLENDSR_OT_create_camera_paths)
 
 
 def register() -> None:

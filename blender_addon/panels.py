@@ -95,6 +95,8 @@ def draw_blendsr(layout, context) -> None:
     box = layout.box()
     box.label(text="Camera and buffers", icon="CAMERA_DATA")
     box.prop(s, "camera_path")
+    box.prop(s, "light")
+    box.prop(s, "device")
     box.prop(s, "jitter")
     box.prop(s, "buffers")
     box.prop(s, "fbeta_source")
@@ -120,6 +122,9 @@ def draw_blendsr(layout, context) -> None:
         row.enabled = st.ok
         row.scale_y = 1.4
         row.operator("blendsr.export_dataset", icon="EXPORT")
+    row = layout.row()
+    row.enabled = st.ok
+    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
     if s.last_export:
         layout.label(text=f"Last export: {s.last_export}")
 

@@ -8,8 +8,15 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 CAMERA_PATH_ITEMS = (
     ("scene", "Scene", "The file's own (animated) scene camera"),
     ("orbit", "Orbit", "A generated, seeded orbit framed from the scene bounds"),
-    ("walk", "Walk", "A generated, seeded walk through the scene"),
+    ("walk", "Walk", "A generated, seeded walk through the level (eye 1.6 m above the floor)"),
+    ("fly", "Fly", "A generated, seeded free flight through the level"),
 )
+LIGHT_ITEMS = (
+    ("scene", "Scene", "The file's own lights (refused when the scene is unlit)"),
+    ("sky", "Sky", "Add a seeded sun and sky"),
+)
+DEVICE_ITEMS = tuple((d, d.upper() if d != "auto" else "Auto", f"Cycles device {d}")
+                     for d in ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"))
 JITTER_ITEMS = (
     ("none", "None", "LR frames are not jittered"),
     ("halton", "Halton", "Sub-pixel jitter of the LR frames, Halton(2, 3) with period 16, in LR pixels"),
@@ -78,6 +85,8 @@ class BlendSRSettings(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of camera paths and Cycles noise")
     threads: IntProperty(name="Threads", default=0, min=0, description="Render threads (0 = all cores)")
     # -- buffers and camera --------------------------------------------------------------------------------------
+    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of the export")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
     camera_path: EnumProperty(name="Camera path", items=CAMERA_PATH_ITEMS, default="scene",
                               description="Camera of the clip")
     jitter: EnumProperty(name="Jitter", items=JITTER_ITEMS, default="halton", description="Sub-pixel jitter of LR")

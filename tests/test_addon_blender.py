@@ -254,7 +254,8 @@ def test_panels_draw_with_library(tmp_path):
         assert {"output_dir", "scale", "hr_spp", "lr_spp", "camera_path", "buffers", "fbeta_source", "jitter",
                 "frame_start", "frame_end", "hr_width", "hr_height", "checkpoint", "with_reference"} <= drawn
         ops = [e for e in log if e[0] == "operator"]
-        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale"} and all(e[2] for e in ops)
+        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale",
+                                         "blendsr.create_camera_paths"} and all(e[2] for e in ops)
         assert any(e[0] == "open" and e[2] >= 1 for e in log), "nested layouts are drawn"
         labels = [e[1] for e in log if e[0] == "label"]
         # default buffers x 2 levels x 2 frames; size from the channel counts (float32).
@@ -467,3 +468,38 @@ def test_modal_progress_status_bar_and_escape(tmp_path):
     assert r["reports"][-1][0] == ["INFO"] and "OK" in r["reports"][-1][1]
     from gbuffer_export.validate import validate_clip
     assert validate_clip(tmp_path / "clip").ok
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Create camera paths (level walk/fly paths as editable cameras)
+# ------------------------------------------------------------------------------------------------------------
+
+def test_create_camera_paths_on_garage_keeps_eyes_clear():
+    from conftest import shared_or_skip
+    blend = shared_or_skip("scenes/levels/garage/garage.blend")
+    r = run_bpy(r'''
+        import numpy as np
+        bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
+        blender_addon.register()
+        sc = bpy.context.scene
+        sc.frame_start, sc.frame_end = 1, 3
+        res = bpy.ops.blendsr.create_camera_paths(kinds="walk,fly", clips=2, seed=0)
+        from gbuffer_export.blender.level_geometry import from_scene
+        geom = from_scene(sc, 1)
+        out = {"res": list(res), "cams": {}}
+        for name in ("BlendSR walk 00", "BlendSR fly 01"):
+            cam = bpy.data.objects[name]
+            eyes = []
+            for f in range(0, 4):
+                sc.frame_set(f)
+                eyes.append(list(cam.matrix_world.translation))
+            d = geom.nearest_distance(np.asarray(eyes))
+            out["cams"][name] = {"animated": bool(cam.animation_data and cam.animation_data.action),
+                                 "moves": float(np.linalg.norm(np.asarray(eyes[-1]) - eyes[0])),
+                                 "min_clear_m": float(d.min()) / geom.units(1.0)}
+        emit(out)
+    ''', blend)
+    assert r["res"] == ["FINISHED"]
+    for name, c in r["cams"].items():
+        assert c["animated"] and c["moves"] > 0, (name, c)
+        assert c["min_clear_m"] >= 0.2, (name, c)
