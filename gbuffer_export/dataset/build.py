@@ -30,6 +30,7 @@ from pathlib import Path
 
 from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from ..errors import BlendSRError
+from ..locks import FolderLock
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
 INDEX = "dataset.json"
@@ -242,22 +243,6 @@ def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
     return proc.returncode, err.strip()
 
 
-class _Lock:
-    """An exclusive lock on DATASET/.lock for the coordinator's lifetime."""
-
-    def __init__(self, root: Path):
-        import fcntl
-        self.f = open(open_nofollow(root / ".lock", os.O_WRONLY | os.O_CREAT), "w")
-        try:
-            fcntl.flock(self.f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self.f.close()
-            raise DatasetError(f"{root}: another 'blendsr dataset' is running on this folder") from None
-
-    def close(self) -> None:
-        self.f.close()
-
-
 def _local_map(todo, run_one, workers: int, on_done) -> None:
     """Run ``run_one(job, slot)`` for every job on ``workers`` threads, each holding one slot 0..workers-1."""
     import queue
@@ -379,7 +364,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                     (root / "clips" / j.id / "manifest.json").is_file():
                 raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
                                    "spec into another folder")
-    lock = _Lock(root)
+    lock = FolderLock(root, "another 'blendsr dataset' is running on this folder")
     try:
         for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
             for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
