@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Remake the shipped pretrained weights (training/weights/*.pt + .json):
+# Remake the shipped pretrained weights (training/weights/*.safetensors + .json):
 #   1. render the dataset of $SPEC (default examples/dataset_medium.toml, 67 clips; resumes when DATASET exists),
 #   2. train fusesr and fusesr-l on its train split with benchmarks/pretrain.toml,
 #   3. score them and the non-learned baselines on its val split (scenes that choose between trainings) and its test

@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/release_weights.py DATASET RUNS
 
 Expects RUNS/fusesr and RUNS/fusesr_l (``benchmarks/pretrain.sh`` makes them). Writes
-training/weights/{fusesr_x4,fusesr_l_x4}.pt and .json (dataset spec and index digest, commands, scores of the
+training/weights/{fusesr_x4,fusesr_l_x4}.safetensors and .json (the file's sha256, dataset spec and index digest,
+commands, scores of the
 model and of bicubic, demod-bilinear and demod-jbu on the same test clips, and on the val clips when the dataset has
 a val split: the scenes that choose between trainings, while the test assets only report) and RUNS/release.json.
 """

@@ -15,7 +15,7 @@ from .errors import BlendSRError
 #: extra -> the top-level modules it installs (import names), as in pyproject.toml's optional-dependencies.
 EXTRAS: dict[str, tuple[str, ...]] = {
     "render": ("bpy", "trimesh", "rtree", "scipy", "embreex"),
-    "train": ("torch", "matplotlib", "pytorch_msssim", "flip_evaluator"),
+    "train": ("torch", "matplotlib", "pytorch_msssim", "flip_evaluator", "safetensors"),
     "export": ("onnx", "onnxruntime"),
     "cluster": ("ray",),
 }

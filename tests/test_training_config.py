@@ -157,7 +157,7 @@ def test_example_configurations_load_in_the_new_form(path):
 
 
 @pytest.mark.torch
-@pytest.mark.parametrize("path", sorted((ROOT / "training" / "weights").glob("*.pt")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted((ROOT / "training" / "weights").glob("*.safetensors")), ids=lambda p: p.name)
 def test_every_shipped_checkpoint_loads_and_runs_as_trained(path):
     pytest.importorskip("torch")
     from training.checkpoint import load_checkpoint

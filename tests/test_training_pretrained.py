@@ -1,5 +1,6 @@
-"""Shipped weights: the float16 release of a checkpoint, ``pretrained:NAME`` everywhere a checkpoint goes,
-fine-tuning from weights (``run.init_from``), and the installed weights against their own metadata."""
+"""Shipped weights: the float16 safetensors release of a checkpoint, refusal of tampered or unfitting files,
+``pretrained:NAME`` everywhere a checkpoint goes, fine-tuning from weights (``run.init_from``), and the installed
+weights against their own metadata (size, sha256, parameter digest)."""
 import json
 
 import numpy as np
@@ -34,28 +35,87 @@ def run(clip, tmp_path_factory):
     return out
 
 
-def test_release_is_float16_small_and_matches_the_checkpoint(run, clip, tmp_path, monkeypatch):
+def test_release_is_float16_safetensors_small_and_matches_the_checkpoint(run, clip, tmp_path, monkeypatch):
     ck = run / "checkpoints" / "last.pt"
+    from safetensors import safe_open
+
+    from training.checkpoint import file_sha256
     from training.release import release
-    meta = release(ck, tmp_path / "w.pt", {"model": "fusesr-l", "note": "test"})
-    slim = torch.load(tmp_path / "w.pt", map_location="cpu", weights_only=True)
-    assert "optimizer" not in slim and all(v.dtype == torch.float16 for v in slim["model"].values()
-                                           if v.is_floating_point())
-    assert meta["bytes"] == (tmp_path / "w.pt").stat().st_size < pretrained.MAX_BYTES
-    assert json.loads((tmp_path / "w.json").read_text())["note"] == "test"
+    meta = release(ck, tmp_path / "w.safetensors", {"model": "fusesr-l", "note": "test"})
+    with safe_open(str(tmp_path / "w.safetensors"), framework="pt") as f:  # tensors and a JSON header, no pickle
+        header = json.loads(f.metadata()["blendsr"])
+        assert all(f.get_tensor(k).dtype == torch.float16 for k in f.keys())
+    assert header["format"] == "blendsr.weights" and header["model_name"] == "fusesr-l" and header["scale"] == 4
+    assert "optimizer" not in header and header["step"] == 3
+    assert meta["bytes"] == (tmp_path / "w.safetensors").stat().st_size < pretrained.MAX_BYTES
+    on_disk = json.loads((tmp_path / "w.json").read_text())
+    assert on_disk["note"] == "test" and on_disk["sha256"] == file_sha256(tmp_path / "w.safetensors") == meta["sha256"]
     src = ClipFrames(str(clip))
     a = upscale_frame(load_model(str(ck), 4), src, 2)["sr"]
-    b = upscale_frame(load_model(str(tmp_path / "w.pt"), 4), src, 2)["sr"]
+    b = upscale_frame(load_model(str(tmp_path / "w.safetensors"), 4), src, 2)["sr"]
     assert np.abs(a - b).max() <= 2e-3 * max(1.0, float(np.abs(a).max()))  # fp16 weights
+    assert param_digest(load_model(str(tmp_path / "w.safetensors"), 4)) == meta["param_digest"]
+    # releasing the released file again changes no bit (how the shipped .pt files were converted)
+    again = release(tmp_path / "w.safetensors", tmp_path / "again" / "w.safetensors", {"model": "fusesr-l"})
+    assert again["param_digest"] == meta["param_digest"] and again["sha256"] == meta["sha256"]
+    with pytest.raises(ValueError, match=r"w\.pt: shipped weights are written as \.safetensors"):
+        release(ck, tmp_path / "w.pt", {})
     # pretrained:NAME resolves to the package's weights folder
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
-    monkeypatch.setitem(pretrained.PRETRAINED, "fusesr-l", "w.pt")
-    assert pretrained.resolve("pretrained:fusesr-l") == str(tmp_path / "w.pt")
+    monkeypatch.setitem(pretrained.PRETRAINED, "fusesr-l", "w.safetensors")
+    assert pretrained.resolve("pretrained:fusesr-l") == str(tmp_path / "w.safetensors")
     assert load_checkpoint("pretrained:fusesr-l")["scale"] == 4
     with pytest.raises(FileNotFoundError, match="no such pretrained model; shipped: pretrained:fusesr"):
         pretrained.resolve("pretrained:nope")
     assert main(["evaluate", "--checkpoint", "pretrained:nope", "--data", str(clip), "--json",
                  str(tmp_path / "e.json")]) == 2
+
+
+def _one_line_refusal(capsys, path, *args) -> str:
+    assert main(["evaluate", "--checkpoint", str(path), "--data", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "Traceback" not in err[0], err
+    return err[0]
+
+
+def test_tampered_or_unfitting_weights_are_refused_in_one_line(run, clip, tmp_path, capsys):
+    """The sha256 recorded in the JSON is checked on every load; a file whose tensors do not fit the model (missing
+    or unexpected names) is refused naming the file; so is one without its JSON."""
+    from safetensors.torch import save_file
+
+    from training.checkpoint import CheckpointError, file_sha256, load_weights_file
+    from training.release import release
+    w = tmp_path / "w.safetensors"
+    release(run / "checkpoints" / "last.pt", w, {"model": "fusesr-l"})
+    good = w.read_bytes()
+    args = (str(clip), "--json", str(tmp_path / "e.json"))
+    bad = bytearray(good)
+    bad[-1] ^= 1  # one bit of one weight
+    w.write_bytes(bytes(bad))
+    assert "differs from the recorded" in _one_line_refusal(capsys, w, *args)
+    w.write_bytes(good[: len(good) // 2])
+    assert "differs from the recorded" in _one_line_refusal(capsys, w, *args)
+    # a consistent file and JSON whose tensors do not fit: one missing, one unexpected
+    w.write_bytes(good)
+    (tmp_path / "w.json").rename(tmp_path / "x.json")
+    assert "no w.json beside it" in _one_line_refusal(capsys, w, *args)
+    (tmp_path / "x.json").rename(tmp_path / "w.json")
+    with pytest.raises(CheckpointError, match="differs from the recorded"):
+        load_weights_file(w, sha256="0" * 64)
+    ck = load_weights_file(w)
+    header = {k: ck[k] for k in ("model_name", "config", "scale", "step")}
+    for name, tensors in (("missing", dict(list(ck["model"].items())[1:])),
+                          ("unexpected", {**ck["model"], "extra.weight": torch.zeros(1)})):
+        f = tmp_path / f"{name}.safetensors"
+        save_file(tensors, f, metadata={"blendsr": json.dumps({"format": "blendsr.weights", **header})})
+        (tmp_path / f"{name}.json").write_text(json.dumps({"sha256": file_sha256(f)}))
+        line = _one_line_refusal(capsys, f, *args)
+        assert f"do not fit model fusesr-l: {name}" in line, line
+    # not BlendSR's header
+    f = tmp_path / "plain.safetensors"
+    save_file(ck["model"], f)
+    (tmp_path / "plain.json").write_text(json.dumps({"sha256": file_sha256(f)}))
+    assert "not BlendSR weights" in _one_line_refusal(capsys, f, *args)
 
 
 def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
@@ -80,7 +140,10 @@ def test_installed_weights_match_their_metadata(name):
     if not path.is_file():
         pytest.skip(f"{path} not shipped")
     meta = pretrained.info(name)
+    from training.checkpoint import file_sha256
+    assert path.suffix == ".safetensors" and not list(pretrained.WEIGHTS_DIR.glob("*.pt")), "no pickles shipped"
     assert path.stat().st_size == meta["bytes"] <= pretrained.MAX_BYTES
+    assert file_sha256(path) == meta["sha256"]
     model = load_model(f"pretrained:{name}", 4)
     assert param_digest(model) == meta["param_digest"]
     assert meta["commands"] and meta["dataset"]["test_clips"]

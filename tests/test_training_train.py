@@ -224,8 +224,8 @@ def test_ema_weights_are_the_moving_average_and_resume_bit_identically(clip, tmp
     for k, v in model.state_dict().items():
         assert torch.equal(v, last["ema_model"][k]), k
     from training.release import release
-    release(straight / "checkpoints" / "last.pt", tmp_path / "w.pt", {})
-    slim = load_checkpoint(tmp_path / "w.pt")
+    release(straight / "checkpoints" / "last.pt", tmp_path / "w.safetensors", {})
+    slim = load_checkpoint(tmp_path / "w.safetensors")
     assert torch.equal(slim["model"]["head.weight"], last["ema_model"]["head.weight"].half())
 
 

@@ -92,14 +92,14 @@ def test_the_wheel_is_what_runs_and_its_dependencies_are_met(venv):
             "print(json.dumps({'core': gbuffer_export.__file__, 'training': training.__file__,\n"
             "                  'dist': str(d.locate_file('')), 'unmet': unmet,\n"
             "                  'weights': sorted(p.name for p in (metadata.files('blendsr') or [])\n"
-            "                                    if p.suffix in ('.pt', '.toml'))}))\n")
+            "                                    if p.suffix in ('.safetensors', '.toml'))}))\n")
     proc = _run(venv, venv["py"], "-c", code)
     assert proc.returncode == 0, proc.stderr[-3000:]
     info = json.loads(proc.stdout)
     for key in ("core", "training", "dist"):
         assert Path(info[key]).resolve().is_relative_to(venv["site"].resolve()), info
     assert not info["unmet"], info["unmet"]
-    assert "fusesr_x4.pt" in info["weights"] and "blender_manifest.toml" in info["weights"]
+    assert "fusesr_x4.safetensors" in info["weights"] and "blender_manifest.toml" in info["weights"]
 
 
 def test_blendsr_help_and_a_tiny_render_from_the_wheel(venv):

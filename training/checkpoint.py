@@ -9,9 +9,15 @@ is refused with one line naming the file and the global it asked for, before any
 
 Version 2 checkpoints hold only plain types (the numpy RNG state as a dict of lists, ``numpy_rng_state``); version 1
 checkpoints (numpy arrays in the RNG state) still load through the allow-list.
+
+Shipped weights (``training/weights/*.safetensors``, written by ``training.release``) are no pickle at all: a
+safetensors file holds only tensors and a JSON header, so reading one cannot execute code by construction.
+``load_weights_file`` checks its sha256 against the ``sha256`` of the JSON beside it before reading it.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import pickle
 import zipfile
@@ -24,6 +30,8 @@ from gbuffer_export.errors import BlendSRError
 
 CHECKPOINT_FORMAT = "blendsr.checkpoint"
 CHECKPOINT_VERSION = 2
+WEIGHTS_FORMAT = "blendsr.weights"   # the header of a shipped .safetensors file (key ``WEIGHTS_HEADER``)
+WEIGHTS_HEADER = "blendsr"
 
 
 def _numpy_globals() -> list:
@@ -137,6 +145,8 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     path = Path(resolve(path))
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
+    if path.suffix == ".safetensors":
+        return load_weights_file(path)
     if not zipfile.is_zipfile(path):
         raise CheckpointError(f"{path}: not a BlendSR checkpoint (not a torch.save zip archive)")
     try:
@@ -154,3 +164,69 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: not a BlendSR checkpoint (no format = {CHECKPOINT_FORMAT!r})")
     return ck
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def recorded_sha256(path: Path) -> str:
+    """The ``sha256`` that the JSON beside the weights file ``path`` records; CheckpointError (one line) without."""
+    meta_path = path.with_suffix(".json")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no {meta_path.name} beside it to check it against (training.release writes "
+                              "the weights and their JSON together)") from None
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{meta_path}: unreadable JSON ({exc})") from None
+    sha = meta.get("sha256") if isinstance(meta, dict) else None
+    if not isinstance(sha, str) or len(sha) != 64:
+        raise CheckpointError(f"{meta_path}: no 'sha256' of {path.name} (64 hex digits)")
+    return sha
+
+
+def load_weights_file(path: str | os.PathLike, sha256: str | None = None) -> dict:
+    """Read shipped weights (a .safetensors file of ``training.release``) into the dict ``load_checkpoint`` returns
+    (``format``, ``version``, ``model_name``, ``config``, ``scale``, ``step``, ``weights_dtype`` and ``model``: name ->
+    tensor). The file's sha256 must equal ``sha256`` (default: the one its JSON records); CheckpointError otherwise."""
+    from safetensors import safe_open
+    path = Path(path)
+    want = sha256 or recorded_sha256(path)
+    got = file_sha256(path)
+    if got != want:
+        raise CheckpointError(f"{path}: sha256 {got[:16]}... differs from the recorded {want[:16]}... (the file "
+                              "was altered or truncated; reinstall BlendSR or rerun the release)")
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = (f.metadata() or {}).get(WEIGHTS_HEADER)
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+        header = json.loads(header) if header else None
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{path}: not a readable safetensors file ({first})") from None
+    if not isinstance(header, dict) or header.get("format") != WEIGHTS_FORMAT:
+        raise CheckpointError(f"{path}: not BlendSR weights (no {WEIGHTS_HEADER!r} header with format = "
+                              f"{WEIGHTS_FORMAT!r})")
+    missing = [k for k in ("model_name", "config", "scale") if k not in header]
+    if missing:
+        raise CheckpointError(f"{path}: its header lacks {', '.join(missing)}")
+    return {**header, "format": CHECKPOINT_FORMAT, "model": tensors}
+
+
+def check_weights_fit(path, model: torch.nn.Module, weights: dict, name: str) -> None:
+    """CheckpointError (one line naming ``path``) unless ``weights`` has exactly the names and shapes of ``model``'s
+    state dict (``name``: the model's, for the message): nothing missing, nothing unexpected."""
+    own = model.state_dict()
+    missing = [k for k in own if k not in weights]
+    unexpected = [k for k in weights if k not in own]
+    shapes = [k for k in own if k in weights and tuple(own[k].shape) != tuple(weights[k].shape)]
+    for what, keys in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", shapes)):
+        if keys:
+            more = f" and {len(keys) - 3} more" if len(keys) > 3 else ""
+            raise CheckpointError(f"{path}: weights do not fit model {name}: {what} {', '.join(keys[:3])}{more}")

@@ -127,7 +127,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         model.demod_eps = 0.01
         model.config = None
     else:
-        from training.checkpoint import inference_weights, load_checkpoint
+        from training.checkpoint import check_weights_fit, inference_weights, load_checkpoint
         from training.config import config_from_checkpoint
         from training.pretrained import resolve
         path = Path(resolve(spec))
@@ -139,7 +139,9 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
             raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
         model = build_model(cfg.model, scale)
-        model.load_state_dict(inference_weights(ck))
+        weights = inference_weights(ck)
+        check_weights_fit(path, model, weights, cfg.model.name)  # strict: one line naming the file
+        model.load_state_dict(weights)
         model.demod_eps = cfg.data.demod_eps
         model.config = cfg
     model.spec = str(spec)

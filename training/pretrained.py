@@ -1,11 +1,11 @@
 """Pretrained weights shipped in the package (torch layer).
 
-``training/weights/<file>.pt`` holds a slim BlendSR checkpoint (format, configuration, scale, step and the model's
-weights in float16; no optimiser state), and ``<file>.json`` beside it the dataset spec, the commands that made it
-and its scores. Anywhere a checkpoint path is accepted (``evaluate``, ``upscale``, ``export``, ``bench models``,
-``make demo``, the add-on), ``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them
-(``training.release.release`` writes a file). This module imports nothing of the trainer: the checkpoint loader
-resolves names through it.
+``training/weights/<file>.safetensors`` holds the model's weights in float16 with a JSON header (format,
+configuration, scale, step; no optimiser state, no pickle: loading cannot run code), and ``<file>.json`` beside it the
+file's sha256 (checked on every load), the dataset spec, the commands that made it and its scores. Anywhere a
+checkpoint path is accepted (``evaluate``, ``upscale``, ``export``, ``bench models``, ``make demo``, the add-on),
+``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them (``training.release.release`` writes a
+file). This module imports nothing of the trainer: the checkpoint loader resolves names through it.
 """
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ PREFIX = "pretrained:"
 
 #: name -> weight file (scale 4) in ``training/weights``.
 PRETRAINED: dict[str, str] = {
-    "fusesr": "fusesr_x4.pt",
-    "fusesr-l": "fusesr_l_x4.pt",
+    "fusesr": "fusesr_x4.safetensors",
+    "fusesr-l": "fusesr_l_x4.safetensors",
 }
 MAX_BYTES = 10 * 1024 * 1024
 
