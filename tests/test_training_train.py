@@ -99,20 +99,27 @@ def test_nonfinite_loss_stops_training_and_names_the_batch(clip, tmp_path, monke
     assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()  # nothing after the bad step
 
 
-def test_perceptual_loss_needs_a_user_file_and_uses_it(clip, tmp_path):
+def test_perceptual_loss_needs_a_user_file_and_uses_it(clip, tmp_path, monkeypatch):
+    from training import perceptual
+    from training.checkpoint import file_sha256
     from training.perceptual import VGGFeatures, vgg16_features
     assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(tmp_path / "r0"),
                  "--set", "loss.perceptual_weight=0.5"]) == 2
     torch.manual_seed(0)
-    weights = tmp_path / "vgg16.pt"
+    weights = tmp_path / "vgg16.pt"  # random weights stand in for torchvision's file (tests/test_training_perceptual.py)
     torch.save({f"features.{k}": v for k, v in vgg16_features().state_dict().items()}, weights)
+    monkeypatch.setattr(perceptual, "VGG16_SHA256", file_sha256(weights))
     v = VGGFeatures.from_file(weights)
     a = torch.rand(1, 3, 32, 32)
     assert float(v.distance(a, a)) == 0.0 and float(v.distance(a, a.flip(-1))) > 0
     bad = tmp_path / "bad.pt"
     torch.save({"x": torch.zeros(1)}, bad)
+    with pytest.raises(ValueError, match="is not that of vgg16-397923af.pth"):
+        VGGFeatures.from_file(bad)
+    monkeypatch.setattr(perceptual, "VGG16_SHA256", file_sha256(bad))
     with pytest.raises(ValueError, match="not a VGG-16"):
         VGGFeatures.from_file(bad)
+    monkeypatch.setattr(perceptual, "VGG16_SHA256", file_sha256(weights))
     run = tmp_path / "r1"
     assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                  *set_args(SMALL + ["loss.perceptual_weight=0.5", f"loss.vgg_weights=\"{weights}\""])]) == 0

@@ -158,7 +158,7 @@ class LossConfig:
     temporal: str = "warped"         # 'warped': L1 of (SR_t - W(SR_t-1)) - (GT_t - W(GT_t-1)), W: warp with HR
                                      # motion; 'difference': MSE of (SR_t - SR_t-1) - (GT_t - GT_t-1) (RDG's code)
     perceptual_weight: float = 0.0   # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
-    vgg_weights: str = ""            # path to a user-supplied VGG-16 state dict; nothing is downloaded
+    vgg_weights: str = ""            # path to torchvision's vgg16-397923af.pth, which you download (docs/training.md)
 
     def validate(self) -> None:
         _choice("loss.space", self.space, LOSS_SPACES)
@@ -173,13 +173,9 @@ class LossConfig:
             raise ConfigError("loss: every weight is 0; nothing to train")
         if self.charbonnier_eps < 1e-6:
             raise ConfigError(f"loss.charbonnier_eps {self.charbonnier_eps}: must be >= 1e-6")
-        if self.perceptual_weight > 0:
-            if not self.vgg_weights:
-                raise ConfigError("loss.perceptual_weight > 0 needs loss.vgg_weights = a VGG-16 weights file "
-                                  "(torchvision layout, features.N.weight/bias); BlendSR downloads nothing")
-            if not Path(self.vgg_weights).is_file():
-                raise ConfigError(f"loss.vgg_weights {self.vgg_weights}: file not found (supply VGG-16 weights "
-                                  "yourself; BlendSR downloads nothing)")
+        if self.perceptual_weight > 0:  # the file must exist; its sha256 is checked when the loss loads it
+            from training.perceptual import require_vgg_file
+            require_vgg_file(self.vgg_weights, check_hash=False)
 
 
 @dataclass
