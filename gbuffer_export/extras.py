@@ -57,7 +57,8 @@ def require(what: str, *extras: str, modules: tuple[str, ...] | None = None) -> 
         mods = EXTRAS[extra] if modules is None else tuple(m for m in modules if extra_of(m) == extra)
         missing = [m for m in mods if not installed(m)]
         if missing:
-            raise MissingExtra(f"{what} needs {', '.join(missing)}, which is not installed: {install_hint(extra)}")
+            are = "is" if len(missing) == 1 else "are"
+            raise MissingExtra(f"{what} needs {', '.join(missing)}, which {are} not installed: {install_hint(extra)}")
 
 
 def missing_module_message(exc: ModuleNotFoundError) -> str | None:
@@ -68,8 +69,10 @@ def missing_module_message(exc: ModuleNotFoundError) -> str | None:
     return f"no module named '{exc.name}': {install_hint(extra)}"
 
 
-#: help text that already states its default: "default: X", "(default X)", "defaults to", "%(default)s"
-_SAYS_DEFAULT = re.compile(r"\bdefault\s*:|\(default\b|\bdefaults? to\b|%\(default\)", re.IGNORECASE)
+#: help text that already states its default: "default: X", "(default X)", "default is X", "defaults to",
+#: "%(default)s"
+_SAYS_DEFAULT = re.compile(r"\bdefault\s*:|\(default\b|\bdefault is\b|\bdefaults? to\b|%\(default\)",
+                           re.IGNORECASE)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):

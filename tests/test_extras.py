@@ -150,17 +150,65 @@ def _option_entries(text: str) -> list[str]:
     return [" ".join(s.strip() for s in e) for e in entries]
 
 
+#: a statement of a default in help text ("(default: X)", "(default X)", "default: X", "default is X", "defaults to
+#: X"); counted without overlap, so "(default: X)" counts once
+STATES_DEFAULT = re.compile(r"\(default\b|\bdefault\s*:|\bdefault is\b|\bdefaults? to\b", re.IGNORECASE)
+
+
 def test_every_help_shows_each_default_once():
-    commands = _subcommands()
+    """``blendsr --help`` and ``blendsr COMMAND [SUBCOMMAND] --help`` for every command the parser has: no option
+    states its default twice, and none shows an empty one (None, [], '')."""
+    from gbuffer_export.cli import build_parser
+    commands = [([], build_parser()), *_subcommands()]
     names = {" ".join(p) for p, _ in commands}
     assert {"render", "dataset", "train", "evaluate", "export", "bench models", "bench brdf"} <= names
     bad = []
     for path, p in commands:
         for entry in _option_entries(p.format_help()):
-            n = len(re.findall(r"\bdefault\s*:", entry, re.IGNORECASE))
-            if n > 1 or "(default: None)" in entry:
+            n = len(STATES_DEFAULT.findall(entry))
+            if n > 1 or re.search(r"\(default: (None|\[\]|''|)\)", entry):
                 bad.append(f"blendsr {' '.join(path)}: {entry}")
     assert not bad, "\n".join(bad)
+    from gbuffer_export.extras import HelpFormatter
+    plain = [" ".join(path) for path, p in commands[1:] if not issubclass(p.formatter_class, HelpFormatter)]
+    assert not plain, f"commands whose --help shows no defaults (not extras.HelpFormatter): {plain}"
+
+
+def test_the_help_check_catches_a_doubled_default():
+    import argparse
+    from gbuffer_export.extras import HelpFormatter
+    p = argparse.ArgumentParser(formatter_class=HelpFormatter)
+    p.add_argument("--a", default=3, help="a number; default is 3")
+    p.add_argument("--b", default=4, help="b number (default: 4) (default: 4)")
+    p.add_argument("--c", default=None, help="c (default: %(default)s)")
+    flagged = [e for e in _option_entries(p.format_help())
+               if len(STATES_DEFAULT.findall(e)) > 1 or re.search(r"\(default: (None|\[\]|''|)\)", e)]
+    assert [e.split()[0] for e in flagged] == ["--b", "--c"]  # --a: the formatter appends nothing after "default is"
+
+
+#: Every command of a [render]-only environment: those that work there, and (TRAIN_COMMANDS, bench brdf's chart)
+#: those that stop naming [train]. A new command must be added to one of them (and tested there).
+RENDER_ONLY_WORKS = {"render", "dataset", "validate", "preview", "lut", "bench render", "demo", "export-dataset",
+                     "import-nss"}
+
+
+def test_every_command_is_covered_for_the_render_only_environment():
+    leaves = {" ".join(path) for path, p in _subcommands()
+              if not any(a.__class__.__name__ == "_SubParsersAction" for a in p._actions)}
+    named = {" ".join(a[:2]) if a[0] == "bench" else a[0] for a in TRAIN_COMMANDS} | {"bench brdf"}
+    assert not RENDER_ONLY_WORKS & named
+    assert leaves == RENDER_ONLY_WORKS | named, leaves ^ (RENDER_ONLY_WORKS | named)
+
+
+@pytest.mark.parametrize("args", [("preview", "ds", "-o", "s.png"), ("export-dataset", "c", "--format", "nss",
+                                                                     "-o", "n"), ("import-nss", "n", "-o", "c")],
+                         ids=lambda a: a[0])
+def test_core_commands_with_no_extra_never_ask_for_one(args, tmp_path):
+    """preview, export-dataset and import-nss need no extra: missing input is a one-line usage error, not a hint to
+    install something."""
+    proc = blendsr_without(("render", "train", "export", "cluster"), *args, tmp_path=tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "extra" not in lines[0], proc.stderr[-2000:]
 
 
 @pytest.mark.parametrize("kind", ["render", "brdf", "models", "loader"])

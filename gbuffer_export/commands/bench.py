@@ -12,11 +12,12 @@ CORE_BENCHES = {
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
-                       description="Benchmarks. Each prints a table and can save JSON; numbers are medians.")
-    bsub = p.add_subparsers(dest="bench", metavar="KIND")
     from ..cli import MissingModule, entry_modules, import_optional
     from ..extras import HelpFormatter
+    p = sub.add_parser("bench", help="benchmarks: render cost, BRDF accuracy, models' speed against error, loader",
+                       description="Benchmarks. Each prints a table and can save JSON; numbers are medians.",
+                       formatter_class=HelpFormatter)
+    bsub = p.add_subparsers(dest="bench", metavar="KIND")
     for name, modname in entry_modules("blendsr.bench", CORE_BENCHES).items():
         mod = import_optional(modname)
         if mod is None:

@@ -2,9 +2,10 @@
 ``blendsr import-nss``: read an NSS capture sequence into a BlendSR clip. Conversions: gbuffer_export/formats."""
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from ..extras import HelpFormatter
 
 FORMATS = ("nss", "rdg")
 
@@ -19,7 +20,7 @@ every mapping and what is lost."""
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("export-dataset", help="write clips as another trainer's dataset layout (NSS, RDG)",
-                              description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=HELP, formatter_class=HelpFormatter)
     p.add_argument("sources", nargs="+", type=Path, metavar="DATASET_OR_CLIP",
                    help="clip folders and/or dataset folders (holding dataset.json)")
     p.add_argument("--format", choices=FORMATS, required=True, help="the layout to write")
@@ -31,7 +32,8 @@ def register(subparsers) -> None:
     q = subparsers.add_parser("import-nss", help="read one NSS capture sequence into a BlendSR clip",
                               description="Write sequence SEQ of an NSS capture folder as a BlendSR clip (buffers "
                                           "radiance, depth, motion; hr/depth is upsampled from the first LR level, "
-                                          "NSS has none). See docs/formats.md.")
+                                          "NSS has none). See docs/formats.md.",
+                              formatter_class=HelpFormatter)
     q.add_argument("capture", type=Path, metavar="NSS_DIR")
     q.add_argument("--sequence", default="0000", help="sequence name (its JSON file's stem)")
     q.add_argument("-o", "--output", type=Path, required=True, help="the clip folder to write")
@@ -39,31 +41,22 @@ def register(subparsers) -> None:
 
 
 def run_export(args) -> int:
-    from ..clip import ClipError
-    from ..dataset.build import DatasetError
-    from ..formats.nss import NssError, export_nss
+    """Bad input (a missing clip, an unfinished one, an output folder in use) raises a BlendSRError: one line, exit
+    code 2 at the CLI's error boundary."""
+    from ..formats.nss import export_nss
     from ..formats.rdg import export_rdg
     report = lambda c, j: print(f"blendsr: {c} -> {j}", file=sys.stderr)
-    try:
-        if args.format == "rdg":
-            scenes = export_rdg(args.sources, args.output, progress=report)
-            print(f"blendsr: wrote {len(scenes)} RDG scene(s) to {args.output}")
-            return 0
-        paths = export_nss(args.sources, args.output, framerate=args.framerate, progress=report)
-    except (ClipError, DatasetError, NssError) as exc:
-        print(f"blendsr: error: {exc}", file=sys.stderr)
-        return 1
+    if args.format == "rdg":
+        scenes = export_rdg(args.sources, args.output, progress=report)
+        print(f"blendsr: wrote {len(scenes)} RDG scene(s) to {args.output}")
+        return 0
+    paths = export_nss(args.sources, args.output, framerate=args.framerate, progress=report)
     print(f"blendsr: wrote {len(paths)} NSS sequence(s) to {args.output}")
     return 0
 
 
 def run_import(args) -> int:
-    from ..clip import ClipError
-    from ..formats.nss import NssError, nss_to_clip
-    try:
-        out = nss_to_clip(args.capture, args.sequence, args.output)
-    except (ClipError, NssError, FileNotFoundError) as exc:
-        print(f"blendsr: error: {exc}", file=sys.stderr)
-        return 1
+    from ..formats.nss import nss_to_clip
+    out = nss_to_clip(args.capture, args.sequence, args.output)
     print(f"blendsr: wrote {out}")
     return 0

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..clip import ClipWriter, levels_header, open_clip, scale_value, write_json_atomic
+from ..errors import BlendSRError
 from ..exr import HALF_MAX, read_exr, write_exr
 from . import conventions as cv
 
@@ -31,8 +32,9 @@ NSS_SPACE = "Linear Rec.709"
 HALTON_PERIOD = 16
 
 
-class NssError(ValueError):
-    """An NSS capture or export request that cannot be handled; the message is one line naming the path."""
+class NssError(BlendSRError):
+    """An NSS capture or export request that cannot be handled (bad input: the CLI prints the one-line message
+    naming the path, exit 2)."""
 
 
 def source_clips(sources) -> list[Path]:
