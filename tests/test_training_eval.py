@@ -310,8 +310,8 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
     again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")  # resumes the run
     assert again["train"]["step"] > s["train"]["step"]
     # with shipped weights the demo scores them and fine-tunes one of them
-    release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt", tmp_path / "weights" / "fusesr_l_x4.safetensors",
-            {"model": "fusesr-l"})
+    release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt",
+            tmp_path / "weights" / "fusesr_l_x4.safetensors", {"model": "fusesr-l"})
     ft = run_training_demo([a], [b], tmp_path / "demo2", minutes=0.005, model="fusesr-l")
     assert [r["model"] for r in ft["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
                                                  "pretrained:fusesr-l", "fusesr-l (fine-tuned 0.005 min)"]

@@ -106,7 +106,7 @@ def test_perceptual_loss_needs_a_user_file_and_uses_it(clip, tmp_path, monkeypat
     assert main(["train", "--model", "fusesr-l", "--data", str(clip), "-o", str(tmp_path / "r0"),
                  "--set", "loss.perceptual_weight=0.5"]) == 2
     torch.manual_seed(0)
-    weights = tmp_path / "vgg16.pt"  # random weights stand in for torchvision's file (tests/test_training_perceptual.py)
+    weights = tmp_path / "vgg16.pt"  # random weights in place of torchvision's (tests/test_training_perceptual.py)
     torch.save({f"features.{k}": v for k, v in vgg16_features().state_dict().items()}, weights)
     monkeypatch.setattr(perceptual, "VGG16_SHA256", file_sha256(weights))
     v = VGGFeatures.from_file(weights)
