@@ -135,7 +135,7 @@ def dataset_spec_dict(ds, stem: str) -> dict:
         if k != scales[0]:
             src["scale"] = k
         sources.append(src)
-    return {"dataset": {"name": ds.name.strip() or stem, "seed": ds.seed}, "render": render, "source": sources}
+    return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": sources}
 
 
 def dataset_spec(ds, stem: str, spec_path: str | Path):

@@ -3,6 +3,8 @@ the settings, what the export will write and roughly how long it takes, the expo
 last preview's numbers."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import bpy
 
 from . import estimate, jobs, library, mapping
@@ -165,26 +167,28 @@ def draw_blendsr(layout, context) -> None:
 def dataset_summary(context) -> tuple[list[str], str]:
     """(lines describing the dataset the Dataset settings make, the first error or '')."""
     ds = context.scene.blendsr.dataset
+    stem = mapping.scene_stem(bpy.data.filepath)
+    error = ""
     try:
         root = mapping.dataset_output(ds)
     except ValueError as exc:
-        return [], str(exc).splitlines()[0]
+        root, error = None, str(exc).splitlines()[0]
     try:
-        spec = mapping.dataset_spec(ds, mapping.scene_stem(bpy.data.filepath), root / mapping.SPEC_FILE)
+        spec = mapping.dataset_spec(ds, stem, (root or Path("DATASET")) / mapping.SPEC_FILE)
         mapping.dataset_run_options(ds)
     except ValueError as exc:
         return [], str(exc).splitlines()[0]
-    r = spec.sources[0].render
-    scales = [s.render.scale for s in spec.sources]
+    r, src = spec.sources[0].render, spec.sources[0]
+    scales = [str(s.render.scale) for s in spec.sources]
     n = sum(s.clips_per_scene for s in spec.sources)
-    src = spec.sources[0]
-    lines = [f"{n} clips x {r.frames} frames, HR {r.hr_size[0]}x{r.hr_size[1]}, scale "
-             + ", ".join(f"{k}" for k in scales),
-             f"cameras {', '.join(src.cameras)} (clip k: kind k), light {src.light}",
-             f"-> {root}/spec.toml, scene/{mapping.scene_stem(bpy.data.filepath)}.blend, clips/"]
-    if (root / "dataset.json").is_file():
-        lines.append("the folder holds this dataset: the render resumes it")
-    return lines, ""
+    lines = [f"{n} clips x {r.frames} frames, HR {r.hr_size[0]}x{r.hr_size[1]}, "
+             f"scale{'s' if len(scales) > 1 else ''} {', '.join(scales)}",
+             f"cameras {', '.join(src.cameras)} (clip k: kind k), light {src.light}"]
+    if root is not None:
+        lines.append(f"writes {root / mapping.SPEC_FILE}, scene/{stem}.blend, clips/")
+        if (root / "dataset.json").is_file():
+            lines.append("the folder holds a dataset: the render resumes or extends it")
+    return lines, error
 
 
 def draw_dataset(layout, context) -> None:
@@ -193,7 +197,7 @@ def draw_dataset(layout, context) -> None:
     st = library.status(Prefs(context).library_path)
     layout.prop(ds, "output_dir")
     row = layout.row(align=True)
-    row.prop(ds, "name")
+    row.prop(ds, "dataset_name")
     row.prop(ds, "seed")
     box = layout.box()
     box.label(text="Clips", icon="RENDER_ANIMATION")

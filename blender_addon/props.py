@@ -54,7 +54,7 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
 
     output_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//blendsr_dataset/",
                                description="Dataset folder to create or extend (// is relative to the .blend)")
-    name: StringProperty(name="Name", default="",
+    dataset_name: StringProperty(name="Name", default="",
                          description="Dataset name (recorded in dataset.json); empty: the .blend's name")
     seed: IntProperty(name="Seed", default=0, min=0, description="Dataset seed: every clip's seed derives from it")
     clips: IntProperty(name="Clips", default=4, min=1, max=1000,

@@ -246,7 +246,8 @@ def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     with open(log_path, "w") as log:
         proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads, device, blender),
-                              stdout=subprocess.DEVNULL, stderr=log, env=env, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+                              stdout=subprocess.DEVNULL, stderr=log, env=env,
+                              preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     lines = [ln for ln in Path(log_path).read_text(errors="replace").splitlines()
              if ln.strip() and not ln.startswith(("render:", "\r"))]
     err = next((ln for ln in reversed(lines) if "error" in ln.lower()), lines[-1] if lines else "")
