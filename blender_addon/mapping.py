@@ -132,10 +132,23 @@ def dataset_spec_dict(ds, stem: str) -> dict:
                "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips, "cameras": _names(ds.cameras),
                "light": ds.light, "regions": [ds.regions_x, ds.regions_y], "region_val": ds.region_val,
                "region_test": ds.region_test}
+        src.update(variation_keys(ds))
         if k != scales[0]:
             src["scale"] = k
         sources.append(src)
     return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": sources}
+
+
+def variation_keys(ds) -> dict:
+    """The opt-in light variation of a scene source (``world_strength``, ``light_strength``: multiplier ranges,
+    ``sun_elevation_deg``: degrees), for the switches that are on."""
+    out = {}
+    for switch, key, lo, hi in (("vary_world", "world_strength", "world_strength_min", "world_strength_max"),
+                                ("vary_lights", "light_strength", "light_strength_min", "light_strength_max"),
+                                ("vary_sun", "sun_elevation_deg", "sun_elevation_min", "sun_elevation_max")):
+        if getattr(ds, switch):
+            out[key] = [_float32_decimal(getattr(ds, lo)), _float32_decimal(getattr(ds, hi))]
+    return out
 
 
 def dataset_spec(ds, stem: str, spec_path: str | Path):

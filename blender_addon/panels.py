@@ -221,6 +221,17 @@ def draw_dataset(layout, context) -> None:
     for key in ("jitter", "fbeta_source", "buffers", "for_models"):
         box.prop(ds, key)
     box = layout.box()
+    box.label(text="Light variation (per clip, recorded)", icon="LIGHT_SUN")
+    for switch, lo, hi in (("vary_world", "world_strength_min", "world_strength_max"),
+                           ("vary_lights", "light_strength_min", "light_strength_max"),
+                           ("vary_sun", "sun_elevation_min", "sun_elevation_max")):
+        row = box.row(align=True)
+        row.prop(ds, switch)
+        sub = row.row(align=True)
+        sub.active = getattr(ds, switch)
+        sub.prop(ds, lo)
+        sub.prop(ds, hi)
+    box = layout.box()
     box.label(text="Split regions and workers", icon="MOD_ARRAY")
     row = box.row(align=True)
     for key in ("regions_x", "regions_y", "region_val", "region_test"):

@@ -88,6 +88,20 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
     for_models: StringProperty(name="For models", default="",
                                description="Render only the buffers these models read (comma-separated model "
                                            "names, as --for-models); empty: the Buffers setting")
+    vary_world: BoolProperty(name="Vary world strength", default=False,
+                             description="Multiply the world's background strength per clip (log-uniform in the range)")
+    world_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest world multiplier")
+    world_strength_max: FloatProperty(name="Max", default=2.0, min=0.001, description="Largest world multiplier")
+    vary_lights: BoolProperty(name="Vary light strength", default=False,
+                              description="Multiply every lamp's energy per clip (log-uniform in the range)")
+    light_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest lamp multiplier")
+    light_strength_max: FloatProperty(name="Max", default=2.0, min=0.001, description="Largest lamp multiplier")
+    vary_sun: BoolProperty(name="Vary sun (time of day)", default=False,
+                           description="Draw the sun lamps' (and an added sky's) elevation per clip, azimuth uniform")
+    sun_elevation_min: FloatProperty(name="Min elevation", default=20.0, min=0.001, max=90.0,
+                                     description="Lowest sun elevation in degrees")
+    sun_elevation_max: FloatProperty(name="Max elevation", default=70.0, min=0.001, max=90.0,
+                                     description="Highest sun elevation in degrees")
     regions_x: IntProperty(name="Regions X", default=1, min=1, max=16,
                            description="Split regions: columns of the grid over the level's content box")
     regions_y: IntProperty(name="Regions Y", default=1, min=1, max=16,

@@ -25,6 +25,7 @@ def tiny_dataset(out):
     ds.hr_width, ds.hr_height = 64, 36
     ds.hr_spp, ds.lr_spp, ds.gbuffer_spp, ds.hr_denoise = 1, 1, 1, False
     ds.threads = 1
+    ds.vary_lights = True  # the garage has two lamps: each clip multiplies their energy by a drawn factor
     return ds
 '''
 
@@ -46,12 +47,14 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         default_opts = mapping.run_options_json(mapping.dataset_run_options(ds))
         ds.scales, ds.for_models, ds.regions_x, ds.regions_y, ds.region_val, ds.region_test = "2,4", "nsrr", 3, 3, 1, 1
         ds.dataset_name = "mine"
+        ds.vary_sun, ds.sun_elevation_min, ds.sun_elevation_max = True, 25.0, 60.0
+        ds.vary_world, ds.world_strength_min, ds.world_strength_max = True, 0.7, 1.3
         custom_doc = mapping.dataset_spec_dict(ds, "lvl")
         custom_toml = spec_to_toml(mapping.dataset_spec(ds, "lvl", spec_path))
         custom_opts = mapping.run_options_json(mapping.dataset_run_options(ds, blender="/opt/blender"))
         errors = {}
         for key, value in (("scales", "4,x"), ("scales", "4,4"), ("cameras", "walk,bogus"), ("for_models", "nope"),
-                           ("hr_width", 66), ("region_val", 9)):
+                           ("hr_width", 66), ("region_val", 9), ("world_strength_max", 0.5)):
             old = getattr(ds, key)
             setattr(ds, key, value)
             try:
@@ -92,6 +95,9 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert custom.name == "mine" and all(s.regions == (3, 3) and s.region_val == s.region_test == 1
                                          for s in custom.sources)
     assert all(s.paths == ("scene/lvl.blend",) and s.cameras == ("walk", "fly") for s in custom.sources)
+    assert all(s.variation.sun_elevation_deg == (25.0, 60.0) and s.variation.world_strength == (0.7, 1.3)
+               and s.variation.light_strength is None for s in custom.sources)
+    assert r["custom_doc"]["source"][0]["world_strength"] == [0.7, 1.3]  # float32 settings as their decimals
     assert r["custom_opts"]["buffers_for"] == ["nsrr"] and r["custom_opts"]["blender"] == "/opt/blender"
 
     # Bad settings: one line naming the setting or the spec key.
@@ -100,6 +106,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert "cameras: 'bogus'" in e["cameras=walk,bogus"]
     assert "For models 'nope'" in e["for_models=nope"] and "unknown model 'nope'" in e["for_models=nope"]
     assert "not divisible by scale" in e["hr_width=66"] and "region_val" in e["region_val=9"]
+    assert "world_strength" in e["world_strength_max=0.5"] and "low <= high" in e["world_strength_max=0.5"]
     assert all("\n" not in v and v for v in e.values()), e
 
     # The Dataset subpanels: under each BlendSR panel, every setting drawn, the button, the summary.
@@ -196,6 +203,8 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
     for c in index["clips"]:
         m = json.loads((out / c["path"] / "manifest.json").read_text())
         assert m["camera"]["kind"] == c["camera"] and m["scene"]["file"] == "garage.blend"
+        k = c["variation"]["light_strength"]
+        assert 0.5 <= k <= 2.0 and m["light"]["variation"]["light_strength"] == {"multiplier": k, "lamps": 2}
         assert m["render"]["hr"]["spp"] == 1 and (m["levels"]["hr"]["width"], m["levels"]["hr"]["height"]) == (64, 36)
     spec = load_spec(out / "spec.toml")
     assert spec.sources[0].paths == ("scene/garage.blend",) and (out / "scene" / "garage.blend").is_file()
