@@ -121,15 +121,19 @@ class BLENDSR_OT_render_dataset(_JobOperator, bpy.types.Operator):
         check_folder(root, spec, [])
         check_foreign(root)
         job_dir = jobs.new_job_dir("blendsr-dataset-")
-        place_scene_copy(root, stem, job_dir, scene_fingerprint(context.scene))
-        planned = planned_jobs(spec, opts)
-        check_folder(root, spec, planned)
-        check_clip_resources(planned, root, spec_path)
-        write_spec(spec, spec_path)
-        payload = {"spec": str(spec_path), "output": str(root), "options": mapping.run_options_json(opts)}
-        return jobs.DatasetJob(payload, {j.id: j.render["frames"] for j in planned}, job_dir=job_dir,
-                               library_paths=library.worker_paths(st), validate="quick",
-                               blender_binary=bpy.app.binary_path)
+        try:
+            place_scene_copy(root, stem, job_dir, scene_fingerprint(context.scene))
+            planned = planned_jobs(spec, opts)
+            check_folder(root, spec, planned)
+            check_clip_resources(planned, root, spec_path)
+            write_spec(spec, spec_path)
+            payload = {"spec": str(spec_path), "output": str(root), "options": mapping.run_options_json(opts)}
+            return jobs.DatasetJob(payload, {j.id: j.render["frames"] for j in planned}, job_dir=job_dir,
+                                   library_paths=library.worker_paths(st), validate="quick",
+                                   blender_binary=bpy.app.binary_path)
+        except BaseException:
+            shutil.rmtree(job_dir, ignore_errors=True)
+            raise
 
     def finish(self, context, job):
         res = job.result()
@@ -138,7 +142,8 @@ class BLENDSR_OT_render_dataset(_JobOperator, bpy.types.Operator):
             extra = f"; {res.validation}" if res.validation else ""
             ds["_last_dataset"] = f"failed: {res.error}{extra}"
             ds["_last_dataset_ok"] = False
-            self.report({"ERROR"}, f"BlendSR dataset failed: {res.error} (log: {job.log_file})")
+            log = "" if "(log: " in res.error else f" (log: {job.log_file})"
+            self.report({"ERROR"}, f"BlendSR dataset failed: {res.error}{log}")
             return {"CANCELLED"}
         shutil.rmtree(job.job_dir, ignore_errors=True)
         text = f"{res.validation} ({res.summary}; {jobs.format_seconds(res.seconds)})"

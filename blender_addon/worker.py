@@ -77,8 +77,9 @@ def run_dataset(job: dict) -> dict:
     result = {"ok": not failed, "output": d["output"], "summary": summary(index)}
     if failed:
         c = failed[0]
-        result["error"] = (f"{len(failed)} of {len(index['clips'])} clips not done; {c['id']}: "
-                           f"{c.get('error') or c['state']} (log: {d['output']}/logs/{c['id']}.log)")
+        err = str(c.get("error") or c["state"]).removeprefix("blendsr: error: ").removeprefix(f"{c['id']}: ")
+        result["error"] = (f"{len(failed)} of {len(index['clips'])} clips not done; {c['id']}: {err} "
+                           f"(log: {d['output']}/logs/{c['id']}.log)")
     if job.get("validate"):
         rep = validate_dataset(d["output"], quick=job["validate"] == "quick", progress=False)
         result.update(valid=bool(rep.ok), validation=rep.summary_line())

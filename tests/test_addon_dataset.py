@@ -187,8 +187,17 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
             changed = ""
         except RuntimeError as exc:
             changed = str(exc)
+        again_text = ds.last_dataset
+        # a clip that fails (no camera of that name): the run reports it, the subpanel says failed
+        ds.output_dir, ds.cameras, ds.clips = sys.argv[2] + "_bad", "scene:Nope", 1
+        try:
+            bpy.ops.blendsr.render_dataset()
+            failed = ""
+        except RuntimeError as exc:
+            failed = str(exc)
         emit({"res": res, "first": first, "before": before, "after": after, "again": again, "again_s": again_s,
-              "again_text": ds.last_dataset, "changed": changed})
+              "again_text": again_text, "changed": changed, "failed": failed,
+              "failed_panel": [ds.last_dataset, ds.last_dataset_ok]})
     ''', garage, out, helpers=TINY, timeout=300)
     assert r["res"] == ["FINISHED"] and r["first"][1] is True, r
     assert r["first"][0].startswith(f"OK: {out}: 2/2 clips valid"), r["first"]
@@ -211,6 +220,9 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
     assert index["spec"]["text"] == (out / "spec.toml").read_text()
     assert r["again"] == ["FINISHED"] and "2 done" in r["again_text"] and r["again_s"] < 30
     assert "differs from the copy this dataset's clips were rendered from" in r["changed"]
+    assert "1 of 1 clips not done; scene-garage-00:" in r["failed"] and "Nope" in r["failed"], r["failed"]
+    assert r["failed_panel"][0].startswith("failed: 1 of 1 clips not done") and r["failed_panel"][1] is False
+    assert "FAILED" in r["failed_panel"][0]  # the validation's verdict too
     # The written spec re-runs the same dataset from the command line: nothing left to render.
     cli = run_cli("dataset", out / "spec.toml", "-o", out, "--no-progress")
     assert cli.returncode == 0 and "2 done, 0 to render" in cli.stderr, cli.stderr[-2000:]
