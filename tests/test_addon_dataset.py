@@ -245,3 +245,54 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
     calls = (tmp_path / "blender_calls.txt").read_text().splitlines()
     assert len(calls) == 1 and "--factory-startup" in calls[0] and "dataset_job_script.py -- " in calls[0]
     assert validate_dataset(fresh, progress=False).ok
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_render_dataset_modal_progress_on_an_unsaved_scene(tmp_path):
+    """The application's modal path, driven by hand: TIMER events show clips and frames in the status bar until the
+    worker ends; an unsaved scene (built in code, its own camera: ``scene``) is copied as scene/untitled.blend."""
+    out = tmp_path / "ds"
+    r = run_bpy(r'''
+        import time
+        from blender_addon import dataset_ops, operators
+        sc = tiny_scene()
+        blender_addon.register()
+        ds = tiny_dataset(sys.argv[1])
+        ds.cameras, ds.vary_lights = "scene", False
+        operators.interactive = lambda: True
+        Event = type("Event", (), {})
+        def event(kind, value="NOTHING"):
+            e = Event(); e.type, e.value = kind, value
+            return e
+        status, reports = [], []
+        class WM:
+            windows = []
+            def event_timer_remove(self, t): pass
+        class WS:
+            def status_text_set(self, text): status.append(text)
+        class Ctx:
+            scene, preferences, window_manager, workspace, window = sc, bpy.context.preferences, WM(), WS(), None
+        class Op(operators._JobOperator):
+            job_key, label = "dataset", "dataset"
+            start = dataset_ops.BLENDSR_OT_render_dataset.start
+            finish = dataset_ops.BLENDSR_OT_render_dataset.finish
+            def report(self, kind, msg): reports.append([sorted(kind), msg])
+        op, ctx = Op(), Ctx()
+        op._timer = "t"
+        job = op._start(ctx)
+        res = None
+        while res is None:
+            out = op.modal(ctx, event("TIMER"))
+            if out != {"PASS_THROUGH"}:
+                res = sorted(out)
+            time.sleep(0.1)
+        emit({"res": res, "status": status, "reports": reports, "last": ds.last_dataset, "ok": ds.last_dataset_ok})
+    ''', out, helpers=TINY)
+    assert r["res"] == ["FINISHED"] and r["ok"], r
+    progress = [t for t in r["status"] if t]
+    assert progress and all("/2 clips, " in t and "/4 frames" in t and "Esc cancels" in t for t in progress), progress
+    assert r["status"][-1] is None and r["reports"][-1][0] == ["INFO"] and "OK" in r["reports"][-1][1]
+    assert (out / "scene" / "untitled.blend").is_file()
+    index = json.loads((out / "dataset.json").read_text())
+    assert index["name"] == "untitled" and [c["camera"] for c in index["clips"]] == ["scene", "scene"]
