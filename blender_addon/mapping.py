@@ -117,15 +117,32 @@ def _names(text: str) -> list[str]:
     return [t.strip() for t in str(text).split(",") if t.strip()]
 
 
+def model_buffers(ds) -> tuple[str, ...]:
+    """The buffers the models of *For models* read (``buffers_for_models``; empty when none is named)."""
+    names = _names(ds.for_models)
+    if not names:
+        return ()
+    from gbuffer_export.config import ConfigError
+    from gbuffer_export.dataset.buffers import buffers_for_models
+    from gbuffer_export.errors import BlendSRError
+    try:
+        return buffers_for_models(names)
+    except BlendSRError as exc:
+        raise ConfigError(f"dataset For models {ds.for_models!r}: "
+                          f"{str(exc).removeprefix('--for-models: ')}") from None
+
+
 def dataset_spec_dict(ds, stem: str) -> dict:
     """The TOML document of the dataset spec for the settings ``ds`` (``Scene.blendsr.dataset``, or any object
     with its attributes): one ``kind = "scene"`` source of ``scene/<stem>.blend`` per scale (the first scale's in
-    ``[render]``). What it renders is checked by ``parse_spec`` (one-line errors naming the key)."""
+    ``[render]``; *For models* written as the buffers they read, so that the spec alone renders the same clips).
+    What it renders is checked by ``parse_spec`` (one-line errors naming the key)."""
     scales = parse_scales(ds.scales)
+    models = model_buffers(ds)
     render = {"frames": ds.frames, "hr_size": f"{ds.hr_width}x{ds.hr_height}", "scale": scales[0],
               "hr_spp": ds.hr_spp, "lr_spp": ds.lr_spp, "gbuffer_spp": ds.gbuffer_spp, "hr_denoise": ds.hr_denoise,
-              "lr_denoise": ds.lr_denoise, "jitter": ds.jitter, "buffers": ds.buffers.strip() or "default",
-              "fbeta": ds.fbeta_source}
+              "lr_denoise": ds.lr_denoise, "jitter": ds.jitter,
+              "buffers": list(models) if models else ds.buffers.strip() or "default", "fbeta": ds.fbeta_source}
     sources = []
     for k in scales:
         src = {"name": "scene" if len(scales) == 1 else f"scene-x{k}", "kind": "scene",
@@ -164,15 +181,7 @@ def dataset_run_options(ds, blender: str = ""):
     opts = RunOptions(executor="local", workers=ds.workers, threads=ds.threads,
                       buffers_for=tuple(_names(ds.for_models)), progress=False, device=ds.device, blender=blender)
     opts.validate()
-    if opts.buffers_for:
-        from gbuffer_export.config import ConfigError
-        from gbuffer_export.dataset.buffers import buffers_for_models
-        from gbuffer_export.errors import BlendSRError
-        try:
-            buffers_for_models(opts.buffers_for)
-        except BlendSRError as exc:
-            raise ConfigError(f"dataset For models {ds.for_models!r}: "
-                              f"{str(exc).removeprefix('--for-models: ')}") from None
+    model_buffers(ds)
     return opts
 
 

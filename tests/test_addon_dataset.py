@@ -99,6 +99,9 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
                and s.variation.light_strength is None for s in custom.sources)
     assert r["custom_doc"]["source"][0]["world_strength"] == [0.7, 1.3]  # float32 settings as their decimals
     assert r["custom_opts"]["buffers_for"] == ["nsrr"] and r["custom_opts"]["blender"] == "/opt/blender"
+    # For models is written into the spec as the buffers those models read: the spec alone renders the same clips.
+    from gbuffer_export.dataset.buffers import buffers_for_models
+    assert all(s.render.buffers == buffers_for_models(["nsrr"]) for s in custom.sources)
 
     # Bad settings: one line naming the setting or the spec key.
     e = r["errors"]
