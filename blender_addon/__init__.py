@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 #: Submodules with register()/unregister(), in registration order.
-SUBMODULES = ("props", "prefs", "operators", "panels")
+SUBMODULES = ("props", "prefs", "operators", "dataset_ops", "panels")
 
 
 def _submodules():

@@ -80,7 +80,7 @@ def build(output_dir: Path, blender_ext: Path | None = None, python: str = sys.e
     _run([python, str(blender_ext), "validate", *tag_args, str(zip_path)])
     with zipfile.ZipFile(zip_path) as z:
         names = set(z.namelist())
-    for required in ("__init__.py", "blender_manifest.toml", "worker.py", "external_infer.py"):
+    for required in ("__init__.py", "blender_manifest.toml", "worker.py", "external_infer.py", "dataset_ops.py"):
         if required not in names:
             raise BuildError(f"{zip_path}: {required} is missing from the package")
     return zip_path

@@ -39,10 +39,14 @@ class JobResult:
     validation: str = ""
     seconds: float = 0.0
     log: str = ""
+    summary: str = ""
 
 
 class RenderJob:
-    """A worker process rendering one clip. ``frames`` is the list of frames it must finish (for progress)."""
+    """A worker process rendering one clip. ``frames`` is the list of frames it must finish (for progress).
+    The job file holds ``config_json`` under ``payload_key`` (``worker.py`` dispatches on it)."""
+
+    payload_key = "config"
 
     def __init__(self, config_json: dict, frames: list[int], *, job_dir: Path, library_paths: dict,
                  validate: str = "", blender_binary: str = "", python: str = ""):
@@ -56,7 +60,7 @@ class RenderJob:
         self.log_file = self.job_dir / "log.txt"
         if self.result_file.exists():
             self.result_file.unlink()
-        job = {"config": config_json, **library_paths, "validate": validate, "result": str(self.result_file)}
+        job = {self.payload_key: config_json, **library_paths, "validate": validate, "result": str(self.result_file)}
         self.job_file.write_text(json.dumps(job, indent=1))
         self.command = worker_command(self.job_file, blender_binary, python)
         self.done_at_start = self.frames_done()
@@ -134,7 +138,37 @@ class RenderJob:
             return JobResult(False, rc, f"worker exited with code {rc} without a result: {msg}", seconds=seconds,
                              log=log)
         return JobResult(bool(r.get("ok")) and rc == 0, rc, r.get("error", ""), r.get("output", ""),
-                         r.get("valid"), r.get("validation", ""), seconds, log)
+                         r.get("valid"), r.get("validation", ""), seconds, log, r.get("summary", ""))
+
+
+class DatasetJob(RenderJob):
+    """A worker process building a dataset (``worker.run_dataset``: ``build_dataset`` then ``validate_dataset``).
+    ``payload`` holds ``output`` (the dataset folder); ``planned`` maps each clip id to its frames (for progress,
+    counted from ``clips/<id>/frames/`` records)."""
+
+    payload_key = "dataset"
+
+    def __init__(self, payload: dict, planned: dict[str, int], **kw):
+        self.planned = dict(planned)
+        super().__init__(payload, list(range(sum(self.planned.values()))), **kw)
+
+    def clip_frames(self) -> dict[str, int]:
+        """Clip id -> frames finished (records written), at most its planned frames."""
+        out = {}
+        for cid, total in self.planned.items():
+            d = self.output / "clips" / cid / "frames"
+            out[cid] = min(total, sum(1 for _ in d.glob("*.json"))) if d.is_dir() else 0
+        return out
+
+    def frames_done(self) -> int:
+        return sum(self.clip_frames().values())
+
+    def status_line(self) -> str:
+        done_by_clip = self.clip_frames()
+        clips = sum(done_by_clip[c] >= n for c, n in self.planned.items())
+        done, total, left = self.progress()
+        eta = f", about {format_seconds(left)} left" if left is not None else ""
+        return f"{clips}/{len(self.planned)} clips, {done}/{total} frames{eta} (Esc cancels)"
 
 
 def new_job_dir(prefix: str = "blendsr-job-") -> Path:

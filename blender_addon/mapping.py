@@ -78,3 +78,129 @@ def _frames(frames: tuple[int, int]) -> tuple[int, int]:
     if b < a:
         raise ConfigError(f"frames {a}:{b}: end {b} is before start {a}")
     return a, b
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Dataset of the open scene (Scene.blendsr.dataset -> a dataset spec and run options)
+# ----------------------------------------------------------------------------------------------------------------
+
+#: Where the dataset keeps its copy of the open scene, relative to the dataset folder (the workers open this file).
+SCENE_DIR = "scene"
+SPEC_FILE = "spec.toml"
+
+
+def slug(text: str) -> str:
+    """A file and clip-id safe name: letters, digits, - and _ (others become _); 'untitled' when empty."""
+    out = "".join(c if c.isalnum() or c in "-_" else "_" for c in text.strip())
+    return out or "untitled"
+
+
+def scene_stem(blend_path: str) -> str:
+    """The name of the dataset's scene copy (``scene/<stem>.blend``): the open file's name, or 'untitled'."""
+    return slug(Path(blend_path).stem) if blend_path else "untitled"
+
+
+def parse_scales(text: str) -> list[int]:
+    """'4' or '2,4' -> [4] / [2, 4] (distinct, in the order given); ConfigError naming the setting otherwise."""
+    from gbuffer_export.config import ConfigError
+    parts = [p.strip() for p in str(text).split(",") if p.strip()]
+    try:
+        scales = [int(p) for p in parts]
+    except ValueError:
+        scales = []
+    if not scales or any(k < 1 for k in scales) or len(set(scales)) != len(scales):
+        raise ConfigError(f"dataset Scales {text!r}: expected distinct integers >= 1, comma-separated, e.g. '2,4'")
+    return scales
+
+
+def _names(text: str) -> list[str]:
+    return [t.strip() for t in str(text).split(",") if t.strip()]
+
+
+def model_buffers(ds) -> tuple[str, ...]:
+    """The buffers the models of *For models* read (``buffers_for_models``; empty when none is named)."""
+    names = _names(ds.for_models)
+    if not names:
+        return ()
+    from gbuffer_export.config import ConfigError
+    from gbuffer_export.dataset.buffers import buffers_for_models
+    from gbuffer_export.errors import BlendSRError
+    try:
+        return buffers_for_models(names)
+    except BlendSRError as exc:
+        raise ConfigError(f"dataset For models {ds.for_models!r}: "
+                          f"{str(exc).removeprefix('--for-models: ')}") from None
+
+
+def dataset_spec_dict(ds, stem: str) -> dict:
+    """The TOML document of the dataset spec for the settings ``ds`` (``Scene.blendsr.dataset``, or any object
+    with its attributes): one ``kind = "scene"`` source of ``scene/<stem>.blend`` per scale (the first scale's in
+    ``[render]``; *For models* written as the buffers they read, so that the spec alone renders the same clips).
+    What it renders is checked by ``parse_spec`` (one-line errors naming the key)."""
+    scales = parse_scales(ds.scales)
+    models = model_buffers(ds)
+    render = {"frames": ds.frames, "hr_size": f"{ds.hr_width}x{ds.hr_height}", "scale": scales[0],
+              "hr_spp": ds.hr_spp, "lr_spp": ds.lr_spp, "gbuffer_spp": ds.gbuffer_spp, "hr_denoise": ds.hr_denoise,
+              "lr_denoise": ds.lr_denoise, "jitter": ds.jitter,
+              "buffers": list(models) if models else ds.buffers.strip() or "default", "fbeta": ds.fbeta_source}
+    sources = []
+    for k in scales:
+        src = {"name": "scene" if len(scales) == 1 else f"scene-x{k}", "kind": "scene",
+               "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips, "cameras": _names(ds.cameras),
+               "light": ds.light, "regions": [ds.regions_x, ds.regions_y], "region_val": ds.region_val,
+               "region_test": ds.region_test}
+        src.update(variation_keys(ds))
+        if k != scales[0]:
+            src["scale"] = k
+        sources.append(src)
+    return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": sources}
+
+
+def variation_keys(ds) -> dict:
+    """The opt-in light variation of a scene source (``world_strength``, ``light_strength``: multiplier ranges,
+    ``sun_elevation_deg``: degrees), for the switches that are on."""
+    out = {}
+    for switch, key, lo, hi in (("vary_world", "world_strength", "world_strength_min", "world_strength_max"),
+                                ("vary_lights", "light_strength", "light_strength_min", "light_strength_max"),
+                                ("vary_sun", "sun_elevation_deg", "sun_elevation_min", "sun_elevation_max")):
+        if getattr(ds, switch):
+            out[key] = [_float32_decimal(getattr(ds, lo)), _float32_decimal(getattr(ds, hi))]
+    return out
+
+
+def dataset_spec(ds, stem: str, spec_path: str | Path):
+    """The validated ``DatasetSpec`` of the settings, as if read from ``spec_path`` (``DATASET/spec.toml``)."""
+    from gbuffer_export.dataset.spec import parse_spec
+    return parse_spec(dataset_spec_dict(ds, stem), Path(spec_path))
+
+
+def dataset_run_options(ds, blender: str = ""):
+    """``RunOptions`` of the settings (local executor; ``blender``: the Blender executable that renders each clip,
+    '' for this Python with bpy as a module)."""
+    from gbuffer_export.dataset.build import RunOptions
+    opts = RunOptions(executor="local", workers=ds.workers, threads=ds.threads,
+                      buffers_for=tuple(_names(ds.for_models)), progress=False, device=ds.device, blender=blender)
+    opts.validate()
+    model_buffers(ds)
+    return opts
+
+
+def run_options_json(opts) -> dict:
+    """``RunOptions`` as the worker's job file holds it (``worker.run_dataset`` reads it back)."""
+    import dataclasses
+    d = dataclasses.asdict(opts)
+    d["buffers_for"] = list(opts.buffers_for)
+    return d
+
+
+def dataset_output(ds) -> Path:
+    """Absolute dataset folder of the settings (``//`` is relative to the saved .blend)."""
+    import bpy
+    from gbuffer_export.config import ConfigError
+    text = ds.output_dir.strip()
+    if not text:
+        raise ConfigError("dataset folder: choose a folder for the dataset")
+    if text.startswith("//") and not bpy.data.filepath:
+        raise ConfigError(f"dataset folder {text!r} is relative to the .blend file: save the file first "
+                          "or choose an absolute folder")
+    return Path(bpy.path.abspath(text))

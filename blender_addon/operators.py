@@ -35,12 +35,18 @@ def interactive() -> bool:
 
 def scene_file_for_job(job_dir: Path) -> Path:
     """The .blend the worker opens: the saved file itself when it has no unsaved changes, else a copy of the
-    current state (``save_as_mainfile(copy=True)``, without a thumbnail so that equal states give equal files and
-    the renderer can resume) named like the file, in ``job_dir``."""
+    current state (``save_scene_copy``) named like the file, in ``job_dir``."""
     if bpy.data.filepath and not bpy.data.is_dirty:
         return Path(bpy.data.filepath)
     name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
     path = Path(job_dir) / name
+    save_scene_copy(path)
+    return path
+
+
+def save_scene_copy(path: Path) -> None:
+    """Write the current state to ``path`` with ``save_as_mainfile(copy=True)`` (relative paths remapped),
+    without a thumbnail so that equal states give equal files and the renderer can resume."""
     prefs = bpy.context.preferences
     fp = prefs.filepaths
     old_preview, old_dirty = getattr(fp, "file_preview_type", None), prefs.is_dirty
@@ -52,7 +58,6 @@ def scene_file_for_job(job_dir: Path) -> Path:
         if old_preview is not None:
             fp.file_preview_type = old_preview
             prefs.is_dirty = old_dirty
-    return path
 
 
 def _tag_redraw() -> None:

@@ -3,6 +3,8 @@ the settings, what the export will write and roughly how long it takes, the expo
 last preview's numbers."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import bpy
 
 from . import estimate, jobs, library, mapping
@@ -162,6 +164,108 @@ def draw_blendsr(layout, context) -> None:
             col.label(text="PSNR: no reference rendered")
 
 
+def dataset_summary(context) -> tuple[list[str], str]:
+    """(lines describing the dataset the Dataset settings make, the first error or '')."""
+    ds = context.scene.blendsr.dataset
+    stem = mapping.scene_stem(bpy.data.filepath)
+    error = ""
+    try:
+        root = mapping.dataset_output(ds)
+    except ValueError as exc:
+        root, error = None, str(exc).splitlines()[0]
+    try:
+        spec = mapping.dataset_spec(ds, stem, (root or Path("DATASET")) / mapping.SPEC_FILE)
+        mapping.dataset_run_options(ds)
+    except ValueError as exc:
+        return [], str(exc).splitlines()[0]
+    r, src = spec.sources[0].render, spec.sources[0]
+    scales = [str(s.render.scale) for s in spec.sources]
+    n = sum(s.clips_per_scene for s in spec.sources)
+    lines = [f"{n} clips x {r.frames} frames, HR {r.hr_size[0]}x{r.hr_size[1]}, "
+             f"scale{'s' if len(scales) > 1 else ''} {', '.join(scales)}",
+             f"cameras {', '.join(src.cameras)} (clip k: kind k), light {src.light}"]
+    if root is not None:
+        lines.append(f"writes {root / mapping.SPEC_FILE}, scene/{stem}.blend, clips/")
+        if (root / "dataset.json").is_file():
+            lines.append("the folder holds a dataset: the render resumes or extends it")
+    return lines, error
+
+
+def draw_dataset(layout, context) -> None:
+    """The Dataset subpanel: ``Scene.blendsr.dataset``, what it makes, the button and the last outcome."""
+    ds = context.scene.blendsr.dataset
+    st = library.status(Prefs(context).library_path)
+    layout.prop(ds, "output_dir")
+    row = layout.row(align=True)
+    row.prop(ds, "dataset_name")
+    row.prop(ds, "seed")
+    box = layout.box()
+    box.label(text="Clips", icon="RENDER_ANIMATION")
+    row = box.row(align=True)
+    row.prop(ds, "clips")
+    row.prop(ds, "frames")
+    box.prop(ds, "cameras")
+    row = box.row(align=True)
+    row.prop(ds, "hr_width")
+    row.prop(ds, "hr_height")
+    box.prop(ds, "scales")
+    box.prop(ds, "light")
+    box = layout.box()
+    box.label(text="Sampling and buffers", icon="RENDER_STILL")
+    col = box.column(align=True)
+    for key in ("hr_spp", "lr_spp", "gbuffer_spp"):
+        col.prop(ds, key)
+    row = box.row()
+    row.prop(ds, "hr_denoise")
+    row.prop(ds, "lr_denoise")
+    for key in ("jitter", "fbeta_source", "buffers", "for_models"):
+        box.prop(ds, key)
+    box = layout.box()
+    box.label(text="Light variation (per clip, recorded)", icon="LIGHT_SUN")
+    for switch, lo, hi in (("vary_world", "world_strength_min", "world_strength_max"),
+                           ("vary_lights", "light_strength_min", "light_strength_max"),
+                           ("vary_sun", "sun_elevation_min", "sun_elevation_max")):
+        row = box.row(align=True)
+        row.prop(ds, switch)
+        sub = row.row(align=True)
+        sub.active = getattr(ds, switch)
+        sub.prop(ds, lo)
+        sub.prop(ds, hi)
+    box = layout.box()
+    box.label(text="Split regions and workers", icon="MOD_ARRAY")
+    row = box.row(align=True)
+    for key in ("regions_x", "regions_y", "region_val", "region_test"):
+        row.prop(ds, key)
+    row = box.row(align=True)
+    for key in ("workers", "threads", "device"):
+        row.prop(ds, key)
+    box = layout.box()
+    box.label(text="Dataset summary", icon="INFO")
+    if st.ok:
+        lines, error = dataset_summary(context)
+        for line in lines:
+            box.label(text=line)
+        if error:
+            row = box.row()
+            row.alert = True
+            row.label(text=error, icon="ERROR")
+    else:
+        box.label(text="Needs the BlendSR library (see above)")
+    from .operators import ACTIVE
+    job = ACTIVE.get("dataset")
+    if job is not None:
+        layout.label(text=f"Rendering dataset: {job.status_line()}", icon="TIME")
+    else:
+        row = layout.row()
+        row.enabled = st.ok
+        row.scale_y = 1.4
+        row.operator("blendsr.render_dataset", icon="RENDER_ANIMATION")
+    if ds.last_dataset:
+        row = layout.row()
+        row.alert = not ds.last_dataset_ok
+        row.label(text=f"Last dataset: {ds.last_dataset}")
+
+
 class BLENDSR_PT_output(bpy.types.Panel):
     bl_idname = "BLENDSR_PT_output"
     bl_label = "BlendSR Dataset"
@@ -185,7 +289,36 @@ class BLENDSR_PT_view3d(bpy.types.Panel):
         draw_blendsr(self.layout, context)
 
 
-CLASSES = (BLENDSR_PT_output, BLENDSR_PT_view3d)
+class BLENDSR_PT_output_dataset(bpy.types.Panel):
+    bl_idname = "BLENDSR_PT_output_dataset"
+    bl_label = "Dataset"
+    bl_parent_id = "BLENDSR_PT_output"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "output"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        draw_dataset(self.layout, context)
+
+
+class BLENDSR_PT_view3d_dataset(bpy.types.Panel):
+    bl_idname = "BLENDSR_PT_view3d_dataset"
+    bl_label = "Dataset"
+    bl_parent_id = "BLENDSR_PT_view3d"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "BlendSR"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        draw_dataset(self.layout, context)
+
+
+#: The clip panels and their Dataset subpanels (a subpanel after its parent).
+CLASSES = (BLENDSR_PT_output, BLENDSR_PT_view3d, BLENDSR_PT_output_dataset, BLENDSR_PT_view3d_dataset)
+MAIN_PANELS = CLASSES[:2]
+DATASET_PANELS = CLASSES[2:]
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

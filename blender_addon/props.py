@@ -48,6 +48,75 @@ def _result(key: str, default):
     return lambda self: self.get(key, default)
 
 
+class BlendSRDatasetSettings(bpy.types.PropertyGroup):
+    """``Scene.blendsr.dataset``: a dataset of the open scene, one property per key of a ``kind = "scene"`` source
+    and of ``blendsr dataset`` (defaults as the spec's and the CLI's; mapping.dataset_spec_dict)."""
+
+    output_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//blendsr_dataset/",
+                               description="Dataset folder to create or extend (// is relative to the .blend)")
+    dataset_name: StringProperty(name="Name", default="",
+                         description="Dataset name (recorded in dataset.json); empty: the .blend's name")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Dataset seed: every clip's seed derives from it")
+    clips: IntProperty(name="Clips", default=4, min=1, max=1000,
+                       description="Clips of the scene (per scale); clip k uses camera kind k (cycling)")
+    cameras: StringProperty(name="Cameras", default="walk,fly",
+                            description="Camera kinds, comma-separated: walk, fly, orbit, scene (the active "
+                                        "camera), scene:* (each clip the next of the file's cameras), scene:NAME")
+    frames: IntProperty(name="Frames", default=12, min=1, description="Frames per clip (scene frames 1..N)")
+    hr_width: IntProperty(name="HR width", default=256, min=1, subtype="PIXEL",
+                          description="HR (target) width in pixels; divisible by every scale")
+    hr_height: IntProperty(name="HR height", default=144, min=1, subtype="PIXEL",
+                           description="HR (target) height in pixels; divisible by every scale")
+    scales: StringProperty(name="Scales", default="4",
+                           description="Integer upscaling factors, comma-separated; each scale is a source of "
+                                       "its own (its own clips, one LR level each)")
+    hr_spp: IntProperty(name="HR samples", default=32, min=1, description="Samples per pixel of the HR ground truth")
+    lr_spp: IntProperty(name="LR samples", default=64, min=1, description="Samples per pixel of the LR render")
+    gbuffer_spp: IntProperty(name="G-buffer samples", default=4, min=1,
+                             description="Samples per pixel of the HR G-buffer pass")
+    hr_denoise: BoolProperty(name="Denoise HR", default=True,
+                             description="Denoise the HR ground truth with OpenImageDenoise")
+    lr_denoise: BoolProperty(name="Denoise LR", default=False,
+                             description="Denoise the LR render with OpenImageDenoise")
+    jitter: EnumProperty(name="Jitter", items=JITTER_ITEMS, default="halton", description="Sub-pixel jitter of LR")
+    buffers: StringProperty(name="Buffers", default="default",
+                            description="Comma-separated buffers, 'default' or 'all' (For models overrides it)")
+    fbeta_source: EnumProperty(name="F_beta source", items=FBETA_ITEMS, default="cycles",
+                               description="Source of the pre-integrated BRDF")
+    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of every clip")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
+    for_models: StringProperty(name="For models", default="",
+                               description="Render only the buffers these models read (comma-separated model "
+                                           "names, as --for-models); empty: the Buffers setting")
+    vary_world: BoolProperty(name="Vary world strength", default=False,
+                             description="Multiply the world's background strength per clip (log-uniform in the range)")
+    world_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest world multiplier")
+    world_strength_max: FloatProperty(name="Max", default=2.0, min=0.001, description="Largest world multiplier")
+    vary_lights: BoolProperty(name="Vary light strength", default=False,
+                              description="Multiply every lamp's energy per clip (log-uniform in the range)")
+    light_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest lamp multiplier")
+    light_strength_max: FloatProperty(name="Max", default=2.0, min=0.001, description="Largest lamp multiplier")
+    vary_sun: BoolProperty(name="Vary sun (time of day)", default=False,
+                           description="Draw the sun lamps' (and an added sky's) elevation per clip, azimuth uniform")
+    sun_elevation_min: FloatProperty(name="Min elevation", default=20.0, min=0.001, max=90.0,
+                                     description="Lowest sun elevation in degrees")
+    sun_elevation_max: FloatProperty(name="Max elevation", default=70.0, min=0.001, max=90.0,
+                                     description="Highest sun elevation in degrees")
+    regions_x: IntProperty(name="Regions X", default=1, min=1, max=16,
+                           description="Split regions: columns of the grid over the level's content box")
+    regions_y: IntProperty(name="Regions Y", default=1, min=1, max=16,
+                           description="Split regions: rows of the grid over the level's content box")
+    region_val: IntProperty(name="Val cells", default=0, min=0, description="Grid cells whose clips are val")
+    region_test: IntProperty(name="Test cells", default=0, min=0, description="Grid cells whose clips are test")
+    workers: IntProperty(name="Workers", default=1, min=1, max=64, description="Clips rendered at once")
+    threads: IntProperty(name="Threads", default=0, min=0,
+                         description="Cycles threads per clip (0: the machine's cores divided by the workers)")
+    last_dataset: StringProperty(name="Last dataset", get=_result("_last_dataset", ""),
+                                 description="Outcome of the last dataset render and its validation")
+    last_dataset_ok: BoolProperty(name="Last dataset valid", get=_result("_last_dataset_ok", False),
+                                  description="The last dataset render finished every clip and validated")
+
+
 class BlendSRSettings(bpy.types.PropertyGroup):
     # -- output ----------------------------------------------------------------------------------------------
     output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//blendsr_clip/",
@@ -116,6 +185,8 @@ class BlendSRSettings(bpy.types.PropertyGroup):
                                  description="Folder of the last preview's one-frame clip")
     last_export: StringProperty(name="Last export", get=_result("_last_export", ""),
                                 description="Outcome of the last export")
+    # -- dataset of the open scene (the Dataset subpanel) ---------------------------------------------------------
+    dataset: bpy.props.PointerProperty(type=BlendSRDatasetSettings, name="Dataset")
 
 
 def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str) -> None:
@@ -127,7 +198,7 @@ def store_preview_results(settings, *, ms: float, psnr: float | None, metric: st
     settings["_preview_clip"] = clip
 
 
-CLASSES = (BlendSRSettings,)
+CLASSES = (BlendSRDatasetSettings, BlendSRSettings)
 
 
 def register() -> None:

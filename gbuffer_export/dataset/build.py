@@ -58,6 +58,7 @@ class RunOptions:
     progress: bool = True
     limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
     device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
+    blender: str = ""               # a Blender executable to render each clip with (local executor; see job_command)
 
     def validate(self) -> None:
         if self.executor not in EXECUTORS:
@@ -66,6 +67,8 @@ class RunOptions:
             raise SpecError(f"--workers {self.workers}: must be at least 1")
         if self.threads < 0:
             raise SpecError(f"--threads {self.threads}: must be >= 0")
+        if self.blender and self.executor != "local":
+            raise SpecError(f"a Blender executable ({self.blender}) renders clips on the local executor only")
 
     def clip_threads(self) -> int:
         """Cycles threads of each clip. ``threads`` 0 means: locally, this machine's cores divided by ``workers``;
@@ -219,15 +222,22 @@ def _die_with_parent() -> None:  # runs in the child before exec (Linux): SIGKIL
         pass
 
 
-def job_command(job_path: Path, clip_dir: Path, threads: int, device: str = "auto") -> list[str]:
-    return [sys.executable, "-m", "gbuffer_export.blender.dataset_job", str(job_path), str(clip_dir),
-            "--threads", str(threads), "--device", device]
+def job_command(job_path: Path, clip_dir: Path, threads: int, device: str = "auto", blender: str = "") -> list[str]:
+    """One clip's worker command: this Python with bpy as a module (``-m gbuffer_export.blender.dataset_job``), or,
+    with ``blender`` (the Blender application's executable: inside Blender ``sys.executable`` is its bundled Python,
+    which cannot import bpy), Blender in background mode running ``blender/dataset_job_script.py``."""
+    args = [str(job_path), str(clip_dir), "--threads", str(threads), "--device", device]
+    if blender:
+        script = Path(__file__).resolve().parents[1] / "blender" / "dataset_job_script.py"
+        return [blender, "--background", "--factory-startup", "--python-exit-code", "2", "--python", str(script),
+                "--", *args]
+    return [sys.executable, "-m", "gbuffer_export.blender.dataset_job", *args]
 
 
 def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
-                    cpu: int | None = None, device: str = "auto") -> tuple[int, str]:
-    """Render one clip in a child process (on core ``cpu`` when given and ``threads`` is 1); returns (exit code,
-    the last line of its stderr)."""
+                    cpu: int | None = None, device: str = "auto", blender: str = "") -> tuple[int, str]:
+    """Render one clip in a child process (on core ``cpu`` when given and ``threads`` is 1; with Blender's
+    executable ``blender`` when given: ``job_command``); returns (exit code, the last line of its stderr)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if cpu is not None:
@@ -235,8 +245,9 @@ def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
     repo = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     with open(log_path, "w") as log:
-        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads, device), stdout=subprocess.DEVNULL,
-                              stderr=log, env=env, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads, device, blender),
+                              stdout=subprocess.DEVNULL, stderr=log, env=env,
+                              preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     lines = [ln for ln in Path(log_path).read_text(errors="replace").splitlines()
              if ln.strip() and not ln.startswith(("render:", "\r"))]
     err = next((ln for ln in reversed(lines) if "error" in ln.lower()), lines[-1] if lines else "")
@@ -338,32 +349,47 @@ def check_clip_resources(jobs, root: Path, spec_path) -> None:
             raise ResourceError(f"{spec_path}: clip {j.id}: {exc}") from None
 
 
-def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
-    """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
-    opts.validate()
-    root = Path(out)
-    if root.exists() and not root.is_dir():
-        raise DatasetError(f"{root}: exists and is not a folder")
+def planned_jobs(spec: DatasetSpec, opts: RunOptions = RunOptions()) -> list[ClipJob]:
+    """Every clip job of ``spec`` as the run renders it (``expand``, with the buffers of ``opts.buffers_for``)."""
     jobs = expand(spec)
     if opts.buffers_for:
         from .buffers import buffers_for_models
         need = buffers_for_models(opts.buffers_for)
         jobs = [dataclasses.replace(j, render={**j.render, "buffers": list(need)}) for j in jobs]
+    return jobs
+
+
+def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob]) -> dict | None:
+    """Whether ``jobs`` of ``spec`` may be rendered into ``out``, checked before anything is written: DatasetError
+    (one line naming the folder) when it is a file, holds another dataset (name or seed), or holds a clip rendered
+    from different settings. Returns the folder's index (None for a new dataset)."""
+    root = Path(out)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: exists and is not a folder")
+    if not (root / INDEX).is_file():
+        return None
+    old = read_index(root)
+    if old.get("name") != spec.name or old.get("seed") != spec.seed:
+        raise DatasetError(f"{root}: holds dataset {old.get('name')!r} (seed {old.get('seed')}); choose "
+                           "another folder or delete it")
+    old_jobs = {c["id"]: c for c in old["clips"]}
+    for j in jobs:
+        o = old_jobs.get(j.id)
+        if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
+                (root / "clips" / j.id / "manifest.json").is_file():
+            raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
+                               "spec into another folder")
+    return old
+
+
+def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
+    """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
+    opts.validate()
+    root = Path(out)
+    jobs = planned_jobs(spec, opts)
+    old = check_folder(root, spec, jobs)
     check_clip_resources(jobs, root, spec.path)
     root.mkdir(parents=True, exist_ok=True)
-    old = None
-    if (root / INDEX).is_file():
-        old = read_index(root)
-        if old.get("name") != spec.name or old.get("seed") != spec.seed:
-            raise DatasetError(f"{root}: holds dataset {old.get('name')!r} (seed {old.get('seed')}); choose "
-                               "another folder or delete it")
-        old_jobs = {c["id"]: c for c in old["clips"]}
-        for j in jobs:
-            o = old_jobs.get(j.id)
-            if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
-                    (root / "clips" / j.id / "manifest.json").is_file():
-                raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
-                                   "spec into another folder")
     lock = FolderLock(root, "another 'blendsr dataset' is running on this folder")
     try:
         for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
@@ -409,7 +435,8 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         def run_one(job: ClipJob, slot: int):
             cpu = cores[slot % len(cores)] if threads == 1 and cores else None  # one core per worker slot
             return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
-                                   str(root / "logs" / f"{job.id}.log"), threads, cpu, opts.device)
+                                   str(root / "logs" / f"{job.id}.log"), threads, cpu, opts.device,
+                                   opts.blender)
 
         t0 = time.perf_counter()
         if opts.executor == "local":
