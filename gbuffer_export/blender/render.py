@@ -94,7 +94,7 @@ def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
         return list(range(start, end + 1))
     a, b = cfg.frames
     if cfg.scene is not None and cfg.camera_path.startswith("scene") and (a < start or b > end):
-        raise ConfigError(f"--frames {a}:{b} is outside the scene's range {start}:{end}")
+        raise ConfigError(f"frames {a}:{b} is outside the scene's range {start}:{end}", key="frames")
     return list(range(a, b + 1))
 
 
@@ -106,7 +106,7 @@ def resolve_size(cfg: RenderConfig, scene) -> tuple[int, int]:
     try:
         cfg.check_size((w, h), "scene resolution")
     except ConfigError as exc:
-        raise ConfigError(f"{exc}; pass --hr-size") from None
+        raise ConfigError(f"{exc}; set hr_size", key="hr_size") from None
     return w, h
 
 
@@ -126,7 +126,7 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
                                      region=cfg.extra.get("region"))
         except PathError as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
-                              "framed by --camera-path orbit") from None
+                              "framed by camera_path orbit", key="camera_path") from None
     if cfg.camera_path in ("orbit", "walk"):
         from .camera_paths import make_camera_path
         return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}
