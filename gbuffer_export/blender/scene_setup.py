@@ -381,8 +381,8 @@ def select_device(scene, requested: str) -> dict:
             scene.cycles.device = "GPU"
             return {"device": kind, "names": [d.name for d in devs], "requested": requested}
     if requested not in ("auto", "cpu"):
-        raise ConfigError(f"device {requested}: Cycles sees no {requested.upper()} device here; use device cpu or "
-                          "auto", key="device")
+        raise ConfigError(f"device {requested}: Cycles sees no {requested.upper()} device here; use cpu or auto",
+                          key="device")
     scene.cycles.device = "CPU"
     return {"device": "CPU", "names": [_cpu_name()], "requested": requested}
 

@@ -7,13 +7,14 @@ import re
 
 
 def flag_message(exc, args) -> str | None:
-    """The message of the ConfigError ``exc`` with its key (``exc.key``, e.g. ``hr_size``) written as the flag that
-    set it (``--hr-size``) when ``args`` (the parsed command line) has that flag; None when it has none."""
+    """The message of the ConfigError ``exc`` with its key (``exc.key``, e.g. ``hr_size``; its first mention as a
+    word) written as the flag that set it (``--hr-size``) when ``args`` (the parsed command line) has that flag;
+    None when it has none."""
     key = getattr(exc, "key", None)
     if not key or key not in vars(args):
         return None
     flag = "--" + key.replace("_", "-")
-    return re.sub(rf"(?<![\w./-]){re.escape(key)}(?![\w/-])", flag, str(exc))
+    return re.sub(rf"(?<![\w./-]){re.escape(key)}(?![\w/-])", flag, str(exc), count=1)
 
 
 @contextlib.contextmanager
