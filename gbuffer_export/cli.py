@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     args.own_process = argv is None  # the command line of this process (a command may re-exec it)
     from .logs import stderr_logging
     try:
-        with stderr_logging(args.verbosity):  # the library's notes: logging, plain lines on stderr
+        with stderr_logging(getattr(args, "verbosity", 0)):  # the library's notes: logging, plain lines on stderr
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)

@@ -37,7 +37,7 @@ from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
-from .convert import BACKGROUND_DEPTH, CONVERTERS, LevelCameras, PassPlan, convert, plan_passes, read_passes  # noqa: F401
+from .convert import LevelCameras, PassPlan, convert, plan_passes, read_passes
 
 log = logging.getLogger(__name__)
 
