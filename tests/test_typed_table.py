@@ -92,11 +92,15 @@ def test_the_core_names_keys_and_the_cli_its_flags(tmp_path):
 
 
 def test_dataset_specs_take_render_config_defaults():
-    from gbuffer_export.dataset.spec import CLIP_DEFAULTS, RENDER_KEYS, parse_spec
+    """One set of defaults: a spec's per-clip RenderSettings is generated from RenderConfig's keys."""
+    import dataclasses
+
+    from gbuffer_export.dataset.spec import CLIP_DEFAULTS, RENDER_KEYS, RenderSettings, parse_spec
     render = parse_spec({"source": [{"kind": "builtin", "seeds": 0}]}).sources[0].render
     defaults = RenderConfig(output=".")
-    assert list(render) == list(RENDER_KEYS)
+    assert render == RenderSettings() and [f.name for f in dataclasses.fields(RenderSettings)] == list(RENDER_KEYS)
     for k in RENDER_KEYS:
-        want = CLIP_DEFAULTS.get(k, getattr(defaults, k))
-        assert render[k] == (list(want) if isinstance(want, tuple) else want), k
-    assert (render["hr_spp"], render["lr_spp"], render["hr_denoise"]) == (64, 4, False)
+        assert getattr(render, k) == CLIP_DEFAULTS.get(k, getattr(defaults, k)), k
+    assert (render.hr_spp, render.lr_spp, render.hr_denoise) == (64, 4, False)
+    with pytest.raises(ConfigError, match=r"x.toml: render.lr_spp 0: must be an integer in 1..16777216"):
+        parse_spec({"render": {"lr_spp": 0}, "source": [{"kind": "builtin", "seeds": 0}]}, "x.toml")

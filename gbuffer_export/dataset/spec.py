@@ -18,10 +18,11 @@ import tomllib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import get_type_hints
 
 from ..config import LIGHTS, SCENE_SUFFIXES, ConfigError, RenderConfig, camera_path_ok, parse_size
 from ..conventions import parse_buffer_list
-from ..typed_table import Rule, check_keys, fields_of, typed_value
+from ..typed_table import Rule, check_keys, fields_of, option, typed_value
 
 SPLITS = ("train", "val", "test")
 SOURCE_KINDS = ("builtin", "assets", "scene")
@@ -58,15 +59,28 @@ RENDER_KEYS = ("frames", "hr_size", "scale", "hr_spp", "lr_spp", "gbuffer_spp", 
 CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}
 
 
-def render_defaults() -> dict:
-    """The ``[render]`` values of a spec that sets none, in ``ClipJob.render``'s form (lists, not tuples)."""
-    fields = {f.name: f for f in dataclasses.fields(RenderConfig)}
-    out = {k: CLIP_DEFAULTS[k] if k in CLIP_DEFAULTS else fields[k].default for k in RENDER_KEYS}
-    return _render_json(out)
+def _render_settings_class():
+    """``RenderSettings``, generated from ``RenderConfig``: its keys in ``RENDER_KEYS`` with its types, rules and
+    defaults (one set of defaults), ``frames`` and ``hr_size`` with ``CLIP_DEFAULTS``, ``scale`` an integer."""
+    fields, hints = {f.name: f for f in dataclasses.fields(RenderConfig)}, get_type_hints(RenderConfig)
+    own = {"frames": (int, option(CLIP_DEFAULTS["frames"], lo=1)),
+           "hr_size": (tuple[int, int], dataclasses.field(default=CLIP_DEFAULTS["hr_size"])),
+           "scale": (int, option(fields["scale"].default, lo=1))}
+    spec = [(k, *own[k]) if k in own else (k, hints[k], dataclasses.field(default=fields[k].default,
+                                                                          metadata=fields[k].metadata))
+            for k in RENDER_KEYS]
+
+    def to_json(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+    cls = dataclasses.make_dataclass("RenderSettings", spec, frozen=True, namespace={"to_json": to_json})
+    cls.__module__ = __name__
+    cls.__doc__ = ("A clip's render settings in a spec (``[render]`` defaults, overridable per source): the keys "
+                   "``RENDER_KEYS`` of ``RenderConfig`` with its defaults; ``frames`` frames per clip (rendered as "
+                   "1..frames), ``hr_size`` (W, H) pixels.")
+    return cls
 
 
-def _render_json(values: dict) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+RenderSettings = _render_settings_class()
 
 
 @dataclass(frozen=True)
@@ -86,7 +100,7 @@ class Source:
 
     name: str
     kind: str
-    render: dict                                  # the clip's render keys (RENDER_KEYS), as ClipJob.render
+    render: RenderSettings
     cameras: tuple[str, ...] = ("orbit",)
     split: str | None = None                      # force every scene of this source into one split
     seeds: tuple[int, int] = (0, 0)               # builtin: inclusive range
@@ -168,37 +182,34 @@ def _typed(value, kind, where: str, spec_path, rule: Rule = Rule()):
     return typed_value(where, value, kind, rule, SpecError, _prefix(spec_path))
 
 
-def _render_settings(base: dict, table: dict, where: str, spec_path) -> dict:
-    """``base`` (``render_defaults()`` or the ``[render]`` table's) with the render keys of ``table``, each checked
-    as ``RenderConfig`` checks it, then the whole as ``RenderConfig`` (sizes, scales) would render it."""
-    spec = fields_of(RenderConfig)
-    out = dict(base)
+def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -> RenderSettings:
+    """``base`` (the defaults or the ``[render]`` table's) with the render keys of ``table``, each checked as
+    ``RenderConfig`` checks it, then the whole as ``RenderConfig`` (sizes, scales) would render it."""
+    spec = fields_of(RenderSettings)
+    out = {}
     for k in RENDER_KEYS:
         if k not in table:
             continue
         v, path = table[k], f"{where}.{k}"
-        if k == "frames":
-            v = _typed(v, int, path, spec_path, Rule(lo=1))
-        elif k == "scale":
-            v = _typed(v, int, path, spec_path, Rule(lo=1))
-        elif k == "hr_size":
+        if k == "hr_size":
             try:
-                v = list(parse_size(_typed(v, str, path, spec_path)))
+                v = parse_size(_typed(v, str, path, spec_path))
             except ConfigError as exc:
                 raise SpecError(f"{spec_path}: {where}.{exc}", key=path) from None
         elif k == "buffers":
             if isinstance(v, list):
                 v = ",".join(_typed(x, str, path, spec_path) for x in v)
             try:
-                v = list(parse_buffer_list(_typed(v, str, path, spec_path)))
+                v = parse_buffer_list(_typed(v, str, path, spec_path))
             except (KeyError, ValueError) as exc:
                 raise SpecError(f"{spec_path}: {path}: {str(exc).strip(chr(39))}", key=path) from None
         else:
             v = _typed(v, spec[k][0], path, spec_path, spec[k][1])
         out[k] = v
+    out = dataclasses.replace(base, **out)
     try:
-        RenderConfig(output=".", frames=(1, out["frames"]), hr_size=tuple(out["hr_size"]), scale=out["scale"],
-                     **{k: out[k] for k in RENDER_KEYS[3:]}, progress=False)
+        RenderConfig(output=".", frames=(1, out.frames), **{k: getattr(out, k) for k in RENDER_KEYS[1:]},
+                     progress=False)
     except ConfigError as exc:
         raise SpecError(f"{spec_path}: {where}.{exc}", key=f"{where}.{exc.key}") from None
     return out
@@ -241,7 +252,7 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
     seed = _typed(ds.get("seed", 0), int, "dataset.seed", spec_path)
     render_table = data.get("render", {})
     _check_keys(render_table, _RENDER_KEYS, "render", spec_path)
-    defaults = _render_settings(render_defaults(), render_table, "render", spec_path)
+    defaults = _render_settings(RenderSettings(), render_table, "render", spec_path)
 
     sp = data.get("splits", {})
     _check_keys(sp, _SPLIT_KEYS, "splits", spec_path)
@@ -329,7 +340,7 @@ def _grid(v, where, spec_path) -> tuple[int, int]:
     return v[0], v[1]
 
 
-def _scene_source(t: dict, name: str, render: dict, split, where: str, spec_path) -> "Source":
+def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str, spec_path) -> "Source":
     """A ``kind = "scene"`` source: the user's scene files kept as they are (docs/dataset.md)."""
     for k in ("seeds", "sun", "clips_per_asset", "clutter", "target_size_m", "hdri_strength"):
         if k in t:
@@ -512,7 +523,7 @@ class ClipJob:
     scene_id: str             # builtin:SEED or the asset's stem
     split: str
     seed: int                 # the clip's render/camera seed
-    render: dict              # the render keys (RENDER_KEYS): Source.render
+    render: dict              # RenderSettings.to_json()
     camera: str               # orbit | walk
     asset: str | None = None  # absolute path of the main asset
     clutter: list = field(default_factory=list)   # absolute paths of clutter assets
@@ -583,7 +594,7 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                     id=cid, source=src.name, kind="builtin", scene_id=scene_id,
                     split=assign_split(scene_id, spec.splits, src.split, spec.seed, spec_path=spec.path,
                                        source=src.name), seed=s,
-                    render=dict(src.render), camera=rng.choice(src.cameras),
+                    render=src.render.to_json(), camera=rng.choice(src.cameras),
                     hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
                     licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
@@ -604,7 +615,7 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                 clutter = sorted(rng.sample(same_split, n_clutter), key=lambda p: p.stem) if n_clutter else []
                 jobs.append(ClipJob(
                     id=cid, source=src.name, kind="assets", scene_id=a.stem, split=split_of[a.stem], seed=seed,
-                    render=dict(src.render), camera=rng.choice(src.cameras), asset=str(a),
+                    render=src.render.to_json(), camera=rng.choice(src.cameras), asset=str(a),
                     clutter=[str(c) for c in clutter], hdri=rng.choice(hdris),
                     hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
@@ -657,7 +668,7 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
                 region, scene_id = None, a.stem
             jobs.append(ClipJob(
                 id=cid, source=src.name, kind="scene", scene_id=scene_id, split=split, seed=seed,
-                render=dict(src.render), camera=camera, asset=str(a), hdri=None, licence=lic, light=src.light,
+                render=src.render.to_json(), camera=camera, asset=str(a), hdri=None, licence=lic, light=src.light,
                 camera_index=k if camera == "scene:*" else None, region=region,
                 variation=_draw_variation(var, hdris, rng)))
     return jobs
