@@ -102,20 +102,20 @@ class Source:
     kind: str
     render: RenderSettings
     cameras: tuple[str, ...] = ("orbit",)
-    split: str | None = None                      # force every scene of this source into one split
+    split: str | None = option(None, choices=SPLITS)  # force every scene of this source into one split
     seeds: tuple[int, int] = (0, 0)               # builtin: inclusive range
     paths: tuple[str, ...] = ()                   # assets: files or folders
-    clips_per_asset: int = 1
+    clips_per_asset: int = option(1, lo=1)
     environment: Environment = Environment()
-    clutter: int = 0                              # assets: up to N other assets of the same split around it
-    target_size_m: float = 1.5                    # assets: largest side after normalisation
+    clutter: int = option(0, lo=0)                # assets: up to N other assets of the same split around it
+    target_size_m: float = option(1.5, lo=0, lo_open=True, unit="m")  # assets: largest side after normalisation
     licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
     sun: bool = True                              # builtin: keep the sun lamp
-    clips_per_scene: int = 4                      # scene: clips per scene file
-    light: str = "scene"                          # scene: "scene" (the file's) or "sky" (add a sun and sky)
+    clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
+    light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
-    region_val: int = 0                           # scene: grid cells whose clips are val
-    region_test: int = 0                          # scene: grid cells whose clips are test
+    region_val: int = option(0, lo=0)             # scene: grid cells whose clips are val
+    region_test: int = option(0, lo=0)            # scene: grid cells whose clips are test
     variation: "Variation" = None                 # scene: opt-in changes of light (None: the file's light as is)
 
 
@@ -215,6 +215,13 @@ def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -
     return out
 
 
+def _source_key(t: dict, name: str, where: str, spec_path):
+    """The ``[[source]]`` key ``name`` of ``t`` (absent: ``Source``'s default), checked by its annotation and rule."""
+    typ, rule = fields_of(Source)[name]
+    default = next(f.default for f in dataclasses.fields(Source) if f.name == name)
+    return _typed(t.get(name, default), typ, f"{where}.{name}", spec_path, rule)
+
+
 def _str_list(v, where, spec_path) -> tuple[str, ...]:
     """A list of strings (one string: a list of one)."""
     return _typed([v] if isinstance(v, str) else v, tuple[str, ...], where, spec_path)
@@ -285,7 +292,7 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             for k in _SCENE_ONLY:
                 if k in t:
                     raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"scene\"")
-        split = _typed(t.get("split"), str | None, f"{where}.split", spec_path, Rule(choices=SPLITS))
+        split = _source_key(t, "split", where, spec_path)
         if kind == "scene":
             sources.append(_scene_source(t, sname, render, split, where, spec_path))
             continue
@@ -301,18 +308,15 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             if "seeds" not in t:
                 raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
-            kw["sun"] = _typed(t.get("sun", True), bool, f"{where}.sun", spec_path)
+            kw["sun"] = _source_key(t, "sun", where, spec_path)
         else:
             if "seeds" in t or "sun" in t:
                 raise SpecError(f"{spec_path}: {where}: seeds and sun are for kind = \"builtin\"")
             kw["paths"] = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
             if not kw["paths"]:
                 raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
-            kw["clips_per_asset"] = _typed(t.get("clips_per_asset", 1), int, f"{where}.clips_per_asset", spec_path)
-            kw["clutter"] = _typed(t.get("clutter", 0), int, f"{where}.clutter", spec_path)
-            kw["target_size_m"] = _typed(t.get("target_size_m", 1.5), float, f"{where}.target_size_m", spec_path)
-            if kw["clips_per_asset"] < 1 or kw["clutter"] < 0 or kw["target_size_m"] <= 0:
-                raise SpecError(f"{spec_path}: {where}: need clips_per_asset >= 1, clutter >= 0, target_size_m > 0")
+            for k in ("clips_per_asset", "clutter", "target_size_m"):
+                kw[k] = _source_key(t, k, where, spec_path)
             lic = t.get("licence", {})
             if not isinstance(lic, dict) or not all(isinstance(v, dict) for v in lic.values()):
                 raise SpecError(f"{spec_path}: {where}.licence: expected {{ASSET = {{licence = ..., attribution = ...}}}}")
@@ -353,13 +357,12 @@ def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str,
         if not camera_path_ok(c) or c == "scene:":
             raise SpecError(f"{spec_path}: {where}.cameras item {c!r}: choose one of "
                             f"{', '.join(SCENE_SOURCE_CAMERAS)}", key=f"{where}.cameras")
-    clips = _typed(t.get("clips_per_scene", 4), int, f"{where}.clips_per_scene", spec_path)
-    light = _typed(t.get("light", "scene"), str, f"{where}.light", spec_path, Rule(choices=LIGHTS))
+    clips = _source_key(t, "clips_per_scene", where, spec_path)
+    light = _source_key(t, "light", where, spec_path)
     regions = _grid(t.get("regions", [1, 1]), f"{where}.regions", spec_path)
-    rv = _typed(t.get("region_val", 0), int, f"{where}.region_val", spec_path)
-    rt = _typed(t.get("region_test", 0), int, f"{where}.region_test", spec_path)
-    if clips < 1 or rv < 0 or rt < 0 or rv + rt >= regions[0] * regions[1] and (rv or rt):
-        raise SpecError(f"{spec_path}: {where}: need clips_per_scene >= 1 and region_val + region_test below the "
+    rv, rt = _source_key(t, "region_val", where, spec_path), _source_key(t, "region_test", where, spec_path)
+    if rv + rt >= regions[0] * regions[1] and (rv or rt):
+        raise SpecError(f"{spec_path}: {where}: need region_val + region_test below the "
                         f"{regions[0] * regions[1]} cells of regions (the rest train)")
     if (rv or rt) and split is not None:
         raise SpecError(f"{spec_path}: {where}: split and region_val/region_test exclude each other")
