@@ -4,11 +4,11 @@ A table is a dataclass: each field's annotation is its type (``int``, ``float``,
 ``tuple[X, ...]``, ``X | None``; ``Any`` is left to the class) and ``option(...)`` adds its rule (range, choices,
 allowed items, a ``[low, high]`` pair, unit). ``from_table`` parses a TOML table into the dataclass (frozen or not):
 unknown keys, wrong types and values out of range are one-line errors that name the config key (``data.crop``,
-``render.hr_spp``); ``checked_values`` checks an instance built in code (``RenderConfig(hr_spp=0)``). Rules that
-tie several keys together stay in the class (``validate``).
+``render.hr_spp``); ``set_checked`` checks an instance built in code (``RenderConfig(hr_spp=0)``). Rules that tie
+several keys together stay in the class (``validate``).
 
-Messages name keys, never command-line flags: ``ConfigError.key`` and ``.detail`` let a shell (the CLI) name its
-own flag instead (``gbuffer_export.commands.render``). Used by ``gbuffer_export.config``, ``gbuffer_export.dataset.spec``,
+Messages name keys, never command-line flags: ``ConfigError.key`` lets a shell (the CLI) name its own flag instead
+(``gbuffer_export.commands.flags_named``). Used by ``gbuffer_export.config``, ``gbuffer_export.dataset.spec``,
 ``training.config`` and ``training.models.options``.
 """
 from __future__ import annotations
