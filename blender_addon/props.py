@@ -70,11 +70,11 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
     scales: StringProperty(name="Scales", default="4",
                            description="Integer upscaling factors, comma-separated; each scale is a source of "
                                        "its own (its own clips, one LR level each)")
-    hr_spp: IntProperty(name="HR samples", default=32, min=1, description="Samples per pixel of the HR ground truth")
-    lr_spp: IntProperty(name="LR samples", default=64, min=1, description="Samples per pixel of the LR render")
+    hr_spp: IntProperty(name="HR samples", default=64, min=1, description="Samples per pixel of the HR ground truth")
+    lr_spp: IntProperty(name="LR samples", default=4, min=1, description="Samples per pixel of the LR render")
     gbuffer_spp: IntProperty(name="G-buffer samples", default=4, min=1,
                              description="Samples per pixel of the HR G-buffer pass")
-    hr_denoise: BoolProperty(name="Denoise HR", default=True,
+    hr_denoise: BoolProperty(name="Denoise HR", default=False,
                              description="Denoise the HR ground truth with OpenImageDenoise")
     lr_denoise: BoolProperty(name="Denoise LR", default=False,
                              description="Denoise the LR render with OpenImageDenoise")

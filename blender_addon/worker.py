@@ -98,6 +98,8 @@ def run_job(job: dict) -> dict:
     try:
         from gbuffer_export.blender.render import render_clip
         from gbuffer_export.config import RenderConfig
+        from gbuffer_export.logs import configure_logging
+        configure_logging(0)  # the library's notes (resuming, ...) into this job's log
         out = render_clip(RenderConfig(**config_kwargs(job["config"])))
         result.update(ok=True, output=str(out))
         if job.get("validate"):

@@ -44,35 +44,8 @@ def _world_from_hdri(scene, hdri: Path | None) -> None:
 
 def _ground(scene, size: float):
     """A square ground at z = 0 (top face), ``size`` metres wide, light grey 25 cm tiles with 3 mm joints."""
-    import bmesh
-    import bpy
-    from mathutils import Matrix, Vector
-    from gbuffer_export.blender.camera_paths import GROUND_PROPERTY
-
-    mat = bpy.data.materials.new("Ground Tiles")
-    nt = mat.node_tree
-    bsdf = nt.nodes["Principled BSDF"]
-    bsdf.inputs["Roughness"].default_value = 0.6
-    brick = nt.nodes.new("ShaderNodeTexBrick")
-    brick.offset = 0.0
-    for k, v in {"Color1": (0.42, 0.42, 0.40, 1), "Color2": (0.50, 0.49, 0.46, 1), "Mortar": (0.2, 0.2, 0.2, 1),
-                 "Scale": 1.0, "Mortar Size": 0.003, "Brick Width": 0.25, "Row Height": 0.25}.items():
-        brick.inputs[k].default_value = v
-    tc = nt.nodes.new("ShaderNodeTexCoord")
-    nt.links.new(tc.outputs["Object"], brick.inputs["Vector"])
-    nt.links.new(brick.outputs["Color"], bsdf.inputs["Base Color"])
-
-    bm = bmesh.new()
-    bmesh.ops.create_cube(bm, size=1.0, matrix=Matrix.LocRotScale(Vector((0, 0, -0.025)), None,
-                                                                    Vector((size, size, 0.05))))
-    mesh = bpy.data.meshes.new("Ground")
-    bm.to_mesh(mesh)
-    bm.free()
-    mesh.materials.append(mat)
-    obj = bpy.data.objects.new("Ground", mesh)
-    obj[GROUND_PROPERTY] = True
-    scene.collection.objects.link(obj)
-    return obj
+    from gbuffer_export.blender.assets import tiled_ground
+    return tiled_ground(scene, size, colors=((0.42, 0.42, 0.40), (0.50, 0.49, 0.46)), roughness=0.6)
 
 
 def build_gltf_scene(gltf_path, hdri=None, frames: tuple[int, int] = (1, 24),

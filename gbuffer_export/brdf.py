@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import functools
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,8 @@ import numpy as np
 from .errors import BlendSRError
 from .brdf_common import cache_dir, hammersley, load_or_generate_file, radical_inverse_base2  # noqa: F401
 from .conventions import Flag, pixel_grid, rays_camera
+
+log = logging.getLogger(__name__)
 
 CONVENTIONS = ("ibl", "paper")
 SOURCES = ("lut", "lut-paper", "model")
@@ -183,6 +186,8 @@ def texel_centres(size: int) -> np.ndarray:
 
 def generate_lut(spec: LutSpec = LutSpec(), workers: int | None = None) -> Lut:
     """Compute a split-sum table (threads over roughness rows; numpy releases the GIL)."""
+    log.debug("split-sum table: %dx%d texels, %d samples each, %s convention", spec.size, spec.size, spec.samples,
+              spec.convention)
     c = texel_centres(spec.size)
     nov, r = np.meshgrid(c, c, indexing="xy")  # rows: roughness, columns: NoV
     a, b = integrate_ab(nov, r, spec.samples, spec.convention, workers)

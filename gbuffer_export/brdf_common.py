@@ -3,10 +3,13 @@ set and the on-disk cache of generated tables. A module of its own so that neith
 internals (``brdf`` dispatches to ``brdf_model``; ``brdf_model`` needs only these)."""
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 def radical_inverse_base2(i: np.ndarray) -> np.ndarray:
@@ -44,9 +47,10 @@ def load_or_generate_file(path: Path, read, generate, write, unreadable: tuple[t
             return read(path)
         except unreadable:
             pass
+    log.info("computing %s (cached for later runs)", path.name)
     value = generate()
     try:
         write(path, value)
-    except OSError:
-        pass
+    except OSError as exc:
+        log.debug("%s: not cached (%s)", path, exc.strerror or exc)
     return value

@@ -11,6 +11,9 @@ lists every command with any subset of the extras installed; each command checks
 fails for lack of an extra's module (another package's command importing torch at module level) is listed as a
 command that says which extra to install.
 
+Notes of the library (``logging``) go to stderr as plain lines: INFO and above by default, ``-q`` WARNING and above,
+``-v`` DEBUG too (``gbuffer_export.logs``); both go before the command (``blendsr -q render ...``).
+
 Exit codes: 0 success, 1 a check failed (e.g. ``validate`` found problems), 2 bad input (one-line error), 130
 interrupted, 70 an internal error (a bug in BlendSR: the traceback, then one line asking to report it).
 
@@ -96,6 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     from gbuffer_export import __version__
     parser.add_argument("--version", action="version", version=f"blendsr {__version__}")
+    noise = parser.add_mutually_exclusive_group()
+    noise.add_argument("-q", "--quiet", dest="verbosity", action="store_const", const=-1, default=0,
+                       help="show warnings and errors only (no notes; progress bars are unchanged)")
+    noise.add_argument("-v", "--verbose", dest="verbosity", action="store_const", const=1,
+                       help="also show debug notes")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     seen = set()
     for name, modname in entry_modules("blendsr.commands", CORE_COMMANDS).items():
@@ -121,8 +129,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     args.own_process = argv is None  # the command line of this process (a command may re-exec it)
+    from .logs import stderr_logging
     try:
-        return int(args.func(args) or 0)
+        with stderr_logging(getattr(args, "verbosity", 0)):  # the library's notes: logging, plain lines on stderr
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130

@@ -1,13 +1,16 @@
-"""Typed, validated render configuration (pure Python). The CLI, the add-on and tests build a ``RenderConfig``
-and hand it to ``gbuffer_export.blender.render.render_clip``."""
+"""Typed, validated render configuration (pure Python). The CLI, the add-on, dataset jobs and tests build a
+``RenderConfig`` (the one render-settings class: one set of defaults) and hand it to
+``gbuffer_export.blender.render.render_clip``. Each key's type and range are its annotation and ``option(...)`` rule
+(``gbuffer_export.typed_table``); messages name the key (``hr_spp``), and the CLI puts its flag (``--hr-spp``) in
+their place (``gbuffer_export.commands.render``)."""
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import BlendSRError
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
+from .typed_table import ConfigError, key_error, option, set_checked
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
 #: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
@@ -30,10 +33,6 @@ MAX_SPP = 16_777_216
 MIN_RENDER_PX = 4
 
 
-class ConfigError(BlendSRError):
-    """An invalid configuration value; the message names the option."""
-
-
 def parse_frames(text: str | None) -> tuple[int, int] | None:
     """'A:B' (inclusive) -> (A, B); None or '' -> None (the scene's range)."""
     if not text:
@@ -42,9 +41,9 @@ def parse_frames(text: str | None) -> tuple[int, int] | None:
     try:
         start, end = int(a), int(b) if sep else int(a)
     except ValueError:
-        raise ConfigError(f"--frames {text!r}: expected A:B with integers, e.g. 1:48") from None
+        raise key_error("frames", text, "expected A:B with integers, e.g. 1:48") from None
     if end < start:
-        raise ConfigError(f"--frames {text!r}: end {end} is before start {start}")
+        raise key_error("frames", text, f"end {end} is before start {start}")
     return start, end
 
 
@@ -55,9 +54,9 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ConfigError(f"--hr-size {text!r}: expected WxH, e.g. 640x360") from None
+        raise key_error("hr_size", text, "expected WxH, e.g. 640x360") from None
     if w <= 0 or h <= 0:
-        raise ConfigError(f"--hr-size {text!r}: width and height must be positive")
+        raise key_error("hr_size", text, "width and height must be positive")
     return w, h
 
 
@@ -68,7 +67,7 @@ def parse_scales(text: str | None) -> tuple[float, ...] | None:
     try:
         return tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise ConfigError(f"--scales {text!r}: expected comma-separated numbers, e.g. 2,2.5,4") from None
+        raise key_error("scales", text, "expected comma-separated numbers, e.g. 2,2.5,4") from None
 
 
 def parse_shard(text: str | None) -> tuple[int, int]:
@@ -78,9 +77,9 @@ def parse_shard(text: str | None) -> tuple[int, int]:
     try:
         k, n = (int(v) for v in text.split("/"))
     except ValueError:
-        raise ConfigError(f"--shard {text!r}: expected K/N, e.g. 2/4") from None
+        raise key_error("shard", text, "expected K/N, e.g. 2/4") from None
     if not (n >= 1 and 1 <= k <= n):
-        raise ConfigError(f"--shard {text!r}: need 1 <= K <= N")
+        raise key_error("shard", text, "need 1 <= K <= N")
     return k, n
 
 
@@ -98,7 +97,12 @@ def check_builtin_frames(frames: tuple[int, int] | None) -> None:
         return
     (a, b), (lo, hi) = frames, BUILTIN_SCENE_FRAMES
     if a < lo or b > hi:
-        raise ConfigError(f"--frames {a}:{b} is outside the built-in scene's range {lo}:{hi}")
+        detail = f"{a}:{b} is outside the built-in scene's range {lo}:{hi}"
+        raise ConfigError(f"frames {detail}", key="frames", detail=detail)
+
+
+#: Why the sample counts stop at MAX_SPP (appended to their range message).
+_SPP_CAP = "(Cycles' cap on samples per pixel)"
 
 
 @dataclass
@@ -112,24 +116,24 @@ class RenderConfig:
     hr_size: tuple[int, int] | None = None  # (W, H); None: the scene's resolution
     scale: int | float = 4                  # LR = HR / scale (the level 'lr')
     scales: tuple[float, ...] | None = None  # one LR level per scale, the first is 'lr'; None: (scale,)
-    hr_spp: int = 64
-    lr_spp: int = 4
-    gbuffer_spp: int = 4
+    hr_spp: int = option(64, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
+    lr_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
+    gbuffer_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
     hr_denoise: bool = False
     lr_denoise: bool = False
     adaptive: bool = False
-    adaptive_threshold: float = 0.01
-    adaptive_min_samples: int = 0
+    adaptive_threshold: float = option(0.01, lo=0, hi=1, hi_open=True)
+    adaptive_min_samples: int = option(0, lo=0)
     camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
-    light: str = "scene"                    # scene: as the file is (refused when unlit); sky: add a sun and sky
-    device: str = "auto"                    # Cycles device: auto picks a GPU when Cycles sees one
+    light: str = option("scene", choices=LIGHTS)  # scene: as the file is (refused when unlit); sky: a sun and sky
+    device: str = option("auto", choices=DEVICES)  # Cycles device: auto picks a GPU when Cycles sees one
     seed: int = 0
-    jitter: str = "halton"
+    jitter: str = option("halton", choices=JITTERS)
     buffers: tuple[str, ...] = DEFAULT_BUFFERS
-    fbeta: str = "cycles"
+    fbeta: str = option("cycles", choices=FBETA_SOURCES)
     shard: tuple[int, int] = (1, 1)
-    max_bounces: int | None = None         # None: the scene's own light paths
-    threads: int = 0                        # 0: all cores
+    max_bounces: int | None = option(None, lo=0)  # None: the scene's own light paths
+    threads: int = option(0, lo=0)                # 0: all cores
     progress: bool = True
     extra: dict = field(default_factory=dict)
 
@@ -140,68 +144,52 @@ class RenderConfig:
         self.validate()
 
     def validate(self) -> None:
-        if self.scales is None:
-            self.scales = (self.scale,)
-        opt = "--scales" if len(self.scales) > 1 else "--scale"
-        for v in self.scales:
-            try:
-                scale_fraction(v)
-            except ValueError:
-                raise ConfigError(f"{opt} {v!r}: must be a number >= 1 (a ratio of integers such as 2, 2.5 or 4)") \
-                    from None
-        if len(set(float(v) for v in self.scales)) != len(self.scales):
-            raise ConfigError(f"{opt} {','.join(f'{v:g}' for v in self.scales)}: a scale is given twice")
-        self.scales = tuple(float(v) for v in self.scales)
-        self.scale = int(self.scales[0]) if self.scales[0].is_integer() else self.scales[0]
-        for name in ("hr_spp", "lr_spp", "gbuffer_spp"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise ConfigError(f"--{name.replace('_', '-')} {v!r}: must be a positive integer")
-            if v > MAX_SPP:
-                raise ConfigError(f"--{name.replace('_', '-')} {v}: Cycles renders at most {MAX_SPP} samples per "
-                                  "pixel")
-        if not camera_path_ok(self.camera_path):
-            raise ConfigError(f"--camera-path {self.camera_path!r}: choose one of {', '.join(CAMERA_PATHS)}, "
-                              "scene:NAME or scene:*")
-        if self.light not in LIGHTS:
-            raise ConfigError(f"--light {self.light!r}: choose one of {', '.join(LIGHTS)}")
-        if self.device not in DEVICES:
-            raise ConfigError(f"--device {self.device!r}: choose one of {', '.join(DEVICES)}")
-        if self.jitter not in JITTERS:
-            raise ConfigError(f"--jitter {self.jitter!r}: choose one of {', '.join(JITTERS)}")
-        if self.fbeta not in FBETA_SOURCES:
-            raise ConfigError(f"--fbeta {self.fbeta!r}: choose one of {', '.join(FBETA_SOURCES)}")
+        self._check_scales()
         if isinstance(self.buffers, str):
             self.buffers = parse_buffer_list(self.buffers)
         else:
             self.buffers = parse_buffer_list(",".join(self.buffers))
+        if not camera_path_ok(self.camera_path):
+            raise key_error("camera_path", self.camera_path,
+                            f"choose one of {', '.join(CAMERA_PATHS)}, scene:NAME or scene:*")
+        set_checked(self, names=[f.name for f in dataclasses.fields(self)
+                                 if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
         if self.hr_size is not None:
-            self.check_size(self.hr_size, "--hr-size")
-        if self.max_bounces is not None and (not isinstance(self.max_bounces, int) or self.max_bounces < 0):
-            raise ConfigError(f"--max-bounces {self.max_bounces!r}: must be an integer >= 0")
-        if not isinstance(self.threads, int) or self.threads < 0:
-            raise ConfigError(f"--threads {self.threads!r}: must be an integer >= 0 (0 = all cores)")
-        if not isinstance(self.adaptive_min_samples, int) or self.adaptive_min_samples < 0:
-            raise ConfigError(f"--adaptive-min-samples {self.adaptive_min_samples!r}: must be an integer >= 0")
-        if not (0 <= self.adaptive_threshold < 1):
-            raise ConfigError(f"--adaptive-threshold {self.adaptive_threshold}: must be in [0, 1)")
+            self.check_size(self.hr_size, "hr_size")
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")
             if self.scene.suffix.lower() not in SCENE_SUFFIXES:
                 raise ConfigError(f"{self.scene}: not a scene file (one of {', '.join(SCENE_SUFFIXES)})")
 
+    def _check_scales(self) -> None:
+        """``scales`` as floats (default: ``(scale,)``), each a ratio of integers >= 1, none twice; ``scale`` the
+        first (an int when whole)."""
+        if self.scales is None:
+            self.scales = (self.scale,)
+        key = "scales" if len(self.scales) > 1 else "scale"
+        for v in self.scales:
+            try:
+                scale_fraction(v)
+            except ValueError:
+                raise key_error(key, v, "must be a number >= 1 (a ratio of integers such as 2, 2.5 or 4)") from None
+        if len(set(float(v) for v in self.scales)) != len(self.scales):
+            text = ",".join(f"{v:g}" for v in self.scales)
+            raise ConfigError(f"{key} {text}: a scale is given twice", key=key, detail=f"{text}: a scale is given twice")
+        self.scales = tuple(float(v) for v in self.scales)
+        self.scale = int(self.scales[0]) if self.scales[0].is_integer() else self.scales[0]
+
     def check_size(self, hr_size: tuple[int, int], what: str) -> dict[float, tuple[int, int]]:
         """{scale: LR size} of every scale; ConfigError naming ``what`` and the nearest valid sizes otherwise."""
         try:
             sizes = check_level_sizes(hr_size, self.scales, what)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(str(exc), key=what, detail=str(exc)[len(what) + 1:]) from None
         for s, (w, h) in sizes.items():
             if min(w, h) < MIN_RENDER_PX:
-                raise ConfigError(f"{what} {hr_size[0]}x{hr_size[1]} at scale {s:g} gives an LR frame of {w}x{h}: "
-                                  f"Blender renders no side under {MIN_RENDER_PX} pixels (use a larger {what} or a "
-                                  "smaller scale)")
+                detail = (f"{hr_size[0]}x{hr_size[1]} at scale {s:g} gives an LR frame of {w}x{h}: Blender renders "
+                          f"no side under {MIN_RENDER_PX} pixels (use a larger size or a smaller scale)")
+                raise ConfigError(f"{what} {detail}", key=what, detail=detail)
         return sizes
 
     def to_json(self) -> dict:

@@ -136,6 +136,20 @@ def material_flags_for_source(flags: int, fbeta_source: str) -> int:
     return int(flags)
 
 
+#: The G-buffers a table F_beta source (every source but ``cycles``) computes F_beta from (``flags``: background and
+#: material flags). Whenever such an ``fbeta`` is requested they are rendered, written or not: ``computed_buffers``.
+TABLE_FBETA_INPUTS = ("albedo", "normal", "roughness", "metallic", "specular", "flags")
+
+
+def computed_buffers(buffers, fbeta_source: str) -> tuple[str, ...]:
+    """The buffers a render computes for the requested ``buffers``: those, plus ``TABLE_FBETA_INPUTS`` when
+    ``fbeta`` comes from a table source (the one statement of that rule)."""
+    out = tuple(buffers)
+    if "fbeta" in out and fbeta_source != "cycles":
+        out += tuple(b for b in TABLE_FBETA_INPUTS if b not in out)
+    return out
+
+
 def buffer_spec(name: str) -> BufferSpec:
     """Return the spec of a buffer name; ValueError naming the valid ones otherwise."""
     try:

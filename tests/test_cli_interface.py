@@ -164,3 +164,28 @@ def test_upscale_evaluate_and_bench_models_show_progress_unless_told(tmp_path, c
         assert re.search(r"[0-3]/3 \[", err) and "frame" in err, (name, err[-500:])
         assert main([*args, "--no-progress"]) == 0, name
         assert not re.search(r"[0-3]/3 \[", capsys.readouterr().err), name
+
+
+
+# ------------------------------------------------------------------------------------------ -q / -v (logging)
+def test_quiet_hides_an_info_note_and_verbose_shows_a_debug_note(tmp_path, monkeypatch, capsys):
+    """The library's notes are log records on stderr: INFO by default and hidden by -q, DEBUG only with -v."""
+    import gbuffer_export.commands.lut as lut
+    from gbuffer_export.brdf_common import load_or_generate_file
+    real_run = lut.run
+
+    def run_with_a_cold_cache(args):  # a table missing from the cache: the library notes it at INFO
+        load_or_generate_file(tmp_path / "table.exr", None, lambda: 1, lambda path, value: None, ())
+        return real_run(args)
+    monkeypatch.setattr(lut, "run", run_with_a_cold_cache)
+
+    def stderr_of(*flags):
+        assert main([*flags, "lut", "-o", str(tmp_path / "l.exr"), "--size", "4", "--samples", "16"]) == 0
+        return capsys.readouterr().err
+
+    default = stderr_of()
+    assert "computing table.exr (cached for later runs)" in default and "split-sum table" not in default
+    assert "computing table.exr" not in stderr_of("-q")
+    verbose = stderr_of("-v")
+    assert "split-sum table: 4x4 texels, 16 samples each" in verbose and "computing table.exr" in verbose
+    assert "split-sum table" not in stderr_of("--quiet")

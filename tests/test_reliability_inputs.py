@@ -170,7 +170,7 @@ def test_an_lr_size_under_blenders_minimum_is_refused_up_front(tmp_path):
         RenderConfig(output=tmp_path / "c", hr_size=(12, 12), scale=4)
     with pytest.raises(ConfigError, match="4x2"):
         RenderConfig(output=tmp_path / "c", hr_size=(64, 32), scales=(2, 16))
-    with pytest.raises(SpecError, match="4 px"):
+    with pytest.raises(SpecError, match=r"source\[0\]\.hr_size 12x12 at scale 4 .*under 4 pixels"):
         load_spec(_spec(tmp_path, 'scale = 4\n[[source]]\nkind = "builtin"\nseeds = "0:1"\nhr_size = "12x12"\n'))
 
 

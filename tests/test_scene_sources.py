@@ -69,8 +69,8 @@ def test_without_regions_the_scene_is_one_split_and_variation_is_recorded(level)
     ({"regions": "2x2", "region_test": 4}, "region_val + region_test below the 4 cells"),
     ({"regions": "2x2", "region_test": 1, "cameras": ["walk", "scene:*"]}, "only walk and fly"),
     ({"regions": "2x2", "region_test": 1, "split": "train"}, "exclude each other"),
-    ({"cameras": ["dolly"]}, "cameras: 'dolly'"),
-    ({"light": "moon"}, "light = 'moon'"),
+    ({"cameras": ["dolly"]}, "cameras item 'dolly'"),
+    ({"light": "moon"}, "light 'moon'"),
     ({"clutter": 2}, "not for kind = \"scene\""),
     ({"sun_elevation_deg": [10, 95]}, "sun_elevation_deg"),
 ])
@@ -89,8 +89,8 @@ def test_render_config_takes_scene_files_cameras_lights_devices(level, tmp_path)
     cfg = RenderConfig(output=tmp_path / "o", scene=level / "street.glb", camera_path="scene:Cam 2", light="sky",
                        device="cpu")
     assert cfg.camera_path == "scene:Cam 2"
-    for kw, msg in (({"camera_path": "dolly"}, "--camera-path 'dolly'"), ({"light": "moon"}, "--light 'moon'"),
-                    ({"device": "tpu"}, "--device 'tpu'"), ({"scene": level / "notes.txt"}, "not a scene file")):
+    for kw, msg in (({"camera_path": "dolly"}, "^camera_path 'dolly'"), ({"light": "moon"}, "^light 'moon'"),
+                    ({"device": "tpu"}, "^device 'tpu'"), ({"scene": level / "notes.txt"}, "not a scene file")):
         with pytest.raises(ConfigError, match=msg):
             RenderConfig(output=tmp_path / "o", **{"scene": level / "hall.blend", **kw})
 

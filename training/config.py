@@ -3,7 +3,9 @@
 A configuration is read from a TOML file (sections ``[data]``, ``[model]``, ``[loss]``, ``[optim]``, ``[run]``;
 ``[model.<name>]`` holds model ``name``'s own options, ``training.models.options``), then CLI overrides are applied
 (``--set section.key=value``, ``--set model.NAME.key=value``, ``--max-steps``, ...). Unknown sections or keys are
-errors that name the key, and so are values of the wrong type or outside their range. Old flat model keys go
+errors that name the key, and so are values of the wrong type or outside their range: each key's type is its
+annotation and its range or choices its ``option(...)`` rule (``gbuffer_export.typed_table``, the helper every
+configuration and spec uses); ``validate`` adds the rules that tie keys together. Old flat model keys go
 through the legacy rule (``legacy_model_keys``). The resolved configuration is written to the run directory as
 ``config.toml`` (``to_toml``) and stored in every checkpoint (``to_dict``). docs/configuration.md lists every key.
 """
@@ -11,13 +13,14 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, get_args, get_origin, get_type_hints
+from typing import Any, ClassVar
 
 from gbuffer_export.config import ConfigError
+from gbuffer_export.pixel_filter import FILTERS
+from gbuffer_export.typed_table import Rule, check_keys, from_table, option, set_checked, typed_value
 
 INPUT_TRANSFORMS = ("log1p", "none")
 LOSS_SPACES = ("log1p", "tonemap", "linear")
@@ -36,41 +39,27 @@ class DataConfig:
     """What the loader feeds. Crop sizes are in LR pixels (the HR crop is ``scale`` times larger)."""
 
     clips: list[str] = field(default_factory=list)   # clip directories (the CLI's --data adds to these)
-    crop: int = 64                   # LR crop side, pixels
-    batch_size: int = 8              # per process
+    crop: int = option(64, lo=1, unit="LR pixels")  # LR crop side
+    batch_size: int = option(8, lo=1)  # per process
     augment_flip: bool = True        # random horizontal/vertical flips
     augment_rotate: bool = True      # random 90-degree rotations (transpose)
-    exposure_range: list[float] = field(default_factory=lambda: [0.5, 2.0])  # log-uniform radiance scale
-    reflectance_range: list[float] = field(default_factory=lambda: [0.5, 2.0])  # log-uniform BRDF scale per channel
-    demod_eps: float = 0.01          # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
-    nonfinite: str = "error"         # NaN/Inf in a buffer: 'error' (name file and frame) or 'sanitize' (warn)
+    exposure_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True)  # log-uniform radiance scale
+    reflectance_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True)  # log-uniform BRDF scale
+    demod_eps: float = option(0.01, lo=1e-6, hi=1)  # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
+    nonfinite: str = option("error", choices=NONFINITE_POLICIES)  # NaN/Inf in a buffer: 'error' (name file and
+                                     # frame) or 'sanitize' (warn)
     cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
-    prefetch: int = 2                # batches prepared ahead in a background thread (0: none); per worker with workers
-    workers: int = 0                 # loader processes (0: the prefetch thread); batches are the same either way
+    prefetch: int = option(2, lo=0)  # batches prepared ahead in a background thread (0: none); per worker with workers
+    workers: int = option(0, lo=0, hi=64)  # loader processes (0: the prefetch thread); batches the same either way
     pin_memory: bool = True          # with workers on CUDA: page-locked batches, asynchronous copies to the GPU
-    val_frames: int = 0              # last N frames of each clip held out from training (evaluated at the end)
+    val_frames: int = option(0, lo=0)  # last N frames of each clip held out from training (evaluated at the end)
     val_clips: list[str] = field(default_factory=list)  # whole clips never trained on, evaluated at the end and
                                      # every run.eval_every steps (--data DATASET fills it with the val split)
-    window: int = 0                  # recurrent models: frames per training window, a target each (0: 7)
-    detach_every: int = 0            # recurrent models: detach the state every N frames of a window (0: never)
+    window: int = option(0, lo=0, hi=64)  # recurrent models: frames per training window, a target each (0: 7)
+    detach_every: int = option(0, lo=0)  # recurrent models: detach the state every N frames of a window (0: never)
 
     def validate(self) -> None:
-        _positive("data.crop", self.crop)
-        _positive("data.batch_size", self.batch_size)
-        self.exposure_range = _range("data.exposure_range", self.exposure_range)
-        self.reflectance_range = _range("data.reflectance_range", self.reflectance_range)
-        if not (1e-6 <= self.demod_eps <= 1):
-            raise ConfigError(f"data.demod_eps {self.demod_eps}: must lie in [1e-6, 1]")
-        _choice("data.nonfinite", self.nonfinite, NONFINITE_POLICIES)
-        if self.prefetch < 0:
-            raise ConfigError(f"data.prefetch {self.prefetch}: must be >= 0")
-        if isinstance(self.workers, bool) or self.workers < 0 or self.workers > 64:
-            raise ConfigError(f"data.workers {self.workers}: must lie in 0..64")
-        if self.val_frames < 0:
-            raise ConfigError(f"data.val_frames {self.val_frames}: must be >= 0")
-        if self.window < 0 or self.window > 64 or self.detach_every < 0:
-            raise ConfigError(f"data.window {self.window} / data.detach_every {self.detach_every}: must be >= 0 "
-                              "(window at most 64)")
+        set_checked(self, "data")
 
 
 @dataclass
@@ -82,13 +71,17 @@ class ModelConfig:
 
     name: str = "fusesr"
     scale: float = 0                 # 0: from the data
-    history: int = -1                # previous frames the model reads (-1: the model's default)
-    input_transform: str = "log1p"   # HDR transform of radiance/irradiance inputs; outputs are inverted
-    depth_norm: str = "ratio"        # 'ratio': d / (d + median_d(frame)); 'inverse': 1 / (1 + d); bg -> 1 / 0
+    history: int = option(-1, lo=-1, hi=4)  # previous frames the model reads (-1: the model's default)
+    input_transform: str = option("log1p", choices=INPUT_TRANSFORMS)  # HDR transform of radiance/irradiance
+                                     # inputs; outputs are inverted
+    depth_norm: str = option("ratio", choices=DEPTH_NORMS)  # 'ratio': d / (d + median_d(frame)); 'inverse':
+                                     # 1 / (1 + d); bg -> 1 / 0
     jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
     upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
-    remod_filter: str = "REFERENCE"  # demodulated models: pixel filter K of SR = K * (L_D F_used + E); REFERENCE:
-    remod_filter_px: float = 1.5     # the clips' ground-truth filter (manifest render.hr), NONE: off, or explicit
+    remod_filter: str = option("REFERENCE", choices=("REFERENCE", "NONE") + FILTERS)  # demodulated models: pixel
+                                     # filter K of SR = K * (L_D F_used + E); REFERENCE: the clips' ground-truth
+                                     # filter (manifest render.hr), NONE: off, or explicit
+    remod_filter_px: float = option(1.5, lo=0, lo_open=True, hi=4, unit="pixels")
     options: Any = None              # the options of model ``name`` (None: its defaults)
 
     def __post_init__(self) -> None:
@@ -113,21 +106,13 @@ class ModelConfig:
         return cfg
 
     def validate(self) -> None:
-        from gbuffer_export.pixel_filter import FILTERS
         from training.models import MODELS  # torch-free table
         if self.name not in MODELS:
-            raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}")
+            raise ConfigError(f"model.name {self.name!r}: choose one of {', '.join(MODELS)}", key="model.name")
+        set_checked(self, "model", names=[f.name for f in dataclasses.fields(self) if f.name != "name"])
         if self.scale != 0 and not self.scale >= 1:
             raise ConfigError(f"model.scale {self.scale:g}: must be a scale >= 1 such as 2, 2.5 or 4 "
-                              "(0: from the data)")
-        if self.history < -1 or self.history > 4:
-            raise ConfigError(f"model.history {self.history}: must be -1 (default) or 0..4")
-        _choice("model.input_transform", self.input_transform, INPUT_TRANSFORMS)
-        _choice("model.depth_norm", self.depth_norm, DEPTH_NORMS)
-        _choice("model.remod_filter", self.remod_filter, ("REFERENCE", "NONE") + FILTERS)
-        if not isinstance(self.remod_filter_px, (int, float)) or not (0 < float(self.remod_filter_px) <= 4):
-            raise ConfigError(f"model.remod_filter_px {self.remod_filter_px!r}: must lie in (0, 4] pixels")
-        self.remod_filter_px = float(self.remod_filter_px)
+                              "(0: from the data)", key="model.scale")
         cls = MODELS[self.name].options
         if self.options is None:
             self.options = cls()
@@ -147,32 +132,26 @@ class ModelConfig:
 class LossConfig:
     """Weights of the loss terms (0 disables a term) and the space the pixel losses compare in."""
 
-    space: str = "log1p"             # where SR and ground truth are compared: log1p, tonemap (metric's), linear
-    pixel: str = "l1"                # 'l1' or 'charbonnier'
-    pixel_weight: float = 1.0
-    charbonnier_eps: float = 1e-3    # sqrt(x^2 + eps^2); not below 1e-6 (fp16 gradients)
-    ssim_weight: float = 0.05        # 1 - SSIM on the tonemapped images (FuseSR: 0.05)
-    fft_weight: float = 0.0          # L1 of the 2-D FFT difference (frequency loss)
-    fft: str = "ortho"               # 'ortho': orthonormal FFT, modulus; 'rfft': unnormalised, |Re| + |Im| (RDG)
-    temporal_weight: float = 0.0     # temporal consistency term (see temporal)
-    temporal: str = "warped"         # 'warped': L1 of (SR_t - W(SR_t-1)) - (GT_t - W(GT_t-1)), W: warp with HR
-                                     # motion; 'difference': MSE of (SR_t - SR_t-1) - (GT_t - GT_t-1) (RDG's code)
-    perceptual_weight: float = 0.0   # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
+    space: str = option("log1p", choices=LOSS_SPACES)  # where SR and ground truth are compared: log1p, tonemap
+                                     # (the metric's), linear
+    pixel: str = option("l1", choices=PIXEL_LOSSES)
+    pixel_weight: float = option(1.0, lo=0)
+    charbonnier_eps: float = option(1e-3, lo=1e-6)  # sqrt(x^2 + eps^2); not below 1e-6 (fp16 gradients)
+    ssim_weight: float = option(0.05, lo=0)  # 1 - SSIM on the tonemapped images (FuseSR: 0.05)
+    fft_weight: float = option(0.0, lo=0)  # L1 of the 2-D FFT difference (frequency loss)
+    fft: str = option("ortho", choices=FFT_LOSSES)  # 'ortho': orthonormal FFT, modulus; 'rfft': unnormalised,
+                                     # |Re| + |Im| (RDG)
+    temporal_weight: float = option(0.0, lo=0)  # temporal consistency term (see temporal)
+    temporal: str = option("warped", choices=TEMPORAL_LOSSES)  # 'warped': L1 of (SR_t - W(SR_t-1)) - (GT_t -
+                                     # W(GT_t-1)), W: warp with HR motion; 'difference': MSE of (SR_t - SR_t-1) -
+                                     # (GT_t - GT_t-1) (RDG's code)
+    perceptual_weight: float = option(0.0, lo=0)  # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
     vgg_weights: str = ""            # path to torchvision's vgg16-397923af.pth, which you download (docs/training.md)
 
     def validate(self) -> None:
-        _choice("loss.space", self.space, LOSS_SPACES)
-        _choice("loss.pixel", self.pixel, PIXEL_LOSSES)
-        _choice("loss.temporal", self.temporal, TEMPORAL_LOSSES)
-        _choice("loss.fft", self.fft, FFT_LOSSES)
-        for name in ("pixel_weight", "ssim_weight", "fft_weight", "temporal_weight", "perceptual_weight"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"loss.{name} {v}: must be a finite number >= 0")
+        set_checked(self, "loss")
         if self.pixel_weight + self.ssim_weight + self.fft_weight + self.perceptual_weight <= 0:
             raise ConfigError("loss: every weight is 0; nothing to train")
-        if self.charbonnier_eps < 1e-6:
-            raise ConfigError(f"loss.charbonnier_eps {self.charbonnier_eps}: must be >= 1e-6")
         if self.perceptual_weight > 0:  # the file must exist; its sha256 is checked when the loss loads it
             from training.perceptual import require_vgg_file
             require_vgg_file(self.vgg_weights, check_hash=False)
@@ -182,32 +161,23 @@ class LossConfig:
 class OptimConfig:
     """Adam(W) with a learning-rate schedule."""
 
-    lr: float = 2e-4
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    weight_decay: float = 0.0
-    scheduler: str = "cosine"        # cosine decay to lr * min_lr_ratio over decay_steps, constant, or step
-    decay_steps: int = 0             # length of the cosine schedule (0: run.max_steps)
-    warmup_steps: int = 0
-    min_lr_ratio: float = 0.01
-    step_every: int = 10000          # 'step': multiply by step_gamma every N steps
-    step_gamma: float = 0.5
-    grad_clip: float = 0.0           # max gradient norm (0: off)
-    ema_decay: float = 0.0           # exponential moving average of the weights (0: off; e.g. 0.999)
+    lr: float = option(2e-4, lo=0, lo_open=True)
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])  # [b1, b2], each in [0, 1)
+    weight_decay: float = option(0.0, lo=0)
+    scheduler: str = option("cosine", choices=SCHEDULERS)  # cosine decay to lr * min_lr_ratio over decay_steps,
+                                     # constant, or step
+    decay_steps: int = option(0, lo=0)  # length of the cosine schedule (0: run.max_steps)
+    warmup_steps: int = option(0, lo=0)
+    min_lr_ratio: float = option(0.01, lo=0)
+    step_every: int = option(10000, lo=1)  # 'step': multiply by step_gamma every N steps
+    step_gamma: float = option(0.5, lo=0)
+    grad_clip: float = option(0.0, lo=0)  # max gradient norm (0: off)
+    ema_decay: float = option(0.0, lo=0, hi=1, hi_open=True)  # moving average of the weights (0: off; e.g. 0.999)
 
     def validate(self) -> None:
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ConfigError(f"optim.lr {self.lr}: must be > 0")
-        if len(self.betas) != 2 or not all(0 <= float(b) < 1 for b in self.betas):
-            raise ConfigError(f"optim.betas {self.betas}: expected [b1, b2] in [0, 1)")
-        self.betas = [float(b) for b in self.betas]
-        _choice("optim.scheduler", self.scheduler, SCHEDULERS)
-        for name in ("weight_decay", "min_lr_ratio", "grad_clip", "step_gamma"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"optim.{name}: must be >= 0")
-        if not 0 <= self.ema_decay < 1:
-            raise ConfigError(f"optim.ema_decay {self.ema_decay}: must be in [0, 1) (0: off)")
-        if self.warmup_steps < 0 or self.step_every < 1 or self.decay_steps < 0:
-            raise ConfigError("optim.warmup_steps and optim.decay_steps must be >= 0, optim.step_every >= 1")
+        set_checked(self, "optim")
+        if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
+            raise ConfigError(f"optim.betas {self.betas}: expected [b1, b2] in [0, 1)", key="optim.betas")
 
 
 @dataclass
@@ -215,27 +185,22 @@ class RunConfig:
     """How long and where to run, and what to record."""
 
     seed: int = 0
-    max_steps: int = 20000           # optimiser steps (also the length of the cosine schedule)
-    minutes: float = 0.0             # wall-clock budget (0: none); stops cleanly with a checkpoint
-    checkpoint_every: int = 500      # steps
-    keep_checkpoints: int = 3        # numbered checkpoints kept besides last.pt
-    log_every: int = 10              # steps between CSV rows
-    device: str = "auto"             # auto: cuda when available, else cpu
-    amp: str = "auto"                # auto: bf16 on CPU when supported / on GPU when supported, else fp16
+    max_steps: int = option(20000, lo=1)  # optimiser steps (also the length of the cosine schedule)
+    minutes: float = option(0.0, lo=0)  # wall-clock budget (0: none); stops cleanly with a checkpoint
+    checkpoint_every: int = option(500, lo=1)  # steps
+    keep_checkpoints: int = option(3, lo=0)  # numbered checkpoints kept besides last.pt
+    log_every: int = option(10, lo=1)  # steps between CSV rows
+    device: str = option("auto", choices=DEVICES)  # auto: cuda when available, else cpu
+    amp: str = option("auto", choices=AMP_MODES)  # auto: bf16 on CPU when supported / on GPU when supported,
+                                     # else fp16
     compile: bool = False            # torch.compile the model
-    threads: int = 0                 # torch intra-op threads (0: torch's default)
+    threads: int = option(0, lo=0)   # torch intra-op threads (0: torch's default)
     progress: bool = True            # tqdm progress bar
-    eval_every: int = 0              # steps between validation runs on held-out frames (0: only at the end)
+    eval_every: int = option(0, lo=0)  # steps between validation runs on held-out frames (0: only at the end)
     init_from: str = ""              # checkpoint (or pretrained:NAME) whose model weights start a fresh run
 
     def validate(self) -> None:
-        _positive("run.max_steps", self.max_steps)
-        _positive("run.checkpoint_every", self.checkpoint_every)
-        _positive("run.log_every", self.log_every)
-        if self.minutes < 0 or self.threads < 0 or self.keep_checkpoints < 0 or self.eval_every < 0:
-            raise ConfigError("run.minutes, run.threads, run.keep_checkpoints, run.eval_every must be >= 0")
-        _choice("run.device", self.device, DEVICES)
-        _choice("run.amp", self.amp, AMP_MODES)
+        set_checked(self, "run")
 
 
 @dataclass
@@ -268,99 +233,45 @@ class TrainConfig:
 SECTIONS = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
 
 
-def _positive(name: str, v) -> None:
-    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-        raise ConfigError(f"{name} {v!r}: must be a positive integer")
-
-
-def _range(name: str, v) -> list[float]:
-    """A [low, high] pair of positive factors (low <= high), as floats."""
-    if not isinstance(v, (list, tuple)) or len(v) != 2 or \
-            not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-        raise ConfigError(f"{name} {v!r}: expected [low, high]")
-    lo, hi = (float(x) for x in v)
-    if not (0 < lo <= hi):
-        raise ConfigError(f"{name} {v!r}: need 0 < low <= high")
-    return [lo, hi]
-
-
-def _choice(name: str, v, choices) -> None:
-    if v not in choices:
-        raise ConfigError(f"{name} {v!r}: choose one of {', '.join(choices)}")
-
-
 def _section_class(name: str):
     return {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "optim": OptimConfig, "run": RunConfig}[name]
 
 
-def _coerce(where: str, value: Any, typ) -> Any:
-    """Check ``value`` against the annotation ``typ`` (int, float, bool, str, list[float], list[str])."""
-    origin = get_origin(typ)
-    if origin is list:
-        (item,) = get_args(typ)
-        if not isinstance(value, list):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        return [_coerce(f"{where}[{i}]", v, item) for i, v in enumerate(value)]
-    if typ is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if typ is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if typ is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if typ is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported type {typ}")
-
-
-def _table(cls, values: dict, source: str, prefix: str, no_keys: str = "") -> Any:
-    """An instance of the dataclass ``cls`` from ``values`` (types checked); ``prefix`` names the table in messages
-    (``data``, ``model.fusesr``) and ``no_keys`` is the message's ending for a class without fields."""
-    hints = get_type_hints(cls)
-    hints = {f.name: hints[f.name] for f in dataclasses.fields(cls)}
-    obj = cls()
-    for key, value in values.items():
-        if key not in hints:
-            raise ConfigError(f"{source}: unknown key {prefix}.{key} "
-                              f"({'known: ' + ', '.join(hints) if hints else no_keys})")
-        setattr(obj, key, _coerce(f"{source}: {prefix}.{key}", value, hints[key]))
-    return obj
+def _table(cls, values: dict, source: str, prefix: str, no_keys: str = "known: none") -> Any:
+    """An instance of the dataclass ``cls`` from ``values``, each key checked (``typed_table.from_table``);
+    ``prefix`` names the table in messages (``data``, ``model.fusesr``), ``no_keys`` ends the unknown-key message of
+    a class without fields."""
+    if not isinstance(values, dict):
+        raise ConfigError(f"{source}: [{prefix}] must be a table", key=prefix)
+    return from_table(cls, values, prefix, prefix=f"{source}: ", empty=no_keys)
 
 
 def _model_from_dict(values: dict, source: str) -> tuple[ModelConfig, list[str]]:
     """The ``[model]`` table: shared keys, the chosen model's ``[model.<name>]`` table (old flat keys moved there by
     ``legacy_model_keys``) and tables of other models (type-checked, then left out with a note)."""
     from training.models import MODELS  # torch-free table
-    name = _coerce(f"{source}: model.name", values.get("name", ModelConfig.name), str)
+    name = typed_value("model.name", values.get("name", ModelConfig.name), str, Rule(), prefix=f"{source}: ")
     if name not in MODELS:
         raise ConfigError(f"{source}: model.name {name!r}: choose one of {', '.join(MODELS)}")
     values, notes = legacy_model_keys(values, source)
-    shared = {f.name: f for f in dataclasses.fields(ModelConfig) if f.name != "options"}
-    hints = get_type_hints(ModelConfig)
-    cfg = ModelConfig(name=name)
+    shared = [f.name for f in dataclasses.fields(ModelConfig) if f.name != "options"]
+    check_keys(values, [*shared, *MODELS], "model", prefix=f"{source}: ",
+               also=f"; model.NAME is a table [model.NAME] of options for NAME one of {', '.join(MODELS)}")
+    cfg = from_table(ModelConfig, {k: v for k, v in values.items() if k in shared}, "model", prefix=f"{source}: ",
+                     base=ModelConfig(name=name))
     for key, value in values.items():
-        if key in shared:
-            setattr(cfg, key, _coerce(f"{source}: model.{key}", value, hints[key]))
-        elif key in MODELS:
-            if not isinstance(value, dict):
-                raise ConfigError(f"{source}: model.{key} must be a table ([model.{key}]) of model {key}'s options")
-            options = _table(MODELS[key].options, value, source, f"model.{key}",
-                             f"model {key} has no options of its own")
-            if key == name:
-                cfg.options = options
-            else:
-                options.validate(f"{source}: model.{key}")
-                notes.append(f"{source}: [model.{key}] is not used (model.name is {name!r})")
+        if key not in MODELS:
+            continue
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: model.{key} must be a table ([model.{key}]) of model {key}'s options",
+                              key=f"model.{key}")
+        options = _table(MODELS[key].options, value, source, f"model.{key}",
+                         f"model {key} has no options of its own")
+        if key == name:
+            cfg.options = options
         else:
-            raise ConfigError(f"{source}: unknown key model.{key} (known: {', '.join(k for k in shared)}, and a "
-                              f"table [model.NAME] of options for NAME one of {', '.join(MODELS)})")
+            options.validate(f"{source}: model.{key}")
+            notes.append(f"{source}: [model.{key}] is not used (model.name is {name!r})")
     return cfg, notes
 
 
@@ -371,9 +282,9 @@ def config_from_dict(data: dict, source: str = "config") -> TrainConfig:
     notes: list[str] = []
     for section, values in data.items():
         if section not in SECTIONS:
-            raise ConfigError(f"{source}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+            raise ConfigError(f"{source}: unknown section [{section}] (known: {', '.join(SECTIONS)})", key=section)
         if not isinstance(values, dict):
-            raise ConfigError(f"{source}: [{section}] must be a table")
+            raise ConfigError(f"{source}: [{section}] must be a table", key=section)
         if section == "model":
             cfg.model, notes = _model_from_dict(values, source)
         else:

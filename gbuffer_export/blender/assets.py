@@ -118,21 +118,30 @@ def normalise(scene, objects, target_size_m: float, name: str, location=(0.0, 0.
 
 def ground(scene, size: float, rng: random.Random):
     """A square ground at z = 0 (top face), ``size`` metres wide: 25 cm tiles with 3 mm joints in a seeded
-    colour and roughness."""
+    colour and roughness (``tiled_ground``)."""
+    roughness = rng.uniform(0.35, 0.8)
+    base = np.array([rng.uniform(0.25, 0.6), rng.uniform(0.25, 0.55), rng.uniform(0.2, 0.5)])
+    offset = rng.choice((0.0, 0.5))
+    tile = rng.choice((0.2, 0.25, 0.4))
+    return tiled_ground(scene, size, colors=(tuple(base), tuple((base * rng.uniform(0.8, 1.15)).clip(0, 1))),
+                        roughness=roughness, offset=offset, tile_m=tile)
+
+
+def tiled_ground(scene, size: float, *, colors, roughness: float, offset: float = 0.0, tile_m: float = 0.25):
+    """A square ground slab with its top face at z = 0, ``size`` metres wide, tagged ``GROUND_PROPERTY``: tiles of
+    ``tile_m`` metres (rows shifted by ``offset`` of a tile) in two linear RGB ``colors``, 3 mm joints, one
+    ``roughness``. Returns the object."""
     import bmesh
     from mathutils import Matrix, Vector
 
     mat = bpy.data.materials.new("Ground Tiles")
     nt = mat.node_tree
     bsdf = nt.nodes["Principled BSDF"]
-    bsdf.inputs["Roughness"].default_value = rng.uniform(0.35, 0.8)
-    base = np.array([rng.uniform(0.25, 0.6), rng.uniform(0.25, 0.55), rng.uniform(0.2, 0.5)])
+    bsdf.inputs["Roughness"].default_value = roughness
     brick = nt.nodes.new("ShaderNodeTexBrick")
-    brick.offset = rng.choice((0.0, 0.5))
-    tile = rng.choice((0.2, 0.25, 0.4))
-    for k, v in {"Color1": (*base, 1), "Color2": (*(base * rng.uniform(0.8, 1.15)).clip(0, 1), 1),
-                 "Mortar": (0.2, 0.2, 0.2, 1), "Scale": 1.0, "Mortar Size": 0.003, "Brick Width": tile,
-                 "Row Height": tile}.items():
+    brick.offset = offset
+    for k, v in {"Color1": (*colors[0], 1), "Color2": (*colors[1], 1), "Mortar": (0.2, 0.2, 0.2, 1), "Scale": 1.0,
+                 "Mortar Size": 0.003, "Brick Width": tile_m, "Row Height": tile_m}.items():
         brick.inputs[k].default_value = v
     tc = nt.nodes.new("ShaderNodeTexCoord")
     nt.links.new(tc.outputs["Object"], brick.inputs["Vector"])

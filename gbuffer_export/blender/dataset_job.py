@@ -90,6 +90,8 @@ def main(argv=None) -> int:
     p.add_argument("--progress", action="store_true")
     p.add_argument("--device", default="auto")
     a = p.parse_args(argv)
+    from ..logs import configure_logging
+    configure_logging(0)  # the library's notes into the clip's log (the process's stderr)
     if argv is None:
         prepare_process(a.threads)
     job = ClipJob.from_json(json.loads(a.job.read_text()))

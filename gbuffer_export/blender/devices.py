@@ -9,12 +9,15 @@ the result, so later renders print nothing.
 """
 from __future__ import annotations
 
+import logging
 import os
 import re
 import sys
 import tempfile
 
 import bpy
+
+log = logging.getLogger(__name__)
 
 #: Cycles' warnings for a GPU back-end whose library is absent (CUDA, HIP, oneAPI, Metal, OptiX).
 ABSENT_GPU_LIBRARY = re.compile(r"\b(CUEW|HIPEW|HIPRTEW|OptiX|oneAPI|Metal)\b.*\b(initialization failed|not found|"
@@ -50,7 +53,7 @@ def probe_devices() -> list[str]:
         text = tmp.read().decode(errors="replace")
     kept = [ln for ln in text.splitlines() if ln.strip() and not ABSENT_GPU_LIBRARY.search(ln)]
     if kept:
-        print("\n".join(kept), file=sys.stderr)
+        log.warning("%s", "\n".join(kept))  # what Cycles said besides the absent-GPU-library lines
     types = []
     for group in devices:
         for d in (group if isinstance(group, (list, tuple)) else [group]):

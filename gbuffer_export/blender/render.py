@@ -9,67 +9,37 @@ Per frame and in this order:
      samples, point-sampled (0.01 px filter, like a rasteriser), optionally jittered by a camera shift and
      denoised, with the level's G-buffer passes in the same render (point sampling makes them valid). Each level is
      rendered at its own size, never downsampled from HR (a downsampled image would be anti-aliased).
-Then the passes are converted to the clip's conventions (``gbuffer_export.conventions``) and written atomically.
+Then the passes are converted to the clip's buffers (``convert.CONVERTERS``, one converter per buffer) and written
+atomically. What every frame shares is one frozen ``RenderContext``.
 """
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import logging
 import os
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import bpy
 import numpy as np
 
 from .. import __version__
-from ..clip import FRAMES_DIR, ClipError, ClipWriter, frame_name, levels_header
+from ..clip import FRAMES_DIR, ClipWriter, frame_name, levels_header
 from ..config import ConfigError, RenderConfig
-from ..conventions import (Flag, background_motion, halton_jitter, intrinsics_from_projection, level_name,
-                           material_flags_for_source, pass_seed, scale_intrinsics, world_to_camera_normals)
-from ..exr import read_exr_channels
+from ..conventions import (Flag, computed_buffers, halton_jitter, intrinsics_from_projection, level_name,
+                           material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
+from .convert import LevelCameras, PassPlan, convert, plan_passes, read_passes
 
-BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
-
-
-@dataclass(frozen=True)
-class PassPlan:
-    """Which Cycles passes a render needs, derived from the requested buffers."""
-
-    depth: bool = False
-    normal: bool = False
-    vector: bool = False
-    colors: bool = False
-    emit: bool = False
-    index: bool = False
-    aovs: tuple[str, ...] = ()
-
-    @property
-    def any(self) -> bool:
-        return any((self.depth, self.normal, self.vector, self.colors, self.emit, self.index, self.aovs))
-
-
-def plan_passes(buffers, fbeta: str, aov_names) -> PassPlan:
-    """The passes that the G-buffers in ``buffers`` need, and no others."""
-    b = set(buffers)
-    need_gbuf = bool(b - {"radiance"})
-    table_fbeta = "fbeta" in b and fbeta != "cycles"
-    return PassPlan(
-        depth=need_gbuf,  # background mask for every G-buffer
-        normal="normal" in b or table_fbeta,
-        vector="motion" in b or "motion_next" in b,  # one Vector pass holds both
-        colors="fbeta" in b and fbeta == "cycles",
-        emit="emission" in b,
-        index="flags" in b or "fbeta" in b,
-        aovs=tuple(aov_names),
-    )
+log = logging.getLogger(__name__)
 
 
 def file_sha256(path: Path) -> str:
@@ -124,7 +94,7 @@ def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
         return list(range(start, end + 1))
     a, b = cfg.frames
     if cfg.scene is not None and cfg.camera_path.startswith("scene") and (a < start or b > end):
-        raise ConfigError(f"--frames {a}:{b} is outside the scene's range {start}:{end}")
+        raise ConfigError(f"frames {a}:{b} is outside the scene's range {start}:{end}", key="frames")
     return list(range(a, b + 1))
 
 
@@ -136,7 +106,7 @@ def resolve_size(cfg: RenderConfig, scene) -> tuple[int, int]:
     try:
         cfg.check_size((w, h), "scene resolution")
     except ConfigError as exc:
-        raise ConfigError(f"{exc}; pass --hr-size") from None
+        raise ConfigError(f"{exc}; set hr_size", key="hr_size") from None
     return w, h
 
 
@@ -156,7 +126,7 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
                                      region=cfg.extra.get("region"))
         except PathError as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
-                              "framed by --camera-path orbit") from None
+                              "framed by camera_path orbit", key="camera_path") from None
     if cfg.camera_path in ("orbit", "walk"):
         from .camera_paths import make_camera_path
         return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}
@@ -273,26 +243,8 @@ LIGHT_PATH_KEYS = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmis
 
 
 # ----------------------------------------------------------------------------------------------
-# Reading passes
+# Rendering a pass
 # ----------------------------------------------------------------------------------------------
-
-def read_passes(path: Path) -> dict[str, np.ndarray]:
-    """Passes of a Blender multilayer EXR as {'Combined': HxWx4, 'Depth': HxWx1, ...} (view-layer prefix dropped,
-    channels in the order RGBA / XYZW)."""
-    raw = read_exr_channels(path)
-    groups: dict[str, dict[str, np.ndarray]] = {}
-    for full, arr in raw.items():
-        parts = full.split(".")
-        if len(parts) < 2:
-            continue
-        groups.setdefault(parts[-2], {})[parts[-1]] = arr
-    order = "RGBAXYZW"
-    out = {}
-    for name, chans in groups.items():
-        keys = sorted(chans, key=lambda c: order.index(c) if c in order else 99)
-        out[name] = np.stack([chans[k] for k in keys], axis=-1).astype(np.float32)
-    return out
-
 
 @contextlib.contextmanager
 def quiet_stdout():
@@ -361,66 +313,6 @@ def camera_intrinsics(cam, scene, width: int, height: int) -> tuple[float, float
 
 
 # ----------------------------------------------------------------------------------------------
-# Conversion to the clip's buffers
-# ----------------------------------------------------------------------------------------------
-
-def convert(passes: dict, plan: PassPlan, buffers, *, m, k, m_prev, k_prev, jitter, flag_lut: np.ndarray,
-            fbeta_source: str, m_next=None, k_next=None) -> dict[str, np.ndarray]:
-    """Turn Cycles passes of one level into clip buffers (see conventions). ``m_next``, ``k_next``: the camera of
-    frame t+1, needed for ``motion_next``."""
-    out = {}
-    depth = passes["Depth"][..., 0].astype(np.float64) if plan.depth else None
-    bg = depth >= BACKGROUND_DEPTH if depth is not None else None
-    if "depth" in buffers:
-        out["depth"] = np.where(bg, np.inf, depth)[..., None]
-    if "normal" in buffers or (fbeta_source != "cycles" and "fbeta" in buffers):
-        n = world_to_camera_normals(passes["Normal"][..., :3], m)
-        out["normal"] = np.where(bg[..., None], 0.0, n)
-    if "motion" in buffers:
-        vec = passes["Vector"]
-        mv = np.stack([vec[..., 0], -vec[..., 1]], axis=-1).astype(np.float64)
-        h, w = mv.shape[:2]
-        bgm = background_motion(h, w, k, m, k_prev, m_prev, jitter)
-        out["motion"] = np.where(bg[..., None], bgm, mv)
-    if "motion_next" in buffers:
-        # Vector Z, W = p(t) - p(t+1) with y up: p_next - p = (-Z, +W) in image coordinates (y down)
-        vec = passes["Vector"]
-        mv = np.stack([-vec[..., 2], vec[..., 3]], axis=-1).astype(np.float64)
-        h, w = mv.shape[:2]
-        bgm = background_motion(h, w, k, m, k_next, m_next, jitter)
-        out["motion_next"] = np.where(bg[..., None], bgm, mv)
-    flags = None
-    if plan.index:
-        mat_index = np.rint(passes["Material Index"][..., 0]).astype(np.int64)
-        obj_index = np.rint(passes["Object Index"][..., 0]).astype(np.int64)
-        mat_index = np.clip(mat_index, 0, len(flag_lut) - 1)
-        flags = flag_lut[mat_index].astype(np.uint32)
-        flags |= np.where(obj_index > 0, int(Flag.MOVING), 0).astype(np.uint32)
-        flags = np.where(bg, int(Flag.BACKGROUND), flags).astype(np.uint32)
-        if "flags" in buffers:
-            out["flags"] = flags[..., None]
-    for b, aov in (*mats.AOV_COLOR.items(), *mats.AOV_VALUE.items()):
-        if b in buffers:
-            arr = passes[aov][..., :3] if b in mats.AOV_COLOR else passes[aov][..., :1]
-            out[b] = np.where(bg[..., None], 0.0, arr)
-    if "emission" in buffers:
-        # surfaces: their emission; background: the environment seen directly (conventions: emission)
-        out["emission"] = np.maximum(np.where(bg[..., None], passes["Environment"][..., :3],
-                                              passes["Emission"][..., :3]), 0.0)
-    if "fbeta" in buffers:
-        if fbeta_source == "cycles":
-            fb = (passes["Diffuse Color"][..., :3] + passes["Glossy Color"][..., :3]
-                  + passes["Transmission Color"][..., :3])
-        else:
-            from ..brdf import compute_fbeta
-            gbuf = {key: out[key] for key in ("albedo", "normal", "roughness", "metallic", "specular") if key in out}
-            gbuf["flags"] = flags[..., None]
-            fb = compute_fbeta(fbeta_source, gbuf, k, jitter)
-        out["fbeta"] = np.where(bg[..., None], 1.0, fb)
-    return out
-
-
-# ----------------------------------------------------------------------------------------------
 # The clip
 # ----------------------------------------------------------------------------------------------
 
@@ -483,8 +375,30 @@ def frames_left(cfg: RenderConfig) -> int:
     return len(mine) - done
 
 
-def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
-    """Render the clip from an already loaded scene (the add-on calls this inside Blender)."""
+@dataclass(frozen=True)
+class RenderContext:
+    """What every frame of one clip's render shares, fixed before its first frame: the configuration, the Blender
+    objects it renders with, what was derived from the scene (passes, flags, light paths), the LR levels and where
+    files go. ``flag_lut``: material pass index -> flag bits (uint32); ``light_paths``: the scene's own bounce
+    limits (``LIGHT_PATH_KEYS``); ``levels``: the manifest's {name: {"width", "height", ...}}; ``frames``: every
+    frame of the clip (a frame's jitter is indexed by its position)."""
+
+    cfg: RenderConfig
+    scene: Any
+    cam: Any
+    view_layer: Any
+    plan: PassPlan
+    flag_lut: np.ndarray
+    light_paths: dict
+    levels: dict
+    frames: tuple[int, ...]
+    tmpdir: Path
+    writer: ClipWriter
+
+
+def _clip_context(cfg: RenderConfig, scene) -> dict:
+    """Check the scene and settle what the manifest and every frame need: frames, light, camera, levels, view
+    layer, materials and passes. Returns them by name (the render context without the writer)."""
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
     all_frames = resolve_frames(cfg, scene)
@@ -493,7 +407,6 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     check_camera(cam, cfg)
     scene.camera = cam
     w, h = resolve_size(cfg, scene)
-    levels = levels_header((w, h), cfg.scales)
     undone = [f for i, f in enumerate(all_frames) if i % cfg.shard[1] == cfg.shard[0] - 1
               and not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
     from .scene_setup import scene_memory_bytes
@@ -503,10 +416,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
     view_layer = view_layer or scene.view_layers[0]
     infos = mats.inspect_materials(scene)
-    need_fbeta_gbuf = "fbeta" in cfg.buffers and cfg.fbeta != "cycles"
-    aov_buffers = set(cfg.buffers) | ({"albedo", "roughness", "metallic", "specular"} if need_fbeta_gbuf else set())
-    aov_names = mats.install_aovs(scene, view_layer, infos, aov_buffers)
-    plan = plan_passes(aov_buffers, cfg.fbeta, aov_names)
+    aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
     flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
     flag_lut[0] = int(Flag.NO_MATERIAL)
     for info in infos.values():
@@ -514,23 +424,26 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     moving = [ob for ob in renderable_meshes(scene) if mats.object_is_moving(ob, scene, all_frames[0])]
     for ob in renderable_meshes(scene):
         ob.pass_index = 1 if ob in moving else 0
+    return dict(frames=tuple(all_frames), light=light, cam=cam, camera_report=camera_report,
+                levels=levels_header((w, h), cfg.scales), view_layer=view_layer, infos=infos,
+                plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names), flag_lut=flag_lut, moving=moving)
 
-    device = base_settings(scene, view_layer, cfg)
-    light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
-    shard_k, shard_n = cfg.shard
-    my_frames = [f for i, f in enumerate(all_frames) if i % shard_n == shard_k - 1]
-    header = {
+
+def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, c: dict, device: dict, light_paths: dict) -> dict:
+    """The clip manifest's header (``c``: ``_clip_context``'s result; ``device``: ``base_settings``')."""
+    plan = c["plan"]
+    return {
         "blendsr_version": __version__,
         "blender_version": bpy.app.version_string,
-        "scene": {**scene_info, "name": scene.name, "camera": cam.name},
+        "scene": {**scene_info, "name": scene.name, "camera": c["cam"].name},
         "scale": cfg.scale,
-        "levels": levels,
-        "frames": all_frames,
+        "levels": c["levels"],
+        "frames": list(c["frames"]),
         "buffers": list(cfg.buffers),
         "fbeta_source": cfg.fbeta,
         "camera_path": cfg.camera_path,
-        "camera": camera_report,
-        "light": light,
+        "camera": c["camera_report"],
+        "light": c["light"],
         "scene_linear": _scene_linear_name(),
         "render": {
             "engine": "CYCLES", "device": device["device"], "device_names": device["names"],
@@ -547,34 +460,33 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
         },
-        "materials": {n: i.to_json() for n, i in infos.items()},
-        "material_summary": mats.material_summary(infos),
-        "moving_objects": sorted(ob.name for ob in moving),
-        "shard": [shard_k, shard_n],
+        "materials": {n: i.to_json() for n, i in c["infos"].items()},
+        "material_summary": mats.material_summary(c["infos"]),
+        "moving_objects": sorted(ob.name for ob in c["moving"]),
+        "shard": list(cfg.shard),
         "command": " ".join(sys.argv),
     }
-    writer = ClipWriter(cfg.output, header)  # one writer per clip: held until writer.close() below
-    todo = [f for f in my_frames if not writer.is_frame_done(f)]
+
+
+def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
+    """Render the clip from an already loaded scene (the add-on calls this inside Blender)."""
+    c = _clip_context(cfg, scene)
+    device = base_settings(scene, c["view_layer"], cfg)
+    light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
+    shard_k, shard_n = cfg.shard
+    my_frames = [f for i, f in enumerate(c["frames"]) if i % shard_n == shard_k - 1]
+    writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, c, device, light_paths))
+    todo = [f for f in my_frames if not writer.is_frame_done(f)]  # one writer per clip: held until close() below
     skipped = len(my_frames) - len(todo)
     if skipped:
-        print(f"blendsr: resuming {cfg.output}: {skipped} of {len(my_frames)} frames already done", file=sys.stderr)
+        log.info("blendsr: resuming %s: %d of %d frames already done", cfg.output, skipped, len(my_frames))
     remove_stale_scratch(cfg.output)
     tmpdir = Path(tempfile.mkdtemp(prefix=f".render-{os.getpid()}-", dir=cfg.output))
     try:
-        bar = _progress(todo, cfg)
-        for f in bar:
-            check_interrupt()  # Ctrl-C (render_clip, dataset_job: gbuffer_export.interrupt)
-            t0 = time.perf_counter()
-            try:
-                rec = render_frame(scene, cam, view_layer, cfg, f, all_frames.index(f), plan, flag_lut,
-                                   light_paths, levels, tmpdir, writer)
-            except KeyboardInterrupt:
-                writer.discard_frame(f)  # the partial frame is never committed
-                raise
-            rec["seconds_total"] = time.perf_counter() - t0
-            writer.commit_frame(f, rec)
-            if hasattr(bar, "set_postfix"):
-                bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
+        ctx = RenderContext(cfg=cfg, scene=scene, cam=c["cam"], view_layer=c["view_layer"], plan=c["plan"],
+                            flag_lut=c["flag_lut"], light_paths=light_paths, levels=c["levels"],
+                            frames=c["frames"], tmpdir=tmpdir, writer=writer)
+        _render_frames(ctx, todo)
         writer.merge()
     finally:
         for p in tmpdir.glob("*"):
@@ -582,6 +494,23 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         tmpdir.rmdir()
         writer.close()
     return cfg.output
+
+
+def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
+    """Render and commit each frame of ``todo`` (a partial frame is discarded on Ctrl-C)."""
+    bar = _progress(todo, ctx.cfg)
+    for f in bar:
+        check_interrupt()  # Ctrl-C (render_clip, dataset_job: gbuffer_export.interrupt)
+        t0 = time.perf_counter()
+        try:
+            rec = render_frame(ctx, f)
+        except KeyboardInterrupt:
+            ctx.writer.discard_frame(f)  # the partial frame is never committed
+            raise
+        rec["seconds_total"] = time.perf_counter() - t0
+        ctx.writer.commit_frame(f, rec)
+        if hasattr(bar, "set_postfix"):
+            bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
 
 
 def prepare_light(cfg: RenderConfig, scene) -> dict:
@@ -614,112 +543,99 @@ def _progress(frames, cfg):
     return tqdm(frames, desc="render", unit="frame", file=sys.stderr, dynamic_ncols=True)
 
 
-def render_frame(scene, cam, view_layer, cfg: RenderConfig, frame: int, index: int, plan: PassPlan,
-                 flag_lut, light_paths, levels: dict, tmpdir: Path, writer: ClipWriter) -> dict:
-    """Render one frame at every level of ``levels`` (the manifest's), write its buffers, return its record."""
-    w, h = levels["hr"]["width"], levels["hr"]["height"]
+def frame_cameras(ctx: RenderContext, frame: int) -> LevelCameras:
+    """The HR camera of ``frame``: poses and intrinsics of frames t, t-1 and (with ``motion_next``) t+1. Leaves the
+    scene at ``frame``."""
+    cam, scene = ctx.cam, ctx.scene
+    w, h = ctx.levels["hr"]["width"], ctx.levels["hr"]["height"]
     scene.frame_set(frame - 1)
-    m_prev = camera_pose(cam)
-    k_prev_hr = camera_intrinsics(cam, scene, w, h)
-    m_next = k_next_hr = None
-    if "motion_next" in cfg.buffers:  # the camera of frame t+1 (Cycles' Vector pass evaluates it too)
+    m_prev, k_prev = camera_pose(cam), camera_intrinsics(cam, scene, w, h)
+    m_next = k_next = None
+    if "motion_next" in ctx.cfg.buffers:  # the camera of frame t+1 (Cycles' Vector pass evaluates it too)
         scene.frame_set(frame + 1)
-        m_next = camera_pose(cam)
-        k_next_hr = camera_intrinsics(cam, scene, w, h)
+        m_next, k_next = camera_pose(cam), camera_intrinsics(cam, scene, w, h)
     scene.frame_set(frame)
-    m = camera_pose(cam)
-    k_hr = camera_intrinsics(cam, scene, w, h)
-    gbuf_buffers = [b for b in cfg.buffers if b != "radiance"]
-    if "fbeta" in cfg.buffers and cfg.fbeta != "cycles":  # table sources read these even when not written
-        gbuf_buffers += [b for b in ("albedo", "normal", "roughness", "metallic", "specular", "flags")
-                         if b not in gbuf_buffers]
-    base_shift = (cam.data.shift_x, cam.data.shift_y)
-    record = {}
+    return LevelCameras(camera_pose(cam), camera_intrinsics(cam, scene, w, h), m_prev, k_prev, m_next, k_next)
 
-    # --- HR: G-buffer pass, then ground truth -----------------------------------------------------------
-    scene.render.resolution_x, scene.render.resolution_y = w, h
-    seconds = {}
-    hr_out = {}
+
+def render_frame(ctx: RenderContext, frame: int) -> dict:
+    """Render one frame at every level of ``ctx.levels``, write its buffers, return its record."""
+    cams = frame_cameras(ctx, frame)
+    record = {"hr": render_hr(ctx, frame, cams)}
+    cfg = ctx.cfg
+    jit = halton_jitter(ctx.frames.index(frame)) if cfg.jitter == "halton" else (0.0, 0.0)
+    for i, scale in enumerate(cfg.scales):
+        record[level_name(scale, cfg.scales[0])] = render_lr_level(ctx, frame, cams, i, scale, jit)
+    return record
+
+
+def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
+    """The HR level of a frame: the G-buffer pass (when any G-buffer is asked for), then the ground truth; writes
+    its buffers and returns its record."""
+    cfg, scene, plan = ctx.cfg, ctx.scene, ctx.plan
+    scene.render.resolution_x, scene.render.resolution_y = ctx.levels["hr"]["width"], ctx.levels["hr"]["height"]
+    seconds, hr_out = {}, {}
     if plan.any:
-        set_passes(view_layer, plan)
-        settings_g = set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
-                                  bounces=False, denoise=False, adaptive=False, cfg=cfg,
-                                  seed=pass_seed(cfg.seed, frame, 0), light_paths=light_paths)
+        set_passes(ctx.view_layer, plan)
+        set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
+                     bounces=False, denoise=False, adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 0),
+                     light_paths=ctx.light_paths)
         t = time.perf_counter()
-        passes = render_to(scene, tmpdir / "hr_gbuffer.exr")
+        passes = render_to(scene, ctx.tmpdir / "hr_gbuffer.exr")
         seconds["gbuffer"] = time.perf_counter() - t
         t = time.perf_counter()
-        hr_out = convert(passes, plan, gbuf_buffers, m=m, k=k_hr, m_prev=m_prev, k_prev=k_prev_hr,
-                         jitter=(0.0, 0.0), flag_lut=flag_lut, fbeta_source=cfg.fbeta, m_next=m_next,
-                         k_next=k_next_hr)
+        hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.flag_lut,
+                         fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
-    set_passes(view_layer, PassPlan())
-    settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1], filter_type=HR_REFERENCE_FILTER[0], bounces=True,
-                               denoise=cfg.hr_denoise, adaptive=cfg.adaptive, cfg=cfg,
-                               seed=pass_seed(cfg.seed, frame, 1), light_paths=light_paths)
+    set_passes(ctx.view_layer, PassPlan())
+    settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
+                               filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
+                               adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
+                               light_paths=ctx.light_paths)
     t = time.perf_counter()
-    passes = render_to(scene, tmpdir / "hr_radiance.exr")
+    passes = render_to(scene, ctx.tmpdir / "hr_radiance.exr")
     seconds["radiance"] = time.perf_counter() - t
     hr_out["radiance"] = passes["Combined"][..., :3]
     t = time.perf_counter()
     for b in cfg.buffers:
-        writer.write_buffer(frame, "hr", b, hr_out[b])
+        ctx.writer.write_buffer(frame, "hr", b, hr_out[b])
     seconds["write"] = time.perf_counter() - t
-    record["hr"] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k_hr,
-                    "prev_intrinsics": k_prev_hr, "jitter": [0.0, 0.0], "spp": cfg.hr_spp,
-                    "seed": settings_hr["seed"], "gbuffer_seed": pass_seed(cfg.seed, frame, 0) if plan.any else None,
-                    "seconds": seconds}
-    if m_next is not None:
-        record["hr"].update(next_world_from_camera=m_next, next_intrinsics=k_next_hr)
-
-    # --- LR: per level one point-sampled render with its own G-buffer passes ----------------------------------
-    jit = halton_jitter(index) if cfg.jitter == "halton" else (0.0, 0.0)
-    for i, scale in enumerate(cfg.scales):
-        lvl = level_name(scale, cfg.scales[0])
-        record[lvl] = render_lr_level(scene, cam, view_layer, cfg, frame, lvl, i, scale,
-                                      (levels[lvl]["width"], levels[lvl]["height"]), jit, plan, flag_lut,
-                                      light_paths, gbuf_buffers, (m, k_hr, m_prev, k_prev_hr, m_next, k_next_hr),
-                                      base_shift, tmpdir, writer)
-    return record
+    return cams.record(jitter=[0.0, 0.0], spp=cfg.hr_spp, seed=settings_hr["seed"],
+                       gbuffer_seed=pass_seed(cfg.seed, frame, 0) if plan.any else None, seconds=seconds)
 
 
-def render_lr_level(scene, cam, view_layer, cfg: RenderConfig, frame: int, lvl: str, i: int, scale: float,
-                    size: tuple[int, int], jit, plan: PassPlan, flag_lut, light_paths, gbuf_buffers, cams,
-                    base_shift, tmpdir: Path, writer: ClipWriter) -> dict:
-    """Render LR level ``lvl`` (the ``i``-th of ``cfg.scales``, ``size`` = HR / ``scale``) of a frame, jittered by
-    ``jit`` pixels of the level; write its buffers and return its record. Cycles seed: pass 2 + i."""
-    lw, lh = size
-    m, k_hr, m_prev, k_prev_hr, m_next, k_next_hr = cams
-    k_lr, k_prev_lr = scale_intrinsics(k_hr, 1 / scale), scale_intrinsics(k_prev_hr, 1 / scale)
-    k_next_lr = scale_intrinsics(k_next_hr, 1 / scale) if k_next_hr is not None else None
+def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: int, scale: float, jit) -> dict:
+    """Render LR level ``i`` of ``cfg.scales`` (size HR / ``scale``) of a frame, jittered by ``jit`` pixels of the
+    level, with its G-buffer passes in the same render; write its buffers and return its record. Cycles seed:
+    pass 2 + i."""
+    cfg, scene, cam = ctx.cfg, ctx.scene, ctx.cam
+    lvl = level_name(scale, cfg.scales[0])
+    lw, lh = ctx.levels[lvl]["width"], ctx.levels[lvl]["height"]
+    cams = cams_hr.at_scale(scale)
     scene.render.resolution_x, scene.render.resolution_y = lw, lh
     # shift is in units of the larger image side; +shift_x moves content left (sample at p + dx),
     # +shift_y moves content down in y-down image coordinates (sample at p - dy): see conventions.
+    base_shift = (cam.data.shift_x, cam.data.shift_y)
     cam.data.shift_x = base_shift[0] + jit[0] / max(lw, lh)
     cam.data.shift_y = base_shift[1] - jit[1] / max(lw, lh)
-    set_passes(view_layer, plan)
+    set_passes(ctx.view_layer, ctx.plan)
     settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
                                bounces=True, denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
-                               seed=pass_seed(cfg.seed, frame, 2 + i), light_paths=light_paths)
+                               seed=pass_seed(cfg.seed, frame, 2 + i), light_paths=ctx.light_paths)
     seconds = {}
     try:
         t = time.perf_counter()
-        passes = render_to(scene, tmpdir / f"{lvl}.exr")
+        passes = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
-    lr_out = convert(passes, plan, gbuf_buffers, m=m, k=k_lr, m_prev=m_prev, k_prev=k_prev_lr, jitter=jit,
-                     flag_lut=flag_lut, fbeta_source=cfg.fbeta, m_next=m_next, k_next=k_next_lr) if plan.any else {}
+    lr_out = convert(passes, ctx.plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.flag_lut,
+                     fbeta_source=cfg.fbeta) if ctx.plan.any else {}
     lr_out["radiance"] = passes["Combined"][..., :3]
     seconds["convert"] = time.perf_counter() - t
     t = time.perf_counter()
     for b in cfg.buffers:
-        writer.write_buffer(frame, lvl, b, lr_out[b])
+        ctx.writer.write_buffer(frame, lvl, b, lr_out[b])
     seconds["write"] = time.perf_counter() - t
-    rec = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k_lr,
-           "prev_intrinsics": k_prev_lr, "jitter": list(jit), "spp": cfg.lr_spp, "seed": settings_lr["seed"],
-           "seconds": seconds}
-    if m_next is not None:
-        rec.update(next_world_from_camera=m_next, next_intrinsics=k_next_lr)
-    return rec
+    return cams.record(jitter=list(jit), spp=cfg.lr_spp, seed=settings_lr["seed"], seconds=seconds)

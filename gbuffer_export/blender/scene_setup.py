@@ -17,6 +17,7 @@ import bpy
 import numpy as np
 
 from ..config import DEVICES, SCENE_SUFFIXES, ConfigError
+from ..typed_table import key_error
 LEVEL_CAMERA_NAME = "BlendSR Level Camera"
 #: Level cameras: a 24 mm lens on a 36 mm sensor (horizontal field of view 73.7 degrees, as games use).
 LEVEL_LENS_MM = 24.0
@@ -87,8 +88,8 @@ def pick_scene_camera(scene, choice: str, where, index: int = 0):
         return scene.camera
     if cams:
         raise ConfigError(f"{where}: the scene has {len(cams)} camera(s) but none is active ({_names(cams)}); "
-                          "pass --camera-path scene:NAME or scene:*")
-    raise ConfigError(f"{where}: the scene has no camera; pass --camera-path walk, fly or orbit")
+                          "set camera_path scene:NAME or scene:*", key="camera_path")
+    raise ConfigError(f"{where}: the scene has no camera; set camera_path walk, fly or orbit", key="camera_path")
 
 
 def ensure_level_camera(scene):
@@ -368,7 +369,7 @@ def select_device(scene, requested: str) -> dict:
     """Set Cycles' device: ``cpu``, a GPU backend by name, or ``auto`` (the first backend of OptiX, CUDA, HIP,
     Metal, oneAPI that has a device, else the CPU). ConfigError when a named backend has no device."""
     if requested not in DEVICES:
-        raise ConfigError(f"--device {requested!r}: choose one of {', '.join(DEVICES)}")
+        raise key_error("device", requested, f"choose one of {', '.join(DEVICES)}")
     from .devices import probe_devices
     probe_devices()  # once per process: Cycles' warnings about absent GPU libraries are dropped
     kinds = GPU_TYPES if requested == "auto" else (() if requested == "cpu" else (requested.upper(),))
@@ -380,8 +381,8 @@ def select_device(scene, requested: str) -> dict:
             scene.cycles.device = "GPU"
             return {"device": kind, "names": [d.name for d in devs], "requested": requested}
     if requested not in ("auto", "cpu"):
-        raise ConfigError(f"--device {requested}: Cycles sees no {requested.upper()} device here; "
-                          "use --device cpu or auto")
+        raise ConfigError(f"device {requested}: Cycles sees no {requested.upper()} device here; use cpu or auto",
+                          key="device")
     scene.cycles.device = "CPU"
     return {"device": "CPU", "names": [_cpu_name()], "requested": requested}
 

@@ -422,7 +422,9 @@ def run(args) -> int:
     bad = [s for s in sources if s not in SOURCES]
     if bad or not sources:
         raise BlendSRError(f"--sources {args.sources!r}: choose from {', '.join(SOURCES)}")
-    size = parse_size(args.hr_size)
+    from . import flags_named
+    with flags_named(args):
+        size = parse_size(args.hr_size)
     if size[0] % args.scale or size[1] % args.scale:
         raise BlendSRError(f"--hr-size {args.hr_size} is not divisible by --scale {args.scale}")
     if args.seeds < 1 or args.spp < 1:

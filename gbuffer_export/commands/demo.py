@@ -63,8 +63,10 @@ def run(args) -> int:
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
     from ..config import parse_frames
+    from . import flags_named
     seed = args.test_seed
-    a, b = parse_frames(args.frames)
+    with flags_named(args):
+        a, b = parse_frames(args.frames)
     later = f"{b + 1}:{2 * b - a + 1}"
     clips = {"test": (out / "clips" / f"test_seed{seed}", args.frames),
              "finetune": (out / "clips" / f"finetune_seed{seed}_frames{later.replace(':', '-')}", later)}

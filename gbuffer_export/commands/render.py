@@ -9,6 +9,7 @@ from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, ConfigError, Rend
 from ..config import check_builtin_frames
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
 from ..extras import HelpFormatter as _HelpFormatter, require
+from . import flags_named
 
 HELP = """Render a clip: LR and HR radiance, HR and LR G-buffers, the pre-integrated BRDF (fbeta) and motion vectors
 as EXR sequences plus a JSON manifest (docs/clip-format.md).
@@ -131,12 +132,13 @@ def config_from_args(args) -> RenderConfig:
 
 def run(args) -> int:
     require("blendsr render", "render")
-    cfg = config_from_args(args)
+    with flags_named(args):  # the library's messages name keys (hr_size); the user typed flags (--hr-size)
+        cfg = config_from_args(args)
     if getattr(args, "own_process", False):
         from ..reproducible import prepare_render_process
         prepare_render_process(cfg.threads)  # --threads 1: bit-identical EXRs for the same command
     from ..interrupt import check_interrupt, stop_on_sigint
-    with stop_on_sigint():  # Ctrl-C while bpy starts or Cycles renders: a clean stop (exit 130), not a crash
+    with stop_on_sigint(), flags_named(args):  # Ctrl-C while bpy starts or Cycles renders: exit 130, not a crash
         from ..blender.render import render_clip  # imports bpy
         check_interrupt()
         out = render_clip(cfg)

@@ -52,6 +52,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..config import parse_frames
+    from . import flags_named
     from ..validate import ValidationOptions, validate_clip
 
     if not args.clip.is_dir():
@@ -63,7 +64,8 @@ def run(args) -> int:
         return run_dataset(args, options)
     frames = None
     if args.frames:
-        a, b = parse_frames(args.frames)
+        with flags_named(args):
+            a, b = parse_frames(args.frames)
         frames = range(a, b + 1)
     with contextlib.redirect_stdout(sys.stderr):  # stdout holds only the report
         report = validate_clip(args.clip, frames=frames, quick=args.quick, options=options,

@@ -18,11 +18,14 @@ import tomllib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import get_type_hints
 
-from ..config import MAX_SPP, MIN_RENDER_PX, FBETA_SOURCES, JITTERS, LIGHTS, SCENE_SUFFIXES, ConfigError, camera_path_ok, parse_size
-from ..conventions import DEFAULT_BUFFERS, parse_buffer_list
+from ..config import LIGHTS, SCENE_SUFFIXES, ConfigError, RenderConfig, camera_path_ok, parse_size
+from ..conventions import parse_buffer_list
+from ..typed_table import Rule, check_keys, fields_of, option, typed_value
 
 SPLITS = ("train", "val", "test")
+SOURCE_KINDS = ("builtin", "assets", "scene")
 ASSET_SUFFIXES = (".gltf", ".glb", ".blend")
 #: bpy's bundled environments (``studiolights/world/<name>.exr``), usable as ``hdri = ["builtin:courtyard"]``.
 BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
@@ -47,53 +50,37 @@ MAX_CLIPS = 100_000
 # Typed tables
 # ----------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class RenderSettings:
-    """Per-clip render settings (``[render]`` defaults, overridable per source). Sizes in pixels, samples per
-    pixel; ``frames`` is the number of frames per clip (rendered as frames 1..frames)."""
+#: The per-clip render keys of a spec (``[render]``, overridable in each ``[[source]]``): ``frames`` (the clip's
+#: length: frames 1..frames), then keys of ``RenderConfig`` (the one render-settings class), whose defaults they take.
+RENDER_KEYS = ("frames", "hr_size", "scale", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise", "jitter",
+               "buffers", "fbeta", "threads")
+#: What a spec needs that a render of a scene file takes from the file: the clip's length and HR size (pixels).
+#: ``threads`` 0 means the machine's cores divided by the local workers (``RunOptions.clip_threads``).
+CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}
 
-    frames: int = 12
-    hr_size: tuple[int, int] = (256, 144)
-    scale: int = 4
-    hr_spp: int = 32
-    lr_spp: int = 64
-    gbuffer_spp: int = 4
-    hr_denoise: bool = True
-    lr_denoise: bool = False
-    jitter: str = "halton"
-    buffers: tuple[str, ...] = DEFAULT_BUFFERS
-    fbeta: str = "cycles"
-    threads: int = 0  # Cycles threads per clip; 0: the machine's cores divided by the local workers
 
-    def validate(self, where: str) -> None:
-        if not isinstance(self.frames, int) or self.frames < 1:
-            raise SpecError(f"{where}.frames = {self.frames!r}: must be a positive integer")
-        if not isinstance(self.scale, int) or self.scale < 1:
-            raise SpecError(f"{where}.scale = {self.scale!r}: must be a positive integer")
-        w, h = self.hr_size
-        if w % self.scale or h % self.scale:
-            raise SpecError(f"{where}.hr_size = {w}x{h}: not divisible by scale {self.scale}")
-        if min(w, h) // self.scale < MIN_RENDER_PX:
-            raise SpecError(f"{where}.hr_size = {w}x{h}: the LR frame at scale {self.scale} is "
-                            f"{w // self.scale}x{h // self.scale}; Blender renders no side under {MIN_RENDER_PX} px")
-        for k in ("hr_spp", "lr_spp", "gbuffer_spp"):
-            v = getattr(self, k)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise SpecError(f"{where}.{k} = {v!r}: must be a positive integer")
-            if v > MAX_SPP:
-                raise SpecError(f"{where}.{k} = {v!r}: Cycles renders at most {MAX_SPP} samples per pixel")
-        if self.jitter not in JITTERS:
-            raise SpecError(f"{where}.jitter = {self.jitter!r}: choose one of {', '.join(JITTERS)}")
-        if self.fbeta not in FBETA_SOURCES:
-            raise SpecError(f"{where}.fbeta = {self.fbeta!r}: choose one of {', '.join(FBETA_SOURCES)}")
-        if not isinstance(self.threads, int) or self.threads < 0:
-            raise SpecError(f"{where}.threads = {self.threads!r}: must be an integer >= 0")
+def _render_settings_class():
+    """``RenderSettings``, generated from ``RenderConfig``: its keys in ``RENDER_KEYS`` with its types, rules and
+    defaults (one set of defaults), ``frames`` and ``hr_size`` with ``CLIP_DEFAULTS``, ``scale`` an integer."""
+    fields, hints = {f.name: f for f in dataclasses.fields(RenderConfig)}, get_type_hints(RenderConfig)
+    own = {"frames": (int, option(CLIP_DEFAULTS["frames"], lo=1)),
+           "hr_size": (tuple[int, int], dataclasses.field(default=CLIP_DEFAULTS["hr_size"])),
+           "scale": (int, option(fields["scale"].default, lo=1))}
+    spec = [(k, *own[k]) if k in own else (k, hints[k], dataclasses.field(default=fields[k].default,
+                                                                          metadata=fields[k].metadata))
+            for k in RENDER_KEYS]
 
     def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["hr_size"] = list(self.hr_size)
-        d["buffers"] = list(self.buffers)
-        return d
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+    cls = dataclasses.make_dataclass("RenderSettings", spec, frozen=True, namespace={"to_json": to_json})
+    cls.__module__ = __name__
+    cls.__doc__ = ("A clip's render settings in a spec (``[render]`` defaults, overridable per source): the keys "
+                   "``RENDER_KEYS`` of ``RenderConfig`` with its defaults; ``frames`` frames per clip (rendered as "
+                   "1..frames), ``hr_size`` (W, H) pixels.")
+    return cls
+
+
+RenderSettings = _render_settings_class()
 
 
 @dataclass(frozen=True)
@@ -115,20 +102,20 @@ class Source:
     kind: str
     render: RenderSettings
     cameras: tuple[str, ...] = ("orbit",)
-    split: str | None = None                      # force every scene of this source into one split
+    split: str | None = option(None, choices=SPLITS)  # force every scene of this source into one split
     seeds: tuple[int, int] = (0, 0)               # builtin: inclusive range
     paths: tuple[str, ...] = ()                   # assets: files or folders
-    clips_per_asset: int = 1
+    clips_per_asset: int = option(1, lo=1)
     environment: Environment = Environment()
-    clutter: int = 0                              # assets: up to N other assets of the same split around it
-    target_size_m: float = 1.5                    # assets: largest side after normalisation
+    clutter: int = option(0, lo=0)                # assets: up to N other assets of the same split around it
+    target_size_m: float = option(1.5, lo=0, lo_open=True, unit="m")  # assets: largest side after normalisation
     licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
     sun: bool = True                              # builtin: keep the sun lamp
-    clips_per_scene: int = 4                      # scene: clips per scene file
-    light: str = "scene"                          # scene: "scene" (the file's) or "sky" (add a sun and sky)
+    clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
+    light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
-    region_val: int = 0                           # scene: grid cells whose clips are val
-    region_test: int = 0                          # scene: grid cells whose clips are test
+    region_val: int = option(0, lo=0)             # scene: grid cells whose clips are val
+    region_test: int = option(0, lo=0)            # scene: grid cells whose clips are test
     variation: "Variation" = None                 # scene: opt-in changes of light (None: the file's light as is)
 
 
@@ -172,7 +159,7 @@ class DatasetSpec:
 
 _TOP_KEYS = ("dataset", "render", "splits", "source")
 _DATASET_KEYS = ("name", "seed")
-_RENDER_KEYS = tuple(f.name for f in dataclasses.fields(RenderSettings))
+_RENDER_KEYS = RENDER_KEYS
 _SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
                 "clutter", "target_size_m", "licence", "sun", "clips_per_scene", "light", "regions", "region_val",
@@ -181,76 +168,68 @@ _SCENE_ONLY = ("clips_per_scene", "light", "regions", "region_val", "region_test
                "light_strength", "sun_elevation_deg")
 
 
+def _prefix(spec_path) -> str:
+    return f"{spec_path}: "
+
+
 def _check_keys(table: dict, known, where: str, spec_path) -> None:
-    unknown = sorted(set(table) - set(known))
-    if unknown:
-        raise SpecError(f"{spec_path}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} in "
-                        f"[{where}]; known keys: {', '.join(known)}")
+    """SpecError naming the first unknown key of the table ``where`` ('' at the top level)."""
+    check_keys(table, known, where, SpecError, _prefix(spec_path))
 
 
-def _typed(value, kind, where: str, spec_path):
-    ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool) and kind in (int, float))
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if kind is float and ok and not math.isfinite(value):
-        raise SpecError(f"{spec_path}: {where} = {value!r}: must be a finite number")
-    if not ok:
-        names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
-        raise SpecError(f"{spec_path}: {where} = {value!r}: expected {names}")
-    return value
+def _typed(value, kind, where: str, spec_path, rule: Rule = Rule()):
+    """``value`` of the key ``where`` checked as ``kind`` and against ``rule`` (``gbuffer_export.typed_table``)."""
+    return typed_value(where, value, kind, rule, SpecError, _prefix(spec_path))
 
 
 def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -> RenderSettings:
-    kw = {}
-    for k in _RENDER_KEYS:
+    """``base`` (the defaults or the ``[render]`` table's) with the render keys of ``table``, each checked as
+    ``RenderConfig`` checks it, then the whole as ``RenderConfig`` (sizes, scales) would render it."""
+    spec = fields_of(RenderSettings)
+    out = {}
+    for k in RENDER_KEYS:
         if k not in table:
             continue
-        v = table[k]
+        v, path = table[k], f"{where}.{k}"
         if k == "hr_size":
             try:
-                v = parse_size(_typed(v, str, f"{where}.hr_size", spec_path))
+                v = parse_size(_typed(v, str, path, spec_path))
             except ConfigError as exc:
-                raise SpecError(f"{spec_path}: {where}.hr_size: {exc}") from None
+                raise SpecError(f"{spec_path}: {where}.{exc}", key=path) from None
         elif k == "buffers":
             if isinstance(v, list):
-                v = ",".join(_typed(x, str, f"{where}.buffers", spec_path) for x in v)
+                v = ",".join(_typed(x, str, path, spec_path) for x in v)
             try:
-                v = parse_buffer_list(_typed(v, str, f"{where}.buffers", spec_path))
+                v = parse_buffer_list(_typed(v, str, path, spec_path))
             except (KeyError, ValueError) as exc:
-                raise SpecError(f"{spec_path}: {where}.buffers: {str(exc).strip(chr(39))}") from None
-        elif k in ("hr_denoise", "lr_denoise"):
-            v = _typed(v, bool, f"{where}.{k}", spec_path)
-        elif k in ("jitter", "fbeta"):
-            v = _typed(v, str, f"{where}.{k}", spec_path)
+                raise SpecError(f"{spec_path}: {path}: {str(exc).strip(chr(39))}", key=path) from None
         else:
-            v = _typed(v, int, f"{where}.{k}", spec_path)
-        kw[k] = v
-    out = dataclasses.replace(base, **kw)
+            v = _typed(v, spec[k][0], path, spec_path, spec[k][1])
+        out[k] = v
+    out = dataclasses.replace(base, **out)
     try:
-        out.validate(where)
-    except SpecError as exc:
-        raise SpecError(f"{spec_path}: {exc}") from None
+        RenderConfig(output=".", frames=(1, out.frames), **{k: getattr(out, k) for k in RENDER_KEYS[1:]},
+                     progress=False)
+    except ConfigError as exc:
+        raise SpecError(f"{spec_path}: {where}.{exc}", key=f"{where}.{exc.key}") from None
     return out
 
 
+def _source_key(t: dict, name: str, where: str, spec_path):
+    """The ``[[source]]`` key ``name`` of ``t`` (absent: ``Source``'s default), checked by its annotation and rule."""
+    typ, rule = fields_of(Source)[name]
+    default = next(f.default for f in dataclasses.fields(Source) if f.name == name)
+    return _typed(t.get(name, default), typ, f"{where}.{name}", spec_path, rule)
+
+
 def _str_list(v, where, spec_path) -> tuple[str, ...]:
-    if isinstance(v, str):
-        v = [v]
-    if not isinstance(v, list):
-        raise SpecError(f"{spec_path}: {where} = {v!r}: expected a list of strings")
-    return tuple(_typed(x, str, where, spec_path) for x in v)
+    """A list of strings (one string: a list of one)."""
+    return _typed([v] if isinstance(v, str) else v, tuple[str, ...], where, spec_path)
 
 
 def _range(v, where, spec_path) -> tuple[float, float]:
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        x = _typed(v, float, where, spec_path)  # finite
-        return x, x
-    if not (isinstance(v, list) and len(v) == 2):
-        raise SpecError(f"{spec_path}: {where} = {v!r}: expected [low, high]")
-    lo, hi = (_typed(x, float, where, spec_path) for x in v)
-    if not (0 < lo <= hi):
-        raise SpecError(f"{spec_path}: {where} = {v!r}: need 0 < low <= high")
-    return lo, hi
+    """[low, high] with 0 < low <= high (one number x: [x, x])."""
+    return _typed(v, tuple[float, float], where, spec_path, Rule(pair=True))
 
 
 def _seeds(v, where, spec_path) -> tuple[int, int]:
@@ -261,19 +240,19 @@ def _seeds(v, where, spec_path) -> tuple[int, int]:
         try:
             a, b = (int(x) for x in v.split(":"))
         except ValueError:
-            raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'A:B' with integers") from None
+            raise SpecError(f"{spec_path}: {where} {v!r}: expected 'A:B' with integers") from None
     elif isinstance(v, list) and len(v) == 2:
         a, b = (_typed(x, int, where, spec_path) for x in v)
     else:
-        raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'A:B', [A, B] or an integer")
+        raise SpecError(f"{spec_path}: {where} {v!r}: expected 'A:B', [A, B] or an integer")
     if b < a or a < 0:
-        raise SpecError(f"{spec_path}: {where} = {v!r}: need 0 <= A <= B")
+        raise SpecError(f"{spec_path}: {where} {v!r}: need 0 <= A <= B")
     return a, b
 
 
 def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
     """Validate a parsed TOML document and return the typed spec."""
-    _check_keys(data, _TOP_KEYS, "top level", spec_path)
+    _check_keys(data, _TOP_KEYS, "", spec_path)
     ds = data.get("dataset", {})
     _check_keys(ds, _DATASET_KEYS, "dataset", spec_path)
     name = _typed(ds.get("name", Path(str(spec_path)).stem), str, "dataset.name", spec_path)
@@ -303,28 +282,22 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
         if not isinstance(t, dict):
             raise SpecError(f"{spec_path}: {where}: expected a table")
         _check_keys(t, _SOURCE_KEYS, where, spec_path)
-        kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path)
-        if kind not in ("builtin", "assets", "scene"):
-            raise SpecError(f"{spec_path}: {where}.kind = {kind!r}: choose builtin, assets or scene")
+        kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path, Rule(choices=SOURCE_KINDS))
         sname = _typed(t.get("name", kind if kind == "builtin" else f"{kind}{i}"), str, f"{where}.name", spec_path)
         if sname in names or not sname.replace("-", "").replace("_", "").isalnum():
-            raise SpecError(f"{spec_path}: {where}.name = {sname!r}: must be unique, letters, digits, - and _")
+            raise SpecError(f"{spec_path}: {where}.name {sname!r}: must be unique, letters, digits, - and _")
         names.add(sname)
         render = _render_settings(defaults, t, where, spec_path)
         if kind != "scene":
             for k in _SCENE_ONLY:
                 if k in t:
                     raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"scene\"")
-        split = t.get("split")
-        if split is not None and split not in SPLITS:
-            raise SpecError(f"{spec_path}: {where}.split = {split!r}: choose one of {', '.join(SPLITS)}")
+        split = _source_key(t, "split", where, spec_path)
         if kind == "scene":
             sources.append(_scene_source(t, sname, render, split, where, spec_path))
             continue
-        cameras = _str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path)
-        for c in cameras:
-            if c not in SOURCE_CAMERAS:
-                raise SpecError(f"{spec_path}: {where}.cameras: {c!r}: choose from {', '.join(SOURCE_CAMERAS)}")
+        cameras = _typed(_str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path), tuple[str, ...],
+                         f"{where}.cameras", spec_path, Rule(items=SOURCE_CAMERAS))
         if kind == "assets" and "scene" in cameras:
             raise SpecError(f"{spec_path}: {where}.cameras: 'scene' is for kind = \"builtin\" only")
         kw = dict(name=sname, kind=kind, render=render, cameras=cameras, split=split)
@@ -335,18 +308,15 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             if "seeds" not in t:
                 raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
-            kw["sun"] = _typed(t.get("sun", True), bool, f"{where}.sun", spec_path)
+            kw["sun"] = _source_key(t, "sun", where, spec_path)
         else:
             if "seeds" in t or "sun" in t:
                 raise SpecError(f"{spec_path}: {where}: seeds and sun are for kind = \"builtin\"")
             kw["paths"] = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
             if not kw["paths"]:
                 raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
-            kw["clips_per_asset"] = _typed(t.get("clips_per_asset", 1), int, f"{where}.clips_per_asset", spec_path)
-            kw["clutter"] = _typed(t.get("clutter", 0), int, f"{where}.clutter", spec_path)
-            kw["target_size_m"] = _typed(t.get("target_size_m", 1.5), float, f"{where}.target_size_m", spec_path)
-            if kw["clips_per_asset"] < 1 or kw["clutter"] < 0 or kw["target_size_m"] <= 0:
-                raise SpecError(f"{spec_path}: {where}: need clips_per_asset >= 1, clutter >= 0, target_size_m > 0")
+            for k in ("clips_per_asset", "clutter", "target_size_m"):
+                kw[k] = _source_key(t, k, where, spec_path)
             lic = t.get("licence", {})
             if not isinstance(lic, dict) or not all(isinstance(v, dict) for v in lic.values()):
                 raise SpecError(f"{spec_path}: {where}.licence: expected {{ASSET = {{licence = ..., attribution = ...}}}}")
@@ -370,7 +340,7 @@ def _grid(v, where, spec_path) -> tuple[int, int]:
             v = None
     if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
             and 1 <= v[0] <= 16 and 1 <= v[1] <= 16):
-        raise SpecError(f"{spec_path}: {where} = {v!r}: expected 'NxM' (1 to 16 cells a side), e.g. \"3x3\"")
+        raise SpecError(f"{spec_path}: {where} {v!r}: expected 'NxM' (1 to 16 cells a side), e.g. \"3x3\"")
     return v[0], v[1]
 
 
@@ -385,16 +355,14 @@ def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str,
     cameras = _str_list(t.get("cameras", ["walk", "fly"]), f"{where}.cameras", spec_path)
     for c in cameras:
         if not camera_path_ok(c) or c == "scene:":
-            raise SpecError(f"{spec_path}: {where}.cameras: {c!r}: choose from {', '.join(SCENE_SOURCE_CAMERAS)}")
-    clips = _typed(t.get("clips_per_scene", 4), int, f"{where}.clips_per_scene", spec_path)
-    light = _typed(t.get("light", "scene"), str, f"{where}.light", spec_path)
-    if light not in LIGHTS:
-        raise SpecError(f"{spec_path}: {where}.light = {light!r}: choose one of {', '.join(LIGHTS)}")
+            raise SpecError(f"{spec_path}: {where}.cameras item {c!r}: choose one of "
+                            f"{', '.join(SCENE_SOURCE_CAMERAS)}", key=f"{where}.cameras")
+    clips = _source_key(t, "clips_per_scene", where, spec_path)
+    light = _source_key(t, "light", where, spec_path)
     regions = _grid(t.get("regions", [1, 1]), f"{where}.regions", spec_path)
-    rv = _typed(t.get("region_val", 0), int, f"{where}.region_val", spec_path)
-    rt = _typed(t.get("region_test", 0), int, f"{where}.region_test", spec_path)
-    if clips < 1 or rv < 0 or rt < 0 or rv + rt >= regions[0] * regions[1] and (rv or rt):
-        raise SpecError(f"{spec_path}: {where}: need clips_per_scene >= 1 and region_val + region_test below the "
+    rv, rt = _source_key(t, "region_val", where, spec_path), _source_key(t, "region_test", where, spec_path)
+    if rv + rt >= regions[0] * regions[1] and (rv or rt):
+        raise SpecError(f"{spec_path}: {where}: need region_val + region_test below the "
                         f"{regions[0] * regions[1]} cells of regions (the rest train)")
     if (rv or rt) and split is not None:
         raise SpecError(f"{spec_path}: {where}: split and region_val/region_test exclude each other")

@@ -8,28 +8,27 @@ uses ``NoOptions`` (the table's default), so it needs no class here.
 The classes live here and not beside their ``nn.Module`` because a model's file imports torch, and the configuration
 is validated without torch (``blendsr train`` checks its configuration before it imports the trainer).
 
-``validate(where)`` checks ranges and combinations (``where`` is the table's name, e.g. ``model.fusesr``, for the
-messages); ``training.config`` checks the types from the annotations before.
+Each key's type and range are its annotation and ``option(...)`` rule (``gbuffer_export.typed_table``);
+``validate(where)`` checks them and the combinations (``where`` is the table's name, e.g. ``model.fusesr``, for the
+messages).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from gbuffer_export.config import ConfigError
+from gbuffer_export.typed_table import ConfigError, option, set_checked
 
 NORMS = ("none", "batch")
 RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
 
 
-def _sigma(where: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < float(v) <= 100):
-        raise ConfigError(f"{where} {v!r}: must lie in (0, 100]")
-    return float(v)
+def _sigma(default: float):
+    """A joint bilateral tolerance: a number in (0, 100]."""
+    return option(default, lo=0, lo_open=True, hi=100)
 
 
-def _count(where: str, v, high: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or not (1 <= v <= high):
-        raise ConfigError(f"{where} {v!r}: must be an integer in 1..{high}")
+def _width(default: int):
+    return option(default, lo=1, hi=1024, unit="channels")
 
 
 @dataclass
@@ -37,19 +36,18 @@ class NoOptions:
     """A model with no options of its own (only the shared ``[model]`` keys)."""
 
     def validate(self, where: str) -> None:
-        pass
+        set_checked(self, where)
 
 
 @dataclass
 class DemodJBUOptions:
     """``demod-jbu``: the tolerances of the joint bilateral upsampling guided by HR depth and normals."""
 
-    guide_sigma_depth: float = 0.1   # relative depth tolerance (through log depth)
-    guide_sigma_normal: float = 0.3  # camera-space normal tolerance (unit vectors)
+    guide_sigma_depth: float = _sigma(0.1)   # relative depth tolerance (through log depth)
+    guide_sigma_normal: float = _sigma(0.3)  # camera-space normal tolerance (unit vectors)
 
     def validate(self, where: str) -> None:
-        self.guide_sigma_depth = _sigma(f"{where}.guide_sigma_depth", self.guide_sigma_depth)
-        self.guide_sigma_normal = _sigma(f"{where}.guide_sigma_normal", self.guide_sigma_normal)
+        set_checked(self, where)
 
 
 @dataclass
@@ -58,29 +56,24 @@ class FuseSRFastOptions:
 
     hr_gbuffer: bool = True          # HR G-buffer input (Table 3 ablation of the FuseSR paper)
     demodulation: bool = True        # predict L_D and remodulate with HR F_beta (Table 3 ablation)
-    width: int = 32                  # backbone channels
-    blocks: int = 6                  # backbone blocks
+    width: int = _width(32)          # backbone channels
+    blocks: int = option(6, lo=1, hi=64)  # backbone blocks
     residual: bool = True            # add the upsampled T(L_D^LR) before the final ReLU (not in the paper)
     guided_upsample: bool = True     # with hr_gbuffer and residual: the residual base is the joint bilateral
-    guide_sigma_depth: float = 0.1   #   upsampling guided by HR depth (relative tolerance through log depth)
-    guide_sigma_normal: float = 0.3  #   and camera-space normals
+    guide_sigma_depth: float = _sigma(0.1)   # upsampling guided by HR depth (relative tolerance through log depth)
+    guide_sigma_normal: float = _sigma(0.3)  # and camera-space normals
     zero_init_refine: bool = False   # the last conv starts at 0: training starts exactly at the residual base
-    norm: str = "none"               # encoder/backbone normalisation: "none" or "batch" (the authors' BatchNorm)
+    norm: str = option("none", choices=NORMS)  # encoder/backbone normalisation (batch: the authors' BatchNorm)
 
     def validate(self, where: str) -> None:
-        _count(f"{where}.width", self.width, 1024)
-        _count(f"{where}.blocks", self.blocks, 64)
-        self.guide_sigma_depth = _sigma(f"{where}.guide_sigma_depth", self.guide_sigma_depth)
-        self.guide_sigma_normal = _sigma(f"{where}.guide_sigma_normal", self.guide_sigma_normal)
-        if self.norm not in NORMS:
-            raise ConfigError(f"{where}.norm {self.norm!r}: choose one of {', '.join(NORMS)}")
+        set_checked(self, where)
 
 
 @dataclass
 class FuseSROptions(FuseSRFastOptions):
     """``fusesr``: ``fusesr-fast``'s switches at FuseSR's sizes, plus the HR guidance of the refinement."""
 
-    width: int = 128
+    width: int = _width(128)
     hr_guide: bool = False           # the HR refinement also reads the HR G-buffers (not in the paper)
 
     def validate(self, where: str) -> None:
@@ -93,7 +86,7 @@ class FuseSROptions(FuseSRFastOptions):
 class FuseSRLightOptions(FuseSROptions):
     """``fusesr-l``: ``fusesr``'s options at half width."""
 
-    width: int = 64
+    width: int = _width(64)
 
 
 @dataclass
@@ -104,6 +97,7 @@ class NSRDOptions:
     zero_init_head: bool = False     # with residual: the last conv starts at 0, so a fresh network is demod-bilinear
 
     def validate(self, where: str) -> None:
+        set_checked(self, where)
         if self.zero_init_head and not self.residual:
             raise ConfigError(f"{where}.zero_init_head needs {where}.residual = true (it starts at the residual base)")
 
@@ -112,38 +106,29 @@ class NSRDOptions:
 class RDGOptions:
     """``rdg``: width and the inputs of the ablations."""
 
-    width: int = 36                  # C, the channels of the first level (2C and 3C below)
+    width: int = _width(36)          # C, the channels of the first level (2C and 3C below)
     demod: bool = False              # L_D in, remodulated with HR F_beta and emission (off: radiance, the paper)
-    gbuffers: list[str] = field(default_factory=lambda: list(RDG_GBUFFERS))  # G-buffers read; the others are zeros
+    gbuffers: list[str] = option(factory=lambda: list(RDG_GBUFFERS), items=RDG_GBUFFERS, unique=True)
+    # the G-buffers read; the others are zeros
 
     def validate(self, where: str) -> None:
-        _count(f"{where}.width", self.width, 1024)
-        for g in self.gbuffers:
-            if g not in RDG_GBUFFERS:
-                raise ConfigError(f"{where}.gbuffers item {g!r}: choose one of {', '.join(RDG_GBUFFERS)}")
-        if len(set(self.gbuffers)) != len(self.gbuffers):
-            raise ConfigError(f"{where}.gbuffers {self.gbuffers}: an item is repeated")
+        set_checked(self, where)
 
 
 @dataclass
 class RDGSmallOptions(RDGOptions):
     """``rdg-s``: ``rdg``'s options at width 16."""
 
-    width: int = 16
-
+    width: int = _width(16)
 
 
 @dataclass
 class FourierSROptions:
     """``fourier-sr``: the thresholds of the spatial mask (Eq. 3-6; the authors' code's values)."""
 
-    mask_depth: float = 0.01    # |D - Up(d)| above it, on the normalised depth in [0, 1]
-    mask_albedo: float = 0.1    # mean over RGB of |A - Up(a)| above it
-    mask_normal: float = 0.9    # cosine between N and the normalised Up(n) below it
+    mask_depth: float = option(0.01, lo=0, lo_open=True, hi=1)   # |D - Up(d)| above it, normalised depth in [0, 1]
+    mask_albedo: float = option(0.1, lo=0, lo_open=True, hi=1)   # mean over RGB of |A - Up(a)| above it
+    mask_normal: float = option(0.9, lo=0, lo_open=True, hi=1)   # cosine between N and the normalised Up(n) below it
 
     def validate(self, where: str) -> None:
-        for name, hi in (("mask_depth", 1.0), ("mask_albedo", 1.0), ("mask_normal", 1.0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < float(v) <= hi):
-                raise ConfigError(f"{where}.{name} {v!r}: must lie in (0, {hi:g}]")
-            setattr(self, name, float(v))
+        set_checked(self, where)

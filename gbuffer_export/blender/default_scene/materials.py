@@ -100,10 +100,22 @@ def jitter_color(rng, color, amount=0.06):
 
 
 def make_materials(rng) -> dict[str, bpy.types.Material]:
-    """Every material of the scene by role ('floor', 'brick', 'wood', ..., 'ball'); colours varied by ``rng``."""
+    """Every material of the scene by role ('floor', 'brick', 'wood', ..., 'ball'); colours varied by ``rng`` (drawn
+    in this order: floor, brick, checker, gold, plastic)."""
     mats: dict[str, bpy.types.Material] = {}
+    mats["floor"] = _stone_tiles(rng)
+    mats["brick"] = _red_brick(rng)
+    mats["wood"] = _oak()
+    mats["checker"] = _checker_cloth(rng)
+    mats["newsprint"] = _newsprint()
+    mats.update(_plain_materials(rng))
+    mats["boxwood"] = _boxwood()
+    mats["ball"] = _toy_ball()
+    return mats
 
-    # Stone tiles (30 cm) with 6 mm grout, per-tile colour variation and grime.
+
+def _stone_tiles(rng):
+    """Stone tiles (30 cm) with 6 mm grout, per-tile colour variation and grime."""
     m = Mat("Stone Tiles", roughness=0.7)
     brick = m.node("ShaderNodeTexBrick", offset=0.0, offset_frequency=1, squash=1.0, squash_frequency=1)
     for k, v in {"Color1": (*jitter_color(rng, (0.36, 0.33, 0.30)), 1), "Color2": (0.52, 0.48, 0.42, 1),
@@ -120,9 +132,11 @@ def make_materials(rng) -> dict[str, bpy.types.Material]:
     m.link(grime, col.inputs[7])
     m.link(col.outputs[2], m.bsdf.inputs["Base Color"])
     m.link(m.map_range(brick.outputs["Factor"], 0.62, 0.95), m.bsdf.inputs["Roughness"])
-    mats["floor"] = m.mat
+    return m.mat
 
-    # Red brick wall: bricks run along the wall (object y) in rows up z.
+
+def _red_brick(rng):
+    """Red brick wall: bricks run along the wall (object y) in rows up z."""
     m = Mat("Red Brick", roughness=0.85)
     brick = m.node("ShaderNodeTexBrick", offset=0.5, offset_frequency=2, squash=1.0, squash_frequency=2)
     for k, v in {"Color1": (0.42, 0.12, 0.07, 1), "Color2": (*jitter_color(rng, (0.55, 0.22, 0.12)), 1),
@@ -131,9 +145,11 @@ def make_materials(rng) -> dict[str, bpy.types.Material]:
         brick.inputs[k].default_value = v
     m.link(m.coords(swizzle="YZX"), brick.inputs["Vector"])
     m.link(brick.outputs["Color"], m.bsdf.inputs["Base Color"])
-    mats["brick"] = m.mat
+    return m.mat
 
-    # Table wood: planks 15 cm wide along the table (x) with 3 mm dark joints and fine, slightly wavy grain.
+
+def _oak():
+    """Table wood: planks 15 cm wide along the table (x) with 3 mm dark joints and fine, slightly wavy grain."""
     m = Mat("Oak", roughness=0.5)
     co = m.coords()
     wave = m.node("ShaderNodeTexWave", wave_type="BANDS", bands_direction="Y", wave_profile="SAW")
@@ -154,19 +170,23 @@ def make_materials(rng) -> dict[str, bpy.types.Material]:
     m.link(planks.outputs["Color"], col.inputs[7])
     m.link(col.outputs[2], m.bsdf.inputs["Base Color"])
     m.link(m.map_range(planks.outputs["Factor"], 0.45, 0.9), m.bsdf.inputs["Roughness"])
-    mats["wood"] = m.mat
+    return m.mat
 
-    # Checkered placemat, 2 cm squares.
+
+def _checker_cloth(rng):
+    """Checkered placemat, 2 cm squares."""
     m = Mat("Checker Cloth", roughness=0.8)
     chk = m.node("ShaderNodeTexChecker", Scale=50.0)
     chk.inputs["Color1"].default_value = (0.80, 0.78, 0.72, 1)
     chk.inputs["Color2"].default_value = (*jitter_color(rng, (0.55, 0.04, 0.04)), 1)
     m.link(m.coords(), chk.inputs["Vector"])
     m.link(chk.outputs["Color"], m.bsdf.inputs["Base Color"])
-    mats["checker"] = m.mat
+    return m.mat
 
-    # Newspaper: rows of word-like blocks (lines 5.7 mm apart) in two columns with a headline band
-    # (object coords of a 43 x 32 cm sheet, scaled to a 32 x 24 cm layout).
+
+def _newsprint():
+    """Newspaper: rows of word-like blocks (lines 5.7 mm apart) in two columns with a headline band (object coords
+    of a 43 x 32 cm sheet, scaled to a 32 x 24 cm layout)."""
     m = Mat("Newsprint", roughness=0.85)
     paper, ink = (0.78, 0.76, 0.70), (0.04, 0.04, 0.05)
     co = m.coords(scale=(1 / 1.35, 1 / 1.35, 1 / 1.35))
@@ -195,8 +215,12 @@ def make_materials(rng) -> dict[str, bpy.types.Material]:
     blank = m.math("MAXIMUM", m.math("MAXIMUM", margin_x, margin_y), gutter)
     printed = m.mix(blank, ink_mask, (0, 0, 0, 1))
     m.link(m.mix(printed, paper, ink), m.bsdf.inputs["Base Color"])
-    mats["newsprint"] = m.mat
+    return m.mat
 
+
+def _plain_materials(rng) -> dict:
+    """The single-colour materials by role (gold and plastic colours varied by ``rng``)."""
+    mats = {}
     mats["paint"] = Mat("White Paint", (0.72, 0.70, 0.64), roughness=0.55).mat
     mats["sign"] = Mat("Green Paint", (0.03, 0.13, 0.07), roughness=0.6).mat
     mats["letters"] = Mat("Cream Paint", (0.85, 0.78, 0.58), roughness=0.45).mat
@@ -216,21 +240,25 @@ def make_materials(rng) -> dict[str, bpy.types.Material]:
                                "Subsurface Scale": 0.02}).mat
     mats["bulb"] = Mat("Warm Bulb", (1.0, 0.78, 0.45), roughness=0.3,
                         inputs={"Emission Color": (1.0, 0.72, 0.38), "Emission Strength": 25.0}).mat
+    return mats
 
-    # Boxwood: fine leafy speckle.
+
+def _boxwood():
+    """Boxwood: fine leafy speckle."""
     m = Mat("Boxwood", roughness=0.7)
     n = m.node("ShaderNodeTexNoise", Scale=90.0, Detail=4.0, Roughness=0.7)
     m.link(m.coords(), n.inputs["Vector"])
     m.link(m.ramp(n.outputs["Factor"], [(0.35, (0.02, 0.06, 0.015)), (0.65, (0.12, 0.28, 0.05))]),
            m.bsdf.inputs["Base Color"])
-    mats["boxwood"] = m.mat
+    return m.mat
 
-    # Toy ball: coarse checker in object space so that its rolling is visible.
+
+def _toy_ball():
+    """Toy ball: coarse checker in object space so that its rolling is visible."""
     m = Mat("Toy Ball", roughness=0.25)
     chk = m.node("ShaderNodeTexChecker", Scale=28.0)
     chk.inputs["Color1"].default_value = (0.85, 0.62, 0.05, 1)
     chk.inputs["Color2"].default_value = (0.05, 0.15, 0.55, 1)
     m.link(m.coords(), chk.inputs["Vector"])
     m.link(chk.outputs["Color"], m.bsdf.inputs["Base Color"])
-    mats["ball"] = m.mat
-    return mats
+    return m.mat
