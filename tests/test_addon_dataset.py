@@ -106,7 +106,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     # Bad settings: one line naming the setting or the spec key.
     e = r["errors"]
     assert "dataset Scales '4,x'" in e["scales=4,x"] and "distinct" in e["scales=4,4"]
-    assert "cameras: 'bogus'" in e["cameras=walk,bogus"]
+    assert "cameras item 'bogus'" in e["cameras=walk,bogus"]
     assert "For models 'nope'" in e["for_models=nope"] and "unknown model 'nope'" in e["for_models=nope"]
     assert "not divisible by scale" in e["hr_width=66"] and "region_val" in e["region_val=9"]
     assert "world_strength" in e["world_strength_max=0.5"] and "low <= high" in e["world_strength_max=0.5"]
