@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -32,6 +33,8 @@ from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_
 from ..errors import BlendSRError
 from ..locks import FolderLock
 from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
+
+log = logging.getLogger(__name__)
 
 INDEX = "dataset.json"
 SCHEMA = "blendsr-dataset"
@@ -291,8 +294,7 @@ def fit_ray_threads(nodes: list, threads: int, explicit: bool, address: str | No
         if explicit:
             raise DatasetError(f"--threads {threads}: no node of {where} has {threads} CPUs (the largest has "
                                f"{largest}), so its tasks could never run; pass --threads {largest} or fewer")
-        print(f"blendsr: {threads} threads per clip lowered to {largest}, the CPUs of the largest node of {where}",
-              file=sys.stderr)
+        log.info(f"blendsr: {threads} threads per clip lowered to {largest}, the CPUs of the largest node of {where}")
         return largest
     return threads
 
@@ -405,10 +407,10 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
             todo = todo[:opts.limit]
         threads = opts.clip_threads()
         n_done = len(jobs) - len([e for e in index["clips"] if e["state"] != "done"])
-        print(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "
+        log.info(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "
               f"({opts.executor}, " + (f"{opts.workers} workers, {threads} threads each)" if opts.executor == "local"
                                        else f"{threads} thread(s) and CPU(s) per task, as many tasks at once as "
-                                            f"the cluster has CPUs)"), file=sys.stderr)
+                                            f"the cluster has CPUs)"))
         by_id = {e["id"]: e for e in index["clips"]}
         mutex = threading.Lock()
         bar = None
