@@ -98,7 +98,8 @@ def _manual(model, clip, frames):
 
 
 def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name, clip, tmp_path):
-    from training.train import load_checkpoint, train
+    from training.checkpoint import load_checkpoint
+    from training.train import train
     case = CASES[name]
     straight = tmp_path / "straight"
     assert main(["train", "--model", name, "--data", str(clip), "-o", str(straight), "--max-steps", "4",

@@ -204,7 +204,7 @@ def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, mo
 def test_the_progress_bar_of_a_minutes_run_counts_time_not_a_million_steps():
     """Issue 26 item 12: a --minutes run's bar counts the budget's seconds."""
     from training.config import load_config
-    from training.train import progress_kwargs
+    from training.hooks import progress_kwargs
     cfg = load_config(None, ["run.minutes=2"])
     assert progress_kwargs(cfg, 0) == {"total": 120, "initial": 0, "unit": "s"}
     cfg = load_config(None, ["run.max_steps=50"])

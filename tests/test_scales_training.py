@@ -17,7 +17,8 @@ from training.evaluate import evaluate_model  # noqa: E402
 from training.inference import load_model  # noqa: E402
 from training.models import MODELS, ModelInfo, build_model  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
-from training.train import load_checkpoint, train  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.train import train  # noqa: E402
 
 pytestmark = pytest.mark.torch
 SCALES = (2, 2.5, 4)

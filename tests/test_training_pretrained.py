@@ -13,7 +13,8 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training import pretrained  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.inference import ClipFrames, load_model, upscale_frame  # noqa: E402
-from training.train import load_checkpoint, param_digest, train  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.train import param_digest, train  # noqa: E402
 
 pytestmark = pytest.mark.torch
 SMALL = ["data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",

@@ -45,7 +45,8 @@ def run(args) -> int:
     from training.data import BatchSpec, TrainSampler
     from training.losses import Criterion
     from training.models import build_model
-    from training.train import amp_dtype, autocast, resolve_device, to_device
+    from training.device import amp_dtype, autocast, resolve_device
+    from training.trainer import to_device
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -178,7 +178,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     from training.evaluate import evaluate_model
     from training.inference import ClipFrames, load_model, model_inputs
     from training.checkpoint import load_checkpoint
-    from training.train import resolve_device
+    from training.device import resolve_device
 
     scale = _scale_of(clips)
     device = device or resolve_device("auto")
@@ -247,7 +247,7 @@ def run(args) -> int:
     import torch
 
     from gbuffer_export.config import parse_frames
-    from training.train import amp_dtype, resolve_device
+    from training.device import amp_dtype, resolve_device
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -415,7 +415,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.fastpath import channels_last_batch, forward, precision_dtype, prepare_inference
     from training.inference import load_model
     from training.models import build_model
-    from training.train import resolve_device
+    from training.device import resolve_device
 
     device = device or resolve_device("auto")
     w, h = size

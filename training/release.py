@@ -14,7 +14,7 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     import torch
 
     from training.checkpoint import inference_weights, load_checkpoint
-    from training.train import param_digest
+    from training.trainer import param_digest
     ck = load_checkpoint(checkpoint)
     slim = {"format": ck["format"], "version": ck.get("version", 1), "model_name": ck.get("model_name"),
             "config": ck["config"], "scale": ck["scale"], "step": ck.get("step"),
