@@ -39,7 +39,7 @@ class ResolvedRun:
     """Everything a run derives from its configuration and clips. ``scales_by_clip``: ((clip, (s, ...)), ...) the LR
     levels trained per clip; ``scale``: the model's scale (the largest when several); ``crop``: the LR crop side in
     pixels after fitting the clips; ``window``: frames per window (0: feed-forward); ``remod_filter``: the pixel
-    filter the model remodulates with after REFERENCE is resolved ((name, px) or None: as configured).
+    filter (name, px) the model remodulates with, REFERENCE resolved from the clips.
     ``notes`` (one line each) are not compared."""
 
     model: str
@@ -49,7 +49,7 @@ class ResolvedRun:
     crop: int
     window: int
     recurrent: bool
-    remod_filter: tuple | None = None
+    remod_filter: tuple = ("NONE", 0.0)
     notes: tuple = field(default=(), compare=False)
 
     def to_dict(self) -> dict:
@@ -58,7 +58,7 @@ class ResolvedRun:
         d.pop("notes")
         d["scales_by_clip"] = [[c, list(s)] for c, s in self.scales_by_clip]
         d["scales"] = list(self.scales)
-        d["remod_filter"] = list(self.remod_filter) if self.remod_filter else None
+        d["remod_filter"] = list(self.remod_filter)
         return d
 
     @classmethod
@@ -66,7 +66,7 @@ class ResolvedRun:
         return cls(model=d["model"], scales_by_clip=tuple((c, tuple(s)) for c, s in d["scales_by_clip"]),
                    scales=tuple(d["scales"]), scale=d["scale"], crop=int(d["crop"]), window=int(d["window"]),
                    recurrent=bool(d["recurrent"]),
-                   remod_filter=tuple(d["remod_filter"]) if d.get("remod_filter") else None)
+                   remod_filter=tuple(d["remod_filter"]))
 
     def differs(self, other: "ResolvedRun") -> str | None:
         """The first field (by name) whose value differs from ``other``'s, with both values; None when equal."""
@@ -81,8 +81,7 @@ class ResolvedRun:
         out.data.crop = self.crop
         if len(self.scales) == 1:
             out.model.scale = self.scale
-        if self.remod_filter is not None:
-            out.model.remod_filter, out.model.remod_filter_px = self.remod_filter
+        out.model.remod_filter, out.model.remod_filter_px = self.remod_filter
         return out
 
 
@@ -149,10 +148,11 @@ def fit_crop(crop: int, levels: dict) -> tuple[int, str | None]:
                     f"set data.crop to choose another")
 
 
-def reference_filter(cfg: TrainConfig, clips: dict) -> tuple | None:
-    """(name, px): the ground truths' pixel filter when ``model.remod_filter`` is REFERENCE, else None."""
+def remod_filter(cfg: TrainConfig, clips: dict) -> tuple:
+    """(name, px): the pixel filter the model remodulates with: the ground truths' when ``model.remod_filter`` is
+    REFERENCE, else the configured one."""
     if cfg.model.remod_filter != "REFERENCE":
-        return None
+        return (cfg.model.remod_filter, float(cfg.model.remod_filter_px))
     from gbuffer_export.pixel_filter import reference_filter as of_manifest
     refs = {of_manifest(clip.manifest) for clip in clips.values()}
     if len(refs) != 1:
@@ -181,7 +181,7 @@ def resolve_run(cfg: TrainConfig, clips: dict) -> ResolvedRun:
                        scales_by_clip=tuple((str(Path(c).resolve()), tuple(v)) for c, v in scales_of.items()),
                        scales=tuple(scales), scale=scale, crop=crop,
                        window=(cfg.data.window or DEFAULT_WINDOW) if recurrent else 0, recurrent=recurrent,
-                       remod_filter=reference_filter(cfg, clips), notes=(note,) if note else ())
+                       remod_filter=remod_filter(cfg, clips), notes=(note,) if note else ())
 
 
 # ------------------------------------------------------------------------------------------------- starting a run
