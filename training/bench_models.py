@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -398,6 +399,37 @@ def _timer(device):
     return run
 
 
+def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
+    """One timed (model, variant) as a row of bench_speed: median and minimum ms, MACs, bytes and its roofline
+    time on the device's peaks ``pk`` ({tflops, gbs}); logs one line."""
+    macs = r["macs"]
+    roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
+    ms = statistics.median(r["times"])
+    rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / pixels,
+           "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
+           "roofline_ms": roof, "ratio": ms / roof}
+    log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
+        f"x{rec['ratio']:.0f})")
+    return rec
+
+
+def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None:
+    """OUT/bench_speed.json, .csv and .md."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
+    with open(out / "bench_speed.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
+        wr.writeheader()
+        for r in records:
+            wr.writerow(r)
+    peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
+                         for k, v in meta["peaks"].items())
+    w, h = meta["size"]
+    (out / "bench_speed.md").write_text(f"Device: {meta['device']}; HR {w}x{h}, scale {meta['scale']}, batch 1; "
+                                        f"{meta['timing']} of {meta['repeats']} after {meta['warmup']} warm-up; "
+                                        f"roofline peaks: {peak_txt}\n\n{table}\n")
+
+
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
                     precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
@@ -465,18 +497,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             # model and variant sees the same machine state
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
-    records = []
-    for r in runners:
-        pk = peaks[r["key"]]
-        macs = r["macs"]
-        roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
-        ms = statistics.median(r["times"])
-        rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / (w * h),
-               "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
-               "roofline_ms": roof, "ratio": ms / roof}
-        records.append(rec)
-        log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
-            f"x{rec['ratio']:.0f})")
+    records = [_speed_record(r, peaks[r["key"]], w * h, log) for r in runners]
     del runners
     device_name = describe_device(device)
     meta = {"device": device_name, "size": [w, h], "scale": scale, "batch": 1, "warmup": warmup,
@@ -489,19 +510,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     result = {**meta, "rows": records, "table": table}
     if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
         return result
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
-    with open(out / "bench_speed.csv", "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
-        wr.writeheader()
-        for r in records:
-            wr.writerow(r)
-    peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
-                         for k, v in peaks.items())
-    (out / "bench_speed.md").write_text(f"Device: {device_name}; HR {w}x{h}, scale {scale}, batch 1; "
-                                        f"{meta['timing']} of {repeats} after {warmup} warm-up; roofline peaks: "
-                                        f"{peak_txt}\n\n{table}\n")
+    _write_speed(Path(out), meta, records, table)
     return result
 
 
