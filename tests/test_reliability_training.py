@@ -82,14 +82,16 @@ def test_a_file_that_is_not_a_checkpoint_is_one_line(clip, tmp_path, capsys):
     assert len(err.splitlines()) == 1 and str(junk) in err
 
 
-def test_any_crop_larger_than_the_clips_shrinks_with_a_one_line_note(clip, tmp_path, capsys):
-    """Issue 31 item 7: the default crop and a crop the user set follow one rule."""
+def test_any_crop_larger_than_the_clips_shrinks_with_a_one_line_note(clip, tmp_path, caplog):
+    """Issue 31 item 7: the default crop and a crop the user set follow one rule (the note: logging, INFO)."""
+    caplog.set_level("INFO", logger="training")
     for n, crop in enumerate((None, 20)):  # LR 16x9: neither the default 64 nor 20 fits
         run = tmp_path / f"run{n}"
         sets = SMALL + ([f"data.crop={crop}"] if crop else [])
         assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                      *set_args(sets)]) == 0
-        notes = [ln for ln in capsys.readouterr().err.splitlines() if "data.crop" in ln]
+        notes = [r.getMessage() for r in caplog.records if "data.crop" in r.getMessage()]
+        caplog.clear()
         assert notes == [f"note: data.crop {crop or 64} -> 9, the largest that fits {clip} (LR 16x9); set "
                          "data.crop to choose another"], notes
         ck = load_checkpoint(run / "checkpoints" / "last.pt")
@@ -269,7 +271,7 @@ def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, mo
     cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "run.max_steps=3"])
     cfg.data.clips = [str(clip)]
     with pytest.raises(TrainingError) as err:
-        train(cfg, tmp_path / "nan", log=lambda m: None)
+        train(cfg, tmp_path / "nan")
     assert "last.pt" not in str(err.value) and "no checkpoint was written" in str(err.value)
     assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()
 

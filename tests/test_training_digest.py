@@ -35,6 +35,6 @@ def test_fixed_seed_training_gives_the_recorded_parameter_digest(clip, tmp_path,
     over = [o for o in SMALL if not (name == "rdg-s" and o.startswith(("model.width", "model.blocks")))]
     cfg = load_config(None, over + EXTRA[name] + [f'model.name="{name}"'])
     cfg.data.clips = [str(clip)]
-    summary = train(cfg, tmp_path / "run", log=lambda m: None)
+    summary = train(cfg, tmp_path / "run")
     assert summary["step"] == 3
     assert summary["param_digest"] == EXPECTED[name]

@@ -197,7 +197,7 @@ def test_worker_loader_gives_the_same_training_as_the_prefetch_thread(tmp_path):
         cfg = load_config(None, ["model.name=\"fusesr-fast\"", "data.crop=8", "data.batch_size=2", "run.max_steps=4",
                                  "run.progress=false", "run.amp=\"none\"", f"data.workers={workers}"])
         cfg.data.clips = [str(clip)]
-        summary = train(cfg, tmp_path / f"run{workers}", log=lambda m: None)
+        summary = train(cfg, tmp_path / f"run{workers}")
         digests.append(summary["param_digest"])
         assert summary["workers"] == workers and summary["gpu_max_memory_mb"] is None
         assert summary["samples_per_s"] == pytest.approx(2 * summary["steps_per_s"])

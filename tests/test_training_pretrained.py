@@ -31,7 +31,7 @@ def run(clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "r"
     cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=3"])
     cfg.data.clips = [str(clip)]
-    train(cfg, out, log=lambda m: None)
+    train(cfg, out)
     return out
 
 
@@ -63,7 +63,7 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
     cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=1", "optim.lr=1e-12",
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
     cfg.data.clips = [str(clip)]
-    train(cfg, tmp_path / "ft", log=lambda m: None)
+    train(cfg, tmp_path / "ft")
     a = load_model(str(run / "checkpoints" / "last.pt"), 4)
     b = load_model(str(tmp_path / "ft" / "checkpoints" / "last.pt"), 4)
     for (k, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
@@ -72,7 +72,7 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
     bad.data.clips = [str(clip)]
     with pytest.raises(ValueError, match="do not fit model fusesr"):
-        train(bad, tmp_path / "bad", log=lambda m: None)
+        train(bad, tmp_path / "bad")
 
 
 @pytest.mark.parametrize("name", list(pretrained.PRETRAINED))

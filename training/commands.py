@@ -141,10 +141,11 @@ def cmd_train(args) -> int:
                 cfg.data.val_clips = [str(c) for c in val]
         if not args.resume and not args.model and not args.config:
             raise BlendSRError("train: --model NAME is required (or model.name in --config)")
-    from training.train import TrainingError, train
+    from training.train import train
+    from training.trainer import TrainingError
     try:
         train(cfg, args.output, resume=args.resume, run_overrides=run_overrides,
-              log=lambda m: print(m, file=sys.stderr), data=[str(c) for c in data] if cfg is None else None)
+              data=[str(c) for c in data] if cfg is None else None)
     except TrainingError as exc:
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 1

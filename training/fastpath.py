@@ -17,11 +17,10 @@ setting with it on the CPU.
 """
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import torch
 import torch.nn as nn
 from gbuffer_export.errors import BlendSRError
+from training.device import autocast
 
 PRECISIONS = ("fp32", "bf16", "fp16", "auto")
 
@@ -60,7 +59,7 @@ def fold_batchnorm(model: nn.Module) -> int:
                 setattr(mod, conv_name, _fused(ca, cb))
                 setattr(mod, bn_name, nn.Identity())
                 n += 1
-    # a DWSConv/SeparableConv followed by BatchNorm in a Sequential: fold into its pointwise convolution
+    # a DWSConv followed by BatchNorm in a Sequential: fold into its pointwise convolution
     for mod in list(model.modules()):
         if isinstance(mod, nn.Sequential):
             names = list(mod._modules)
@@ -114,10 +113,6 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
     return model
 
 
-def autocast_context(device: torch.device, dtype: torch.dtype | None):
-    return nullcontext() if dtype is None else torch.autocast(device_type=device.type, dtype=dtype)
-
-
 def forward(model: nn.Module, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
     """SR of ``batch`` (tensors on the model's device) with the model's inference settings (``prepare_inference``;
     none: plain call). ``amp`` overrides the prepared precision when given."""
@@ -128,7 +123,7 @@ def forward(model: nn.Module, batch: dict, amp: torch.dtype | None = None) -> to
     fn = settings.get("compiled")
     fn = model if fn is None else fn
     device = next(iter(batch.values())).device
-    with autocast_context(device, dtype):
+    with autocast(device, dtype):
         return fn(batch)
 
 

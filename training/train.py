@@ -20,6 +20,7 @@ Distributed data parallel runs under torchrun (gloo on CPU, NCCL on GPU); only r
 """
 from __future__ import annotations
 
+import logging
 import os
 import random
 import signal
@@ -45,6 +46,7 @@ from training.run import ResolvedRun, manifest_record, refuse_existing, resume_r
 from training.trainer import Dist, Trainer, TrainingError, param_digest, to_device, unwrap
 
 __all__ = ["train", "TrainingError", "param_digest", "open_caches", "make_loader"]
+logger = logging.getLogger(__name__)
 
 
 def make_loader(sampler, step: int, cfg: TrainConfig, device: torch.device):
@@ -83,7 +85,7 @@ def lock_run(run_dir: Path, create: bool) -> FolderLock | None:
 
 
 # ------------------------------------------------------------------------------------------------- set-up
-def init_from(model, cfg: TrainConfig, scale, log) -> None:
+def init_from(model, cfg: TrainConfig, scale) -> None:
     """Fine-tuning: load ``run.init_from``'s weights into ``model`` (ConfigError when they do not fit)."""
     init = load_checkpoint(cfg.run.init_from)
     if model.SCALES is not None and float(init["scale"]) != float(scale):
@@ -94,10 +96,10 @@ def init_from(model, cfg: TrainConfig, scale, log) -> None:
     except RuntimeError as exc:
         raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                           f"with this configuration ({str(exc).splitlines()[0]})") from None
-    log(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
+    logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
 
 
-def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, ck: dict | None, log):
+def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, ck: dict | None):
     """Seeds, model, caches, sampler and Trainer (restored from ``ck`` when resuming); returns (trainer, caches).
     ``cfg`` is the effective configuration."""
     if cfg.run.threads:
@@ -107,7 +109,7 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
     torch.manual_seed(cfg.run.seed)
     model = build_model(cfg.model, run.scale)
     if cfg.run.init_from and ck is None:
-        init_from(model, cfg, run.scale, log)
+        init_from(model, cfg, run.scale)
     model.fast_ops = True  # the non-learned parts with fewer kernels (training.models.fast_ops); same values
     for c, clip in clips.items():
         mismatch = model.remod_filter_mismatch(clip.manifest, c)
@@ -137,11 +139,11 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
 
 # ------------------------------------------------------------------------------------------------- train
 def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool = False,
-          run_overrides: dict | None = None, stop_at: int | None = None, log=print, data: list | None = None) -> dict:
+          run_overrides: dict | None = None, stop_at: int | None = None, data: list | None = None) -> dict:
     """Train ``cfg.model.name`` on ``cfg.data.clips`` into ``run_dir``; returns the summary dict. ``cfg`` is not
     modified. With ``resume`` the checkpoint's configuration is used (``cfg`` may be None; ``data``: clips repeated
     alone; see ``training.run.resume_run``). ``stop_at`` stops after that step as if interrupted (checkpoint
-    written), for tests."""
+    written), for tests. Notes go to ``logging`` (rank 0 only)."""
     run_dir = Path(run_dir)
     last = run_dir / "checkpoints" / "last.pt"
     lock = lock_run(run_dir, create=False) if resume else None
@@ -154,22 +156,22 @@ def train(cfg: TrainConfig | None, run_dir: str | os.PathLike, *, resume: bool =
             cfg, clips, run = start_run(cfg, run_dir, run_overrides)
             lock = lock_run(run_dir, create=True)
             refuse_existing(run_dir)  # again under the lock: nobody wrote a run here meanwhile
-        return _train(cfg, run, clips, run_dir, ck, stop_at, log)
+        return _train(cfg, run, clips, run_dir, ck, stop_at)
     finally:
         if lock is not None:
             lock.close()
 
 
-def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, stop_at, log) -> dict:
+def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, stop_at) -> dict:
     dist = Dist(user.run.device)
     cfg = run.apply(user)
     if dist.main:
         for note in run.notes:
-            log(note)
+            logger.info(note)
         if cfg.run.minutes and cfg.optim.scheduler == "cosine":
-            log(f"note: the cosine schedule decays over {cfg.optim.decay_steps or cfg.run.max_steps} steps "
+            logger.info(f"note: the cosine schedule decays over {cfg.optim.decay_steps or cfg.run.max_steps} steps "
                 f"(optim.decay_steps or run.max_steps) whatever the {cfg.run.minutes:g}-minute budget")
-    trainer, caches = build_trainer(cfg, run, clips, dist, ck, log)
+    trainer, caches = build_trainer(cfg, run, clips, dist, ck)
     record = {"model_name": cfg.model.name, "scale": run.scale, "scales": list(run.scales), "config": cfg.to_dict(),
               "user_config": user.to_dict(), "resolved": run.to_dict(), "data": manifest_record(clips)}
     if dist.main:
@@ -182,7 +184,7 @@ def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, 
         if reason in ("max_steps", "minutes"):
             summary.update(evaluations.evaluate(trainer))
         write_json_atomic(run_dir / "summary.json", summary)
-        log(f"trained {cfg.model.name} to step {trainer.step_no} ({reason}) in {elapsed:.1f} s; "
+        logger.info(f"trained {cfg.model.name} to step {trainer.step_no} ({reason}) in {elapsed:.1f} s; "
             f"checkpoint {checkpoints.last}")
     dist.barrier()
     dist.close()
