@@ -62,8 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default="1920x1080", metavar="WxH", help="HR size of the random inputs")
     parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
     parser.add_argument("--precision", default=None,
-                        help="comma-separated precisions to time: fp32, bf16, fp16, auto (default fp32; with --data "
-                             "one precision, default from --amp)")
+                        help="comma-separated precisions to time: none (float32), bf16, fp16, auto (default none; "
+                             "with --data one precision, default from --amp); tables name the dtype that ran")
     parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "both", "off,on"),
                         metavar="{off,on,both}",
                         help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); both (or off,on): "
@@ -179,7 +179,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     from training.evaluate import evaluate_model
     from training.inference import ClipFrames, load_model, model_inputs
     from training.checkpoint import load_checkpoint
-    from training.device import resolve_device
+    from training.device import dtype_label, resolve_device
 
     scale = _scale_of(clips)
     device = device or resolve_device("auto")
@@ -194,7 +194,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         model = load_model(spec, scale).to(device)
         if precision is not None or compile:
             from training.fastpath import prepare_inference
-            prepare_inference(model, device, precision or "fp32", compile=compile)
+            prepare_inference(model, device, precision or "none", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
                              label=label, progress=progress)
@@ -209,7 +209,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
         nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
         dt = model.__dict__.get("inference", {}).get("dtype") or amp
-        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        key = dtype_label(dt)
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
         row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
@@ -261,7 +261,7 @@ def run(args) -> int:
         from training.models import MODELS
         models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
         speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
-                        precisions=precisions or ["fp32"], compiles=compiles, warmup=args.warmup,
+                        precisions=precisions or ["none"], compiles=compiles, warmup=args.warmup,
                         repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
                         reference=args.eager_reference, progress=not args.no_progress)
         if args.output:
@@ -293,11 +293,11 @@ def _bar(items, desc: str, unit: str, on: bool):
 def _precisions(text: str | None) -> list[str] | None:
     if not text:
         return None
-    from training.fastpath import PRECISIONS  # noqa: F401  (torch is imported by run already)
+    from training.device import PRECISIONS
     out = [p.strip() for p in text.split(",") if p.strip()]
-    bad = [p for p in out if p not in ("fp32", "bf16", "fp16", "auto")]
+    bad = [p for p in out if p not in PRECISIONS]
     if bad or not out:
-        raise BlendSRError(f"--precision {text!r}: comma-separated fp32, bf16, fp16, auto")
+        raise BlendSRError(f"--precision {text!r}: comma-separated {', '.join(PRECISIONS)}")
     return out
 
 
@@ -431,7 +431,7 @@ def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None
 
 
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
-                    precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
+                    precisions=("none",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
                     log=print, progress: bool = False) -> dict:
     """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
@@ -444,7 +444,8 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.config import ModelConfig
     from training.evaluate import describe_device
     from training.export import example_inputs
-    from training.fastpath import channels_last_batch, forward, precision_dtype, prepare_inference
+    from training.device import amp_dtype, dtype_label
+    from training.fastpath import channels_last_batch, forward, prepare_inference
     from training.inference import load_model
     from training.models import build_model
     from training.device import resolve_device
@@ -454,12 +455,12 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     if w % scale or h % scale:
         raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
     variants = ([("fp32 eager reference", None)] if reference else []) + \
-        [(f"{p}{' compiled' if c else ''}", (p, c)) for c in compiles for p in precisions]
+        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}", (p, c))
+         for c in compiles for p in precisions]  # labelled by the dtype that runs ("auto" resolved)
     peaks = {}
     for _, v in variants:
-        p = "fp32" if v is None else v[0]
-        dt = precision_dtype(p, device)
-        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        dt = None if v is None else amp_dtype(v[0], device)
+        key = dtype_label(dt)
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
     timer = _timer(device)
@@ -486,7 +487,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
             b = channels_last_batch(batch) if settings.get("channels_last") else batch
             runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
-                            "key": "fp32" if dt is None else str(dt).replace("torch.", "")})
+                            "key": dtype_label(dt)})
         del base, batch
     with torch.inference_mode():
         for r in runners:

@@ -218,7 +218,7 @@ def cmd_upscale(args) -> int:
     clip = open_clip(args.clip)
     from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)
-    prepare_inference(model, resolve_device(args.device), {"none": "fp32"}.get(args.amp, args.amp),
+    prepare_inference(model, resolve_device(args.device), args.amp,
                       compile=args.compile)
     source = ClipFrames(clip, eps=model.demod_eps)
     frames = _frames(args.frames) or clip.frames

@@ -20,18 +20,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 from gbuffer_export.errors import BlendSRError
-from training.device import autocast
-
-PRECISIONS = ("fp32", "bf16", "fp16", "auto")
-
-
-def precision_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """Autocast dtype of a precision name on ``device`` (None: fp32)."""
-    if precision not in PRECISIONS:
-        raise BlendSRError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
-    from training.device import amp_dtype
-    return amp_dtype({"fp32": "none"}.get(precision, precision), device)
-
+from training.device import amp_dtype, autocast, dtype_label
 
 def _fused(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
     return torch.nn.utils.fusion.fuse_conv_bn_eval(conv, bn)
@@ -83,7 +72,7 @@ def channels_last_batch(batch: dict) -> dict:
     return out
 
 
-def prepare_inference(model: nn.Module, device: torch.device | str | None = None, precision: str = "fp32",
+def prepare_inference(model: nn.Module, device: torch.device | str | None = None, precision: str = "none",
                       compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> nn.Module:
     """Make ``model`` (eval mode) the fast inference model described in the module doc; returns it. Settings are
     kept as ``model.inference`` (dict) and applied by ``forward``. ``precision`` is validated for ``device``."""
@@ -92,7 +81,7 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
         model.to(torch.device(device))
     from training.device import model_device
     dev = model_device(model)
-    dtype = precision_dtype(precision, dev)
+    dtype = amp_dtype(precision, dev)  # training.device.PRECISIONS
     if not hasattr(model, "n_params"):
         model.n_params = sum(p.numel() for p in model.parameters())
     if fast_ops:
@@ -108,7 +97,7 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
         compiled = torch.compile(model, mode=mode, dynamic=False)
     # kept out of the module tree (not a submodule, not in the state dict)
     model.__dict__["inference"] = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
-                                   "precision": "fp32" if dtype is None else str(dtype).replace("torch.", ""),
+                                   "precision": dtype_label(dtype),
                                    "compile": bool(compile), "fast_ops": bool(fast_ops)}
     return model
 
@@ -127,5 +116,4 @@ def forward(model: nn.Module, batch: dict, amp: torch.dtype | None = None) -> to
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "precision_dtype",
-           "PRECISIONS"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch"]
