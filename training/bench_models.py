@@ -202,13 +202,13 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
         inputs = model_inputs(model, src, first[0])
-        row = {"model": label, "params": getattr(model, "n_params", sum(p.numel() for p in model.parameters())),
+        row = {"model": label, "params": model.n_params,
                "macs_per_px": macs_per_pixel(model, inputs, device),
                **{k: m[k] for k in COLUMNS if k in m}}
         # roofline of one frame of these clips (bytes: the model's inputs read once, the output written once)
         hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
         nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
-        dt = model.__dict__.get("inference", {}).get("dtype") or amp
+        dt = model.inference.get("dtype") or amp
         key = dtype_label(dt)
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
@@ -446,7 +446,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.export import example_inputs
     from training.device import amp_dtype, dtype_label
     from training.fastpath import channels_last_batch, forward, prepare_inference
-    from training.inference import load_model
+    from training.inference import InferenceModel, load_model
     from training.models import build_model
     from training.device import resolve_device
 
@@ -468,8 +468,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     for label, spec in _bar(models, "prepare", "model", progress):
         name = label.split(" ")[0]
         if spec == name:
-            base = build_model(ModelConfig(name=name, scale=scale), scale).eval()
-            base.spec, base.demod_eps, base.config = name, 0.01, None
+            base = InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)
         else:
             base = load_model(spec, scale, fast=False)
         n_params = sum(p.numel() for p in base.parameters())
@@ -482,7 +481,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             m = copy.deepcopy(base).to(device)
             if v is not None:
                 prepare_inference(m, device, v[0], compile=v[1])
-            settings = m.__dict__.get("inference", {})
+            settings = m.inference
             dt = settings.get("dtype")
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
             b = channels_last_batch(batch) if settings.get("channels_last") else batch
