@@ -235,3 +235,11 @@ def test_ema_decay_out_of_range_is_refused():
     from gbuffer_export.config import ConfigError
     with pytest.raises(ConfigError, match="optim.ema_decay"):
         load_config(None, ["optim.ema_decay=1.0", "model.name=\"fusesr\""])
+
+
+def test_window_on_a_feed_forward_model_names_every_recurrent_model(clip, tmp_path, capsys):
+    """The list comes from the model classes (recurrent = True), not from a list kept by hand."""
+    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "r"), "--max-steps", "1",
+                 *set_args(SMALL + ["data.window=3"])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "(rdg, rdg-s, nsrd, nsrr-fec, fourier-sr), not 'fusesr'" in err[0], err
