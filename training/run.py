@@ -13,10 +13,10 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from fractions import Fraction
 from pathlib import Path
 
-from gbuffer_export.config import ConfigError
+from gbuffer_export.errors import ConfigError
+from gbuffer_export.conventions import scale_fraction
 from training.config import TrainConfig, config_from_checkpoint
 
 #: Frames per training window of a recurrent model when ``data.window`` is 0.
@@ -127,12 +127,11 @@ def fit_crop(crop: int, levels: dict) -> tuple[int, str | None]:
     A crop below 1, or one that is not a multiple of q at a scale p/q (crops start and end on whole HR pixels),
     is a ConfigError; a crop larger than the smallest LR side shrinks to the largest multiple of every q that fits
     it, with a one-line note."""
-    grid = math.lcm(*(Fraction(float(s)).limit_denominator(64).denominator for s, _ in levels.values()), 1)
+    grid = math.lcm(*(scale_fraction(float(s)).denominator for s, _ in levels.values()), 1)
     if crop < 1:
         raise ConfigError(f"data.crop = {crop}: must be at least 1 (LR pixels)")
     if crop % grid:
-        scales = sorted({float(s) for s, _ in levels.values() if Fraction(float(s)).limit_denominator(64)
-                         .denominator > 1})
+        scales = sorted({float(s) for s, _ in levels.values() if scale_fraction(float(s)).denominator > 1})
         raise ConfigError(f"data.crop = {crop} is not a multiple of {grid}, the LR crop grid of scale(s) "
                           f"{_fmt_scales(scales)}; set data.crop = {max(crop // grid * grid, grid)} or "
                           f"{(crop // grid + 1) * grid}")
