@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gbuffer_export.errors import ConfigError
+from gbuffer_export.config import ConfigError
 from gbuffer_export.conventions import scale_fraction
 from training.config import TrainConfig, config_from_checkpoint
 

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from gbuffer_export.clip import ClipError, write_json_atomic
-from gbuffer_export.errors import ConfigError
+from gbuffer_export.config import ConfigError
 from gbuffer_export.locks import FolderLock
 from training.cache import ClipCache
 from training.checkpoint import inference_weights, load_checkpoint
