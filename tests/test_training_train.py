@@ -243,3 +243,18 @@ def test_window_on_a_feed_forward_model_names_every_recurrent_model(clip, tmp_pa
                  *set_args(SMALL + ["data.window=3"])]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "(rdg, rdg-s, nsrd, nsrr-fec, fourier-sr), not 'fusesr'" in err[0], err
+
+
+def test_the_users_configuration_is_never_rewritten_and_the_resolved_run_round_trips(clip, tmp_path):
+    from training.run import ResolvedRun, open_clips, resolve_run
+    cfg = load_config(None, SMALL + ["model.name=\"fusesr\"", "run.max_steps=1", "data.crop=64"])
+    cfg.data.clips = [str(clip)]
+    before = cfg.to_dict()
+    train(cfg, tmp_path / "run")
+    assert cfg.to_dict() == before  # crop 64, model.scale 0 and remod_filter REFERENCE stay as given
+    run = resolve_run(cfg, open_clips(cfg.data.clips))
+    assert (run.crop, run.scale, run.window, run.remod_filter) == (9, 4, 0, ("BOX", 1.0))
+    ck = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    assert ResolvedRun.from_dict(ck["resolved"]) == run and ck["user_config"] == before
+    other = ResolvedRun.from_dict({**run.to_dict(), "crop": 8})
+    assert other.differs(run) == "crop 9 -> 8" and run.differs(run) is None
