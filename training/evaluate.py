@@ -15,6 +15,8 @@ the means per scale.
 """
 from __future__ import annotations
 
+import logging
+
 import os
 import platform
 import statistics
@@ -33,6 +35,8 @@ from training.flip_worker import FlipRunner
 from training.inference import ClipFrames, model_device, model_inputs, run_model
 from training.recurrent import ClipState, is_recurrent, lead_in, run_step
 
+
+log = logging.getLogger(__name__)
 
 METRIC_KEYS = ("psnr", "ssim", "psnr_hdr", "flip", "tpsnr", "warp_error", "ms_per_frame")
 EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite", "delta_e_itp")
@@ -136,7 +140,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             model.follow_reference_filter(source.clip.manifest)
             mismatch = model.remod_filter_mismatch(source.clip.manifest, clip_path)
             if mismatch:
-                print(f"warning: {mismatch}", file=sys.stderr)  # logging once the CLI configures it (-q/-v)
+                log.warning(f"warning: {mismatch}")
             todo = list((frames or {}).get(str(clip_path)) or source.frames)
             first = model_inputs(model, source, todo[0])
             recurrent = is_recurrent(model)
@@ -167,7 +171,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                     msg = (f"{clip_path} frame {f} (x{s_clip:g}): the model output {bad} non-finite value(s) "
                            "(NaN/Inf), scored as 0; its scores are not the model's")
                     warnings.append(msg)
-                    print(f"warning: {msg}", file=sys.stderr)
+                    log.warning(f"warning: {msg}")
                 row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
                        "sr_nonfinite": bad, **_frame_scores(sr, gt, inputs, runner, delta_e_itp),
                        "regions": _regions(source, f, sr, gt), **_temporal_scores(sr, gt, inputs, f, prev)}
