@@ -457,7 +457,9 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, c: dict, device
             "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
                         "emission_background": "environment" if plan.emit else None,
-                        "hr_fbeta": "footprint" if plan.colors and "fbeta" in cfg.buffers else "point"},
+                        # only when footprint: a point-sampled clip keeps the identity it had before the key
+                        **({"hr_fbeta": "footprint"} if plan.colors and "fbeta" in cfg.buffers
+                           and cfg.hr_fbeta == "footprint" else {})},
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
         },
@@ -589,7 +591,7 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
-    footprint = plan.colors and "fbeta" in cfg.buffers  # 'cycles' F_beta: its colour passes also filtered
+    footprint = plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
     set_passes(ctx.view_layer, PassPlan(colors=footprint))
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
                                filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
