@@ -132,6 +132,13 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
         check_folder(out, default, planned_jobs(default))
     with pytest.raises(SpecError, match="hr_fbeta"):
         spec_with("box")
+    # the job renders what it says, and a job file from before the key renders point-sampled
+    from gbuffer_export.blender.dataset_job import render_config
+    for spec, want in ((point, "point"), (default, "footprint")):
+        assert render_config(planned_jobs(spec)[0], tmp_path / "c").hr_fbeta == want
+    job = planned_jobs(default)[0]
+    old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k != "hr_fbeta"})
+    assert render_config(old_job, tmp_path / "c").hr_fbeta == "point"
 
 
 def test_job_command_with_a_blender_executable(tmp_path):
