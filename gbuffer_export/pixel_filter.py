@@ -89,9 +89,6 @@ def _check(filter_type: str, width_px: float) -> str:
     return ft
 
 
-__all__ = ["FILTERS", "HR_REFERENCE_FILTER", "POINT_FILTER", "support", "evaluate", "weights_1d", "convolve", "reference_filter"]
-
-
 def footprint_fbeta(point: np.ndarray, filtered: np.ndarray, background: np.ndarray, radius: int = 1) -> np.ndarray:
     """HR F_beta matching a pixel-filtered ground truth (H, W, 3 float32).
 
@@ -110,3 +107,7 @@ def footprint_fbeta(point: np.ndarray, filtered: np.ndarray, background: np.ndar
     near = np.any([near[i:i + h, j:j + w] for i in range(2 * radius + 1) for j in range(2 * radius + 1)], axis=0)
     ok = ~near & np.all(np.isfinite(filtered), axis=-1) & (np.all(filtered > 0, axis=-1) | ~np.all(point > 0, axis=-1))
     return np.where(ok[..., None], filtered, point).astype(np.float32)
+
+
+__all__ = ["FILTERS", "HR_REFERENCE_FILTER", "POINT_FILTER", "support", "evaluate", "weights_1d", "convolve",
+           "reference_filter", "footprint_fbeta"]
