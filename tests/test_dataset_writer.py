@@ -108,7 +108,7 @@ def test_planned_jobs_and_check_folder(tmp_path):
 
 def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     """A dataset indexed before the ``hr_fbeta`` render key was rendered point-sampled: the same spec with
-    ``hr_fbeta = "point"`` may extend it, the default (footprint) is a changed spec."""
+    the default spec (``hr_fbeta = "point"``) may extend it, ``footprint`` is a changed spec."""
     def spec_with(hr_fbeta):
         (tmp_path / "scene").mkdir(exist_ok=True)
         (tmp_path / "scene" / "s.blend").write_bytes(b"BLENDER")
@@ -117,8 +117,8 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
                "source": [{"name": "scene", "kind": "scene", "paths": ["scene/s.blend"], "clips_per_scene": 2}]}
         (tmp_path / "spec.toml").write_text(writer.dumps_small(doc))
         return load_spec(tmp_path / "spec.toml")
-    point, default = spec_with("point"), spec_with(None)
-    assert default.sources[0].render.hr_fbeta == "footprint" and point.sources[0].render.hr_fbeta == "point"
+    point, footprint = spec_with(None), spec_with("footprint")
+    assert point.sources[0].render.hr_fbeta == "point" and footprint.sources[0].render.hr_fbeta == "footprint"
     out = tmp_path / "ds"
     jobs = planned_jobs(point)
     (out / "clips" / jobs[0].id).mkdir(parents=True)
@@ -129,14 +129,14 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     (out / INDEX).write_text(json.dumps(index))
     assert check_folder(out, point, jobs)["name"] == "d"
     with pytest.raises(DatasetError, match="rendered from a different spec"):
-        check_folder(out, default, planned_jobs(default))
+        check_folder(out, footprint, planned_jobs(footprint))
     with pytest.raises(SpecError, match="hr_fbeta"):
         spec_with("box")
     # the job renders what it says, and a job file from before the key renders point-sampled
     from gbuffer_export.blender.dataset_job import render_config
-    for spec, want in ((point, "point"), (default, "footprint")):
+    for spec, want in ((point, "point"), (footprint, "footprint")):
         assert render_config(planned_jobs(spec)[0], tmp_path / "c").hr_fbeta == want
-    job = planned_jobs(default)[0]
+    job = planned_jobs(footprint)[0]
     old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k != "hr_fbeta"})
     assert render_config(old_job, tmp_path / "c").hr_fbeta == "point"
 

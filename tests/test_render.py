@@ -206,7 +206,8 @@ def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(blend_dir,
     scene = make_blend("finetex", blend_dir / "finetex.blend")
     out = tmp_path / "finetex"
     run_cli("render", scene, "-o", out, "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64", "--lr-spp",
-            "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--no-progress", check=True)
+            "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--hr-fbeta", "footprint",
+            "--no-progress", check=True)
     clip = open_clip(out)
     for lvl in ("hr", "lr"):
         rad, em, fb = (clip.read(1, f"{lvl}/{b}")[2:-2, 2:-2, :3] for b in ("radiance", "emission", "fbeta"))
