@@ -14,6 +14,7 @@ import argparse
 import datetime
 import hashlib
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -33,6 +34,13 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
         return [script, cmd.read_text().strip()]
     return [script, f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
                     f"--max-steps {steps} --set run.threads=1"]
+
+
+def config_of(run: Path) -> str:
+    """The --config of the run's training command (command.txt), else benchmarks/pretrain.toml."""
+    cmd = run / "command.txt"
+    words = shlex.split(cmd.read_text()) if cmd.is_file() else []
+    return words[words.index("--config") + 1] if "--config" in words else "benchmarks/pretrain.toml"
 
 
 def main(argv=None) -> int:
@@ -88,6 +96,7 @@ def main(argv=None) -> int:
                         "name": index["name"], "train_clips": train, "val_clips": out["val_clips"],
                         "test_clips": out["test_clips"]},
             "commands": commands(a, index, name, run, s["steps"]),
+            "config": config_of(run),
             "scores_on_test_split": {"metric": "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP",
                                      name: s, **baselines},
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),

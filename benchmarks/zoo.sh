@@ -46,7 +46,7 @@ train() {  # MODEL CONFIG [--set ...]: trains RUNS/<model with _>, writes the co
   local run="$RUNS/${model//-/_}" n; n=$(steps "$model")
   local cmd=($B train --model "$model" --data "$DS" -o "$run" --config "$config" --max-steps "$n" "${COMMON[@]}" "$@")
   mkdir -p "$run"
-  printf '%q ' "${cmd[@]}" | sed 's/ $/\n/' > "$run/command.txt"
+  { printf 'blendsr'; printf ' %q' "${cmd[@]:3}"; echo; } > "$run/command.txt"  # $B is 3 words
   local extra=(); [ -f "$run/checkpoints/last.pt" ] && extra+=(--resume)
   [ -n "${MINUTES:-}" ] && extra+=(--minutes "$MINUTES")
   "${cmd[@]}" "${extra[@]}"
@@ -59,7 +59,7 @@ for M in $MODELS; do
     nsrr-fec) train nsrr-fec examples/nsrr_fec_config.toml $(base nsrr-fec) ;;
     fourier-sr) train fourier-sr examples/fourier_sr_config.toml --set optim.lr=5e-4 $(base fourier-sr) ;;
     fusesr-fast) train fusesr-fast examples/train_config.toml --set optim.warmup_steps=0 \
-                   --set model.fusesr-fast.zero_init_refine=true --set optim.decay_steps=8000 ;;
+                   --set model.fusesr-fast.zero_init_refine=true --set optim.decay_steps=20000 ;;
     *) echo "unknown model $M" >&2; exit 2 ;;
   esac
 done
