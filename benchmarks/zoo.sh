@@ -36,7 +36,7 @@ steps() {  # the step count shipped for model $1 (the *_STEPS variables override
   case $1 in
     rdg-s) echo "${RDG_S_STEPS:-2718}" ;;
     nsrd) echo "${NSRD_STEPS:-4302}" ;;
-    nsrr-fec) echo "${NSRR_FEC_STEPS:-991}" ;;
+    nsrr-fec) echo "${NSRR_FEC_STEPS:-862}" ;;
     fourier-sr) echo "${FOURIER_SR_STEPS:-2035}" ;;
     fusesr-fast) echo "${FUSESR_FAST_STEPS:-24455}" ;;
   esac
