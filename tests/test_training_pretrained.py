@@ -150,6 +150,7 @@ def test_installed_weights_match_their_metadata(name):
     scores = meta["scores_on_test_split"]
     assert scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(meta["gain_over_demod_jbu_db"],
                                                                                 abs=1e-3)
+    assert scores[name]["psnr"] >= scores["bicubic"]["psnr"] + 1.0  # issue 28's acceptance, on the test split
     ds = meta["dataset"]
     splits = [set(ds["train_clips"]), set(ds.get("val_clips", [])), set(ds["test_clips"])]
     assert all(not (a & b) for i, a in enumerate(splits) for b in splits[i + 1:]), "a clip in two splits"
