@@ -17,7 +17,8 @@ EVALUATION_BUFFERS: tuple[str, ...] = ("radiance", "motion")
 
 _DEMOD = ("radiance", "emission", "fbeta", "flags")
 
-#: model name -> buffers it reads with its default configuration.
+#: model name -> buffers it reads with its default configuration; ``rdg-s`` and ``nsrr-fec`` also those of their shipped
+#: weights (``pretrained:NAME``: the residual demod-bilinear base reads L_D and remodulates, docs/models/).
 MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "bilinear": ("radiance",),
     "bicubic": ("radiance",),
@@ -27,10 +28,10 @@ MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     "fusesr-l": _DEMOD + ("albedo", "depth", "normal"),
     "fusesr-fast": _DEMOD + ("depth", "normal"),
     "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
-    "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
+    "rdg-s": _DEMOD + ("normal", "depth", "motion"),
     "nsrd": _DEMOD + ("depth", "normal", "motion", "motion_next"),
     "nsrr": ("radiance", "depth", "motion"),
-    "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
+    "nsrr-fec": _DEMOD + ("depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
     "fourier-sr": _DEMOD + ("albedo", "depth", "normal", "motion"),
 }
 
