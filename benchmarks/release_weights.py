@@ -1,12 +1,12 @@
 """Score trained runs and the baselines on a dataset's val and test splits and write the shipped float16 weights.
 
-    .venv/bin/python benchmarks/release_weights.py DATASET RUNS
+    .venv/bin/python benchmarks/release_weights.py DATASET RUNS [--models fusesr,fusesr-l] [--script S]
 
-Expects RUNS/fusesr and RUNS/fusesr_l (``benchmarks/pretrain.sh`` makes them). Writes
-training/weights/{fusesr_x4,fusesr_l_x4}.safetensors and .json (the file's sha256, dataset spec and index digest,
-commands, scores of the
-model and of bicubic, demod-bilinear and demod-jbu on the same test clips, and on the val clips when the dataset has
-a val split: the scenes that choose between trainings, while the test assets only report) and RUNS/release.json.
+Expects RUNS/<model with _ for -> (``benchmarks/pretrain.sh`` makes fusesr and fusesr_l, ``benchmarks/zoo.sh`` the
+seed networks, each with RUNS/<run>/command.txt, the training command). Writes training/weights/<PRETRAINED file>
+(.safetensors and .json: the file's sha256, dataset spec and index digest, commands, scores of the model and of
+bicubic, demod-bilinear and demod-jbu on the same test clips, and on the val clips when the dataset has a val split:
+the scenes that choose between trainings, while the test assets only report) and RUNS/release.json.
 """
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import argparse
 import datetime
 import hashlib
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -21,10 +22,33 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
+def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
+    """The commands that remake the weights of ``name``: the script's, then the training command (the run's
+    command.txt, written by benchmarks/zoo.sh, else benchmarks/pretrain.sh's form)."""
+    cmd = run / "command.txt"
+    if a.script == "benchmarks/pretrain.sh":
+        script = f"SPEC={index['spec']['file']} benchmarks/pretrain.sh {a.dataset} {a.runs}"
+    else:
+        script = f"MODELS={name} {a.script} {a.dataset} {a.runs}"
+    if cmd.is_file():
+        return [script, cmd.read_text().strip()]
+    return [script, f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
+                    f"--max-steps {steps} --set run.threads=1"]
+
+
+def config_of(run: Path) -> str:
+    """The --config of the run's training command (command.txt), else benchmarks/pretrain.toml."""
+    cmd = run / "command.txt"
+    words = shlex.split(cmd.read_text()) if cmd.is_file() else []
+    return words[words.index("--config") + 1] if "--config" in words else "benchmarks/pretrain.toml"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("runs", type=Path)
+    p.add_argument("--models", default="fusesr,fusesr-l", help="comma-separated names of PRETRAINED")
+    p.add_argument("--script", default="benchmarks/pretrain.sh", help="the script that made RUNS (for the JSON)")
     a = p.parse_args(argv)
 
     from gbuffer_export.clip import write_json_atomic
@@ -55,7 +79,11 @@ def main(argv=None) -> int:
     out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
            "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
            "baselines": baselines, "val_baselines": val_baselines, "models": {}}
-    for name, file in PRETRAINED.items():
+    for name in a.models.split(","):
+        if name not in PRETRAINED:
+            print(f"--models: {name!r} is not in training.pretrained.PRETRAINED", file=sys.stderr)
+            return 2
+        file = PRETRAINED[name]
         run = a.runs / name.replace("-", "_")
         ck = run / "checkpoints" / "last.pt"
         if not ck.is_file():
@@ -67,10 +95,8 @@ def main(argv=None) -> int:
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
                         "name": index["name"], "train_clips": train, "val_clips": out["val_clips"],
                         "test_clips": out["test_clips"]},
-            "commands": [f"SPEC={index['spec']['file']} benchmarks/pretrain.sh {a.dataset} {a.runs}",
-                         f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
-                         f"--max-steps {s['steps']} --set run.threads=1"],
-            "config": "benchmarks/pretrain.toml",
+            "commands": commands(a, index, name, run, s["steps"]),
+            "config": config_of(run),
             "scores_on_test_split": {"metric": "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP",
                                      name: s, **baselines},
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),

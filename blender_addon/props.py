@@ -27,13 +27,24 @@ FBETA_ITEMS = (
     ("lut-paper", "Papers' table", "The papers' literal table convention"),
     ("model", "Model", "A model of Cycles' Principled BSDF"),
 )
-#: Models the preview runs when no checkpoint is chosen: the weights shipped with blendsr (training/pretrained.py,
-#: trained on the examples/dataset_small.toml dataset) and the non-learned models of training.models.MODELS.
+#: Models the preview runs when no checkpoint is chosen: the weights shipped with blendsr (training/pretrained.py;
+#: their datasets in training/weights/*.json) and the non-learned models of training.models.MODELS.
 PREVIEW_MODEL_ITEMS = (
     ("pretrained:fusesr-l", "FuseSR-l (pretrained)",
      "FuseSR-l with the weights shipped in blendsr (trained on a BlendSR dataset; see training/weights/*.json)"),
     ("pretrained:fusesr", "FuseSR (pretrained)",
      "FuseSR with the weights shipped in blendsr (two history frames; slower than FuseSR-l)"),
+    ("pretrained:fusesr-fast", "FuseSR-fast (pretrained)",
+     "FuseSR-fast with the weights shipped in blendsr (68 K parameters; the fastest network)"),
+    ("pretrained:rdg-s", "RDG-s (pretrained)",
+     "RDG-s (recurrent, LR G-buffer guidance) with the weights shipped in blendsr; runs the clip from its start"),
+    ("pretrained:nsrd", "NSRD (pretrained)",
+     "NSRD (recurrent, demodulated irradiance) with the weights shipped in blendsr; runs the clip from its start"),
+    ("pretrained:nsrr-fec", "NSRR-fec (pretrained)",
+     "NSRR with feature caching (recurrent) with the weights shipped in blendsr; runs the clip from its start"),
+    ("pretrained:fourier-sr", "Fourier-SR (pretrained)",
+     "Fourier arbitrary-scale SR (recurrent) with the weights shipped in blendsr, trained at 4x; runs the clip from "
+     "its start"),
     ("demod-bilinear", "Demodulated bilinear",
      "Bilinear upsampling of LR demodulated irradiance, remodulated with HR F_beta and emission"),
     ("demod-jbu", "Demodulated joint bilateral",

@@ -145,6 +145,7 @@ def test_register_unregister_twice_and_defaults():
     from training.pretrained import PREFIX, PRETRAINED
     for m in r["enums"]["preview_model"]:  # shipped weights, or non-learned models
         assert (m.startswith(PREFIX) and m[len(PREFIX):] in PRETRAINED) or (m in MODELS and not MODELS[m].learned), m
+    assert {PREFIX + n for n in PRETRAINED} <= set(r["enums"]["preview_model"])  # every shipped network is offered
 
 
 def test_mapping_equals_cli_config(tmp_path):

@@ -71,7 +71,8 @@ def test_per_model_tables_from_toml_and_set_round_trip_through_the_saved_form(tm
     again = load_config(back)
     assert again.to_dict() == cfg.to_dict() and not again.notes
     assert config_from_checkpoint(cfg.to_dict()).to_dict() == cfg.to_dict()  # new-form checkpoints load as saved
-    with pytest.raises(ConfigError, match=r"unknown key model.rdg.width_px \(known: width, demod, gbuffers\)"):
+    with pytest.raises(ConfigError, match=r"unknown key model.rdg.width_px \(known: width, demod, gbuffers, "
+                                          r"residual, zero_init_head\)"):
         load_config(p, ["model.rdg.width_px=3"])
     with pytest.raises(ConfigError, match=r"model.rdg.gbuffers item 'albedo'"):
         load_config(p, ['model.rdg.gbuffers=["albedo"]'])

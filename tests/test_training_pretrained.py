@@ -152,9 +152,31 @@ def test_installed_weights_match_their_metadata(name):
     scores = meta["scores_on_test_split"]
     assert scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(meta["gain_over_demod_jbu_db"],
                                                                                 abs=1e-3)
+    assert scores[name]["psnr"] >= scores["bicubic"]["psnr"] + 1.0  # issue 28's acceptance, on the test split
     ds = meta["dataset"]
     splits = [set(ds["train_clips"]), set(ds.get("val_clips", [])), set(ds["test_clips"])]
     assert all(not (a & b) for i, a in enumerate(splits) for b in splits[i + 1:]), "a clip in two splits"
     if ds.get("val_clips"):
         val = meta["scores_on_val_split"]
         assert set(val[name]["per_clip"]) == set(ds["val_clips"]) == set(val["demod-jbu"]["per_clip"])
+
+
+@pytest.mark.parametrize("name", list(pretrained.PRETRAINED))
+def test_every_consumer_takes_each_shipped_network(name, tmp_path):
+    """``pretrained:NAME`` in evaluate, upscale, export --onnx (onnxruntime matches torch) and bench models, on a tiny
+    jittered synthetic clip with every buffer (recurrent networks carry their state through its frames)."""
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).is_file():
+        pytest.skip(f"{name} not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4, jitter=True)
+    spec = f"pretrained:{name}"
+    assert main(["evaluate", "--checkpoint", spec, "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 0
+    assert np.isfinite(json.loads((tmp_path / "e.json").read_text())["mean"]["psnr"])
+    assert main(["upscale", "--checkpoint", spec, "--clip", str(clip), "-o", str(tmp_path / "up"),
+                 "--no-progress"]) == 0
+    assert len(list((tmp_path / "up").glob("*.exr"))) == 3
+    assert main(["export", "--checkpoint", spec, "--onnx", str(tmp_path / "m.onnx"), "--clip", str(clip)]) == 0
+    assert json.loads((tmp_path / "m.onnx.json").read_text())["match"]
+    assert main(["bench", "models", "--data", str(clip), "--models", spec, "--threads", "1", "--no-progress",
+                 "-o", str(tmp_path / "bench")]) == 0
+    rows = json.loads((tmp_path / "bench" / "bench_models.json").read_text())
+    assert name in json.dumps(rows)

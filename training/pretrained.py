@@ -4,7 +4,8 @@
 configuration, scale, step; no optimiser state, no pickle: loading cannot run code), and ``<file>.json`` beside it the
 file's sha256 (checked on every load), the dataset spec, the commands that made it and its scores. Anywhere a
 checkpoint path is accepted (``evaluate``, ``upscale``, ``export``, ``bench models``, ``make demo``, the add-on),
-``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes them (``training.release.release`` writes a
+``pretrained:NAME`` names one of them. ``benchmarks/pretrain.sh`` remakes fusesr and fusesr-l, ``benchmarks/zoo.sh``
+the seed networks (``training.release.release`` writes a
 file). This module imports nothing of the trainer: the checkpoint loader resolves names through it.
 """
 from __future__ import annotations
@@ -19,6 +20,11 @@ PREFIX = "pretrained:"
 PRETRAINED: dict[str, str] = {
     "fusesr": "fusesr_x4.safetensors",
     "fusesr-l": "fusesr_l_x4.safetensors",
+    "rdg-s": "rdg_s_x4.safetensors",
+    "nsrd": "nsrd_x4.safetensors",
+    "nsrr-fec": "nsrr_fec_x4.safetensors",
+    "fourier-sr": "fourier_sr_x4.safetensors",
+    "fusesr-fast": "fusesr_fast_x4.safetensors",
 }
 MAX_BYTES = 10 * 1024 * 1024
 

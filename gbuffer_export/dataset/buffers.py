@@ -22,7 +22,8 @@ EVALUATION_BUFFERS: tuple[str, ...] = ("radiance", "motion")
 #: The table, written by ``python -m training.models.buffer_table`` from every model's ``needs()``.
 TABLE_PATH = Path(__file__).resolve().parent / "model_buffers.json"
 
-#: model name -> buffers it reads with its default configuration.
+#: model name -> buffers it reads with its default configuration and with its shipped weights' (``pretrained:NAME``:
+#: e.g. the residual demod-bilinear base of ``rdg-s`` and ``nsrr-fec`` reads L_D and remodulates, docs/models/).
 MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
     name: tuple(bufs) for name, bufs in json.loads(TABLE_PATH.read_text(encoding="utf-8"))["models"].items()}
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 from gbuffer_export.errors import BlendSRError
 from training.models.options import (DemodJBUOptions, FourierSROptions, FuseSRFastOptions, FuseSRLightOptions,
-                                     FuseSROptions, NoOptions, NSRDOptions, RDGOptions, RDGSmallOptions)
+                                     FuseSROptions, NoOptions, NSRDOptions, NSRROptions, RDGOptions,
+                                     RDGSmallOptions)
 
 
 @dataclass(frozen=True)
@@ -62,10 +63,11 @@ MODELS: dict[str, ModelInfo] = {
                              FuseSRFastOptions),
     "nsrr": ModelInfo("training.models.nsrr_fec", "NSRR", True,
                       "NSRR (Xiao et al. 2020): LR RGB-D features zero-upsampled at the jittered sample positions, "
-                      "4 history frames warped at HR and reweighted, HR U-Net (535 K params)"),
+                      "4 history frames warped at HR and reweighted, HR U-Net (535 K params)", NSRROptions),
     "nsrr-fec": ModelInfo("training.models.nsrr_fec", "NSRRFEC", True,
                           "NSRR with feature enhancement and caching (Zhong et al. 2023): Y'CbCr features cached "
-                          "as the recurrent state (4 HR maps, each warped once per frame), HR G-buffer features"),
+                          "as the recurrent state (4 HR maps, each warped once per frame), HR G-buffer features",
+                          NSRROptions),
     "fourier-sr": ModelInfo("training.models.fourier_sr", "FourierSR", True,
                             "Fourier arbitrary-scale SR (Zhang et al. 2024): one network for any scale; HR G-buffer "
                             "frequencies x LR amplitudes (HFFM), recurrent temporal branch with soft masks (532 K)",

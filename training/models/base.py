@@ -16,7 +16,7 @@ from gbuffer_export.errors import BlendSRError
 from training.models import OPTIONAL_KEYS
 from training.models.guided import GUIDE_KEYS, guide_features, upsample_guided
 from training.models.resample import upsample  # noqa: F401  (re-exported: models import it from here)
-from training.transforms import normalize_depth
+from training.transforms import forward_transform, normalize_depth
 
 
 class SRModel(nn.Module):
@@ -106,12 +106,13 @@ class SRModel(nn.Module):
         return out if self.remod_kernel is None else separable_filter(out, self.remod_kernel)
 
     def upsample_input(self, x: torch.Tensor, batch: dict, jitter: torch.Tensor | None,
-                       demodulated: bool = True) -> torch.Tensor:
-        """Upsampling of an LR input image (B, C, h, w) to HR, the base the models start from: bilinear, by class
-        (``upsample_by_class``) for a ``demodulated`` L_D with ``model.upsample_by_class``, and with ``self.guided``
-        (the option ``guided_upsample`` of models that read the HR G-buffers) joint bilateral upsampling guided by
-        HR depth and normals (``guided.upsample_guided``, tolerances ``guide_sigmas``) over that. Reads
-        ``upsample_keys(demodulated)``."""
+                       demodulated: bool = True, scale: float | None = None) -> torch.Tensor:
+        """Upsampling of an LR input image (B, C, h, w) to HR by ``scale`` (default ``self.scale``), the base the
+        models start from: bilinear, by class (``upsample_by_class``) for a ``demodulated`` L_D with
+        ``model.upsample_by_class``, and with ``self.guided`` (the option ``guided_upsample`` of models that read
+        the HR G-buffers) joint bilateral upsampling guided by HR depth and normals (``guided.upsample_guided``,
+        tolerances ``guide_sigmas``) over that. Reads ``upsample_keys(demodulated)``."""
+        scale = self.scale if scale is None else scale
         if self.fast_ops:
             from training.models import fast_ops
             by_class, bilinear, guided = fast_ops.upsample_by_class, fast_ops.upsample_bilinear, \
@@ -123,14 +124,27 @@ class SRModel(nn.Module):
         if demodulated and self.by_class:
             classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
                        demodulated_mask(current(batch, "hr/fbeta_used")))
-            base = by_class(x, *classes, self.scale, jitter)
+            base = by_class(x, *classes, scale, jitter)
         else:
-            base = bilinear(x, self.scale, jitter)
+            base = bilinear(x, scale, jitter)
         if not self.guided:
             return base
         guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
                   for lv in ("lr", "hr")]
-        return guided(x, *guides, self.scale, base, jitter, *(classes or (None, None)))
+        return guided(x, *guides, scale, base, jitter, *(classes or (None, None)))
+
+    def demod_base(self, batch: dict, jitter: torch.Tensor | None, scale: float | None = None) -> torch.Tensor:
+        """The residual base of the option ``residual`` (``options.ResidualOptions``; not in the papers): T(L_D^LR
+        upsampled as ``demod-bilinear`` does) (B, 3, H, W), T = ``self.transform``; the network's output T(L_D^HR)
+        is added to it before T^-1 and the remodulation, so a network whose last conv is zero (``zero_init_head``)
+        outputs exactly ``demod-bilinear``. Reads ``lr/irradiance`` and ``upsample_keys()``; ``scale`` as
+        ``upsample_input``'s."""
+        base = self.upsample_input(current(batch, "lr/irradiance"), batch, jitter, scale=scale)
+        return forward_transform(base, self.transform)
+
+    def base_keys(self) -> tuple[str, ...]:
+        """Batch keys ``demod_base`` reads."""
+        return ("lr/irradiance",) + self.upsample_keys()
 
     def upsample_keys(self, demodulated: bool = True) -> tuple[str, ...]:
         """Batch keys ``upsample_input`` reads."""
@@ -230,6 +244,13 @@ def backward_warp(x: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, 
 
 def conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, k, padding=k // 2)
+
+
+def zero_init(layer: nn.Conv2d) -> None:
+    """Weights and bias of ``layer`` to 0 (``zero_init_head``: a fresh network outputs its residual base)."""
+    nn.init.zeros_(layer.weight)
+    if layer.bias is not None:
+        nn.init.zeros_(layer.bias)
 
 
 class DWSConv(nn.Module):

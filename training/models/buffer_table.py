@@ -2,7 +2,7 @@
 
 ``blendsr dataset/render --for-models`` must work without torch, so the core reads the table from
 ``gbuffer_export/dataset/model_buffers.json``; this module writes that file from the models themselves (each with
-its default configuration), and ``tests/test_dataset.py`` fails when the file is stale. After adding a model or
+its default configuration and, when shipped, its ``pretrained:NAME`` weights' configuration), and ``tests/test_dataset.py`` fails when the file is stale. After adding a model or
 changing what one reads: ``python -m training.models.buffer_table``.
 """
 from __future__ import annotations
@@ -15,12 +15,18 @@ from gbuffer_export.dataset.buffers import TABLE_PATH, buffers_of_keys
 
 
 def model_buffer_table() -> dict[str, list[str]]:
-    """model name (in ``MODELS`` order) -> the clip buffers its default configuration reads, in canonical order."""
+    """model name (in ``MODELS`` order) -> the clip buffers its default configuration reads, and those its shipped
+    weights' configuration reads (``pretrained:NAME``, when shipped), in canonical order."""
     from training.config import ModelConfig
+    from training.inference import load_model
     from training.models import MODELS, build_model
+    from training.pretrained import PREFIX, PRETRAINED
     table = {}
     for name in MODELS:
-        need = buffers_of_keys(build_model(ModelConfig(name=name, scale=4), 4).needs())
+        keys = set(build_model(ModelConfig(name=name, scale=4), 4).needs())
+        if name in PRETRAINED:
+            keys |= set(load_model(PREFIX + name, 4).module.needs())
+        need = buffers_of_keys(keys)
         table[name] = [b for b in ALL_BUFFERS if b in need]
     return table
 

@@ -39,6 +39,11 @@ Network (channel counts from the authors' code; 531,883 parameters at any scale)
 - SR = K * (T^-1(.) F_used^HR + E^HR) (``SRModel.remodulate``: point-sampled HR G-buffers, the ground truth's
   pixel filter K). The state keeps T(L_D^HR), never the remodulated radiance.
 
+Deviation (``[model.fourier-sr]`` ``residual``, default off = the paper): T(L_D^HR) is the network's output plus
+T(demod-bilinear's upsampling of L_D) at the clip's scale (``SRModel.demod_base``, any scale), so the network learns a
+correction of ``demod-bilinear``; the state keeps the sum. ``zero_init_head`` starts the last 3x3 conv at 0, so a
+fresh network is exactly that baseline (docs/models/fourier_sr.md, "Base").
+
 Recurrent interface (``training.recurrent``): ``step(batch, state, reset=None) -> (SR, state)`` on the last frame of
 ``batch``; ``forward(batch)`` runs every frame of the batch from a reset state and returns the last SR. The scale is
 ``batch["scale"]`` (B,) when the batch has it, else the HR / LR width ratio.
@@ -52,7 +57,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models.options import FourierSROptions
-from training.models.base import SRModel, backward_warp, conv, current, depth_features
+from training.models.base import SRModel, backward_warp, conv, current, depth_features, zero_init
 from training.transforms import forward_transform, inverse_transform
 
 LR_CHANNELS = (32, 48, 48, 64)   # LR extractor widths after the 3-channel input
@@ -185,11 +190,16 @@ class FourierSR(SRModel):
                                  nn.Conv2d(MLP_WIDTH, 12, 1))
         self.hf_conv = conv(12, 12)
         self.last = conv(3, 3)
+        self.residual = bool(self.opts.residual)
+        if self.opts.zero_init_head:  # a fresh network outputs its residual base: demod-bilinear (module doc)
+            zero_init(self.last)
 
     # ------------------------------------------------------------------ inputs
     def needs(self):
         keys = ["lr/irradiance", "lr/depth", "lr/normal", "lr/albedo", "depth_ref",
                 "hr/depth", "hr/normal", "hr/albedo", "hr/motion", "hr/fbeta_used", "hr/emission"]
+        if self.residual:
+            keys += [k for k in self.base_keys() if k not in keys]
         return tuple(keys) + self.jitter_keys()
 
     @staticmethod
@@ -269,6 +279,9 @@ class FourierSR(SRModel):
         low = self.fusion(torch.cat([sample_lr(lr_low, qx, qy, "bilinear"), temporal, hr_low], dim=1))
         high = self.hffm(amp, freq_feat, qx, qy, scale)
         y = self.last(F.pixel_shuffle(high + low, 2))[:, :, :big_h, :big_w]
+        if self.residual:  # a correction of T(demod-bilinear's upsampled L_D) at this scale (module doc)
+            base = self.demod_base(batch, self.frame_jitter(batch), scale=big_w / w)
+            y = y + base[:, :, :big_h, :big_w].to(y.dtype)
         out = self.remodulate(inverse_transform(y.float(), self.transform), batch)
         return out, [y, hr_g]
 

@@ -43,7 +43,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import SRModel, backward_warp, current, depth_features, history_offsets
+from training.models.base import SRModel, backward_warp, current, depth_features, history_offsets, zero_init
 from training.models.resample import upsample
 from training.transforms import forward_transform, inverse_transform
 
@@ -153,12 +153,11 @@ class NSRD(SRModel):
         opt = cfg.options
         self.residual = bool(opt.residual)
         if opt.zero_init_head:  # a fresh network outputs its residual base: demod-bilinear (module doc)
-            nn.init.zeros_(self.head[-1].weight)
-            nn.init.zeros_(self.head[-1].bias)
+            zero_init(self.head[-1])
 
     def needs(self):
         keys = ("lr/irradiance", "lr/normal", "lr/depth", "depth_ref", "lr/motion", "lr/motion_next",
-                "hr/fbeta_used", "hr/emission") + (self.upsample_keys() if self.residual else ())
+                "hr/fbeta_used", "hr/emission") + (self.base_keys() if self.residual else ())
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def state_shapes(self, lr_h: int, lr_w: int, batch: int = 1) -> list[tuple[int, ...]]:
@@ -227,8 +226,7 @@ class NSRD(SRModel):
         hid, cell = self.lstm(feats, hid, cell)
         y = F.pixel_shuffle(self.head(self.unet(hid)[:, :, :h, :w]), self.scale)
         if self.residual:  # a correction of T(demod-bilinear's upsampled L_D); not in the paper (module doc)
-            base = self.upsample_input(current(batch, "lr/irradiance"), batch, jt)
-            y = y + forward_transform(base, self.transform).to(y.dtype)
+            y = y + self.demod_base(batch, jt).to(y.dtype)
         out = self.remodulate(inverse_transform(y.float(), self.transform), batch)
         new_state = [hid, cell, y, x, x1, motion, motion_next, new_mask, j, j1, torch.ones_like(seen)]
         return out, new_state

@@ -34,6 +34,12 @@ reweights and reconstructs, then caches [current, the newest history - 1 warped 
 current features stand in for the whole history. Enhancement: HR G-buffers [albedo 3, metallic 1, normal 3,
 roughness 1, specular 1] go through a feature extractor of the same structure (9 -> 32 -> 32 -> 8, concatenated with
 the input: 17 channels) into the reconstruction input.
+
+Deviation (``[model.nsrr]`` / ``[model.nsrr-fec]`` ``residual``, default off = the paper): the U-Net's output (after
+Y'CbCr -> RGB) is added to T(demod-bilinear's upsampling of L_D) (``SRModel.demod_base``) and the sum, T(L_D^HR), is
+inverted and remodulated with HR F_beta and emission, so the network learns a correction of ``demod-bilinear``; the
+inputs stay the paper's. ``zero_init_head`` starts the U-Net's last conv at 0, so a fresh network is exactly that
+baseline (docs/models/nsrr_fec.md, "Base").
 """
 from __future__ import annotations
 
@@ -44,7 +50,8 @@ import torch.nn.functional as F
 
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.colour_spaces import RGB_TO_YCBCR_709, YCBCR_TO_RGB_709
-from training.models.base import SRModel, backward_warp, current, depth_features, frame, jitter, upsample
+from training.models.base import (SRModel, backward_warp, current, depth_features, frame, jitter, upsample,
+                                  zero_init)
 from training.transforms import forward_transform, inverse_transform
 
 HISTORY = 4                      # previous frames (NSRR: 4)
@@ -173,12 +180,18 @@ class NSRR(SRModel):
             self.gbuffer_features = FeatureExtractor(sum(c for _, c in GBUFFERS))
             cin += self.gbuffer_features.out_channels
         self.unet = UNet(cin)
+        opt = cfg.options
+        self.residual = self.demod = bool(getattr(opt, "residual", False))
+        if getattr(opt, "zero_init_head", False):  # a fresh network outputs its residual base (module doc)
+            zero_init(self.unet.out)
 
     def needs(self):
         keys = ("lr/radiance", "lr/depth", "depth_ref", "lr/motion")
         if self.enhanced:
             keys += tuple(f"hr/{name}" for name, _ in GBUFFERS)
-        return keys + self.jitter_keys()
+        if self.residual:
+            keys += self.base_keys() + ("hr/fbeta_used", "hr/emission")
+        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     # ------------------------------------------------------------------ pieces
     def rgbd(self, batch: dict, back: int, ycbcr: bool) -> torch.Tensor:
@@ -203,7 +216,8 @@ class NSRR(SRModel):
         return torch.cat([current(batch, f"hr/{name}").to(dtype) for name, _ in GBUFFERS], dim=1)
 
     def reconstruct(self, cur: torch.Tensor, prev: list[torch.Tensor], batch: dict) -> torch.Tensor:
-        """HR radiance (B, 3, H, W) from the current and the warped previous features (B, 12, H, W) each."""
+        """HR radiance (B, 3, H, W) from the current and the warped previous features (B, 12, H, W) each. With
+        ``residual`` the U-Net's output (in RGB) is T(L_D^HR) - the base, remodulated (module doc)."""
         w = self.reweight(torch.cat([cur[:, -4:]] + [p[:, -4:] for p in prev], dim=1))
         parts = [cur] + [p * w[:, i:i + 1] for i, p in enumerate(prev)]
         if self.enhanced:
@@ -213,8 +227,11 @@ class NSRR(SRModel):
         ph, pw = (-h) % PAD, (-wd) % PAD
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph))
-        y = self.unet(x)[:, :, :h, :wd]
-        return inverse_transform(apply_matrix(y.float(), self.to_rgb), self.transform)
+        y = apply_matrix(self.unet(x)[:, :, :h, :wd].float(), self.to_rgb)
+        if not self.residual:
+            return inverse_transform(y, self.transform)
+        y = y + self.demod_base(batch, self.frame_jitter(batch)).float()
+        return self.remodulate(inverse_transform(y, self.transform), batch)
 
     # ------------------------------------------------------------------ forward
     def forward(self, batch):

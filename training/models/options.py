@@ -90,29 +90,53 @@ class FuseSRLightOptions(FuseSROptions):
 
 
 @dataclass
-class NSRDOptions:
-    """``nsrd``: deviations from the authors' head (docs/models/nsrd.md, "Base"); both off is the authors' network."""
+class ResidualOptions:
+    """The residual base (not in the papers; docs/models/nsrd.md, "Base"): both off is the authors' network. With
+    ``residual`` the network's output T(L_D^HR) is added to T(demod-bilinear's upsampling of L_D) and remodulated
+    (``SRModel.demod_base``), so the network learns a correction of ``demod-bilinear``."""
 
     residual: bool = False           # add T(demod-bilinear L_D) to the head's output: the network learns a correction
     zero_init_head: bool = False     # with residual: the last conv starts at 0, so a fresh network is demod-bilinear
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
-        if self.zero_init_head and not self.residual:
-            raise ConfigError(f"{where}.zero_init_head needs {where}.residual = true (it starts at the residual base)")
+        check_residual(self, where)
+
+
+def check_residual(opts, where: str) -> None:
+    """ConfigError for ``zero_init_head`` without ``residual`` (the fields of ``ResidualOptions``)."""
+    if opts.zero_init_head and not opts.residual:
+        raise ConfigError(f"{where}.zero_init_head needs {where}.residual = true (it starts at the residual base)")
+
+
+@dataclass
+class NSRDOptions(ResidualOptions):
+    """``nsrd``: deviations from the authors' head (docs/models/nsrd.md, "Base"); both off is the authors' network."""
+
+
+@dataclass
+class NSRROptions(ResidualOptions):
+    """``nsrr``, ``nsrr-fec``: the residual base (docs/models/nsrr_fec.md, "Base"); off is the paper's network. With
+    ``residual`` the output is T(L_D^HR), remodulated with HR F_beta and emission, instead of T(radiance)."""
 
 
 @dataclass
 class RDGOptions:
-    """``rdg``: width and the inputs of the ablations."""
+    """``rdg``: width, the inputs of the ablations and the residual base (docs/models/rdg.md, "Base"; needs
+    ``demod``)."""
 
     width: int = _width(36)          # C, the channels of the first level (2C and 3C below)
     demod: bool = False              # L_D in, remodulated with HR F_beta and emission (off: radiance, the paper)
     gbuffers: list[str] = option(factory=lambda: list(RDG_GBUFFERS), items=RDG_GBUFFERS, unique=True)
     # the G-buffers read; the others are zeros
+    residual: bool = False           # ResidualOptions' two keys (with demod): a correction of demod-bilinear
+    zero_init_head: bool = False
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
+        check_residual(self, where)
+        if self.residual and not self.demod:
+            raise ConfigError(f"{where}.residual needs {where}.demod = true (the base is the demodulated L_D)")
 
 
 @dataclass
@@ -124,11 +148,15 @@ class RDGSmallOptions(RDGOptions):
 
 @dataclass
 class FourierSROptions:
-    """``fourier-sr``: the thresholds of the spatial mask (Eq. 3-6; the authors' code's values)."""
+    """``fourier-sr``: the thresholds of the spatial mask (Eq. 3-6; the authors' code's values) and the residual
+    base at any scale (docs/models/fourier_sr.md, "Base")."""
 
     mask_depth: float = option(0.01, lo=0, lo_open=True, hi=1)   # |D - Up(d)| above it, normalised depth in [0, 1]
     mask_albedo: float = option(0.1, lo=0, lo_open=True, hi=1)   # mean over RGB of |A - Up(a)| above it
     mask_normal: float = option(0.9, lo=0, lo_open=True, hi=1)   # cosine between N and the normalised Up(n) below it
+    residual: bool = False           # ResidualOptions' two keys: a correction of demod-bilinear at the clip's scale
+    zero_init_head: bool = False
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
+        check_residual(self, where)

@@ -44,7 +44,10 @@ Deviations from the authors' code (docs/training.md, "RDG"):
   irradiance, and the output is remodulated with HR F_beta and emission (``SRModel.remodulate``), which makes the
   network read those two HR buffers;
 - the option ``gbuffers`` (default all of normal, brdf, depth, motion) lists the G-buffers read; a removed one is
-  fed as zeros (the layers stay, as in the paper's ablations, whose parameter counts do not change).
+  fed as zeros (the layers stay, as in the paper's ablations, whose parameter counts do not change);
+- the option ``residual`` (with ``demod``; default off): the head's output is added to T(demod-bilinear's upsampling
+  of L_D) (``SRModel.demod_base``), so the network learns a correction of ``demod-bilinear``; ``zero_init_head``
+  starts the head at 0, so a fresh network is exactly that baseline (docs/models/rdg.md, "Base").
 
 Recurrent interface (``training.recurrent``): ``step(batch, state, reset=None) -> (SR, state)`` on the last frame of
 ``batch``; ``forward(batch)`` runs every frame of the batch from a reset state and returns the last SR.
@@ -55,7 +58,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import SRModel, backward_warp, current, depth_features
+from training.models.base import SRModel, backward_warp, current, depth_features, zero_init
 from training.models.options import RDG_GBUFFERS as GBUFFERS  # the G-buffers RDG can read
 from training.transforms import forward_transform, inverse_transform
 
@@ -249,6 +252,9 @@ class RDG(SRModel):
                                              nn.Parameter(torch.zeros(1, c, 1, 1))])
         self.decoders = nn.ModuleList([DecodeLayer(2 * c), DecodeLayer(c)])
         self.head = nn.Conv2d(c, 3 * self.scale * self.scale, 3, padding=1)
+        self.residual = bool(opt.residual)
+        if opt.zero_init_head:  # a fresh network outputs its residual base: demod-bilinear (module doc)
+            zero_init(self.head)
 
     # ------------------------------------------------------------------ inputs
     def needs(self):
@@ -259,6 +265,8 @@ class RDG(SRModel):
                 keys += ks
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
+        if self.residual:
+            keys += [k for k in self.base_keys() if k not in keys]
         return tuple(keys) + self.jitter_keys()
 
     def state_shapes(self, lr_h: int, lr_w: int, batch: int = 1) -> list[tuple[int, ...]]:
@@ -321,6 +329,8 @@ class RDG(SRModel):
             new_state.append(x)
         x = x + res
         y = F.pixel_shuffle(self.head(x[:, :, :h, :w]), self.scale)
+        if self.residual:  # a correction of T(demod-bilinear's upsampled L_D); not in the paper (module doc)
+            y = y + self.demod_base(batch, self.frame_jitter(batch)).to(y.dtype)
         out = inverse_transform(y.float(), self.transform)
         if self.demod:
             out = self.remodulate(out, batch)
