@@ -75,7 +75,7 @@ def main(argv=None) -> int:
         if done.is_file() and json.loads(done.read_text()).get("step") == a.steps:
             summary = json.loads(done.read_text())  # finished earlier: score it only
         else:
-            summary = train(cfg, run, resume=ck.is_file(), log=lambda m: print(m, file=sys.stderr))
+            summary = train(cfg, run, resume=ck.is_file())
         rows.append({"model": a.model, "clips": n, "steps": summary["step"], "train_clips": [c.name for c in
                                                                                            train_clips[:n]],
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), **score(str(ck))})

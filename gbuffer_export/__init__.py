@@ -4,8 +4,18 @@
 ``gbuffer_export.colour_spaces``); bpy is imported only by ``gbuffer_export.blender`` and torch only by the
 ``training`` package.
 """
-from .clip import Clip, ClipError, ClipWriter, open_clip
-from .conventions import BUFFERS, DEFAULT_BUFFERS, Flag
+import importlib
 
 __version__ = "0.1.0"
 __all__ = ["open_clip", "Clip", "ClipError", "ClipWriter", "BUFFERS", "DEFAULT_BUFFERS", "Flag", "__version__"]
+
+#: the package's names, imported when first used: ``import gbuffer_export.cli`` loads neither numpy nor OpenEXR, so
+#: ``blendsr`` sets its Ctrl-C handling before anything slow is imported (``gbuffer_export.cli``).
+_LAZY = {"open_clip": ".clip", "Clip": ".clip", "ClipError": ".clip", "ClipWriter": ".clip",
+         "BUFFERS": ".conventions", "DEFAULT_BUFFERS": ".conventions", "Flag": ".conventions"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -24,11 +24,28 @@ filesystem fault (read-only file system, no space left, permission denied, quota
 """
 from __future__ import annotations
 
-import argparse
-import importlib
+import os
+import signal
 import sys
-import traceback
-from importlib import metadata
+
+
+def _interrupted_while_loading(signum, frame):
+    """Ctrl-C before ``main`` runs (Python still importing BlendSR): one line and exit 130, no traceback."""
+    sys.stderr.write("blendsr: interrupted\n")
+    raise SystemExit(130)
+
+
+# Only as the program (the console script or ``python -m``), never when a library user or a test imports this module.
+if __name__ == "__main__" or os.path.basename(sys.argv[0] if sys.argv else "") in ("blendsr", "blendsr.exe"):
+    try:
+        signal.signal(signal.SIGINT, _interrupted_while_loading)
+    except ValueError:  # not the main thread
+        pass
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import traceback  # noqa: E402
+from importlib import metadata  # noqa: E402
 
 from .errors import EXIT_INTERNAL, FILESYSTEM_ERRNOS, BlendSRError, bad_input_line, first_line  # noqa: F401
 
@@ -122,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
+        if signal.getsignal(signal.SIGINT) is _interrupted_while_loading:  # loaded: Ctrl-C is KeyboardInterrupt again
+            signal.signal(signal.SIGINT, signal.default_int_handler)
     except KeyboardInterrupt:  # Ctrl-C while the command modules load: nothing started yet
         print("blendsr: interrupted", file=sys.stderr)
         return 130

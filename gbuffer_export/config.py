@@ -25,6 +25,11 @@ def camera_path_ok(value: str) -> bool:
     return value in CAMERA_PATHS or (value.startswith("scene:") and len(value) > len("scene:"))
 JITTERS = ("none", "halton")
 FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
+#: The HR F_beta of the 'cycles' source: 'point' (the default: point-sampled like the other G-buffers and like a
+#: game engine's G-buffer at run time; what the shipped weights were trained on) or 'footprint' (the colour passes
+#: filtered like the ground truth, away from background: no sub-pixel texture aliases into L_D; docs/brdf.md,
+#: "Sub-pixel texture").
+HR_FBETA = ("point", "footprint")
 
 
 #: Cycles' cap on samples per pixel (2^24): a larger request would be rendered at the cap and recorded wrongly.
@@ -131,6 +136,7 @@ class RenderConfig:
     jitter: str = option("halton", choices=JITTERS)
     buffers: tuple[str, ...] = DEFAULT_BUFFERS
     fbeta: str = option("cycles", choices=FBETA_SOURCES)
+    hr_fbeta: str = option("point", choices=HR_FBETA)  # HR F_beta of 'cycles': pixel-filtered or point-sampled
     shard: tuple[int, int] = (1, 1)
     max_bounces: int | None = option(None, lo=0)  # None: the scene's own light paths
     threads: int = option(0, lo=0)                # 0: all cores

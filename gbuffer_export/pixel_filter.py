@@ -89,4 +89,25 @@ def _check(filter_type: str, width_px: float) -> str:
     return ft
 
 
-__all__ = ["FILTERS", "HR_REFERENCE_FILTER", "POINT_FILTER", "support", "evaluate", "weights_1d", "convolve", "reference_filter"]
+def footprint_fbeta(point: np.ndarray, filtered: np.ndarray, background: np.ndarray, radius: int = 1) -> np.ndarray:
+    """HR F_beta matching a pixel-filtered ground truth (H, W, 3 float32).
+
+    ``point``: the point-sampled F_beta (1 on background); ``filtered``: the same colour passes rendered with the
+    ground truth's pixel filter (the pixel's footprint average, what the filtered radiance was reflected by);
+    ``background`` (H, W bool): point-sampled background mask. A texture finer than the pixel (a fabric weave)
+    aliases in ``point`` at full contrast while the filtered radiance averages it, so L_D = I / F_point carries the
+    inverted texture; ``filtered`` has none. Near background (within ``radius`` pixels, Chebyshev) the footprint
+    averages in the sky's zero colour passes, so ``point`` is kept there, and wherever ``filtered`` is not finite or
+    not positive in every channel while ``point`` is."""
+    point = np.asarray(point, dtype=np.float32)
+    filtered = np.asarray(filtered, dtype=np.float32)[..., :3]
+    bg = np.asarray(background, dtype=bool)
+    h, w = bg.shape
+    near = np.pad(bg, radius, mode="edge")
+    near = np.any([near[i:i + h, j:j + w] for i in range(2 * radius + 1) for j in range(2 * radius + 1)], axis=0)
+    ok = ~near & np.all(np.isfinite(filtered), axis=-1) & (np.all(filtered > 0, axis=-1) | ~np.all(point > 0, axis=-1))
+    return np.where(ok[..., None], filtered, point).astype(np.float32)
+
+
+__all__ = ["FILTERS", "HR_REFERENCE_FILTER", "POINT_FILTER", "support", "evaluate", "weights_1d", "convolve",
+           "reference_filter", "footprint_fbeta"]

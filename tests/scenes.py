@@ -4,6 +4,7 @@ kills the process): ``python tests/scenes.py KIND OUT.blend``.
 Kinds:
   basic     ground plane (no material), metal sphere, checkered cube that moves, sky visible, animated camera
   furnace   white furnace: uniform world of radiance 1, objects invisible to secondary rays, static camera
+  finetex   white furnace with one plane filling the view whose base colour is a checker finer than a pixel
   nocamera  basic without camera
   empty     camera and world only
   ortho     basic with an orthographic camera
@@ -91,6 +92,26 @@ def furnace():
     cam.location, cam.rotation_euler = (0, -9, 0), (1.5708, 0, 0)
 
 
+def finetex():
+    """A plane facing the camera under a uniform white world, invisible to secondary rays, its base colour a
+    red/white checker of squares well under an HR pixel at 128x72 (a fabric weave finer than the pixel)."""
+    import bpy
+    bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, 0), rotation=(1.5708, 0, 0))
+    ob = bpy.context.object
+    mat = _principled("weave", Roughness=0.6)
+    chk = mat.node_tree.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 2000.0
+    chk.inputs["Color1"].default_value = (0.9, 0.9, 0.9, 1)
+    chk.inputs["Color2"].default_value = (0.6, 0.05, 0.05, 1)
+    mat.node_tree.links.new(chk.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    ob.data.materials.append(mat)
+    ob.visible_diffuse = ob.visible_glossy = ob.visible_transmission = False
+    ob.visible_volume_scatter = ob.visible_shadow = False
+    _world((1.0, 1.0, 1.0))
+    cam = _camera(animated=False)
+    cam.location, cam.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
+
+
 def occluder():
     """A 1.5 m box 6 m from the camera slides +0.5 m in x per frame in front of a wall 10 m away that fills the
     view; the camera turns by 0.2 degrees per frame. Frame t shows wall pixels the box covered in frame t-1."""
@@ -127,6 +148,8 @@ def main(kind: str, out: str) -> None:
         basic()
     elif kind == "furnace":
         furnace()
+    elif kind == "finetex":
+        finetex()
     elif kind == "nocamera":
         basic(camera=False)
     elif kind == "empty":

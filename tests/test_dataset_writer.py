@@ -106,6 +106,41 @@ def test_planned_jobs_and_check_folder(tmp_path):
         check_folder(out, spec, changed)
 
 
+def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
+    """A dataset indexed before the ``hr_fbeta`` render key was rendered point-sampled: the same spec with
+    the default spec (``hr_fbeta = "point"``) may extend it, ``footprint`` is a changed spec."""
+    def spec_with(hr_fbeta):
+        (tmp_path / "scene").mkdir(exist_ok=True)
+        (tmp_path / "scene" / "s.blend").write_bytes(b"BLENDER")
+        render = {"frames": 2, "hr_size": "64x36", **({"hr_fbeta": hr_fbeta} if hr_fbeta else {})}
+        doc = {"dataset": {"name": "d"}, "render": render,
+               "source": [{"name": "scene", "kind": "scene", "paths": ["scene/s.blend"], "clips_per_scene": 2}]}
+        (tmp_path / "spec.toml").write_text(writer.dumps_small(doc))
+        return load_spec(tmp_path / "spec.toml")
+    point, footprint = spec_with(None), spec_with("footprint")
+    assert point.sources[0].render.hr_fbeta == "point" and footprint.sources[0].render.hr_fbeta == "footprint"
+    out = tmp_path / "ds"
+    jobs = planned_jobs(point)
+    (out / "clips" / jobs[0].id).mkdir(parents=True)
+    (out / "clips" / jobs[0].id / "manifest.json").write_text("{}")
+    index = make_index(point, jobs, out, None, RunOptions())
+    for c in index["clips"]:
+        del c["render"]["hr_fbeta"]  # as written before the key
+    (out / INDEX).write_text(json.dumps(index))
+    assert check_folder(out, point, jobs)["name"] == "d"
+    with pytest.raises(DatasetError, match="rendered from a different spec"):
+        check_folder(out, footprint, planned_jobs(footprint))
+    with pytest.raises(SpecError, match="hr_fbeta"):
+        spec_with("box")
+    # the job renders what it says, and a job file from before the key renders point-sampled
+    from gbuffer_export.blender.dataset_job import render_config
+    for spec, want in ((point, "point"), (footprint, "footprint")):
+        assert render_config(planned_jobs(spec)[0], tmp_path / "c").hr_fbeta == want
+    job = planned_jobs(footprint)[0]
+    old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k != "hr_fbeta"})
+    assert render_config(old_job, tmp_path / "c").hr_fbeta == "point"
+
+
 def test_job_command_with_a_blender_executable(tmp_path):
     py = job_command(tmp_path / "j.json", tmp_path / "c", 2, "cpu")
     assert py[1:3] == ["-m", "gbuffer_export.blender.dataset_job"] and py[-4:] == ["--threads", "2", "--device", "cpu"]

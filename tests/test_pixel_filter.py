@@ -114,3 +114,20 @@ def test_point_samples_convolved_with_the_weights_match_a_cycles_filtered_render
     right, half, none = err(pf.weights_1d("BLACKMAN_HARRIS", 1.5)), err(pf.weights_1d("BLACKMAN_HARRIS", 0.75)), \
         err(np.array([1.0]))
     assert right < 0.8 * none and right < 0.8 * half, (right, half, none)  # measured 0.267, 0.410, 0.426
+
+
+def test_footprint_fbeta_keeps_point_values_near_background_and_where_the_filtered_one_is_unusable():
+    point = np.full((6, 7, 3), 0.5, np.float32)
+    point[:, 0] = 1.0  # background column
+    filtered = np.full((6, 7, 3), 0.3, np.float32)
+    filtered[4, 5] = np.nan
+    filtered[2, 5, 1] = 0.0
+    bg = np.zeros((6, 7), bool)
+    bg[:, 0] = True
+    out = pf.footprint_fbeta(point, filtered, bg)
+    np.testing.assert_array_equal(out[:, :2], point[:, :2])  # background and its 1-pixel neighbours: point
+    np.testing.assert_array_equal(out[4, 5], point[4, 5])    # non-finite filtered value
+    np.testing.assert_array_equal(out[2, 5], point[2, 5])    # a zero channel where the point value is positive
+    assert np.all(out[0, 2:5] == 0.3) and out.dtype == np.float32
+    zero = np.zeros_like(point)  # a black surface: zero either way
+    assert np.all(pf.footprint_fbeta(zero, zero, bg)[:, 2:] == 0)

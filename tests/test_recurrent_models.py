@@ -78,7 +78,7 @@ def checkpoint(name, clip, tmp_path_factory):
     cfg = load_config(None, small(name) + ["run.max_steps=1"])
     cfg.data.clips = [str(clip)]
     run = tmp_path_factory.mktemp("run")
-    train(cfg, run, log=lambda m: None)
+    train(cfg, run)
     return run / "checkpoints" / "last.pt"
 
 
@@ -98,7 +98,8 @@ def _manual(model, clip, frames):
 
 
 def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name, clip, tmp_path):
-    from training.train import load_checkpoint, train
+    from training.checkpoint import load_checkpoint
+    from training.train import train
     case = CASES[name]
     straight = tmp_path / "straight"
     assert main(["train", "--model", name, "--data", str(clip), "-o", str(straight), "--max-steps", "4",
@@ -120,7 +121,7 @@ def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name
     split = tmp_path / "split"
     cfg = load_config(None, small(name) + RESUME + ["run.max_steps=4"])
     cfg.data.clips = [str(clip)]
-    assert train(cfg, split, stop_at=2, log=lambda m: None)["step"] == 2
+    assert train(cfg, split, stop_at=2)["step"] == 2
     half = load_checkpoint(split / "checkpoints" / "last.pt")
     assert main(["train", "-o", str(split), "--resume"]) == 0
     a = load_checkpoint(straight / "checkpoints" / "last.pt")

@@ -82,17 +82,92 @@ def test_a_file_that_is_not_a_checkpoint_is_one_line(clip, tmp_path, capsys):
     assert len(err.splitlines()) == 1 and str(junk) in err
 
 
-def test_default_crop_shrinks_to_small_clips_with_a_note_and_a_set_crop_names_one_that_fits(clip, tmp_path, capsys):
-    run = tmp_path / "run"  # LR 16x9: the default data.crop = 64 does not fit
-    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
-                 *set_args(SMALL)]) == 0
-    err = capsys.readouterr().err
-    assert "note: data.crop 64 -> 9" in err
-    assert load_checkpoint(run / "checkpoints" / "last.pt")["config"]["data"]["crop"] == 9
-    assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "r2"), "--max-steps", "1",
-                 *set_args(SMALL + ["data.crop=20"])]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--set data.crop=9" in err and str(clip) in err, err
+def test_any_crop_larger_than_the_clips_shrinks_with_a_one_line_note(clip, tmp_path, caplog):
+    """Issue 31 item 7: the default crop and a crop the user set follow one rule (the note: logging, INFO)."""
+    caplog.set_level("INFO", logger="training")
+    for n, crop in enumerate((None, 20)):  # LR 16x9: neither the default 64 nor 20 fits
+        run = tmp_path / f"run{n}"
+        sets = SMALL + ([f"data.crop={crop}"] if crop else [])
+        assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
+                     *set_args(sets)]) == 0
+        notes = [r.getMessage() for r in caplog.records if "data.crop" in r.getMessage()]
+        caplog.clear()
+        assert notes == [f"note: data.crop {crop or 64} -> 9, the largest that fits {clip} (LR 16x9); set "
+                         "data.crop to choose another"], notes
+        ck = load_checkpoint(run / "checkpoints" / "last.pt")
+        assert ck["config"]["data"]["crop"] == 9 and ck["resolved"]["crop"] == 9
+        assert ck["user_config"]["data"]["crop"] == (crop or 64)  # the user's configuration is kept as given
+
+
+def test_crop_below_one_or_off_the_grid_of_a_fractional_scale_is_refused(tmp_path, capsys):
+    from gbuffer_export.config import ConfigError
+    from training.run import fit_crop
+    assert fit_crop(8, {"c": (2.5, (32, 16))}) == (8, None)
+    assert fit_crop(64, {"c": (2.5, (32, 15))})[0] == 14  # shrunk onto the grid of 5/2
+    with pytest.raises(ConfigError, match=r"data.crop = 7 is not a multiple of 2, the LR crop grid of scale\(s\) "
+                                          r"2.5; set data.crop = 6 or 8"):
+        fit_crop(7, {"a": (2, (40, 20)), "b": (2.5, (32, 16))})
+    with pytest.raises(ConfigError, match="at least 1"):
+        fit_crop(0, {"c": (4, (16, 9))})
+    multi = make_synthetic_clip(tmp_path / "m", frames=range(1, 4), hr_size=(80, 40), scales=(2, 2.5))
+    assert main(["train", "--model", "fourier-sr", "--data", str(multi), "-o", str(tmp_path / "r"), "--max-steps",
+                 "1", "--set", "data.crop=7", "--set", "run.progress=false"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "data.crop = 7 is not a multiple of 2" in err[0], err
+
+
+def test_identical_resume_after_an_automatic_crop_is_accepted_and_a_change_is_named(clip, tmp_path, capsys):
+    """Issue 26 item 3: the crop shrunk for LR 16x9 no longer makes the identical command 'differ'."""
+    run = tmp_path / "run"
+    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), *set_args(SMALL)]
+    assert main(argv + ["--max-steps", "1"]) == 0
+    assert main(argv + ["--max-steps", "2", "--resume"]) == 0
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["step"] == 2
+    capsys.readouterr()
+    assert main(argv + ["--max-steps", "3", "--resume", "--set", "loss.fft_weight=0.2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "loss.fft_weight = 0.2 differs from the checkpoint's 0.0" in err[0], err
+    assert main(argv + ["--max-steps", "3", "--resume", "--set", "data.crop=8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "data.crop = 8 differs from the checkpoint's 64" in err[0], err
+
+
+def test_a_checkpoint_without_the_resolved_record_resumes_and_names_a_change(clip, tmp_path, capsys):
+    """Checkpoints written before ResolvedRun hold only the resolved 'config' (crop 9, model.scale 4)."""
+    run = tmp_path / "run"
+    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), *set_args(SMALL)]
+    assert main(argv + ["--max-steps", "1"]) == 0
+    last = run / "checkpoints" / "last.pt"
+    ck = load_checkpoint(last)
+    del ck["resolved"], ck["user_config"]
+    torch.save(ck, last)
+    assert main(argv + ["--max-steps", "2", "--resume"]) == 0  # the identical command
+    assert main(["train", "-o", str(run), "--resume", "--max-steps", "3"]) == 0  # no configuration at all
+    capsys.readouterr()
+    ck = load_checkpoint(last)
+    del ck["resolved"], ck["user_config"]
+    torch.save(ck, last)
+    assert main(argv + ["--max-steps", "4", "--resume", "--set", "data.crop=5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the resolved crop 9 -> 5 differs" in err[0], err
+
+
+def test_a_second_train_into_a_busy_run_folder_is_one_line(clip, tmp_path, capsys):
+    from gbuffer_export.locks import FolderLock
+    run = tmp_path / "run"
+    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1", *set_args(SMALL)]
+    run.mkdir()
+    with FolderLock(run, "held by the test"):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "another 'blendsr train' is writing this run folder" in err[0], err
+        assert not (run / "checkpoints").exists()
+    assert main(argv) == 0
+    capsys.readouterr()
+    with FolderLock(run, "held by the test"):
+        assert main(argv + ["--resume"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "another 'blendsr train'" in err[-1], err
 
 
 def test_implausible_radiance_falls_under_the_nonfinite_policy(tmp_path, capsys):
@@ -196,7 +271,7 @@ def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, mo
     cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "run.max_steps=3"])
     cfg.data.clips = [str(clip)]
     with pytest.raises(TrainingError) as err:
-        train(cfg, tmp_path / "nan", log=lambda m: None)
+        train(cfg, tmp_path / "nan")
     assert "last.pt" not in str(err.value) and "no checkpoint was written" in str(err.value)
     assert not (tmp_path / "nan" / "checkpoints" / "last.pt").exists()
 
@@ -204,7 +279,7 @@ def test_a_nan_loss_before_any_checkpoint_names_no_checkpoint(clip, tmp_path, mo
 def test_the_progress_bar_of_a_minutes_run_counts_time_not_a_million_steps():
     """Issue 26 item 12: a --minutes run's bar counts the budget's seconds."""
     from training.config import load_config
-    from training.train import progress_kwargs
+    from training.hooks import progress_kwargs
     cfg = load_config(None, ["run.minutes=2"])
     assert progress_kwargs(cfg, 0) == {"total": 120, "initial": 0, "unit": "s"}
     cfg = load_config(None, ["run.max_steps=50"])

@@ -199,6 +199,34 @@ def test_white_furnace(blend_dir, tmp_path):
         assert abs(med - 1) < 0.01, (lvl, med)
 
 
+def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(blend_dir, tmp_path):
+    """A checker finer than the pixel in a white furnace: the HR ground truth (Blackman-Harris) averages it, so the
+    HR F_beta must be the same footprint average (radiance / fbeta = 1 with no texture left), not the aliased value
+    at the pixel centre; the point-sampled LR keeps radiance and F_beta point-sampled alike."""
+    scene = make_blend("finetex", blend_dir / "finetex.blend")
+    out = tmp_path / "finetex"
+    run_cli("render", scene, "-o", out, "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64", "--lr-spp",
+            "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--hr-fbeta", "footprint",
+            "--no-progress", check=True)
+    clip = open_clip(out)
+    for lvl in ("hr", "lr"):
+        rad, em, fb = (clip.read(1, f"{lvl}/{b}")[2:-2, 2:-2, :3] for b in ("radiance", "emission", "fbeta"))
+        ratio = ((rad - em) / np.maximum(fb, 0.01))[..., 0]  # red: the channel the checker varies most
+        lo, med, hi = np.percentile(ratio, [10, 50, 90])
+        assert abs(med - 1) < 0.03 and hi - lo < 0.1, (lvl, lo, med, hi)  # point-sampled HR F_beta: 0.8 .. 1.3
+    assert clip.manifest["render"]["gbuffer"]["hr_fbeta"] == "footprint"
+    # --hr-fbeta point: the HR F_beta as before (aliased), and the manifest as before (no key)
+    run_cli("render", scene, "-o", tmp_path / "point", "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64",
+            "--lr-spp", "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--hr-fbeta", "point",
+            "--no-progress", check=True)
+    old = open_clip(tmp_path / "point")
+    assert "hr_fbeta" not in old.manifest["render"]["gbuffer"]
+    np.testing.assert_array_equal(old.read(1, "hr/radiance"), clip.read(1, "hr/radiance"))
+    rad, em, fb = (old.read(1, f"hr/{b}")[2:-2, 2:-2, :3] for b in ("radiance", "emission", "fbeta"))
+    lo, hi = np.percentile(((rad - em) / np.maximum(fb, 0.01))[..., 0], [10, 90])
+    assert hi - lo > 0.3, (lo, hi)
+
+
 @pytest.mark.parametrize("case,args,needle", [
     ("missing", ["render", "/nonexistent/x.blend"], "not found"),
     ("notblend", ["render", "{txt}"], "not a .blend"),

@@ -17,7 +17,8 @@ from training.evaluate import evaluate_model  # noqa: E402
 from training.inference import load_model  # noqa: E402
 from training.models import MODELS, ModelInfo, build_model  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
-from training.train import load_checkpoint, train  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.train import train  # noqa: E402
 
 pytestmark = pytest.mark.torch
 SCALES = (2, 2.5, 4)
@@ -138,7 +139,7 @@ def test_any_scale_model_trains_on_a_mix_of_scales(multi, tmp_path, tiny_model):
     cfg = load_config(None, SMALL + ["model.name=\"tiny-any\"", "data.crop=6", "run.max_steps=8",
                                      "data.val_frames=1", "run.eval_every=8"])
     cfg.data.clips = [str(multi)]
-    summary = train(cfg, tmp_path / "run", log=lambda m: None)
+    summary = train(cfg, tmp_path / "run")
     assert summary["scales"] == [2.0, 2.5, 4.0]
     assert set(tiny_model.seen) >= {2.0, 2.5, 4.0}  # training batches of every scale, and validation at each
     ck = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
@@ -155,7 +156,7 @@ def test_any_scale_model_trains_on_a_mix_of_scales(multi, tmp_path, tiny_model):
 def test_integer_model_trains_on_one_level_of_a_multi_level_clip(multi, tmp_path):
     cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\"", "model.scale=4", "data.crop=6", "run.max_steps=2"])
     cfg.data.clips = [str(multi)]
-    summary = train(cfg, tmp_path / "run", log=lambda m: None)
+    summary = train(cfg, tmp_path / "run")
     assert summary["scales"] == [4.0] and load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["scale"] == 4
 
 
@@ -175,7 +176,7 @@ def test_refusals_are_one_line_exit_2(multi, tmp_path, capsys, sets, needle):
     with pytest.raises(ConfigError, match="set model.scale"):
         cfg = load_config(None, SMALL + ["model.name=\"fusesr-l\""])
         cfg.data.clips = [str(multi)]
-        train(cfg, tmp_path / "run2", log=lambda m: None)
+        train(cfg, tmp_path / "run2")
 
 
 # ------------------------------------------------------------------------------------------- evaluation
@@ -201,7 +202,7 @@ def test_fourier_sr_trains_on_scales_2_and_4_and_is_scored_at_2_5(multi, tmp_pat
                              "model.name=\"fourier-sr\"", "data.crop=4", "data.window=2", "run.max_steps=4",
                              "data.val_frames=0"])
     cfg.data.clips = [str(train_clip)]
-    summary = train(cfg, tmp_path / "run", log=lambda m: None)
+    summary = train(cfg, tmp_path / "run")
     assert summary["scales"] == [2.0, 4.0]
     model = load_model(str(tmp_path / "run" / "checkpoints" / "last.pt"), 2.5)
     res = evaluate_model(model, [str(multi)], flip=False, warmup=0)

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 APIS = {
     "torch.serialization.safe_globals": ("2.5", "training/checkpoint.py"),
     "torch.onnx.export(dynamo=)": ("2.5", "training/export.py"),
-    "torch.amp.GradScaler": ("2.3", "training/train.py"),
+    "torch.amp.GradScaler": ("2.3", "training/trainer.py"),
 }
 #: used when present (the refusal message names the globals from 2.6 on)
 OPTIONAL = {"torch.serialization.get_unsafe_globals_in_checkpoint": ("2.6", "training/checkpoint.py")}

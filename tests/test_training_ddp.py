@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
-from training.train import load_checkpoint  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
 
 pytestmark = pytest.mark.torch
 

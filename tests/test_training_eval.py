@@ -33,7 +33,7 @@ def checkpoint(clip, tmp_path_factory):
                              "run.progress=false", "model.width=16", "model.blocks=1"])
     cfg.data.clips = [str(clip)]
     run = tmp_path_factory.mktemp("run")
-    train(cfg, run, log=lambda m: None)
+    train(cfg, run)
     return run / "checkpoints" / "last.pt"
 
 

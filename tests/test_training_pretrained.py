@@ -14,7 +14,9 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training import pretrained  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.inference import ClipFrames, load_model, upscale_frame  # noqa: E402
-from training.train import load_checkpoint, param_digest, train  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.trainer import param_digest  # noqa: E402
+from training.train import train  # noqa: E402
 
 pytestmark = pytest.mark.torch
 SMALL = ["data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
@@ -31,7 +33,7 @@ def run(clip, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "r"
     cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=3"])
     cfg.data.clips = [str(clip)]
-    train(cfg, out, log=lambda m: None)
+    train(cfg, out)
     return out
 
 
@@ -122,7 +124,7 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
     cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=1", "optim.lr=1e-12",
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
     cfg.data.clips = [str(clip)]
-    train(cfg, tmp_path / "ft", log=lambda m: None)
+    train(cfg, tmp_path / "ft")
     a = load_model(str(run / "checkpoints" / "last.pt"), 4)
     b = load_model(str(tmp_path / "ft" / "checkpoints" / "last.pt"), 4)
     for (k, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
@@ -131,7 +133,7 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
     bad.data.clips = [str(clip)]
     with pytest.raises(ValueError, match="do not fit model fusesr"):
-        train(bad, tmp_path / "bad", log=lambda m: None)
+        train(bad, tmp_path / "bad")
 
 
 @pytest.mark.parametrize("name", list(pretrained.PRETRAINED))

@@ -34,6 +34,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="OUT", help="also write the numbers as JSON")
 
 
+def _time_loader(sampler, args, device) -> tuple[list[float], float]:
+    """(ms per batch, samples per second) of the batch source: ``args.workers`` worker processes (start-up
+    excluded), else the sampler in this process."""
+    import torch
+    load_ms = []
+    if args.workers > 0:
+        from training.loader import WorkerLoader
+        loader = WorkerLoader(sampler, 0, args.batches, args.workers, pin=device.type == "cuda")
+        try:
+            loader.get(0)  # worker start-up excluded
+            t0 = t = time.perf_counter()
+            for k in range(1, args.batches):
+                loader.get(k)
+                load_ms.append(1000 * (time.perf_counter() - t))
+                t = time.perf_counter()
+            return load_ms, (args.batches - 1) * args.batch / max(time.perf_counter() - t0, 1e-9)
+        finally:
+            loader.close()
+    for k in range(args.batches):
+        t = time.perf_counter()
+        batch, _ = sampler.batch(k)
+        _ = {key: torch.from_numpy(v) for key, v in batch.items()}  # as the training loop converts it
+        load_ms.append(1000 * (time.perf_counter() - t))
+    return load_ms, args.batch / (statistics.median(load_ms) / 1000)
+
+
 def run(args) -> int:
     from gbuffer_export.extras import require
     require("blendsr bench loader", "train")
@@ -45,7 +71,8 @@ def run(args) -> int:
     from training.data import BatchSpec, TrainSampler
     from training.losses import Criterion
     from training.models import build_model
-    from training.train import amp_dtype, autocast, resolve_device, to_device
+    from training.device import amp_dtype, autocast, resolve_device
+    from training.trainer import to_device
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -72,27 +99,7 @@ def run(args) -> int:
         cache_s = time.perf_counter() - t
         sampler = TrainSampler(caches, spec, args.batch, seed=0)
         device = resolve_device(args.device)
-        load_ms = []
-        if args.workers > 0:
-            from training.loader import WorkerLoader
-            loader = WorkerLoader(sampler, 0, args.batches, args.workers, pin=device.type == "cuda")
-            try:
-                loader.get(0)  # worker start-up excluded
-                t0 = t = time.perf_counter()
-                for k in range(1, args.batches):
-                    loader.get(k)
-                    load_ms.append(1000 * (time.perf_counter() - t))
-                    t = time.perf_counter()
-                loader_sps = (args.batches - 1) * args.batch / max(time.perf_counter() - t0, 1e-9)
-            finally:
-                loader.close()
-        else:
-            for k in range(args.batches):
-                t = time.perf_counter()
-                batch, _ = sampler.batch(k)
-                tb = {key: torch.from_numpy(v) for key, v in batch.items()}
-                load_ms.append(1000 * (time.perf_counter() - t))
-            loader_sps = args.batch / (statistics.median(load_ms) / 1000)
+        load_ms, loader_sps = _time_loader(sampler, args, device)
         model.fast_ops = True  # as in training
         model.to(device)
         crit = Criterion(LossConfig()).to(device)

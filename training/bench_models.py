@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -61,8 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default="1920x1080", metavar="WxH", help="HR size of the random inputs")
     parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
     parser.add_argument("--precision", default=None,
-                        help="comma-separated precisions to time: fp32, bf16, fp16, auto (default fp32; with --data "
-                             "one precision, default from --amp)")
+                        help="comma-separated precisions to time: none (float32), bf16, fp16, auto (default none; "
+                             "with --data one precision, default from --amp); tables name the dtype that ran")
     parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "both", "off,on"),
                         metavar="{off,on,both}",
                         help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); both (or off,on): "
@@ -178,7 +179,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
     from training.evaluate import evaluate_model
     from training.inference import ClipFrames, load_model, model_inputs
     from training.checkpoint import load_checkpoint
-    from training.train import resolve_device
+    from training.device import dtype_label, resolve_device
 
     scale = _scale_of(clips)
     device = device or resolve_device("auto")
@@ -193,7 +194,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         model = load_model(spec, scale).to(device)
         if precision is not None or compile:
             from training.fastpath import prepare_inference
-            prepare_inference(model, device, precision or "fp32", compile=compile)
+            prepare_inference(model, device, precision or "none", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
                              label=label, progress=progress)
@@ -201,14 +202,14 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
         inputs = model_inputs(model, src, first[0])
-        row = {"model": label, "params": getattr(model, "n_params", sum(p.numel() for p in model.parameters())),
+        row = {"model": label, "params": model.n_params,
                "macs_per_px": macs_per_pixel(model, inputs, device),
                **{k: m[k] for k in COLUMNS if k in m}}
         # roofline of one frame of these clips (bytes: the model's inputs read once, the output written once)
         hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
         nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
-        dt = model.__dict__.get("inference", {}).get("dtype") or amp
-        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        dt = model.inference.get("dtype") or amp
+        key = dtype_label(dt)
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
         row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
@@ -247,7 +248,7 @@ def run(args) -> int:
     import torch
 
     from gbuffer_export.config import parse_frames
-    from training.train import amp_dtype, resolve_device
+    from training.device import amp_dtype, resolve_device
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -260,7 +261,7 @@ def run(args) -> int:
         from training.models import MODELS
         models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
         speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
-                        precisions=precisions or ["fp32"], compiles=compiles, warmup=args.warmup,
+                        precisions=precisions or ["none"], compiles=compiles, warmup=args.warmup,
                         repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
                         reference=args.eager_reference, progress=not args.no_progress)
         if args.output:
@@ -292,11 +293,11 @@ def _bar(items, desc: str, unit: str, on: bool):
 def _precisions(text: str | None) -> list[str] | None:
     if not text:
         return None
-    from training.fastpath import PRECISIONS  # noqa: F401  (torch is imported by run already)
+    from training.device import PRECISIONS
     out = [p.strip() for p in text.split(",") if p.strip()]
-    bad = [p for p in out if p not in ("fp32", "bf16", "fp16", "auto")]
+    bad = [p for p in out if p not in PRECISIONS]
     if bad or not out:
-        raise BlendSRError(f"--precision {text!r}: comma-separated fp32, bf16, fp16, auto")
+        raise BlendSRError(f"--precision {text!r}: comma-separated {', '.join(PRECISIONS)}")
     return out
 
 
@@ -398,8 +399,39 @@ def _timer(device):
     return run
 
 
+def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
+    """One timed (model, variant) as a row of bench_speed: median and minimum ms, MACs, bytes and its roofline
+    time on the device's peaks ``pk`` ({tflops, gbs}); logs one line."""
+    macs = r["macs"]
+    roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
+    ms = statistics.median(r["times"])
+    rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / pixels,
+           "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
+           "roofline_ms": roof, "ratio": ms / roof}
+    log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
+        f"x{rec['ratio']:.0f})")
+    return rec
+
+
+def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None:
+    """OUT/bench_speed.json, .csv and .md."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
+    with open(out / "bench_speed.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
+        wr.writeheader()
+        for r in records:
+            wr.writerow(r)
+    peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
+                         for k, v in meta["peaks"].items())
+    w, h = meta["size"]
+    (out / "bench_speed.md").write_text(f"Device: {meta['device']}; HR {w}x{h}, scale {meta['scale']}, batch 1; "
+                                        f"{meta['timing']} of {meta['repeats']} after {meta['warmup']} warm-up; "
+                                        f"roofline peaks: {peak_txt}\n\n{table}\n")
+
+
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
-                    precisions=("fp32",), compiles=(False,), warmup: int = 2, repeats: int = 30,
+                    precisions=("none",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
                     log=print, progress: bool = False) -> dict:
     """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
@@ -412,22 +444,23 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.config import ModelConfig
     from training.evaluate import describe_device
     from training.export import example_inputs
-    from training.fastpath import channels_last_batch, forward, precision_dtype, prepare_inference
-    from training.inference import load_model
+    from training.device import amp_dtype, dtype_label
+    from training.fastpath import channels_last_batch, forward, prepare_inference
+    from training.inference import InferenceModel, load_model
     from training.models import build_model
-    from training.train import resolve_device
+    from training.device import resolve_device
 
     device = device or resolve_device("auto")
     w, h = size
     if w % scale or h % scale:
         raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
     variants = ([("fp32 eager reference", None)] if reference else []) + \
-        [(f"{p}{' compiled' if c else ''}", (p, c)) for c in compiles for p in precisions]
+        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}", (p, c))
+         for c in compiles for p in precisions]  # labelled by the dtype that runs ("auto" resolved)
     peaks = {}
     for _, v in variants:
-        p = "fp32" if v is None else v[0]
-        dt = precision_dtype(p, device)
-        key = "fp32" if dt is None else str(dt).replace("torch.", "")
+        dt = None if v is None else amp_dtype(v[0], device)
+        key = dtype_label(dt)
         if key not in peaks:
             peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
     timer = _timer(device)
@@ -435,8 +468,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     for label, spec in _bar(models, "prepare", "model", progress):
         name = label.split(" ")[0]
         if spec == name:
-            base = build_model(ModelConfig(name=name, scale=scale), scale).eval()
-            base.spec, base.demod_eps, base.config = name, 0.01, None
+            base = InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)
         else:
             base = load_model(spec, scale, fast=False)
         n_params = sum(p.numel() for p in base.parameters())
@@ -449,12 +481,12 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             m = copy.deepcopy(base).to(device)
             if v is not None:
                 prepare_inference(m, device, v[0], compile=v[1])
-            settings = m.__dict__.get("inference", {})
+            settings = m.inference
             dt = settings.get("dtype")
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
             b = channels_last_batch(batch) if settings.get("channels_last") else batch
             runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
-                            "key": "fp32" if dt is None else str(dt).replace("torch.", "")})
+                            "key": dtype_label(dt)})
         del base, batch
     with torch.inference_mode():
         for r in runners:
@@ -465,18 +497,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             # model and variant sees the same machine state
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
-    records = []
-    for r in runners:
-        pk = peaks[r["key"]]
-        macs = r["macs"]
-        roof = 1000 * max(2 * macs / (pk["tflops"] * 1e12), r["bytes"] / (pk["gbs"] * 1e9))
-        ms = statistics.median(r["times"])
-        rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / (w * h),
-               "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
-               "roofline_ms": roof, "ratio": ms / roof}
-        records.append(rec)
-        log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
-            f"x{rec['ratio']:.0f})")
+    records = [_speed_record(r, peaks[r["key"]], w * h, log) for r in runners]
     del runners
     device_name = describe_device(device)
     meta = {"device": device_name, "size": [w, h], "scale": scale, "batch": 1, "warmup": warmup,
@@ -489,19 +510,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     result = {**meta, "rows": records, "table": table}
     if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
         return result
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_speed.json").write_text(json.dumps({**meta, "rows": records}, indent=1) + "\n")
-    with open(out / "bench_speed.csv", "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=SPEED_COLUMNS)
-        wr.writeheader()
-        for r in records:
-            wr.writerow(r)
-    peak_txt = "; ".join(f"{k}: {v['tflops']:.4g} TFLOPS, {v['gbs']:.4g} GB/s ({v['source']})"
-                         for k, v in peaks.items())
-    (out / "bench_speed.md").write_text(f"Device: {device_name}; HR {w}x{h}, scale {scale}, batch 1; "
-                                        f"{meta['timing']} of {repeats} after {warmup} warm-up; roofline peaks: "
-                                        f"{peak_txt}\n\n{table}\n")
+    _write_speed(Path(out), meta, records, table)
     return result
 
 

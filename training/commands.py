@@ -130,13 +130,7 @@ def cmd_train(args) -> int:
         run_overrides["minutes"] = args.minutes
     data, val = _dataset_clips(args.data, "train"), _dataset_clips(args.data, "val", missing_ok=True)
     if args.resume and not (args.config or overrides):
-        cfg = None
-        if data:  # only the clips were repeated: they must be the checkpoint's
-            from training.checkpoint import load_checkpoint
-            ck = load_checkpoint(Path(args.output) / "checkpoints" / "last.pt")
-            saved = sorted(str(Path(c).resolve()) for c in ck["config"]["data"]["clips"])
-            if sorted(str(Path(c).resolve()) for c in data) != saved:
-                raise BlendSRError(f"--resume: --data differs from the checkpoint's clips ({', '.join(saved)})")
+        cfg = None  # the checkpoint's configuration; clips repeated alone must be its own (training.run.resume_run)
     else:
         cfg = load_config(args.config, overrides)
         for note in cfg.notes:
@@ -147,10 +141,11 @@ def cmd_train(args) -> int:
                 cfg.data.val_clips = [str(c) for c in val]
         if not args.resume and not args.model and not args.config:
             raise BlendSRError("train: --model NAME is required (or model.name in --config)")
-    from training.train import TrainingError, train
+    from training.train import train
+    from training.trainer import TrainingError
     try:
         train(cfg, args.output, resume=args.resume, run_overrides=run_overrides,
-              log=lambda m: print(m, file=sys.stderr))
+              data=[str(c) for c in data] if cfg is None else None)
     except TrainingError as exc:
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 1
@@ -186,7 +181,7 @@ def cmd_evaluate(args) -> int:
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
     from training.inference import load_model
-    from training.train import amp_dtype, resolve_device
+    from training.device import amp_dtype, resolve_device
     if args.threads:
         torch.set_num_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
@@ -219,11 +214,11 @@ def cmd_upscale(args) -> int:
     from gbuffer_export.clip import open_clip, write_json_atomic
     from gbuffer_export.exr import write_exr
     from training.inference import ClipFrames, load_model, upscale_frame
-    from training.train import resolve_device
+    from training.device import resolve_device
     clip = open_clip(args.clip)
     from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)
-    prepare_inference(model, resolve_device(args.device), {"none": "fp32"}.get(args.amp, args.amp),
+    prepare_inference(model, resolve_device(args.device), args.amp,
                       compile=args.compile)
     source = ClipFrames(clip, eps=model.demod_eps)
     frames = _frames(args.frames) or clip.frames

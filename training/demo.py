@@ -50,10 +50,7 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
             cfg.run.init_from = init
         else:
             cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", "run.max_steps=1000000"])
-        cfg.data.clips = [str(c) for c in train_clips]
-        from gbuffer_export.clip import open_clip
-        w, h = open_clip(train_clips[0]).sizes["lr"]
-        cfg.data.crop = min(cfg.data.crop, w, h)
+        cfg.data.clips = [str(c) for c in train_clips]  # a crop larger than the clips shrinks (training.run)
         summary = train(cfg, run_dir, resume=resume, run_overrides={"minutes": float(minutes)})
         label = f"{model} ({'fine-tuned ' if init else ''}{minutes:g} min)"
         models.append((label, str(run_dir / "checkpoints" / "last.pt")))

@@ -8,6 +8,10 @@ import torch
 
 from training.config import ConfigError
 
+#: The one precision vocabulary (run.amp, --amp, --precision, ``prepare_inference``): "none" runs in float32 (no
+#: autocast), "bf16"/"fp16" autocast to that dtype, "auto" picks per device (``amp_dtype``).
+PRECISIONS = ("none", "bf16", "fp16", "auto")
+
 
 def resolve_device(name: str, option: str = "--device") -> torch.device:
     """'auto' | 'cpu' | 'cuda' -> a device; ``option`` names where the value came from in the error (the CLI flag,
@@ -29,7 +33,9 @@ def cpu_bf16_supported() -> bool:
 
 def amp_dtype(mode: str, device: torch.device) -> torch.dtype | None:
     """Autocast dtype: 'auto' picks bf16 where the hardware has it (CPU avx512-bf16/AMX, CUDA >= Ampere),
-    fp16 on older CUDA GPUs, and full precision otherwise."""
+    fp16 on older CUDA GPUs, and full precision otherwise. ConfigError for a name outside ``PRECISIONS``."""
+    if mode not in PRECISIONS:
+        raise ConfigError(f"precision {mode!r}: choose one of {', '.join(PRECISIONS)}")
     if mode == "none":
         return None
     if mode == "bf16":
@@ -39,6 +45,11 @@ def amp_dtype(mode: str, device: torch.device) -> torch.dtype | None:
     if device.type == "cuda":
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
     return torch.bfloat16 if cpu_bf16_supported() else None
+
+
+def dtype_label(dtype: torch.dtype | None) -> str:
+    """Short name of the dtype a precision ran in (tables, peaks): fp32 (no autocast), bf16 or fp16."""
+    return {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[dtype]
 
 
 def autocast(device: torch.device, dtype: torch.dtype | None):

@@ -15,6 +15,8 @@ the means per scale.
 """
 from __future__ import annotations
 
+import logging
+
 import os
 import platform
 import statistics
@@ -32,6 +34,9 @@ from training import metrics
 from training.flip_worker import FlipRunner
 from training.inference import ClipFrames, model_device, model_inputs, run_model
 from training.recurrent import ClipState, is_recurrent, lead_in, run_step
+
+
+log = logging.getLogger(__name__)
 
 METRIC_KEYS = ("psnr", "ssim", "psnr_hdr", "flip", "tpsnr", "warp_error", "ms_per_frame")
 EXTRA_KEYS = ("warp_error_gt", "psnr_flagged", "psnr_unflagged", "flagged_fraction", "sr_nonfinite", "delta_e_itp")
@@ -72,6 +77,42 @@ def eval_scales(model, clip, wanted=None) -> list[float]:
     return scales
 
 
+def _frame_scores(sr: np.ndarray, gt: np.ndarray, inputs: dict, runner, delta_e_itp: bool) -> dict:
+    """Scores of one frame (HR (H, W, 3) linear SR and ground truth): PSNR/SSIM (tonemapped), PSNR HDR, FLIP,
+    Delta E ITP, and PSNR inside/outside the flagged (untrusted, non-background) pixels when the clip has flags."""
+    row = {"psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt), "psnr_hdr": metrics.psnr_hdr(sr, gt),
+           "flip": runner(gt, sr) if runner is not None else None,
+           "delta_e_itp": metrics.delta_e_itp(sr, gt) if delta_e_itp else None}
+    if "hr/flags" not in inputs:
+        return {**row, "flagged_fraction": None, "psnr_flagged": None, "psnr_unflagged": None}
+    fl = inputs["hr/flags"][0, -1, 0].astype(np.uint32)
+    flagged = ((fl & np.uint32(UNTRUSTED)) != 0) & ((fl & np.uint32(Flag.BACKGROUND)) == 0)
+    return {**row, "flagged_fraction": float(flagged.mean()), "psnr_flagged": metrics.psnr_tm(sr, gt, flagged),
+            "psnr_unflagged": metrics.psnr_tm(sr, gt, ~flagged)}
+
+
+def _temporal_scores(sr, gt, inputs: dict, f: int, prev) -> dict:
+    """tPSNR and warping errors against the previous frame ``prev`` = (frame, SR, GT) when it is frame f - 1."""
+    row = {"tpsnr": None, "warp_error": None, "warp_error_gt": None}
+    if prev is None or prev[0] != f - 1:
+        return row
+    _, sr_p, gt_p = prev
+    row["tpsnr"] = metrics.tpsnr(sr, sr_p, gt, gt_p)
+    if "hr/motion" in inputs:
+        motion = inputs["hr/motion"][0, -1].transpose(1, 2, 0)
+        row["warp_error"] = metrics.warp_error(sr, sr_p, motion)
+        row["warp_error_gt"] = metrics.warp_error(gt, gt_p, motion)
+    return row
+
+
+def _means(rows: list[dict]) -> dict:
+    """Mean of every metric over ``rows`` (median ms per frame), the frame count and the per-region means."""
+    m = {k: _mean([r[k] for r in rows]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
+    m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows),
+             regions=_region_means(rows))
+    return m
+
+
 def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
                    amp: torch.dtype | None = None, flip: bool = True, delta_e_itp: bool = False, data_cfg=None,
                    save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
@@ -99,7 +140,7 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             model.follow_reference_filter(source.clip.manifest)
             mismatch = model.remod_filter_mismatch(source.clip.manifest, clip_path)
             if mismatch:
-                print(f"warning: {mismatch}", file=sys.stderr)
+                log.warning(f"warning: {mismatch}")
             todo = list((frames or {}).get(str(clip_path)) or source.frames)
             first = model_inputs(model, source, todo[0])
             recurrent = is_recurrent(model)
@@ -130,30 +171,10 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
                     msg = (f"{clip_path} frame {f} (x{s_clip:g}): the model output {bad} non-finite value(s) "
                            "(NaN/Inf), scored as 0; its scores are not the model's")
                     warnings.append(msg)
-                    print(f"warning: {msg}", file=sys.stderr)
+                    log.warning(f"warning: {msg}")
                 row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
-                       "sr_nonfinite": bad,
-                       "psnr": metrics.psnr_tm(sr, gt), "ssim": metrics.ssim_tm(sr, gt),
-                       "psnr_hdr": metrics.psnr_hdr(sr, gt),
-                       "flip": runner(gt, sr) if runner is not None else None,
-                       "delta_e_itp": metrics.delta_e_itp(sr, gt) if delta_e_itp else None,
-                       "tpsnr": None, "warp_error": None, "warp_error_gt": None}
-                if "hr/flags" in inputs:
-                    fl = inputs["hr/flags"][0, -1, 0].astype(np.uint32)
-                    flagged = ((fl & np.uint32(UNTRUSTED)) != 0) & ((fl & np.uint32(Flag.BACKGROUND)) == 0)
-                    row["flagged_fraction"] = float(flagged.mean())
-                    row["psnr_flagged"] = metrics.psnr_tm(sr, gt, flagged)
-                    row["psnr_unflagged"] = metrics.psnr_tm(sr, gt, ~flagged)
-                else:
-                    row.update(flagged_fraction=None, psnr_flagged=None, psnr_unflagged=None)
-                row["regions"] = _regions(source, f, sr, gt)
-                if prev is not None and prev[0] == f - 1:
-                    _, sr_p, gt_p = prev
-                    row["tpsnr"] = metrics.tpsnr(sr, sr_p, gt, gt_p)
-                    if "hr/motion" in inputs:
-                        motion = inputs["hr/motion"][0, -1].transpose(1, 2, 0)
-                        row["warp_error"] = metrics.warp_error(sr, sr_p, motion)
-                        row["warp_error_gt"] = metrics.warp_error(gt, gt_p, motion)
+                       "sr_nonfinite": bad, **_frame_scores(sr, gt, inputs, runner, delta_e_itp),
+                       "regions": _regions(source, f, sr, gt), **_temporal_scores(sr, gt, inputs, f, prev)}
                 prev = (f, sr, gt)
                 per_frame.append(row)
                 if save_images:
@@ -164,17 +185,9 @@ def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.de
             runner.close()
     if not per_frame:
         raise ClipError("no frame evaluated")
-    mean = {k: _mean([r[k] for r in per_frame]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
-    mean["ms_per_frame"] = float(statistics.median(r["ms_per_frame"] for r in per_frame))
-    mean["frames"] = len(per_frame)
-    mean["regions"] = _region_means(per_frame)
-    per_scale = {}
+    mean, per_scale = _means(per_frame), {}
     for sc in sorted({r["scale"] for r in per_frame}):
-        rows = [r for r in per_frame if r["scale"] == sc]
-        m = {k: _mean([r[k] for r in rows]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
-        m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows),
-                 regions=_region_means(rows))
-        per_scale[f"{sc:g}"] = m
+        per_scale[f"{sc:g}"] = _means([r for r in per_frame if r["scale"] == sc])
     return {
         "model": label or getattr(model, "spec", type(model).__name__),
         "transform": metrics.TRANSFORM,

@@ -31,6 +31,7 @@ import torch
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
+from training.inference_model import module_of
 
 
 @contextlib.contextmanager
@@ -172,7 +173,7 @@ def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -
     n = len(states[0])
     s_names = [f"state_{i}" for i in range(n)]
     o_names = [f"state_out_{i}" for i in range(n)]
-    wrapper = StepExport(model, keys, n).eval()
+    wrapper = StepExport(module_of(model), keys, n).eval()
     example = tuple(torch.from_numpy(frames[1][k]) for k in keys) + tuple(states[0]) + (torch.zeros(1),)
     dyn = {nm: dynamic_axes_of(k) for k, nm in zip(keys, names)}
     for i, st in enumerate(states[0]):
@@ -221,7 +222,7 @@ def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int =
     inputs = example_inputs(model, clip, hr_size)
     keys = list(inputs)
     names = [k.replace("/", "_") for k in keys]
-    wrapper = PositionalWrapper(model, keys).eval()
+    wrapper = PositionalWrapper(module_of(model), keys).eval()
     tensors = tuple(torch.from_numpy(inputs[k]) for k in keys)
     dyn = {n: dynamic_axes_of(k) for k, n in zip(keys, names)}
     dyn["sr"] = {0: "batch", 2: "hr_height", 3: "hr_width"}

@@ -17,22 +17,11 @@ setting with it on the CPU.
 """
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import torch
 import torch.nn as nn
 from gbuffer_export.errors import BlendSRError
-
-PRECISIONS = ("fp32", "bf16", "fp16", "auto")
-
-
-def precision_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """Autocast dtype of a precision name on ``device`` (None: fp32)."""
-    if precision not in PRECISIONS:
-        raise BlendSRError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
-    from training.device import amp_dtype
-    return amp_dtype({"fp32": "none"}.get(precision, precision), device)
-
+from training.device import amp_dtype, autocast, dtype_label
+from training.inference_model import InferenceModel, as_inference
 
 def _fused(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
     return torch.nn.utils.fusion.fuse_conv_bn_eval(conv, bn)
@@ -60,7 +49,7 @@ def fold_batchnorm(model: nn.Module) -> int:
                 setattr(mod, conv_name, _fused(ca, cb))
                 setattr(mod, bn_name, nn.Identity())
                 n += 1
-    # a DWSConv/SeparableConv followed by BatchNorm in a Sequential: fold into its pointwise convolution
+    # a DWSConv followed by BatchNorm in a Sequential: fold into its pointwise convolution
     for mod in list(model.modules()):
         if isinstance(mod, nn.Sequential):
             names = list(mod._modules)
@@ -84,18 +73,20 @@ def channels_last_batch(batch: dict) -> dict:
     return out
 
 
-def prepare_inference(model: nn.Module, device: torch.device | str | None = None, precision: str = "fp32",
-                      compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> nn.Module:
-    """Make ``model`` (eval mode) the fast inference model described in the module doc; returns it. Settings are
-    kept as ``model.inference`` (dict) and applied by ``forward``. ``precision`` is validated for ``device``."""
+def prepare_inference(model, device: torch.device | str | None = None, precision: str = "none",
+                      compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> InferenceModel:
+    """Make ``model`` (eval mode) the fast inference model described in the module doc, in place; returns it as an
+    ``InferenceModel`` (``model`` itself when it is one, else a new one around the module). Settings are kept as
+    its ``inference`` dict and applied by ``forward``. ``precision`` (``training.device.PRECISIONS``) is validated
+    for ``device``."""
+    wrapped = as_inference(model)
+    model = wrapped.module
     model.eval()
     if device is not None:
         model.to(torch.device(device))
     from training.device import model_device
     dev = model_device(model)
-    dtype = precision_dtype(precision, dev)
-    if not hasattr(model, "n_params"):
-        model.n_params = sum(p.numel() for p in model.parameters())
+    dtype = amp_dtype(precision, dev)
     if fast_ops:
         model.fast_ops = True
         fold_batchnorm(model)
@@ -108,29 +99,23 @@ def prepare_inference(model: nn.Module, device: torch.device | str | None = None
         mode = "reduce-overhead" if dev.type == "cuda" else None
         compiled = torch.compile(model, mode=mode, dynamic=False)
     # kept out of the module tree (not a submodule, not in the state dict)
-    model.__dict__["inference"] = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
-                                   "precision": "fp32" if dtype is None else str(dtype).replace("torch.", ""),
-                                   "compile": bool(compile), "fast_ops": bool(fast_ops)}
-    return model
+    wrapped.inference = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
+                         "precision": dtype_label(dtype), "compile": bool(compile), "fast_ops": bool(fast_ops)}
+    return wrapped
 
 
-def autocast_context(device: torch.device, dtype: torch.dtype | None):
-    return nullcontext() if dtype is None else torch.autocast(device_type=device.type, dtype=dtype)
-
-
-def forward(model: nn.Module, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
-    """SR of ``batch`` (tensors on the model's device) with the model's inference settings (``prepare_inference``;
-    none: plain call). ``amp`` overrides the prepared precision when given."""
-    settings = model.__dict__.get("inference") or {}
+def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
+    """SR of ``batch`` (tensors on the model's device) with an InferenceModel's settings (``prepare_inference``;
+    a plain module: plain call). ``amp`` overrides the prepared precision when given."""
+    settings = model.inference if isinstance(model, InferenceModel) else {}
     dtype = amp if amp is not None else settings.get("dtype")
     if settings.get("channels_last"):
         batch = channels_last_batch(batch)
     fn = settings.get("compiled")
     fn = model if fn is None else fn
     device = next(iter(batch.values())).device
-    with autocast_context(device, dtype):
+    with autocast(device, dtype):
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "precision_dtype",
-           "PRECISIONS"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch"]

@@ -30,6 +30,7 @@ from training.data import BATCH_KEYS, BatchSpec, frame_window
 from training.demod import demodulate
 from training.models import MODELS, build_model, model_class
 from training.device import model_device  # noqa: F401  (re-exported)
+from training.inference_model import InferenceModel, as_inference
 from training.models.base import upsample
 
 
@@ -99,12 +100,12 @@ class ClipFrames:
 
 
 def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True
-               ) -> torch.nn.Module:
-    """A model in eval mode on the CPU: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
+               ) -> InferenceModel:
+    """A model in eval mode on the CPU, as an ``InferenceModel``: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
     ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``).
     ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
-    a non-learned model (a checkpoint's is fixed). The module gets ``spec``, ``demod_eps``, ``config`` and
-    ``n_params`` attributes. With ``fast`` (default) it is prepared for the inference fast path
+    a non-learned model (a checkpoint's is fixed). The wrapper holds ``spec``, ``demod_eps``, ``config`` and
+    ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
     scale = int(scale) if float(scale).is_integer() else float(scale)
@@ -123,9 +124,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
             cfg.scale = scale
         else:
             cfg = ModelConfig(name=spec, scale=scale)
-        model = build_model(cfg, scale)
-        model.demod_eps = 0.01
-        model.config = None
+        model = InferenceModel(build_model(cfg, scale), spec)
     else:
         from training.checkpoint import check_weights_fit, inference_weights, load_checkpoint
         from training.config import config_from_checkpoint
@@ -138,15 +137,12 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
         cfg = config_from_checkpoint(ck["config"], source=str(path))
         if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
             raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
-        model = build_model(cfg.model, scale)
+        module = build_model(cfg.model, scale)
         weights = inference_weights(ck)
-        check_weights_fit(path, model, weights, cfg.model.name)  # strict: one line naming the file
-        model.load_state_dict(weights)
-        model.demod_eps = cfg.data.demod_eps
-        model.config = cfg
-    model.spec = str(spec)
+        check_weights_fit(path, module, weights, cfg.model.name)  # strict: one line naming the file
+        module.load_state_dict(weights)
+        model = InferenceModel(module, spec, demod_eps=cfg.data.demod_eps, config=cfg)
     model.eval()
-    model.n_params = sum(p.numel() for p in model.parameters())
     if fast:
         from training.fastpath import prepare_inference
         prepare_inference(model)
@@ -187,7 +183,8 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     reached by running the clip from its start. Returns ``sr`` and
     ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
     the clip has it)."""
-    source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
+    model = as_inference(model)  # a plain module: no state kept between calls
+    source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=model.demod_eps)
     if model.SCALES is not None and source.scale != model.scale:
         raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
     model.follow_reference_filter(source.clip.manifest)
@@ -197,7 +194,7 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
         device = model_device(model)
         state = state_for(model, source, int(frame), lambda g: model_inputs(model, source, g, False), device)
         sr, ms, new = run_step(model, inputs, state, device)
-        model._clip_state.put(str(source.clip_path), int(frame), new)
+        model.clip_state.put(str(source.clip_path), int(frame), new)
     else:
         sr, ms = run_model(model, inputs)
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
@@ -209,4 +206,5 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     return out
 
 
-__all__ = ["load_model", "upscale_frame", "ClipFrames", "model_inputs", "run_model", "model_device"]
+__all__ = ["load_model", "upscale_frame", "ClipFrames", "model_inputs", "run_model", "model_device",
+           "InferenceModel"]

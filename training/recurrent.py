@@ -134,11 +134,9 @@ def lead_in(frames, first: int) -> list[int]:
 
 def state_for(model, source, frame: int, inputs_fn, device, amp=None):
     """The state of a recurrent model for ``frame`` of ``source`` (a ``ClipFrames``) kept on the model
-    (``model._clip_state``, a ``ClipState``): the stored one when the previous call was the previous frame of the
+    (an ``InferenceModel``'s ``clip_state``): the stored one when the previous call was the previous frame of the
     same clip, else the frames of ``lead_in`` are run first from the clip's start."""
-    st = getattr(model, "_clip_state", None)
-    if st is None:
-        st = model._clip_state = ClipState()
+    st = model.clip_state
     clip = str(source.clip_path)
     if st.key == (clip, int(frame) - 1):
         return st.state

@@ -39,7 +39,7 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     from gbuffer_export.clip import write_json_atomic
     from training.checkpoint import file_sha256, load_checkpoint
     from training.inference import load_model
-    from training.train import param_digest
+    from training.trainer import param_digest
     out = Path(out)
     if out.suffix != ".safetensors":
         raise BlendSRError(f"{out}: shipped weights are written as .safetensors (a file that cannot run code)")

@@ -33,6 +33,7 @@ def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool
                         gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
                         lr_denoise=bool(r["lr_denoise"]), seed=int(job.seed),
                         jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],
+                        hr_fbeta=r.get("hr_fbeta", "point"),  # a job written before the key: point-sampled
                         threads=int(r.get("threads") or threads), progress=progress)
 
 

@@ -34,10 +34,10 @@ from ..config import ConfigError, RenderConfig
 from ..conventions import (Flag, computed_buffers, halton_jitter, intrinsics_from_projection, level_name,
                            material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
-from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER
+from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
-from .convert import LevelCameras, PassPlan, convert, plan_passes, read_passes
+from .convert import BACKGROUND_DEPTH, LevelCameras, PassPlan, convert, plan_passes, read_passes
 
 log = logging.getLogger(__name__)
 
@@ -456,7 +456,10 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, c: dict, device
                    "filter_width_px": POINT_FILTER[1]},
             "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
-                        "emission_background": "environment" if plan.emit else None},
+                        "emission_background": "environment" if plan.emit else None,
+                        # only when footprint: a point-sampled clip keeps the identity it had before the key
+                        **({"hr_fbeta": "footprint"} if plan.colors and "fbeta" in cfg.buffers
+                           and cfg.hr_fbeta == "footprint" else {})},
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
         },
@@ -583,11 +586,13 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
         t = time.perf_counter()
         passes = render_to(scene, ctx.tmpdir / "hr_gbuffer.exr")
         seconds["gbuffer"] = time.perf_counter() - t
+        bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
         t = time.perf_counter()
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
-    set_passes(ctx.view_layer, PassPlan())
+    footprint = plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
+    set_passes(ctx.view_layer, PassPlan(colors=footprint))
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
                                filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
@@ -596,6 +601,9 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     passes = render_to(scene, ctx.tmpdir / "hr_radiance.exr")
     seconds["radiance"] = time.perf_counter() - t
     hr_out["radiance"] = passes["Combined"][..., :3]
+    if footprint:
+        filtered = sum(passes[k][..., :3] for k in ("Diffuse Color", "Glossy Color", "Transmission Color"))
+        hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
     for b in cfg.buffers:
         ctx.writer.write_buffer(frame, "hr", b, hr_out[b])

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import (DEVICES, FBETA_SOURCES, JITTERS, LIGHTS, ConfigError, RenderConfig, parse_frames,
+from ..config import (DEVICES, FBETA_SOURCES, HR_FBETA, JITTERS, LIGHTS, ConfigError, RenderConfig, parse_frames,
                       parse_scales, parse_shard, parse_size)
 from ..config import check_builtin_frames
 from ..conventions import ALL_BUFFERS, DEFAULT_BUFFERS
@@ -83,6 +83,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fbeta", choices=FBETA_SOURCES, default="cycles",
                    help="source of the pre-integrated BRDF: Cycles' colour passes, the split-sum table (lut), "
                         "the papers' literal table (lut-paper), or a model of Cycles' Principled BSDF")
+    p.add_argument("--hr-fbeta", choices=HR_FBETA, default="point",
+                   help="HR F_beta of --fbeta cycles: point-sampled like the other G-buffers and a game engine's "
+                        "(point) or the colour passes filtered like the ground truth (footprint: no sub-pixel "
+                        "texture in L_D)")
     p.add_argument("--max-bounces", type=int, default=None, help="override the scene's total light bounces")
     p.add_argument("--shard", default=None, metavar="K/N", help="render every N-th frame starting with the K-th")
     p.add_argument("--threads", type=int, default=0, help="render threads (0 = all cores)")
@@ -125,7 +129,7 @@ def config_from_args(args) -> RenderConfig:
         hr_denoise=args.hr_denoise, lr_denoise=args.lr_denoise, adaptive=args.adaptive,
         adaptive_threshold=args.adaptive_threshold, adaptive_min_samples=args.adaptive_min_samples,
         camera_path=args.camera_path, light=args.light, device=args.device, seed=args.seed, jitter=args.jitter,
-        buffers=args.buffers, fbeta=args.fbeta,
+        buffers=args.buffers, fbeta=args.fbeta, hr_fbeta=args.hr_fbeta,
         shard=parse_shard(args.shard), max_bounces=args.max_bounces, threads=args.threads,
         progress=not args.no_progress, extra={"variation": variation} if variation else {})
 

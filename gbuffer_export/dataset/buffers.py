@@ -1,13 +1,17 @@
 """Which clip buffers each model reads (pure Python): ``blendsr dataset --for-models`` and ``blendsr render
 --for-models`` render only these (plus what evaluation needs).
 
-The table is written out here because the core may not import the torch layer; ``tests/test_dataset_buffers.py``
-checks it against every model's ``needs()`` in ``training.models``, so a model that starts reading a new buffer
-fails the suite until its row is updated. Buffers apply to both levels of a clip (a buffer read at HR only is also
+The core may not import the torch layer, so the table is derived from every model's ``needs()`` by
+``python -m training.models.buffer_table`` into ``model_buffers.json`` beside this file; ``tests/test_dataset.py``
+fails when the file differs from the models, so a model that starts reading a new buffer fails the suite until the
+table is regenerated. Buffers apply to both levels of a clip (a buffer read at HR only is also
 written at LR). Derived keys map to their sources: ``irradiance`` and ``fbeta_used`` are computed from radiance,
 emission, fbeta and flags; ``depth_ref`` from LR depth.
 """
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 from ..errors import BlendSRError
 from ..conventions import ALL_BUFFERS
@@ -15,24 +19,12 @@ from ..conventions import ALL_BUFFERS
 #: Buffers every clip keeps: the ground truth (radiance) and HR motion for tPSNR and the warping error.
 EVALUATION_BUFFERS: tuple[str, ...] = ("radiance", "motion")
 
-_DEMOD = ("radiance", "emission", "fbeta", "flags")
+#: The table, written by ``python -m training.models.buffer_table`` from every model's ``needs()``.
+TABLE_PATH = Path(__file__).resolve().parent / "model_buffers.json"
 
 #: model name -> buffers it reads with its default configuration.
 MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
-    "bilinear": ("radiance",),
-    "bicubic": ("radiance",),
-    "demod-bilinear": _DEMOD,
-    "demod-jbu": _DEMOD + ("depth", "normal"),
-    "fusesr": _DEMOD + ("albedo", "depth", "normal", "motion"),
-    "fusesr-l": _DEMOD + ("albedo", "depth", "normal"),
-    "fusesr-fast": _DEMOD + ("depth", "normal"),
-    "rdg": ("radiance", "normal", "fbeta", "depth", "motion"),
-    "rdg-s": ("radiance", "normal", "fbeta", "depth", "motion"),
-    "nsrd": _DEMOD + ("depth", "normal", "motion", "motion_next"),
-    "nsrr": ("radiance", "depth", "motion"),
-    "nsrr-fec": ("radiance", "depth", "motion", "albedo", "metallic", "normal", "roughness", "specular"),
-    "fourier-sr": _DEMOD + ("albedo", "depth", "normal", "motion"),
-}
+    name: tuple(bufs) for name, bufs in json.loads(TABLE_PATH.read_text(encoding="utf-8"))["models"].items()}
 
 #: batch key (without level) -> the clip buffers it is made from.
 KEY_SOURCES: dict[str, tuple[str, ...]] = {

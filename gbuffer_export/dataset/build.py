@@ -374,7 +374,7 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
     if old.get("name") != spec.name or old.get("seed") != spec.seed:
         raise DatasetError(f"{root}: holds dataset {old.get('name')!r} (seed {old.get('seed')}); choose "
                            "another folder or delete it")
-    old_jobs = {c["id"]: c for c in old["clips"]}
+    old_jobs = {c["id"]: _legacy_render_keys(c) for c in old["clips"]}
     for j in jobs:
         o = old_jobs.get(j.id)
         if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
@@ -382,6 +382,14 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
             raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
                                "spec into another folder")
     return old
+
+
+def _legacy_render_keys(clip: dict) -> dict:
+    """An index entry with the render keys added after it was written set to what it was rendered with
+    (``hr_fbeta``: "point" before 2026-11-26)."""
+    if isinstance(clip.get("render"), dict) and "hr_fbeta" not in clip["render"]:
+        return {**clip, "render": {**clip["render"], "hr_fbeta": "point"}}
+    return clip
 
 
 def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:

@@ -53,7 +53,7 @@ MAX_CLIPS = 100_000
 #: The per-clip render keys of a spec (``[render]``, overridable in each ``[[source]]``): ``frames`` (the clip's
 #: length: frames 1..frames), then keys of ``RenderConfig`` (the one render-settings class), whose defaults they take.
 RENDER_KEYS = ("frames", "hr_size", "scale", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise", "jitter",
-               "buffers", "fbeta", "threads")
+               "buffers", "fbeta", "hr_fbeta", "threads")
 #: What a spec needs that a render of a scene file takes from the file: the clip's length and HR size (pixels).
 #: ``threads`` 0 means the machine's cores divided by the local workers (``RunOptions.clip_threads``).
 CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}

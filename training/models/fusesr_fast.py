@@ -30,23 +30,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from gbuffer_export.errors import BlendSRError
-from training.models.base import SRModel, conv, current, depth_features, frame
+from training.models.base import DWSConv, SRModel, conv, current, depth_features, frame
 from training.transforms import forward_transform, inverse_transform
 
 PRIMARY = 32
 ENCODER_CHANNELS = (16, 12, 12, 16)
-
-
-class SeparableConv(nn.Module):
-    """Depthwise 3x3 (with bias) then pointwise 1x1 (with bias), as the authors' DWS convolution."""
-
-    def __init__(self, cin: int, cout: int):
-        super().__init__()
-        self.depthwise = nn.Conv2d(cin, cin, 3, padding=1, groups=cin)
-        self.pointwise = nn.Conv2d(cin, cout, 1)
-
-    def forward(self, x):
-        return self.pointwise(self.depthwise(x))
 
 
 class FastEncoder(nn.Module):
@@ -57,7 +45,7 @@ class FastEncoder(nn.Module):
         self.shallow = nn.Sequential(conv(cin, PRIMARY), nn.ReLU(inplace=True))
         layers = []
         for a, b in zip((PRIMARY,) + ENCODER_CHANNELS[:-1], ENCODER_CHANNELS):
-            layers.append(SeparableConv(a, b))
+            layers.append(DWSConv(a, b))  # depthwise 3x3 then pointwise 1x1, both biased (the authors' DWS)
             if norm == "batch":
                 layers.append(nn.BatchNorm2d(b))
             layers.append(nn.ReLU(inplace=True))
