@@ -251,17 +251,15 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         clip_dir = root / "clip"
         cfg = mapping.render_config(settings, scene, output=clip_dir)
         a, b = cfg.frames
-        if a <= frame <= b:
-            # Only `frame` of the export's range: same generated camera path and jitter index as the export.
-            frames, shard = (a, b), (frame - a + 1, b - a + 1)
-        else:
-            frames, shard = (frame, frame), (1, 1)
+        # Only `frame` of the export's range: the export's generated camera path and jitter index for it.
+        frames = (a, b) if a <= frame <= b else (frame, frame)
         hr = {} if self.with_reference else {"hr_spp": 1, "hr_denoise": False, "adaptive": False}
         if clip_dir.exists():
             shutil.rmtree(clip_dir)
         root.mkdir(parents=True, exist_ok=True)
         job_dir = Path(tempfile.mkdtemp(prefix="job-", dir=root))
-        cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir), frames=frames, shard=shard, **hr)
+        cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir), frames=frames,
+                                  only_frames=(frame,), **hr)
         self.frame = frame
         return jobs.RenderJob(cfg.to_json(), [frame], job_dir=job_dir, library_paths=library.worker_paths(st),
                               validate="", blender_binary=bpy.app.binary_path)

@@ -19,7 +19,7 @@ import site
 import sys
 import traceback
 
-TUPLE_KEYS = ("frames", "hr_size", "shard", "buffers")
+TUPLE_KEYS = ("frames", "hr_size", "shard", "only_frames", "buffers")
 
 
 def config_kwargs(config: dict) -> dict:

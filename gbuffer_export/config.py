@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
 from .typed_table import ConfigError, key_error, option, set_checked
@@ -138,6 +139,8 @@ class RenderConfig:
     fbeta: str = option("cycles", choices=FBETA_SOURCES)
     hr_fbeta: str = option("point", choices=HR_FBETA)  # HR F_beta of 'cycles': pixel-filtered or point-sampled
     shard: tuple[int, int] = (1, 1)
+    only_frames: tuple[int, ...] | None = None  # render only these frames of the range (camera path and jitter
+                                                # indices stay the range's); None: every frame of the shard
     max_bounces: int | None = option(None, lo=0)  # None: the scene's own light paths
     threads: int = option(0, lo=0)                # 0: all cores
     progress: bool = True
@@ -160,6 +163,7 @@ class RenderConfig:
                             f"choose one of {', '.join(CAMERA_PATHS)}, scene:NAME or scene:*")
         set_checked(self, names=[f.name for f in dataclasses.fields(self)
                                  if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
+        self._check_only_frames()
         if self.hr_size is not None:
             self.check_size(self.hr_size, "hr_size")
         if self.scene is not None:
@@ -184,6 +188,35 @@ class RenderConfig:
             raise ConfigError(f"{key} {text}: a scale is given twice", key=key, detail=f"{text}: a scale is given twice")
         self.scales = tuple(float(v) for v in self.scales)
         self.scale = int(self.scales[0]) if self.scales[0].is_integer() else self.scales[0]
+
+    def _check_only_frames(self) -> None:
+        """``only_frames`` sorted, none twice, inside ``frames`` when that is given (the scene's range is checked
+        once the scene is loaded, ``check_frames_subset``)."""
+        if self.only_frames is None:
+            return
+        text = ",".join(str(f) for f in self.only_frames)
+        if not self.only_frames:
+            raise key_error("only_frames", text, "no frame given (None renders every frame)")
+        if len(set(self.only_frames)) != len(self.only_frames):
+            raise key_error("only_frames", text, "a frame is given twice")
+        self.only_frames = tuple(sorted(self.only_frames))
+        if self.frames is not None:
+            self.check_frames_subset(range(self.frames[0], self.frames[1] + 1))
+
+    def check_frames_subset(self, frames: Sequence[int]) -> None:
+        """ConfigError naming ``only_frames`` when one of them is not among ``frames`` (the clip's range)."""
+        outside = [f for f in self.only_frames or () if f not in frames]
+        if outside:
+            detail = f"frame {outside[0]} is outside the range {frames[0]}:{frames[-1]}"
+            raise key_error("only_frames", ",".join(str(f) for f in self.only_frames), detail)
+
+    def my_frames(self, frames: Sequence[int]) -> Sequence[int]:
+        """The frames of ``frames`` (the clip's whole range, in order) this process renders: every N-th from the
+        K-th (``shard`` K/N), and of those only ``only_frames`` when given. A range stays a range (not listed)."""
+        mine = frames[self.shard[0] - 1::self.shard[1]]
+        if self.only_frames is None:
+            return mine
+        return [f for f in self.only_frames if f in mine]
 
     def check_size(self, hr_size: tuple[int, int], what: str) -> dict[float, tuple[int, int]]:
         """{scale: LR size} of every scale; ConfigError naming ``what`` and the nearest valid sizes otherwise."""

@@ -90,6 +90,9 @@ def test_worker_config_round_trip(tmp_path):
                        camera_path="orbit", max_bounces=2)
     back = RenderConfig(**worker.config_kwargs(json.loads(json.dumps(cfg.to_json()))))
     assert back == cfg
+    one = RenderConfig(output=tmp_path / "o", frames=(2, 5), only_frames=(4,))  # the preview's frame
+    back = RenderConfig(**worker.config_kwargs(json.loads(json.dumps(one.to_json()))))
+    assert back == one and back.only_frames == (4,)
 
 
 @requires_bpy

@@ -197,3 +197,22 @@ def test_a_million_frames_per_clip_are_refused_by_dataset_before_anything_starts
     last = proc.stderr.strip().splitlines()[-1]
     assert "spec.toml: clip builtin-s0000:" in last and "100000000 frame(s)" in last
     assert not (tmp_path / "ds").exists()
+
+
+def test_only_frames_picks_a_subset_of_the_range_and_of_the_shard(tmp_path):
+    """``only_frames``: the frames rendered, inside ``frames`` (a frame keeps its index in the whole range); with a
+    shard, the shard's frames among them. Bad values are one-line errors naming the key."""
+    cfg = RenderConfig(output=tmp_path / "c", frames=(1, 10), only_frames=(7, 3))
+    assert cfg.only_frames == (3, 7) and cfg.my_frames(range(1, 11)) == [3, 7]
+    assert RenderConfig(output=tmp_path / "c", frames=(1, 10), shard=(2, 2),
+                        only_frames=(3, 4, 6)).my_frames(range(1, 11)) == [4, 6]
+    assert RenderConfig(output=tmp_path / "c", frames=(1, 10), shard=(2, 3)).my_frames(range(1, 11)) == range(2, 11, 3)
+    assert RenderConfig(output=tmp_path / "c", only_frames=[5]).only_frames == (5,)  # JSON list -> tuple
+    for bad, detail in (((11,), "frame 11 is outside the range 1:10"), ((2, 2), "a frame is given twice"),
+                        ((), "no frame given"), (("a",), "expected an integer")):
+        with pytest.raises(ConfigError, match="only_frames") as e:
+            RenderConfig(output=tmp_path / "c", frames=(1, 10), only_frames=bad)
+        assert detail in str(e.value) and "\n" not in str(e.value), str(e.value)
+    late = RenderConfig(output=tmp_path / "c", only_frames=(60,))  # the scene's range is known after loading it
+    with pytest.raises(ConfigError, match="only_frames '60': frame 60 is outside the range 1:48"):
+        late.check_frames_subset(range(1, 49))

@@ -91,6 +91,7 @@ def renderable_meshes(scene) -> list:
 def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
     start, end = scene.frame_start, scene.frame_end
     if cfg.frames is None:
+        cfg.check_frames_subset(range(start, end + 1))
         return list(range(start, end + 1))
     a, b = cfg.frames
     if cfg.scene is not None and cfg.camera_path.startswith("scene") and (a < start or b > end):
@@ -363,8 +364,7 @@ def frames_left(cfg: RenderConfig) -> int:
     """How many frames of ``cfg.frames`` this shard still renders (its finished frame records subtracted),
     counted without listing the range: a runaway ``--frames 1:1000000`` is refused at once."""
     a, b = cfg.frames
-    k, n = cfg.shard
-    mine = range(a, b + 1)[k - 1::n]
+    mine = cfg.my_frames(range(a, b + 1))
     done = 0
     fdir = cfg.output / FRAMES_DIR
     if fdir.is_dir():
@@ -407,8 +407,8 @@ def _clip_context(cfg: RenderConfig, scene) -> dict:
     check_camera(cam, cfg)
     scene.camera = cam
     w, h = resolve_size(cfg, scene)
-    undone = [f for i, f in enumerate(all_frames) if i % cfg.shard[1] == cfg.shard[0] - 1
-              and not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
+    undone = [f for f in cfg.my_frames(all_frames)
+              if not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
     from .scene_setup import scene_memory_bytes
     check_render_resources((w, h), cfg.scales, cfg.buffers, len(undone), cfg.output,
                            scene_bytes=scene_memory_bytes(scene), scene=str(cfg.scene or "scene"))
@@ -476,8 +476,7 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     c = _clip_context(cfg, scene)
     device = base_settings(scene, c["view_layer"], cfg)
     light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
-    shard_k, shard_n = cfg.shard
-    my_frames = [f for i, f in enumerate(c["frames"]) if i % shard_n == shard_k - 1]
+    my_frames = list(cfg.my_frames(c["frames"]))
     writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, c, device, light_paths))
     todo = [f for f in my_frames if not writer.is_frame_done(f)]  # one writer per clip: held until close() below
     skipped = len(my_frames) - len(todo)
