@@ -14,10 +14,11 @@ FMT = HelpFormatter
 
 def add_model_source(p: argparse.ArgumentParser) -> None:
     """--checkpoint CK | --model NAME, exactly one: the model that evaluate, upscale and export run."""
+    from training.pretrained import PREFIX, PRETRAINED  # torch-free
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--checkpoint", metavar="CK",
                    help="checkpoint file of 'blendsr train', or pretrained:NAME for the shipped weights "
-                        "(pretrained:fusesr, pretrained:fusesr-l; training/pretrained.py)")
+                        f"({', '.join(PREFIX + n for n in PRETRAINED)}; training/pretrained.py)")
     g.add_argument("--model", metavar="NAME", help="non-learned model: bilinear, bicubic, demod-bilinear, demod-jbu")
 
 
