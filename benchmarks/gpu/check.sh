@@ -12,7 +12,7 @@ export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
 step() { echo "== $1 ($(date +%T))"; shift; timeout "$@"; echo "exit $?"; }
 step "CUDA-only tests" 150 python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_training_fastpath.py \
     tests/test_cli_interface.py 2>&1 | tee "$OUT/cuda_tests.log"
-step "speed table" 240 blendsr bench models --device cuda --size 1920x1080 --precision fp32,bf16 --compile off,on \
+step "speed table" 240 blendsr bench models --device cuda --size 1920x1080 --precision none,bf16 --compile off,on \
     --eager-reference --repeats 30 --warmup 5 -o "$OUT/speed" 2>&1 | tee "$OUT/bench_models.log"
 for w in 0 8; do
   step "loader, $w workers" 60 blendsr bench loader --device cuda --model fusesr --batch 16 --crop 32 --amp bf16 \
