@@ -73,8 +73,8 @@ def run(args) -> int:
     t = _step(f"render built-in scene {seed}: frames {args.frames} (to score) and {later} (to fine-tune on)")
     for _, (path, frames) in clips.items():
         _cli("render", "-o", path, "--seed", seed, "--hr-size", args.hr_size, "--frames", frames,
-             "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu",
-             "--hr-denoise" if args.hr_denoise else "--no-hr-denoise")
+             "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu", "--buffers", "all",
+             "--hr-denoise" if args.hr_denoise else "--no-hr-denoise")  # all: every shipped network is scored
     print(f"   {time.perf_counter() - t:.0f} s")
     _step("validate")
     for name, (path, _) in clips.items():
