@@ -258,8 +258,9 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
             shutil.rmtree(clip_dir)
         root.mkdir(parents=True, exist_ok=True)
         job_dir = Path(tempfile.mkdtemp(prefix="job-", dir=root))
+        from gbuffer_export.conventions import ALL_BUFFERS  # one frame: every buffer, so any shipped model runs
         cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir), frames=frames,
-                                  only_frames=(frame,), **hr)
+                                  only_frames=(frame,), buffers=ALL_BUFFERS, **hr)
         self.frame = frame
         return jobs.RenderJob(cfg.to_json(), [frame], job_dir=job_dir, library_paths=library.worker_paths(st),
                               validate="", blender_binary=bpy.app.binary_path)

@@ -389,6 +389,7 @@ def test_preview_upscale_operator(tmp_path):
     clip = open_clip(tmp_path / "preview_clip")
     assert clip.frames == [2] and clip.manifest["frames"] == [1, 2]  # frame 2 of the export's range only
     assert clip.manifest["shard"] == [1, 1]  # only_frames, not a shard: the same render of the range resumes it
+    assert {"motion_next", "metallic", "fbeta"} <= set(clip.manifest["buffers"])  # every buffer: any model runs
     sr, bil, gt = (np.load(tmp_path / f"{k}.npy") for k in ("sr", "bilinear", "reference"))
     np.testing.assert_array_equal(gt, clip.read(2, "hr/radiance"))
     lr = clip.read(2, "lr/radiance")
