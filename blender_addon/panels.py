@@ -44,8 +44,7 @@ def summary(context) -> tuple[list[str], str]:
 
 def draw_blendsr(layout, context) -> None:
     """Draw the whole panel into ``layout`` (shared by both panels)."""
-    scene = context.scene
-    s = scene.blendsr
+    s = context.scene.blendsr
     prefs = Prefs(context)
     st = library.status(prefs.library_path)
     if not st.ok:
@@ -54,32 +53,48 @@ def draw_blendsr(layout, context) -> None:
         box.label(text=st.message, icon="ERROR")
         for line in st.hint:
             box.label(text=line)
-
     layout.prop(s, "output_dir")
-
+    _draw_frames(layout.box(), s)
+    _draw_sampling(layout.box(), s)
     box = layout.box()
+    box.label(text="Camera and buffers", icon="CAMERA_DATA")
+    for key in ("camera_path", "light", "device", "jitter", "buffers", "fbeta_source"):
+        box.prop(s, key)
+    _draw_summary(layout.box(), "Export summary", st, lambda: summary(context))
+    _draw_job(layout, st, "export", "Exporting", "blendsr.export_dataset", "EXPORT")
+    row = layout.row()
+    row.enabled = st.ok
+    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
+    if s.last_export:
+        layout.label(text=f"Last export: {s.last_export}")
+    _draw_preview(layout.box(), s, st, prefs)
+
+
+def _draw_frames(box, s) -> None:
     box.label(text="Frames and size", icon="RENDER_ANIMATION")
-    box.prop(s, "use_scene_frames")
-    row = box.row(align=True)
-    row.active = not s.use_scene_frames
-    row.prop(s, "frame_start")
-    row.prop(s, "frame_end")
-    box.prop(s, "use_scene_resolution")
-    row = box.row(align=True)
-    row.active = not s.use_scene_resolution
-    row.prop(s, "hr_width")
-    row.prop(s, "hr_height")
+    for switch, keys in (("use_scene_frames", ("frame_start", "frame_end")),
+                         ("use_scene_resolution", ("hr_width", "hr_height"))):
+        box.prop(s, switch)
+        row = box.row(align=True)
+        row.active = not getattr(s, switch)
+        for key in keys:
+            row.prop(s, key)
     box.prop(s, "scale")
 
-    box = layout.box()
-    box.label(text="Sampling", icon="RENDER_STILL")
+
+def _draw_spp(box, s) -> None:
+    """Samples and denoising: the clip settings and the Dataset settings share these keys."""
     col = box.column(align=True)
-    col.prop(s, "hr_spp")
-    col.prop(s, "lr_spp")
-    col.prop(s, "gbuffer_spp")
+    for key in ("hr_spp", "lr_spp", "gbuffer_spp"):
+        col.prop(s, key)
     row = box.row()
     row.prop(s, "hr_denoise")
     row.prop(s, "lr_denoise")
+
+
+def _draw_sampling(box, s) -> None:
+    box.label(text="Sampling", icon="RENDER_STILL")
+    _draw_spp(box, s)
     box.prop(s, "adaptive")
     row = box.row(align=True)
     row.active = s.adaptive
@@ -94,43 +109,36 @@ def draw_blendsr(layout, context) -> None:
     row.prop(s, "seed")
     row.prop(s, "threads")
 
-    box = layout.box()
-    box.label(text="Camera and buffers", icon="CAMERA_DATA")
-    box.prop(s, "camera_path")
-    box.prop(s, "light")
-    box.prop(s, "device")
-    box.prop(s, "jitter")
-    box.prop(s, "buffers")
-    box.prop(s, "fbeta_source")
 
-    box = layout.box()
-    box.label(text="Export summary", icon="INFO")
-    if st.ok:
-        lines, error = summary(context)
-        for line in lines:
-            box.label(text=line)
-        if error:
-            row = box.row()
-            row.alert = True
-            row.label(text=error, icon="ERROR")
-    else:
+def _draw_summary(box, title: str, st, make_lines) -> None:
+    """A summary box: ``make_lines() -> (lines, first error or '')`` when the library is importable."""
+    box.label(text=title, icon="INFO")
+    if not st.ok:
         box.label(text="Needs the BlendSR library (see above)")
+        return
+    lines, error = make_lines()
+    for line in lines:
+        box.label(text=line)
+    if error:
+        row = box.row()
+        row.alert = True
+        row.label(text=error, icon="ERROR")
+
+
+def _draw_job(layout, st, key: str, busy: str, operator: str, icon: str) -> None:
+    """The running job's status line, or the big button that starts ``operator``."""
     from .operators import ACTIVE
-    job = ACTIVE.get("export")
+    job = ACTIVE.get(key)
     if job is not None:
-        layout.label(text=f"Exporting: {job.status_line()}", icon="TIME")
-    else:
-        row = layout.row()
-        row.enabled = st.ok
-        row.scale_y = 1.4
-        row.operator("blendsr.export_dataset", icon="EXPORT")
+        layout.label(text=f"{busy}: {job.status_line()}", icon="TIME")
+        return
     row = layout.row()
     row.enabled = st.ok
-    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
-    if s.last_export:
-        layout.label(text=f"Last export: {s.last_export}")
+    row.scale_y = 1.4
+    row.operator(operator, icon=icon)
 
-    box = layout.box()
+
+def _draw_preview(box, s, st, prefs) -> None:
     box.label(text="Preview upscaling (current frame)", icon="IMAGE_DATA")
     box.prop(s, "checkpoint")
     row = box.row()
@@ -146,6 +154,7 @@ def draw_blendsr(layout, context) -> None:
             col.label(text="torch is not importable from Blender's Python.", icon="ERROR")
             col.label(text="Install blendsr[train] into it, or set 'External Python'")
             col.label(text="in Preferences > Add-ons > BlendSR to a Python with torch.")
+    from .operators import ACTIVE
     pjob = ACTIVE.get("preview")
     if pjob is not None:
         box.label(text=f"Rendering preview: {pjob.status_line()}", icon="TIME")
@@ -212,12 +221,7 @@ def draw_dataset(layout, context) -> None:
     box.prop(ds, "light")
     box = layout.box()
     box.label(text="Sampling and buffers", icon="RENDER_STILL")
-    col = box.column(align=True)
-    for key in ("hr_spp", "lr_spp", "gbuffer_spp"):
-        col.prop(ds, key)
-    row = box.row()
-    row.prop(ds, "hr_denoise")
-    row.prop(ds, "lr_denoise")
+    _draw_spp(box, ds)
     for key in ("jitter", "fbeta_source", "buffers", "for_models"):
         box.prop(ds, key)
     box = layout.box()
@@ -239,27 +243,8 @@ def draw_dataset(layout, context) -> None:
     row = box.row(align=True)
     for key in ("workers", "threads", "device"):
         row.prop(ds, key)
-    box = layout.box()
-    box.label(text="Dataset summary", icon="INFO")
-    if st.ok:
-        lines, error = dataset_summary(context)
-        for line in lines:
-            box.label(text=line)
-        if error:
-            row = box.row()
-            row.alert = True
-            row.label(text=error, icon="ERROR")
-    else:
-        box.label(text="Needs the BlendSR library (see above)")
-    from .operators import ACTIVE
-    job = ACTIVE.get("dataset")
-    if job is not None:
-        layout.label(text=f"Rendering dataset: {job.status_line()}", icon="TIME")
-    else:
-        row = layout.row()
-        row.enabled = st.ok
-        row.scale_y = 1.4
-        row.operator("blendsr.render_dataset", icon="RENDER_ANIMATION")
+    _draw_summary(layout.box(), "Dataset summary", st, lambda: dataset_summary(context))
+    _draw_job(layout, st, "dataset", "Rendering dataset", "blendsr.render_dataset", "RENDER_ANIMATION")
     if ds.last_dataset:
         row = layout.row()
         row.alert = not ds.last_dataset_ok
