@@ -14,17 +14,23 @@ def scene_resolution(scene) -> tuple[int, int]:
     return int(scene.render.resolution_x * pct), int(scene.render.resolution_y * pct)
 
 
-def output_path(settings) -> Path:
-    """Absolute output folder of the settings (``//`` is relative to the saved .blend)."""
+def _folder(text: str, what: str, holds: str) -> Path:
+    """Absolute folder of a panel's folder setting (``//`` is relative to the saved .blend); ConfigError naming
+    ``what`` when it is empty or relative to an unsaved file."""
     import bpy
     from gbuffer_export.config import ConfigError
-    text = settings.output_dir.strip()
+    text = text.strip()
     if not text:
-        raise ConfigError("output folder: choose a folder for the clip")
+        raise ConfigError(f"{what}: choose a folder for the {holds}")
     if text.startswith("//") and not bpy.data.filepath:
-        raise ConfigError(f"output folder {text!r} is relative to the .blend file: save the file first "
+        raise ConfigError(f"{what} {text!r} is relative to the .blend file: save the file first "
                           "or choose an absolute folder")
     return Path(bpy.path.abspath(text))
+
+
+def output_path(settings) -> Path:
+    """Absolute output folder of the clip settings."""
+    return _folder(settings.output_dir, "output folder", "clip")
 
 
 def render_config(settings, scene, *, scene_path: str | Path | None = None, output: str | Path | None = None):
@@ -194,13 +200,5 @@ def run_options_json(opts) -> dict:
 
 
 def dataset_output(ds) -> Path:
-    """Absolute dataset folder of the settings (``//`` is relative to the saved .blend)."""
-    import bpy
-    from gbuffer_export.config import ConfigError
-    text = ds.output_dir.strip()
-    if not text:
-        raise ConfigError("dataset folder: choose a folder for the dataset")
-    if text.startswith("//") and not bpy.data.filepath:
-        raise ConfigError(f"dataset folder {text!r} is relative to the .blend file: save the file first "
-                          "or choose an absolute folder")
-    return Path(bpy.path.abspath(text))
+    """Absolute dataset folder of the Dataset settings."""
+    return _folder(ds.output_dir, "dataset folder", "dataset")
