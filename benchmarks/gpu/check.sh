@@ -1,27 +1,38 @@
 #!/usr/bin/env bash
-# One device call (its steps are capped by timeouts summing to 8 min 50 s, inside a 600 s call; never run yet: no GPU was lent) for the GPU items of docs/results.md ("GPU measurements"):
-# the CUDA-only tests, the 1080p 4x speed table of every model, loader against step, training throughput.
-# Needs the wheels of fetch_wheels.sh carried as .whl. Writes its logs and tables to $OUT (default gpu_out).
+# One device call for the GPU items of docs/results.md ("GPU measurements"): the CUDA-only tests, the 1080p 4x speed
+# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 530 s,
+# inside a 600 s call. Needs the wheels of fetch_wheels.sh carried as .whl. Writes six files to $OUT (default gpu_out):
+# log.txt, speed_eager.json/.md, speed_compiled.json, train_summary_w0.json, train_summary_w8.json.
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
+# CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 bash benchmarks/gpu/check.sh
 set -u
-OUT=${OUT:-gpu_out}; mkdir -p "$OUT"; export PYTHONUNBUFFERED=1
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
-python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target /tmp/site . || exit 1
-export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
-{ nvidia-smi -L; python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())"; } | tee "$OUT/device.txt"
-step() { echo "== $1 ($(date +%T))"; shift; timeout "$@"; echo "exit $?"; }
-step "CUDA-only tests" 120 python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_training_fastpath.py \
-    tests/test_cli_interface.py 2>&1 | tee "$OUT/cuda_tests.log"
-step "speed table" 200 blendsr bench models --device cuda --size 1920x1080 --precision none,bf16 --compile off,on \
-    --eager-reference --repeats 30 --warmup 5 -o "$OUT/speed" 2>&1 | tee "$OUT/bench_models.log"
+OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEATS:-30}; STEPS=${STEPS:-300}
+mkdir -p "$OUT"; export PYTHONUNBUFFERED=1; W=/tmp/blendsr_gpu; rm -rf "$W"; mkdir -p "$W"; LOG="$OUT/log.txt"
+if [ "$DEV" = cuda ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
+  python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target /tmp/site . || exit 1
+  export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
+  nvidia-smi -L >> "$LOG"
+fi
+python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name() if torch.cuda.is_available() else 'cpu')" >> "$LOG"
+step() { echo "== $1 ($(date +%T))" >> "$LOG"; shift; timeout "$@" >> "$LOG" 2>&1; echo "exit $?" >> "$LOG"; }
+[ "$DEV" = cuda ] && step "CUDA-only tests" 110 python3 -m pytest -q -p no:cacheprovider -k cuda \
+    tests/test_training_fastpath.py tests/test_cli_interface.py
+bench=(blendsr bench models --device "$DEV" --size "$SIZE" --precision none,bf16 --repeats "$REPEATS" --warmup 5
+       --no-progress)
+step "speed table, eager" 80 "${bench[@]}" --compile off --eager-reference -o "$W/eager"
+cp "$W/eager/bench_speed.json" "$OUT/speed_eager.json" && cp "$W/eager/bench_speed.md" "$OUT/speed_eager.md"
+step "speed table, compiled (the targets' models, bf16)" 170 "${bench[@]}" --compile on -o "$W/compiled" \
+    --models fusesr-fast,fusesr-l,fusesr,demod-bilinear,demod-jbu --precision bf16
+cp "$W/compiled/bench_speed.json" "$OUT/speed_compiled.json"
 for w in 0 8; do
-  step "loader, $w workers" 45 blendsr bench loader --device cuda --model fusesr --batch 16 --crop 32 --amp bf16 \
-      --batches 60 --steps 20 --workers $w 2>&1 | tee -a "$OUT/bench_loader.log"
+  step "loader, $w workers" 35 blendsr bench loader --device "$DEV" --model fusesr --batch 16 --crop 32 --amp bf16 \
+      --batches 60 --steps 20 --workers $w
 done
-python3 -c "from gbuffer_export.synthetic import make_synthetic_clip as m; m('/tmp/clip', frames=range(1, 9), hr_size=(512, 288))"
+python3 -c "from gbuffer_export.synthetic import make_synthetic_clip as m; m('$W/clip', frames=range(1, 9), hr_size=(512, 288))"
 for w in 0 8; do
-  step "train throughput, $w workers" 60 blendsr train --model fusesr --data /tmp/clip -o /tmp/tp$w --max-steps 300 \
-      --set data.batch_size=16 --set data.crop=32 --set 'run.amp="bf16"' --set run.progress=false \
-      --set data.workers=$w 2>&1 | tail -3 | tee -a "$OUT/train.log"
-  cp /tmp/tp$w/summary.json "$OUT/train_summary_w$w.json" 2>/dev/null
+  step "train throughput, $w workers" 50 blendsr train --model fusesr --data "$W/clip" -o "$W/tp$w" \
+      --max-steps "$STEPS" --set data.batch_size=16 --set data.crop=32 --set 'run.amp="bf16"' \
+      --set run.progress=false --set data.workers=$w --set "run.device=\"$DEV\""
+  cp "$W/tp$w/summary.json" "$OUT/train_summary_w$w.json"
 done
