@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One device call for the GPU items of docs/results.md ("GPU measurements"): the CUDA-only tests, the 1080p 4x speed
-# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 530 s,
+# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 510 s,
 # inside a 600 s call. Needs the wheels of fetch_wheels.sh carried as .whl. Writes six files to $OUT (default gpu_out):
 # log.txt, speed_eager.json/.md, speed_compiled.json, train_summary_w0.json, train_summary_w8.json.
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
@@ -10,19 +10,20 @@ OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEAT
 mkdir -p "$OUT"; export PYTHONUNBUFFERED=1; W=/tmp/blendsr_gpu; rm -rf "$W"; mkdir -p "$W"; LOG="$OUT/log.txt"
 if [ "$DEV" = cuda ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
-  python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target /tmp/site . || exit 1
+  python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --ignore-requires-python --target /tmp/site . || exit 1
+  # pip --target writes no console script for a local package: a two-line blendsr on PATH instead
+  mkdir -p /tmp/site/bin; printf '#!/bin/sh\nexec python3 -c "import sys; from gbuffer_export.cli import main; sys.exit(main())" "$@"\n' \
+      > /tmp/site/bin/blendsr && chmod +x /tmp/site/bin/blendsr
   export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
   nvidia-smi -L >> "$LOG"
 fi
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name() if torch.cuda.is_available() else 'cpu')" >> "$LOG"
 step() { echo "== $1 ($(date +%T))" >> "$LOG"; shift; timeout "$@" >> "$LOG" 2>&1; echo "exit $?" >> "$LOG"; }
-[ "$DEV" = cuda ] && step "CUDA-only tests" 110 python3 -m pytest -q -p no:cacheprovider -k cuda \
-    tests/test_training_fastpath.py tests/test_cli_interface.py
 bench=(blendsr bench models --device "$DEV" --size "$SIZE" --precision none,bf16 --repeats "$REPEATS" --warmup 5
        --no-progress)
 step "speed table, eager" 80 "${bench[@]}" --compile off --eager-reference -o "$W/eager"
 cp "$W/eager/bench_speed.json" "$OUT/speed_eager.json" && cp "$W/eager/bench_speed.md" "$OUT/speed_eager.md"
-step "speed table, compiled (the targets' models, bf16)" 170 "${bench[@]}" --compile on -o "$W/compiled" \
+step "speed table, compiled (the targets' models, bf16)" 150 "${bench[@]}" --compile on -o "$W/compiled" \
     --models fusesr-fast,fusesr-l,fusesr,demod-bilinear,demod-jbu --precision bf16
 cp "$W/compiled/bench_speed.json" "$OUT/speed_compiled.json"
 for w in 0 8; do
@@ -36,3 +37,5 @@ for w in 0 8; do
       --set run.progress=false --set data.workers=$w --set "run.device=\"$DEV\""
   cp "$W/tp$w/summary.json" "$OUT/train_summary_w$w.json"
 done
+[ "$DEV" = cuda ] && step "CUDA-only tests" 110 python3 -m pytest -v -p no:cacheprovider --durations=0 -k cuda \
+    tests/test_training_fastpath.py tests/test_cli_interface.py
