@@ -1,0 +1,88 @@
+"""Where the 1080p 4x inference time of a model goes on a GPU: torch.profiler over a few forward passes of the
+prepared fast path (bf16, channels-last, no compile), kernels grouped by family.
+
+Usage: python benchmarks/gpu/profile.py [--models demod-jbu,fusesr-fast,fusesr-l,fusesr] [--size 1920x1080]
+       [--device cuda] [--repeats 10] [-o OUT.txt]
+Prints, per model: the kernels launched per frame, the GPU time per frame by family (convolution, element-wise,
+resampling, reduction, copy/layout, other) and the 15 most expensive kernels. Random inputs (as bench models).
+"""
+from __future__ import annotations
+
+import argparse
+import re
+from collections import defaultdict
+
+FAMILIES = [("convolution", r"conv|cudnn|implicit|gemm|sm90|xmma|cutlass|wgrad|dgrad|fprop"),
+            ("resampling", r"grid_sampler|upsample|interp"),
+            ("copy/layout", r"copy|nchw|nhwc|transpose|permute|cat|memcpy|memset"),
+            ("reduction", r"reduce|sum|mean|norm|max|min"),
+            ("element-wise", r"elementwise|vectorized|unrolled|pointwise|triton")]
+
+
+def family(name: str) -> str:
+    low = name.lower()
+    return next((f for f, pat in FAMILIES if re.search(pat, low)), "other")
+
+
+def profile(name: str, size, device, repeats: int, precision: str) -> str:
+    import torch
+    from torch.profiler import ProfilerActivity, profile as tprofile
+
+    from training.config import ModelConfig
+    from training.export import example_inputs
+    from training.fastpath import forward, prepare_inference
+    from training.inference import InferenceModel
+    from training.models import build_model
+
+    m = InferenceModel(build_model(ModelConfig(name=name, scale=4), 4).eval(), name).to(device)
+    batch = {k: torch.from_numpy(v).to(device) for k, v in example_inputs(m, None, size).items()}
+    prepare_inference(m, device, precision)
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with torch.inference_mode():
+        for _ in range(3):
+            forward(m, batch)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        with tprofile(activities=acts) as prof:
+            for _ in range(repeats):
+                forward(m, batch)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+    kernels = [e for e in prof.key_averages() if e.device_type.name == ("CUDA" if device.type == "cuda" else "CPU")]
+    attr = "device_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    by_family, launches = defaultdict(float), 0
+    for e in kernels:
+        t = getattr(e, attr, 0.0)
+        by_family[family(e.key)] += t / repeats / 1000.0
+        launches += e.count
+    total = sum(by_family.values())
+    lines = [f"== {name} ({precision}, {size[0]}x{size[1]}): {launches / repeats:.0f} kernels per frame, "
+             f"{total:.3f} ms of kernel time per frame"]
+    lines += [f"   {f:<13} {ms:8.3f} ms  {100 * ms / max(total, 1e-9):5.1f} %"
+              for f, ms in sorted(by_family.items(), key=lambda x: -x[1])]
+    top = sorted(kernels, key=lambda e: -getattr(e, attr, 0.0))[:15]
+    lines += [f"   {getattr(e, attr, 0.0) / repeats / 1000.0:8.3f} ms  x{e.count // repeats:<4} {e.key[:110]}"
+              for e in top]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    import torch
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--models", default="demod-jbu,fusesr-fast,fusesr-l,fusesr")
+    p.add_argument("--size", default="1920x1080")
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--precision", default="bf16")
+    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("-o", dest="out")
+    a = p.parse_args()
+    size = tuple(int(v) for v in a.size.split("x"))
+    text = "\n".join(profile(n, size, torch.device(a.device), a.repeats, a.precision) for n in a.models.split(","))
+    print(text)
+    if a.out:
+        with open(a.out, "w") as f:
+            f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
