@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# One device call for the GPU items of docs/results.md ("GPU measurements"): the CUDA-only tests, the 1080p 4x speed
-# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 510 s,
+# One device call for the GPU items of docs/results.md ("GPU: CUDA tests, 1080p speed, profile and training throughput"): the CUDA-only tests, the 1080p 4x speed
+# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 530 s (measured on an
+# H200, 2026-11-26: 52, 69, 14+17, 28+19 s, and about 160 s for the tests, which compile 13 models),
 # inside a 600 s call. Needs the wheels of fetch_wheels.sh carried as .whl. Writes six files to $OUT (default gpu_out):
 # log.txt, speed_eager.json/.md, speed_compiled.json, train_summary_w0.json, train_summary_w8.json.
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
@@ -23,19 +24,19 @@ bench=(blendsr bench models --device "$DEV" --size "$SIZE" --precision none,bf16
        --no-progress)
 step "speed table, eager" 80 "${bench[@]}" --compile off --eager-reference -o "$W/eager"
 cp "$W/eager/bench_speed.json" "$OUT/speed_eager.json" && cp "$W/eager/bench_speed.md" "$OUT/speed_eager.md"
-step "speed table, compiled (the targets' models, bf16)" 150 "${bench[@]}" --compile on -o "$W/compiled" \
+step "speed table, compiled (the targets' models, bf16)" 120 "${bench[@]}" --compile on -o "$W/compiled" \
     --models fusesr-fast,fusesr-l,fusesr,demod-bilinear,demod-jbu --precision bf16
 cp "$W/compiled/bench_speed.json" "$OUT/speed_compiled.json"
 for w in 0 8; do
-  step "loader, $w workers" 35 blendsr bench loader --device "$DEV" --model fusesr --batch 16 --crop 32 --amp bf16 \
+  step "loader, $w workers" 25 blendsr bench loader --device "$DEV" --model fusesr --batch 16 --crop 32 --amp bf16 \
       --batches 60 --steps 20 --workers $w
 done
 python3 -c "from gbuffer_export.synthetic import make_synthetic_clip as m; m('$W/clip', frames=range(1, 9), hr_size=(512, 288))"
 for w in 0 8; do
-  step "train throughput, $w workers" 50 blendsr train --model fusesr --data "$W/clip" -o "$W/tp$w" \
+  step "train throughput, $w workers" 40 blendsr train --model fusesr --data "$W/clip" -o "$W/tp$w" \
       --max-steps "$STEPS" --set data.batch_size=16 --set data.crop=32 --set 'run.amp="bf16"' \
       --set run.progress=false --set data.workers=$w --set "run.device=\"$DEV\""
   cp "$W/tp$w/summary.json" "$OUT/train_summary_w$w.json"
 done
-[ "$DEV" = cuda ] && step "CUDA-only tests" 110 python3 -m pytest -v -p no:cacheprovider --durations=0 -k cuda \
+[ "$DEV" = cuda ] && step "CUDA-only tests" 200 python3 -m pytest -v -p no:cacheprovider --durations=0 -k cuda \
     tests/test_training_fastpath.py tests/test_cli_interface.py
