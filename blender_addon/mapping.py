@@ -119,6 +119,17 @@ def parse_scales(text: str) -> list[int]:
     return scales
 
 
+def preview_scale(settings) -> tuple[bool, str]:
+    """(whether the preview's model takes any scale, the one-line problem with the settings' Scale or ''), for the
+    chosen preview model (``gbuffer_export.dataset.buffers.scale_problem``); a checkpoint file is checked when it
+    loads."""
+    if settings.checkpoint.strip():
+        return False, ""
+    from gbuffer_export.dataset.buffers import MODEL_SCALES, scale_problem
+    spec = settings.preview_model
+    return spec in MODEL_SCALES and MODEL_SCALES[spec] is None, scale_problem(spec, settings.scale)
+
+
 def _names(text: str) -> list[str]:
     return [t.strip() for t in str(text).split(",") if t.strip()]
 

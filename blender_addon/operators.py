@@ -243,6 +243,9 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         settings = scene.blendsr
         prefs = Prefs(context)
         self.spec = model_spec(settings)
+        problem = mapping.preview_scale(settings)[1]
+        if problem:
+            raise ValueError(f"{problem}: set Scale to it, or choose a model that takes any scale")
         self.python = inference_runner(st, prefs)
         self.status = st
         self.with_reference = bool(settings.with_reference)

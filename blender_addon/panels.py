@@ -138,12 +138,26 @@ def _draw_job(layout, st, key: str, busy: str, operator: str, icon: str) -> None
     row.operator(operator, icon=icon)
 
 
+def _draw_preview_scale(box, s, st) -> None:
+    """The Scale field beside an arbitrary-scale model; a warning when a fixed-scale model cannot use Scale."""
+    if not st.ok:
+        return
+    any_scale, problem = mapping.preview_scale(s)
+    if any_scale:
+        box.prop(s, "scale", text="Preview scale")
+    if problem:
+        col = box.column()
+        col.alert = True
+        col.label(text=problem, icon="ERROR")
+
+
 def _draw_preview(box, s, st, prefs) -> None:
     box.label(text="Preview upscaling (current frame)", icon="IMAGE_DATA")
     box.prop(s, "checkpoint")
     row = box.row()
     row.active = not s.checkpoint.strip()
     row.prop(s, "preview_model")
+    _draw_preview_scale(box, s, st)
     box.prop(s, "with_reference")
     if st.ok and not (st.torch and st.training) and prefs.inference != "EXTERNAL":
         col = box.column()

@@ -246,8 +246,26 @@ def test_panels_draw_with_library(tmp_path):
         from blender_addon.props import store_preview_results
         store_preview_results(s, ms=12.5, psnr=31.25, metric="m", info="frame 1", clip="c")
         with_results = draw_all()["BLENDSR_PT_output"]
-        emit({"ok": ok, "no_torch": no_torch, "with_results": with_results})
+        # the arbitrary-scale network gets a scale field; a fixed-scale one at another scale a warning, and the
+        # preview operator refuses it before rendering
+        library._CACHE.clear()
+        s.preview_model, s.scale = "pretrained:fourier-sr", 3
+        any_scale = draw_all()["BLENDSR_PT_output"]
+        s.preview_model = "pretrained:fusesr"
+        fixed = draw_all()["BLENDSR_PT_output"]
+        try:  # in background mode an ERROR report raises
+            refused = sorted(bpy.ops.blendsr.preview_upscale())
+        except RuntimeError as exc:
+            refused = str(exc)
+        emit({"ok": ok, "no_torch": no_torch, "with_results": with_results, "any_scale": any_scale,
+              "fixed": fixed, "refused": refused})
     ''', tmp_path / "clip", helpers=DRAW)
+    n_scale = {k: sum(e[:2] == ["prop", "scale"] for e in r[k]) for k in ("any_scale", "fixed")}  # JSON: lists
+    assert n_scale == {"any_scale": 2, "fixed": 1}  # Frames and size's Scale, plus the preview's
+    assert "pretrained:fusesr was trained for scale 4, not 3" in [e[1] for e in r["fixed"] if e[0] == "label"]
+    assert not any(e[0] == "label" and "trained for scale" in e[1] for e in r["any_scale"])
+    assert r["refused"] == ("Error: BlendSR preview: pretrained:fusesr was trained for scale 4, not 3: set Scale to "
+                            "it, or choose a model that takes any scale\n")
     for name, log in r["ok"].items():
         props = [e for e in log if e[0] == "prop"]
         assert props and all(e[2] for e in props), f"{name}: unknown property drawn: {props}"

@@ -388,3 +388,22 @@ sys.exit(rc)
     assert err == ["blendsr: error: --threads 2: no node of the local Ray cluster has 2 CPUs (the largest has 1), so "
                    "its tasks could never run; pass --threads 1 or fewer"], proc.stderr[-2000:]
     assert not list((tmp_path / "ds" / "clips").glob("*/manifest.json"))
+
+
+def test_scale_problem_names_the_scales_a_model_takes():
+    from gbuffer_export.dataset.buffers import MODEL_SCALES, scale_problem
+    assert scale_problem("pretrained:fourier-sr", 3) == "" and scale_problem("bicubic", 5) == ""
+    assert scale_problem("pretrained:fusesr", 4) == "" and scale_problem("demod-jbu", 8) == ""
+    assert scale_problem("pretrained:fusesr", 2) == "pretrained:fusesr was trained for scale 4, not 2"
+    assert scale_problem("fusesr", 3) == "fusesr takes scale 2 or 4 or 8, not 3"
+    assert scale_problem("/some/checkpoint.pt", 3) == ""  # checked when it loads
+    assert MODEL_SCALES["fourier-sr"] is None and MODEL_SCALES["pretrained:fourier-sr"] is None
+
+
+@pytest.mark.torch
+def test_model_scale_table_is_derived_from_the_models_and_the_shipped_weights():
+    pytest.importorskip("torch")
+    from gbuffer_export.dataset.buffers import MODEL_SCALES
+    from training.models.buffer_table import model_scale_table
+    assert {k: None if v is None else tuple(v) for k, v in model_scale_table().items()} == MODEL_SCALES, (
+        "gbuffer_export/dataset/model_buffers.json is stale: run python -m training.models.buffer_table")

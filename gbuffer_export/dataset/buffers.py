@@ -24,14 +24,29 @@ TABLE_PATH = Path(__file__).resolve().parent / "model_buffers.json"
 
 #: model name -> buffers it reads with its default configuration and with its shipped weights' (``pretrained:NAME``:
 #: e.g. the residual demod-bilinear base of ``rdg-s`` and ``nsrr-fec`` reads L_D and remodulates, docs/models/).
-MODEL_BUFFERS: dict[str, tuple[str, ...]] = {
-    name: tuple(bufs) for name, bufs in json.loads(TABLE_PATH.read_text(encoding="utf-8"))["models"].items()}
+_TABLE = json.loads(TABLE_PATH.read_text(encoding="utf-8"))
+MODEL_BUFFERS: dict[str, tuple[str, ...]] = {name: tuple(bufs) for name, bufs in _TABLE["models"].items()}
+
+#: model name or ``pretrained:NAME`` -> the integer scales it upscales by (None: any scale), from every model's
+#: ``SCALES``; shipped weights of a fixed-scale model upscale by the one scale they were trained for.
+MODEL_SCALES: dict[str, tuple[int, ...] | None] = {
+    name: None if scales is None else tuple(scales) for name, scales in _TABLE["scales"].items()}
 
 #: batch key (without level) -> the clip buffers it is made from.
 KEY_SOURCES: dict[str, tuple[str, ...]] = {
     "irradiance": ("radiance", "emission", "fbeta", "flags"),
     "fbeta_used": ("fbeta", "flags"),
 }
+
+
+def scale_problem(spec: str, scale: int) -> str:
+    """'' when model ``spec`` (a name or ``pretrained:NAME``; a checkpoint path is checked when it loads) upscales
+    by ``scale``, else one line saying which scales it takes."""
+    scales = MODEL_SCALES.get(str(spec), None)
+    if scales is None or int(scale) in scales:
+        return ""
+    what = "was trained for" if str(spec).startswith("pretrained:") else "takes"
+    return f"{spec} {what} scale {' or '.join(map(str, scales))}, not {scale}"
 
 
 def buffers_of_keys(keys) -> set[str]:

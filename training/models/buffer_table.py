@@ -1,4 +1,5 @@
-"""Derive the core's model -> clip buffers table from every model's ``needs()`` (torch layer).
+"""Derive the core's model -> clip buffers table from every model's ``needs()``, and its model -> scales table
+from every model's ``SCALES`` and shipped weights (torch layer).
 
 ``blendsr dataset/render --for-models`` must work without torch, so the core reads the table from
 ``gbuffer_export/dataset/model_buffers.json``; this module writes that file from the models themselves (each with
@@ -31,10 +32,25 @@ def model_buffer_table() -> dict[str, list[str]]:
     return table
 
 
+def model_scale_table() -> dict[str, list[int] | None]:
+    """model name and ``pretrained:NAME`` -> the integer scales it upscales by (None: any scale; a model's
+    ``SCALES``; shipped weights of a fixed-scale model: only the scale they were trained for)."""
+    from training.models import MODELS, model_class
+    from training.pretrained import PREFIX, PRETRAINED, info
+    table: dict[str, list[int] | None] = {}
+    for name in MODELS:
+        scales = model_class(name).SCALES
+        table[name] = None if scales is None else sorted(scales)
+    for name in PRETRAINED:
+        table[PREFIX + name] = None if table[name] is None else [int(info(name)["scale"])]
+    return table
+
+
 def write_table(path: Path = TABLE_PATH) -> dict[str, list[str]]:
-    """Write ``model_buffer_table()`` to ``path`` (atomic) and return it."""
+    """Write ``model_buffer_table()`` and ``model_scale_table()`` to ``path`` (atomic); return the buffer table."""
     table = model_buffer_table()
-    write_json_atomic(path, {"generated_by": "python -m training.models.buffer_table", "models": table})
+    write_json_atomic(path, {"generated_by": "python -m training.models.buffer_table", "models": table,
+                             "scales": model_scale_table()})
     return table
 
 
