@@ -6,7 +6,12 @@
 #      split (assets never seen in training),
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
 # Usage: [SPEC=spec.toml] benchmarks/pretrain.sh [DATASET] [RUNS]
-#        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500 as shipped; THREADS: torch threads)
+#        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500; THREADS: torch threads;
+#        INIT=SPEC: start each model from SPEC's weights with <SPEC> replaced by the model name, e.g.
+#        INIT='pretrained:<M>' fine-tunes the shipped weights; LR: optim.lr; MINUTES: each training also stops after
+#        M minutes of this invocation, resumable; MODELS: default "fusesr fusesr-l"; RELEASE=0: no weights written)
+# The weights shipped on 2026-11-26 (trained on examples/dataset_large.toml, fine-tuned from those of the medium
+# dataset): see training/weights/fusesr_x4.json, "commands".
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SPEC=${SPEC:-examples/dataset_medium.toml}
@@ -19,11 +24,18 @@ PY=${PY:-.venv/bin/python}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
 $PY -m gbuffer_export.cli dataset "$SPEC" -o "$DS" --workers 2
 $PY -m gbuffer_export.cli validate "$DS" --quick --no-progress
-for M in fusesr fusesr-l; do
+MODELS=${MODELS:-"fusesr fusesr-l"}
+for M in $MODELS; do
   R="$RUNS/${M//-/_}"
   if [ "$M" = fusesr ]; then STEPS=$FUSESR_STEPS; else STEPS=$FUSESR_L_STEPS; fi
-  if [ -f "$R/checkpoints/last.pt" ]; then RESUME=--resume; else RESUME=; fi
-  $PY -m gbuffer_export.cli train --model "$M" --data "$DS" -o "$R" --config benchmarks/pretrain.toml \
-      --max-steps "$STEPS" --set run.threads="$THREADS" $RESUME
+  CMD=(train --model "$M" --data "$DS" -o "$R" --config benchmarks/pretrain.toml --max-steps "$STEPS"
+       --set run.threads="$THREADS")
+  [ -n "${INIT:-}" ] && CMD+=(--set "run.init_from=\"${INIT//<M>/$M}\"")
+  [ -n "${LR:-}" ] && CMD+=(--set "optim.lr=$LR")
+  mkdir -p "$R"
+  { printf 'blendsr'; printf ' %q' "${CMD[@]}"; echo; } > "$R/command.txt"
+  EXTRA=(); [ -f "$R/checkpoints/last.pt" ] && EXTRA+=(--resume)
+  [ -n "${MINUTES:-}" ] && EXTRA+=(--minutes "$MINUTES")
+  $PY -m gbuffer_export.cli "${CMD[@]}" "${EXTRA[@]}"
 done
-$PY benchmarks/release_weights.py "$DS" "$RUNS"
+[ "${RELEASE:-1}" = 1 ] && $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)"
