@@ -19,13 +19,16 @@ HFOV, VFOV = math.atan(0.75), math.atan(0.75 * 9 / 16)
 FPS = 24.0
 
 
-def _room(size=(12.0, 9.0, 3.0), unit: float = 1.0, ground: float = 0.0) -> LevelGeometry:
+def _room(size=(12.0, 9.0, 3.0), unit: float = 1.0, ground: float = 0.0, roof: bool = True) -> LevelGeometry:
     """A closed room (faces looking inwards) with a pillar, a table and a low step, in scene units of ``unit``
-    metres; ``ground`` > 0 adds a flat ground plane of that side under everything."""
+    metres; ``ground`` > 0 adds a flat ground plane of that side under everything; ``roof`` False leaves it open
+    to the sky (a courtyard)."""
     parts = []
     room = trimesh.creation.box(extents=size)
     room.apply_translation([0, 0, size[2] / 2])
     room.invert()  # walls seen from inside: their normals point into the room
+    if not roof:
+        room.update_faces(~np.all(np.isclose(room.vertices[room.faces][:, :, 2], size[2]), axis=1))
     parts.append(room)
     pillar = trimesh.creation.box(extents=(0.6, 0.6, size[2]))
     pillar.apply_translation([1.5, 1.0, size[2] / 2])
@@ -185,3 +188,22 @@ def test_a_view_of_only_sky_is_redrawn_then_refused():
     g = LevelGeometry(plane.vertices, plane.faces)
     with pytest.raises(PathError, match="sky or background"):
         plan_level_path(g, "walk", 9, FPS, 0, HFOV, VFOV, rules=PathRules(tries=6))
+
+
+def test_a_sky_lit_level_refuses_eyes_under_a_roof():
+    """light = "sky": an eye that sees no sky renders black (the town level's black test clip, 2026-11-26). The
+    sky fraction is measured here with trimesh's own rays."""
+    roofed, courtyard = _room(), _room(roof=False)
+    rules = PathRules(min_sky_fraction=0.05, tries=8)
+    with pytest.raises(PathError, match="under a roof"):
+        plan_level_path(roofed, "walk", 9, FPS, 0, HFOV, VFOV, rules=rules)
+    p = plan_level_path(courtyard, "walk", 9, FPS, 0, HFOV, VFOV, rules=rules)
+    up = trimesh.sample.sample_surface_sphere(400)
+    up = up[up[:, 2] > 0]
+    mesh = trimesh.Trimesh(courtyard.vertices, courtyard.faces, process=False)
+    for e in p.eyes:
+        hit = mesh.ray.intersects_any(np.repeat(e[None], len(up), axis=0), up)
+        assert 1 - hit.mean() >= 0.05
+    assert p.report["sky_fraction_min"] >= 0.05
+    # without the rule (a level lit by its own lights) the roofed room is a valid place
+    assert "sky_fraction_min" not in plan_level_path(roofed, "walk", 9, FPS, 0, HFOV, VFOV).report

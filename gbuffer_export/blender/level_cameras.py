@@ -18,7 +18,10 @@ exact point-to-triangle distances of the eyes against ``clearance + step / 2``, 
 segment), never starts inside a closed mesh, stays in its allowed region (``Region``), and is re-drawn when its
 view lacks content on any frame: more than ``max_background`` of a 16x9 grid of view rays missing the level or
 hitting beyond its extent (sky, a skybox, a far ground plane), or a median view depth below
-``min_view_depth_m`` (staring at a wall) or above the extent. Of the first ``candidates`` paths that meet every
+``min_view_depth_m`` (staring at a wall) or above the extent. A level lit by the sky alone (``light = "sky"``: the
+renderer sets ``min_sky_fraction``) also needs every eye to see the sky: at least ``min_sky_fraction`` of 64 rays
+spread over the upper hemisphere must leave the level, or the eye stands under a roof that no light reaches (a
+black clip). Of the first ``candidates`` paths that meet every
 rule, the one whose view rays hit the most steep surfaces (walls, props: not floor, not sky) is kept, so a walk
 in a town looks at its streets rather than at an empty field.
 """
@@ -54,6 +57,7 @@ class PathRules:
     min_fly_height_m: float = 1.0
     min_view_depth_m: float = 0.75
     max_background: float = 0.4
+    min_sky_fraction: float = 0.0
     pitch_deg: tuple[float, float] = (-14.0, 2.0)
     tries: int = 60
     candidates: int = 4
@@ -151,6 +155,19 @@ def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov:
         med.append(float(np.median(z)) * geom.metres_per_unit if hit.any() else math.inf)
         steep.append(float((np.abs(geom.normals[tri[hit]][:, 2]) < WALKABLE_COS).sum()) / len(d))
     return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep)}
+
+
+def sky_fraction(geom: LevelGeometry, eyes: np.ndarray, n: int = 128) -> np.ndarray:
+    """Per eye: the fraction of rays spread over the upper hemisphere (half of ``n`` sphere directions) that miss
+    the level or hit beyond its extent: how much sky the eye sees."""
+    from .level_geometry import sphere_directions
+    d = sphere_directions(n)
+    d = d[d[:, 2] > 0]
+    out = []
+    for e in np.asarray(eyes, np.float64):
+        dist, _ = geom.first_hits(np.repeat(e[None], len(d), axis=0), d)
+        out.append(float((dist > geom.extent).mean()))
+    return np.array(out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -324,6 +341,8 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
             why = "stares at a surface closer than min_view_depth_m"
         elif vs["median_depth_m"].max() > extent_m:
             why = "looks beyond the level's extent"
+        elif rules.min_sky_fraction > 0 and sky_fraction(geom, eyes).min() < rules.min_sky_fraction:
+            why = "stands under a roof (sees no sky; the level is lit by the sky alone)"
         if why:
             reasons[why] = reasons.get(why, 0) + 1
             continue
@@ -342,6 +361,8 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
                   "background_fraction_mean": float(vs["background"].mean()),
                   "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
                   "structure_fraction_mean": float(vs["structure"].mean()), "candidates_drawn": len(found) + 1,
+                  **({"sky_fraction_min": float(sky_fraction(geom, eyes).min())} if rules.min_sky_fraction > 0
+                     else {}),
                   "ray_engine": geom.engine}
         found.append(LevelPath(kind, eyes, targets, report))
         if len(found) >= rules.candidates:

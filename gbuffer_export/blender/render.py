@@ -117,14 +117,20 @@ def uses_level_camera(cfg: RenderConfig) -> bool:
     return cfg.camera_path == "fly" or (cfg.camera_path == "walk" and cfg.scene is not None)
 
 
+#: ``light = "sky"``: the least fraction of the upper hemisphere a level camera's eye must see as sky (the sun and
+#: sky are the only light; an eye under a roof renders black). 5 %: a street between buildings sees far more.
+SKY_LIT_MIN_SKY = 0.05
+
+
 def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
     """The clip's camera and its report for the manifest (the planned path's rules and measurements)."""
     if uses_level_camera(cfg):
-        from .level_cameras import PathError
+        from .level_cameras import PathError, PathRules
         from .scene_setup import make_level_camera
         try:
+            rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"))
+                                     region=cfg.extra.get("region"), rules=rules)
         except PathError as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
                               "framed by camera_path orbit", key="camera_path") from None
