@@ -38,4 +38,6 @@ for M in $MODELS; do
   [ -n "${MINUTES:-}" ] && EXTRA+=(--minutes "$MINUTES")
   $PY -m gbuffer_export.cli "${CMD[@]}" "${EXTRA[@]}"
 done
-[ "${RELEASE:-1}" = 1 ] && $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)"
+ENV="FUSESR_STEPS=$FUSESR_STEPS FUSESR_L_STEPS=$FUSESR_L_STEPS${INIT:+ INIT='$INIT'}${LR:+ LR=$LR}"
+[ "${RELEASE:-1}" = 1 ] && $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)" \
+    --env "$ENV"

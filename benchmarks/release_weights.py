@@ -27,7 +27,7 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     command.txt, written by benchmarks/zoo.sh, else benchmarks/pretrain.sh's form)."""
     cmd = run / "command.txt"
     if a.script == "benchmarks/pretrain.sh":
-        script = f"SPEC={index['spec']['file']} benchmarks/pretrain.sh {a.dataset} {a.runs}"
+        script = f"SPEC={index['spec']['file']} {a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
     else:
         script = f"MODELS={name} {a.script} {a.dataset} {a.runs}"
     if cmd.is_file():
@@ -49,6 +49,8 @@ def main(argv=None) -> int:
     p.add_argument("runs", type=Path)
     p.add_argument("--models", default="fusesr,fusesr-l", help="comma-separated names of PRETRAINED")
     p.add_argument("--script", default="benchmarks/pretrain.sh", help="the script that made RUNS (for the JSON)")
+    p.add_argument("--env", default="", help="the variables the script ran with, as written before it in the "
+                                             "JSON's command (e.g. \"INIT='pretrained:<M>' LR=2e-4\")")
     a = p.parse_args(argv)
 
     from gbuffer_export.clip import write_json_atomic

@@ -137,7 +137,8 @@ class RenderConfig:
     jitter: str = option("halton", choices=JITTERS)
     buffers: tuple[str, ...] = DEFAULT_BUFFERS
     fbeta: str = option("cycles", choices=FBETA_SOURCES)
-    hr_fbeta: str = option("point", choices=HR_FBETA)  # HR F_beta of 'cycles': pixel-filtered or point-sampled
+    hr_fbeta: str = option("footprint", choices=HR_FBETA)  # HR F_beta of 'cycles': pixel-filtered (footprint,
+                                     # the shipped weights' data since 2026-11-26) or point-sampled (point, before)
     shard: tuple[int, int] = (1, 1)
     only_frames: tuple[int, ...] | None = None  # render only these frames of the range (camera path and jitter
                                                 # indices stay the range's); None: every frame of the shard

@@ -108,7 +108,7 @@ def test_planned_jobs_and_check_folder(tmp_path):
 
 def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     """A dataset indexed before the ``hr_fbeta`` render key was rendered point-sampled: the same spec with
-    the default spec (``hr_fbeta = "point"``) may extend it, ``footprint`` is a changed spec."""
+    ``hr_fbeta = "point"`` may extend it; ``footprint``, the default since 2026-11-26, is a changed spec."""
     def spec_with(hr_fbeta):
         (tmp_path / "scene").mkdir(exist_ok=True)
         (tmp_path / "scene" / "s.blend").write_bytes(b"BLENDER")
@@ -117,7 +117,7 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
                "source": [{"name": "scene", "kind": "scene", "paths": ["scene/s.blend"], "clips_per_scene": 2}]}
         (tmp_path / "spec.toml").write_text(writer.dumps_small(doc))
         return load_spec(tmp_path / "spec.toml")
-    point, footprint = spec_with(None), spec_with("footprint")
+    point, footprint = spec_with("point"), spec_with(None)
     assert point.sources[0].render.hr_fbeta == "point" and footprint.sources[0].render.hr_fbeta == "footprint"
     out = tmp_path / "ds"
     jobs = planned_jobs(point)

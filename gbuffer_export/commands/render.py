@@ -83,10 +83,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fbeta", choices=FBETA_SOURCES, default="cycles",
                    help="source of the pre-integrated BRDF: Cycles' colour passes, the split-sum table (lut), "
                         "the papers' literal table (lut-paper), or a model of Cycles' Principled BSDF")
-    p.add_argument("--hr-fbeta", choices=HR_FBETA, default="point",
-                   help="HR F_beta of --fbeta cycles: point-sampled like the other G-buffers and a game engine's "
-                        "(point) or the colour passes filtered like the ground truth (footprint: no sub-pixel "
-                        "texture in L_D)")
+    p.add_argument("--hr-fbeta", choices=HR_FBETA, default=RenderConfig.hr_fbeta,
+                   help="HR F_beta of --fbeta cycles: the colour passes filtered like the ground truth (footprint: "
+                        "no sub-pixel texture in L_D; the shipped weights' data) or point-sampled like the other "
+                        "G-buffers (point: every clip before 2026-11-26)")
     p.add_argument("--max-bounces", type=int, default=None, help="override the scene's total light bounces")
     p.add_argument("--shard", default=None, metavar="K/N", help="render every N-th frame starting with the K-th")
     p.add_argument("--threads", type=int, default=0, help="render threads (0 = all cores)")
