@@ -351,9 +351,15 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
             assert (medium[cid].seed, medium[cid].hdri, medium[cid].clutter, medium[cid].split) == \
                 (j.seed, j.hdri, j.clutter, j.split)
         assert {j.id for j in jobs if j.split == "test"} == {c for c, j in small.items() if j.split == "test"}
-    if spec_file.name == "dataset_large.toml":  # the medium dataset's clips, unchanged, then its own
+    if spec_file.name == "dataset_large.toml":  # the medium dataset's clips, with the footprint HR F_beta, then its own
         medium = expand(load_spec(spec_file.parent / "dataset_medium.toml"))
-        assert [j.to_json() for j in jobs[:len(medium)]] == [j.to_json() for j in medium]
+
+        def but_hr_fbeta(j):
+            d = j.to_json()
+            return {**d, "render": {k: v for k, v in d["render"].items() if k != "hr_fbeta"}}
+        assert [but_hr_fbeta(j) for j in jobs[:len(medium)]] == [but_hr_fbeta(j) for j in medium]
+        assert {j.render["hr_fbeta"] for j in jobs} == {"footprint"}
+        assert {j.render["hr_fbeta"] for j in medium} == {"point"}
         assert len(test_assets) >= 5 and "SheenCloth" not in test_assets  # sheen is also in training
         levels: dict[str, set] = {}
         for j in jobs:
