@@ -160,3 +160,21 @@ def test_dataset_job_script_paths(tmp_path):
     paths = s.library_paths({"BLENDSR_SITE_DIRS": os.pathsep.join(["/v/site-packages", "", "/w"])})
     assert paths == ["/v/site-packages", "/w", str(REPO)]
     assert dataclasses.is_dataclass(RunOptions) and RunOptions().blender == ""
+
+
+def test_a_finished_clip_that_validate_refuses_is_named_invalid(tmp_path):
+    """Each clip is checked as it finishes (``quick_check``): a clip rendered to the end but black (the town level's
+    test clip under a roof, 2026-11-26) is 'done' yet invalid, and the summary says so."""
+    import numpy as np
+
+    from gbuffer_export.dataset.build import quick_check, summary
+    from gbuffer_export.exr import read_exr_channels, write_exr
+    from gbuffer_export.synthetic import make_synthetic_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4))
+    assert quick_check(clip) == ""
+    f = clip / "lr" / "radiance" / "000001.exr"
+    write_exr(f, {k: np.zeros_like(v) for k, v in read_exr_channels(f).items()})
+    problem = quick_check(clip)
+    assert problem.startswith("ERROR frame 1 lr/radiance: radiance is 0 on every pixel") and "[black-frame]" in problem
+    index = {"clips": [{"id": "c", "state": "done", "invalid": problem}], "splits": {"train": ["c"]}}
+    assert summary(index) == "1 clips: 1 done (1 invalid) | splits: train 1"

@@ -66,4 +66,7 @@ def run(args) -> int:
     failed = [c for c in index["clips"] if c["state"] == "failed"]
     for c in failed:
         print(f"FAILED {c['id']}: {c.get('error', '')} (log: {args.output / 'logs' / (c['id'] + '.log')})")
-    return 1 if failed else 0
+    invalid = [c for c in index["clips"] if c.get("invalid")]
+    for c in invalid:  # rendered to the end, but blendsr validate refuses it (checked as each clip finished)
+        print(f"INVALID {c['id']}: {c['invalid']} (blendsr validate {args.output / 'clips' / c['id']})")
+    return 1 if failed or invalid else 0

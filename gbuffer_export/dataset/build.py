@@ -102,6 +102,14 @@ def clip_state(path: Path, planned: int) -> tuple[str, int]:
     return ("partial" if n else "pending"), n
 
 
+def quick_check(clip_dir: Path) -> str:
+    """'' when a finished clip passes ``validate_clip(quick=True)`` (headers of every frame, pixels of the first and
+    last), else its first error line: a black frame, a NaN, motion that disagrees, as ``blendsr validate`` says."""
+    from ..validate.runner import validate_clip
+    report = validate_clip(clip_dir, quick=True)
+    return "" if report.ok else report.errors[0].line()
+
+
 def spec_digest(spec_path: Path | None) -> str | None:
     if spec_path is None:
         return None
@@ -111,6 +119,7 @@ def spec_digest(spec_path: Path | None) -> str | None:
 def make_index(spec: DatasetSpec, jobs: list[ClipJob], root: Path, old: dict | None, opts: RunOptions) -> dict:
     entries = []
     old_err = {c["id"]: c.get("error") for c in (old or {}).get("clips", [])}
+    old_invalid = {c["id"]: c.get("invalid") for c in (old or {}).get("clips", [])}
     for j in jobs:
         path = root / "clips" / j.id
         state, n = clip_state(path, j.render["frames"])
@@ -118,6 +127,8 @@ def make_index(spec: DatasetSpec, jobs: list[ClipJob], root: Path, old: dict | N
              "frames_planned": j.render["frames"]}
         if state != "done" and old_err.get(j.id):
             e["error"] = old_err[j.id]
+        if state == "done" and old_invalid.get(j.id):  # checked when it finished: still what validate reports
+            e["invalid"] = old_invalid[j.id]
         entries.append(e)
     return {
         "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "name": spec.name, "seed": spec.seed,
@@ -435,6 +446,10 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                     e["error"] = err or f"worker exited with code {rc}"
                 else:
                     e.pop("error", None)
+                e.pop("invalid", None)
+                problem = quick_check(root / "clips" / job.id) if e["state"] == "done" else ""
+                if problem:
+                    e["invalid"] = problem
                 write_json_atomic(root / INDEX, index)
                 if bar is not None:
                     bar.update(1)
@@ -464,8 +479,10 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
 
 
 def summary(index: dict) -> str:
-    """One line: clips per state and per split."""
+    """One line: clips per state (and how many finished ones failed their quick check) and per split."""
     states = {s: sum(c["state"] == s for c in index["clips"]) for s in STATES}
     splits = {s: len(v) for s, v in index["splits"].items()}
+    invalid = sum(bool(c.get("invalid")) for c in index["clips"])
     return (f"{len(index['clips'])} clips: " + ", ".join(f"{v} {k}" for k, v in states.items() if v)
+            + (f" ({invalid} invalid)" if invalid else "")
             + " | splits: " + ", ".join(f"{k} {v}" for k, v in splits.items()))
