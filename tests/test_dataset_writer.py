@@ -178,3 +178,29 @@ def test_a_finished_clip_that_validate_refuses_is_named_invalid(tmp_path):
     assert problem.startswith("ERROR frame 1 lr/radiance: radiance is 0 on every pixel") and "[black-frame]" in problem
     index = {"clips": [{"id": "c", "state": "done", "invalid": problem}], "splits": {"train": ["c"]}}
     assert summary(index) == "1 clips: 1 done (1 invalid) | splits: train 1"
+
+
+def test_an_invalid_clip_is_left_out_of_its_split(tmp_path, caplog):
+    from gbuffer_export.dataset.build import split_clips
+    from gbuffer_export.synthetic import make_synthetic_clip
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "s.blend").write_bytes(b"BLENDER")
+    doc = {"dataset": {"name": "d"}, "render": {"frames": 2, "hr_size": "64x36"},
+           "source": [{"name": "scene", "kind": "scene", "paths": ["scene/s.blend"], "clips_per_scene": 2,
+                       "split": "train"}]}
+    (tmp_path / "spec.toml").write_text(writer.dumps_small(doc))
+    spec = load_spec(tmp_path / "spec.toml")
+    out = tmp_path / "ds"
+    jobs = planned_jobs(spec)
+    for j in jobs:
+        make_synthetic_clip(out / "clips" / j.id, frames=range(1, 3))
+    index = make_index(spec, jobs, out, None, RunOptions())
+    assert [c["state"] for c in index["clips"]] == ["done", "done"]
+    index["clips"][0]["invalid"] = "ERROR frame 1 lr/radiance: radiance is 0 on every pixel [black-frame]"
+    (out / INDEX).write_text(json.dumps(index))
+    with caplog.at_level("WARNING"):
+        assert split_clips(out, "train") == [out / "clips" / jobs[1].id]
+    assert f"clip {jobs[0].id} left out of the train split: ERROR frame 1" in caplog.text
+    assert len(split_clips(out, "train", done_only=False)) == 2
+    # re-indexing keeps the finding while the clip stays as it is
+    assert make_index(spec, jobs, out, index, RunOptions())["clips"][0]["invalid"].startswith("ERROR frame 1")

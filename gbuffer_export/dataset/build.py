@@ -192,7 +192,9 @@ def is_dataset(path: str | os.PathLike) -> bool:
 
 
 def split_clips(root: str | os.PathLike, split: str, done_only: bool = True) -> list[Path]:
-    """The clip folders of one split of a dataset (finished clips only, unless ``done_only`` is False)."""
+    """The clip folders of one split of a dataset (finished clips only, unless ``done_only`` is False). A finished
+    clip that failed its check (``invalid`` in the index, ``quick_check``) is left out with a warning: nothing trains
+    on or is scored against a black or broken clip."""
     if split not in SPLITS:
         raise DatasetError(f"split {split!r}: choose one of {', '.join(SPLITS)}")
     root = Path(root)
@@ -203,6 +205,9 @@ def split_clips(root: str | os.PathLike, split: str, done_only: bool = True) -> 
             continue
         path = clip_dir(root, c)
         if done_only and clip_state(path, int(c.get("frames_planned", 0)))[0] != "done":
+            continue
+        if done_only and c.get("invalid"):
+            log.warning(f"{root}: clip {c.get('id')} left out of the {split} split: {c['invalid']}")
             continue
         out.append(path)
     return out
