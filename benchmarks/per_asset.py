@@ -29,6 +29,7 @@ def main(argv=None) -> int:
     p.add_argument("-o", dest="out", type=Path)
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import read_index, split_clips
+    from training.bench_models import parse_models
     from training.evaluate import evaluate_model
     from training.inference import load_model
 
@@ -36,17 +37,16 @@ def main(argv=None) -> int:
     group_of = {Path(c["path"]).name: str(c.get("scene_id") or Path(c["path"]).name) for c in index["clips"]}
     clips = [str(c) for c in split_clips(a.dataset, a.split)]
     result = {"dataset": str(a.dataset), "split": a.split, "clips": [Path(c).name for c in clips], "models": {}}
-    for spec in a.models.split(","):
-        name, _, ck = spec.partition(":")
-        r = evaluate_model(load_model(spec if spec.startswith("pretrained:") or not ck else ck, 4), clips, flip=False)
+    for label, spec in parse_models(a.models):  # as bench models reads --models (NAME:CHECKPOINT, pretrained:NAME)
+        r = evaluate_model(load_model(spec, 4), clips, flip=False)
         groups = defaultdict(list)
         for f in r["per_frame"]:
             c = Path(f["clip"]).name
             groups[group_of.get(c, c)].append(f)
         per = {g: {k: sum(f[k] for f in fs if f.get(k) is not None) / max(1, sum(f.get(k) is not None for f in fs))
                    for k in ("psnr", "ssim", "tpsnr")} for g, fs in sorted(groups.items())}
-        result["models"][spec] = {"mean": {k: r["mean"][k] for k in ("psnr", "ssim", "tpsnr")}, "per_asset": per}
-        print(f"{spec}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
+        result["models"][label] = {"mean": {k: r["mean"][k] for k in ("psnr", "ssim", "tpsnr")}, "per_asset": per}
+        print(f"{label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
     ref = result["models"].get(a.reference)
     assets = sorted({g for m in result["models"].values() for g in m["per_asset"]})
     lines = ["| model | mean PSNR / SSIM / tPSNR | " + " | ".join(assets) + " |",

@@ -35,6 +35,21 @@ class _Payload:
         return (os.system, (f"touch {self.marker}",))
 
 
+def one_line_error(capsys) -> str:
+    """The one line a refused command printed on stderr (fails when it printed more or nothing)."""
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def one_step_run(clip, tmp_path) -> tuple:
+    """A fusesr run of one step on ``clip`` in tmp_path/run: (run folder, its train argv without --max-steps)."""
+    run = tmp_path / "run"
+    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), *set_args(SMALL)]
+    assert main(argv + ["--max-steps", "1"]) == 0
+    return run, argv
+
+
 def test_a_malicious_checkpoint_is_refused_with_one_line_and_runs_nothing(clip, tmp_path, capsys):
     marker = tmp_path / "pwned"
     evil = tmp_path / "evil.pt"
@@ -112,31 +127,24 @@ def test_crop_below_one_or_off_the_grid_of_a_fractional_scale_is_refused(tmp_pat
     multi = make_synthetic_clip(tmp_path / "m", frames=range(1, 4), hr_size=(80, 40), scales=(2, 2.5))
     assert main(["train", "--model", "fourier-sr", "--data", str(multi), "-o", str(tmp_path / "r"), "--max-steps",
                  "1", "--set", "data.crop=7", "--set", "run.progress=false"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "data.crop = 7 is not a multiple of 2" in err[0], err
+    assert "data.crop = 7 is not a multiple of 2" in one_line_error(capsys)
 
 
 def test_identical_resume_after_an_automatic_crop_is_accepted_and_a_change_is_named(clip, tmp_path, capsys):
     """Issue 26 item 3: the crop shrunk for LR 16x9 no longer makes the identical command 'differ'."""
-    run = tmp_path / "run"
-    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), *set_args(SMALL)]
-    assert main(argv + ["--max-steps", "1"]) == 0
+    run, argv = one_step_run(clip, tmp_path)
     assert main(argv + ["--max-steps", "2", "--resume"]) == 0
     assert load_checkpoint(run / "checkpoints" / "last.pt")["step"] == 2
     capsys.readouterr()
     assert main(argv + ["--max-steps", "3", "--resume", "--set", "loss.fft_weight=0.2"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "loss.fft_weight = 0.2 differs from the checkpoint's 0.0" in err[0], err
+    assert "loss.fft_weight = 0.2 differs from the checkpoint's 0.0" in one_line_error(capsys)
     assert main(argv + ["--max-steps", "3", "--resume", "--set", "data.crop=8"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "data.crop = 8 differs from the checkpoint's 64" in err[0], err
+    assert "data.crop = 8 differs from the checkpoint's 64" in one_line_error(capsys)
 
 
 def test_a_checkpoint_without_the_resolved_record_resumes_and_names_a_change(clip, tmp_path, capsys):
     """Checkpoints written before ResolvedRun hold only the resolved 'config' (crop 9, model.scale 4)."""
-    run = tmp_path / "run"
-    argv = ["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), *set_args(SMALL)]
-    assert main(argv + ["--max-steps", "1"]) == 0
+    run, argv = one_step_run(clip, tmp_path)
     last = run / "checkpoints" / "last.pt"
     ck = load_checkpoint(last)
     del ck["resolved"], ck["user_config"]
@@ -148,8 +156,7 @@ def test_a_checkpoint_without_the_resolved_record_resumes_and_names_a_change(cli
     del ck["resolved"], ck["user_config"]
     torch.save(ck, last)
     assert main(argv + ["--max-steps", "4", "--resume", "--set", "data.crop=5"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "the resolved crop 9 -> 5 differs" in err[0], err
+    assert "the resolved crop 9 -> 5 differs" in one_line_error(capsys)
 
 
 def test_a_second_train_into_a_busy_run_folder_is_one_line(clip, tmp_path, capsys):
@@ -159,8 +166,7 @@ def test_a_second_train_into_a_busy_run_folder_is_one_line(clip, tmp_path, capsy
     run.mkdir()
     with FolderLock(run, "held by the test"):
         assert main(argv) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "another 'blendsr train' is writing this run folder" in err[0], err
+        assert "another 'blendsr train' is writing this run folder" in one_line_error(capsys)
         assert not (run / "checkpoints").exists()
     assert main(argv) == 0
     capsys.readouterr()

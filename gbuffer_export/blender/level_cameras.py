@@ -163,11 +163,9 @@ def sky_fraction(geom: LevelGeometry, eyes: np.ndarray, n: int = 128) -> np.ndar
     from .level_geometry import sphere_directions
     d = sphere_directions(n)
     d = d[d[:, 2] > 0]
-    out = []
-    for e in np.asarray(eyes, np.float64):
-        dist, _ = geom.first_hits(np.repeat(e[None], len(d), axis=0), d)
-        out.append(float((dist > geom.extent).mean()))
-    return np.array(out)
+    eyes = np.asarray(eyes, np.float64).reshape(-1, 3)
+    dist, _ = geom.first_hits(np.repeat(eyes, len(d), axis=0), np.tile(d, (len(eyes), 1)))  # one batch of rays
+    return (dist > geom.extent).reshape(len(eyes), len(d)).mean(axis=1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -341,7 +339,8 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
             why = "stares at a surface closer than min_view_depth_m"
         elif vs["median_depth_m"].max() > extent_m:
             why = "looks beyond the level's extent"
-        elif rules.min_sky_fraction > 0 and sky_fraction(geom, eyes).min() < rules.min_sky_fraction:
+        sky = float(sky_fraction(geom, eyes).min()) if rules.min_sky_fraction > 0 and not why else None
+        if sky is not None and sky < rules.min_sky_fraction:
             why = "stands under a roof (sees no sky; the level is lit by the sky alone)"
         if why:
             reasons[why] = reasons.get(why, 0) + 1
@@ -361,8 +360,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
                   "background_fraction_mean": float(vs["background"].mean()),
                   "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
                   "structure_fraction_mean": float(vs["structure"].mean()), "candidates_drawn": len(found) + 1,
-                  **({"sky_fraction_min": float(sky_fraction(geom, eyes).min())} if rules.min_sky_fraction > 0
-                     else {}),
+                  **({"sky_fraction_min": sky} if sky is not None else {}),
                   "ray_engine": geom.engine}
         found.append(LevelPath(kind, eyes, targets, report))
         if len(found) >= rules.candidates:
