@@ -187,6 +187,7 @@ def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, 
         logger.info(f"trained {cfg.model.name} to step {trainer.step_no} ({reason}) in {elapsed:.1f} s; "
             f"checkpoint {checkpoints.last}")
     dist.barrier()
+    trainer.release()
     dist.close()
     return summary
 

@@ -4,6 +4,7 @@ evaluation are hooks (``training.hooks``) that ``training.train.train`` calls af
 """
 from __future__ import annotations
 
+import gc
 import hashlib
 import math
 import os
@@ -206,6 +207,12 @@ class Trainer:
                 for p in model.parameters():
                     torch.distributed.broadcast(p.data, 0)
         self.net = torch.compile(net) if self.cfg.run.compile else net
+
+    def release(self) -> None:
+        """Drop the DDP wrapper (it holds the process group and sits in reference cycles) and collect it now, so that
+        gloo's threads are not torn down during interpreter exit (a rare SIGABRT at the end of torchrun)."""
+        self.net = None
+        gc.collect()
 
     # ------------------------------------------------------------------------------------------- one step
     def _backward(self, chunk: torch.Tensor) -> None:
