@@ -1,12 +1,15 @@
-"""The data-scaling table: one model trained at equal steps on 1, 4, 16, ... and all training clips of a BlendSR
-dataset, evaluated on the dataset's test split (assets never seen in training), beside demod-bilinear and demod-jbu.
+"""The data-scaling table: one model trained at equal steps on 1, 4, 16, ... and all training clips (or distinct
+scenes) of a BlendSR dataset, evaluated on the dataset's test split (assets never seen in training), beside
+demod-bilinear and demod-jbu; with several --steps, one run per count and step budget (each its own schedule).
 
     .venv/bin/python benchmarks/data_scaling.py DATASET -o runs/scaling [--counts 1,4,16,all] [--steps 500]
-        [--model fusesr] [--config benchmarks/pretrain.toml]
+        [--by clip|scene] [--runs DIR] [--model fusesr] [--config benchmarks/pretrain.toml]
 
-The subsets are nested: the training clips ordered by a stable hash of their ids, the first N of them. Each run is
-a plain ``blendsr train`` run (resumed when its folder exists) and each score a plain ``evaluate_model`` on the test
-split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json, OUT/scaling.md and OUT/scaling.png.
+The subsets are nested: the training clips (``--by scene``: the index's scene ids, an asset, a built-in seed or a
+level region, with all their clips) ordered by a stable hash of their ids, the first N of them. Each run is a plain
+``blendsr train`` run in RUNS (default OUT; resumed when its folder exists, reused when finished) and each score a
+plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
+OUT/scaling.md and OUT/scaling.png.
 """
 from __future__ import annotations
 
@@ -23,8 +26,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True)
-    p.add_argument("--counts", default="1,4,16,all", help="numbers of training clips ('all' = the whole split)")
-    p.add_argument("--steps", type=int, default=500, help="optimiser steps of every run")
+    p.add_argument("--counts", default="1,4,16,all", help="numbers of training clips or scenes ('all' = the whole split)")
+    p.add_argument("--by", choices=("clip", "scene"), default="clip", help="what --counts counts")
+    p.add_argument("--steps", default="500", help="optimiser steps of every run; a comma list trains one run per budget")
+    p.add_argument("--runs", type=Path, help="folder of the training runs (default: OUT)")
     p.add_argument("--model", default="fusesr")
     p.add_argument("--config", default=str(REPO / "benchmarks" / "pretrain.toml"))
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the config's)")
@@ -33,19 +38,19 @@ def main(argv=None) -> int:
     import torch
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import split_clips
-    from gbuffer_export.dataset.spec import stable_hash
     from training.config import load_config
     from training.evaluate import evaluate_model
     from training.inference import load_model
     from training.train import train
 
-    train_clips = sorted(split_clips(a.dataset, "train"), key=lambda c: stable_hash("subset", c.name))
     test_clips = [str(c) for c in split_clips(a.dataset, "test")]
     if not test_clips:
         raise SystemExit(f"{a.dataset}: no finished test clips")
-    counts = [len(train_clips) if c == "all" else int(c) for c in a.counts.split(",")]
-    counts = sorted({min(c, len(train_clips)) for c in counts})
-    out = a.output
+    groups = training_groups(a.dataset, a.by)
+    counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
+    counts = sorted({min(c, len(groups)) for c in counts})
+    budgets = [int(s) for s in a.steps.split(",")]
+    out, runs = a.output, a.runs or a.output
     out.mkdir(parents=True, exist_ok=True)
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -63,31 +68,34 @@ def main(argv=None) -> int:
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
-    for n in counts:
-        run = out / f"{a.model}_{n:03d}clips"
-        overrides = [f'model.name="{a.model}"', f"run.max_steps={a.steps}", "run.minutes=0"]
-        if a.threads:
-            overrides.append(f"run.threads={a.threads}")
-        cfg = load_config(a.config, overrides)
-        cfg.data.clips = [str(c) for c in train_clips[:n]]
-        ck = run / "checkpoints" / "last.pt"
-        done = run / "summary.json"
-        if done.is_file() and json.loads(done.read_text()).get("step") == a.steps:
-            summary = json.loads(done.read_text())  # finished earlier: score it only
-        else:
-            summary = train(cfg, run, resume=ck.is_file())
-        rows.append({"model": a.model, "clips": n, "steps": summary["step"], "train_clips": [c.name for c in
-                                                                                           train_clips[:n]],
-                     "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), **score(str(ck))})
-        print(json.dumps(rows[-1]), flush=True)
+    for steps in budgets:
+        for n in counts:
+            clips = [c for g in groups[:n] for c in g[1]]
+            run = runs / (f"{a.model}_{n:03d}{a.by}s" + (f"_{steps}steps" if len(budgets) > 1 or a.by != "clip" else ""))
+            overrides = [f'model.name="{a.model}"', f"run.max_steps={steps}", "run.minutes=0"]
+            if a.threads:
+                overrides.append(f"run.threads={a.threads}")
+            cfg = load_config(a.config, overrides)
+            cfg.data.clips = [str(c) for c in clips]
+            ck = run / "checkpoints" / "last.pt"
+            done = run / "summary.json"
+            if done.is_file() and json.loads(done.read_text()).get("step") == steps:
+                summary = json.loads(done.read_text())  # finished earlier: score it only
+            else:
+                summary = train(cfg, run, resume=ck.is_file())
+            rows.append({"model": a.model, "clips": len(clips), a.by + "s": n, "steps": summary["step"],
+                         "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
+                         **score(str(ck))})
+            print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
-                                             "steps": a.steps, "config": a.config,
+                                             "by": a.by, "steps": budgets, "config": a.config,
                                              "command": " ".join(sys.argv)})
-    lines = ["| training data | steps | test PSNR (dB) | test SSIM | per test clip (dB) |", "|---|---|---|---|---|"]
+    lines = [f"| training data | {a.by}s | clips | steps | test PSNR (dB) | test SSIM | per test clip (dB) |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
-        what = r["model"] if not r["clips"] else f"{r['model']}, {r['clips']} clip{'s' if r['clips'] > 1 else ''}"
         per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
-        lines.append(f"| {what} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {per} |")
+        lines.append(f"| {r['model']} | {r.get(a.by + 's', '-')} | {r['clips'] or '-'} | {r['steps'] or '-'} | "
+                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {per} |")
     (out / "scaling.md").write_text("\n".join(lines) + "\n")
 
     import matplotlib
@@ -95,11 +103,15 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     learned = [r for r in rows if r["clips"]]
-    ax.plot([r["clips"] for r in learned], [r["psnr"] for r in learned], "o-", label=f"{a.model} ({a.steps} steps)")
+    x = "steps" if len(counts) == 1 and len(budgets) > 1 else a.by + "s"
+    for steps in (budgets if x != "steps" else [None]):
+        pts = [r for r in learned if steps is None or r["steps"] == steps]
+        ax.plot([r[x] for r in pts], [r["psnr"] for r in pts], "o-",
+                label=f"{a.model}" + (f" ({steps} steps)" if steps else f" ({counts[0]} {a.by}s)"))
     for r, style in zip([r for r in rows if not r["clips"]], ("--", ":")):
         ax.axhline(r["psnr"], linestyle=style, color="grey", label=r["model"])
     ax.set_xscale("log")
-    ax.set_xlabel("training clips")
+    ax.set_xlabel({"clips": "training clips", "scenes": "distinct training scenes", "steps": "optimiser steps"}[x])
     ax.set_ylabel("PSNR on unseen test assets (dB)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
@@ -107,6 +119,23 @@ def main(argv=None) -> int:
     fig.savefig(out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
+
+
+def training_groups(dataset: Path, by: str) -> list[tuple[str, list[Path]]]:
+    """The train split as (id, clips) groups ordered by a stable hash of the id: one group per clip, or per scene id
+    of the index (``by="scene"``)."""
+    from gbuffer_export.dataset.build import read_index, split_clips
+    from gbuffer_export.dataset.spec import stable_hash
+    clips = split_clips(dataset, "train")
+    if by == "clip":
+        keyed = {c.name: [c] for c in clips}
+    else:
+        scene_of = {Path(c["path"]).name: str(c.get("scene_id") or Path(c["path"]).name)
+                    for c in read_index(dataset)["clips"]}
+        keyed = {}
+        for c in clips:
+            keyed.setdefault(scene_of.get(c.name, c.name), []).append(c)
+    return sorted(keyed.items(), key=lambda kv: stable_hash("subset", kv[0]))
 
 
 if __name__ == "__main__":

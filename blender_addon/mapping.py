@@ -151,8 +151,9 @@ def model_buffers(ds) -> tuple[str, ...]:
 
 def dataset_spec_dict(ds, stem: str) -> dict:
     """The TOML document of the dataset spec for the settings ``ds`` (``Scene.blendsr.dataset``, or any object
-    with its attributes): one ``kind = "scene"`` source of ``scene/<stem>.blend`` per scale (the first scale's in
-    ``[render]``; *For models* written as the buffers they read, so that the spec alone renders the same clips).
+    with its attributes): one ``kind = "scene"`` source of ``scene/<stem>.blend``, every clip with one LR level per
+    scale (``scale`` the first, ``scales`` all of them when several; *For models* written as the buffers they
+    read, so that the spec alone renders the same clips).
     What it renders is checked by ``parse_spec`` (one-line errors naming the key)."""
     scales = parse_scales(ds.scales)
     models = model_buffers(ds)
@@ -160,17 +161,12 @@ def dataset_spec_dict(ds, stem: str) -> dict:
               "hr_spp": ds.hr_spp, "lr_spp": ds.lr_spp, "gbuffer_spp": ds.gbuffer_spp, "hr_denoise": ds.hr_denoise,
               "lr_denoise": ds.lr_denoise, "jitter": ds.jitter,
               "buffers": list(models) if models else ds.buffers.strip() or "default", "fbeta": ds.fbeta_source}
-    sources = []
-    for k in scales:
-        src = {"name": "scene" if len(scales) == 1 else f"scene-x{k}", "kind": "scene",
-               "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips, "cameras": _names(ds.cameras),
-               "light": ds.light, "regions": [ds.regions_x, ds.regions_y], "region_val": ds.region_val,
-               "region_test": ds.region_test}
-        src.update(variation_keys(ds))
-        if k != scales[0]:
-            src["scale"] = k
-        sources.append(src)
-    return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": sources}
+    if len(scales) > 1:
+        render["scales"] = scales
+    src = {"name": "scene", "kind": "scene", "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips,
+           "cameras": _names(ds.cameras), "light": ds.light, "regions": [ds.regions_x, ds.regions_y],
+           "region_val": ds.region_val, "region_test": ds.region_test, **variation_keys(ds)}
+    return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": [src]}
 
 
 def variation_keys(ds) -> dict:

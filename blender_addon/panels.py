@@ -202,7 +202,7 @@ def dataset_summary(context) -> tuple[list[str], str]:
     except ValueError as exc:
         return [], str(exc).splitlines()[0]
     r, src = spec.sources[0].render, spec.sources[0]
-    scales = [str(s.render.scale) for s in spec.sources]
+    scales = [f"{k:g}" for k in (r.scales or (r.scale,))]
     n = sum(s.clips_per_scene for s in spec.sources)
     lines = [f"{n} clips x {r.frames} frames, HR {r.hr_size[0]}x{r.hr_size[1]}, "
              f"scale{'s' if len(scales) > 1 else ''} {', '.join(scales)}",

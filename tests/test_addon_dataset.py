@@ -88,10 +88,10 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert opts == RunOptions(progress=False)
     assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "scene" and d["device"] == "auto"
 
-    # Several scales: one source each; the settings round-trip through spec.toml.
+    # Several scales: every clip with an LR level per scale; the settings round-trip through spec.toml.
     custom = parse_spec(tomllib.loads(r["custom_toml"]), spec_path)
     assert custom == parse_spec(r["custom_doc"], spec_path)
-    assert [(s.name, s.render.scale) for s in custom.sources] == [("scene-x2", 2), ("scene-x4", 4)]
+    assert [(s.name, s.render.scale, s.render.scales) for s in custom.sources] == [("scene", 2, (2.0, 4.0))]
     assert custom.name == "mine" and all(s.regions == (3, 3) and s.region_val == s.region_test == 1
                                          for s in custom.sources)
     assert all(s.paths == ("scene/lvl.blend",) and s.cameras == ("walk", "fly") for s in custom.sources)
@@ -122,7 +122,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         assert props == settable, (name, settable ^ props)
         assert [e[1:] for e in log if e[0] == "operator"] == [["blendsr.render_dataset", True]]
         labels = [e[1] for e in log if e[0] == "label"]
-        assert "8 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
+        assert "4 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
         assert "cameras walk, fly (clip k: kind k), light scene" in labels
         assert any("relative to the .blend file: save the file first" in t for t in labels)  # unsaved file
 

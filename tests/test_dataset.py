@@ -188,6 +188,27 @@ def test_dataset_renders_validates_and_indexes(tiny):
 
 @requires_bpy
 @pytest.mark.bpy
+def test_data_scaling_counts_clips_or_scenes_of_the_train_split(tiny, tmp_path):
+    """benchmarks/data_scaling.py --by scene: every train clip once, grouped by the index's scene id."""
+    import shutil
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from data_scaling import training_groups
+    _, out = tiny
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    idx = json.loads((copy / "dataset.json").read_text())
+    for c in idx["clips"]:
+        if c["id"] == "objs-Box-00":
+            c["scene_id"] = "builtin:0"  # two train clips of one scene
+    (copy / "dataset.json").write_text(json.dumps(idx))
+    by_clip = training_groups(copy, "clip")
+    assert sorted(k for k, _ in by_clip) == ["builtin-s0000", "objs-Box-00"]
+    by_scene = training_groups(copy, "scene")
+    assert [(k, sorted(c.name for c in v)) for k, v in by_scene] == [("builtin:0", ["builtin-s0000", "objs-Box-00"])]
+
+
+@requires_bpy
+@pytest.mark.bpy
 def test_validate_dataset_reports_a_missing_clip(tiny, tmp_path):
     import shutil
     _, out = tiny
@@ -320,6 +341,25 @@ def test_the_same_spec_renders_the_same_clips(tmp_path):
                 for b in c.manifest["buffers"]}
     for clip in clips:
         assert_same_render(buffers(clip), buffers(tmp_path / "b" / clip.relative_to(tmp_path / "a")))
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_render_scales_give_each_clip_an_lr_level_per_scale(tmp_path):
+    """``scales = [4, 2]``: one clip, the same cameras and ground truth, LR levels at 4 ('lr') and 2 ('lr_x2')."""
+    from gbuffer_export import open_clip
+    spec = tmp_path / "s.toml"
+    spec.write_text('[dataset]\nname = "sc"\n[render]\nframes = 2\nhr_size = "64x32"\nhr_spp = 2\nlr_spp = 2\n'
+                    'gbuffer_spp = 1\nhr_denoise = false\nscales = [4, 2]\n[[source]]\nkind = "builtin"\n'
+                    'seeds = "3:3"\ncameras = ["scene"]\nhdri = ["builtin:courtyard"]\n')
+    out = tmp_path / "out"
+    proc = run_cli("dataset", spec, "-o", out, "--threads", "1", "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    clip = open_clip(split_clips(out, "train")[0])
+    assert clip.scales == [2.0, 4.0] and clip.scale == 4
+    assert clip.sizes == {"hr": (64, 32), "lr": (16, 8), "lr_x2": (32, 16)}
+    lr2 = clip.at_scale(2).read(clip.frames[0], "lr/radiance")
+    assert lr2.shape[:2] == (16, 32) and np.isfinite(lr2).all() and lr2.mean() > 0
 
 
 @pytest.mark.parametrize("spec_file", sorted((REPO / "examples").glob("dataset_*.toml"))

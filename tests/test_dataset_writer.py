@@ -43,7 +43,8 @@ def test_a_spec_built_in_code_round_trips_with_awkward_text(tmp_path):
     render overrides and every kind of source and variation key."""
     doc = {
         "dataset": {"name": 'odd "name"\\with\nnewline\tand é', "seed": 7},
-        "render": {"frames": 3, "hr_size": "64x36", "scale": 4, "hr_spp": 2, "buffers": "radiance,depth"},
+        "render": {"frames": 3, "hr_size": "64x36", "scale": 4, "scales": [4, 2], "hr_spp": 2,
+                   "buffers": "radiance,depth"},
         "splits": {"val": ["builtin:1"], "test": ["a b.c"], "val_fraction": 0.125, "test_fraction": 1e-05},
         "source": [
             {"name": "b", "kind": "builtin", "seeds": "0:2", "cameras": ["orbit", "scene"], "sun": False,
@@ -51,7 +52,7 @@ def test_a_spec_built_in_code_round_trips_with_awkward_text(tmp_path):
             {"name": "s-1", "kind": "scene", "paths": ["lvl/x y.blend"], "cameras": ["fly", "walk"],
              "clips_per_scene": 3, "light": "sky", "regions": "3x2", "region_val": 1, "region_test": 1,
              "world_strength": [0.5, 1.5], "light_strength": 2.0, "sun_elevation_deg": [10, 80.5],
-             "hdri": ["env/a.hdr"], "scale": 2, "lr_spp": 8,
+             "hdri": ["env/a.hdr"], "scale": 2, "scales": [2], "lr_spp": 8,
              "licence": {"x y": {"licence": "CC-BY\u0001", "attribution": "q\"uote\\"}}},
             {"name": "s_2", "kind": "scene", "paths": ["lvl"], "cameras": ["scene:Cam \"A\"", "scene:*"],
              "split": "val"},
@@ -62,6 +63,8 @@ def test_a_spec_built_in_code_round_trips_with_awkward_text(tmp_path):
         assert _read_back(text, tmp_path / "spec.toml") == spec
     table = writer.spec_to_dict(spec)["source"][1]
     assert table["scale"] == 2 and table["lr_spp"] == 8 and "hr_spp" not in table  # only what differs
+    assert table["scales"] == [2] and spec.sources[1].render.scales is None  # one level where [render] has two
+    assert spec.sources[2].render.scales == (4.0, 2.0)
     assert writer.spec_to_dict(spec)["render"]["hr_spp"] == 2
 
 
@@ -125,7 +128,7 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     (out / "clips" / jobs[0].id / "manifest.json").write_text("{}")
     index = make_index(point, jobs, out, None, RunOptions())
     for c in index["clips"]:
-        del c["render"]["hr_fbeta"]  # as written before the key
+        del c["render"]["hr_fbeta"], c["render"]["scales"]  # as written before the keys
     (out / INDEX).write_text(json.dumps(index))
     assert check_folder(out, point, jobs)["name"] == "d"
     with pytest.raises(DatasetError, match="rendered from a different spec"):
@@ -139,6 +142,29 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     job = planned_jobs(footprint)[0]
     old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k != "hr_fbeta"})
     assert render_config(old_job, tmp_path / "c").hr_fbeta == "point"
+
+
+def test_render_scales_give_every_clip_several_lr_levels(tmp_path):
+    """``scales`` (a render key): the clip's LR levels, the first being ``scale``; a spec that puts another first is
+    refused in one line naming the key."""
+    from gbuffer_export.blender.dataset_job import render_config
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "s.blend").write_bytes(b"BLENDER")
+
+    def spec_with(render):
+        doc = {"dataset": {"name": "d"}, "render": {"frames": 2, "hr_size": "64x32", **render},
+               "source": [{"name": "scene", "kind": "scene", "paths": ["scene/s.blend"], "clips_per_scene": 1}]}
+        (tmp_path / "spec.toml").write_text(writer.dumps_small(doc))
+        return load_spec(tmp_path / "spec.toml")
+    job = planned_jobs(spec_with({"scales": [4, 2]}))[0]
+    assert job.render["scales"] == [4.0, 2.0]
+    cfg = render_config(job, tmp_path / "c")
+    assert cfg.scales == (4.0, 2.0) and cfg.scale == 4
+    assert render_config(planned_jobs(spec_with({}))[0], tmp_path / "c").scales == (4.0,)
+    with pytest.raises(SpecError, match=r"render\.scales: the first scale is the clip's 'lr' level and must be scale 4"):
+        spec_with({"scales": [2, 4]})
+    with pytest.raises(SpecError, match="not divisible by scale 3"):
+        spec_with({"scales": [4, 3]})
 
 
 def test_job_command_with_a_blender_executable(tmp_path):

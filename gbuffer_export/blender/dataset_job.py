@@ -29,7 +29,7 @@ def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool
                                "variation": job.variation})
     return RenderConfig(output=clip_dir, **{"scene": None, "camera_path": "scene", **scene_kw},
                         frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]), device=device,
-                        scale=int(r["scale"]), hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
+                        scale=int(r["scale"]), scales=tuple(r["scales"]) if r.get("scales") else None, hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
                         gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
                         lr_denoise=bool(r["lr_denoise"]), seed=int(job.seed),
                         jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],

@@ -400,11 +400,16 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
     return old
 
 
+#: Render keys added to the index after datasets were written, with what those datasets were rendered with.
+LEGACY_RENDER_KEYS = {"hr_fbeta": "point",  # before 2026-11-26
+                      "scales": None}       # one LR level, before 2026-11-26
+
+
 def _legacy_render_keys(clip: dict) -> dict:
-    """An index entry with the render keys added after it was written set to what it was rendered with
-    (``hr_fbeta``: "point" before 2026-11-26)."""
-    if isinstance(clip.get("render"), dict) and "hr_fbeta" not in clip["render"]:
-        return {**clip, "render": {**clip["render"], "hr_fbeta": "point"}}
+    """An index entry with the render keys added after it was written (``LEGACY_RENDER_KEYS``) set to what it was
+    rendered with."""
+    if isinstance(clip.get("render"), dict):
+        return {**clip, "render": {**LEGACY_RENDER_KEYS, **clip["render"]}}
     return clip
 
 

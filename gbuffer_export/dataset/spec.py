@@ -52,8 +52,8 @@ MAX_CLIPS = 100_000
 
 #: The per-clip render keys of a spec (``[render]``, overridable in each ``[[source]]``): ``frames`` (the clip's
 #: length: frames 1..frames), then keys of ``RenderConfig`` (the one render-settings class), whose defaults they take.
-RENDER_KEYS = ("frames", "hr_size", "scale", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise", "jitter",
-               "buffers", "fbeta", "hr_fbeta", "threads")
+RENDER_KEYS = ("frames", "hr_size", "scale", "scales", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise",
+               "jitter", "buffers", "fbeta", "hr_fbeta", "threads")
 #: What a spec needs that a render of a scene file takes from the file: the clip's length and HR size (pixels).
 #: ``threads`` 0 means the machine's cores divided by the local workers (``RunOptions.clip_threads``).
 CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}
@@ -207,6 +207,11 @@ def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -
             v = _typed(v, spec[k][0], path, spec_path, spec[k][1])
         out[k] = v
     out = dataclasses.replace(base, **out)
+    if out.scales is not None and len(out.scales) == 1 and float(out.scales[0]) == float(out.scale):
+        out = dataclasses.replace(out, scales=None)  # one level: the same clip as without the key
+    if out.scales is not None and float(out.scales[0]) != float(out.scale):
+        raise SpecError(f"{spec_path}: {where}.scales: the first scale is the clip's 'lr' level and must be scale "
+                        f"{out.scale} (e.g. scales = [{out.scale}, 2])", key=f"{where}.scales")
     try:
         RenderConfig(output=".", frames=(1, out.frames), **{k: getattr(out, k) for k in RENDER_KEYS[1:]},
                      progress=False)

@@ -24,15 +24,20 @@ _ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f
 # ----------------------------------------------------------------------------------------------
 
 def render_table(r: RenderSettings, base: RenderSettings | None = None) -> dict:
-    """The ``[render]`` keys of ``r`` (all of them, or only those differing from ``base``)."""
+    """The ``[render]`` keys of ``r`` (all of them, or only those differing from ``base``; TOML has no None: a key
+    left at None is left out)."""
     out = {}
     for f in dataclasses.fields(RenderSettings):
         v = getattr(r, f.name)
         if base is not None and v == getattr(base, f.name):
             continue
+        if v is None and f.name == "scales" and base is not None:
+            v = [r.scale]  # one level, where [render] has several (read back as None)
+        elif v is None:
+            continue
         if f.name == "hr_size":
             v = f"{v[0]}x{v[1]}"
-        elif f.name == "buffers":
+        elif f.name in ("buffers", "scales"):
             v = list(v)
         out[f.name] = v
     return out
