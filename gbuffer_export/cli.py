@@ -155,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("blendsr: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stdout closed early (`blendsr dataset --dry-run | head`): stop quietly, as cat does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush writes nowhere
+        return 141
     except Exception as exc:  # noqa: BLE001 - the one error boundary of the CLI
         from .extras import missing_module_message
         # an extra's module imported late inside a command names the extra; other bad input is typed

@@ -189,3 +189,17 @@ def test_quiet_hides_an_info_note_and_verbose_shows_a_debug_note(tmp_path, monke
     verbose = stderr_of("-v")
     assert "split-sum table: 4x4 texels, 16 samples each" in verbose and "computing table.exr" in verbose
     assert "split-sum table" not in stderr_of("--quiet")
+
+
+def test_output_cut_short_by_a_closed_pipe_stops_quietly():
+    """``blendsr dataset SPEC --dry-run | head -1``: no traceback, no 'internal error', exit 141 as a shell's."""
+    import subprocess
+    import sys
+    from conftest import ENV, REPO
+    proc = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "dataset", "examples/dataset_large.toml",
+                             "-o", "unused", "--dry-run"], cwd=REPO, env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()  # before the command prints its first line (it starts Python and expands the spec first)
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 141, err
+    assert "Traceback" not in err and "internal error" not in err, err
