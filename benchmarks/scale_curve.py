@@ -22,17 +22,21 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
     from training.evaluate import evaluate_model
     from training.inference import load_model
     from training.models import model_class
-    name, _, ck = spec.partition(":")
-    cls = model_class(name)
-    label = name
-    if ck:
+    if spec.startswith("pretrained:"):  # shipped weights (pretrained:NAME, NAME the model): every level it takes
+        name, label = spec.split(":", 1)[1], spec
+        fixed = model_class(name).SCALES is not None  # the fixed-scale weights are 4x
+        models = {s: load_model(spec, int(s) if float(s).is_integer() else s) for s in clip_scales
+                  if not fixed or s == 4}
+    elif ":" in spec:  # NAME:CHECKPOINT
+        name, ck = spec.split(":", 1)
         trained = load_checkpoint(ck)
         label = f"{name} (trained at {', '.join(f'{s:g}' for s in trained.get('scales') or [trained['scale']])})"
         model = load_model(ck, trained["scale"])
-        scales = clip_scales if cls.SCALES is None else [float(trained["scale"])]
+        scales = clip_scales if model_class(name).SCALES is None else [float(trained["scale"])]
         models = {s: model for s in scales}
-    else:
-        models = {s: load_model(name, int(s) if float(s).is_integer() else s)
+    else:  # a non-learned model
+        cls, label = model_class(spec), spec
+        models = {s: load_model(spec, int(s) if float(s).is_integer() else s)
                   for s in clip_scales if cls.supports_scale(s)}
     per = {}
     for s, model in models.items():

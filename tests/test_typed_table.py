@@ -100,6 +100,9 @@ def test_dataset_specs_take_render_config_defaults():
     defaults = RenderConfig(output=".")
     assert render == RenderSettings() and [f.name for f in dataclasses.fields(RenderSettings)] == list(RENDER_KEYS)
     for k in RENDER_KEYS:
+        if k == "scales":  # None in a spec: one level, what RenderConfig spells (scale,)
+            assert render.scales is None and defaults.scales == (float(defaults.scale),)
+            continue
         assert getattr(render, k) == CLIP_DEFAULTS.get(k, getattr(defaults, k)), k
     assert (render.hr_spp, render.lr_spp, render.hr_denoise) == (64, 4, False)
     with pytest.raises(ConfigError, match=r"x.toml: render.lr_spp 0: must be an integer in 1..16777216"):
