@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,7 +29,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import read_index, split_clips
     from training.bench_models import parse_models
-    from training.evaluate import evaluate_model
+    from training.evaluate import evaluate_model, group_means
     from training.inference import load_model
 
     index = read_index(a.dataset)
@@ -39,12 +38,7 @@ def main(argv=None) -> int:
     result = {"dataset": str(a.dataset), "split": a.split, "clips": [Path(c).name for c in clips], "models": {}}
     for label, spec in parse_models(a.models):  # as bench models reads --models (NAME:CHECKPOINT, pretrained:NAME)
         r = evaluate_model(load_model(spec, 4), clips, flip=False)
-        groups = defaultdict(list)
-        for f in r["per_frame"]:
-            c = Path(f["clip"]).name
-            groups[group_of.get(c, c)].append(f)
-        per = {g: {k: sum(f[k] for f in fs if f.get(k) is not None) / max(1, sum(f.get(k) is not None for f in fs))
-                   for k in ("psnr", "ssim", "tpsnr")} for g, fs in sorted(groups.items())}
+        per = group_means(r, lambda c: group_of.get(c, c))
         result["models"][label] = {"mean": {k: r["mean"][k] for k in ("psnr", "ssim", "tpsnr")}, "per_asset": per}
         print(f"{label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
     ref = result["models"].get(a.reference)

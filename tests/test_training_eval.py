@@ -337,3 +337,15 @@ def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):
         model_inputs(build_model(ModelConfig(name="fusesr"), 4), ClipFrames(clip), 2)
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(tmp_path / "r"),
                  "--set", "data.crop=4"]) == 2
+
+
+def test_group_means_average_frames_per_clip_or_per_scene():
+    from training.evaluate import group_means
+    rows = [{"clip": "/d/clips/a-00", "psnr": 30.0, "ssim": 0.9, "tpsnr": None},
+            {"clip": "/d/clips/a-00", "psnr": 32.0, "ssim": 0.8, "tpsnr": 28.0},
+            {"clip": "/d/clips/a-01", "psnr": 20.0, "ssim": 0.5, "tpsnr": 22.0}]
+    per_clip = group_means({"per_frame": rows})
+    assert per_clip == {"a-00": {"psnr": 31.0, "ssim": pytest.approx(0.85), "tpsnr": 28.0},
+                        "a-01": {"psnr": 20.0, "ssim": 0.5, "tpsnr": 22.0}}
+    per_scene = group_means({"per_frame": rows}, lambda c: c.split("-")[0], metrics=("psnr",))
+    assert per_scene == {"a": {"psnr": pytest.approx(82.0 / 3)}}  # frames weigh equally, not clips

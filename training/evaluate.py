@@ -113,6 +113,16 @@ def _means(rows: list[dict]) -> dict:
     return m
 
 
+def group_means(result: dict, group_of=None, metrics=("psnr", "ssim", "tpsnr")) -> dict[str, dict]:
+    """{group: {metric: mean over the group's frames}} of an ``evaluate_model`` result; a frame's group is
+    ``group_of(clip folder name)`` (default: the clip's name), e.g. the dataset index's scene id."""
+    groups: dict[str, list[dict]] = {}
+    for r in result["per_frame"]:
+        name = Path(r["clip"]).name
+        groups.setdefault(group_of(name) if group_of else name, []).append(r)
+    return {g: {k: _mean([r.get(k) for r in rows]) for k in metrics} for g, rows in sorted(groups.items())}
+
+
 def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
                    amp: torch.dtype | None = None, flip: bool = True, delta_e_itp: bool = False, data_cfg=None,
                    save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
