@@ -4,7 +4,7 @@
 # 1. resolution and ground-truth samples: the five test assets rendered three ways (benchmarks/limits/*.toml:
 #    256x144 32 spp, 512x288 32 spp, 256x144 128 spp; same cameras), the shipped models scored on each;
 # 2. distinct training scenes: FuseSR trained at equal steps on nested sets of 1, 4, 16, all scene ids of DATASET's
-#    train split (benchmarks/data_scaling.py --by scene), scored on its test split;
+#    train split (benchmarks/data_scaling.py --by scene), scored on its test split; 4, 16, all again at 2000 steps;
 # 3. training length: FuseSR on the whole train split for 250, 500, 1000 and 2000 steps (each its own cosine).
 # Every training starts from scratch with benchmarks/pretrain.toml (zero_init_refine: at the guided base).
 set -euo pipefail
@@ -22,3 +22,5 @@ $PY benchmarks/data_scaling.py "$DATASET" -o "$OUT/scenes" --runs "$OUT/runs" --
     --steps 500 --threads 2
 $PY benchmarks/data_scaling.py "$DATASET" -o "$OUT/steps" --runs "$OUT/runs" --by scene --counts all \
     --steps 250,500,1000,2000 --threads 2     # reuses the run on all scenes at 500 steps
+$PY benchmarks/data_scaling.py "$DATASET" -o "$OUT/scenes2000" --runs "$OUT/runs" --by scene --counts 4,16,all \
+    --steps 2000 --threads 2                  # reuses the run on all scenes at 2000 steps
