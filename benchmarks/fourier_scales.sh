@@ -7,7 +7,9 @@
 #   3. scores the shipped and the fine-tuned weights and the baselines at 2x and 4x on the val and test splits
 #      (benchmarks/scale_curve.py: OUT/val, OUT/test). RELEASE=1 then writes the fine-tuned weights as the shipped
 #      pretrained:fourier-sr (benchmarks/release_weights.py: scores at 4x, and the scale curves beside them).
-# Usage: benchmarks/fourier_scales.sh [DATASET] [RUNS] [OUT]; STEPS (1000), LR (2e-4), THREADS (2).
+# Usage: benchmarks/fourier_scales.sh [DATASET] [RUNS] [OUT]; STEPS (1000), LR (2e-4), THREADS (2), INIT (the starting
+# weights, default pretrained:fourier-sr; the shipped mixed-scale weights started from the 4x ones their JSON's
+# init_from names).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DS=${1:-datasets/zoo_scales}
@@ -26,7 +28,7 @@ cmd=($B train --model fourier-sr --data "$DS" -o "$run" --config examples/fourie
      --set data.crop=16 --set data.batch_size=4 --set data.val_frames=0 --set run.progress=false
      --set run.threads="$THREADS" --set run.checkpoint_every=100 --set run.keep_checkpoints=3
      --set model.fourier-sr.residual=true --set model.fourier-sr.zero_init_head=true --set model.scale=0
-     --set run.init_from=\"pretrained:fourier-sr\" --set optim.lr="$LR")
+     --set run.init_from=\"${INIT:-pretrained:fourier-sr}\" --set optim.lr="$LR")
 if [ ! -f "$run/summary.json" ]; then
   mkdir -p "$run"
   { printf 'blendsr'; printf ' %q' "${cmd[@]:3}"; echo; } > "$run/command.txt"
@@ -40,5 +42,6 @@ for split in val test; do
       --models bicubic,demod-bilinear,demod-jbu,pretrained:fourier-sr,fourier-sr:"$run/checkpoints/last.pt"
 done
 if [ "${RELEASE:-0}" = 1 ]; then
-  $PY benchmarks/release_weights.py "$DS" "$RUNS" --models fourier-sr --script benchmarks/fourier_scales.sh
+  $PY benchmarks/release_weights.py "$DS" "$RUNS" --models fourier-sr --script benchmarks/fourier_scales.sh \
+      --attach scale_curve_val="$OUT/val/scale_curve.json" --attach scale_curve_test="$OUT/test/scale_curve.json"
 fi

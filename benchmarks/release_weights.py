@@ -28,8 +28,10 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     cmd = run / "command.txt"
     if a.script == "benchmarks/pretrain.sh":
         script = f"SPEC={index['spec']['file']} {a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
-    else:
+    elif a.script == "benchmarks/zoo.sh":
         script = f"MODELS={name} {a.script} {a.dataset} {a.runs}"
+    else:
+        script = f"{a.env + ' ' if a.env else ''}{a.script} {a.dataset} {a.runs}"
     if cmd.is_file():
         return [script, cmd.read_text().strip()]
     return [script, f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
@@ -51,6 +53,8 @@ def main(argv=None) -> int:
     p.add_argument("--script", default="benchmarks/pretrain.sh", help="the script that made RUNS (for the JSON)")
     p.add_argument("--env", default="", help="the variables the script ran with, as written before it in the "
                                              "JSON's command (e.g. \"INIT='pretrained:<M>' LR=2e-4\")")
+    p.add_argument("--attach", action="append", default=[], metavar="KEY=FILE",
+                   help="a JSON file put under KEY in every weight file's JSON (e.g. scale curves)")
     a = p.parse_args(argv)
 
     from gbuffer_export.clip import write_json_atomic
@@ -67,7 +71,7 @@ def main(argv=None) -> int:
     index = read_index(a.dataset)
 
     def score(spec: str, clips: list[str] = test) -> dict:
-        r = evaluate_model(load_model(spec, 4), clips, flip=False)
+        r = evaluate_model(load_model(spec, 4), clips, flip=False, scales={c: [4.0] for c in clips})
         per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
                 "psnr_hdr": round(r["mean"]["psnr_hdr"], 3), "tpsnr": r["mean"].get("tpsnr"),
@@ -103,6 +107,9 @@ def main(argv=None) -> int:
         if val:
             meta["scores_on_val_split"] = {"metric": meta["scores_on_test_split"]["metric"],
                                            name: score(str(ck), val), **val_baselines}
+        for item in a.attach:
+            key, _, path = item.partition("=")
+            meta[key] = json.loads(Path(path).read_text())
         meta = release(ck, WEIGHTS_DIR / file, meta)
         out["models"][name] = meta
         print(f"{name}: test PSNR {s['psnr']:.2f} dB (demod-jbu {baselines['demod-jbu']['psnr']:.2f}, "
