@@ -108,6 +108,8 @@ def main(argv=None) -> int:
     for r, style in zip([r for r in rows if not r["clips"]], ("--", ":")):
         ax.axhline(r["psnr"], linestyle=style, color="grey", label=r["model"])
     ax.set_xscale("log")
+    ax.set_xticks(sorted({r[x] for r in learned}), [str(v) for v in sorted({r[x] for r in learned})])
+    ax.minorticks_off()
     ax.set_xlabel({"clips": "training clips", "scenes": "distinct training scenes", "steps": "optimiser steps"}[x])
     ax.set_ylabel("PSNR on unseen test assets (dB)")
     ax.legend(fontsize=8)
