@@ -180,3 +180,20 @@ def test_every_consumer_takes_each_shipped_network(name, tmp_path):
                  "-o", str(tmp_path / "bench")]) == 0
     rows = json.loads((tmp_path / "bench" / "bench_models.json").read_text())
     assert name in json.dumps(rows)
+
+
+def test_bench_models_scores_an_any_scale_network_at_the_clips_lr_level_only(tmp_path):
+    """A clip with LR levels at 4 ('lr') and 2: every row of the table is at 4, fourier-sr's too (not averaged
+    with its scores at 2, which evaluate reports per scale)."""
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED["fourier-sr"]).is_file():
+        pytest.skip("fourier-sr not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 32), scale=4, scales=(4, 2))
+    assert main(["bench", "models", "--data", str(clip), "--models", "pretrained:fourier-sr,bicubic", "--threads",
+                 "1", "--no-progress", "--warmup", "0", "-o", str(tmp_path / "bench")]) == 0
+    out = json.loads((tmp_path / "bench" / "bench_models.json").read_text())
+    assert main(["evaluate", "--checkpoint", "pretrained:fourier-sr", "--data", str(clip), "--json",
+                 str(tmp_path / "e.json"), "--no-flip", "--no-progress"]) == 0
+    per_scale = json.loads((tmp_path / "e.json").read_text())["per_scale"]
+    row = next(r for r in out["rows"] if r["model"] == "pretrained:fourier-sr")
+    assert set(per_scale) == {"2", "4"} and per_scale["2"]["psnr"] != per_scale["4"]["psnr"]
+    assert row["psnr"] == pytest.approx(per_scale["4"]["psnr"], abs=1e-3)

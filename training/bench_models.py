@@ -173,8 +173,9 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
               flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
               compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0,
               progress: bool = False) -> dict:
-    """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips``; write the table files
-    and ``pareto.png`` under ``out``; return {device, scale, rows, results}."""
+    """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips`` at the clips' 'lr' level
+    (every model at the same scale); write the table files and ``pareto.png`` under ``out``; return {device,
+    scale, rows, results}."""
     from training.commands import _scale_of
     from training.evaluate import evaluate_model
     from training.inference import ClipFrames, load_model, model_inputs
@@ -197,7 +198,8 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
             prepare_inference(model, device, precision or "none", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
-                             label=label, progress=progress)
+                             label=label, progress=progress,  # one level: an any-scale model is not averaged
+                             scales={str(c): [float(scale)] for c in clips})  # over a clip's other LR levels
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]
