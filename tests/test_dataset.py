@@ -363,7 +363,8 @@ def test_render_scales_give_each_clip_an_lr_level_per_scale(tmp_path):
 
 
 @pytest.mark.parametrize("spec_file", sorted((REPO / "examples").glob("dataset_*.toml"))
-                         + [REPO / "benchmarks" / n for n in ("networks_dataset.toml", "nsrd_base_dataset.toml")],
+                         + [REPO / "benchmarks" / n for n in ("networks_dataset.toml", "nsrd_base_dataset.toml",
+                                                              "zoo_dataset.toml", "zoo_scales_dataset.toml")],
                          ids=lambda p: p.name)
 def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
     """Every dataset spec the project ships parses, expands to uniquely named clips, and no training clip shows a
@@ -406,6 +407,14 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
             if j.kind == "scene":
                 levels.setdefault(Path(j.asset).stem, set()).add(j.split)
         assert len(levels) == 3 and all(v == {"train", "val", "test"} for v in levels.values())
+    if spec_file.name == "zoo_scales_dataset.toml":  # the zoo clips, the same cameras, with an LR level at 2x
+        zoo = expand(load_spec(spec_file.parent / "zoo_dataset.toml"))
+
+        def but_scales(j):
+            d = j.to_json()
+            return {**d, "render": {k: v for k, v in d["render"].items() if k != "scales"}}
+        assert [but_scales(j) for j in jobs] == [but_scales(j) for j in zoo]
+        assert {tuple(j.render["scales"]) for j in jobs} == {(4.0, 2.0)}
 
 
 
