@@ -356,12 +356,13 @@ def check_clip_resources(jobs, root: Path, spec_path) -> None:
     seen = set()
     for j in jobs:
         r = j.render
-        key = (tuple(r["hr_size"]), r["scale"], tuple(r["buffers"]), r["frames"])
+        scales = tuple(r.get("scales") or (r["scale"],))  # every LR level of the clip
+        key = (tuple(r["hr_size"]), scales, tuple(r["buffers"]), r["frames"])
         if key in seen:
             continue
         seen.add(key)
         try:
-            check_render_resources(tuple(r["hr_size"]), r["scale"], r["buffers"], r["frames"], root,
+            check_render_resources(tuple(r["hr_size"]), scales, r["buffers"], r["frames"], root,
                                    memory=1 << 62)
         except ResourceError as exc:
             raise ResourceError(f"{spec_path}: clip {j.id}: {exc}") from None
