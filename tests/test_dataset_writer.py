@@ -140,8 +140,9 @@ def test_an_index_from_before_hr_fbeta_reads_as_point(tmp_path):
     for spec, want in ((point, "point"), (footprint, "footprint")):
         assert render_config(planned_jobs(spec)[0], tmp_path / "c").hr_fbeta == want
     job = planned_jobs(footprint)[0]
-    old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k != "hr_fbeta"})
-    assert render_config(old_job, tmp_path / "c").hr_fbeta == "point"
+    old_job = dataclasses.replace(job, render={k: v for k, v in job.render.items() if k not in ("hr_fbeta", "scales")})
+    old_cfg = render_config(old_job, tmp_path / "c")
+    assert old_cfg.hr_fbeta == "point" and old_cfg.scales == (4.0,)
 
 
 def test_render_scales_give_every_clip_several_lr_levels(tmp_path):

@@ -15,13 +15,13 @@ import sys
 from pathlib import Path
 
 from ..config import RenderConfig
-from ..dataset.spec import ClipJob
+from ..dataset.spec import LEGACY_RENDER_KEYS, ClipJob
 
 
 def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False,
                   device: str = "auto") -> RenderConfig:
     """The clip's render configuration; a ``kind = "scene"`` job renders its file as it is (``render_clip``)."""
-    r = job.render
+    r = {**LEGACY_RENDER_KEYS, **job.render}  # a job written before a key renders as it did then
     scene_kw = {}
     if job.kind == "scene":
         scene_kw = dict(scene=Path(job.asset), camera_path=job.camera, light=job.light or "scene",
@@ -29,11 +29,12 @@ def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool
                                "variation": job.variation})
     return RenderConfig(output=clip_dir, **{"scene": None, "camera_path": "scene", **scene_kw},
                         frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]), device=device,
-                        scale=int(r["scale"]), scales=tuple(r["scales"]) if r.get("scales") else None, hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
+                        scale=int(r["scale"]), scales=tuple(r["scales"]) if r["scales"] else None,
+                        hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
                         gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
                         lr_denoise=bool(r["lr_denoise"]), seed=int(job.seed),
                         jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],
-                        hr_fbeta=r.get("hr_fbeta", "point"),  # a job written before the key: point-sampled
+                        hr_fbeta=r["hr_fbeta"],
                         threads=int(r.get("threads") or threads), progress=progress)
 
 

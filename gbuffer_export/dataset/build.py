@@ -32,7 +32,7 @@ from pathlib import Path
 from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from ..errors import BlendSRError
 from ..locks import FolderLock
-from .spec import SPLITS, ClipJob, DatasetSpec, SpecError, expand
+from .spec import LEGACY_RENDER_KEYS, SPLITS, ClipJob, DatasetSpec, SpecError, expand
 
 log = logging.getLogger(__name__)
 
@@ -399,11 +399,6 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
             raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
                                "spec into another folder")
     return old
-
-
-#: Render keys added to the index after datasets were written, with what those datasets were rendered with.
-LEGACY_RENDER_KEYS = {"hr_fbeta": "point",  # before 2026-11-26
-                      "scales": None}       # one LR level, before 2026-11-26
 
 
 def _legacy_render_keys(clip: dict) -> dict:

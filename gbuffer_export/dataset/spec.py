@@ -54,6 +54,10 @@ MAX_CLIPS = 100_000
 #: length: frames 1..frames), then keys of ``RenderConfig`` (the one render-settings class), whose defaults they take.
 RENDER_KEYS = ("frames", "hr_size", "scale", "scales", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise",
                "jitter", "buffers", "fbeta", "hr_fbeta", "threads")
+#: Render keys added after datasets and job files were written, with what those were rendered with (an index entry
+#: or a job without the key reads as this).
+LEGACY_RENDER_KEYS = {"hr_fbeta": "point",  # before 2026-11-26
+                      "scales": None}       # one LR level, before 2026-11-26
 #: What a spec needs that a render of a scene file takes from the file: the clip's length and HR size (pixels).
 #: ``threads`` 0 means the machine's cores divided by the local workers (``RunOptions.clip_threads``).
 CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}
