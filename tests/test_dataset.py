@@ -358,8 +358,14 @@ def test_render_scales_give_each_clip_an_lr_level_per_scale(tmp_path):
     clip = open_clip(split_clips(out, "train")[0])
     assert clip.scales == [2.0, 4.0] and clip.scale == 4
     assert clip.sizes == {"hr": (64, 32), "lr": (16, 8), "lr_x2": (32, 16)}
-    lr2 = clip.at_scale(2).read(clip.frames[0], "lr/radiance")
-    assert lr2.shape[:2] == (16, 32) and np.isfinite(lr2).all() and lr2.mean() > 0
+    f = clip.frames[0]
+    lr2 = clip.at_scale(2).read(f, "lr/radiance")
+    assert lr2.shape[:2] == (16, 32) and np.isfinite(lr2).all()
+    # the same view at both levels: lr_x2's depth pooled 2x2 follows lr's (0.89 when written), not lr's upside down
+    d2, d4 = (np.nan_to_num(d.reshape(d.shape[:2]), posinf=0.0) for d in
+              (clip.at_scale(2).read(f, "lr/depth"), clip.read(f, "lr/depth")))
+    pooled = d2.reshape(8, 2, 16, 2).mean(axis=(1, 3)).ravel()
+    assert np.corrcoef(pooled, d4.ravel())[0, 1] > 0.8 > 0.3 > abs(np.corrcoef(pooled, d4[::-1].ravel())[0, 1])
 
 
 @pytest.mark.parametrize("spec_file", sorted((REPO / "examples").glob("dataset_*.toml"))
