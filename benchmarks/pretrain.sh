@@ -39,5 +39,6 @@ for M in $MODELS; do
   $PY -m gbuffer_export.cli "${CMD[@]}" "${EXTRA[@]}"
 done
 ENV="FUSESR_STEPS=$FUSESR_STEPS FUSESR_L_STEPS=$FUSESR_L_STEPS${INIT:+ INIT='$INIT'}${LR:+ LR=$LR}"
-[ "${RELEASE:-1}" = 1 ] && $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)" \
-    --env "$ENV"
+if [ "${RELEASE:-1}" = 1 ]; then  # RELEASE=0: train only (the script still exits 0)
+  $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)" --env "$ENV"
+fi

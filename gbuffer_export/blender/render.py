@@ -597,7 +597,11 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
-    set_passes(ctx.view_layer, PassPlan(colors=footprint))
+    # The same passes as the G-buffer pass and the LR renders, never fewer: with persistent data, Cycles 5.0.1
+    # renders a frame whose Vector pass was switched off since the previous render with stale texture lookups
+    # (measured: GlassBrokenWindow's crack and alpha textures vanished from the ground truth, its glass became a
+    # uniform tint; docs/rendering.md "One pass set per clip"). The passes' extra outputs are not read.
+    set_passes(ctx.view_layer, plan)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
                                filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
