@@ -57,7 +57,7 @@ def main(argv=None) -> int:
 
     def score(spec: str) -> dict:
         model = load_model(spec, 4)
-        r = evaluate_model(model, test_clips, flip=False, scales={c: [4.0] for c in test_clips})
+        r = evaluate_model(model, test_clips, flip=False, scale=4)
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip}
 

@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     index = read_index(a.dataset)
 
     def score(spec: str, clips: list[str] = test) -> dict:
-        r = evaluate_model(load_model(spec, 4), clips, flip=False, scales={c: [4.0] for c in clips})
+        r = evaluate_model(load_model(spec, 4), clips, flip=False, scale=4)
         per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
                 "psnr_hdr": round(r["mean"]["psnr_hdr"], 3), "tpsnr": r["mean"].get("tpsnr"),

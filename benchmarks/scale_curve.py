@@ -40,7 +40,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
                   for s in clip_scales if cls.supports_scale(s)}
     per = {}
     for s, model in models.items():
-        res = evaluate_model(model, clips, flip=flip, warmup=1, scales={c: [s] for c in clips})
+        res = evaluate_model(model, clips, flip=flip, warmup=1, scale=s)
         per[f"{s:g}"] = {k: res["mean"].get(k) for k in ("psnr", "ssim", "flip", "ms_per_frame", "frames")}
     return label, per
 

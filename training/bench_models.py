@@ -198,8 +198,7 @@ def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None 
             prepare_inference(model, device, precision or "none", compile=compile)
             amp = None
         res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
-                             label=label, progress=progress,  # one level: an any-scale model is not averaged
-                             scales={str(c): [float(scale)] for c in clips})  # over a clip's other LR levels
+                             label=label, progress=progress, scale=scale)
         src = ClipFrames(clips[0], eps=model.demod_eps)
         first = (frames or {}).get(str(clips[0])) or src.frames
         m = res["mean"]

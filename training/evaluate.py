@@ -126,11 +126,16 @@ def group_means(result: dict, group_of=None, metrics=("psnr", "ssim", "tpsnr")) 
 def evaluate_model(model, clips, *, frames: dict | None = None, device: torch.device | None = None,
                    amp: torch.dtype | None = None, flip: bool = True, delta_e_itp: bool = False, data_cfg=None,
                    save_images: str | os.PathLike | None = None, warmup: int = 2, progress: bool = False,
-                   label: str | None = None, scales: dict | None = None) -> dict:
+                   label: str | None = None, scales: dict | None = None, scale: float | None = None) -> dict:
     """Evaluate ``model`` on ``clips`` (paths); ``frames`` maps a clip path (as given) to the frames to score
-    (default: all); ``scales`` maps a clip path to the scales to score (default: ``eval_scales``).
+    (default: all); ``scales`` maps a clip path to the scales to score (default: ``eval_scales``); ``scale``: every
+    clip at this one scale only (an any-scale model is then not averaged over a clip's other LR levels).
     ``delta_e_itp``: also score ``metrics.delta_e_itp`` (None otherwise). Returns {model, transform, device, mean,
     per_scale, per_frame, ...}."""
+    if scale is not None:
+        if scales is not None:
+            raise ValueError("evaluate_model: give scales or scale, not both")
+        scales = {str(c): [float(scale)] for c in clips}
     device = device or model_device(model)
     model.to(device).eval()
     eps = data_cfg.demod_eps if data_cfg is not None else getattr(model, "demod_eps", 0.01)

@@ -481,6 +481,11 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     """Render the clip from an already loaded scene (the add-on calls this inside Blender)."""
     c = _clip_context(cfg, scene)
     device = base_settings(scene, c["view_layer"], cfg)
+    # One pass set for every render of the clip, set here once: with persistent data, Cycles 5.0.1 renders a frame
+    # whose Vector pass was switched off since the previous render with stale texture lookups (measured:
+    # GlassBrokenWindow's crack and alpha textures vanished from the ground truth, its glass became a uniform tint;
+    # docs/rendering.md, "One pass set per clip"). A render reads only the passes it needs.
+    set_passes(c["view_layer"], c["plan"])
     light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
     my_frames = list(cfg.my_frames(c["frames"]))
     writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, c, device, light_paths))
@@ -584,7 +589,6 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     scene.render.resolution_x, scene.render.resolution_y = ctx.levels["hr"]["width"], ctx.levels["hr"]["height"]
     seconds, hr_out = {}, {}
     if plan.any:
-        set_passes(ctx.view_layer, plan)
         set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
                      bounces=False, denoise=False, adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 0),
                      light_paths=ctx.light_paths)
@@ -597,11 +601,6 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
-    # The same passes as the G-buffer pass and the LR renders, never fewer: with persistent data, Cycles 5.0.1
-    # renders a frame whose Vector pass was switched off since the previous render with stale texture lookups
-    # (measured: GlassBrokenWindow's crack and alpha textures vanished from the ground truth, its glass became a
-    # uniform tint; docs/rendering.md "One pass set per clip"). The passes' extra outputs are not read.
-    set_passes(ctx.view_layer, plan)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
                                filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
@@ -635,7 +634,6 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     base_shift = (cam.data.shift_x, cam.data.shift_y)
     cam.data.shift_x = base_shift[0] + jit[0] / max(lw, lh)
     cam.data.shift_y = base_shift[1] - jit[1] / max(lw, lh)
-    set_passes(ctx.view_layer, ctx.plan)
     settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
                                bounces=True, denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
                                seed=pass_seed(cfg.seed, frame, 2 + i), light_paths=ctx.light_paths)
