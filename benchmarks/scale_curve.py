@@ -14,11 +14,6 @@ import json
 from pathlib import Path
 
 
-def _scale_arg(s: float) -> int | float:
-    """A scale as ``load_model`` takes it: an int for an integer factor (4.0 -> 4), else the float."""
-    return int(s) if float(s).is_integer() else s
-
-
 def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> tuple[str, dict]:
     """(label, {scale: means}) of one model over the clips, at every level it takes: a checkpoint of a fixed-scale
     model at its trained scale, an arbitrary-scale one at every level, a non-learned model at every level it
@@ -30,7 +25,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
     if spec.startswith("pretrained:"):  # shipped weights (pretrained:NAME, NAME the model): every level it takes
         name, label = spec.split(":", 1)[1], spec
         fixed = model_class(name).SCALES is not None  # the fixed-scale weights are 4x
-        models = {s: load_model(spec, _scale_arg(s)) for s in clip_scales if not fixed or s == 4}
+        models = {s: load_model(spec, s) for s in clip_scales if not fixed or s == 4}
     elif ":" in spec:  # NAME:CHECKPOINT
         name, ck = spec.split(":", 1)
         trained = load_checkpoint(ck)
@@ -40,7 +35,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
         models = {s: model for s in scales}
     else:  # a non-learned model
         cls, label = model_class(spec), spec
-        models = {s: load_model(spec, _scale_arg(s)) for s in clip_scales if cls.supports_scale(s)}
+        models = {s: load_model(spec, s) for s in clip_scales if cls.supports_scale(s)}
     per = {}
     for s, model in models.items():
         res = evaluate_model(model, clips, flip=flip, warmup=1, scale=s)

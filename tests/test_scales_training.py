@@ -192,6 +192,12 @@ def test_evaluation_reports_per_scale(multi):
     assert set(res4["per_scale"]) == {"4"}
     with pytest.raises(ValueError, match="no LR level at scale 8 .has 2, 2.5, 4"):
         evaluate_model(load_model("demod-bilinear", 8), [str(multi)], flip=False, warmup=0)
+    # scale=: one level only, scored exactly as that level is within the evaluation of every level
+    one = evaluate_model(load_model("bilinear", 2), [str(multi)], flip=False, warmup=0, scale=2.5)
+    assert set(one["per_scale"]) == {"2.5"} and one["mean"]["frames"] == 5
+    assert one["mean"]["psnr"] == pytest.approx(ps["2.5"]["psnr"], abs=1e-9)
+    with pytest.raises(ValueError, match="give scales or scale, not both"):
+        evaluate_model(load_model("bilinear", 2), [str(multi)], scale=2.5, scales={str(multi): [2.5]})
 
 
 def test_fourier_sr_trains_on_scales_2_and_4_and_is_scored_at_2_5(multi, tmp_path):

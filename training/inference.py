@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from gbuffer_export.errors import BlendSRError
-from gbuffer_export.clip import Clip, ClipError, open_clip
+from gbuffer_export.clip import Clip, ClipError, open_clip, scale_value
 from gbuffer_export.colour_spaces import TRAINING_SPACE
 from gbuffer_export.conventions import LEVELS
 from training.cache import DERIVED, lr_jitter
@@ -108,7 +108,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
-    scale = int(scale) if float(scale).is_integer() else float(scale)
+    scale = scale_value(scale)
     if overrides and spec not in MODELS:
         raise BlendSRError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
     if spec in MODELS:

@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gbuffer_export.clip import scale_value
 from gbuffer_export.config import ConfigError
 from gbuffer_export.conventions import scale_fraction
 from training.config import TrainConfig, config_from_checkpoint
@@ -168,7 +169,7 @@ def resolve_run(cfg: TrainConfig, clips: dict) -> ResolvedRun:
     scales_of = training_scales(cfg.model.name, clips, cfg.model.scale)
     scales = sorted({s for v in scales_of.values() for s in v})
     scale = scales[0] if len(scales) == 1 else scales[-1]  # several: the model reads batch['scale']
-    scale = int(scale) if float(scale).is_integer() else scale
+    scale = scale_value(scale)
     levels = {(f"{c} (scale {s:g})" if len(scales) > 1 else c): (s, tuple(clip.at_scale(s).sizes["lr"]))
               for c, clip in clips.items() for s in scales_of[c]}
     crop, note = fit_crop(cfg.data.crop, levels)
