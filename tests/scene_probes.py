@@ -17,7 +17,7 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 PRINCIPLED_INPUTS = ("Base Color", "Metallic", "Roughness", "IOR", "Transmission Weight", "Emission Color",
-                     "Emission Strength", "Anisotropic", "Subsurface Weight", "Alpha", "Coat Weight")
+                     "Emission Strength", "Anisotropic", "Subsurface Weight", "Alpha", "Coat Weight", "Normal")
 
 
 def _value(v):
@@ -111,9 +111,11 @@ def probe_default(args) -> dict:
     factory = {"engine": bpy.context.scene.render.engine}
     builds = []
     for b in args["builds"]:
-        scene = ds.build_default_scene(seed=b["seed"], frames=tuple(b["frames"]), resolution=tuple(b["resolution"]))
+        scene = ds.build_default_scene(seed=b["seed"], frames=tuple(b["frames"]), resolution=tuple(b["resolution"]),
+                                       props=tuple(b.get("props", ())))
         builds.append(scene_summary(scene))
-    return {"factory": factory, "builds": builds, "features": ds.DEFAULT_SCENE_FEATURES}
+    return {"factory": factory, "builds": builds, "features": ds.DEFAULT_SCENE_FEATURES,
+            "optional_props": ds.OPTIONAL_PROPS}
 
 
 def probe_default_render(args) -> dict:

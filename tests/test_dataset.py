@@ -109,6 +109,20 @@ def test_spec_rejects_unknown_keys_and_bad_values(tmp_path):
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "unknown key source[1].colour" in proc.stderr
 
 
+def test_builtin_props_are_opt_in_per_source_and_recorded(tmp_path):
+    """``props`` adds a prop to every clip of a builtin source; a source without it expands to the clips it gave
+    before the key existed (``props`` None: older indexes compare equal); other kinds and unknown props refused."""
+    doc = {"source": [{"name": "plain", "kind": "builtin", "seeds": "0:1"},
+                      {"name": "pane", "kind": "builtin", "seeds": "0:1", "props": ["broken_pane"]}]}
+    jobs = {j.id: j for j in expand(parse_spec(doc, tmp_path / "s.toml"))}
+    assert jobs["plain-s0000"].props is None
+    assert jobs["pane-s0001"].props == ["broken_pane"] and jobs["pane-s0001"].seed == 1
+    with pytest.raises(SpecError, match=r"source\[0\]\.props.*'glass'.*broken_pane"):
+        parse_spec({"source": [{"kind": "builtin", "seeds": 0, "props": ["glass"]}]}, "x.toml")
+    with pytest.raises(SpecError, match="seeds, sun and props are for kind = \"builtin\""):
+        parse_spec({"source": [{"kind": "assets", "paths": ["a"], "props": ["broken_pane"]}]}, "x.toml")
+
+
 def test_hash_split_rule_is_stable_and_near_its_fractions():
     splits = Splits(test_fraction=0.2, val_fraction=0.1)
     got = [assign_split(f"asset{i}", splits, None, 0) for i in range(2000)]

@@ -48,7 +48,7 @@ def test_a_spec_built_in_code_round_trips_with_awkward_text(tmp_path):
         "splits": {"val": ["builtin:1"], "test": ["a b.c"], "val_fraction": 0.125, "test_fraction": 1e-05},
         "source": [
             {"name": "b", "kind": "builtin", "seeds": "0:2", "cameras": ["orbit", "scene"], "sun": False,
-             "hdri": ["builtin:city"], "hdri_strength": [0.5, 2.0]},
+             "props": ["broken_pane"], "hdri": ["builtin:city"], "hdri_strength": [0.5, 2.0]},
             {"name": "s-1", "kind": "scene", "paths": ["lvl/x y.blend"], "cameras": ["fly", "walk"],
              "clips_per_scene": 3, "light": "sky", "regions": "3x2", "region_val": 1, "region_test": 1,
              "world_strength": [0.5, 1.5], "light_strength": 2.0, "sun_elevation_deg": [10, 80.5],

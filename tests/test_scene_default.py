@@ -30,6 +30,7 @@ def probe():
         {"seed": 0, "frames": [1, 48], "resolution": [640, 360]},
         {"seed": 1, "frames": [1, 48], "resolution": [640, 360]},
         {"seed": 5, "frames": [3, 20], "resolution": [320, 180]},
+        {"seed": 1, "frames": [1, 48], "resolution": [640, 360], "props": ["broken_pane"]},
     ]})
 
 
@@ -108,6 +109,36 @@ def test_feature_table_names_existing_things(probe, scene):
     names = set(scene["objects"]) | {"BlendSR World"}
     for feature, owners in probe["features"].items():
         assert owners and set(owners) <= names, (feature, owners)
+
+
+def test_optional_props_add_only_their_objects(probe):
+    """A prop adds its objects and leaves every other object, key and material of the seed as it was."""
+    from gbuffer_export.dataset.spec import BUILTIN_PROPS
+    assert tuple(probe["optional_props"]) == BUILTIN_PROPS  # the spec's names are the bpy layer's
+    plain, pane = probe["builds"][2], probe["builds"][4]
+    added = set(pane["objects"]) - set(plain["objects"])
+    assert added == set(probe["optional_props"]["broken_pane"])
+    for name, ob in plain["objects"].items():
+        assert np.allclose(ob["matrix"], pane["objects"][name]["matrix"]), name
+    for name, m in plain["animated_matrices"].items():
+        if name != "Camera":  # the built-in camera path is the seed's; orbit/walk paths are made later
+            assert np.allclose(m, pane["animated_matrices"][name]), name
+    assert np.allclose(plain["animated_matrices"]["Camera"], pane["animated_matrices"]["Camera"])
+    for name, m in plain["materials"].items():
+        assert pane["materials"][name] == m, name
+
+
+def test_broken_pane_is_alpha_cut_thin_glass(probe):
+    pane = probe["builds"][4]
+    glass = pane["objects"]["Broken Pane Glass"]
+    m = pane["materials"][glass["materials"][0]]
+    assert m["surface"] == "BSDF_PRINCIPLED" and "TEX_VORONOI" in m["node_types"]
+    p = m["inputs"]
+    assert p["Transmission Weight"]["value"] == 1.0 and p["Roughness"]["value"] < 0.1
+    assert p["Alpha"]["linked"] and p["Normal"]["linked"] and p["Metallic"]["linked"]
+    z = np.array(glass["matrix"])[2, 3]
+    frame = np.array(pane["objects"]["Broken Pane Frame"]["matrix"])
+    assert np.allclose(frame, glass["matrix"]) and z > 0.76  # stands on the table top
 
 
 def test_world_is_a_bundled_studiolight(scene):

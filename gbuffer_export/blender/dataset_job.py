@@ -50,9 +50,10 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
     if job.kind == "builtin":
         from .default_scene import build_default_scene
         scene = build_default_scene(seed=job.seed, frames=(1, max(frames[1], 48)), resolution=cfg.hr_size,
-                                    world=world, sun=job.sun)
+                                    world=world, sun=job.sun, props=tuple(job.props or ()))
         info = {"file": None, "sha256": None, "builtin": "default", "seed": job.seed, "camera_path": job.camera,
-                "hdri": job.hdri, "hdri_rotation_deg": job.hdri_rotation_deg, "hdri_strength": job.hdri_strength}
+                "hdri": job.hdri, "hdri_rotation_deg": job.hdri_rotation_deg, "hdri_strength": job.hdri_strength,
+                "props": list(job.props or ())}
         if job.camera in ("orbit", "walk"):
             from .camera_paths import make_camera_path
             make_camera_path(scene, job.camera, frames, job.seed)

@@ -31,6 +31,8 @@ ASSET_SUFFIXES = (".gltf", ".glb", ".blend")
 BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
 #: Camera kinds a source may draw from; ``scene`` keeps the built-in scene's own designed camera (builtin only).
 SOURCE_CAMERAS = ("orbit", "walk", "scene")
+#: Opt-in props of the built-in scene (``props = [...]`` of a builtin source; the bpy layer's ``OPTIONAL_PROPS``).
+BUILTIN_PROPS = ("broken_pane",)
 #: Camera kinds of ``kind = "scene"`` sources: inside the level (walk, fly), around it (orbit), or the file's own
 #: cameras (scene: the active one; scene:*: each clip the next of the file's cameras by name; scene:NAME).
 SCENE_SOURCE_CAMERAS = ("walk", "fly", "orbit", "scene", "scene:*", "scene:NAME")
@@ -115,6 +117,7 @@ class Source:
     target_size_m: float = option(1.5, lo=0, lo_open=True, unit="m")  # assets: largest side after normalisation
     licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
     sun: bool = True                              # builtin: keep the sun lamp
+    props: tuple[str, ...] = option((), items=BUILTIN_PROPS)  # builtin: opt-in props added to every clip
     clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
     light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
@@ -166,7 +169,7 @@ _DATASET_KEYS = ("name", "seed")
 _RENDER_KEYS = RENDER_KEYS
 _SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
-                "clutter", "target_size_m", "licence", "sun", "clips_per_scene", "light", "regions", "region_val",
+                "clutter", "target_size_m", "licence", "sun", "props", "clips_per_scene", "light", "regions", "region_val",
                 "region_test", "world_strength", "light_strength", "sun_elevation_deg", *_RENDER_KEYS)
 _SCENE_ONLY = ("clips_per_scene", "light", "regions", "region_val", "region_test", "world_strength",
                "light_strength", "sun_elevation_deg")
@@ -318,9 +321,10 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
                 raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
             kw["sun"] = _source_key(t, "sun", where, spec_path)
+            kw["props"] = _source_key(t, "props", where, spec_path)
         else:
-            if "seeds" in t or "sun" in t:
-                raise SpecError(f"{spec_path}: {where}: seeds and sun are for kind = \"builtin\"")
+            if "seeds" in t or "sun" in t or "props" in t:
+                raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")
             kw["paths"] = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
             if not kw["paths"]:
                 raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
@@ -355,7 +359,7 @@ def _grid(v, where, spec_path) -> tuple[int, int]:
 
 def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str, spec_path) -> "Source":
     """A ``kind = "scene"`` source: the user's scene files kept as they are (docs/dataset.md)."""
-    for k in ("seeds", "sun", "clips_per_asset", "clutter", "target_size_m", "hdri_strength"):
+    for k in ("seeds", "sun", "props", "clips_per_asset", "clutter", "target_size_m", "hdri_strength"):
         if k in t:
             raise SpecError(f"{spec_path}: {where}.{k}: not for kind = \"scene\" (a scene keeps its own world)")
     paths = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
@@ -545,6 +549,7 @@ class ClipJob:
     target_size_m: float = 1.5
     sun: bool = True
     licence: dict = field(default_factory=dict)
+    props: list | None = None         # builtin: opt-in props (None: none, so that older indexes compare equal)
     # kind = "scene" only (None elsewhere, so that older indexes compare equal):
     light: str | None = None          # scene | sky
     camera_index: int | None = None   # scene:*: which of the file's cameras (by name, cycling)
@@ -609,6 +614,7 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                     render=src.render.to_json(), camera=rng.choice(src.cameras),
                     hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
+                    props=list(src.props) or None,
                     licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
             continue
         assets = find_assets(src, base, spec.path)

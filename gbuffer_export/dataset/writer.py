@@ -66,6 +66,8 @@ def _other_keys(src: Source) -> dict:
     if src.kind == "builtin":
         t["seeds"] = _pair(src.seeds)
         t["sun"] = src.sun
+        if src.props:
+            t["props"] = list(src.props)
     else:
         t.update(paths=list(src.paths), clips_per_asset=src.clips_per_asset, clutter=src.clutter,
                  target_size_m=src.target_size_m)

@@ -11,7 +11,7 @@ environment, its rotation, the sun and the camera's motion. Nothing is written t
 sampling are left to the caller.
 
 Modules: ``layout`` (where things are, the animation), ``materials``, ``lights`` (environment and sun),
-``geometry`` (bmesh building blocks).
+``geometry`` (bmesh building blocks), ``props`` (opt-in props such as a broken glass pane).
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from ...errors import BlendSRError
 from .layout import TABLE_TOP_Z, animated_camera, courtyard, rolling_ball, table_and_props
 from .lights import STUDIOLIGHTS, hdri_path, make_world, seeded_world, studiolight_path, sun_lamp
 from .materials import make_materials
+from .props import OPTIONAL_PROPS, add_props
 
 #: What the default scene holds, for docs and tests: feature -> names of the objects (or world) that carry it.
 DEFAULT_SCENE_FEATURES: dict[str, tuple[str, ...]] = {
@@ -49,15 +50,20 @@ DEFAULT_SCENE_FEATURES: dict[str, tuple[str, ...]] = {
 
 def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
                         resolution: tuple[int, int] = (640, 360), world: dict | None = None,
-                        sun: bool = True) -> bpy.types.Scene:
+                        sun: bool = True, props: tuple[str, ...] = ()) -> bpy.types.Scene:
     """Reset Blender to an empty factory state and build the default courtyard scene in it.
 
     ``frames``: inclusive (start, end); animation is keyed on every frame from start-1 to end. ``resolution``:
     (width, height) in pixels at 100%. ``world``: replaces the seed's environment ({"hdri": path or
     "builtin:NAME", "rotation_deg": about +Z, "strength": multiplier of the normalised sky}); the layout, materials
-    and camera of the seed stay the same. ``sun``: False removes the sun lamp. Returns the scene (also
+    and camera of the seed stay the same. ``sun``: False removes the sun lamp. ``props``: opt-in props
+    (``OPTIONAL_PROPS``, e.g. ``("broken_pane",)``), each from its own seeded stream: every other object stays as
+    without them. Returns the scene (also
     ``bpy.context.scene``). Engine and sampling are left at the factory values; the caller sets them."""
     start, end = int(frames[0]), int(frames[1])
+    unknown = [p for p in props if p not in OPTIONAL_PROPS]
+    if unknown:
+        raise BlendSRError(f"props {', '.join(unknown)}: choose from {', '.join(OPTIONAL_PROPS)}")
     if end < start:
         raise BlendSRError(f"frames {start}:{end}: end is before start")
     w, h = int(resolution[0]), int(resolution[1])
@@ -80,11 +86,12 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
         bpy.data.objects.remove(bpy.data.objects["Sun"], do_unlink=True)
     courtyard(scene, mats, rng)
     table_and_props(scene, mats, rng)
+    add_props(scene, mats, seed, props)
     rolling_ball(scene, mats, rng, frames_all)
     animated_camera(scene, rng, frames_all)
     scene.frame_set(start)
     return scene
 
 
-__all__ = ["DEFAULT_SCENE_FEATURES", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene", "hdri_path", "make_world",
+__all__ = ["DEFAULT_SCENE_FEATURES", "OPTIONAL_PROPS", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene", "hdri_path", "make_world",
            "studiolight_path"]

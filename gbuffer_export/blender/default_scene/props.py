@@ -1,0 +1,91 @@
+"""Opt-in props of the default scene (``props = [...]`` of a builtin dataset source): materials the courtyard
+does not hold by default. Each prop draws from its own seeded generator, so a scene without it is the same scene
+as before, and a scene with it keeps every other object where it was.
+
+``broken_pane``: a cracked window pane in a painted wooden frame standing on the table's front half, facing the
+courtyard camera: thin glass (transmission 1, a 4 mm slab) cut by an alpha mask into shards along cracks 3-8 mm
+wide (cells 6-12 cm), with 15-35 % of the shards missing (the scene seen through the holes), each shard tilted a little (its own
+reflection), tinted edges with a metallic sheen along the cracks. Units are metres.
+"""
+from __future__ import annotations
+
+import math
+
+import bmesh
+import numpy as np
+
+from .geometry import add_object, box
+from .layout import TABLE_TOP_Z
+from .materials import Mat, jitter_color
+
+#: Opt-in props -> the objects they add (docs and tests).
+OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {
+    "broken_pane": ("Broken Pane Glass", "Broken Pane Frame"),
+}
+_PROP_STREAM = {"broken_pane": 0x9A7E}  # each prop's own generator stream (seed, stream)
+
+
+def add_props(scene, mats, seed: int, props) -> None:
+    """Add each prop of ``props`` (names of ``OPTIONAL_PROPS``) with its own generator seeded by ``seed``."""
+    for name in props:
+        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, _PROP_STREAM[name]])
+        {"broken_pane": broken_pane}[name](scene, mats, rng)
+
+
+def broken_pane(scene, mats, rng) -> None:
+    """The pane (glass ``w`` x ``h``, 0.50-0.75 x 0.38-0.55 m) in a 3 cm frame on two feet, at y = -0.22 m in
+    front of the props, turned up to 0.1 rad about +Z; clear of the rolling ball's path (y = -0.35 m)."""
+    w, h = rng.uniform(0.50, 0.75), rng.uniform(0.38, 0.55)
+    x, rot = rng.uniform(-0.25, 0.25), rng.uniform(-0.1, 0.1)
+    bar, z_glass = 0.03, TABLE_TOP_Z + 0.03 + h / 2  # frame bar (m); the glass centre rests on the feet + bottom bar
+    loc, rotation = (x, -0.22, z_glass), (0.0, 0.0, rot)
+    bm = bmesh.new()
+    box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
+    add_object(scene, "Broken Pane Glass", bm, _cracked_glass(rng, w, h), location=loc, rotation=rotation)
+    bm = bmesh.new()
+    for sz in (-1, 1):   # top and bottom bars
+        box(bm, (0.0, 0.0, sz * (h + bar) / 2), (w + 2 * bar, bar, bar))
+    for sx in (-1, 1):   # sides, and a foot under each
+        box(bm, (sx * (w + bar) / 2, 0.0, 0.0), (bar, bar, h))
+        box(bm, (sx * (w + bar) / 2, 0.0, -(h / 2 + bar + 0.0125)), (bar, 0.16, 0.025))
+    add_object(scene, "Broken Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
+
+
+def _cracked_glass(rng, w: float, h: float):
+    """Glass whose alpha is 0 on cracks (Voronoi cell edges in the pane's x-z plane) and on missing shards (cells
+    whose random value is above the kept fraction); the shard's normal tilted by its cell colour."""
+    m = Mat("Broken Glass", jitter_color(rng, (0.75, 0.9, 1.0), 0.1), roughness=float(rng.uniform(0.02, 0.08)),
+            inputs={"Transmission Weight": 1.0, "IOR": 1.5})
+    scale, crack = float(rng.uniform(8.0, 16.0)), float(rng.uniform(0.0015, 0.004))  # cells per m; crack half-width m
+    keep = float(rng.uniform(0.65, 0.85))
+    co = m.coords(swizzle="XZY")             # the pane's plane is object x-z: both faces get the same shards
+    cells = m.node("ShaderNodeTexVoronoi", voronoi_dimensions="2D", feature="F1", Scale=scale)
+    edges = m.node("ShaderNodeTexVoronoi", voronoi_dimensions="2D", feature="DISTANCE_TO_EDGE", Scale=scale)
+    offset = m.node("ShaderNodeVectorMath", operation="ADD")
+    offset.inputs[1].default_value = (*rng.uniform(-50.0, 50.0, size=2), 0.0)  # which shards: seeded
+    m.link(co, offset.inputs[0])
+    for v in (cells, edges):
+        m.link(offset.outputs["Vector"], v.inputs["Vector"])
+    # Distance to edge is in cell units: a crack of ``crack`` metres is crack * scale of them.
+    dist = edges.outputs["Distance"]
+    solid = m.math("GREATER_THAN", dist, crack * scale)
+    rnd = m.node("ShaderNodeSeparateColor")
+    m.link(cells.outputs["Color"], rnd.inputs["Color"])
+    kept = m.math("LESS_THAN", rnd.outputs["Red"], keep)     # a cell's red: uniform in [0, 1)
+    m.link(m.math("MULTIPLY", solid, kept), m.bsdf.inputs["Alpha"])
+    near = m.math("LESS_THAN", dist, 1.8 * crack * scale)
+    m.link(m.math("MULTIPLY", near, 0.7), m.bsdf.inputs["Metallic"])
+    edge_tint = (*jitter_color(rng, (0.5, 0.8, 0.7), 0.15), 1.0)
+    m.link(m.mix(near, tuple(m.bsdf.inputs["Base Color"].default_value), edge_tint), m.bsdf.inputs["Base Color"])
+    tilt = m.node("ShaderNodeVectorMath", operation="MULTIPLY_ADD")
+    m.link(cells.outputs["Color"], tilt.inputs[0])
+    tilt.inputs[1].default_value = (0.12, 0.12, 0.12)
+    tilt.inputs[2].default_value = (-0.06, -0.06, -0.06)
+    geo = m.node("ShaderNodeNewGeometry")
+    add = m.node("ShaderNodeVectorMath", operation="ADD")
+    m.link(geo.outputs["Normal"], add.inputs[0])
+    m.link(tilt.outputs["Vector"], add.inputs[1])
+    norm = m.node("ShaderNodeVectorMath", operation="NORMALIZE")
+    m.link(add.outputs["Vector"], norm.inputs[0])
+    m.link(norm.outputs["Vector"], m.bsdf.inputs["Normal"])
+    return m.mat
