@@ -169,8 +169,8 @@ _DATASET_KEYS = ("name", "seed")
 _RENDER_KEYS = RENDER_KEYS
 _SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
-                "clutter", "target_size_m", "licence", "sun", "props", "clips_per_scene", "light", "regions", "region_val",
-                "region_test", "world_strength", "light_strength", "sun_elevation_deg", *_RENDER_KEYS)
+                "clutter", "target_size_m", "licence", "sun", "props", "clips_per_scene", "light", "regions",
+                "region_val", "region_test", "world_strength", "light_strength", "sun_elevation_deg", *_RENDER_KEYS)
 _SCENE_ONLY = ("clips_per_scene", "light", "regions", "region_val", "region_test", "world_strength",
                "light_strength", "sun_elevation_deg")
 

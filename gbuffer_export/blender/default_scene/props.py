@@ -3,13 +3,11 @@ does not hold by default. Each prop draws from its own seeded generator, so a sc
 as before, and a scene with it keeps every other object where it was.
 
 ``broken_pane``: a cracked window pane in a painted wooden frame standing on the table's front half, facing the
-courtyard camera: thin glass (transmission 1, a 4 mm slab) cut by an alpha mask into shards along cracks 3-8 mm
-wide (cells 6-12 cm), with 15-35 % of the shards missing (the scene seen through the holes), each shard tilted a little (its own
-reflection), tinted edges with a metallic sheen along the cracks. Units are metres.
+courtyard camera: thin glass (transmission 1, a 4 mm slab) cut by an alpha mask into shards (cells 6-12 cm) along
+cracks 3-8 mm wide, with 15-35 % of the shards missing (the scene seen through the holes), each shard tilted a little
+(its own reflection), tinted edges with a metallic sheen along the cracks. Units are metres.
 """
 from __future__ import annotations
-
-import math
 
 import bmesh
 import numpy as np
@@ -18,26 +16,21 @@ from .geometry import add_object, box
 from .layout import TABLE_TOP_Z
 from .materials import Mat, jitter_color
 
-#: Opt-in props -> the objects they add (docs and tests).
-OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {
-    "broken_pane": ("Broken Pane Glass", "Broken Pane Frame"),
-}
-_PROP_STREAM = {"broken_pane": 0x9A7E}  # each prop's own generator stream (seed, stream)
-
 
 def add_props(scene, mats, seed: int, props) -> None:
     """Add each prop of ``props`` (names of ``OPTIONAL_PROPS``) with its own generator seeded by ``seed``."""
     for name in props:
-        rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, _PROP_STREAM[name]])
-        {"broken_pane": broken_pane}[name](scene, mats, rng)
+        build, stream, _ = _PROPS[name]
+        build(scene, mats, np.random.default_rng([int(seed) & 0xFFFFFFFF, stream]))
 
 
 def broken_pane(scene, mats, rng) -> None:
-    """The pane (glass ``w`` x ``h``, 0.50-0.75 x 0.38-0.55 m) in a 3 cm frame on two feet, at y = -0.22 m in
-    front of the props, turned up to 0.1 rad about +Z; clear of the rolling ball's path (y = -0.35 m)."""
+    """The pane (glass ``w`` x ``h``, 0.50-0.75 x 0.38-0.55 m) in a 3 cm frame whose bottom bar stands on the table
+    top (its two feet sit inside the top, out of sight), at y = -0.22 m in front of the props, turned up to 0.1 rad
+    about +Z; clear of the rolling ball's path (y = -0.35 m)."""
     w, h = rng.uniform(0.50, 0.75), rng.uniform(0.38, 0.55)
     x, rot = rng.uniform(-0.25, 0.25), rng.uniform(-0.1, 0.1)
-    bar, z_glass = 0.03, TABLE_TOP_Z + 0.03 + h / 2  # frame bar (m); the glass centre rests on the feet + bottom bar
+    bar, z_glass = 0.03, TABLE_TOP_Z + 0.03 + h / 2  # frame bar (m); the glass above the bottom bar
     loc, rotation = (x, -0.22, z_glass), (0.0, 0.0, rot)
     bm = bmesh.new()
     box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
@@ -89,3 +82,9 @@ def _cracked_glass(rng, w: float, h: float):
     m.link(add.outputs["Vector"], norm.inputs[0])
     m.link(norm.outputs["Vector"], m.bsdf.inputs["Normal"])
     return m.mat
+
+
+#: Each prop: (builder, its generator's stream, the objects it adds).
+_PROPS = {"broken_pane": (broken_pane, 0x9A7E, ("Broken Pane Glass", "Broken Pane Frame"))}
+#: Opt-in props -> the objects they add (docs and tests; the spec's ``BUILTIN_PROPS`` names the same props).
+OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {name: p[2] for name, p in _PROPS.items()}
