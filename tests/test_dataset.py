@@ -202,6 +202,43 @@ def test_dataset_renders_validates_and_indexes(tiny):
 
 @requires_bpy
 @pytest.mark.bpy
+def test_builtin_clip_with_the_broken_pane_renders_alpha_cut_glass(tmp_path):
+    """``props = ["broken_pane"]`` end to end: the clip records the prop, its material is flagged alpha and
+    transmission, and the HR flags show the pane on the scene camera's frame."""
+    from gbuffer_export.conventions import Flag
+    spec = tmp_path / "pane.toml"
+    spec.write_text("""
+[dataset]
+name = "pane"
+[render]
+frames = 1
+hr_size = "64x32"
+hr_spp = 2
+lr_spp = 2
+gbuffer_spp = 1
+hr_denoise = false
+[[source]]
+name = "pane"
+kind = "builtin"
+props = ["broken_pane"]
+seeds = "72:72"
+cameras = ["scene"]
+hdri = ["builtin:courtyard"]
+""")
+    out = tmp_path / "ds"
+    proc = run_cli("dataset", spec, "-o", out, "--threads", "2", "--no-progress", timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    clip = out / "clips" / "pane-s0072"
+    man = json.loads((clip / "manifest.json").read_text())
+    assert man["scene"]["props"] == ["broken_pane"]
+    assert {"alpha", "transmission"} <= set(man["materials"]["Broken Glass"]["features"])
+    flags = read_exr_channels(clip / "hr" / "flags" / "000001.exr")["F"].astype(np.int64)
+    pane = (flags & int(Flag.ALPHA)) > 0
+    assert 0.03 < pane.mean() < 0.5 and ((flags[pane] & int(Flag.TRANSMISSION)) > 0).all()
+
+
+@requires_bpy
+@pytest.mark.bpy
 def test_data_scaling_counts_clips_or_scenes_of_the_train_split(tiny, tmp_path):
     """benchmarks/data_scaling.py --by scene: every train clip once, grouped by the index's scene id."""
     import shutil
