@@ -121,6 +121,8 @@ def test_builtin_props_are_opt_in_per_source_and_recorded(tmp_path):
         parse_spec({"source": [{"kind": "builtin", "seeds": 0, "props": ["glass"]}]}, "x.toml")
     with pytest.raises(SpecError, match="seeds, sun and props are for kind = \"builtin\""):
         parse_spec({"source": [{"kind": "assets", "paths": ["a"], "props": ["broken_pane"]}]}, "x.toml")
+    with pytest.raises(SpecError, match="listed twice"):
+        parse_spec({"source": [{"kind": "builtin", "seeds": 0, "props": ["broken_pane", "broken_pane"]}]}, "x.toml")
 
 
 def test_hash_split_rule_is_stable_and_near_its_fractions():

@@ -322,6 +322,8 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
             kw["sun"] = _source_key(t, "sun", where, spec_path)
             kw["props"] = _source_key(t, "props", where, spec_path)
+            if len(set(kw["props"])) != len(kw["props"]):
+                raise SpecError(f"{spec_path}: {where}.props {list(kw['props'])!r}: a prop is listed twice")
         else:
             if "seeds" in t or "sun" in t or "props" in t:
                 raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")

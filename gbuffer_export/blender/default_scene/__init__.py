@@ -93,5 +93,5 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     return scene
 
 
-__all__ = ["DEFAULT_SCENE_FEATURES", "OPTIONAL_PROPS", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene", "hdri_path", "make_world",
-           "studiolight_path"]
+__all__ = ["DEFAULT_SCENE_FEATURES", "OPTIONAL_PROPS", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene", "hdri_path",
+           "make_world", "studiolight_path"]

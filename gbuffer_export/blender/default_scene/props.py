@@ -34,7 +34,7 @@ def broken_pane(scene, mats, rng) -> None:
     loc, rotation = (x, -0.22, z_glass), (0.0, 0.0, rot)
     bm = bmesh.new()
     box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
-    add_object(scene, "Broken Pane Glass", bm, _cracked_glass(rng, w, h), location=loc, rotation=rotation)
+    add_object(scene, "Broken Pane Glass", bm, _cracked_glass(rng), location=loc, rotation=rotation)
     bm = bmesh.new()
     for sz in (-1, 1):   # top and bottom bars
         box(bm, (0.0, 0.0, sz * (h + bar) / 2), (w + 2 * bar, bar, bar))
@@ -44,7 +44,7 @@ def broken_pane(scene, mats, rng) -> None:
     add_object(scene, "Broken Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
 
 
-def _cracked_glass(rng, w: float, h: float):
+def _cracked_glass(rng):
     """Glass whose alpha is 0 on cracks (Voronoi cell edges in the pane's x-z plane) and on missing shards (cells
     whose random value is above the kept fraction); the shard's normal tilted by its cell colour."""
     m = Mat("Broken Glass", jitter_color(rng, (0.75, 0.9, 1.0), 0.1), roughness=float(rng.uniform(0.02, 0.08)),
