@@ -307,8 +307,13 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
                                                 "fusesr-l (0.005 min)"]
     for f in ("pareto.png", "side_by_side.png", "bench/bench_models.md"):
         assert (tmp_path / "demo" / f).stat().st_size > 100
-    again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")  # resumes the run
-    assert again["train"]["step"] > s["train"]["step"]
+    # a finished run is scored as it is (the budget is the total over reruns); another budget starts anew
+    again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
+    assert again["train"]["step"] == s["train"]["step"]
+    assert [r["psnr"] for r in again["bench"]] == [r["psnr"] for r in s["bench"]]
+    longer = run_training_demo([a], [b], tmp_path / "demo", minutes=0.01, model="fusesr-l")
+    assert json.loads((tmp_path / "demo" / "run_fusesr_l" / "demo_run.json").read_text())["minutes"] == 0.01
+    assert longer["bench"][-1]["model"] == "fusesr-l (0.01 min)"
     # with shipped weights the demo scores them and fine-tunes one of them
     release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt",
             tmp_path / "weights" / "fusesr_l_x4.safetensors", {"model": "fusesr-l"})

@@ -5,7 +5,9 @@ side-by-side image.
 
 ``run_training_demo(train_clips, test_clips, out, minutes)`` writes under ``out``:
 
-    run_<model>/           the fine-tuning run (config, log, checkpoints; resumed when the demo runs again)
+    run_<model>/           the fine-tuning run (config, log, checkpoints) and demo_run.json (its starting weights'
+                           sha256 and budget): an interrupted run resumes for the rest of its budget, a finished
+                           one is scored again as it is, and other starting weights or another budget start anew
     bench/                 bench_models.{json,csv,md} and pareto.png
     pareto.png             copy of bench/pareto.png
     side_by_side.png       LR (nearest), bicubic, demod-jbu, the best learned model, ground truth of a middle
@@ -16,6 +18,8 @@ and returns a JSON-ready summary.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -42,7 +46,7 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
     if minutes > 0:
         init = f"pretrained:{model}" if f"pretrained:{model}" in pretrained else ""
         run_dir = out / (f"run_{model.replace('-', '_')}" + ("_finetuned" if init else ""))
-        resume = (run_dir / "checkpoints" / "last.pt").is_file()
+        resume, left = _prepare_run(run_dir, init, minutes)
         if init:  # the pretrained configuration, fine-tuned
             cfg = config_from_checkpoint(load_checkpoint(init)["config"], source=init)
             over = load_config(None, [*FINETUNE_OVERRIDES, "run.max_steps=1000000"])
@@ -51,7 +55,9 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
         else:
             cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", "run.max_steps=1000000"])
         cfg.data.clips = [str(c) for c in train_clips]  # a crop larger than the clips shrinks (training.run)
-        summary = train(cfg, run_dir, resume=resume, run_overrides={"minutes": float(minutes)})
+        if left > 0 or not (run_dir / "summary.json").is_file():
+            train(cfg, run_dir, resume=resume, run_overrides={"minutes": max(left, 1e-3)})
+        summary = json.loads((run_dir / "summary.json").read_text())
         label = f"{model} ({'fine-tuned ' if init else ''}{minutes:g} min)"
         models.append((label, str(run_dir / "checkpoints" / "last.pt")))
     bench = benchmark(models, [str(c) for c in test_clips], out / "bench", flip=False)
@@ -65,6 +71,28 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
         result["train"] = {k: summary[k] for k in ("model", "step", "stopped_by", "elapsed_s", "params", "device")
                            if k in summary}
     return result
+
+
+def _prepare_run(run_dir: Path, init: str, minutes: float) -> tuple[bool, float]:
+    """(resume, minutes left) for the demo's run in ``run_dir``: the whole budget on the same starting weights
+    (``init``'s sha256, or none) in total over however many invocations. A run with other weights or another
+    budget is removed; a finished one gets 0 minutes (scored as it is)."""
+    from training.pretrained import resolve
+    want = {"init": init, "init_sha256": hashlib.sha256(Path(resolve(init)).read_bytes()).hexdigest() if init
+            else None, "minutes": float(minutes)}
+    mark, last = run_dir / "demo_run.json", run_dir / "checkpoints" / "last.pt"
+    try:
+        same = json.loads(mark.read_text()) == want
+    except (OSError, ValueError):
+        same = False
+    if not same or not last.is_file():
+        shutil.rmtree(run_dir, ignore_errors=True)
+        run_dir.mkdir(parents=True)
+        mark.write_text(json.dumps(want))
+        return False, float(minutes)
+    from training.checkpoint import load_checkpoint
+    done_s = float(load_checkpoint(last).get("elapsed_s", 0.0))
+    return True, max(float(minutes) - done_s / 60.0, 0.0)
 
 
 def side_by_side(checkpoint: str, clip: str, path: Path, label: str | None = None) -> Path:
