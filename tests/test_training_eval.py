@@ -296,7 +296,7 @@ def test_models_table_is_listed(capsys):
 
 def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch):
     from training import pretrained
-    from training.demo import run_training_demo
+    from training.demo import _prepare_run, run_training_demo
     from training.release import release
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
@@ -311,6 +311,10 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
     again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
     assert again["train"]["step"] == s["train"]["step"]
     assert [r["psnr"] for r in again["bench"]] == [r["psnr"] for r in s["bench"]]
+    (tmp_path / "demo" / "run_fusesr_l" / "summary.json").unlink()  # as if stopped after its last checkpoint
+    assert _prepare_run(tmp_path / "demo" / "run_fusesr_l", "", 0.005) == (True, 0.0)  # its budget was spent
+    resumed = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
+    assert resumed["train"]["step"] > s["train"]["step"]  # resumed from its checkpoint, not started again
     longer = run_training_demo([a], [b], tmp_path / "demo", minutes=0.01, model="fusesr-l")
     assert json.loads((tmp_path / "demo" / "run_fusesr_l" / "demo_run.json").read_text())["minutes"] == 0.01
     assert longer["bench"][-1]["model"] == "fusesr-l (0.01 min)"
