@@ -121,7 +121,7 @@ def test_builtin_props_are_opt_in_per_source_and_recorded(tmp_path):
         parse_spec({"source": [{"kind": "builtin", "seeds": 0, "props": ["glass"]}]}, "x.toml")
     with pytest.raises(SpecError, match="seeds, sun and props are for kind = \"builtin\""):
         parse_spec({"source": [{"kind": "assets", "paths": ["a"], "props": ["broken_pane"]}]}, "x.toml")
-    with pytest.raises(SpecError, match="listed twice"):
+    with pytest.raises(SpecError, match=r"source\[0\]\.props .*an item is repeated"):
         parse_spec({"source": [{"kind": "builtin", "seeds": 0, "props": ["broken_pane", "broken_pane"]}]}, "x.toml")
 
 

@@ -18,7 +18,6 @@ and returns a JSON-ready summary.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -77,9 +76,9 @@ def _prepare_run(run_dir: Path, init: str, minutes: float) -> tuple[bool, float]
     """(resume, minutes left) for the demo's run in ``run_dir``: the whole budget on the same starting weights
     (``init``'s sha256, or none) in total over however many invocations. A run with other weights or another
     budget is removed; a finished one gets 0 minutes (scored as it is)."""
+    from training.checkpoint import file_sha256, load_checkpoint
     from training.pretrained import resolve
-    want = {"init": init, "init_sha256": hashlib.sha256(Path(resolve(init)).read_bytes()).hexdigest() if init
-            else None, "minutes": float(minutes)}
+    want = {"init": init, "init_sha256": file_sha256(resolve(init)) if init else None, "minutes": float(minutes)}
     mark, last = run_dir / "demo_run.json", run_dir / "checkpoints" / "last.pt"
     try:
         same = json.loads(mark.read_text()) == want
@@ -90,7 +89,6 @@ def _prepare_run(run_dir: Path, init: str, minutes: float) -> tuple[bool, float]
         run_dir.mkdir(parents=True)
         mark.write_text(json.dumps(want))
         return False, float(minutes)
-    from training.checkpoint import load_checkpoint
     done_s = float(load_checkpoint(last).get("elapsed_s", 0.0))
     return True, max(float(minutes) - done_s / 60.0, 0.0)
 

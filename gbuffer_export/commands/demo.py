@@ -33,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="LR samples per pixel (point-sampled: many samples give a clean, aliased LR frame like a "
                         "rasteriser's, for about 1/16 of the HR cost per sample at 4x)")
     p.add_argument("--train-minutes", type=float, default=2.0,
-                   help="fine-tuning (or, without shipped weights, training) budget in minutes (0: only evaluate)")
+                   help="fine-tuning (or, without shipped weights, training) budget in minutes, in total over reruns "
+                        "into the same folder on the same shipped weights (0: only evaluate)")
     p.add_argument("--test-seed", type=int, default=90,
                    help="built-in scene seed of the demo's scene (the shipped weights saw seeds 0-41, "
                         "dataset_large.toml adds 42-71)")

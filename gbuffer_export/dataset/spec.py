@@ -117,7 +117,7 @@ class Source:
     target_size_m: float = option(1.5, lo=0, lo_open=True, unit="m")  # assets: largest side after normalisation
     licence: dict = field(default_factory=dict)   # assets: stem -> {"licence": ..., "attribution": ...}
     sun: bool = True                              # builtin: keep the sun lamp
-    props: tuple[str, ...] = option((), items=BUILTIN_PROPS)  # builtin: opt-in props added to every clip
+    props: tuple[str, ...] = option((), items=BUILTIN_PROPS, unique=True)  # builtin: opt-in props added to every clip
     clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
     light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
@@ -322,8 +322,6 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
             kw["sun"] = _source_key(t, "sun", where, spec_path)
             kw["props"] = _source_key(t, "props", where, spec_path)
-            if len(set(kw["props"])) != len(kw["props"]):
-                raise SpecError(f"{spec_path}: {where}.props {list(kw['props'])!r}: a prop is listed twice")
         else:
             if "seeds" in t or "sun" in t or "props" in t:
                 raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")
