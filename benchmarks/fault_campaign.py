@@ -45,7 +45,7 @@ Parts (each prints its counts; the totals come last):
    ground truth refused by ``evaluate`` naming the file; NaN/Inf in an LR input: ``evaluate`` warns and writes
    finite JSON, ``upscale`` warns and writes finite EXRs.
 
-``--quick`` runs the subset ``tests/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
+``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
 """
 from __future__ import annotations

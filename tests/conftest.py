@@ -46,6 +46,13 @@ def shared_or_skip(rel: str) -> Path:
     return p
 
 
+def builtin_spec(path: Path, seeds: str = "0:11") -> Path:
+    """A dataset spec of built-in scenes only (no ../shared), for tests that plan or dry-run a dataset."""
+    path.write_text('[dataset]\nname = "builtin-only"\n[render]\nframes = 4\nhr_size = "64x36"\n'
+                    f'[[source]]\nname = "b"\nkind = "builtin"\nseeds = "{seeds}"\n')
+    return path
+
+
 requires_bpy = pytest.mark.skipif(not HAVE_BPY, reason="bpy is not installed (pip install 'blendsr[render]')")
 
 
@@ -98,3 +105,12 @@ def edit_record(clip: Path, frame: int, fn) -> None:
     rec = json.loads(rp.read_text())
     fn(rec)
     write_json_atomic(rp, rec)
+
+
+def mark_folder(items, folder: Path, *marks) -> None:
+    """Add ``marks`` to every collected test that lives under ``folder`` (each test folder's conftest.py calls this
+    from ``pytest_collection_modifyitems``, which pytest calls with every item of the session)."""
+    for item in items:
+        if folder in Path(item.path).parents:
+            for mark in marks:
+                item.add_marker(mark)

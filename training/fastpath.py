@@ -12,7 +12,7 @@
   fixed input size), which also fuses the element-wise chains and gathers of the non-learned parts.
 
 ``forward(model, batch)`` runs it with those settings; ``inference.run_model`` calls it. The reference path (fp32,
-eager, NCHW, reference ops) is a model fresh from ``build_model``; tests/test_training_fastpath.py compares every
+eager, NCHW, reference ops) is a model fresh from ``build_model``; tests/train/test_fastpath.py compares every
 setting with it on the CPU.
 """
 from __future__ import annotations

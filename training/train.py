@@ -15,7 +15,7 @@ A checkpoint holds the model (and its moving average with optim.ema_decay), opti
 RNG states (torch, numpy, python), the sampler state (seed; batch k is a pure function of seed, rank and k), the
 user's configuration, the ResolvedRun (``training.run``), the effective configuration, and the manifest hashes of
 the training clips. ``resume`` continues from ``last.pt``: on CPU the
-weights after N straight steps and after N/2 + resume + N/2 are bit-identical (tests/test_training_train.py).
+weights after N straight steps and after N/2 + resume + N/2 are bit-identical (tests/train/test_train.py).
 Distributed data parallel runs under torchrun (gloo on CPU, NCCL on GPU); only rank 0 writes.
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 --for-models`` render only these (plus what evaluation needs).
 
 The core may not import the torch layer, so the table is derived from every model's ``needs()`` by
-``python -m training.models.buffer_table`` into ``model_buffers.json`` beside this file; ``tests/test_dataset.py``
+``python -m training.models.buffer_table`` into ``model_buffers.json`` beside this file; ``tests/dataset/test_dataset.py``
 fails when the file differs from the models, so a model that starts reading a new buffer fails the suite until the
 table is regenerated. Buffers apply to both levels of a clip (a buffer read at HR only is also
 written at LR). Derived keys map to their sources: ``irradiance`` and ``fbeta_used`` are computed from radiance,

@@ -3,7 +3,7 @@ from every model's ``SCALES`` and shipped weights (torch layer).
 
 ``blendsr dataset/render --for-models`` must work without torch, so the core reads the table from
 ``gbuffer_export/dataset/model_buffers.json``; this module writes that file from the models themselves (each with
-its default configuration and, when shipped, its ``pretrained:NAME`` weights' configuration), and ``tests/test_dataset.py`` fails when the file is stale. After adding a model or
+its default configuration and, when shipped, its ``pretrained:NAME`` weights' configuration), and ``tests/dataset/test_dataset.py`` fails when the file is stale. After adding a model or
 changing what one reads: ``python -m training.models.buffer_table``.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Fast versions of the non-learned parts of the models (torch): the inference fast path (``SRModel.fast_ops``).
 
 Each function computes what its reference in ``base.py`` / ``guided.py`` computes, with fewer and cheaper kernels;
-tests/test_training_fastpath.py compares every one with its reference. What changes:
+tests/train/test_fastpath.py compares every one with its reference. What changes:
 
 - ``shift_filter``: the separable pixel filter of the remodulation as shifted slices multiplied by constant taps
   (element-wise, channels-last friendly), instead of two single-channel convolutions over a (B C, 1, H, W) reshape

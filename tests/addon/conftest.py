@@ -1,0 +1,10 @@
+"""tests/addon: the Blender add-on. Every test here is marked `addon`."""
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import mark_folder
+
+
+def pytest_collection_modifyitems(items):
+    mark_folder(items, Path(__file__).parent, pytest.mark.addon)

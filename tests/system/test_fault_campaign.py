@@ -1,0 +1,84 @@
+"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign, numbers: docs/results.md)."""
+import importlib.util
+import random
+import sys
+
+import pytest
+from tests.conftest import REPO, requires_bpy
+
+spec = importlib.util.spec_from_file_location("fault_campaign", REPO / "benchmarks" / "fault_campaign.py")
+fc = importlib.util.module_from_spec(spec)
+sys.modules["fault_campaign"] = fc  # dataclasses look their module up
+spec.loader.exec_module(fc)
+
+
+@pytest.fixture(scope="module")
+def fixtures(tmp_path_factory):
+    pytest.importorskip("torch")
+    return fc.Fixtures(tmp_path_factory.mktemp("faults"))
+
+
+def _clean(tally):
+    assert tally.failures == [] and tally.bad() == 0, tally.failures
+
+
+@pytest.mark.torch
+def test_bad_and_random_inputs_give_one_line_and_no_traceback(fixtures):
+    pytest.importorskip("hypothesis")
+    tally = fc.Tally()
+    fc.bad_inputs(fixtures, tally, quick=True, log=lambda m: None)
+    assert tally.inputs_tried == sum(c.quick for c in fc.BAD_INPUTS) >= 10
+    fc.random_inputs(fixtures, tally, examples=6, log=lambda m: None)
+    assert tally.inputs_tried >= 10 + 3 * 6
+    _clean(tally)
+    assert len(fc.BAD_INPUTS) >= 50
+
+
+@pytest.mark.torch
+def test_training_killed_and_resumed_gives_bit_identical_weights(fixtures):
+    tally = fc.Tally()
+    fc.train_kills(fixtures, tally, kills=1, rng=random.Random(1), steps=6, log=lambda m: None)
+    assert tally.faults == 1 and tally.results_compared == 1
+    _clean(tally)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_render_killed_and_resumed_validates_with_every_frame(tmp_path):
+    tally = fc.Tally()
+    fc.render_kills(tmp_path, tally, kills=1, rng=random.Random(2), frames=2, log=lambda m: None)
+    assert tally.faults == 1 and tally.results_compared == 1
+    _clean(tally)
+
+
+def test_issue26_families_concurrent_writers_traversal_and_full_filesystem(fixtures, capsys):
+    """Fast forms of parts 5, 6 and 8: in-process writers, index paths and links, a full cache filesystem."""
+    tally = fc.Tally()
+    fc.concurrent_writers(fixtures, tally, races=0, log=lambda m: None)
+    fc.traversal_inputs(fixtures, tally, quick=True, log=lambda m: None)
+    fc.full_filesystem(fixtures, tally, log=lambda m: None)
+    with capsys.disabled():
+        print(f"\ncampaign (concurrent writers, traversal and symlinks, full filesystem): {tally.inputs_tried} "
+              f"cases, {tally.tracebacks} tracebacks, {tally.wrong_exit} wrong exits, {tally.escapes} escapes")
+    assert tally.inputs_tried >= 6 + 12 + 5 + 1
+    _clean(tally)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_issue26_family_signals_during_render(tmp_path):
+    """Fast form of part 7: one SIGINT during a render, then the rerun finishes a valid clip."""
+    tally = fc.Tally()
+    fc.signal_render(tmp_path, tally, signals=1, rng=random.Random(3), frames=3, log=lambda m: None)
+    assert tally.faults == 1
+
+
+@pytest.mark.torch
+def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures):
+    """Issue 26: the families 'huge specs' and 'non-finite values through evaluate and upscale' (quick subset)."""
+    tally = fc.Tally()
+    lines = []
+    fc.huge_and_nonfinite(fixtures, tally, quick=True, log=lines.append)
+    assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
+    print("\n".join(lines))
+    _clean(tally)

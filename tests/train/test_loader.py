@@ -1,0 +1,53 @@
+"""The loader benchmark runs and reports consistent numbers; training.bench_loader/commands import no torch."""
+import argparse
+import json
+import subprocess
+import sys
+
+import pytest
+
+from gbuffer_export.synthetic import make_synthetic_clip
+
+
+
+def test_bench_loader_reports_load_and_step_times(tmp_path):
+    pytest.importorskip("torch")
+    from training import bench_loader
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
+    p = argparse.ArgumentParser()
+    bench_loader.add_arguments(p)
+    out = tmp_path / "bl.json"
+    args = p.parse_args(["--data", str(clip), "--model", "fusesr-l", "--batch", "2", "--crop", "8",
+                         "--batches", "3", "--steps", "1", "--threads", "1", "--json", str(out)])
+    assert bench_loader.run(args) == 0
+    res = json.loads(out.read_text())
+    assert res["batch"] == 2 and res["crop_lr"] == 8 and res["load_ms_median"] > 0 and res["step_ms_median"] > 0
+    assert res["ratio"] == pytest.approx(res["load_ms_median"] / res["step_ms_median"])
+
+
+def test_command_modules_do_not_import_torch():
+    code = ("import sys, argparse\n"
+            "import training.commands, training.bench_loader, training.bench_models, training.config\n"
+            "import training.models, training.cache, training.data, training.augment\n"
+            "p = argparse.ArgumentParser(); s = p.add_subparsers(); training.commands.register(s)\n"
+            "training.bench_loader.add_arguments(argparse.ArgumentParser())\n"
+            "training.bench_models.add_arguments(argparse.ArgumentParser())\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def test_bench_loader_with_workers_reports_samples_per_second(tmp_path):
+    pytest.importorskip("torch")
+    from training import bench_loader
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    p = argparse.ArgumentParser()
+    bench_loader.add_arguments(p)
+    out = tmp_path / "bl.json"
+    args = p.parse_args(["--data", str(clip), "--model", "fusesr-fast", "--batch", "2", "--crop", "8",
+                         "--batches", "4", "--steps", "1", "--threads", "1", "--workers", "2", "--json", str(out)])
+    assert bench_loader.run(args) == 0
+    res = json.loads(out.read_text())
+    assert res["workers"] == 2 and res["device"] == "cpu" and res["loader_samples_per_s"] > 0
+    assert res["step_samples_per_s"] == pytest.approx(2 / (res["step_ms_median"] / 1000))
+    assert res["loader_over_step"] == pytest.approx(res["loader_samples_per_s"] / res["step_samples_per_s"])

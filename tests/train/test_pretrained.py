@@ -1,0 +1,198 @@
+"""Shipped weights: the float16 safetensors release of a checkpoint, refusal of tampered or unfitting files,
+``pretrained:NAME`` everywhere a checkpoint goes, fine-tuning from weights (``run.init_from``), and the installed
+weights against their own metadata (size, sha256, parameter digest)."""
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from gbuffer_export.cli import main  # noqa: E402
+from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
+from training import pretrained  # noqa: E402
+from training.config import load_config  # noqa: E402
+from training.inference import ClipFrames, load_model, upscale_frame  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.trainer import param_digest  # noqa: E402
+from training.train import train  # noqa: E402
+
+SMALL = ["data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
+         "run.amp=\"none\"", "run.threads=0"]
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
+
+
+@pytest.fixture(scope="module")
+def run(clip, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "r"
+    cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=3"])
+    cfg.data.clips = [str(clip)]
+    train(cfg, out)
+    return out
+
+
+def test_release_is_float16_safetensors_small_and_matches_the_checkpoint(run, clip, tmp_path, monkeypatch):
+    ck = run / "checkpoints" / "last.pt"
+    from safetensors import safe_open
+
+    from training.checkpoint import file_sha256
+    from training.release import release
+    meta = release(ck, tmp_path / "w.safetensors", {"model": "fusesr-l", "note": "test"})
+    with safe_open(str(tmp_path / "w.safetensors"), framework="pt") as f:  # tensors and a JSON header, no pickle
+        header = json.loads(f.metadata()["blendsr"])
+        assert all(f.get_tensor(k).dtype == torch.float16 for k in f.keys())
+    assert header["format"] == "blendsr.weights" and header["model_name"] == "fusesr-l" and header["scale"] == 4
+    assert "optimizer" not in header and header["step"] == 3
+    assert meta["bytes"] == (tmp_path / "w.safetensors").stat().st_size < pretrained.MAX_BYTES
+    on_disk = json.loads((tmp_path / "w.json").read_text())
+    assert on_disk["note"] == "test" and on_disk["sha256"] == file_sha256(tmp_path / "w.safetensors") == meta["sha256"]
+    src = ClipFrames(str(clip))
+    a = upscale_frame(load_model(str(ck), 4), src, 2)["sr"]
+    b = upscale_frame(load_model(str(tmp_path / "w.safetensors"), 4), src, 2)["sr"]
+    assert np.abs(a - b).max() <= 2e-3 * max(1.0, float(np.abs(a).max()))  # fp16 weights
+    assert param_digest(load_model(str(tmp_path / "w.safetensors"), 4)) == meta["param_digest"]
+    # releasing the released file again changes no bit (how the shipped .pt files were converted)
+    again = release(tmp_path / "w.safetensors", tmp_path / "again" / "w.safetensors", {"model": "fusesr-l"})
+    assert again["param_digest"] == meta["param_digest"] and again["sha256"] == meta["sha256"]
+    with pytest.raises(ValueError, match=r"w\.pt: shipped weights are written as \.safetensors"):
+        release(ck, tmp_path / "w.pt", {})
+    # pretrained:NAME resolves to the package's weights folder
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setitem(pretrained.PRETRAINED, "fusesr-l", "w.safetensors")
+    assert pretrained.resolve("pretrained:fusesr-l") == str(tmp_path / "w.safetensors")
+    assert load_checkpoint("pretrained:fusesr-l")["scale"] == 4
+    with pytest.raises(FileNotFoundError, match="no such pretrained model; shipped: pretrained:fusesr"):
+        pretrained.resolve("pretrained:nope")
+    assert main(["evaluate", "--checkpoint", "pretrained:nope", "--data", str(clip), "--json",
+                 str(tmp_path / "e.json")]) == 2
+
+
+def _one_line_refusal(capsys, path, *args) -> str:
+    assert main(["evaluate", "--checkpoint", str(path), "--data", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "Traceback" not in err[0], err
+    return err[0]
+
+
+def test_tampered_or_unfitting_weights_are_refused_in_one_line(run, clip, tmp_path, capsys):
+    """The sha256 recorded in the JSON is checked on every load; a file whose tensors do not fit the model (missing
+    or unexpected names) is refused naming the file; so is one without its JSON."""
+    from safetensors.torch import save_file
+
+    from training.checkpoint import CheckpointError, file_sha256, load_weights_file
+    from training.release import release
+    w = tmp_path / "w.safetensors"
+    release(run / "checkpoints" / "last.pt", w, {"model": "fusesr-l"})
+    good = w.read_bytes()
+    args = (str(clip), "--json", str(tmp_path / "e.json"))
+    bad = bytearray(good)
+    bad[-1] ^= 1  # one bit of one weight
+    w.write_bytes(bytes(bad))
+    assert "differs from the recorded" in _one_line_refusal(capsys, w, *args)
+    w.write_bytes(good[: len(good) // 2])
+    assert "differs from the recorded" in _one_line_refusal(capsys, w, *args)
+    # a consistent file and JSON whose tensors do not fit: one missing, one unexpected
+    w.write_bytes(good)
+    (tmp_path / "w.json").rename(tmp_path / "x.json")
+    assert "no w.json beside it" in _one_line_refusal(capsys, w, *args)
+    (tmp_path / "x.json").rename(tmp_path / "w.json")
+    with pytest.raises(CheckpointError, match="differs from the recorded"):
+        load_weights_file(w, sha256="0" * 64)
+    ck = load_weights_file(w)
+    header = {k: ck[k] for k in ("model_name", "config", "scale", "step")}
+    for name, tensors in (("missing", dict(list(ck["model"].items())[1:])),
+                          ("unexpected", {**ck["model"], "extra.weight": torch.zeros(1)})):
+        f = tmp_path / f"{name}.safetensors"
+        save_file(tensors, f, metadata={"blendsr": json.dumps({"format": "blendsr.weights", **header})})
+        (tmp_path / f"{name}.json").write_text(json.dumps({"sha256": file_sha256(f)}))
+        line = _one_line_refusal(capsys, f, *args)
+        assert f"do not fit model fusesr-l: {name}" in line, line
+    # not BlendSR's header
+    f = tmp_path / "plain.safetensors"
+    save_file(ck["model"], f)
+    (tmp_path / "plain.json").write_text(json.dumps({"sha256": file_sha256(f)}))
+    assert "not BlendSR weights" in _one_line_refusal(capsys, f, *args)
+
+
+def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
+    cfg = load_config(None, SMALL + ['model.name="fusesr-l"', "run.max_steps=1", "optim.lr=1e-12",
+                                     f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
+    cfg.data.clips = [str(clip)]
+    train(cfg, tmp_path / "ft")
+    a = load_model(str(run / "checkpoints" / "last.pt"), 4)
+    b = load_model(str(tmp_path / "ft" / "checkpoints" / "last.pt"), 4)
+    for (k, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.allclose(x, y, atol=1e-6), k
+    bad = load_config(None, SMALL + ['model.name="fusesr"', "run.max_steps=1",
+                                     f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
+    bad.data.clips = [str(clip)]
+    with pytest.raises(ValueError, match="do not fit model fusesr"):
+        train(bad, tmp_path / "bad")
+
+
+@pytest.mark.parametrize("name", list(pretrained.PRETRAINED))
+def test_installed_weights_match_their_metadata(name):
+    path = pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]
+    if not path.is_file():
+        pytest.skip(f"{path} not shipped")
+    meta = pretrained.info(name)
+    from training.checkpoint import file_sha256
+    assert path.suffix == ".safetensors" and not list(pretrained.WEIGHTS_DIR.glob("*.pt")), "no pickles shipped"
+    assert path.stat().st_size == meta["bytes"] <= pretrained.MAX_BYTES
+    assert file_sha256(path) == meta["sha256"]
+    model = load_model(f"pretrained:{name}", 4)
+    assert param_digest(model) == meta["param_digest"]
+    assert meta["commands"] and meta["dataset"]["test_clips"]
+    scores = meta["scores_on_test_split"]
+    assert scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(meta["gain_over_demod_jbu_db"],
+                                                                                abs=1e-3)
+    assert scores[name]["psnr"] >= scores["bicubic"]["psnr"] + 1.0  # issue 28's acceptance, on the test split
+    ds = meta["dataset"]
+    splits = [set(ds["train_clips"]), set(ds.get("val_clips", [])), set(ds["test_clips"])]
+    assert all(not (a & b) for i, a in enumerate(splits) for b in splits[i + 1:]), "a clip in two splits"
+    if ds.get("val_clips"):
+        val = meta["scores_on_val_split"]
+        assert set(val[name]["per_clip"]) == set(ds["val_clips"]) == set(val["demod-jbu"]["per_clip"])
+
+
+@pytest.mark.parametrize("name", list(pretrained.PRETRAINED))
+def test_every_consumer_takes_each_shipped_network(name, tmp_path):
+    """``pretrained:NAME`` in evaluate, upscale, export --onnx (onnxruntime matches torch) and bench models, on a tiny
+    jittered synthetic clip with every buffer (recurrent networks carry their state through its frames)."""
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).is_file():
+        pytest.skip(f"{name} not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4, jitter=True)
+    spec = f"pretrained:{name}"
+    assert main(["evaluate", "--checkpoint", spec, "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 0
+    assert np.isfinite(json.loads((tmp_path / "e.json").read_text())["mean"]["psnr"])
+    assert main(["upscale", "--checkpoint", spec, "--clip", str(clip), "-o", str(tmp_path / "up"),
+                 "--no-progress"]) == 0
+    assert len(list((tmp_path / "up").glob("*.exr"))) == 3
+    assert main(["export", "--checkpoint", spec, "--onnx", str(tmp_path / "m.onnx"), "--clip", str(clip)]) == 0
+    assert json.loads((tmp_path / "m.onnx.json").read_text())["match"]
+    assert main(["bench", "models", "--data", str(clip), "--models", spec, "--threads", "1", "--no-progress",
+                 "-o", str(tmp_path / "bench")]) == 0
+    rows = json.loads((tmp_path / "bench" / "bench_models.json").read_text())
+    assert name in json.dumps(rows)
+
+
+def test_bench_models_scores_an_any_scale_network_at_the_clips_lr_level_only(tmp_path):
+    """A clip with LR levels at 4 ('lr') and 2: every row of the table is at 4, fourier-sr's too (not averaged
+    with its scores at 2, which evaluate reports per scale)."""
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED["fourier-sr"]).is_file():
+        pytest.skip("fourier-sr not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 32), scale=4, scales=(4, 2))
+    assert main(["bench", "models", "--data", str(clip), "--models", "pretrained:fourier-sr,bicubic", "--threads",
+                 "1", "--no-progress", "--warmup", "0", "-o", str(tmp_path / "bench")]) == 0
+    out = json.loads((tmp_path / "bench" / "bench_models.json").read_text())
+    assert main(["evaluate", "--checkpoint", "pretrained:fourier-sr", "--data", str(clip), "--json",
+                 str(tmp_path / "e.json"), "--no-flip", "--no-progress"]) == 0
+    per_scale = json.loads((tmp_path / "e.json").read_text())["per_scale"]
+    row = next(r for r in out["rows"] if r["model"] == "pretrained:fourier-sr")
+    assert set(per_scale) == {"2", "4"} and per_scale["2"]["psnr"] != per_scale["4"]["psnr"]
+    assert row["psnr"] == pytest.approx(per_scale["4"]["psnr"], abs=1e-3)
