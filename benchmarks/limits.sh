@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# What limits the learned margin over demod-jbu, measured (docs/results.md, "What limits the learned margin"):
+# What limits the learned margin over demod-jbu, measured (docs/results-history.md, "What limits the learned margin"):
 #   benchmarks/limits.sh [OUT=runs/limits] [DATASET=datasets/large]
 # 1. resolution and ground-truth samples: the five test assets rendered three ways (benchmarks/limits/*.toml:
 #    256x144 32 spp, 512x288 32 spp, 256x144 128 spp; same cameras), the shipped models scored on each;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# PSNR against scale (docs/results.md, "PSNR against scale"): fourier-sr trained on a mix of scales {2, 3, 4} and
+# PSNR against scale (docs/results-history.md, "PSNR against scale"): fourier-sr trained on a mix of scales {2, 3, 4} and
 # scored at 2, 2.5, 3, 4 and the unseen 6, against bicubic, demod-jbu and fusesr-l trained per integer scale.
 #   1. renders 4 training clips (built-in seeds 10-13, LR levels 2, 3, 4) and 2 test clips (seeds 20, 21, LR levels
 #      2, 2.5, 3, 4, 6) at 240x120 (every scale divides it), 12 frames;

@@ -1,4 +1,4 @@
-"""Does demodulation work on sheen pixels? Measurements of docs/results.md, "Sheen: why FuseSR lost on velvet".
+"""Does demodulation work on sheen pixels? Measurements of docs/results-history.md, "Sheen: why FuseSR lost on velvet".
 
     .venv/bin/python benchmarks/sheen_diagnosis.py DATASET [--images EVAL_DIR] [--frames N]
 
