@@ -3,10 +3,10 @@ and the baselines on the demo's held-out clip, optionally fine-tune one of them 
 weights are installed) on the demo's training clip, and write the speed-against-error table, the Pareto plot and a
 side-by-side image.
 
-``run_training_demo(train_clips, test_clips, out, minutes)`` writes under ``out``:
+``run_training_demo(train_clips, test_clips, out, steps)`` writes under ``out``:
 
     run_<model>/           the fine-tuning run (config, log, checkpoints) and demo_run.json (its starting weights'
-                           sha256 and budget): an interrupted run resumes for the rest of its budget, a finished
+                           sha256 and its step budget): an interrupted run resumes up to its budget, a finished
                            one is scored again as it is, and other starting weights or another budget start anew
     bench/                 bench_models.{json,csv,md} and pareto.png
     pareto.png             copy of bench/pareto.png
@@ -22,7 +22,8 @@ import json
 import shutil
 from pathlib import Path
 
-#: Configuration of the brief demo run: small crops, constant learning rate (the time budget sets the length).
+#: Configuration of the brief demo run: small crops, constant learning rate (the step budget sets the length: the
+#: same number of steps on every machine, so the gain it reports does not depend on the machine's speed).
 DEMO_OVERRIDES = ("data.crop=32", "data.batch_size=4", "optim.lr=5e-4", "optim.scheduler=\"constant\"",
                   "run.checkpoint_every=200", "run.log_every=5")
 #: Fine-tuning a pretrained model: a smaller learning rate, the pretrained configuration otherwise.
@@ -30,7 +31,7 @@ FINETUNE_OVERRIDES = ("data.crop=32", "data.batch_size=4", "optim.lr=1e-4", "opt
                       "optim.warmup_steps=0", "run.checkpoint_every=200", "run.log_every=5", "data.val_frames=0")
 
 
-def run_training_demo(train_clips, test_clips, out, minutes: float, model: str = "fusesr-l") -> dict:
+def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l") -> dict:
     from training.bench_models import benchmark
     from training.config import config_from_checkpoint, load_config
     from training.pretrained import available
@@ -42,22 +43,22 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
     models = [("bilinear", "bilinear"), ("bicubic", "bicubic"), ("demod-bilinear", "demod-bilinear"),
               ("demod-jbu", "demod-jbu"), *[(p, p) for p in pretrained]]
     summary = None
-    if minutes > 0:
+    if steps > 0:
         init = f"pretrained:{model}" if f"pretrained:{model}" in pretrained else ""
         run_dir = out / (f"run_{model.replace('-', '_')}" + ("_finetuned" if init else ""))
-        resume, left = _prepare_run(run_dir, init, minutes)
+        resume = _prepare_run(run_dir, init, steps)
         if init:  # the pretrained configuration, fine-tuned
             cfg = config_from_checkpoint(load_checkpoint(init)["config"], source=init)
-            over = load_config(None, [*FINETUNE_OVERRIDES, "run.max_steps=1000000"])
+            over = load_config(None, [*FINETUNE_OVERRIDES, f"run.max_steps={int(steps)}"])
             cfg.data, cfg.optim, cfg.run = over.data, over.optim, over.run
             cfg.run.init_from = init
         else:
-            cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", "run.max_steps=1000000"])
+            cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", f"run.max_steps={int(steps)}"])
         cfg.data.clips = [str(c) for c in train_clips]  # a crop larger than the clips shrinks (training.run)
-        if left > 0 or not (run_dir / "summary.json").is_file():
-            train(cfg, run_dir, resume=resume, run_overrides={"minutes": max(left, 1e-3)})
+        if not (run_dir / "summary.json").is_file():
+            train(cfg, run_dir, resume=resume)
         summary = json.loads((run_dir / "summary.json").read_text())
-        label = f"{model} ({'fine-tuned ' if init else ''}{minutes:g} min)"
+        label = f"{model} ({'fine-tuned ' if init else ''}{int(steps)} steps)"
         models.append((label, str(run_dir / "checkpoints" / "last.pt")))
     bench = benchmark(models, [str(c) for c in test_clips], out / "bench", flip=False)
     shutil.copyfile(out / "bench" / "pareto.png", out / "pareto.png")
@@ -72,13 +73,14 @@ def run_training_demo(train_clips, test_clips, out, minutes: float, model: str =
     return result
 
 
-def _prepare_run(run_dir: Path, init: str, minutes: float) -> tuple[bool, float]:
-    """(resume, minutes left) for the demo's run in ``run_dir``: the whole budget on the same starting weights
-    (``init``'s sha256, or none) in total over however many invocations. A run with other weights or another
-    budget is removed; a finished one gets 0 minutes (scored as it is)."""
-    from training.checkpoint import file_sha256, load_checkpoint
+def _prepare_run(run_dir: Path, init: str, steps: int) -> bool:
+    """Whether the demo's run in ``run_dir`` resumes: ``steps`` on the same starting weights (``init``'s sha256, or
+    none) in total over however many invocations. A run with other weights or another budget is removed (False);
+    one with a checkpoint of the same weights and budget resumes up to the budget (True; a finished one, with its
+    summary.json, is scored as it is)."""
+    from training.checkpoint import file_sha256
     from training.pretrained import resolve
-    want = {"init": init, "init_sha256": file_sha256(resolve(init)) if init else None, "minutes": float(minutes)}
+    want = {"init": init, "init_sha256": file_sha256(resolve(init)) if init else None, "steps": int(steps)}
     mark, last = run_dir / "demo_run.json", run_dir / "checkpoints" / "last.pt"
     try:
         same = json.loads(mark.read_text()) == want
@@ -88,9 +90,8 @@ def _prepare_run(run_dir: Path, init: str, minutes: float) -> tuple[bool, float]
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir(parents=True)
         mark.write_text(json.dumps(want))
-        return False, float(minutes)
-    done_s = float(load_checkpoint(last).get("elapsed_s", 0.0))
-    return True, max(float(minutes) - done_s / 60.0, 0.0)
+        return False
+    return True
 
 
 def side_by_side(checkpoint: str, clip: str, path: Path, label: str | None = None) -> Path:

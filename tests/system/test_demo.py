@@ -19,7 +19,7 @@ def test_demo_scores_every_shipped_network_on_its_own_clips(tmp_path):
     from training.pretrained import available
     r = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", "demo", "-o", str(tmp_path / "d"),
                         "--hr-size", "64x36", "--frames", "1:2", "--hr-spp", "2", "--lr-spp", "2",
-                        "--no-hr-denoise", "--train-minutes", "0"],
+                        "--no-hr-denoise", "--train-steps", "0"],
                        capture_output=True, text=True, cwd=ROOT, timeout=900,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 0, r.stderr[-3000:]

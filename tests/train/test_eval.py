@@ -300,29 +300,32 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")  # no shipped weights: train from scratch
-    s = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
-    assert s["train"]["step"] >= 1 and s["train"]["stopped_by"] == "minutes"
+    s = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    assert s["train"]["step"] == 3 and s["train"]["stopped_by"] == "max_steps" and s["train"]["elapsed_s"] > 0
     assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
-                                                "fusesr-l (0.005 min)"]
+                                                "fusesr-l (3 steps)"]
     for f in ("pareto.png", "side_by_side.png", "bench/bench_models.md"):
         assert (tmp_path / "demo" / f).stat().st_size > 100
     # a finished run is scored as it is (the budget is the total over reruns); another budget starts anew
-    again = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
-    assert again["train"]["step"] == s["train"]["step"]
+    again = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    assert again["train"] == s["train"]
     assert [r["psnr"] for r in again["bench"]] == [r["psnr"] for r in s["bench"]]
-    (tmp_path / "demo" / "run_fusesr_l" / "summary.json").unlink()  # as if stopped after its last checkpoint
-    assert _prepare_run(tmp_path / "demo" / "run_fusesr_l", "", 0.005) == (True, 0.0)  # its budget was spent
-    resumed = run_training_demo([a], [b], tmp_path / "demo", minutes=0.005, model="fusesr-l")
-    assert resumed["train"]["step"] > s["train"]["step"]  # resumed from its checkpoint, not started again
-    longer = run_training_demo([a], [b], tmp_path / "demo", minutes=0.01, model="fusesr-l")
-    assert json.loads((tmp_path / "demo" / "run_fusesr_l" / "demo_run.json").read_text())["minutes"] == 0.01
-    assert longer["bench"][-1]["model"] == "fusesr-l (0.01 min)"
+    run = tmp_path / "demo" / "run_fusesr_l"
+    (run / "summary.json").unlink()  # as if stopped after its last checkpoint
+    assert _prepare_run(run, "", 3) is True  # same weights and budget: resumes from its checkpoint
+    resumed = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    assert resumed["train"]["step"] == 3 and [r["psnr"] for r in resumed["bench"]] == [r["psnr"] for r in s["bench"]]
+    assert _prepare_run(run, "", 5) is False and not (run / "checkpoints").exists()  # another budget: anew
+    interrupted = run_training_demo([a], [b], tmp_path / "demo", steps=5, model="fusesr-l")
+    assert interrupted["train"]["step"] == 5
+    assert json.loads((run / "demo_run.json").read_text())["steps"] == 5
+    assert interrupted["bench"][-1]["model"] == "fusesr-l (5 steps)"
     # with shipped weights the demo scores them and fine-tunes one of them
     release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt",
             tmp_path / "weights" / "fusesr_l_x4.safetensors", {"model": "fusesr-l"})
-    ft = run_training_demo([a], [b], tmp_path / "demo2", minutes=0.005, model="fusesr-l")
+    ft = run_training_demo([a], [b], tmp_path / "demo2", steps=2, model="fusesr-l")
     assert [r["model"] for r in ft["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
-                                                 "pretrained:fusesr-l", "fusesr-l (fine-tuned 0.005 min)"]
+                                                 "pretrained:fusesr-l", "fusesr-l (fine-tuned 2 steps)"]
     assert ft["pretrained"] == ["pretrained:fusesr-l"] and (tmp_path / "demo2" / "side_by_side.png").is_file()
 
 
