@@ -11,14 +11,24 @@ export MALLOC_TRIM_THRESHOLD_ := 68719476736
 
 setup: $(STAMP)
 
+# torch's package index: empty uses pip's configuration (PyPI: on Linux its torch is the CUDA build, about 5.7 GB);
+# CPU-only machines: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu (about 200 MB).
+TORCH_INDEX ?=
+PIP := $(VPY) -m pip install --disable-pip-version-check --progress-bar on
+
 # Re-runs only when pyproject.toml or this Makefile changed; otherwise 'make setup' is a no-op.
 $(STAMP): pyproject.toml Makefile
+	@echo "== setup 1/4: virtual environment $(VENV) (Python 3.11)"
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
-	$(VPY) -m pip install --quiet --disable-pip-version-check --upgrade pip
-	# torch first, pinned to the CPU wheel; blendsr's own range (torch>=2.5) is then already satisfied.
-	$(VPY) -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
-	$(VPY) -m pip install --quiet --disable-pip-version-check -e ".[dev]"
+	@echo "== setup 2/4: pip"
+	$(PIP) --quiet --upgrade pip
+	@echo "== setup 3/4: torch 2.13.0$(if $(TORCH_INDEX), from $(TORCH_INDEX))"
+	# torch first; blendsr's own range (torch>=2.5) is then already satisfied and nothing pulls another build.
+	$(PIP) $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "torch==2.13.0"
+	@echo "== setup 4/4: blendsr[dev] (bpy is about 820 MB)"
+	$(PIP) -e ".[dev]"
 	@touch $(STAMP)
+	@echo "== setup done: $(VENV)"
 
 test: setup
 	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15
