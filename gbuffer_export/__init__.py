@@ -7,12 +7,16 @@
 import importlib
 
 __version__ = "0.1.0"
-__all__ = ["open_clip", "Clip", "ClipError", "ClipWriter", "BUFFERS", "DEFAULT_BUFFERS", "Flag", "__version__"]
+__all__ = ["open_clip", "Clip", "ClipError", "ClipWriter", "BUFFERS", "DEFAULT_BUFFERS", "Flag", "RenderConfig",
+           "validate_clip", "load_spec", "validate_dataset", "__version__"]
 
-#: the package's names, imported when first used: ``import gbuffer_export.cli`` loads neither numpy nor OpenEXR, so
-#: ``blendsr`` sets its Ctrl-C handling before anything slow is imported (``gbuffer_export.cli``).
+#: the package's public names, imported when first used: ``import gbuffer_export.cli`` loads neither numpy nor
+#: OpenEXR, so ``blendsr`` sets its Ctrl-C handling before anything slow is imported (``gbuffer_export.cli``).
+#: Rendering itself is the bpy layer's: ``gbuffer_export.blender.render.render_clip(RenderConfig(...))``.
 _LAZY = {"open_clip": ".clip", "Clip": ".clip", "ClipError": ".clip", "ClipWriter": ".clip",
-         "BUFFERS": ".conventions", "DEFAULT_BUFFERS": ".conventions", "Flag": ".conventions"}
+         "BUFFERS": ".conventions", "DEFAULT_BUFFERS": ".conventions", "Flag": ".conventions",
+         "RenderConfig": ".config", "validate_clip": ".validate", "load_spec": ".dataset.spec",
+         "validate_dataset": ".dataset.check"}
 
 
 def __getattr__(name: str):
