@@ -159,8 +159,9 @@ def exported_reprojection_error(out, ratio: str | None, j: int, hr_device_depth=
     xs, ys = pixel_grid(h, w)
     xs, ys = xs + nj["X"] * w, ys + nj["Y"] * h
     ndc = np.stack([2 * xs / w - 1, 1 - 2 * ys / h, d, np.ones_like(d)], -1)
-    world = ndc @ np.linalg.inv(np.asarray(rec["ViewProjection"]).reshape(4, 4).T).T
-    clip_prev = world @ np.asarray(prev["ViewProjection"]).reshape(4, 4)  # column-major list: rows of VP^T
+    # Arm's layout (the model gym's readers): reshape row by row to the matrix that multiplies column vectors
+    world = ndc @ np.linalg.inv(np.asarray(rec["ViewProjection"]).reshape(4, 4)).T
+    clip_prev = world @ np.asarray(prev["ViewProjection"]).reshape(4, 4).T
     xp = (clip_prev[..., 0] / clip_prev[..., 3] + 1) / 2 * w
     yp = (1 - clip_prev[..., 1] / clip_prev[..., 3]) / 2 * h
     expected = np.stack([(xs - xp) / w, (ys - yp) / h], -1)  # current - previous, UV

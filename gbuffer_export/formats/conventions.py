@@ -11,7 +11,10 @@ its readers (``scripts/safetensors_generator``); see docs/formats.md for the evi
   view depth ``z``; BlendSR's background (+inf) becomes 1 (the far plane).
 - **ViewProjection**: ``P @ view`` for column vectors, ``view = inverse(world_from_camera)`` (Blender world, scene
   units), ``P`` the un-jittered projection from the level's intrinsics to clip space with NDC x right, y up, z in
-  [0, 1] (the depth above), w = view depth; written as 16 floats in column-major order.
+  [0, 1] (the depth above), w = view depth; written as 16 floats row by row (``M[r][c]`` at ``4 r + c``): the
+  specification's "column-major, assuming row-vector math", the layout of Arm's sample captures
+  (``tests/datasets/test_nss_exr/0002.json``: the translation column at elements 3, 7, 11, 15, the unit view
+  direction at 12-14) and what the model gym's readers reshape to 4 x 4 and multiply column vectors with.
 - **Jitter**: pixels of the level, x right, y down, the sample of pixel centre p taken at p + jitter (BlendSR's);
   ``NormalizedPerRatioJitter`` = jitter / (W, H) of that level.
 - **Field of view**: ``FovX = 2 atan(W / (2 fx))``, ``FovY = 2 atan(H / (2 fy))`` (radians).
@@ -76,13 +79,14 @@ def view_projection(world_from_camera, k, width: int, height: int, near: float, 
 
 
 def matrix_to_list(m: np.ndarray) -> list[float]:
-    """16 floats, column-major (the specification's ``ViewProjection`` layout)."""
-    return [float(v) for v in np.asarray(m, np.float64).T.reshape(-1)]
+    """16 floats of a column-vector matrix, row by row: the ``ViewProjection`` layout of the specification
+    (column-major storage of the row-vector form) and of Arm's sample files (translation at 3, 7, 11, 15)."""
+    return [float(v) for v in np.asarray(m, np.float64).reshape(-1)]
 
 
 def list_to_matrix(values) -> np.ndarray:
     """Inverse of ``matrix_to_list``."""
-    return np.asarray(values, np.float64).reshape(4, 4).T
+    return np.asarray(values, np.float64).reshape(4, 4)
 
 
 def camera_from_view_projection(vp, width: int, height: int):
@@ -144,16 +148,16 @@ def rdg_to_motion(stored: np.ndarray) -> np.ndarray:
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 transfer; values clipped to [0, 1] first:
-    Blender's 'Standard' view transform, no tone curve)."""
-    x = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 through colour-science; values clipped to
+    [0, 1] first: Blender's 'Standard' view transform, no tone curve)."""
+    from ..colour_spaces import srgb_encode as encode
+    return encode(linear)
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1])."""
-    x = np.asarray(encoded, np.float64)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1]; colour-science's sRGB EOTF)."""
+    import colour
+    return np.asarray(colour.cctf_decoding(np.asarray(encoded, np.float64), function="sRGB"))
 
 
 def depth_for_rdg(depth: np.ndarray) -> np.ndarray:
