@@ -72,6 +72,8 @@ def source_clips(sources) -> list[Path]:
         if is_dataset(s):
             for c in read_index(s)["clips"]:
                 p = clip_dir(s, c)
+                for part in ("manifest.json", "frames"):  # a linked manifest is refused, never skipped as partial
+                    check_no_links(p, p / part)
                 if clip_state(p, int(c.get("frames_planned", 0)))[0] != "done":
                     continue
                 if c.get("invalid"):
