@@ -10,8 +10,11 @@ its readers (``scripts/safetensors_generator``); see docs/formats.md for the evi
   far planes (FSR2's ``depth_to_view_space_params``, non-inverted, finite): ``d = f (z - n) / (z (f - n))`` for
   view depth ``z``; BlendSR's background (+inf) becomes 1 (the far plane).
 - **ViewProjection**: ``P @ view`` for column vectors, ``view = inverse(world_from_camera)`` (Blender world, scene
-  units), ``P`` the un-jittered projection from the level's intrinsics to clip space with NDC x right, y up, z in
-  [0, 1] (the depth above), w = view depth; written as 16 floats row by row (``M[r][c]`` at ``4 r + c``): the
+  units), ``P`` the un-jittered projection from the level's intrinsics to clip space with NDC x right, y up,
+  w = view depth and z = 1 - the stored device depth (reverse-Z: 1 at the near plane, 0 at the far one). The depth
+  files stay forward-Z (``ReverseZ`` false); Arm's captures pair them the same way (the z row of their sample
+  matrices is the reverse-Z infinite ``[0, 0, 0, near]``) and the model gym's NFRU reader reprojects with
+  ``1 - depth`` through these matrices; written as 16 floats row by row (``M[r][c]`` at ``4 r + c``): the
   specification's "column-major, assuming row-vector math", the layout of Arm's sample captures
   (``tests/datasets/test_nss_exr/0002.json``: the translation column at elements 3, 7, 11, 15, the unit view
   direction at 12-14) and what the model gym's readers reshape to 4 x 4 and multiply column vectors with.
@@ -61,21 +64,27 @@ def device_to_view_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
     return np.where(d >= 1.0, np.inf, z)
 
 
-def projection(k, width: int, height: int, near: float, far: float) -> np.ndarray:
+def projection(k, width: int, height: int, near: float, far: float, *, reverse_z: bool = False) -> np.ndarray:
     """4 x 4 clip-from-camera matrix (column vectors) of intrinsics ``k`` for a ``width`` x ``height`` image:
-    camera space is Blender's (looks along -Z, +Y up); NDC x right, y up in [-1, 1], z forward in [0, 1]."""
+    camera space is Blender's (looks along -Z, +Y up); NDC x right, y up in [-1, 1], z in [0, 1]: the forward-Z
+    device depth of ``view_depth_to_device`` (0 at near), or with ``reverse_z`` one minus it (1 at near)."""
     fx, fy, cx, cy = (float(v) for v in k)
     p = np.zeros((4, 4))
     p[0, 0], p[0, 2] = 2 * fx / width, 1 - 2 * cx / width
     p[1, 1], p[1, 2] = 2 * fy / height, 2 * cy / height - 1
-    p[2, 2], p[2, 3] = far / (near - far), far * near / (near - far)
+    if reverse_z:  # z_ndc = n (f - z) / (z (f - n)) for view depth z = -z_cam
+        p[2, 2], p[2, 3] = near / (far - near), far * near / (far - near)
+    else:  # z_ndc = f (z - n) / (z (f - n))
+        p[2, 2], p[2, 3] = far / (near - far), far * near / (near - far)
     p[3, 2] = -1.0
     return p
 
 
-def view_projection(world_from_camera, k, width: int, height: int, near: float, far: float) -> np.ndarray:
-    """4 x 4 clip-from-world matrix (column vectors)."""
-    return projection(k, width, height, near, far) @ np.linalg.inv(np.asarray(world_from_camera, np.float64))
+def view_projection(world_from_camera, k, width: int, height: int, near: float, far: float, *,
+                    reverse_z: bool = False) -> np.ndarray:
+    """4 x 4 clip-from-world matrix (column vectors); ``reverse_z`` as in ``projection``."""
+    return (projection(k, width, height, near, far, reverse_z=reverse_z)
+            @ np.linalg.inv(np.asarray(world_from_camera, np.float64)))
 
 
 def matrix_to_list(m: np.ndarray) -> list[float]:

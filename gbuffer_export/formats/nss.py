@@ -162,7 +162,7 @@ def export_sequence(clip, frames: list[int], out, name: str, *, framerate: int =
         records.append({
             "Frame": j, "FovX": fov_x, "FovY": fov_y, "CameraNearPlane": near, "CameraFarPlane": far,
             "ViewProjection": cv.matrix_to_list(cv.view_projection(cam_hr["world_from_camera"], cam_hr["intrinsics"],
-                                                                   w_hr, h_hr, near, far)),
+                                                                   w_hr, h_hr, near, far, reverse_z=True)),
             "Jitter": {"X": float(jit[0]), "Y": float(jit[1])},
             "NormalizedPerRatioJitter": per_ratio,
             "CameraCut": j == 0,
