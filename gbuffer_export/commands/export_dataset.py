@@ -7,14 +7,16 @@ from pathlib import Path
 
 from ..extras import HelpFormatter
 
-FORMATS = ("nss", "rdg")
+FORMATS = ("nss", "nfru", "rdg")
 
 HELP = """Write BlendSR clips (or every finished clip of a dataset folder) as Arm's NSS capture layout
 (neural-graphics-model-gym's docs/nss/nss_dataset_specification.md): one sequence per clip (0000.json, ...),
 ground_truth/ and motion_gt/ at HR, x<ratio>/color, depth, motion for every LR level. Colour becomes linear
 Rec.709 half RGBA, depth forward-Z device depth with the sequence's near/far planes, motion UV units (current -
 previous). --format rdg writes the layout of the RDG authors' loader (basicsr/data/render_dataset.py): GT/ and
-LR/<scene>/{Image,Normal,BRDF,Depth,Motion,Emit}/000.{png,exr} and its meta-info files. See docs/formats.md for
+LR/<scene>/{Image,Normal,BRDF,Depth,Motion,Emit}/000.{png,exr} and its meta-info files. --format nfru writes Arm's
+frame-rate upscaling layout (docs/nfru/nfru_dataset_specification.md): ground_truth/, x2/depth, x2/motion_m1 and,
+on even frames, x2/motion_m2 (motion two frames back), with the camera basis per frame. See docs/formats.md for
 every mapping and what is lost.
 
 The output folder must be new or empty, unless --overwrite (the export replaces it whole: written beside it, then
@@ -77,8 +79,12 @@ def run_export(args) -> int:
         scenes = export_rdg(args.sources, args.output, opts)
         print(f"blendsr: wrote {len(scenes)} RDG scene(s) to {args.output}")
         return 0
-    paths = export_nss(args.sources, args.output, opts)
-    print(f"blendsr: wrote {len(paths)} NSS sequence(s) to {args.output}")
+    if args.format == "nfru":
+        from ..formats.nfru import export_nfru
+        paths = export_nfru(args.sources, args.output, opts)
+    else:
+        paths = export_nss(args.sources, args.output, opts)
+    print(f"blendsr: wrote {len(paths)} {args.format.upper()} sequence(s) to {args.output}")
     return 0
 
 

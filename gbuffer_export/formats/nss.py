@@ -210,7 +210,7 @@ def sequence_names(out: Path) -> list[str]:
 
 
 def is_nss_export(out: Path) -> bool:
-    return bool(sequence_names(out))
+    return bool(sequence_names(out)) and (out / "motion_gt").is_dir()
 
 
 def remove_orphan_sequences(out: Path) -> None:
@@ -224,13 +224,15 @@ def remove_orphan_sequences(out: Path) -> None:
             shutil.rmtree(p)
 
 
-def export_nss(sources, out, options: ExportOptions = ExportOptions()) -> list[Path]:
-    """Export every clip of ``sources`` (clip or dataset folders) as sequences 0000, 0001, ... of an NSS capture
-    at ``out`` (one per clip, or one per contiguous run of a clip with missing frames), by the output rules of
-    ``formats.output``; returns the sequence JSON paths. Every clip is checked before anything is written."""
+def export_sequences(sources, out, options: ExportOptions, *, fmt: str, write_sequence,
+                     is_export=is_nss_export) -> list[Path]:
+    """The export loop NSS and NFRU share: the output rules (``formats.output.Target``), every clip checked
+    (``check_clip``) before anything is written, one sequence per contiguous run of each clip's frames written by
+    ``write_sequence(clip, frames, work, name, framerate=, planes=)``; ``is_export(folder)``: whether a folder
+    holds an export of this format (``--append``); returns the sequence JSON paths."""
     options.validate()
     out = Path(out)
-    target = Target(out, sources, options.mode, is_export=is_nss_export, fmt="nss")
+    target = Target(out, sources, options.mode, is_export=is_export, fmt=fmt)
     clips = [open_clip(p) for p in source_clips(sources)]
     if not clips:
         raise NssError(f"{', '.join(map(str, sources))}: no finished clips to export")
@@ -252,13 +254,20 @@ def export_nss(sources, out, options: ExportOptions = ExportOptions()) -> list[P
             planes = clip_planes(clip)
             for run in runs:
                 name = f"{seq:04d}"
-                export_sequence(clip, run, target.work, name, framerate=options.framerate, planes=planes)
+                write_sequence(clip, run, target.work, name, framerate=options.framerate, planes=planes)
                 written.append(name)
                 seq += 1
             if options.progress:
                 options.progress(clip.path, out / f"{written[-1]}.json")
         target.commit(last=tuple(f"{n}.json" for n in written))
     return [out / f"{n}.json" for n in written]
+
+
+def export_nss(sources, out, options: ExportOptions = ExportOptions()) -> list[Path]:
+    """Export every clip of ``sources`` (clip or dataset folders) as sequences 0000, 0001, ... of an NSS capture
+    at ``out`` (one per clip, or one per contiguous run of a clip with missing frames), by the output rules of
+    ``formats.output``; returns the sequence JSON paths. Every clip is checked before anything is written."""
+    return export_sequences(sources, out, options, fmt="nss", write_sequence=export_sequence)
 
 
 # ----------------------------------------------------------------------------------------------
