@@ -197,3 +197,15 @@ def test_nss_needs_a_2x_level_and_names_the_fix(tmp_path, capsys):
     line = one_error(*run(["export-dataset", clip, "--format", "nss", "-o", tmp_path / "o"], capsys))
     assert "2x level" in line and "--scales 2,4" in line and str(clip) in line
     assert not (tmp_path / "o").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["c4"]
+
+
+def test_rdg_warns_in_one_line_about_buffers_its_configs_read(tmp_path, capsys):
+    clip = make_synthetic_clip(tmp_path / "c", frames=(1, 2), hr_size=(16, 8), scales=(2,),
+                               buffers=("radiance", "depth", "motion"))
+    code, text = run(["export-dataset", clip, "--format", "rdg", "-o", tmp_path / "rdg"], capsys)
+    warn = [ln for ln in text.splitlines() if "RDG's shipped configs" in ln]
+    assert code == 0 and len(warn) == 1, text
+    assert "Normal (normal)" in warn[0] and "BRDF (fbeta)" in warn[0] and "Depth" not in warn[0]
+    full = make_synthetic_clip(tmp_path / "full", frames=(1, 2), hr_size=(16, 8), scales=(2,))
+    code, text = run(["export-dataset", full, "--format", "rdg", "-o", tmp_path / "rdg2"], capsys)
+    assert code == 0 and "RDG's shipped configs" not in text

@@ -135,7 +135,9 @@ class Target:
     place. Use as a context manager: an exception removes the sibling and leaves OUT as it was."""
 
     def __init__(self, out, sources, mode: str, *, is_export: Callable[[Path], bool], fmt: str):
-        self.out, self.mode, self.fmt = Path(out), mode, fmt
+        self.out, self.mode, self.fmt = Path(os.path.abspath(out)), mode, fmt  # '.', 'a/..': a named folder
+        if self.out == Path(self.out.anchor):
+            raise ExportError(f"{out}: is the root of the file system; -o names a folder of its own")
         check_output(self.out, sources, mode)
         clean_stale(self.out)
         nonempty = self.out.is_dir() and any(self.out.iterdir())
