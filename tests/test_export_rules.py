@@ -91,20 +91,24 @@ def test_overwrite_and_append_together_are_refused(clips, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("where", ["the clip", "inside the clip", "a file", "a link to a file",
-                                   "holding the source", "a dataset"])
+                                   "a link to a folder", "holding the source", "a dataset"])
 def test_an_output_that_is_a_clip_a_file_or_a_source_is_refused(clips, tmp_path, capsys, where):
     a, _ = clips
     src = tmp_path / "src" / "a"
     shutil.copytree(a, src)
     before = tree(src.parent)
     out = {"the clip": src, "inside the clip": src / "nss", "a file": tmp_path / "f.txt",
-           "a link to a file": tmp_path / "l", "holding the source": src.parent,
+           "a link to a file": tmp_path / "l", "a link to a folder": tmp_path / "ld",
+           "holding the source": src.parent,
            "a dataset": tmp_path / "ds"}[where]
     if where == "a file":
         out.write_text("x")
     if where == "a link to a file":
         (tmp_path / "t.txt").write_text("x")
         out.symlink_to(tmp_path / "t.txt")
+    if where == "a link to a folder":
+        (tmp_path / "elsewhere").mkdir()
+        out.symlink_to(tmp_path / "elsewhere", target_is_directory=True)
     if where == "a dataset":
         out.mkdir()
         (out / "dataset.json").write_text("{}")
@@ -112,6 +116,8 @@ def test_an_output_that_is_a_clip_a_file_or_a_source_is_refused(clips, tmp_path,
         line = one_error(*run(["export-dataset", src, "--format", "nss", "-o", out, *extra], capsys))
         assert str(out) in line
     assert tree(src.parent) == before
+    if where == "a link to a folder":
+        assert not any((tmp_path / "elsewhere").iterdir())
     if where == "a file":
         assert out.read_text() == "x"
 

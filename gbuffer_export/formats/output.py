@@ -1,7 +1,8 @@
 """Where ``blendsr export-dataset`` writes (both formats): the output folder rules, written once.
 
-- ``-o OUT`` names a folder of its own: a file, a BlendSR clip or dataset folder (or a folder inside one), and a
-  folder that holds a source or lies inside one are refused with one line before anything is read.
+- ``-o OUT`` names a folder of its own: a file, a symbolic link, a BlendSR clip or dataset folder (or a folder
+  inside one), and a folder that holds a source or lies inside one are refused with one line before anything is
+  read.
 - A non-empty ``OUT`` is refused unless ``mode`` is ``overwrite`` (the export replaces it whole) or ``append``
   (the new sequences or scenes are added after the existing ones; OUT must hold an export of the same format).
 - Everything is written into a temporary sibling, ``.OUT.export<PID>``, and moved into place at the end: a new or
@@ -81,8 +82,8 @@ def _inside(a: Path, b: Path) -> bool:
 
 def check_output(out: Path, sources, mode: str) -> None:
     """Refuse an ``-o`` that is a file, a BlendSR clip or dataset (or inside one), or overlaps a source."""
-    if out.is_symlink() and not out.is_dir():
-        raise ExportError(f"{out}: is a link to a file; -o names the folder to write the export to")
+    if out.is_symlink():
+        raise ExportError(f"{out}: is a symbolic link; -o names a folder of its own (give the folder it points to)")
     if out.exists() and not out.is_dir():
         raise ExportError(f"{out}: is a file; -o names the folder to write the export to")
     real = out.resolve()
