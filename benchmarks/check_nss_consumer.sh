@@ -4,7 +4,11 @@
 # NSSDataset (ng_model_gym.usecases.nss.data.dataset, the class its trainer uses), one training window.
 # Not part of the test suite (installs a virtual environment of its own).
 #
-#   benchmarks/check_nss_consumer.sh [NSS_EXPORT]      (default: render a tiny clip and export it)
+#   benchmarks/check_nss_consumer.sh [NSS_EXPORT]      (default: render a tiny clip with --scales 2,4 and export
+#                                                       it: Arm's converter reads the x2/ level only)
+#
+# The temporary folder (the render, the default export, the safetensors, the converter's log) is removed on exit;
+# KEEP=1 keeps it and prints where it is.
 #
 # Environment:
 #   VENV=...              the virtual environment to create/reuse (default .venv-ngmg in the repository)
@@ -21,6 +25,8 @@ REPO=$(cd "$(dirname "$0")/.." && pwd)
 VENV=${VENV:-$REPO/.venv-ngmg}
 PY=${PY:-python3.11}
 WORK=$(mktemp -d /tmp/blendsr-ngmg.XXXXXX)
+cleanup() { if [ -n "${KEEP:-}" ]; then echo "kept $WORK"; else rm -rf "$WORK"; fi; }
+trap cleanup EXIT
 BLENDSR_PY=${BLENDSR_PY:-$REPO/.venv/bin/python}
 [ -x "$BLENDSR_PY" ] || BLENDSR_PY=python3
 
@@ -66,7 +72,7 @@ fi
 EXPORT=${1:-}
 if [ -z "$EXPORT" ]; then
   (cd "$REPO" && PYTHONPATH=$REPO "$BLENDSR_PY" -m gbuffer_export.cli render -o "$WORK/clip" --hr-size 64x36 \
-     --frames 1:6 --hr-spp 2 --lr-spp 1 --threads 1 --buffers radiance,depth,motion --no-progress)
+     --frames 1:6 --scales 2,4 --hr-spp 2 --lr-spp 1 --threads 1 --buffers radiance,depth,motion --no-progress)
   (cd "$REPO" && PYTHONPATH=$REPO "$BLENDSR_PY" -m gbuffer_export.cli export-dataset "$WORK/clip" --format nss \
      -o "$WORK/nss")
   EXPORT=$WORK/nss

@@ -7,14 +7,17 @@ rendered HR depth of every frame).
 """
 import json, sys, numpy as np
 from pathlib import Path
+from gbuffer_export.clip import load_manifest
+from gbuffer_export.dataset.build import clip_dir, read_index
 from gbuffer_export.validate import validate_clip
 root = Path(sys.argv[1])
-idx = json.loads((root / "dataset.json").read_text())
+idx = read_index(root)
 rows = {}
 for c in idx["clips"]:
-    m = json.loads((root / c["path"] / "manifest.json").read_text())
+    folder = clip_dir(root, c)  # the one rule for index paths
+    m = load_manifest(folder)
     cam = m["camera"]
-    r = validate_clip(root / c["path"])
+    r = validate_clip(folder)
     views = r.stats.get("camera_view", {})
     bg = max(v["background_fraction"] for v in views.values())
     med = [v["median_depth_m"] for v in views.values()]

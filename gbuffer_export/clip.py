@@ -72,8 +72,8 @@ def check_no_links(root: str | os.PathLike, path: str | os.PathLike) -> Path:
     for part in rel.parts:
         p = p / part
         if p.is_symlink():
-            raise UnsafePathError(f"{p}: is a symbolic link; BlendSR reads and writes nothing through links inside a "
-                                  "clip (replace it with the file or folder itself)")
+            raise UnsafePathError(f"{p}: is a symbolic link; BlendSR reads and writes nothing through links inside "
+                                  f"{root} (replace it with the file or folder itself)")
     return path
 
 

@@ -217,17 +217,20 @@ def _fit(img: np.ndarray, h: int, w: int) -> np.ndarray:
 def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=None) -> tuple[Path, int]:
     """PNG contact sheet of a dataset: one row per finished clip (index order, or only ``splits``) with its first
     and last frame's HR radiance at ``width`` pixels wide, labelled with the clip id, camera kind and split.
-    Returns (path, clips shown); ValueError when the dataset has no finished clip."""
-    from .clip import ClipError, open_clip
-    from .dataset.build import read_index
+    Returns (path, clips shown); BlendSRError when the dataset has no finished clip. Every clip folder comes
+    from the index through the one path rule (``dataset.build.clip_dir``): a path that leaves the dataset is refused
+    with one line before anything is drawn."""
+    from .clip import ClipError, UnsafePathError, open_clip
+    from .dataset.build import clip_dir, read_index
     root = Path(root)
     index = read_index(root)
+    dirs = [(c, clip_dir(root, c)) for c in index["clips"] if not splits or c.get("split") in splits]
     rows = []
-    for c in index["clips"]:
-        if splits and c.get("split") not in splits:
-            continue
+    for c, folder in dirs:
         try:
-            clip = open_clip(root / c["path"])
+            clip = open_clip(folder)
+        except UnsafePathError:
+            raise
         except ClipError:
             continue
         if not clip.frames:

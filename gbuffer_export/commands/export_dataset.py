@@ -7,15 +7,34 @@ from pathlib import Path
 
 from ..extras import HelpFormatter
 
-FORMATS = ("nss", "rdg")
+FORMATS = ("nss", "nfru", "rdg")
 
 HELP = """Write BlendSR clips (or every finished clip of a dataset folder) as Arm's NSS capture layout
 (neural-graphics-model-gym's docs/nss/nss_dataset_specification.md): one sequence per clip (0000.json, ...),
 ground_truth/ and motion_gt/ at HR, x<ratio>/color, depth, motion for every LR level. Colour becomes linear
 Rec.709 half RGBA, depth forward-Z device depth with the sequence's near/far planes, motion UV units (current -
 previous). --format rdg writes the layout of the RDG authors' loader (basicsr/data/render_dataset.py): GT/ and
-LR/<scene>/{Image,Normal,BRDF,Depth,Motion,Emit}/000.{png,exr} and its meta-info files. See docs/formats.md for
-every mapping and what is lost."""
+LR/<scene>/{Image,Normal,BRDF,Depth,Motion,Emit}/000.{png,exr} and its meta-info files. --format nfru writes Arm's
+frame-rate upscaling layout (docs/nfru/nfru_dataset_specification.md): ground_truth/, x2/depth, x2/motion_m1 and,
+on even frames, x2/motion_m2 (motion two frames back), with the camera basis per frame. See docs/formats.md for
+every mapping and what is lost.
+
+The output folder must be new or empty, unless --overwrite (the export replaces it whole: written beside it, then
+swapped in) or --append (sequences or scenes are added after the ones it holds). A clip with missing frames becomes
+one sequence (or scene) per contiguous run of frames, each starting with a camera cut. NSS needs a 2x level in
+every clip (Arm's converter reads x2/ only): render with --scales 2,4."""
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number in 1..1000 (one line naming the flag on anything else, exit 2)."""
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 < v <= 1000:
+        raise argparse.ArgumentTypeError(f"{v} must be in 1..1000 (frames per second)")
+    return v
 
 
 def register(subparsers) -> None:
@@ -25,8 +44,15 @@ def register(subparsers) -> None:
                    help="clip folders and/or dataset folders (holding dataset.json)")
     p.add_argument("--format", choices=FORMATS, required=True, help="the layout to write")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
-    p.add_argument("--framerate", type=int, default=24,
-                   help="EmulatedFramerate to record (BlendSR clips do not store one; Blender's default is 24)")
+    p.add_argument("--framerate", type=positive_int, default=24,
+                   help="EmulatedFramerate to record, frames per second in 1..1000 (BlendSR clips do not store "
+                        "one; Blender's default is 24)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--overwrite", action="store_true",
+                      help="replace a non-empty output folder whole (the new export is written beside it, then "
+                           "swapped in)")
+    mode.add_argument("--append", action="store_true",
+                      help="add to the export in the output folder (sequences or scenes numbered after its own)")
     p.set_defaults(func=run_export)
 
     q = subparsers.add_parser("import-nss", help="read one NSS capture sequence into a BlendSR clip",
@@ -44,14 +70,21 @@ def run_export(args) -> int:
     """Bad input (a missing clip, an unfinished one, an output folder in use) raises a BlendSRError: one line, exit
     code 2 at the CLI's error boundary."""
     from ..formats.nss import export_nss
+    from ..formats.output import ExportOptions
     from ..formats.rdg import export_rdg
     report = lambda c, j: print(f"blendsr: {c} -> {j}", file=sys.stderr)
+    opts = ExportOptions(mode="overwrite" if args.overwrite else "append" if args.append else "new",
+                         framerate=args.framerate, progress=report)
     if args.format == "rdg":
-        scenes = export_rdg(args.sources, args.output, progress=report)
+        scenes = export_rdg(args.sources, args.output, opts)
         print(f"blendsr: wrote {len(scenes)} RDG scene(s) to {args.output}")
         return 0
-    paths = export_nss(args.sources, args.output, framerate=args.framerate, progress=report)
-    print(f"blendsr: wrote {len(paths)} NSS sequence(s) to {args.output}")
+    if args.format == "nfru":
+        from ..formats.nfru import export_nfru
+        paths = export_nfru(args.sources, args.output, opts)
+    else:
+        paths = export_nss(args.sources, args.output, opts)
+    print(f"blendsr: wrote {len(paths)} {args.format.upper()} sequence(s) to {args.output}")
     return 0
 
 

@@ -64,18 +64,20 @@ def region_errors(index: dict, root: Path | None = None) -> list[str]:
                     errs.append(f"clip {c['id']}: regions {sorted(cells[a] & cells[b])} are in both {a} and {b}")
         if tuple(reg.get("cell") or ()) not in cells.get(c["split"], set()):
             errs.append(f"clip {c['id']} ({c['split']}) stands in cell {reg.get('cell')}, not a {c['split']} region")
-        used = _manifest_cells(root / c["path"]) if root is not None and c.get("path") else None
+        used = _manifest_cells(root, c) if root is not None else None
         if used is not None and not used <= cells.get(c["split"], set()):
             errs.append(f"clip {c['id']} ({c['split']}): its camera used cells {sorted(used)} outside its split's")
     return sorted(set(errs))
 
 
-def _manifest_cells(clip: Path) -> set | None:
-    import json
+def _manifest_cells(root: Path, entry: dict) -> set | None:
+    """The cells the clip's manifest allowed its camera; None when the clip's path breaks the index path rule
+    (``clip_dir``: reported by ``index_errors``, its manifest never opened) or its manifest has none."""
+    from ..clip import load_manifest
     try:
-        reg = json.loads((clip / "manifest.json").read_text())["camera"]["region"]
+        reg = load_manifest(clip_dir(root, entry))["camera"]["region"]
         return {tuple(x) for x in reg["cells"]}
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError):  # ClipError and DatasetError are ValueErrors
         return None
 
 

@@ -10,8 +10,14 @@ its readers (``scripts/safetensors_generator``); see docs/formats.md for the evi
   far planes (FSR2's ``depth_to_view_space_params``, non-inverted, finite): ``d = f (z - n) / (z (f - n))`` for
   view depth ``z``; BlendSR's background (+inf) becomes 1 (the far plane).
 - **ViewProjection**: ``P @ view`` for column vectors, ``view = inverse(world_from_camera)`` (Blender world, scene
-  units), ``P`` the un-jittered projection from the level's intrinsics to clip space with NDC x right, y up, z in
-  [0, 1] (the depth above), w = view depth; written as 16 floats in column-major order.
+  units), ``P`` the un-jittered projection from the level's intrinsics to clip space with NDC x right, y up,
+  w = view depth and z = 1 - the stored device depth (reverse-Z: 1 at the near plane, 0 at the far one). The depth
+  files stay forward-Z (``ReverseZ`` false); Arm's captures pair them the same way (the z row of their sample
+  matrices is the reverse-Z infinite ``[0, 0, 0, near]``) and the model gym's NFRU reader reprojects with
+  ``1 - depth`` through these matrices; written as 16 floats row by row (``M[r][c]`` at ``4 r + c``): the
+  specification's "column-major, assuming row-vector math", the layout of Arm's sample captures
+  (``tests/datasets/test_nss_exr/0002.json``: the translation column at elements 3, 7, 11, 15, the unit view
+  direction at 12-14) and what the model gym's readers reshape to 4 x 4 and multiply column vectors with.
 - **Jitter**: pixels of the level, x right, y down, the sample of pixel centre p taken at p + jitter (BlendSR's);
   ``NormalizedPerRatioJitter`` = jitter / (W, H) of that level.
 - **Field of view**: ``FovX = 2 atan(W / (2 fx))``, ``FovY = 2 atan(H / (2 fy))`` (radians).
@@ -58,31 +64,38 @@ def device_to_view_depth(d: np.ndarray, near: float, far: float) -> np.ndarray:
     return np.where(d >= 1.0, np.inf, z)
 
 
-def projection(k, width: int, height: int, near: float, far: float) -> np.ndarray:
+def projection(k, width: int, height: int, near: float, far: float, *, reverse_z: bool = False) -> np.ndarray:
     """4 x 4 clip-from-camera matrix (column vectors) of intrinsics ``k`` for a ``width`` x ``height`` image:
-    camera space is Blender's (looks along -Z, +Y up); NDC x right, y up in [-1, 1], z forward in [0, 1]."""
+    camera space is Blender's (looks along -Z, +Y up); NDC x right, y up in [-1, 1], z in [0, 1]: the forward-Z
+    device depth of ``view_depth_to_device`` (0 at near), or with ``reverse_z`` one minus it (1 at near)."""
     fx, fy, cx, cy = (float(v) for v in k)
     p = np.zeros((4, 4))
     p[0, 0], p[0, 2] = 2 * fx / width, 1 - 2 * cx / width
     p[1, 1], p[1, 2] = 2 * fy / height, 2 * cy / height - 1
-    p[2, 2], p[2, 3] = far / (near - far), far * near / (near - far)
+    if reverse_z:  # z_ndc = n (f - z) / (z (f - n)) for view depth z = -z_cam
+        p[2, 2], p[2, 3] = near / (far - near), far * near / (far - near)
+    else:  # z_ndc = f (z - n) / (z (f - n))
+        p[2, 2], p[2, 3] = far / (near - far), far * near / (near - far)
     p[3, 2] = -1.0
     return p
 
 
-def view_projection(world_from_camera, k, width: int, height: int, near: float, far: float) -> np.ndarray:
-    """4 x 4 clip-from-world matrix (column vectors)."""
-    return projection(k, width, height, near, far) @ np.linalg.inv(np.asarray(world_from_camera, np.float64))
+def view_projection(world_from_camera, k, width: int, height: int, near: float, far: float, *,
+                    reverse_z: bool = False) -> np.ndarray:
+    """4 x 4 clip-from-world matrix (column vectors); ``reverse_z`` as in ``projection``."""
+    return (projection(k, width, height, near, far, reverse_z=reverse_z)
+            @ np.linalg.inv(np.asarray(world_from_camera, np.float64)))
 
 
 def matrix_to_list(m: np.ndarray) -> list[float]:
-    """16 floats, column-major (the specification's ``ViewProjection`` layout)."""
-    return [float(v) for v in np.asarray(m, np.float64).T.reshape(-1)]
+    """16 floats of a column-vector matrix, row by row: the ``ViewProjection`` layout of the specification
+    (column-major storage of the row-vector form) and of Arm's sample files (translation at 3, 7, 11, 15)."""
+    return [float(v) for v in np.asarray(m, np.float64).reshape(-1)]
 
 
 def list_to_matrix(values) -> np.ndarray:
     """Inverse of ``matrix_to_list``."""
-    return np.asarray(values, np.float64).reshape(4, 4).T
+    return np.asarray(values, np.float64).reshape(4, 4)
 
 
 def camera_from_view_projection(vp, width: int, height: int):
@@ -144,16 +157,16 @@ def rdg_to_motion(stored: np.ndarray) -> np.ndarray:
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 transfer; values clipped to [0, 1] first:
-    Blender's 'Standard' view transform, no tone curve)."""
-    x = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 through colour-science; values clipped to
+    [0, 1] first: Blender's 'Standard' view transform, no tone curve)."""
+    from ..colour_spaces import srgb_encode as encode
+    return encode(linear)
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1])."""
-    x = np.asarray(encoded, np.float64)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1]; colour-science's sRGB EOTF)."""
+    import colour
+    return np.asarray(colour.cctf_decoding(np.asarray(encoded, np.float64), function="sRGB"))
 
 
 def depth_for_rdg(depth: np.ndarray) -> np.ndarray:

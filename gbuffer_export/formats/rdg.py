@@ -9,26 +9,81 @@
     OUT/GT/<scene>/Emit/000.exr         emission, RGB
     OUT/LR/<scene>/...                  the same at the clip's primary LR level ('lr')
     OUT/LR_x<s>/<scene>/...             further LR levels of multi-scale clips
-    OUT/meta_info_train.txt             '<scene> <frames> 0 0' per clip (their training meta file, no patches)
-    OUT/meta_info_test.txt              '<scene> <frames> 0' per clip (their test meta file)
+    OUT/meta_info_train.txt             '<scene> <frames> 0 0' per scene (their training meta file, no patches)
+    OUT/meta_info_test.txt              '<scene> <frames> 0' per scene (their test meta file)
+
+One scene per clip (or per contiguous run of frames of a clip with missing frames), named after the clip's folder
+with anything but letters, digits, '_' and '-' made '_' and a suffix where a name repeats (``scene_name``).
 
 Their loader reads every file with OpenCV (three channels, BGR order swapped to RGB), so every EXR has R, G, B.
 Conversions in ``formats/conventions.py``; docs/formats.md lists what is lost. Pure numpy + OpenEXR.
 """
 from __future__ import annotations
 
+import logging
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ..clip import open_clip
+from ..clip import check_no_links, open_clip
 from ..exr import write_exr
+from ..errors import BlendSRError
 from . import conventions as cv
-from .nss import NSS_SPACE, source_clips
+from .nss import NSS_SPACE, frame_runs, source_clips
+from .output import ExportOptions, Target, clean_temp_files
 from .png import write_png
+
+log = logging.getLogger(__name__)
 
 #: RDG buffer name -> BlendSR buffer it is written from.
 BUFFER_MAP = {"Normal": "normal", "BRDF": "fbeta", "Depth": "depth", "Motion": "motion", "Emit": "emission"}
+#: The buffers RDG's shipped configs read (``use_lq_normal``, ``use_lq_brdf``, ``use_lq_motion``, ``use_lq_depth``:
+#: true in options/train/train_RDG_x4.yml, train_RDG-s_x4.yml and both test configs of github.com/sunny2109/RDG).
+CONFIG_BUFFERS = ("Normal", "BRDF", "Motion", "Depth")
+META_TRAIN, META_TEST = "meta_info_train.txt", "meta_info_test.txt"
+
+
+class RdgError(BlendSRError):
+    """An RDG export that cannot be written as asked (one line, exit code 2)."""
+
+
+def scene_name(raw: str, taken) -> str:
+    """A scene name RDG's meta-info files can hold (they split lines on whitespace) and a folder name can be:
+    characters other than letters, digits, '_', '-' become '_', leading dots and '_' go, an empty name becomes
+    'clip'; made unique against ``taken`` with '_2', '_3', ..."""
+    base = re.sub(r"[^A-Za-z0-9_-]+", "_", raw).strip("_.-")[:100] or "clip"
+    name, n = base, 1
+    while name in taken:
+        n += 1
+        name = f"{base}_{n}"
+    return name
+
+
+def read_meta(out: Path) -> tuple[list[str], list[str]]:
+    """The lines of an RDG export's meta-info files (train, test); empty when there are none."""
+    lines = []
+    for f in (META_TRAIN, META_TEST):
+        p = out / f
+        lines.append([ln for ln in check_no_links(out, p).read_text().splitlines() if ln.strip()]
+                     if p.is_file() else [])
+    return lines[0], lines[1]
+
+
+def is_rdg_export(out: Path) -> bool:
+    return (out / META_TRAIN).is_file()
+
+
+def remove_orphan_scenes(out: Path, scenes: set[str]) -> None:
+    """Remove scene folders (``GT/<scene>``, ``LR*/<scene>``) that the meta-info files do not list: an append
+    killed while moving its files in."""
+    for root in sorted(p for p in out.iterdir() if p.is_dir() and not p.is_symlink()
+                       and (p.name == "GT" or p.name.startswith("LR"))):
+        for d in sorted(root.iterdir()):
+            if d.is_dir() and not d.is_symlink() and d.name not in scenes:
+                log.warning(f"{d}: removing a scene folder the meta-info files do not list (an interrupted append)")
+                shutil.rmtree(d)
 
 
 def _rgb_exr(path: Path, a: np.ndarray) -> None:
@@ -57,33 +112,64 @@ def rdg_buffer(clip, frame: int, level: str, name: str) -> np.ndarray:
     return a @ r.T
 
 
-def export_rdg(sources, out, *, progress=None) -> dict:
-    """Write every clip of ``sources`` in RDG's layout under ``out``; returns {scene: [RDG buffers written]}."""
+def _export_scene(clip, frames: list[int], work: Path, scene: str, bufs: list[str]) -> None:
+    roots = {"hr": work / "GT"}
+    for sc in clip.scales:
+        lvl = clip.level_at(sc)
+        roots[lvl] = work / ("LR" if lvl == "lr" else f"LR_x{sc:g}")
+    for j, f in enumerate(frames):
+        for lvl, root in roots.items():
+            base = root / scene
+            img = np.round(cv.srgb_encode(rdg_buffer(clip, f, lvl, "Image")) * 255).astype(np.uint8)
+            write_png(base / "Image" / f"{j:03d}.png", img)
+            for b in bufs:
+                _rgb_exr(base / b / f"{j:03d}.exr", rdg_buffer(clip, f, lvl, b))
+
+
+def export_rdg(sources, out, options: ExportOptions = ExportOptions()) -> dict:
+    """Write every clip of ``sources`` in RDG's layout under ``out`` (one scene per clip, or per contiguous run of
+    a clip with missing frames), by the output rules of ``formats.output``; returns {scene: [RDG buffers
+    written]}. A clip lacking a buffer RDG's shipped configs read is exported with a warning naming them."""
+    options.validate()
     out = Path(out)
-    written, train, test = {}, [], []
-    for i, c in enumerate(source_clips(sources)):
-        clip = open_clip(c)
-        scene = clip.path.name if clip.path.name not in written else f"{clip.path.name}_{i}"
-        have = set(clip.manifest.get("buffers", ()))
-        bufs = [b for b, src in BUFFER_MAP.items() if src in have]
-        roots = {"hr": out / "GT"}
-        for s in clip.scales:
-            lvl = clip.level_at(s)
-            roots[lvl] = out / ("LR" if lvl == "lr" else f"LR_x{s:g}")
-        frames = sorted(clip.frames)
-        for j, f in enumerate(frames):
-            for lvl, root in roots.items():
-                base = root / scene
-                img = np.round(cv.srgb_encode(rdg_buffer(clip, f, lvl, "Image")) * 255).astype(np.uint8)
-                write_png(base / "Image" / f"{j:03d}.png", img)
-                for b in bufs:
-                    _rgb_exr(base / b / f"{j:03d}.exr", rdg_buffer(clip, f, lvl, b))
-        train.append(f"{scene} {len(frames)} 0 0")
-        test.append(f"{scene} {len(frames)} 0")
-        written[scene] = bufs
-        if progress:
-            progress(c, scene)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "meta_info_train.txt").write_text("\n".join(train) + "\n")
-    (out / "meta_info_test.txt").write_text("\n".join(test) + "\n")
+    target = Target(out, sources, options.mode, is_export=is_rdg_export, fmt="rdg")
+    clips = [open_clip(p) for p in source_clips(sources)]
+    if not clips:
+        raise RdgError(f"{', '.join(map(str, sources))}: no finished clips to export")
+    for clip in clips:
+        if not clip.frames:
+            raise RdgError(f"{clip.path}: no finished frames")
+        if "radiance" not in clip.buffers:
+            raise RdgError(f"{clip.path}: RDG needs the radiance buffer (clip has {', '.join(clip.buffers)})")
+    train, test = [], []
+    if target.appending:
+        train, test = read_meta(out)
+        remove_orphan_scenes(out, {ln.split()[0] for ln in train + test})
+        clean_temp_files(out)
+    taken = {ln.split()[0] for ln in train + test}
+    written: dict[str, list[str]] = {}
+    with target:
+        for clip in clips:
+            bufs = [b for b, src in BUFFER_MAP.items() if src in clip.buffers]
+            lacking = [f"{b} ({BUFFER_MAP[b]})" for b in CONFIG_BUFFERS if b not in bufs]
+            if lacking:
+                log.warning(f"{clip.path}: lacks {', '.join(lacking)}, which RDG's shipped configs read "
+                            "(use_lq_*: true); render it with --buffers all or --for-models rdg")
+            runs = frame_runs(clip.frames)
+            if len(runs) > 1:
+                log.warning(f"{clip.path}: frames missing between {', '.join(f'{r[0]}-{r[-1]}' for r in runs)}: "
+                            f"exported as {len(runs)} scenes")
+            raw = clip.path.resolve().name
+            for run in runs:
+                scene = scene_name(raw if len(runs) == 1 else f"{raw}_f{run[0]}", taken)
+                taken.add(scene)
+                _export_scene(clip, run, target.work, scene, bufs)
+                train.append(f"{scene} {len(run)} 0 0")
+                test.append(f"{scene} {len(run)} 0")
+                written[scene] = bufs
+            if options.progress:
+                options.progress(clip.path, scene)
+        (target.work / META_TRAIN).write_text("\n".join(train) + "\n")
+        (target.work / META_TEST).write_text("\n".join(test) + "\n")
+        target.commit(last=(META_TRAIN, META_TEST))
     return written

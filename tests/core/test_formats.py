@@ -64,6 +64,10 @@ def test_view_projection_agrees_with_blendsr_projection():
     xs, ys = project(pts_cam, k)
     assert np.allclose((ndc[..., 0] + 1) / 2 * w, xs) and np.allclose((1 - ndc[..., 1]) / 2 * h, ys)
     assert np.allclose(ndc[..., 2], cv.view_depth_to_device(depth, n, f))
+    rev = cv.view_projection(wfc, k, w, h, n, f, reverse_z=True)  # what the exports write: NDC z = 1 - d
+    crev = np.concatenate([world, np.ones(world.shape[:2] + (1,))], -1) @ rev.T
+    assert np.allclose(crev[..., 2] / crev[..., 3], 1 - cv.view_depth_to_device(depth, n, f))
+    assert np.allclose(crev[..., [0, 1, 3]], clip[..., [0, 1, 3]])
     wfc2, k2 = cv.camera_from_view_projection(vp, w, h)
     assert np.allclose(wfc2, wfc) and np.allclose(k2, k)
     fx, fy = cv.fov(k, w, h)
@@ -158,9 +162,11 @@ def exported_reprojection_error(out, ratio: str | None, j: int, hr_device_depth=
     h, w = d.shape
     xs, ys = pixel_grid(h, w)
     xs, ys = xs + nj["X"] * w, ys + nj["Y"] * h
-    ndc = np.stack([2 * xs / w - 1, 1 - 2 * ys / h, d, np.ones_like(d)], -1)
-    world = ndc @ np.linalg.inv(np.asarray(rec["ViewProjection"]).reshape(4, 4).T).T
-    clip_prev = world @ np.asarray(prev["ViewProjection"]).reshape(4, 4)  # column-major list: rows of VP^T
+    # the matrix's NDC z is 1 - the stored forward-Z depth (reverse-Z, as Arm's NFRU reader reprojects)
+    ndc = np.stack([2 * xs / w - 1, 1 - 2 * ys / h, 1.0 - d, np.ones_like(d)], -1)
+    # Arm's layout (the model gym's readers): reshape row by row to the matrix that multiplies column vectors
+    world = ndc @ np.linalg.inv(np.asarray(rec["ViewProjection"]).reshape(4, 4)).T
+    clip_prev = world @ np.asarray(prev["ViewProjection"]).reshape(4, 4).T
     xp = (clip_prev[..., 0] / clip_prev[..., 3] + 1) / 2 * w
     yp = (1 - clip_prev[..., 1] / clip_prev[..., 3]) / 2 * h
     expected = np.stack([(xs - xp) / w, (ys - yp) / h], -1)  # current - previous, UV
