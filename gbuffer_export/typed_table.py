@@ -25,6 +25,15 @@ from .errors import BlendSRError
 RULE = "blendsr_rule"
 
 
+class _AsDefault:
+    def __repr__(self) -> str:
+        return "AS_DEFAULT"
+
+
+#: ``Rule.legacy`` when data written before the key was made as its default makes it.
+AS_DEFAULT = _AsDefault()
+
+
 class ConfigError(BlendSRError):
     """An invalid configuration value; the message names the key. ``key``: the key's path (``data.crop``), None
     for a message about several keys; ``detail``: the message after the key (a shell may put its flag there)."""
@@ -38,8 +47,13 @@ class ConfigError(BlendSRError):
 class Rule:
     """A key's checks beyond its type. ``lo``/``hi``: inclusive bounds (``lo_open``/``hi_open``: exclusive);
     ``choices``: allowed values; ``items``: allowed items of a list; ``unique``: no repeated item; ``pair``: a
-    ``[low, high]`` with 0 < low <= high (one number x means [x, x]); ``unit``: for the docs; ``why``: appended to
-    a range message."""
+    ``[low, high]`` with 0 < low <= high (one number x means [x, x]); ``why``: appended to a range message.
+
+    What the shells derive from the field (``gbuffer_export.table_shells``): ``help``, what the key means (a CLI
+    flag's help, an add-on property's tooltip, the docs' table); ``unit`` (e.g. "pixels"); ``label``, a panel's short
+    name (default: the key); ``metavar``, the CLI's name of the value; ``shells``, the shells that derive the key
+    from the field (None: every shell of its table; ``()``: each shell writes it by hand); ``legacy``, what data
+    written before the key existed was made with (default: the field's default)."""
 
     lo: float | None = None
     hi: float | None = None
@@ -51,6 +65,11 @@ class Rule:
     pair: bool = False
     unit: str = ""
     why: str = ""
+    help: str = ""
+    label: str = ""
+    metavar: str = ""
+    shells: tuple[str, ...] | None = None
+    legacy: Any = AS_DEFAULT
 
 
 def option(default=dataclasses.MISSING, *, factory=dataclasses.MISSING, **rule) -> Any:
