@@ -141,7 +141,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls, shell: str = "cli") -> N
             kw["action"] = argparse.BooleanOptionalAction
         else:
             kw["type"] = _parser(typ, name)
-            if r.choices is not None:
+            if r.choices is not None and kind_of(typ) != "text":  # a word or a number: checked by the class
                 kw["choices"] = r.choices
             if r.metavar:
                 kw["metavar"] = r.metavar
@@ -217,6 +217,9 @@ def type_text(typ, r: Rule) -> str:
     tail = " or none" if optional else ""
     if r.choices is not None:
         names = [f'"{c}"' if isinstance(c, str) else str(c) for c in r.choices]
+        numbers = [a for a in get_args(inner) if a in (int, float)]  # "auto" | float: the words or a number
+        if numbers and all(isinstance(c, str) for c in r.choices):
+            names.append(type_text(numbers[-1], dataclasses.replace(r, choices=None)))
         return (", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]) + tail
     if r.pair:
         return "[low, high], 0 < low <= high" + tail

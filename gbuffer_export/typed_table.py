@@ -178,7 +178,10 @@ def check(path: str, value, r: Rule, error=ConfigError, prefix: str = ""):
     """``value`` (already typed) against the rule ``r``; returns it (a pair as two floats)."""
     if value is None:
         return value
-    if r.choices is not None and value not in r.choices:
+    numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if r.choices is not None and value not in r.choices and not (numeric and all(isinstance(c, str) for c in
+                                                                                  r.choices)):
+        # (a number where the choices are words: a "word or number" key such as "auto" | float, bounds below)
         raise key_error(path, value, f"choose one of {', '.join(map(str, r.choices))}", error, prefix)
     if r.items is not None:
         for x in value:
