@@ -290,12 +290,11 @@ def render_property_table() -> list[dict]:
 def render_keys_doc() -> str:
     """docs/configuration.md's table of RenderConfig's keys, with where each shell takes them."""
     from .config import CLI, CLIP_PANEL, DATASET_PANEL, SPEC, RenderConfig
-    from .dataset.spec import RENDER_KEYS
 
     def has(shell):
         return lambda name, r: r.shells is None or shell in r.shells
     cols = {"blendsr render": lambda n, r: f"`{flag_of(n)}`" if has(CLI)(n, r) else "by hand",
-            "spec `[render]`": lambda n, r: "yes" if n in RENDER_KEYS else "",
+            "spec `[render]`": lambda n, r: "yes" if has(SPEC)(n, r) or n == "frames" else "",  # RENDER_KEYS
             "add-on": lambda n, r: ", ".join(w for s, w in ((CLIP_PANEL, "clip"), (DATASET_PANEL, "dataset"))
                                              if has(s)(n, r))}
     return markdown_table(RenderConfig, cols)
