@@ -208,7 +208,13 @@ def value_to_text(v) -> str:
 # ----------------------------------------------------------------------------------------------
 
 def _num(x) -> str:
-    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+    """A bound: 1, 0.5, 1e-6."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}".replace("e-0", "e-")
+
+
+def _float(x: float) -> str:
+    """A float default as TOML writes it: 2.0, 0.01, 1e-6."""
+    return f"{x:.1f}" if float(x).is_integer() and abs(x) < 1e15 else _num(x)
 
 
 def type_text(typ, r: Rule) -> str:
@@ -261,17 +267,21 @@ def default_text(v) -> str:
         return "[" + ", ".join(default_text(x) for x in v) + "]"
     if isinstance(v, Path):
         return f'"{v}"'
-    return _num(v) if isinstance(v, (int, float)) else str(v)
+    if isinstance(v, float):
+        return _float(v)
+    return str(v)
 
 
-def markdown_table(cls, where=None) -> str:
-    """The docs' table of ``cls``'s keys: key, type, default, unit, meaning; ``where``: {heading: f(name, rule) ->
-    text} for more columns (e.g. where each shell takes the key)."""
+def markdown_table(cls, where=None, skip=()) -> str:
+    """The docs' table of ``cls``'s keys (but ``skip``): key, type, default, unit, meaning; ``where``: {heading:
+    f(name, rule) -> text} for more columns (e.g. where each shell takes the key)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     where = where or {}
     head = ["key", "type", "default", "unit", "meaning", *where]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, (typ, r) in fields_of(cls).items():
+        if name in skip:
+            continue
         cells = [f"`{name}`", type_text(typ, r), default_text(default_of(fields[name])), r.unit, r.help,
                  *(f(name, r) for f in where.values())]
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
