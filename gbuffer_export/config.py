@@ -184,8 +184,6 @@ class RenderConfig:
     max_bounces: int | None = option(None, lo=0, shells=(CLI,), label="Max bounces",
                                      help="override the scene's total light bounces (none: the scene's own)")
     threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL), help="render threads (0 = all cores)")
-    trial_gain: str | float = option("auto", choices=("auto",), lo=0, lo_open=True, label="Trial gain",
-                                     help="trial key: Cycles' film exposure multiplier (auto: 1)")
     progress: bool = option(True, shells=(), help="a progress bar")
     extra: dict = option(factory=dict, shells=(), help="what a shell adds for the scene (a dataset clip's region, "
                                                        "camera index and light variation)")

@@ -182,7 +182,7 @@ def base_settings(scene, view_layer, cfg: RenderConfig) -> dict:
     s.exr_codec = "ZIP"
     s.use_exr_interleave = False  # old files may set True; one part per pass either way reads the same
     scene.cycles.use_animated_seed = False
-    scene.cycles.film_exposure = 1.0 if cfg.trial_gain == "auto" else cfg.trial_gain
+    scene.cycles.film_exposure = 1.0
     for vl in scene.view_layers:
         vl.use = vl == view_layer
     if cfg.max_bounces is not None:
@@ -475,7 +475,6 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         "render": {
             "engine": "CYCLES", "device": device["device"], "device_names": device["names"],
             "device_requested": device["requested"], "seed": cfg.seed, "jitter": cfg.jitter,
-            "trial_gain": cfg.trial_gain,
             "hr": {"spp": cfg.hr_spp, "denoise": cfg.hr_denoise, "adaptive": cfg.adaptive,
                    "adaptive_threshold": cfg.adaptive_threshold if cfg.adaptive else None,
                    "adaptive_min_samples": cfg.adaptive_min_samples if cfg.adaptive else None,
