@@ -282,7 +282,9 @@ def markdown_table(cls, where=None, skip=()) -> str:
     for name, (typ, r) in fields_of(cls).items():
         if name in skip:
             continue
-        cells = [f"`{name}`", type_text(typ, r), default_text(default_of(fields[name])), r.unit, r.help,
+        meaning = r.help + (f"; data written before the key: {default_text(r.legacy)}" if r.legacy is not AS_DEFAULT
+                            else "")
+        cells = [f"`{name}`", type_text(typ, r), default_text(default_of(fields[name])), r.unit, meaning,
                  *(f(name, r) for f in where.values())]
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(lines)
