@@ -197,13 +197,12 @@ def set_passes(view_layer, plan: PassPlan) -> None:
     for field, row in PASSES.items():
         for switch in row.switches:
             setattr(vl, switch, getattr(plan, field))
+    owned = {switch for row in PASSES.values() for switch in row.switches}  # a pass a row enables is not also off
     for name in ("use_pass_mist", "use_pass_position", "use_pass_uv", "use_pass_ambient_occlusion",
-                 "use_pass_shadow"):
-        if hasattr(vl, name):
-            setattr(vl, name, False)
-    for name in ("use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_glossy_direct",
+                 "use_pass_shadow", "use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_glossy_direct",
                  "use_pass_glossy_indirect", "use_pass_transmission_direct", "use_pass_transmission_indirect"):
-        setattr(vl, name, False)
+        if hasattr(vl, name) and name not in owned:
+            setattr(vl, name, False)
     cyc = vl.cycles
     for name in ("denoising_store_passes", "use_pass_volume_direct", "use_pass_volume_indirect",
                  "use_pass_shadow_catcher"):
