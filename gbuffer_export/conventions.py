@@ -69,7 +69,6 @@ BUFFERS: dict[str, BufferSpec] = {
         BufferSpec("depth", ("Z",), "float32", "view-space depth -Z > 0 in scene units; +inf on background"),
         BufferSpec("roughness", ("Y",), "float32", "Principled roughness in [0, 1] (perceptual, alpha = r^2)"),
         BufferSpec("metallic", ("Y",), "float32", "Principled metallic in [0, 1]"),
-        BufferSpec("ao_trial", ("Y",), "float32", "trial: Cycles' ambient occlusion pass"),
         BufferSpec("specular", ("Y",), "float32",
                    "dielectric F0 = ((ior-1)/(ior+1))^2 * 2 * specular_ior_level, clamped to [0, 1]"),
         BufferSpec("emission", ("R", "G", "B"), "float32",

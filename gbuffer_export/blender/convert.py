@@ -46,7 +46,6 @@ PASSES: dict[str, PassRow] = {
                       lambda b, fbeta: "fbeta" in b and fbeta == "cycles"),
     "emit": PassRow(("use_pass_emit", "use_pass_environment"),  # the environment: the emission buffer's
                     ("Emission", "Environment"), lambda b, fbeta: "emission" in b),  # background pixels
-    "ao": PassRow(("use_pass_ambient_occlusion",), ("Ambient Occlusion",), lambda b, fbeta: "ao_trial" in b),
     "index": PassRow(("use_pass_material_index", "use_pass_object_index"), ("Material Index", "Object Index"),
                      lambda b, fbeta: "flags" in b or "fbeta" in b),
 }
@@ -62,7 +61,6 @@ class PassPlan:
     vector: bool = False
     colors: bool = False
     emit: bool = False
-    ao: bool = False
     index: bool = False
     aovs: tuple[str, ...] = ()
 
@@ -217,7 +215,6 @@ CONVERTERS = {
     **{b: functools.partial(_aov, b) for b in (*mats.AOV_COLOR, *mats.AOV_VALUE)},
     "emission": _emission,
     "fbeta": _fbeta,
-    "ao_trial": lambda src, out: src.passes["Ambient Occlusion"][..., :1],
 }
 
 
