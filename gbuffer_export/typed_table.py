@@ -1,8 +1,9 @@
 """One typed-table helper for every configuration and spec (pure Python, no bpy, no torch).
 
 A table is a dataclass: each field's annotation is its type (``int``, ``float``, ``bool``, ``str``, ``list[X]``,
-``tuple[X, ...]``, ``X | None``; ``Any`` is left to the class) and ``option(...)`` adds its rule (range, choices,
-allowed items, a ``[low, high]`` pair, unit). ``from_table`` parses a TOML table into the dataclass (frozen or not):
+``tuple[X, ...]``, ``X | None``, a word or a number such as ``str | float``; ``Any`` is left to the class) and
+``option(...)`` adds its rule (range, choices, allowed items, a ``[low, high]`` pair) and what the shells derive
+from it (help, unit, label, shells; ``gbuffer_export.table_shells``). ``from_table`` parses a TOML table into the dataclass (frozen or not):
 unknown keys, wrong types and values out of range are one-line errors that name the config key (``data.crop``,
 ``render.hr_spp``); ``set_checked`` checks an instance built in code (``RenderConfig(hr_spp=0)``). Rules that tie
 several keys together stay in the class (``validate``).
