@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from . import render_keys
+
 
 def scene_resolution(scene) -> tuple[int, int]:
     """The scene's render size in pixels (resolution x percentage), as the renderer resolves it."""
@@ -52,24 +54,11 @@ def render_config(settings, scene, *, scene_path: str | Path | None = None, outp
         frames=_frames(frames),
         hr_size=hr_size,
         scale=settings.scale,
-        hr_spp=settings.hr_spp,
-        lr_spp=settings.lr_spp,
-        gbuffer_spp=settings.gbuffer_spp,
-        hr_denoise=settings.hr_denoise,
-        lr_denoise=settings.lr_denoise,
-        adaptive=settings.adaptive,
-        adaptive_threshold=_float32_decimal(settings.adaptive_threshold),
-        adaptive_min_samples=settings.adaptive_min_samples,
         camera_path=settings.camera_path,
-        light=settings.light,
-        device=settings.device,
-        seed=settings.seed,
-        jitter=settings.jitter,
         buffers=settings.buffers,
-        fbeta=settings.fbeta_source,
         max_bounces=settings.max_bounces if settings.use_max_bounces else None,
-        threads=settings.threads,
         progress=False,
+        **render_keys.values(settings, render_keys.CLIP_PANEL),  # the keys derived from RenderConfig's fields
     )
 
 
@@ -158,9 +147,8 @@ def dataset_spec_dict(ds, stem: str) -> dict:
     scales = parse_scales(ds.scales)
     models = model_buffers(ds)
     render = {"frames": ds.frames, "hr_size": f"{ds.hr_width}x{ds.hr_height}", "scale": scales[0],
-              "hr_spp": ds.hr_spp, "lr_spp": ds.lr_spp, "gbuffer_spp": ds.gbuffer_spp, "hr_denoise": ds.hr_denoise,
-              "lr_denoise": ds.lr_denoise, "jitter": ds.jitter,
-              "buffers": list(models) if models else ds.buffers.strip() or "default", "fbeta": ds.fbeta_source}
+              "buffers": list(models) if models else ds.buffers.strip() or "default",
+              **render_keys.values(ds, render_keys.DATASET_PANEL)}  # the keys derived from RenderConfig's fields
     if len(scales) > 1:
         render["scales"] = scales
     src = {"name": "scene", "kind": "scene", "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips,

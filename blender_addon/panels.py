@@ -7,7 +7,7 @@ from pathlib import Path
 
 import bpy
 
-from . import estimate, jobs, library, mapping
+from . import estimate, jobs, library, mapping, render_keys
 from .prefs import Prefs
 
 
@@ -58,8 +58,9 @@ def draw_blendsr(layout, context) -> None:
     _draw_sampling(layout.box(), s)
     box = layout.box()
     box.label(text="Camera and buffers", icon="CAMERA_DATA")
-    for key in ("camera_path", "light", "device", "jitter", "buffers", "fbeta_source"):
+    for key in CLIP_CAMERA_KEYS:
         box.prop(s, key)
+    _draw_more(layout, s, render_keys.CLIP_PANEL, CLIP_PLACED)
     _draw_summary(layout.box(), "Export summary", st, lambda: summary(context))
     _draw_job(layout, st, "export", "Exporting", "blendsr.export_dataset", "EXPORT")
     row = layout.row()
@@ -68,6 +69,26 @@ def draw_blendsr(layout, context) -> None:
     if s.last_export:
         layout.label(text=f"Last export: {s.last_export}")
     _draw_preview(layout.box(), s, st, prefs)
+
+
+#: Where the clip settings' render keys are drawn; a key derived from RenderConfig that none of these places is drawn
+#: under "More render settings" (``_draw_more``), so a new key shows up before it is given a place.
+SPP_KEYS = ("hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise")
+CLIP_CAMERA_KEYS = ("camera_path", "light", "device", "jitter", "buffers", "fbeta_source", "hr_fbeta")
+CLIP_PLACED = {*SPP_KEYS, *CLIP_CAMERA_KEYS, "adaptive", "adaptive_threshold", "adaptive_min_samples", "seed",
+               "threads"}
+DATASET_BUFFER_KEYS = ("jitter", "fbeta_source", "hr_fbeta", "buffers", "for_models")
+DATASET_PLACED = {*SPP_KEYS, *DATASET_BUFFER_KEYS, "light", "device", "threads"}
+
+
+def _draw_more(layout, s, shell: str, placed) -> None:
+    """The render keys ``shell`` derives that the panel does not place (none: nothing drawn)."""
+    rest = [render_keys.prop_name(k) for k in render_keys.keys(shell) if render_keys.prop_name(k) not in placed]
+    if rest:
+        box = layout.box()
+        box.label(text="More render settings", icon="PREFERENCES")
+        for key in rest:
+            box.prop(s, key)
 
 
 def _draw_frames(box, s) -> None:
@@ -85,11 +106,11 @@ def _draw_frames(box, s) -> None:
 def _draw_spp(box, s) -> None:
     """Samples and denoising: the clip settings and the Dataset settings share these keys."""
     col = box.column(align=True)
-    for key in ("hr_spp", "lr_spp", "gbuffer_spp"):
+    for key in SPP_KEYS[:3]:
         col.prop(s, key)
     row = box.row()
-    row.prop(s, "hr_denoise")
-    row.prop(s, "lr_denoise")
+    for key in SPP_KEYS[3:]:
+        row.prop(s, key)
 
 
 def _draw_sampling(box, s) -> None:
@@ -236,8 +257,9 @@ def draw_dataset(layout, context) -> None:
     box = layout.box()
     box.label(text="Sampling and buffers", icon="RENDER_STILL")
     _draw_spp(box, ds)
-    for key in ("jitter", "fbeta_source", "buffers", "for_models"):
+    for key in DATASET_BUFFER_KEYS:
         box.prop(ds, key)
+    _draw_more(layout, ds, render_keys.DATASET_PANEL, DATASET_PLACED)
     box = layout.box()
     box.label(text="Light variation (per clip, recorded)", icon="LIGHT_SUN")
     for switch, lo, hi in (("vary_world", "world_strength_min", "world_strength_max"),

@@ -1,31 +1,19 @@
 """``Scene.blendsr``: the panel's settings, one property per option of ``blendsr render`` (same defaults as the
-CLI), the preview's inputs, and the last preview's read-only results."""
+CLI), the preview's inputs, and the last preview's read-only results. The render keys are derived from
+``RenderConfig``'s fields (``render_keys``: added to each class below); the settings written here are the ones
+the add-on parses itself (frames, size, scale, camera path, buffers) or that are not render keys."""
 from __future__ import annotations
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+
+from .render_keys import CLIP_PANEL, DATASET_PANEL, properties, render_property
 
 CAMERA_PATH_ITEMS = (
     ("scene", "Scene", "The file's own (animated) scene camera"),
     ("orbit", "Orbit", "A generated, seeded orbit framed from the scene bounds"),
     ("walk", "Walk", "A generated, seeded walk through the level (eye 1.6 m above the floor)"),
     ("fly", "Fly", "A generated, seeded free flight through the level"),
-)
-LIGHT_ITEMS = (
-    ("scene", "Scene", "The file's own lights (refused when the scene is unlit)"),
-    ("sky", "Sky", "Add a seeded sun and sky"),
-)
-DEVICE_ITEMS = tuple((d, d.upper() if d != "auto" else "Auto", f"Cycles device {d}")
-                     for d in ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"))
-JITTER_ITEMS = (
-    ("none", "None", "LR frames are not jittered"),
-    ("halton", "Halton", "Sub-pixel jitter of the LR frames, Halton(2, 3) with period 16, in LR pixels"),
-)
-FBETA_ITEMS = (
-    ("cycles", "Cycles", "Pre-integrated BRDF from Cycles' Diffuse + Glossy + Transmission Color passes"),
-    ("lut", "Split-sum table", "Split-sum table (image-based-lighting convention)"),
-    ("lut-paper", "Papers' table", "The papers' literal table convention"),
-    ("model", "Model", "A model of Cycles' Principled BSDF"),
 )
 #: Models the preview runs when no checkpoint is chosen: the weights shipped with blendsr (training/pretrained.py;
 #: their datasets in training/weights/*.json) and the non-learned models of training.models.MODELS.
@@ -81,21 +69,10 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
     scales: StringProperty(name="Scales", default="4",
                            description="Integer upscaling factors, comma-separated; each scale is a source of "
                                        "its own (its own clips, one LR level each)")
-    hr_spp: IntProperty(name="HR samples", default=64, min=1, description="Samples per pixel of the HR ground truth")
-    lr_spp: IntProperty(name="LR samples", default=4, min=1, description="Samples per pixel of the LR render")
-    gbuffer_spp: IntProperty(name="G-buffer samples", default=4, min=1,
-                             description="Samples per pixel of the HR G-buffer pass")
-    hr_denoise: BoolProperty(name="Denoise HR", default=False,
-                             description="Denoise the HR ground truth with OpenImageDenoise")
-    lr_denoise: BoolProperty(name="Denoise LR", default=False,
-                             description="Denoise the LR render with OpenImageDenoise")
-    jitter: EnumProperty(name="Jitter", items=JITTER_ITEMS, default="halton", description="Sub-pixel jitter of LR")
     buffers: StringProperty(name="Buffers", default="default",
                             description="Comma-separated buffers, 'default' or 'all' (For models overrides it)")
-    fbeta_source: EnumProperty(name="F_beta source", items=FBETA_ITEMS, default="cycles",
-                               description="Source of the pre-integrated BRDF")
-    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of every clip")
-    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
+    light: render_property("light")  # the source's light (a [[source]] key), RenderConfig's choices and default
+    device: render_property("device")  # the run's device (blendsr dataset --device)
     for_models: StringProperty(name="For models", default="",
                                description="Render only the buffers these models read (comma-separated model "
                                            "names, as --for-models); empty: the Buffers setting")
@@ -145,36 +122,15 @@ class BlendSRSettings(bpy.types.PropertyGroup):
                            description="HR (target) height in pixels; divisible by the scale")
     scale: IntProperty(name="Scale", default=4, min=1, max=16, description="Integer upscaling factor; LR = HR / scale")
     # -- sampling ----------------------------------------------------------------------------------------------
-    hr_spp: IntProperty(name="HR samples", default=64, min=1, description="Samples per pixel of the HR ground truth")
-    lr_spp: IntProperty(name="LR samples", default=4, min=1, description="Samples per pixel of the LR render")
-    gbuffer_spp: IntProperty(name="G-buffer samples", default=4, min=1,
-                             description="Samples per pixel of the HR G-buffer pass (within 0.01 px of the centre)")
-    hr_denoise: BoolProperty(name="Denoise HR", default=False,
-                             description="Denoise the HR ground truth with OpenImageDenoise")
-    lr_denoise: BoolProperty(name="Denoise LR", default=False,
-                             description="Denoise the LR render with OpenImageDenoise")
-    adaptive: BoolProperty(name="Adaptive HR", default=False,
-                           description="Adaptive sampling for the HR ground truth (HR samples become the maximum)")
-    adaptive_threshold: FloatProperty(name="Noise threshold", default=0.01, min=0.0, max=0.999, precision=4,
-                                      description="Cycles' adaptive noise threshold")
-    adaptive_min_samples: IntProperty(name="Min samples", default=0, min=0,
-                                      description="Adaptive minimum samples (0 = automatic)")
     use_max_bounces: BoolProperty(name="Override bounces", default=False,
                                   description="Override the scene's total light bounces")
     max_bounces: IntProperty(name="Max bounces", default=12, min=0, description="Total light bounces")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of camera paths and Cycles noise")
-    threads: IntProperty(name="Threads", default=0, min=0, description="Render threads (0 = all cores)")
     # -- buffers and camera --------------------------------------------------------------------------------------
-    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of the export")
-    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
     camera_path: EnumProperty(name="Camera path", items=CAMERA_PATH_ITEMS, default="scene",
                               description="Camera of the clip")
-    jitter: EnumProperty(name="Jitter", items=JITTER_ITEMS, default="halton", description="Sub-pixel jitter of LR")
     buffers: StringProperty(name="Buffers", default="default",
                             description="Comma-separated buffers to write, 'default' or 'all'; radiance is always "
                                         "written")
-    fbeta_source: EnumProperty(name="F_beta source", items=FBETA_ITEMS, default="cycles",
-                               description="Source of the pre-integrated BRDF")
     # -- preview -------------------------------------------------------------------------------------------------
     checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", default="",
                                description="Trained model checkpoint; empty: the non-learned model below")
@@ -198,6 +154,11 @@ class BlendSRSettings(bpy.types.PropertyGroup):
                                 description="Outcome of the last export")
     # -- dataset of the open scene (the Dataset subpanel) ---------------------------------------------------------
     dataset: bpy.props.PointerProperty(type=BlendSRDatasetSettings, name="Dataset")
+
+
+#: The render keys of RenderConfig each group derives (types, defaults, ranges, labels, help: render_keys.json).
+BlendSRSettings.__annotations__.update(properties(CLIP_PANEL))
+BlendSRDatasetSettings.__annotations__.update(properties(DATASET_PANEL))
 
 
 def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str) -> None:

@@ -6,7 +6,7 @@ their place (``gbuffer_export.commands.render``)."""
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -107,6 +107,10 @@ def check_builtin_frames(frames: tuple[int, int] | None) -> None:
         raise ConfigError(f"frames {detail}", key="frames", detail=detail)
 
 
+#: The shells that derive a key from its field (``Rule.shells``; gbuffer_export.table_shells).
+CLI, SPEC, CLIP_PANEL, DATASET_PANEL = "cli", "spec", "clip_panel", "dataset_panel"
+SHELLS = (CLI, SPEC, CLIP_PANEL, DATASET_PANEL)
+
 #: Why the sample counts stop at MAX_SPP (appended to their range message).
 _SPP_CAP = "(Cycles' cap on samples per pixel)"
 
@@ -116,36 +120,73 @@ class RenderConfig:
     """Everything ``render_clip`` needs. Sizes in pixels, sample counts per pixel, adaptive threshold is
     Cycles' noise threshold (0 = automatic)."""
 
-    output: Path
-    scene: Path | None = None              # None: the built-in default scene
-    frames: tuple[int, int] | None = None  # inclusive; None: the scene's range
-    hr_size: tuple[int, int] | None = None  # (W, H); None: the scene's resolution
-    scale: int | float = 4                  # LR = HR / scale (the level 'lr')
-    scales: tuple[float, ...] | None = None  # one LR level per scale, the first is 'lr'; None: (scale,)
-    hr_spp: int = option(64, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
-    lr_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
-    gbuffer_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel")
-    hr_denoise: bool = False
-    lr_denoise: bool = False
-    adaptive: bool = False
-    adaptive_threshold: float = option(0.01, lo=0, hi=1, hi_open=True)
-    adaptive_min_samples: int = option(0, lo=0)
-    camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
-    light: str = option("scene", choices=LIGHTS)  # scene: as the file is (refused when unlit); sky: a sun and sky
-    device: str = option("auto", choices=DEVICES)  # Cycles device: auto picks a GPU when Cycles sees one
-    seed: int = 0
-    jitter: str = option("halton", choices=JITTERS)
-    buffers: tuple[str, ...] = DEFAULT_BUFFERS
-    fbeta: str = option("cycles", choices=FBETA_SOURCES)
-    hr_fbeta: str = option("footprint", choices=HR_FBETA)  # HR F_beta of 'cycles': pixel-filtered (footprint,
-                                     # the shipped weights' data since 2026-11-26) or point-sampled (point, before)
-    shard: tuple[int, int] = (1, 1)
-    only_frames: tuple[int, ...] | None = None  # render only these frames of the range (camera path and jitter
-                                                # indices stay the range's); None: every frame of the shard
-    max_bounces: int | None = option(None, lo=0)  # None: the scene's own light paths
-    threads: int = option(0, lo=0)                # 0: all cores
-    progress: bool = True
-    extra: dict = field(default_factory=dict)
+    # Each key's option(...) holds its type rule, default, help, unit and the shells that derive it (``CLI``:
+    # ``blendsr render``'s flag; ``SPEC``: a dataset spec's ``[render]`` key; ``CLIP_PANEL``/``DATASET_PANEL``: the
+    # add-on's clip and dataset settings). ``shells=()``: every shell writes the key by hand (a parsed value such as
+    # ``frames``, or one the job supplies). Adding a key here adds it to each shell (gbuffer_export.table_shells).
+    output: Path = option(help="clip directory to create or resume", shells=())
+    scene: Path | None = option(None, shells=(), help="the scene: .blend, .gltf/.glb or .usd* (kept as it is: world, "
+                                "lights, materials, animation); None: the built-in default scene")
+    frames: tuple[int, int] | None = option(None, shells=(), metavar="A:B", help="inclusive frame range; None: the "
+                                            "scene's range (built-in scene: 1:48, at most 1:1000)")
+    hr_size: tuple[int, int] | None = option(None, shells=(SPEC,), metavar="WxH", unit="pixels",
+                                             help="HR (target) resolution in pixels; None: the scene's "
+                                                  "resolution (default scene: 640x360)")
+    scale: int | float = option(4, shells=(SPEC,), help="upscaling factor of the level 'lr'; LR = HR / scale")
+    scales: tuple[float, ...] | None = option(
+        None, shells=(SPEC,), metavar="S1,S2,...",
+        help="several LR levels, one LR render each (numbers >= 1 such as 2,2.5,4, where HR width and height divided "
+             "by each are integers): the first is the level 'lr', the others 'lr_x<s>'; replaces scale")
+    hr_spp: int = option(64, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel", label="HR samples",
+                         help="samples per pixel of the HR ground truth")
+    lr_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel", label="LR samples",
+                         help="samples per pixel of the LR render")
+    gbuffer_spp: int = option(4, lo=1, hi=MAX_SPP, why=_SPP_CAP, unit="samples per pixel", label="G-buffer samples",
+                              help="samples per pixel of the HR G-buffer pass (all within 0.01 px of the pixel "
+                                   "centre)")
+    hr_denoise: bool = option(False, label="Denoise HR", help="denoise the HR ground truth with OpenImageDenoise")
+    lr_denoise: bool = option(False, label="Denoise LR", help="denoise the LR render with OpenImageDenoise (as a "
+                                                               "real-time denoiser would)")
+    adaptive: bool = option(False, shells=(CLI, CLIP_PANEL), label="Adaptive HR",
+                            help="adaptive sampling for the HR ground truth (hr_spp becomes the maximum)")
+    adaptive_threshold: float = option(0.01, lo=0, hi=1, hi_open=True, shells=(CLI, CLIP_PANEL),
+                                       label="Noise threshold", help="Cycles' adaptive noise threshold")
+    adaptive_min_samples: int = option(0, lo=0, shells=(CLI, CLIP_PANEL), label="Min samples",
+                                       unit="samples per pixel", help="adaptive minimum samples (0 = automatic)")
+    camera_path: str = option("scene", shells=(CLI,), metavar="KIND", label="Camera path", help=(
+        "scene: the file's active camera; scene:NAME: the camera NAME; scene:*: the active camera, else the first by "
+        "name; walk: an eye 1.6 m above the floor walking at 1.4 m/s inside the level; fly: a free path at 3 m/s "
+        "inside the level (both keep 0.25 m from every triangle and look at content; docs/rendering.md); orbit: an "
+        "arc around the scene's bounds (the built-in scene's walk is a loop framed from its bounds)"))
+    light: str = option("scene", choices=LIGHTS, shells=(CLI, CLIP_PANEL),
+                        help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
+                             "physical sky, sun direction drawn from seed (recorded in the manifest)")
+    device: str = option("auto", choices=DEVICES, shells=(CLI, CLIP_PANEL),
+                         help="Cycles device: auto uses a GPU when Cycles sees one (OptiX, CUDA, HIP, Metal, oneAPI), "
+                              "else the CPU; the device and its name go into the manifest")
+    seed: int = option(0, shells=(CLI, CLIP_PANEL), help="seed of the default scene, camera paths and Cycles noise")
+    jitter: str = option("halton", choices=JITTERS,
+                         help="sub-pixel jitter of the LR frames (Halton 2,3, period 16), in LR pixels")
+    buffers: tuple[str, ...] = option(DEFAULT_BUFFERS, shells=(SPEC,), help=(
+        "the buffers to write: names, 'default' or 'all' (docs/clip-format.md); radiance is always written"))
+    fbeta: str = option("cycles", choices=FBETA_SOURCES, label="F_beta source", help=(
+        "source of the pre-integrated BRDF: Cycles' colour passes, the split-sum table (lut), the papers' literal "
+        "table (lut-paper), or a model of Cycles' Principled BSDF"))
+    hr_fbeta: str = option("footprint", choices=HR_FBETA, label="HR F_beta", legacy="point", help=(
+        "HR F_beta of fbeta cycles: the colour passes filtered like the ground truth (footprint: no sub-pixel texture "
+        "in L_D; the shipped weights' data) or point-sampled like the other G-buffers (point: every clip before "
+        "2026-11-26)"))
+    shard: tuple[int, int] = option((1, 1), shells=(), metavar="K/N",
+                                    help="render every N-th frame starting with the K-th")
+    only_frames: tuple[int, ...] | None = option(None, shells=(), help=(
+        "render only these frames of the range (camera path and jitter indices stay the range's); None: every frame "
+        "of the shard"))
+    max_bounces: int | None = option(None, lo=0, shells=(CLI,), label="Max bounces",
+                                     help="override the scene's total light bounces (none: the scene's own)")
+    threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL), help="render threads (0 = all cores)")
+    progress: bool = option(True, shells=(), help="a progress bar")
+    extra: dict = option(factory=dict, shells=(), help="what a shell adds for the scene (a dataset clip's region, "
+                                                       "camera index and light variation)")
 
     def __post_init__(self):
         self.output = Path(self.output)

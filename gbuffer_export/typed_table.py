@@ -1,8 +1,9 @@
 """One typed-table helper for every configuration and spec (pure Python, no bpy, no torch).
 
 A table is a dataclass: each field's annotation is its type (``int``, ``float``, ``bool``, ``str``, ``list[X]``,
-``tuple[X, ...]``, ``X | None``; ``Any`` is left to the class) and ``option(...)`` adds its rule (range, choices,
-allowed items, a ``[low, high]`` pair, unit). ``from_table`` parses a TOML table into the dataclass (frozen or not):
+``tuple[X, ...]``, ``X | None``, a word or a number such as ``str | float``; ``Any`` is left to the class) and
+``option(...)`` adds its rule (range, choices, allowed items, a ``[low, high]`` pair) and what the shells derive
+from it (help, unit, label, shells; ``gbuffer_export.table_shells``). ``from_table`` parses a TOML table into the dataclass (frozen or not):
 unknown keys, wrong types and values out of range are one-line errors that name the config key (``data.crop``,
 ``render.hr_spp``); ``set_checked`` checks an instance built in code (``RenderConfig(hr_spp=0)``). Rules that tie
 several keys together stay in the class (``validate``).
@@ -25,6 +26,15 @@ from .errors import BlendSRError
 RULE = "blendsr_rule"
 
 
+class _AsDefault:
+    def __repr__(self) -> str:
+        return "AS_DEFAULT"
+
+
+#: ``Rule.legacy`` when data written before the key was made as its default makes it.
+AS_DEFAULT = _AsDefault()
+
+
 class ConfigError(BlendSRError):
     """An invalid configuration value; the message names the key. ``key``: the key's path (``data.crop``), None
     for a message about several keys; ``detail``: the message after the key (a shell may put its flag there)."""
@@ -38,8 +48,13 @@ class ConfigError(BlendSRError):
 class Rule:
     """A key's checks beyond its type. ``lo``/``hi``: inclusive bounds (``lo_open``/``hi_open``: exclusive);
     ``choices``: allowed values; ``items``: allowed items of a list; ``unique``: no repeated item; ``pair``: a
-    ``[low, high]`` with 0 < low <= high (one number x means [x, x]); ``unit``: for the docs; ``why``: appended to
-    a range message."""
+    ``[low, high]`` with 0 < low <= high (one number x means [x, x]); ``why``: appended to a range message.
+
+    What the shells derive from the field (``gbuffer_export.table_shells``): ``help``, what the key means (a CLI
+    flag's help, an add-on property's tooltip, the docs' table); ``unit`` (e.g. "pixels"); ``label``, a panel's short
+    name (default: the key); ``metavar``, the CLI's name of the value; ``shells``, the shells that derive the key
+    from the field (None: every shell of its table; ``()``: each shell writes it by hand); ``legacy``, what data
+    written before the key existed was made with (default: the field's default)."""
 
     lo: float | None = None
     hi: float | None = None
@@ -51,6 +66,11 @@ class Rule:
     pair: bool = False
     unit: str = ""
     why: str = ""
+    help: str = ""
+    label: str = ""
+    metavar: str = ""
+    shells: tuple[str, ...] | None = None
+    legacy: Any = AS_DEFAULT
 
 
 def option(default=dataclasses.MISSING, *, factory=dataclasses.MISSING, **rule) -> Any:
@@ -159,7 +179,10 @@ def check(path: str, value, r: Rule, error=ConfigError, prefix: str = ""):
     """``value`` (already typed) against the rule ``r``; returns it (a pair as two floats)."""
     if value is None:
         return value
-    if r.choices is not None and value not in r.choices:
+    numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if r.choices is not None and value not in r.choices and not (numeric and all(isinstance(c, str) for c in
+                                                                                  r.choices)):
+        # (a number where the choices are words: a "word or number" key such as "auto" | float, bounds below)
         raise key_error(path, value, f"choose one of {', '.join(map(str, r.choices))}", error, prefix)
     if r.items is not None:
         for x in value:

@@ -38,25 +38,35 @@ FFT_LOSSES = ("ortho", "rfft")
 class DataConfig:
     """What the loader feeds. Crop sizes are in LR pixels (the HR crop is ``scale`` times larger)."""
 
-    clips: list[str] = field(default_factory=list)   # clip directories (the CLI's --data adds to these)
-    crop: int = option(64, lo=1, unit="LR pixels")  # LR crop side
-    batch_size: int = option(8, lo=1)  # per process
-    augment_flip: bool = True        # random horizontal/vertical flips
-    augment_rotate: bool = True      # random 90-degree rotations (transpose)
-    exposure_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True)  # log-uniform radiance scale
-    reflectance_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True)  # log-uniform BRDF scale
-    demod_eps: float = option(0.01, lo=1e-6, hi=1)  # floor of F_beta in L_D = (I - E) / max(F_beta, eps)
-    nonfinite: str = option("error", choices=NONFINITE_POLICIES)  # NaN/Inf in a buffer: 'error' (name file and
-                                     # frame) or 'sanitize' (warn)
-    cache_dir: str = ""              # '' : CLIP/.blendsr_cache ; else DIR/<clip-name>-<path-hash>
-    prefetch: int = option(2, lo=0)  # batches prepared ahead in a background thread (0: none); per worker with workers
-    workers: int = option(0, lo=0, hi=64)  # loader processes (0: the prefetch thread); batches the same either way
-    pin_memory: bool = True          # with workers on CUDA: page-locked batches, asynchronous copies to the GPU
-    val_frames: int = option(0, lo=0)  # last N frames of each clip held out from training (evaluated at the end)
-    val_clips: list[str] = field(default_factory=list)  # whole clips never trained on, evaluated at the end and
-                                     # every run.eval_every steps (--data DATASET fills it with the val split)
-    window: int = option(0, lo=0, hi=64)  # recurrent models: frames per training window, a target each (0: 7)
-    detach_every: int = option(0, lo=0)  # recurrent models: detach the state every N frames of a window (0: never)
+    clips: list[str] = option(factory=list, help=(
+        "clip directories (paths); `--data` sets them (a dataset folder gives its train split)"))
+    crop: int = option(64, lo=1, unit="LR pixels", help=(
+        "LR crop side, pixels. The default shrinks to the smallest LR side of the clips (with a note); another "
+        "value that does not fit is an error naming the largest that does"))
+    batch_size: int = option(8, lo=1, help="per process")
+    augment_flip: bool = option(True, help="random horizontal and vertical flips")
+    augment_rotate: bool = option(True, help="random 90-degree rotations (transposes)")
+    exposure_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True, help=(
+        "log-uniform scale of radiance, irradiance and emission"))
+    reflectance_range: list[float] = option(factory=lambda: [0.5, 2.0], pair=True, help=(
+        "log-uniform per-channel scale of the BRDF: radiance, emission, albedo, F_beta"))
+    demod_eps: float = option(0.01, lo=1e-6, hi=1, help="floor of F_beta in L_D = (I - E) / max(F_beta, eps)")
+    nonfinite: str = option("error", choices=NONFINITE_POLICIES, help=(
+        "NaN/Inf in a buffer: an error naming file and frame, or a warning and a repair"))
+    cache_dir: str = option("", help=(
+        "decoded-clip cache: \"\" is `CLIP/.blendsr_cache`, else `DIR/<clip name>-<path hash>`"))
+    prefetch: int = option(2, lo=0, help="batches prepared ahead in a background thread (per worker with `workers`)")
+    workers: int = option(0, lo=0, hi=64, help=(
+        "loader processes (0: the prefetch thread); the batches are the same either way"))
+    pin_memory: bool = option(True, help="with workers on CUDA: page-locked batches, asynchronous copies")
+    val_frames: int = option(0, lo=0, help="last N frames of each clip held out of training and evaluated at the end")
+    val_clips: list[str] = option(factory=list, help=(
+        "whole clips never trained on, evaluated at the end and every `run.eval_every` steps; `--data DATASET` "
+        "fills it with the val split"))
+    window: int = option(0, lo=0, hi=64, help=(
+        "recurrent models (`recurrent = True` on the class: `rdg`, `rdg-s`, `nsrd`, `nsrr-fec`, `fourier-sr`): "
+        "frames per training window, a target each (0: 7)"))
+    detach_every: int = option(0, lo=0, help="recurrent models: detach the state every N frames of a window (0: never)")
 
     def validate(self) -> None:
         set_checked(self, "data")
@@ -69,20 +79,31 @@ class ModelConfig:
     the LR level to train on; 0 takes the scales from the clips (every level of theirs for a model that takes any
     scale, ``SRModel.SCALES is None``)."""
 
-    name: str = "fusesr"
-    scale: float = 0                 # 0: from the data
-    history: int = option(-1, lo=-1, hi=4)  # previous frames the model reads (-1: the model's default)
-    input_transform: str = option("log1p", choices=INPUT_TRANSFORMS)  # HDR transform of radiance/irradiance
-                                     # inputs; outputs are inverted
-    depth_norm: str = option("ratio", choices=DEPTH_NORMS)  # 'ratio': d / (d + median_d(frame)); 'inverse':
-                                     # 1 / (1 + d); bg -> 1 / 0
-    jitter: bool = True              # use each LR frame's jitter (all models): aligned upsampling and warping
-    upsample_by_class: bool = True   # demodulated models: bilinear never mixes demodulated and F_used = 1 pixels
-    remod_filter: str = option("REFERENCE", choices=("REFERENCE", "NONE") + FILTERS)  # demodulated models: pixel
-                                     # filter K of SR = K * (L_D F_used + E); REFERENCE: the clips' ground-truth
-                                     # filter (manifest render.hr), NONE: off, or explicit
-    remod_filter_px: float = option(1.5, lo=0, lo_open=True, hi=4, unit="pixels")
-    options: Any = None              # the options of model ``name`` (None: its defaults)
+    name: str = option("fusesr", help="a model name: `blendsr train --list-models` lists them; `--model` sets it")
+    scale: float = option(0, help=(
+        "upscaling factor (a scale >= 1 such as 2, 2.5 or 4); 0: from the clips (all must agree). Training "
+        "writes the clips' scale"))
+    history: int = option(-1, lo=-1, hi=4, help=(
+        "previous frames the model reads; -1: the model's default (`fusesr` 2, `fusesr-l` 0). Read by `fusesr` "
+        "and `fusesr-l`; `fusesr-fast` accepts only -1 and 0; the others read none"))
+    input_transform: str = option("log1p", choices=INPUT_TRANSFORMS, help=(
+        "HDR transform T of the radiance/irradiance inputs; outputs are inverted (`fusesr*`, `rdg*`)"))
+    depth_norm: str = option("ratio", choices=DEPTH_NORMS, help=(
+        "depth input: d / (d + median LR depth of the frame), or 1 / (1 + d); background 1 or 0 (`fusesr*`, "
+        "`rdg*`)"))
+    jitter: bool = option(True, help=(
+        "use each LR frame's sub-pixel jitter: upsampling samples at the jittered positions, history warping "
+        "adds the jitter difference, learned models read it as 2 channels (all models)"))
+    upsample_by_class: bool = option(True, help=(
+        "demodulated models: the bilinear upsampling of L_D never mixes demodulated pixels with F_used = 1 ones"
+        " (background, untrusted flags)"))
+    remod_filter: str = option("REFERENCE", choices=("REFERENCE", "NONE") + FILTERS, help=(
+        "pixel filter K of the remodulation SR = K * (L_D F_used + E) of demodulated models. REFERENCE: the "
+        "clips' ground-truth filter (manifest `render.hr`); training resolves it into the checkpoint. NONE: no "
+        "filter"))
+    remod_filter_px: float = option(1.5, lo=0, hi=4, lo_open=True, unit="pixels", help=(
+        "filter width in pixels (Cycles' `filter_width`) when `remod_filter` names a filter"))
+    options: Any = None  # the options of model ``name`` (None: its defaults)
 
     def __post_init__(self) -> None:
         from training.models import MODELS  # torch-free table
@@ -132,21 +153,25 @@ class ModelConfig:
 class LossConfig:
     """Weights of the loss terms (0 disables a term) and the space the pixel losses compare in."""
 
-    space: str = option("log1p", choices=LOSS_SPACES)  # where SR and ground truth are compared: log1p, tonemap
-                                     # (the metric's), linear
-    pixel: str = option("l1", choices=PIXEL_LOSSES)
-    pixel_weight: float = option(1.0, lo=0)
-    charbonnier_eps: float = option(1e-3, lo=1e-6)  # sqrt(x^2 + eps^2); not below 1e-6 (fp16 gradients)
-    ssim_weight: float = option(0.05, lo=0)  # 1 - SSIM on the tonemapped images (FuseSR: 0.05)
-    fft_weight: float = option(0.0, lo=0)  # L1 of the 2-D FFT difference (frequency loss)
-    fft: str = option("ortho", choices=FFT_LOSSES)  # 'ortho': orthonormal FFT, modulus; 'rfft': unnormalised,
-                                     # |Re| + |Im| (RDG)
-    temporal_weight: float = option(0.0, lo=0)  # temporal consistency term (see temporal)
-    temporal: str = option("warped", choices=TEMPORAL_LOSSES)  # 'warped': L1 of (SR_t - W(SR_t-1)) - (GT_t -
-                                     # W(GT_t-1)), W: warp with HR motion; 'difference': MSE of (SR_t - SR_t-1) -
-                                     # (GT_t - GT_t-1) (RDG's code)
-    perceptual_weight: float = option(0.0, lo=0)  # VGG-16 feature L2 (FuseSR: 0.5); needs vgg_weights
-    vgg_weights: str = ""            # path to torchvision's vgg16-397923af.pth, which you download (docs/training.md)
+    space: str = option("log1p", choices=LOSS_SPACES, help=(
+        "where the pixel, FFT and temporal losses compare SR and ground truth: log1p(max(x, 0)), the evaluation"
+        " tonemap, or linear radiance"))
+    pixel: str = option("l1", choices=PIXEL_LOSSES, help="pixel loss")
+    pixel_weight: float = option(1.0, lo=0, help="weight of the pixel loss")
+    charbonnier_eps: float = option(1e-3, lo=1e-6, help="sqrt(d^2 + eps^2)")
+    ssim_weight: float = option(0.05, lo=0, help="1 - SSIM on the tonemapped images (FuseSR's weight)")
+    fft_weight: float = option(0.0, lo=0, help="frequency loss (`fft`)")
+    fft: str = option("ortho", choices=FFT_LOSSES, help=(
+        "\"ortho\": mean modulus of the orthonormal 2-D FFT difference; \"rfft\": mean of abs(Re) and abs(Im) of "
+        "the unnormalised real FFT difference (RDG's code)"))
+    temporal_weight: float = option(0.0, lo=0, help="temporal consistency (`temporal`)")
+    temporal: str = option("warped", choices=TEMPORAL_LOSSES, help=(
+        "\"warped\": L1 of (SR_t - W(SR_t-1)) - (GT_t - W(GT_t-1)), W the HR backward warp; \"difference\": MSE of "
+        "(SR_t - SR_t-1) - (GT_t - GT_t-1) (RDG's code)"))
+    perceptual_weight: float = option(0.0, lo=0, help="VGG-16 feature distance (FuseSR: 0.5); needs `vgg_weights`")
+    vgg_weights: str = option("", help=(
+        "torchvision's `vgg16-397923af.pth`, which you download (sha256 checked; "
+        "[training.md](training.md#perceptual-loss-the-vgg-16-weights-file)); nothing is downloaded at run time"))
 
     def validate(self) -> None:
         set_checked(self, "loss")
@@ -161,18 +186,21 @@ class LossConfig:
 class OptimConfig:
     """Adam(W) with a learning-rate schedule."""
 
-    lr: float = option(2e-4, lo=0, lo_open=True)
-    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])  # [b1, b2], each in [0, 1)
-    weight_decay: float = option(0.0, lo=0)
-    scheduler: str = option("cosine", choices=SCHEDULERS)  # cosine decay to lr * min_lr_ratio over decay_steps,
-                                     # constant, or step
-    decay_steps: int = option(0, lo=0)  # length of the cosine schedule (0: run.max_steps)
-    warmup_steps: int = option(0, lo=0)
-    min_lr_ratio: float = option(0.01, lo=0)
-    step_every: int = option(10000, lo=1)  # 'step': multiply by step_gamma every N steps
-    step_gamma: float = option(0.5, lo=0)
-    grad_clip: float = option(0.0, lo=0)  # max gradient norm (0: off)
-    ema_decay: float = option(0.0, lo=0, hi=1, hi_open=True)  # moving average of the weights (0: off; e.g. 0.999)
+    lr: float = option(2e-4, lo=0, lo_open=True, help="learning rate")
+    betas: list[float] = option(factory=lambda: [0.9, 0.999], help="Adam betas [b1, b2], each in [0, 1)")
+    weight_decay: float = option(0.0, lo=0, help="AdamW's weight decay (0: Adam)")
+    scheduler: str = option("cosine", choices=SCHEDULERS, help=(
+        "cosine decay to `lr * min_lr_ratio` over `decay_steps`; constant; or times `step_gamma` every "
+        "`step_every` steps"))
+    decay_steps: int = option(0, lo=0, help="length of the cosine schedule (0: `run.max_steps`)")
+    warmup_steps: int = option(0, lo=0, help="linear warm-up")
+    min_lr_ratio: float = option(0.01, lo=0, help="end of the cosine schedule, relative to `lr`")
+    step_every: int = option(10000, lo=1, help="\"step\" scheduler period, steps")
+    step_gamma: float = option(0.5, lo=0, help="\"step\" scheduler factor")
+    grad_clip: float = option(0.0, lo=0, help="maximum gradient norm (0: off)")
+    ema_decay: float = option(0.0, lo=0, hi=1, hi_open=True, help=(
+        "exponential moving average of the weights and buffers (0: off; e.g. 0.999, a horizon of about 1000 "
+        "steps); when on, evaluation, inference, `run.init_from` and shipped weights use the average"))
 
     def validate(self) -> None:
         set_checked(self, "optim")
@@ -184,20 +212,22 @@ class OptimConfig:
 class RunConfig:
     """How long and where to run, and what to record."""
 
-    seed: int = 0
-    max_steps: int = option(20000, lo=1)  # optimiser steps (also the length of the cosine schedule)
-    minutes: float = option(0.0, lo=0)  # wall-clock budget (0: none); stops cleanly with a checkpoint
-    checkpoint_every: int = option(500, lo=1)  # steps
-    keep_checkpoints: int = option(3, lo=0)  # numbered checkpoints kept besides last.pt
-    log_every: int = option(10, lo=1)  # steps between CSV rows
-    device: str = option("auto", choices=DEVICES)  # auto: cuda when available, else cpu
-    amp: str = option("auto", choices=AMP_MODES)  # auto: bf16 on CPU when supported / on GPU when supported,
-                                     # else fp16
-    compile: bool = False            # torch.compile the model
-    threads: int = option(0, lo=0)   # torch intra-op threads (0: torch's default)
-    progress: bool = True            # tqdm progress bar
-    eval_every: int = option(0, lo=0)  # steps between validation runs on held-out frames (0: only at the end)
-    init_from: str = ""              # checkpoint (or pretrained:NAME) whose model weights start a fresh run
+    seed: int = option(0, help="seeds Python, numpy and torch")
+    max_steps: int = option(20000, lo=1, help="optimiser steps; `--max-steps` sets it (and clears `minutes`)")
+    minutes: float = option(0.0, lo=0, help=(
+        "wall-clock budget of this invocation (0: none); stops cleanly with a checkpoint"))
+    checkpoint_every: int = option(500, lo=1, help="steps between checkpoints")
+    keep_checkpoints: int = option(3, lo=0, help="numbered checkpoints kept besides `last.pt`")
+    log_every: int = option(10, lo=1, help="steps between rows of `log.csv`")
+    device: str = option("auto", choices=DEVICES, help="auto: cuda when available")
+    amp: str = option("auto", choices=AMP_MODES, help=(
+        "auto: bf16 where the hardware has it, fp16 on older GPUs, else full precision"))
+    compile: bool = option(False, help="`torch.compile` the model")
+    threads: int = option(0, lo=0, help="torch intra-op threads (0: torch's default)")
+    progress: bool = option(True, help="progress bar")
+    eval_every: int = option(0, lo=0, help="steps between validation runs (0: only at the end)")
+    init_from: str = option("", help=(
+        "checkpoint (a path, or `pretrained:NAME`) whose model weights start a fresh run (fine-tuning)"))
 
     def validate(self) -> None:
         set_checked(self, "run")

@@ -2,7 +2,7 @@
 buffer (``CONVERTERS``), each turning the passes of one level into that buffer in the clip's conventions
 (``gbuffer_export.conventions``, ``docs/clip-format.md``).
 
-A new buffer gets a row in ``CONVERTERS`` (and its passes in ``plan_passes``). A converter is
+A new buffer gets a row in ``CONVERTERS`` (and, when it reads a new kind of Cycles pass, a row in ``PASSES``). A converter is
 ``f(src: LevelPasses, out: dict) -> array``; ``out`` holds the buffers converted before it in table order (F_beta
 reads the G-buffers). ``radiance`` is not here: it is the Combined pass of the level's radiance render.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -22,8 +23,38 @@ BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
 
 
 @dataclass(frozen=True)
+class PassRow:
+    """One kind of Cycles pass: the view-layer switches that enable it (``use_pass_*``), the EXR passes it writes
+    (the names the converters read) and when a render needs it (``needed(buffers, fbeta)``: the requested buffers
+    with those computed from them, ``conventions.computed_buffers``, and the F_beta source)."""
+
+    switches: tuple[str, ...]
+    names: tuple[str, ...]
+    needed: Callable[[frozenset, str], bool]
+
+
+#: The plan's passes (a field of ``PassPlan`` each): enabling a pass (``render.set_passes``) and planning it
+#: (``plan_passes``) come from its one row, as Kubric's table of post-processors does.
+PASSES: dict[str, PassRow] = {
+    "depth": PassRow(("use_pass_z",), ("Depth",),  # every G-buffer's background mask
+                     lambda b, fbeta: bool(b - {"radiance"})),
+    "normal": PassRow(("use_pass_normal",), ("Normal",), lambda b, fbeta: "normal" in b),
+    "vector": PassRow(("use_pass_vector",), ("Vector",),  # one Vector pass holds both motions
+                      lambda b, fbeta: "motion" in b or "motion_next" in b),
+    "colors": PassRow(("use_pass_diffuse_color", "use_pass_glossy_color", "use_pass_transmission_color"),
+                      ("Diffuse Color", "Glossy Color", "Transmission Color"),
+                      lambda b, fbeta: "fbeta" in b and fbeta == "cycles"),
+    "emit": PassRow(("use_pass_emit", "use_pass_environment"),  # the environment: the emission buffer's
+                    ("Emission", "Environment"), lambda b, fbeta: "emission" in b),  # background pixels
+    "index": PassRow(("use_pass_material_index", "use_pass_object_index"), ("Material Index", "Object Index"),
+                     lambda b, fbeta: "flags" in b or "fbeta" in b),
+}
+
+
+@dataclass(frozen=True)
 class PassPlan:
-    """Which Cycles passes a render needs, derived from the requested buffers."""
+    """Which Cycles passes a render needs (one field per row of ``PASSES``), derived from the requested buffers,
+    and the AOVs of the material-derived buffers."""
 
     depth: bool = False
     normal: bool = False
@@ -35,21 +66,13 @@ class PassPlan:
 
     @property
     def any(self) -> bool:
-        return any((self.depth, self.normal, self.vector, self.colors, self.emit, self.index, self.aovs))
+        return any(getattr(self, k) for k in PASSES) or bool(self.aovs)
 
 
 def plan_passes(buffers, fbeta: str, aov_names) -> PassPlan:
     """The passes that the G-buffers in ``buffers`` (and, for a table ``fbeta``, its inputs) need, and no others."""
-    b = set(computed_buffers(buffers, fbeta))
-    return PassPlan(
-        depth=bool(b - {"radiance"}),  # background mask for every G-buffer
-        normal="normal" in b,
-        vector="motion" in b or "motion_next" in b,  # one Vector pass holds both
-        colors="fbeta" in b and fbeta == "cycles",
-        emit="emission" in b,
-        index="flags" in b or "fbeta" in b,
-        aovs=tuple(aov_names),
-    )
+    b = frozenset(computed_buffers(buffers, fbeta))
+    return PassPlan(**{k: row.needed(b, fbeta) for k, row in PASSES.items()}, aovs=tuple(aov_names))
 
 
 def read_passes(path: Path) -> dict[str, np.ndarray]:

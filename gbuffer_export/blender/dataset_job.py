@@ -15,27 +15,25 @@ import sys
 from pathlib import Path
 
 from ..config import RenderConfig
-from ..dataset.spec import LEGACY_RENDER_KEYS, ClipJob
+from ..dataset.spec import LEGACY_RENDER_KEYS, RENDER_DEFAULTS, RENDER_KEYS, ClipJob
 
 
 def render_config(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False,
                   device: str = "auto") -> RenderConfig:
-    """The clip's render configuration; a ``kind = "scene"`` job renders its file as it is (``render_clip``)."""
+    """The clip's render configuration: the job's render keys (``RENDER_KEYS``, those written before a key read as
+    ``LEGACY_RENDER_KEYS``) as ``RenderConfig`` keys; a ``kind = "scene"`` job renders its file as it is
+    (``render_clip``)."""
     r = {**LEGACY_RENDER_KEYS, **job.render}  # a job written before a key renders as it did then
     scene_kw = {}
     if job.kind == "scene":
-        scene_kw = dict(scene=Path(job.asset), camera_path=job.camera, light=job.light or "scene",
+        scene_kw = dict(scene=Path(job.asset), camera_path=job.camera, light=job.light or RENDER_DEFAULTS["light"],
                         extra={"region": job.region, "camera_index": job.camera_index or 0,
                                "variation": job.variation})
+    keys = {k: tuple(v) if isinstance(v, list) else v for k, v in r.items() if k in RENDER_KEYS[1:]}
+    keys.update(hr_size=tuple(r["hr_size"]), scales=tuple(r["scales"]) if r["scales"] else None,
+                threads=int(r.get("threads") or threads))
     return RenderConfig(output=clip_dir, **{"scene": None, "camera_path": "scene", **scene_kw},
-                        frames=(1, int(r["frames"])), hr_size=tuple(r["hr_size"]), device=device,
-                        scale=int(r["scale"]), scales=tuple(r["scales"]) if r["scales"] else None,
-                        hr_spp=int(r["hr_spp"]), lr_spp=int(r["lr_spp"]),
-                        gbuffer_spp=int(r["gbuffer_spp"]), hr_denoise=bool(r["hr_denoise"]),
-                        lr_denoise=bool(r["lr_denoise"]), seed=int(job.seed),
-                        jitter=r["jitter"], buffers=tuple(r["buffers"]), fbeta=r["fbeta"],
-                        hr_fbeta=r["hr_fbeta"],
-                        threads=int(r.get("threads") or threads), progress=progress)
+                        frames=(1, int(r["frames"])), device=device, seed=int(job.seed), progress=progress, **keys)
 
 
 def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = False, device: str = "auto") -> Path:

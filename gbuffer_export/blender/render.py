@@ -10,7 +10,8 @@ Per frame and in this order:
      denoised, with the level's G-buffer passes in the same render (point sampling makes them valid). Each level is
      rendered at its own size, never downsampled from HR (a downsampled image would be anti-aliased).
 Then the passes are converted to the clip's buffers (``convert.CONVERTERS``, one converter per buffer) and written
-atomically. What every frame shares is one frozen ``RenderContext``.
+atomically. What the configuration and the scene settle is resolved once (``resolve_render`` -> frozen
+``ResolvedRender``); what every frame shares is one frozen ``RenderContext``.
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
-from .convert import BACKGROUND_DEPTH, LevelCameras, PassPlan, convert, plan_passes, read_passes
+from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, convert, plan_passes, read_passes
 
 log = logging.getLogger(__name__)
 
@@ -190,23 +191,18 @@ def base_settings(scene, view_layer, cfg: RenderConfig) -> dict:
 
 
 def set_passes(view_layer, plan: PassPlan) -> None:
+    """Enable the passes of ``plan`` (each row of ``convert.PASSES``: its view-layer switches) and no others."""
     vl = view_layer
     vl.use_pass_combined = True
-    vl.use_pass_z = plan.depth
-    vl.use_pass_normal = plan.normal
-    vl.use_pass_vector = plan.vector
-    vl.use_pass_diffuse_color = vl.use_pass_glossy_color = vl.use_pass_transmission_color = plan.colors
-    vl.use_pass_emit = plan.emit
-    vl.use_pass_environment = plan.emit  # the emission buffer's background pixels (conventions: emission)
-    vl.use_pass_material_index = plan.index
-    vl.use_pass_object_index = plan.index
+    for field, row in PASSES.items():
+        for switch in row.switches:
+            setattr(vl, switch, getattr(plan, field))
+    owned = {switch for row in PASSES.values() for switch in row.switches}  # a pass a row enables is not also off
     for name in ("use_pass_mist", "use_pass_position", "use_pass_uv", "use_pass_ambient_occlusion",
-                 "use_pass_shadow"):
-        if hasattr(vl, name):
-            setattr(vl, name, False)
-    for name in ("use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_glossy_direct",
+                 "use_pass_shadow", "use_pass_diffuse_direct", "use_pass_diffuse_indirect", "use_pass_glossy_direct",
                  "use_pass_glossy_indirect", "use_pass_transmission_direct", "use_pass_transmission_indirect"):
-        setattr(vl, name, False)
+        if hasattr(vl, name) and name not in owned:
+            setattr(vl, name, False)
     cyc = vl.cycles
     for name in ("denoising_store_passes", "use_pass_volume_direct", "use_pass_volume_indirect",
                  "use_pass_shadow_catcher"):
@@ -382,74 +378,98 @@ def frames_left(cfg: RenderConfig) -> int:
 
 
 @dataclass(frozen=True)
-class RenderContext:
-    """What every frame of one clip's render shares, fixed before its first frame: the configuration, the Blender
-    objects it renders with, what was derived from the scene (passes, flags, light paths), the LR levels and where
-    files go. ``flag_lut``: material pass index -> flag bits (uint32); ``light_paths``: the scene's own bounce
-    limits (``LIGHT_PATH_KEYS``); ``levels``: the manifest's {name: {"width", "height", ...}}; ``frames``: every
-    frame of the clip (a frame's jitter is indexed by its position)."""
+class ResolvedRender:
+    """What a render derives from its configuration and the scene, settled once, before anything is written
+    (``resolve_render``): ``frames``, every frame of the clip (a frame's jitter is indexed by its position) and
+    ``my_frames``, those this process renders (shard, only_frames); ``hr_size`` and ``levels`` (the manifest's
+    {name: {"width", "height", ...}}); ``light``, the manifest's light record; the camera and its report; the view
+    layer; the materials, their flags (``flag_lut``: material pass index -> flag bits, uint32) and the pass plan;
+    ``moving``, the names of the objects that move (pass index 1)."""
 
-    cfg: RenderConfig
-    scene: Any
+    frames: tuple[int, ...]
+    my_frames: tuple[int, ...]
+    hr_size: tuple[int, int]
+    levels: dict
+    light: dict
     cam: Any
+    camera_report: dict
     view_layer: Any
+    materials: dict
     plan: PassPlan
     flag_lut: np.ndarray
-    light_paths: dict
-    levels: dict
-    frames: tuple[int, ...]
-    tmpdir: Path
-    writer: ClipWriter
+    moving: tuple[str, ...]
 
 
-def _clip_context(cfg: RenderConfig, scene) -> dict:
-    """Check the scene and settle what the manifest and every frame need: frames, light, camera, levels, view
-    layer, materials and passes. Returns them by name (the render context without the writer)."""
+def resolve_render(cfg: RenderConfig, scene) -> ResolvedRender:
+    """Check the scene against ``cfg`` and settle everything the manifest and every frame need: the one place the
+    configuration meets the scene (frames inside the scene's range, sizes, light, camera, resources, materials,
+    passes). Sets up the scene for it (light, camera, AOVs, pass indices of moving objects)."""
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
-    all_frames = resolve_frames(cfg, scene)
+    frames = resolve_frames(cfg, scene)
     light = prepare_light(cfg, scene)
-    cam, camera_report = setup_camera(cfg, scene, all_frames)
+    cam, camera_report = setup_camera(cfg, scene, frames)
     check_camera(cam, cfg)
     scene.camera = cam
-    w, h = resolve_size(cfg, scene)
-    undone = [f for f in cfg.my_frames(all_frames)
-              if not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
+    hr_size = resolve_size(cfg, scene)
+    my_frames = tuple(cfg.my_frames(frames))
+    undone = [f for f in my_frames if not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
     from .scene_setup import scene_memory_bytes
-    check_render_resources((w, h), cfg.scales, cfg.buffers, len(undone), cfg.output,
+    check_render_resources(hr_size, cfg.scales, cfg.buffers, len(undone), cfg.output,
                            scene_bytes=scene_memory_bytes(scene), scene=str(cfg.scene or "scene"))
-    ctx_vl = getattr(bpy.context, "view_layer", None)
-    view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
-    view_layer = view_layer or scene.view_layers[0]
+    view_layer = _render_view_layer(scene)
     infos = mats.inspect_materials(scene)
     aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
     flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
     flag_lut[0] = int(Flag.NO_MATERIAL)
     for info in infos.values():
         flag_lut[info.index] = material_flags_for_source(info.flags, cfg.fbeta)
-    moving = [ob for ob in renderable_meshes(scene) if mats.object_is_moving(ob, scene, all_frames[0])]
+    moving = [ob for ob in renderable_meshes(scene) if mats.object_is_moving(ob, scene, frames[0])]
     for ob in renderable_meshes(scene):
         ob.pass_index = 1 if ob in moving else 0
-    return dict(frames=tuple(all_frames), light=light, cam=cam, camera_report=camera_report,
-                levels=levels_header((w, h), cfg.scales), view_layer=view_layer, infos=infos,
-                plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names), flag_lut=flag_lut, moving=moving)
+    return ResolvedRender(frames=tuple(frames), my_frames=my_frames, hr_size=hr_size,
+                          levels=levels_header(hr_size, cfg.scales), light=light, cam=cam, camera_report=camera_report,
+                          view_layer=view_layer, materials=infos, plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names),
+                          flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)))
 
 
-def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, c: dict, device: dict, light_paths: dict) -> dict:
-    """The clip manifest's header (``c``: ``_clip_context``'s result; ``device``: ``base_settings``')."""
-    plan = c["plan"]
+def _render_view_layer(scene):
+    """The context's view layer when it belongs to ``scene``, else the scene's first."""
+    ctx_vl = getattr(bpy.context, "view_layer", None)
+    view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
+    return view_layer or scene.view_layers[0]
+
+
+@dataclass(frozen=True)
+class RenderContext:
+    """What every frame of one clip's render shares, fixed before its first frame: the configuration, the scene,
+    what was resolved from both (``ResolvedRender``), the scene's own bounce limits (``light_paths``:
+    ``LIGHT_PATH_KEYS``) and where files go."""
+
+    cfg: RenderConfig
+    scene: Any
+    resolved: ResolvedRender
+    light_paths: dict
+    tmpdir: Path
+    writer: ClipWriter
+
+
+def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRender, device: dict,
+                     light_paths: dict) -> dict:
+    """The clip manifest's header (``device``: ``base_settings``')."""
+    plan = r.plan
     return {
         "blendsr_version": __version__,
         "blender_version": bpy.app.version_string,
-        "scene": {**scene_info, "name": scene.name, "camera": c["cam"].name},
+        "scene": {**scene_info, "name": scene.name, "camera": r.cam.name},
         "scale": cfg.scale,
-        "levels": c["levels"],
-        "frames": list(c["frames"]),
+        "levels": r.levels,
+        "frames": list(r.frames),
         "buffers": list(cfg.buffers),
         "fbeta_source": cfg.fbeta,
         "camera_path": cfg.camera_path,
-        "camera": c["camera_report"],
-        "light": c["light"],
+        "camera": r.camera_report,
+        "light": r.light,
         "scene_linear": _scene_linear_name(),
         "render": {
             "engine": "CYCLES", "device": device["device"], "device_names": device["names"],
@@ -464,41 +484,42 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, c: dict, device
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
                         "emission_background": "environment" if plan.emit else None,
                         # only when footprint: a point-sampled clip keeps the identity it had before the key
-                        **({"hr_fbeta": "footprint"} if plan.colors and "fbeta" in cfg.buffers
-                           and cfg.hr_fbeta == "footprint" else {})},
+                        **({"hr_fbeta": "footprint"} if _footprint(cfg, plan) else {})},
             "light_paths": light_paths,
             "passes": {k_: v for k_, v in plan.__dict__.items()},
         },
-        "materials": {n: i.to_json() for n, i in c["infos"].items()},
-        "material_summary": mats.material_summary(c["infos"]),
-        "moving_objects": sorted(ob.name for ob in c["moving"]),
+        "materials": {n: i.to_json() for n, i in r.materials.items()},
+        "material_summary": mats.material_summary(r.materials),
+        "moving_objects": list(r.moving),
         "shard": list(cfg.shard),
         "command": " ".join(sys.argv),
     }
 
 
+def _footprint(cfg: RenderConfig, plan: PassPlan) -> bool:
+    """Whether the HR F_beta is the footprint one (``hr_fbeta``; needs the colour passes and the fbeta buffer)."""
+    return plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
+
+
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     """Render the clip from an already loaded scene (the add-on calls this inside Blender)."""
-    c = _clip_context(cfg, scene)
-    device = base_settings(scene, c["view_layer"], cfg)
+    r = resolve_render(cfg, scene)
+    device = base_settings(scene, r.view_layer, cfg)
     # One pass set for every render of the clip, set here once: with persistent data, Cycles 5.0.1 renders a frame
     # whose Vector pass was switched off since the previous render with stale texture lookups (measured:
     # GlassBrokenWindow's crack and alpha textures vanished from the ground truth, its glass became a uniform tint;
     # docs/rendering.md, "One pass set per clip"). A render reads only the passes it needs.
-    set_passes(c["view_layer"], c["plan"])
+    set_passes(r.view_layer, r.plan)
     light_paths = {k_: getattr(scene.cycles, k_) for k_ in LIGHT_PATH_KEYS}
-    my_frames = list(cfg.my_frames(c["frames"]))
-    writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, c, device, light_paths))
-    todo = [f for f in my_frames if not writer.is_frame_done(f)]  # one writer per clip: held until close() below
-    skipped = len(my_frames) - len(todo)
+    writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, r, device, light_paths))
+    todo = [f for f in r.my_frames if not writer.is_frame_done(f)]  # one writer per clip: held until close() below
+    skipped = len(r.my_frames) - len(todo)
     if skipped:
-        log.info("blendsr: resuming %s: %d of %d frames already done", cfg.output, skipped, len(my_frames))
+        log.info("blendsr: resuming %s: %d of %d frames already done", cfg.output, skipped, len(r.my_frames))
     remove_stale_scratch(cfg.output)
     tmpdir = Path(tempfile.mkdtemp(prefix=f".render-{os.getpid()}-", dir=cfg.output))
     try:
-        ctx = RenderContext(cfg=cfg, scene=scene, cam=c["cam"], view_layer=c["view_layer"], plan=c["plan"],
-                            flag_lut=c["flag_lut"], light_paths=light_paths, levels=c["levels"],
-                            frames=c["frames"], tmpdir=tmpdir, writer=writer)
+        ctx = RenderContext(cfg=cfg, scene=scene, resolved=r, light_paths=light_paths, tmpdir=tmpdir, writer=writer)
         _render_frames(ctx, todo)
         writer.merge()
     finally:
@@ -559,8 +580,8 @@ def _progress(frames, cfg):
 def frame_cameras(ctx: RenderContext, frame: int) -> LevelCameras:
     """The HR camera of ``frame``: poses and intrinsics of frames t, t-1 and (with ``motion_next``) t+1. Leaves the
     scene at ``frame``."""
-    cam, scene = ctx.cam, ctx.scene
-    w, h = ctx.levels["hr"]["width"], ctx.levels["hr"]["height"]
+    cam, scene = ctx.resolved.cam, ctx.scene
+    w, h = ctx.resolved.hr_size
     scene.frame_set(frame - 1)
     m_prev, k_prev = camera_pose(cam), camera_intrinsics(cam, scene, w, h)
     m_next = k_next = None
@@ -572,11 +593,11 @@ def frame_cameras(ctx: RenderContext, frame: int) -> LevelCameras:
 
 
 def render_frame(ctx: RenderContext, frame: int) -> dict:
-    """Render one frame at every level of ``ctx.levels``, write its buffers, return its record."""
+    """Render one frame at every level of ``ctx.resolved.levels``, write its buffers, return its record."""
     cams = frame_cameras(ctx, frame)
     record = {"hr": render_hr(ctx, frame, cams)}
     cfg = ctx.cfg
-    jit = halton_jitter(ctx.frames.index(frame)) if cfg.jitter == "halton" else (0.0, 0.0)
+    jit = halton_jitter(ctx.resolved.frames.index(frame)) if cfg.jitter == "halton" else (0.0, 0.0)
     for i, scale in enumerate(cfg.scales):
         record[level_name(scale, cfg.scales[0])] = render_lr_level(ctx, frame, cams, i, scale, jit)
     return record
@@ -585,8 +606,8 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
 def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     """The HR level of a frame: the G-buffer pass (when any G-buffer is asked for), then the ground truth; writes
     its buffers and returns its record."""
-    cfg, scene, plan = ctx.cfg, ctx.scene, ctx.plan
-    scene.render.resolution_x, scene.render.resolution_y = ctx.levels["hr"]["width"], ctx.levels["hr"]["height"]
+    cfg, scene, plan = ctx.cfg, ctx.scene, ctx.resolved.plan
+    scene.render.resolution_x, scene.render.resolution_y = ctx.resolved.hr_size
     seconds, hr_out = {}, {}
     if plan.any:
         set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
@@ -597,10 +618,10 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
         t = time.perf_counter()
-        hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.flag_lut,
+        hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.resolved.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
-    footprint = plan.colors and "fbeta" in cfg.buffers and cfg.hr_fbeta == "footprint"
+    footprint = _footprint(cfg, plan)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
                                filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
@@ -610,7 +631,7 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     seconds["radiance"] = time.perf_counter() - t
     hr_out["radiance"] = passes["Combined"][..., :3]
     if footprint:
-        filtered = sum(passes[k][..., :3] for k in ("Diffuse Color", "Glossy Color", "Transmission Color"))
+        filtered = sum(passes[k][..., :3] for k in PASSES["colors"].names)
         hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
     for b in cfg.buffers:
@@ -624,9 +645,9 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     """Render LR level ``i`` of ``cfg.scales`` (size HR / ``scale``) of a frame, jittered by ``jit`` pixels of the
     level, with its G-buffer passes in the same render; write its buffers and return its record. Cycles seed:
     pass 2 + i."""
-    cfg, scene, cam = ctx.cfg, ctx.scene, ctx.cam
+    cfg, scene, cam = ctx.cfg, ctx.scene, ctx.resolved.cam
     lvl = level_name(scale, cfg.scales[0])
-    lw, lh = ctx.levels[lvl]["width"], ctx.levels[lvl]["height"]
+    lw, lh = ctx.resolved.levels[lvl]["width"], ctx.resolved.levels[lvl]["height"]
     cams = cams_hr.at_scale(scale)
     scene.render.resolution_x, scene.render.resolution_y = lw, lh
     # shift is in units of the larger image side; +shift_x moves content left (sample at p + dx),
@@ -645,8 +666,9 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
-    lr_out = convert(passes, ctx.plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.flag_lut,
-                     fbeta_source=cfg.fbeta) if ctx.plan.any else {}
+    plan = ctx.resolved.plan
+    lr_out = convert(passes, plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.resolved.flag_lut,
+                     fbeta_source=cfg.fbeta) if plan.any else {}
     lr_out["radiance"] = passes["Combined"][..., :3]
     seconds["convert"] = time.perf_counter() - t
     t = time.perf_counter()

@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import get_type_hints
 
-from ..config import LIGHTS, SCENE_SUFFIXES, ConfigError, RenderConfig, camera_path_ok, parse_size
+from ..config import LIGHTS, SCENE_SUFFIXES, SPEC, ConfigError, RenderConfig, camera_path_ok, parse_size
 from ..conventions import parse_buffer_list
+from ..table_shells import default_of, legacy_values, shell_keys
 from ..typed_table import Rule, check_keys, fields_of, option, typed_value
 
 SPLITS = ("train", "val", "test")
@@ -53,13 +54,15 @@ MAX_CLIPS = 100_000
 # ----------------------------------------------------------------------------------------------
 
 #: The per-clip render keys of a spec (``[render]``, overridable in each ``[[source]]``): ``frames`` (the clip's
-#: length: frames 1..frames), then keys of ``RenderConfig`` (the one render-settings class), whose defaults they take.
-RENDER_KEYS = ("frames", "hr_size", "scale", "scales", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise",
-               "jitter", "buffers", "fbeta", "hr_fbeta", "threads")
-#: Render keys added after datasets and job files were written, with what those were rendered with (an index entry
-#: or a job without the key reads as this).
-LEGACY_RENDER_KEYS = {"hr_fbeta": "point",  # before 2026-11-26
-                      "scales": None}       # one LR level, before 2026-11-26
+#: length: frames 1..frames), then the keys of ``RenderConfig`` (the one render-settings class) whose rule names the
+#: spec among its shells (``Rule.shells``), with its defaults: a new RenderConfig key is a spec key unless it says not.
+RENDER_KEYS = ("frames", *shell_keys(RenderConfig, SPEC))
+#: What datasets and job files written before a key were rendered with (an index entry or a job without the key reads
+#: as this): the key's ``Rule.legacy`` (hr_fbeta: "point", before 2026-11-26), else its default.
+LEGACY_RENDER_KEYS = {k: list(v) if isinstance(v, tuple) else v
+                      for k, v in legacy_values(RenderConfig, RENDER_KEYS[1:]).items()}
+#: RenderConfig's defaults (a source's ``light`` is its key).
+RENDER_DEFAULTS = {f.name: default_of(f) for f in dataclasses.fields(RenderConfig)}
 #: What a spec needs that a render of a scene file takes from the file: the clip's length and HR size (pixels).
 #: ``threads`` 0 means the machine's cores divided by the local workers (``RunOptions.clip_threads``).
 CLIP_DEFAULTS = {"frames": 12, "hr_size": (256, 144)}
@@ -119,7 +122,7 @@ class Source:
     sun: bool = True                              # builtin: keep the sun lamp
     props: tuple[str, ...] = option((), items=BUILTIN_PROPS, unique=True)  # builtin: opt-in props added to every clip
     clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
-    light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
+    light: str = option(RENDER_DEFAULTS["light"], choices=LIGHTS)  # scene: RenderConfig's light (its default)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
     region_val: int = option(0, lo=0)             # scene: grid cells whose clips are val
     region_test: int = option(0, lo=0)            # scene: grid cells whose clips are test

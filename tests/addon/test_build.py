@@ -60,7 +60,7 @@ def test_build_validate_install_and_external_preview(tmp_path):
     with zipfile.ZipFile(zip_path) as z:
         names = set(z.namelist())
     assert {"blender_manifest.toml", "__init__.py", "operators.py", "panels.py", "props.py", "worker.py",
-            "external_infer.py"} <= names
+            "external_infer.py", "render_keys.py", "render_keys.json"} <= names
     assert not {"build.py", "calibrate.py"} & names and not any("__pycache__" in n for n in names)
 
     env = dict(ENV, BLENDER_USER_RESOURCES=str(tmp_path / "blender_user"))

@@ -1,0 +1,68 @@
+"""A render resolved once (gbuffer_export.blender.render.resolve_render -> frozen ResolvedRender) and the pass table
+(gbuffer_export.blender.convert.PASSES: enabling a pass and planning it from one row). bpy runs in a subprocess."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from conftest import ENV, REPO, requires_bpy
+
+pytestmark = [pytest.mark.bpy, requires_bpy]
+
+SCRIPT = r'''
+import dataclasses, json, sys
+from pathlib import Path
+from gbuffer_export.config import RenderConfig
+from gbuffer_export.blender.convert import PASSES, PassPlan, plan_passes
+from gbuffer_export.blender.default_scene import build_default_scene
+from gbuffer_export.blender.render import resolve_render, set_passes
+
+out = {"fields": [f.name for f in dataclasses.fields(PassPlan)], "rows": list(PASSES)}
+out["plans"] = {f"{b}/{fb}": dataclasses.asdict(plan_passes(b.split(","), fb, ())) for b, fb in
+                (("radiance", "cycles"), ("depth", "cycles"), ("motion_next", "cycles"), ("emission", "cycles"),
+                 ("fbeta", "cycles"), ("fbeta", "lut"), ("flags,normal", "cycles"))}
+cfg = RenderConfig(output=Path(sys.argv[1]), frames=(2, 5), hr_size=(64, 32), scales=(2, 4), shard=(2, 2),
+                   buffers=("depth", "motion"), progress=False)
+scene = build_default_scene(seed=0, frames=(1, 48), resolution=(64, 32))
+r = resolve_render(cfg, scene)
+try:
+    r.frames = ()
+    frozen = False
+except dataclasses.FrozenInstanceError:
+    frozen = True
+vl = r.view_layer
+set_passes(vl, r.plan)
+out.update(frozen=frozen, frames=list(r.frames), my_frames=list(r.my_frames), hr_size=list(r.hr_size),
+           levels={k: [v["width"], v["height"]] for k, v in r.levels.items()}, light=r.light["light"],
+           camera=r.cam.name, report=r.camera_report["kind"], plan=dataclasses.asdict(r.plan),
+           moving=list(r.moving), flag_lut=len(r.flag_lut) == len(r.materials) + 1,
+           switches={s: bool(getattr(vl, s)) for row in PASSES.values() for s in row.switches})
+print("RESULT " + json.dumps(out))
+'''
+
+
+def test_a_render_is_resolved_once_and_passes_come_from_their_rows(tmp_path):
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(SCRIPT), str(tmp_path / "clip")], cwd=REPO, env=ENV,
+                          capture_output=True, text=True, timeout=240)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-2000:]
+    r = json.loads(lines[-1][len("RESULT "):])
+    assert r["fields"] == [*r["rows"], "aovs"]  # one plan field per row of PASSES
+    plans = {b: {k for k, v in p.items() if v is True} for b, p in r["plans"].items()}
+    assert plans == {"radiance/cycles": set(), "depth/cycles": {"depth"}, "motion_next/cycles": {"depth", "vector"},
+                     "emission/cycles": {"depth", "emit"}, "fbeta/cycles": {"depth", "colors", "index"},
+                     "flags,normal/cycles": {"depth", "normal", "index"},
+                     # a table F_beta: the G-buffers it is computed from, never the colour passes
+                     "fbeta/lut": plans["fbeta/lut"] - {"colors"}}
+    assert {"depth", "normal", "index"} <= plans["fbeta/lut"]
+    assert r["frozen"] and r["frames"] == [2, 3, 4, 5] and r["my_frames"] == [3, 5]  # shard 2/2
+    assert r["hr_size"] == [64, 32] and r["levels"] == {"hr": [64, 32], "lr": [32, 16], "lr_x4": [16, 8]}
+    assert r["light"] == "scene" and r["report"] == "scene" and r["flag_lut"]
+    assert r["plan"]["depth"] and r["plan"]["vector"] and not r["plan"]["colors"] and not r["plan"]["normal"]
+    assert r["moving"], "the built-in scene's ball moves"
+    on = {s for s, v in r["switches"].items() if v}
+    assert on == {"use_pass_z", "use_pass_vector"}  # exactly the rows of the planned fields
