@@ -9,7 +9,7 @@ import textwrap
 
 import pytest
 
-from conftest import ENV, REPO, requires_bpy
+from tests.conftest import ENV, REPO, requires_bpy
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
