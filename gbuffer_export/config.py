@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Sequence
 
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
+from .scene_formats import SCENE_SUFFIXES, formats_text
 from .typed_table import ConfigError, key_error, option, set_checked
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
@@ -18,7 +19,9 @@ CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* 
 LEVEL_CAMERA_PATHS = ("walk", "fly")
 LIGHTS = ("scene", "sky")
 DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
-SCENE_SUFFIXES = (".blend", ".gltf", ".glb", ".usd", ".usda", ".usdc", ".usdz")
+#: ``unit_scale``'s names for common units (metres per unit); "auto" detects the unit from the level's geometry
+#: (``gbuffer_export.blender.level_scale``, docs/rendering.md "A level's unit").
+UNIT_NAMES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 
 
 def camera_path_ok(value: str) -> bool:
@@ -143,6 +146,8 @@ class RenderConfig:
     only_frames: tuple[int, ...] | None = None  # render only these frames of the range (camera path and jitter
                                                 # indices stay the range's); None: every frame of the shard
     max_bounces: int | None = option(None, lo=0)  # None: the scene's own light paths
+    unit_scale: str | float = option("auto", lo=0, lo_open=True, unit="metres per scene unit")  # level cameras
+                                     # (walk, fly): "auto" (detected from the geometry), a number, or m/cm/mm/in/ft
     threads: int = option(0, lo=0)                # 0: all cores
     progress: bool = True
     extra: dict = field(default_factory=dict)
@@ -165,13 +170,30 @@ class RenderConfig:
         set_checked(self, names=[f.name for f in dataclasses.fields(self)
                                  if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
         self._check_only_frames()
+        self._check_unit_scale()
         if self.hr_size is not None:
             self.check_size(self.hr_size, "hr_size")
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")
             if self.scene.suffix.lower() not in SCENE_SUFFIXES:
-                raise ConfigError(f"{self.scene}: not a scene file (one of {', '.join(SCENE_SUFFIXES)})")
+                raise ConfigError(f"{self.scene}: not a scene file (one of {formats_text()})")
+
+    def _check_unit_scale(self) -> None:
+        """``unit_scale``: "auto", a finite number > 0 (metres per scene unit; a number in a string, as a command
+        line gives it, is read as one) or a unit of ``UNIT_NAMES`` (stored as its metres)."""
+        v = self.unit_scale
+        if isinstance(v, str) and v != "auto":
+            if v.strip().lower() in UNIT_NAMES:
+                v = UNIT_NAMES[v.strip().lower()]
+            else:
+                try:
+                    v = float(v)
+                except ValueError:
+                    raise key_error("unit_scale", v, "expected auto, metres per scene unit (a number > 0, e.g. "
+                                    f"0.01) or one of {', '.join(UNIT_NAMES)}") from None
+            self.unit_scale = v
+            set_checked(self, names=["unit_scale"])
 
     def _check_scales(self) -> None:
         """``scales`` as floats (default: ``(scale,)``), each a ratio of integers >= 1, none twice; ``scale`` the

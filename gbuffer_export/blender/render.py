@@ -76,10 +76,10 @@ def load_scene(cfg: RenderConfig):
     if cfg.scene.suffix.lower() == ".blend":
         check_blend_file(cfg.scene)
     try:
-        scene = load_scene_file(cfg.scene)
+        scene, loaded = load_scene_file(cfg.scene)
     except RuntimeError as exc:
         raise ConfigError(f"{cfg.scene}: Blender could not open it ({str(exc).splitlines()[0]})") from None
-    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None}
+    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **loaded}
 
 
 def renderable_meshes(scene) -> list:
