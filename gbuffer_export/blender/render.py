@@ -130,7 +130,7 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
         try:
             rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=rules)
+                                     region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale)
         except PathError as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
                               "framed by camera_path orbit", key="camera_path") from None

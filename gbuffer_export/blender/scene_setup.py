@@ -111,17 +111,21 @@ def level_regions(geom, spec: dict) -> list:
     return out
 
 
-def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None):
+def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
+                      unit_scale="auto"):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
-    returns (camera, report for the manifest). The level's geometry is taken at the first frame."""
+    returns (camera, report for the manifest). The level's geometry is taken at the first frame; its metres per
+    unit are ``unit_scale`` ("auto": detected, ``level_scale``)."""
     from .camera_paths import half_fov, key_look_at
     from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
+    from .level_scale import resolve_unit_scale
 
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
     geom = from_scene(scene, start)
+    unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
     regions = level_regions(geom, region) if isinstance(region, dict) else [region]
     for k, reg in enumerate(regions):
@@ -141,7 +145,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     scene.camera = cam
     scene.frame_set(start)
     return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
-                 "triangles": geom.n_triangles}
+                 "triangles": geom.n_triangles, "unit_scale": unit}
 
 
 #: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).
