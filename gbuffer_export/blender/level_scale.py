@@ -8,8 +8,9 @@ the eye 1.6 m above the floor: in a level of centimetres read as metres the eye 
 grid over the level's content box (every hit of each ray):
 
 headroom
-    the median free height between a floor (a surface facing up, within 45 degrees of horizontal) and the
-    ceiling right above it (a surface facing down), over the floors that have one; a ceiling on an object that
+    the median free height between a floor (a surface facing up, within 45 degrees of horizontal, inside the
+    content box's heights give or take 10 %) and the ceiling right above it (a surface facing down), over the
+    floors that have one; a ceiling on an object that
     encloses the level (a skybox, ``LevelGeometry``'s enclosing rule) is sky, not a ceiling. Used when at least
     ``MIN_COVERED`` columns and ``MIN_COVERED_FRACTION`` of the floors are covered (an interior, or a town with
     roofs and bridges).
@@ -77,13 +78,14 @@ def measure_cues(geom: LevelGeometry, n: int = COLUMNS) -> dict:
     eps = 1e-4 * max(geom.extent, 1e-9)
     gaps, floors = [], 0
     cols = _columns(geom, n)
+    lo, hi = geom.content_bounds()
+    margin = 0.1 * (hi[2] - lo[2]) + eps
     for z, nz, enc in cols:
-        up = nz > FLAT_COS
+        up = (nz > FLAT_COS) & (z >= lo[2] - margin) & (z <= hi[2] + margin)  # not a skybox's bottom far below
         floors += int(up.sum())
         for k in np.nonzero(up)[0]:
             if k > 0 and nz[k - 1] < -FLAT_COS and not enc[k - 1] and z[k - 1] - z[k] > eps:
                 gaps.append(z[k - 1] - z[k])
-    lo, hi = geom.content_bounds()
     covered = len(gaps)
     return {"columns": n * n, "columns_hit": len(cols), "floors": floors, "covered_floors": covered,
             "covered_fraction": covered / floors if floors else 0.0,
