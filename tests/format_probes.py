@@ -7,6 +7,7 @@ roundtrip  build a tiny level (a 4 m floor, a 1 m box with a red material), expo
            its format, world-space triangle count and bounds
 missing    import an OBJ (+MTL) naming missing images and report the sockets its image nodes fed
 refusals   the one-line errors of a format whose add-on or operator this Blender lacks
+units      load each level of a list and detect its unit (``level_scale.detect_unit_scale``)
 """
 from __future__ import annotations
 
@@ -97,6 +98,15 @@ def refusals(args: dict) -> dict:
     return out
 
 
+def units(args: dict) -> dict:
+    from gbuffer_export.blender.level_scale import detect_unit_scale
+    out = {}
+    for p in args["levels"]:
+        scene, _ = load_level(Path(p))
+        out[p] = detect_unit_scale(from_scene(scene, scene.frame_start))
+    return out
+
+
 if __name__ == "__main__":
-    result = {"roundtrip": roundtrip, "missing": missing, "refusals": refusals}[sys.argv[1]](json.loads(sys.argv[2]))
+    result = {"roundtrip": roundtrip, "missing": missing, "refusals": refusals, "units": units}[sys.argv[1]](json.loads(sys.argv[2]))
     print("PROBE-RESULT " + json.dumps(result, default=lambda o: np.asarray(o).tolist()))
