@@ -12,7 +12,11 @@ images the file's materials and world use:
 """
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import sys
+import tempfile
 from pathlib import Path
 
 import bpy
@@ -58,11 +62,37 @@ def _operator(fmt: SceneFormat, path: Path):
     return op
 
 
+@contextlib.contextmanager
+def _importer_output(what: str):
+    """Capture descriptors 1 and 2 while an importer runs (it prints a line per missing image, per object, per
+    timing): kept as one debug record (``blendsr -v``); ``BLENDSR_VERBOSE=1`` lets it through as it is."""
+    if os.environ.get("BLENDSR_VERBOSE"):
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        for fd in saved:
+            os.dup2(tmp.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, keep in saved.items():
+                os.dup2(keep, fd)
+                os.close(keep)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace").strip()
+            if text:
+                log.debug("%s importer said:\n%s", what, text)
+
+
 def load_level(path: Path):
     """Open or import ``path`` by its row of the format table; returns (scene, report for the manifest's
     ``scene``: the format and the missing textures). ConfigError (one line) for an unknown suffix, a format this
     Blender cannot import, or an importer that fails."""
-    from .scene_setup import _quiet_fds
     path = Path(path)
     fmt = scene_format(path)
     if fmt is None:
@@ -74,7 +104,7 @@ def load_level(path: Path):
         bpy.ops.wm.read_factory_settings(use_empty=True)
         op = _operator(fmt, path)
         try:
-            with _quiet_fds():  # importers print a line per missing image and per object: named once below
+            with _importer_output(fmt.name):  # missing images are named once below
                 result = op(filepath=str(path), **dict(fmt.options))
         except RuntimeError as exc:
             raise ConfigError(f"{path}: the {fmt.name} importer failed ({str(exc).strip().splitlines()[0]})") from None
