@@ -6,6 +6,8 @@ roundtrip  build a tiny level (a 4 m floor, a 1 m box with a red material), expo
            format table that Blender can write, import each file back through ``importers.load_level`` and report
            its format, world-space triangle count and bounds
 missing    import an OBJ (+MTL) naming missing images and report the sockets its image nodes fed
+gltf_missing  export a glTF with separate colour, roughness and normal textures, delete them, import it and
+           report what its Principled BSDF reads
 refusals   the one-line errors of a format whose add-on or operator this Blender lacks
 units      load each level of a list and detect its unit (``level_scale.detect_unit_scale``)
 """
@@ -85,6 +87,41 @@ def missing(args: dict) -> dict:
     return {"report": report, "materials": {m.name: _links(m) for m in bpy.data.materials if m.node_tree}}
 
 
+def gltf_missing(args: dict) -> dict:
+    import os
+    folder = Path(args["dir"])
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.mesh.primitive_plane_add(size=4.0)
+    mat = bpy.data.materials.new("Textured")
+    bpy.context.active_object.data.materials.append(mat)
+    nt = mat.node_tree
+    bsdf = nt.nodes["Principled BSDF"]
+    for name, socket, data in (("colour", "Base Color", False), ("rough", "Roughness", True), ("normal", None, True)):
+        img = bpy.data.images.new(name, 4, 4)
+        img.pixels[:] = [0.3] * 64
+        img.filepath_raw, img.file_format = str(folder / f"{name}.png"), "PNG"
+        img.save()
+        if data:
+            img.colorspace_settings.name = "Non-Color"
+        node = nt.nodes.new("ShaderNodeTexImage")
+        node.image = img
+        if socket:
+            nt.links.new(node.outputs["Color"], bsdf.inputs[socket])
+        else:
+            nm = nt.nodes.new("ShaderNodeNormalMap")
+            nt.links.new(node.outputs["Color"], nm.inputs["Color"])
+            nt.links.new(nm.outputs["Normal"], bsdf.inputs["Normal"])
+    bpy.ops.export_scene.gltf(filepath=str(folder / "level.gltf"), export_format="GLTF_SEPARATE")
+    for name in ("colour", "rough", "normal"):
+        os.remove(folder / f"{name}.png")
+    scene, report = load_level(folder / "level.gltf")
+    mat = next(m for m in bpy.data.materials if m.users and m.node_tree)
+    split = [list(n.inputs["Color"].default_value) for n in mat.node_tree.nodes if n.type == "SEPARATE_COLOR"]
+    images_read = [n.image.name for n in mat.node_tree.nodes if n.type == "TEX_IMAGE" and n.image
+                   and any(o.links for o in n.outputs)]
+    return {"report": report, **_links(mat), "split": split, "images_read": images_read}
+
+
 def refusals(args: dict) -> dict:
     out = {}
     fakes = {"addon": SceneFormat("Fake", (".fake",), "import_scene.fake", addon="io_blendsr_no_such_addon"),
@@ -108,5 +145,6 @@ def units(args: dict) -> dict:
 
 
 if __name__ == "__main__":
-    result = {"roundtrip": roundtrip, "missing": missing, "refusals": refusals, "units": units}[sys.argv[1]](json.loads(sys.argv[2]))
+    result = {"roundtrip": roundtrip, "missing": missing, "refusals": refusals, "units": units,
+              "gltf_missing": gltf_missing}[sys.argv[1]](json.loads(sys.argv[2]))
     print("PROBE-RESULT " + json.dumps(result, default=lambda o: np.asarray(o).tolist()))

@@ -144,6 +144,18 @@ def test_missing_textures_become_neutral_and_are_named_once(tmp_path):
                       + ", ".join(missing)], err[-2000:]
 
 
+@requires_bpy
+@pytest.mark.bpy
+def test_a_gltfs_missing_data_textures_become_flat_normals_and_mid_roughness(tmp_path):
+    """glTF splits occlusion-roughness-metallic with a Separate Color node: a missing texture there reads as
+    occlusion 1, roughness 0.5, metallic 0; a missing normal map as a flat normal; colour as mid grey."""
+    res, _ = run_probe("gltf_missing", {"dir": str(tmp_path)})
+    assert res["report"] == {"format": "glTF", "missing_textures": ["colour.png", "normal.png", "rough.png"]}
+    assert res["images_read"] == [] and res["split"] == [pytest.approx([1.0, 0.5, 0.0, 1.0])]
+    assert res["normal_maps"] == [pytest.approx([0.5, 0.5, 1.0, 1.0])]
+    assert res["base_color"] == pytest.approx([0.5, 0.5, 0.5, 1.0]) and not res["base_color_linked"]
+
+
 RENDER = """
 import json, sys
 from gbuffer_export.config import RenderConfig
