@@ -81,7 +81,27 @@ def _jungle():
     return parts
 
 
-LEVELS = {"apartment": _apartment, "town": _town, "jungle": _jungle}
+def _open_world():
+    """A 4 km terrain with 400 m hills, as one mesh, and 200 props (rocks, trees, huts: 1-15 m): about the size in
+    units of the jungle in centimetres, told apart by its props."""
+    rng = np.random.default_rng(9)
+    n = 48
+    xs = np.linspace(-2000, 2000, n)
+    X, Y = np.meshgrid(xs, xs)
+    Z = 200.0 * (1 + np.sin(X / 500.0) * np.cos(Y / 650.0))
+    v = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    f = [[i * n + j, i * n + j + 1, (i + 1) * n + j + 1] for i in range(n - 1) for j in range(n - 1)]
+    f += [[i * n + j, (i + 1) * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
+    parts = [trimesh.Trimesh(v, np.array(f), process=False)]
+    for _ in range(200):
+        x, y = rng.uniform(-1800, 1800, 2)
+        z = 200.0 * (1 + math.sin(x / 500.0) * math.cos(y / 650.0))
+        size = rng.uniform(1.0, 15.0)
+        parts.append(_box((size, size * 0.8, size), (x, y, z + size / 2)))
+    return parts
+
+
+LEVELS = {"apartment": _apartment, "town": _town, "jungle": _jungle, "open_world": _open_world}
 
 
 @pytest.mark.parametrize("unit", list(PER_METRE))

@@ -17,15 +17,21 @@ headroom
 height
     the height of the level's content box (``LevelGeometry.content_bounds``: its triangles' 1st-99th percentile
     box, enclosing objects left out): a storey, a town's houses and slopes, a jungle's trees.
+objects
+    the median diagonal of the boxes of the level's objects (enclosing ones left out), when it has at least
+    ``MIN_OBJECTS``: furniture, props, trees and houses are sized for people whatever the level's size (a 5 km
+    open world in metres and a 200 m jungle in centimetres have about the same extent in units, not the same
+    trees).
 extent
-    the diagonal of the level's content box (``LevelGeometry.extent``). Used only without headroom: a level's
-    size varies more than a room's height.
+    the diagonal of the level's content box (``LevelGeometry.extent``). Used only without headroom and objects:
+    a level's size varies more than a room's height or a prop's size.
 
 Each candidate unit ``u`` (``UNITS``, and the file's declared unit) is scored by how typical the cues are in
 metres: the sum over the cues of ``-0.5 * (ln(x * u / typical) / sigma)^2`` with ``CUES``' typical metres and
-sigmas (log-normal: a headroom of 3 m, within a factor 1.65 at one sigma; a height of 12 m and an extent of 100 m,
-far looser). The file's declared unit gets ``DECLARED_BONUS`` (about 3 sigma of one cue): a level is read in another
-unit only when its geometry makes the declared one implausible. The best score wins.
+sigmas (log-normal: a headroom of 3 m, within a factor 1.65 at one sigma; an object of 4 m, within a factor 2.2;
+a height of 12 m and an extent of 100 m, far looser). The file's declared unit gets ``DECLARED_BONUS`` (about 3
+sigma of one cue): a level is read in another unit only when its geometry makes the declared one implausible. The
+best score wins.
 """
 from __future__ import annotations
 
@@ -38,11 +44,12 @@ from .level_geometry import LevelGeometry
 #: Candidate units (metres per unit), besides the file's declared one.
 UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01}
 #: cue -> (typical metres, sigma of its natural log).
-CUES = {"headroom": (3.0, 0.5), "height": (12.0, 1.2), "extent": (100.0, 1.5)}
+CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5)}
 DECLARED_BONUS = 4.5
 COLUMNS = 48
 MIN_COVERED = 24
 MIN_COVERED_FRACTION = 0.1
+MIN_OBJECTS = 8
 FLAT_COS = math.cos(math.radians(45.0))  # level_cameras.WALKABLE_COS: a surface within 45 degrees of horizontal
 
 
@@ -87,11 +94,29 @@ def measure_cues(geom: LevelGeometry, n: int = COLUMNS) -> dict:
             if k > 0 and nz[k - 1] < -FLAT_COS and not enc[k - 1] and z[k - 1] - z[k] > eps:
                 gaps.append(z[k - 1] - z[k])
     covered = len(gaps)
+    sizes = _object_sizes(geom)
     return {"columns": n * n, "columns_hit": len(cols), "floors": floors, "covered_floors": covered,
             "covered_fraction": covered / floors if floors else 0.0,
             "headroom_units": float(np.median(gaps)) if gaps else None,
             "height_units": float(hi[2] - lo[2]) if hi[2] - lo[2] > eps else None,
+            "objects": len(sizes), "objects_units": float(np.median(sizes)) if len(sizes) >= MIN_OBJECTS else None,
             "extent_units": float(geom.extent)}
+
+
+def _object_sizes(geom: LevelGeometry) -> np.ndarray:
+    """The box diagonal of each object (``geom.owner``) that does not enclose the others, in scene units."""
+    keep = geom._content_mask
+    tri = geom.mesh.triangles[keep]
+    owner = geom.owner[keep]
+    if len(owner) == 0:
+        return np.zeros(0)
+    order = np.argsort(owner, kind="stable")
+    owner, tri = owner[order], tri[order]
+    starts = np.r_[0, np.nonzero(np.diff(owner))[0] + 1]
+    lo = np.minimum.reduceat(tri.min(axis=1), starts, axis=0)
+    hi = np.maximum.reduceat(tri.max(axis=1), starts, axis=0)
+    d = np.linalg.norm(hi - lo, axis=1)
+    return d[d > 0]
 
 
 def _score(cues: dict, unit: float, use: tuple[str, ...]) -> float:
@@ -109,8 +134,10 @@ def detect_unit_scale(geom: LevelGeometry, declared: float | None = None) -> dic
     cues = measure_cues(geom)
     has_headroom = (cues["headroom_units"] is not None and cues["covered_floors"] >= MIN_COVERED
                     and cues["covered_fraction"] >= MIN_COVERED_FRACTION)
-    use = tuple(k for k, ok in (("headroom", has_headroom), ("height", cues["height_units"] is not None),
-                                ("extent", not has_headroom and cues["extent_units"] > 0)) if ok)
+    use = tuple(k for k, ok in (("headroom", has_headroom), ("objects", cues["objects_units"] is not None),
+                                ("height", cues["height_units"] is not None),
+                                ("extent", not has_headroom and cues["objects_units"] is None
+                                 and cues["extent_units"] > 0)) if ok)
     names = {**UNITS}
     if not any(math.isclose(declared, u, rel_tol=1e-9) for u in UNITS.values()):
         names["declared"] = declared
