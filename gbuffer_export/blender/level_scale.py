@@ -4,14 +4,14 @@ no bpy, so it is tested on synthetic rooms).
 Game levels arrive in the unit of their engine: Unreal levels in centimetres, Source and Quake ones in inches,
 glTF and Unity ones in metres, whatever a file declares. Level cameras (``level_cameras``) walk at 1.4 m/s with
 the eye 1.6 m above the floor: in a level of centimetres read as metres the eye would stand 1.6 cm above the ground.
-``detect_unit_scale`` measures three cues in scene units, by vertical rays through a ``COLUMNS`` x ``COLUMNS``
-grid over the level's content box (every hit of each ray):
+``detect_unit_scale`` measures four cues in scene units:
 
 headroom
-    the median free height between a floor (a surface facing up, within 45 degrees of horizontal, inside the
+    along vertical rays through a ``COLUMNS`` x ``COLUMNS`` grid over the level's content box (every hit of each
+    ray), the median free height between a floor (a surface facing up, within 45 degrees of horizontal, inside the
     content box's heights give or take 10 %) and the ceiling right above it (a surface facing down), over the
-    floors that have one; a ceiling on an object that
-    encloses the level (a skybox, ``LevelGeometry``'s enclosing rule) is sky, not a ceiling. Used when at least
+    floors that have one; a ceiling on an object that encloses the level (a skybox, ``LevelGeometry``'s
+    enclosing rule) is sky, not a ceiling. Used when at least
     ``MIN_COVERED`` columns and ``MIN_COVERED_FRACTION`` of the floors are covered (an interior, or a town with
     roofs and bridges).
 height
@@ -19,7 +19,7 @@ height
     box, enclosing objects left out): a storey, a town's houses and slopes, a jungle's trees.
 objects
     the median diagonal of the boxes of the level's objects (enclosing ones left out), when it has at least
-    ``MIN_OBJECTS``: furniture, props, trees and houses are sized for people whatever the level's size (a 5 km
+    ``MIN_OBJECTS``: furniture, props, trees and houses are sized for people whatever the level's size (a 4 km
     open world in metres and a 200 m jungle in centimetres have about the same extent in units, not the same
     trees).
 extent
