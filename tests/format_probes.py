@@ -132,6 +132,12 @@ def refusals(args: dict) -> dict:
             out[key] = None
         except BlendSRError as exc:
             out[key] = str(exc)
+    for junk in args.get("junk", []):
+        try:
+            load_level(Path(junk))
+            out[junk] = None
+        except BlendSRError as exc:
+            out[junk] = str(exc)
     return out
 
 

@@ -87,12 +87,21 @@ def test_every_format_round_trips_through_the_table(tmp_path):
 
 @requires_bpy
 @pytest.mark.bpy
-def test_a_format_this_blender_cannot_import_is_one_line_naming_why(tmp_path):
-    res, _ = run_probe("refusals", {"file": str(tmp_path / "level.fake")})
+def test_a_format_this_blender_cannot_import_or_a_broken_file_is_one_line_naming_why(tmp_path):
+    rng = np.random.default_rng(0)
+    junk = {}
+    for suffix in (".fbx", ".ply", ".abc", ".usdc", ".glb"):
+        junk[suffix] = tmp_path / f"junk{suffix}"
+        junk[suffix].write_bytes(rng.integers(0, 256, 300, dtype=np.uint8).tobytes())
+    res, _ = run_probe("refusals", {"file": str(tmp_path / "level.fake"), "junk": [str(p) for p in junk.values()]})
     assert "level.fake: this Blender cannot import Fake (its add-on io_blendsr_no_such_addon is" in res["addon"]
     assert "level.fake: this Blender build has no Nothing importer (bpy.ops.wm.blendsr_nothing_import)" in \
         res["operator"]
-    assert all("\n" not in m and "export the level as glTF" in m for m in res.values())
+    assert all("export the level as glTF" in res[k] for k in ("addon", "operator"))
+    for suffix, p in junk.items():
+        name = scene_format(p).name
+        assert res[str(p)].startswith(f"{p}: the {name} importer failed ("), res[str(p)]
+    assert all("\n" not in m for m in res.values())
 
 
 # ----------------------------------------------------------------------------------------------

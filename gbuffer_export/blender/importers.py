@@ -109,7 +109,8 @@ def load_level(path: Path):
         except RuntimeError as exc:
             raise ConfigError(f"{path}: the {fmt.name} importer failed ({str(exc).strip().splitlines()[0]})") from None
         if "FINISHED" not in result:
-            raise ConfigError(f"{path}: the {fmt.name} importer failed ({', '.join(sorted(result))})")
+            raise ConfigError(f"{path}: the {fmt.name} importer failed ({', '.join(sorted(result)).lower()}: not a "
+                              f"readable {fmt.name} file)")
         scene = bpy.context.scene
         scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
     missing = neutralise_missing_textures(path)
