@@ -111,15 +111,10 @@ def test_a_format_this_blender_cannot_import_or_a_broken_file_is_one_line_naming
 def _obj_with_missing_textures(folder: Path) -> Path:
     """A 6 m floor and a 1 m box whose .mtl names three images that are not there (colour, normal map, alpha)
     and one that is (a 2x2 PNG written here)."""
-    import struct
-    import zlib
     tex = folder / "textures"
     tex.mkdir(parents=True)
-    raw = b"".join(b"\x00" + bytes([200, 180, 40]) * 2 for _ in range(2))
-    chunk = lambda kind, data: (struct.pack(">I", len(data)) + kind + data  # noqa: E731
-                                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-    (tex / "present.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 2, 2, 8, 2, 0, 0, 0))
-                                      + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+    from PIL import Image
+    Image.new("RGB", (2, 2), (200, 180, 40)).save(tex / "present.png")
     (folder / "level.mtl").write_text(
         "newmtl floor\nKd 0.8 0.8 0.8\nmap_Kd textures/floor_diffuse.png\nmap_Bump textures/floor_normal.png\n\n"
         "newmtl crate\nKd 0.8 0.8 0.8\nmap_Kd textures/present.png\nmap_d textures/crate_alpha.png\n")
