@@ -67,16 +67,15 @@ def _columns(geom: LevelGeometry, n: int):
     tri, ray, loc = geom.rays.intersects_id(origins, dirs, multiple_hits=True, return_locations=True)
     tri, ray = np.asarray(tri, np.int64), np.asarray(ray, np.int64)
     enclosing = ~geom._content_mask
+    order = np.lexsort((-loc[:, 2], ray))  # by column, then from the top down
+    z, tri, ray = loc[order, 2], tri[order], ray[order]
     out = []
-    for r in range(len(origins)):
-        m = ray == r
-        if not m.any():
+    for idx in np.split(np.arange(len(ray)), np.nonzero(np.diff(ray))[0] + 1):
+        if len(idx) == 0:
             continue
-        z, t = loc[m][:, 2], tri[m]
-        o = np.argsort(-z)
-        z, t = z[o], t[o]
-        keep = np.concatenate([[True], np.diff(z) < -1e-9 * max(1.0, abs(top))])  # one hit per surface
-        out.append((z[keep], geom.normals[t[keep]][:, 2], enclosing[t[keep]]))
+        zc, tc = z[idx], tri[idx]
+        keep = np.concatenate([[True], np.diff(zc) < -1e-9 * max(1.0, abs(top))])  # one hit per surface
+        out.append((zc[keep], geom.normals[tc[keep]][:, 2], enclosing[tc[keep]]))
     return out
 
 
