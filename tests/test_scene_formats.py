@@ -111,9 +111,9 @@ def test_a_format_this_blender_cannot_import_or_a_broken_file_is_one_line_naming
 def _obj_with_missing_textures(folder: Path) -> Path:
     """A 6 m floor and a 1 m box whose .mtl names three images that are not there (colour, normal map, alpha)
     and one that is (a 2x2 PNG written here)."""
+    from PIL import Image
     tex = folder / "textures"
     tex.mkdir(parents=True)
-    from PIL import Image
     Image.new("RGB", (2, 2), (200, 180, 40)).save(tex / "present.png")
     (folder / "level.mtl").write_text(
         "newmtl floor\nKd 0.8 0.8 0.8\nmap_Kd textures/floor_diffuse.png\nmap_Bump textures/floor_normal.png\n\n"
