@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Sequence
 
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
+from .scene_formats import SCENE_SUFFIXES, formats_text
 from .typed_table import ConfigError, key_error, option, set_checked
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
@@ -18,7 +19,9 @@ CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* 
 LEVEL_CAMERA_PATHS = ("walk", "fly")
 LIGHTS = ("scene", "sky")
 DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
-SCENE_SUFFIXES = (".blend", ".gltf", ".glb", ".usd", ".usda", ".usdc", ".usdz")
+#: ``unit_scale``'s names for common units (metres per unit); "auto" detects the unit from the level's geometry
+#: (``gbuffer_export.blender.level_scale``, docs/rendering.md "A level's unit").
+UNIT_NAMES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 
 
 def camera_path_ok(value: str) -> bool:
@@ -125,7 +128,7 @@ class RenderConfig:
     # add-on's clip and dataset settings). ``shells=()``: every shell writes the key by hand (a parsed value such as
     # ``frames``, or one the job supplies). Adding a key here adds it to each shell (gbuffer_export.table_shells).
     output: Path = option(help="clip directory to create or resume", shells=())
-    scene: Path | None = option(None, shells=(), help="the scene: .blend, .gltf/.glb or .usd* (kept as it is: world, "
+    scene: Path | None = option(None, shells=(), help="the scene: any format of docs/rendering.md's table (.blend, glTF, USD, OBJ, FBX, ...; kept as it is: world, "
                                 "lights, materials, animation); None: the built-in default scene")
     frames: tuple[int, int] | None = option(None, shells=(), metavar="A:B", help="inclusive frame range; None: the "
                                             "scene's range (built-in scene: 1:48, at most 1:1000)")
@@ -183,6 +186,10 @@ class RenderConfig:
         "of the shard"))
     max_bounces: int | None = option(None, lo=0, shells=(CLI,), label="Max bounces",
                                      help="override the scene's total light bounces (none: the scene's own)")
+    unit_scale: str | float = option("auto", lo=0, lo_open=True, unit="metres per scene unit", label="Unit scale",
+                                     metavar="auto|M|UNIT", help=(
+        "the level's unit for walk and fly cameras (eye height, speeds, clearance): auto (detected from the "
+        "geometry: docs/rendering.md, \"A level's unit\"), metres per scene unit (e.g. 0.01), or m, cm, mm, in, ft"))
     threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL), help="render threads (0 = all cores)")
     progress: bool = option(True, shells=(), help="a progress bar")
     extra: dict = option(factory=dict, shells=(), help="what a shell adds for the scene (a dataset clip's region, "
@@ -206,13 +213,30 @@ class RenderConfig:
         set_checked(self, names=[f.name for f in dataclasses.fields(self)
                                  if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
         self._check_only_frames()
+        self._check_unit_scale()
         if self.hr_size is not None:
             self.check_size(self.hr_size, "hr_size")
         if self.scene is not None:
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")
             if self.scene.suffix.lower() not in SCENE_SUFFIXES:
-                raise ConfigError(f"{self.scene}: not a scene file (one of {', '.join(SCENE_SUFFIXES)})")
+                raise ConfigError(f"{self.scene}: not a scene file (one of {formats_text()})")
+
+    def _check_unit_scale(self) -> None:
+        """``unit_scale``: "auto", a finite number > 0 (metres per scene unit; a number in a string, as a command
+        line gives it, is read as one) or a unit of ``UNIT_NAMES`` (stored as its metres)."""
+        v = self.unit_scale
+        if isinstance(v, str) and v != "auto":
+            if v.strip().lower() in UNIT_NAMES:
+                v = UNIT_NAMES[v.strip().lower()]
+            else:
+                try:
+                    v = float(v)
+                except ValueError:
+                    raise key_error("unit_scale", v, "expected auto, metres per scene unit (a number > 0, e.g. "
+                                    f"0.01) or one of {', '.join(UNIT_NAMES)}") from None
+            self.unit_scale = v
+            set_checked(self, names=["unit_scale"])
 
     def _check_scales(self) -> None:
         """``scales`` as floats (default: ``(scale,)``), each a ratio of integers >= 1, none twice; ``scale`` the

@@ -77,10 +77,10 @@ def load_scene(cfg: RenderConfig):
     if cfg.scene.suffix.lower() == ".blend":
         check_blend_file(cfg.scene)
     try:
-        scene = load_scene_file(cfg.scene)
+        scene, loaded = load_scene_file(cfg.scene)
     except RuntimeError as exc:
         raise ConfigError(f"{cfg.scene}: Blender could not open it ({str(exc).splitlines()[0]})") from None
-    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None}
+    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **loaded}
 
 
 def renderable_meshes(scene) -> list:
@@ -131,7 +131,7 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
         try:
             rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=rules)
+                                     region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale)
         except PathError as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
                               "framed by camera_path orbit", key="camera_path") from None

@@ -1,5 +1,5 @@
-"""A user's scene as it is (bpy layer): load a .blend, glTF/GLB or USD file, check it can render, pick its cameras,
-light it on request, key cameras that move inside it, and choose Cycles' device.
+"""A user's scene as it is (bpy layer): load a level file (``importers``: every format of the format table), check
+it can render, pick its cameras, light it on request, key cameras that move inside it, and choose Cycles' device.
 
 BlendSR overrides only what its clip contract owns (size, samples, passes, camera, jitter); the world, lights,
 materials, animation and visibility stay the file's. Every check is a one-line ``ConfigError`` naming the file
@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..config import DEVICES, SCENE_SUFFIXES, ConfigError
+from ..config import DEVICES, ConfigError
 from ..typed_table import key_error
 LEVEL_CAMERA_NAME = "BlendSR Level Camera"
 #: Level cameras: a 24 mm lens on a 36 mm sensor (horizontal field of view 73.7 degrees, as games use).
@@ -31,29 +31,10 @@ GPU_TYPES = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")
 # ----------------------------------------------------------------------------------------------
 
 def load_scene_file(path: Path):
-    """Open ``path`` (a .blend directly; glTF/GLB and USD imported into an empty file) and return its scene."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".blend":
-        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
-        return bpy.context.scene
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    try:
-        if suffix in (".gltf", ".glb"):
-            result = bpy.ops.import_scene.gltf(filepath=str(path))
-        elif suffix in (".usd", ".usda", ".usdc", ".usdz"):
-            if not hasattr(bpy.ops.wm, "usd_import"):
-                raise ConfigError(f"{path}: this bpy build has no USD importer")
-            result = bpy.ops.wm.usd_import(filepath=str(path))
-        else:
-            raise ConfigError(f"{path}: not a scene file ({', '.join(SCENE_SUFFIXES)})")
-    except RuntimeError as exc:
-        raise ConfigError(f"{path}: the importer failed ({str(exc).splitlines()[0]})") from None
-    if "FINISHED" not in result:
-        raise ConfigError(f"{path}: the importer failed ({result})")
-    scene = bpy.context.scene
-    scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
-    return scene
+    """Open or import ``path`` by the format table (``importers.load_level``: a .blend as it is, every other format
+    into an empty file; missing textures made neutral); returns (scene, report for the manifest's ``scene``)."""
+    from .importers import load_level
+    return load_level(Path(path))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -130,17 +111,21 @@ def level_regions(geom, spec: dict) -> list:
     return out
 
 
-def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None):
+def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
+                      unit_scale="auto"):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
-    returns (camera, report for the manifest). The level's geometry is taken at the first frame."""
+    returns (camera, report for the manifest). The level's geometry is taken at the first frame; its metres per
+    unit are ``unit_scale`` ("auto": detected, ``level_scale``)."""
     from .camera_paths import half_fov, key_look_at
     from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
+    from .level_scale import resolve_unit_scale
 
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
     geom = from_scene(scene, start)
+    unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
     regions = level_regions(geom, region) if isinstance(region, dict) else [region]
     for k, reg in enumerate(regions):
@@ -160,7 +145,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     scene.camera = cam
     scene.frame_set(start)
     return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
-                 "triangles": geom.n_triangles}
+                 "triangles": geom.n_triangles, "unit_scale": unit}
 
 
 #: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).

@@ -1,0 +1,205 @@
+"""Load a level file of any format Blender imports (bpy layer), and make its missing textures neutral.
+
+The formats and the operator of each are one table, ``gbuffer_export.scene_formats.SCENE_FORMATS``; this module
+runs the operator (a .blend is opened, every other format imported into an empty file) and then checks the
+images the file's materials and world use:
+
+- a texture whose file is missing or unreadable renders in Cycles as magenta. Every link from such an image node
+  is replaced by a neutral constant: a colour image gives mid grey (linear albedo 0.5) and alpha 1 (opaque); a
+  data image gives 0.5, a flat normal (0.5, 0.5, 1) into a Normal Map node, and (occlusion 1, roughness 0.5,
+  metallic 0) into a glTF occlusion-roughness-metallic split (a Separate Color node);
+- the files are named in one warning line, and returned for the clip manifest (``scene.missing_textures``).
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import bpy
+
+from ..config import ConfigError
+from ..scene_formats import SCENE_FORMATS, SceneFormat, formats_text, scene_format
+
+log = logging.getLogger(__name__)
+
+#: Linear albedo a missing colour texture renders as.
+NEUTRAL_ALBEDO = 0.5
+#: A missing data texture's value (roughness, specular, a mask).
+NEUTRAL_DATA = 0.5
+FLAT_NORMAL = (0.5, 0.5, 1.0, 1.0)
+#: glTF's occlusion-roughness-metallic texture split by a Separate Color node: R occlusion, G roughness, B metallic.
+NEUTRAL_ORM = (1.0, 0.5, 0.0, 1.0)
+#: At most this many files are named in the warning line (the manifest lists all).
+WARN_FILES = 12
+
+
+def _operator(fmt: SceneFormat, path: Path):
+    """The bpy operator of ``fmt``, its add-on enabled first; ConfigError naming why when this Blender lacks it."""
+    if fmt.addon:
+        import addon_utils
+        if not addon_utils.check(fmt.addon)[1]:
+            try:
+                mod = addon_utils.enable(fmt.addon, default_set=False)
+            except Exception as exc:  # an add-on's own import error
+                mod = None
+                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            else:
+                why = "not installed"
+            if mod is None:
+                raise ConfigError(f"{path}: this Blender cannot import {fmt.name} (its add-on {fmt.addon} is {why}); "
+                                  "export the level as glTF (.glb) or .blend")
+    group, name = fmt.operator.split(".")
+    op = getattr(getattr(bpy.ops, group), name)
+    try:
+        op.get_rna_type()
+    except (KeyError, RuntimeError, AttributeError):
+        raise ConfigError(f"{path}: this Blender build has no {fmt.name} importer (bpy.ops.{fmt.operator}); "
+                          "export the level as glTF (.glb) or .blend") from None
+    return op
+
+
+@contextlib.contextmanager
+def _importer_output(what: str):
+    """Capture descriptors 1 and 2 while an importer runs (it prints a line per missing image, per object, per
+    timing): kept as one debug record (``blendsr -v``); ``BLENDSR_VERBOSE=1`` lets it through as it is."""
+    if os.environ.get("BLENDSR_VERBOSE"):
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        for fd in saved:
+            os.dup2(tmp.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, keep in saved.items():
+                os.dup2(keep, fd)
+                os.close(keep)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace").strip()
+            if text:
+                log.debug("%s importer said:\n%s", what, text)
+
+
+def load_level(path: Path):
+    """Open or import ``path`` by its row of the format table; returns (scene, report for the manifest's
+    ``scene``: the format and the missing textures). ConfigError (one line) for an unknown suffix, a format this
+    Blender cannot import, or an importer that fails."""
+    path = Path(path)
+    fmt = scene_format(path)
+    if fmt is None:
+        raise ConfigError(f"{path}: not a scene file (one of {formats_text()})")
+    if fmt.operator == "wm.open_mainfile":
+        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+        scene = bpy.context.scene
+    else:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        op = _operator(fmt, path)
+        try:
+            with _importer_output(fmt.name):  # missing images are named once below
+                result = op(filepath=str(path), **dict(fmt.options))
+        except RuntimeError as exc:
+            raise ConfigError(f"{path}: the {fmt.name} importer failed ({str(exc).strip().splitlines()[0]})") from None
+        if "FINISHED" not in result:
+            raise ConfigError(f"{path}: the {fmt.name} importer failed ({', '.join(sorted(result)).lower()}: not a "
+                              f"readable {fmt.name} file)")
+        scene = bpy.context.scene
+        scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
+    missing = neutralise_missing_textures(path)
+    report = {"format": fmt.name}
+    if missing:
+        report["missing_textures"] = missing
+    return scene, report
+
+
+# ----------------------------------------------------------------------------------------------
+# Missing textures
+# ----------------------------------------------------------------------------------------------
+
+def _missing(image) -> bool:
+    """A file image (not packed, not generated) that Blender cannot load: its file is absent or unreadable."""
+    if image.source not in ("FILE", "SEQUENCE", "MOVIE", "TILED") or image.packed_file is not None:
+        return False
+    if image.source == "TILED":
+        return not any(t.size[0] for t in image.tiles) if len(image.tiles) else True
+    return image.size[0] == 0  # reading the size loads the image (the render loads it anyway)
+
+
+def _named(image, base: Path) -> str:
+    """The image's file as the level names it: relative to the level's folder when under it."""
+    p = Path(bpy.path.abspath(image.filepath_raw or image.filepath, library=image.library))
+    try:
+        return p.resolve().relative_to(base.resolve()).as_posix()
+    except ValueError:
+        return str(p)
+
+
+def _node_trees():
+    """Every node tree a render may evaluate: materials, worlds, lights, node groups."""
+    for coll in (bpy.data.materials, bpy.data.worlds, bpy.data.lights):
+        for idb in coll:
+            if getattr(idb, "node_tree", None) is not None:
+                yield idb.node_tree
+    yield from (g for g in bpy.data.node_groups if g.bl_idname == "ShaderNodeTree")
+
+
+def _neutral(image, link) -> object:
+    """The constant that replaces ``link`` (from a missing image's node): see the module doc."""
+    to_node, to_sock = link.to_node, link.to_socket
+    if link.from_socket.name == "Alpha":
+        return 1.0
+    data = image.colorspace_settings.is_data or image.colorspace_settings.name in ("Non-Color", "Raw")
+    if to_node.type == "NORMAL_MAP":
+        return FLAT_NORMAL
+    if data and to_node.type in ("SEPARATE_COLOR", "SEPRGB"):
+        return NEUTRAL_ORM
+    v = NEUTRAL_DATA if data else NEUTRAL_ALBEDO
+    return (v, v, v, 1.0) if to_sock.type == "RGBA" else v
+
+
+def _set_default(sock, value) -> None:
+    """Set an unlinked socket's value to ``value`` (a colour or a number), fitted to the socket's type."""
+    if sock.type == "RGBA":
+        sock.default_value = value if isinstance(value, tuple) else (value, value, value, 1.0)
+    elif sock.type in ("VALUE", "INT"):
+        sock.default_value = value[1] if isinstance(value, tuple) else value
+    elif sock.type == "VECTOR" and hasattr(sock, "default_value") and len(sock.default_value) == 3:
+        sock.default_value = value[:3] if isinstance(value, tuple) else (value, value, value)
+
+
+def neutralise_missing_textures(level: Path) -> list[str]:
+    """Replace every use of a missing image (module doc), warn once naming the files, return them sorted (as the
+    level names them, relative to its folder)."""
+    images = {im.name: im for im in bpy.data.images if im.users and _missing(im)}
+    if not images:
+        return []
+    used = set()
+    for tree in _node_trees():
+        for node in list(tree.nodes):
+            image = getattr(node, "image", None) if node.type in ("TEX_IMAGE", "TEX_ENVIRONMENT") else None
+            if image is None or image.name not in images:
+                continue
+            used.add(image.name)
+            for link in [ln for out in node.outputs for ln in out.links]:
+                value, sock = _neutral(image, link), link.to_socket
+                tree.links.remove(link)
+                _set_default(sock, value)
+    base = Path(level).parent
+    files = sorted({_named(images[n], base) for n in used})
+    if files:
+        shown = ", ".join(files[:WARN_FILES]) + (f" and {len(files) - WARN_FILES} more" if len(files) > WARN_FILES
+                                                  else "")
+        log.warning("%s: %d texture file(s) missing, rendered as mid grey (albedo %g), never magenta: %s",
+                    Path(level).name, len(files), NEUTRAL_ALBEDO, shown)
+    return files
+
+
+__all__ = ["SCENE_FORMATS", "load_level", "neutralise_missing_textures"]

@@ -1,0 +1,66 @@
+"""The shared levels (../shared/scenes/levels) through the format table: the OBJ game map with missing textures
+renders grey with them named once, and every level's unit is detected (docs/rendering.md, "A level's unit")."""
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from conftest import requires_bpy, run_cli, shared_or_skip
+from test_scene_formats import magenta_fraction, render_api, run_probe
+
+pytestmark = [requires_bpy, pytest.mark.bpy, pytest.mark.shared]
+
+STEELRIBS = "scenes/levels/steelribs/steelribs.obj"
+STEELRIBS_MISSING = ["media/base/base3.png", "media/base/base4.png", "media/base/black.png", "media/base/white.png",
+                     "media/nieb/complex/glass.png", "media/nieb/complex/light01.png", "media/nieb/complex/vent.png"]
+#: level -> the unit detected (measured 2026-11-26; docs/rendering.md has the cues)
+LEVEL_UNITS = {"living_room/living_room.glb": "m", "living_room/living_room.blend": "m", "room/room.glb": "m",
+               "room/room.blend": "m", "garage/garage.gltf": "m", "garage/garage.blend": "m",
+               "truck_town/town_model.gltf": "m", "dive_arena/level.glb": "m", "steelribs/steelribs.obj": "in"}
+
+
+def test_steelribs_renders_with_its_missing_textures_named_once_and_grey(tmp_path):
+    from gbuffer_export.clip import open_clip
+    level = shared_or_skip(STEELRIBS)
+    out = tmp_path / "steelribs"
+    r = render_api(tmp_path, output=str(out), scene=str(level), camera_path="fly", light="sky", seed=1)
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.splitlines() if re.search(r"missing|cannot load", ln, re.I)]
+    assert lines == ["steelribs.obj: 7 texture file(s) missing, rendered as mid grey (albedo 0.5), never magenta: "
+                     + ", ".join(STEELRIBS_MISSING)], r.stderr[-3000:]
+    clip = open_clip(out)
+    m = clip.manifest
+    assert m["scene"]["format"] == "OBJ" and m["scene"]["missing_textures"] == STEELRIBS_MISSING
+    unit = m["camera"]["unit_scale"]
+    assert unit["requested"] == "auto" and unit["unit"] == "in" and m["camera"]["metres_per_unit"] == 0.0254
+    assert m["camera"]["speed_mps"] == pytest.approx(3.0, rel=1e-3)  # fly speed in metres of the depicted world
+    for f in clip.frames:
+        albedo = clip.read(f, "hr/albedo")
+        fg = albedo.sum(axis=-1) > 0
+        assert fg.mean() > 0.5 and np.all(np.abs(albedo[fg] - 0.5) < 1e-3)  # every texture is missing: all grey
+        assert magenta_fraction(clip.read(f, "hr/radiance")) < 0.01
+    v = run_cli("validate", out)
+    assert v.returncode == 0, v.stdout + v.stderr
+
+
+def test_a_given_unit_scale_sets_the_levels_metres(tmp_path):
+    """unit_scale = 0.12 (Cube 2's unit): the fly moves 3 m/s = 25 units a second and the manifest says so."""
+    level = shared_or_skip(STEELRIBS)
+    out = tmp_path / "cube_units"
+    r = render_api(tmp_path, output=str(out), scene=str(level), camera_path="fly", light="sky", seed=1,
+                   unit_scale=0.12, frames=[1, 1])
+    assert r.returncode == 0, r.stderr[-3000:]
+    cam = json.loads((out / "manifest.json").read_text())["camera"]
+    assert cam["metres_per_unit"] == 0.12 and cam["unit_scale"] == {"requested": 0.12, "metres_per_unit": 0.12,
+                                                                    "declared": 1.0}
+    assert cam["speed_mps"] == pytest.approx(3.0, rel=1e-3) and cam["clearance_m"] >= 0.25
+
+
+def test_the_shared_levels_units_are_detected():
+    paths = {rel: shared_or_skip(f"scenes/levels/{rel}") for rel in LEVEL_UNITS}
+    res, _ = run_probe("units", {"levels": [str(p) for p in paths.values()]}, timeout=400)
+    got = {rel: res[str(p)]["unit"] for rel, p in paths.items()}
+    assert got == LEVEL_UNITS, {rel: (res[str(p)]["cues"], res[str(p)]["scores"]) for rel, p in paths.items()}
