@@ -1,4 +1,4 @@
-"""bpy probes for tests/test_scene_formats.py, run in a subprocess: ``python tests/format_probes.py PROBE JSON_ARGS``.
+"""bpy probes for tests/render/test_scene_formats.py, run in a subprocess: ``python tests/format_probes.py PROBE JSON_ARGS``.
 Each prints one line ``PROBE-RESULT {json}`` describing what Blender holds afterwards (bpy state is global and a
 crash inside Blender kills the process).
 

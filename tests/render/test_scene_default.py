@@ -12,7 +12,7 @@ import pytest
 from tests.conftest import ENV, REPO, requires_bpy
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
-PROBES = Path(__file__).parents[2] / "scene_probes.py"
+PROBES = Path(__file__).resolve().parent.parent / "scene_probes.py"
 
 
 def run_probe(name: str, args: dict, timeout: int = 240) -> dict:

@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from conftest import requires_bpy, run_cli, shared_or_skip
-from test_scene_formats import magenta_fraction, render_api, run_probe
+from tests.conftest import requires_bpy, run_cli, shared_or_skip
+from tests.render.test_scene_formats import magenta_fraction, render_api, run_probe
 
 pytestmark = [requires_bpy, pytest.mark.bpy, pytest.mark.shared]
 

@@ -12,13 +12,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conftest import ENV, REPO, requires_bpy
+from tests.conftest import ENV, REPO, requires_bpy
 from gbuffer_export.config import RenderConfig
 from gbuffer_export.dataset.spec import find_assets
 from gbuffer_export.scene_formats import SCENE_FORMATS, SCENE_SUFFIXES, scene_format
 from gbuffer_export.typed_table import ConfigError
 
-PROBES = Path(__file__).with_name("format_probes.py")
+PROBES = Path(__file__).resolve().parent.parent / "format_probes.py"
 
 
 def run_probe(name: str, args: dict, timeout: int = 240) -> tuple[dict, str]:
