@@ -10,6 +10,10 @@ end with their parent (``training.loader``).
 from __future__ import annotations
 
 import os
+import signal
+import sys
+import threading
+import time
 from pathlib import Path
 
 import filelock
@@ -68,3 +72,34 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+#: How often a child without the kernel's parent-death signal checks that its parent is alive (seconds).
+PARENT_POLL_S = 0.2
+
+
+def die_with_parent(parent: int) -> str:
+    """Make this (forked) process end when ``parent`` does, so that it never outlives the process that holds a
+    folder's lock (a loader worker of a killed trainer). Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``, immediate;
+    elsewhere (or when prctl is unavailable) a daemon thread that exits the process within PARENT_POLL_S of the
+    parent's death. Returns the mechanism used ("pdeathsig" or "watch")."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0:  # 1: PR_SET_PDEATHSIG
+                if os.getppid() != parent:  # the parent died before the signal was armed
+                    os._exit(1)
+                return "pdeathsig"
+        except (OSError, AttributeError):
+            pass
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    if os.getppid() != parent:
+        os._exit(1)
+    threading.Thread(target=watch, name="blendsr-parent-watch", daemon=True).start()
+    return "watch"
