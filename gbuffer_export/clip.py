@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import BlendSRError
+from .errors import BlendSRError, first_line
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, is_level_name,
                           level_name)
@@ -310,6 +310,12 @@ def load_manifest(path: str | os.PathLike) -> dict:
     for key in ("scale", "levels", "buffers", "frames", "frame_data"):
         if key not in manifest:
             raise ClipError(f"{mpath}: manifest lacks {key!r}")
+    fd = manifest["frame_data"]
+    if not isinstance(fd, dict):
+        raise ClipError(f"{mpath}: frame_data is not an object of frame number -> record")
+    for k, rec in fd.items():
+        if not str(k).lstrip("-").isdigit() or not isinstance(rec, dict):
+            raise ClipError(f"{mpath}: frame_data key {k!r} is not a frame number with a record (an object)")
     return manifest
 
 
@@ -319,7 +325,13 @@ def open_clip(path: str | os.PathLike) -> Clip:
     if not root.is_dir():
         raise ClipError(f"{root}: not a directory")
     check_no_links(root, root / FRAMES_DIR)  # a clip with links inside is refused as a whole
-    return Clip(root, load_manifest(root))
+    manifest = load_manifest(root)
+    try:
+        return Clip(root, manifest)
+    except BlendSRError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:  # a hand-edited manifest of the wrong shape
+        raise ClipError(f"{root / MANIFEST}: malformed manifest ({type(exc).__name__}: {first_line(exc)})") from None
 
 
 class ClipWriter:

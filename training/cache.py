@@ -41,7 +41,8 @@ from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
 
-CACHE_VERSION = 3  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space
+CACHE_VERSION = 4  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space;
+#                  4: radiance checked by validate's rule (non-finite, negative on surfaces)
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
 #: The clip buffers the derived ones are computed from (``demodulate``; emission and flags are optional).
@@ -314,8 +315,37 @@ class ClipCache:
         a = self.clip.read(frame, key)
         where = f"{self.clip.path_of(frame, key)} (frame {frame})"
         name = split_key(key)[1]
+        if name == "radiance" and self.nonfinite == "error":
+            self._check_radiance(frame, key, a)  # validate's rule and words first
         a = check_finite(a, name, where, self.nonfinite, self.index["sanitized"])
+        if name == "radiance" and self.nonfinite == "sanitize":
+            a = self._sanitize_negative(frame, key, a)
         return convert_buffer(name, a, self.colour_matrix)
+
+    def _radiance_problem(self, frame: int, key: str, a: np.ndarray) -> str | None:
+        """``validate``'s radiance rule (gbuffer_export.validate.values.radiance_problem) on one frame."""
+        from gbuffer_export.validate.values import radiance_problem
+        lvl = split_key(key)[0]
+        extra = {b: self.clip.read(frame, f"{lvl}/{b}") for b in ("flags", "depth") if b in self.clip.buffers}
+        return radiance_problem(frame, self._real(key).split("/")[0], a, extra.get("flags"), extra.get("depth"))
+
+    def _check_radiance(self, frame: int, key: str, a: np.ndarray) -> None:
+        problem = self._radiance_problem(frame, key, a)
+        if problem:
+            raise NonFiniteError(f"{self.clip.path_of(frame, key)}: {problem}; fix the render ('blendsr validate' "
+                                 "reports the same) or set data.nonfinite = \"sanitize\"")
+
+    def _sanitize_negative(self, frame: int, key: str, a: np.ndarray) -> np.ndarray:
+        """data.nonfinite = "sanitize": radiance that validate refuses as negative is clamped to 0 (warned, logged)."""
+        problem = self._radiance_problem(frame, key, a)
+        if not problem:
+            return a
+        where = f"{self.clip.path_of(frame, key)} (frame {frame})"
+        n = int((a < 0).sum())
+        warnings.warn(f"{where}: sanitised {n} negative value(s) in buffer 'radiance' ({problem})", RuntimeWarning,
+                      stacklevel=3)
+        self.index["sanitized"].append({"where": where, "buffer": "radiance", "count": n, "negative": True})
+        return np.maximum(a, 0).astype(a.dtype)
 
     def _new_array(self, key: str) -> tuple[np.ndarray, Path, Path]:
         lvl, name = key.split("/")

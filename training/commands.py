@@ -168,6 +168,16 @@ def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
         raise BlendSRError(str(exc)) from None
 
 
+def _check_radiance(clips, frames) -> None:
+    """Refuse radiance that 'blendsr validate' refuses (non-finite, negative on surfaces), in its words, before
+    anything is scored (gbuffer_export.validate.values.check_clip_radiance)."""
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.validate.values import check_clip_radiance
+    for c in clips:
+        clip = open_clip(c)
+        check_clip_radiance(clip, [f for f in frames if f in clip.frames] if frames else None)
+
+
 def _scale_of(clips) -> int:
     from gbuffer_export.clip import open_clip
     scales = {open_clip(c).scale for c in clips}
@@ -186,6 +196,7 @@ def cmd_evaluate(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
+    _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
     model = load_model(spec, scale, args.set)
