@@ -156,6 +156,9 @@ def cmd_train(args) -> int:
 def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
     """--data arguments with every dataset folder replaced by the finished clips of its ``split``."""
     from gbuffer_export.dataset.build import DatasetError, expand_data_paths, is_dataset, split_clips
+    for p in paths:
+        if is_dataset(p):
+            _refuse_split_leak(Path(p))
     if missing_ok:  # the optional split of dataset folders only
         out = []
         for p in paths:
@@ -176,6 +179,18 @@ def _check_radiance(clips, frames) -> None:
     for c in clips:
         clip = open_clip(c)
         check_clip_radiance(clip, [f for f in frames if f in clip.frames] if frames else None)
+
+
+def _refuse_split_leak(root: Path) -> None:
+    """A dataset whose index puts one scene (asset, region) in two splits is refused, in validate's words
+    (gbuffer_export.dataset.check.split_leaks): nothing is trained or scored on a leaked split."""
+    from gbuffer_export.dataset.build import INDEX, read_index
+    from gbuffer_export.dataset.check import split_leaks
+    leaks = split_leaks(root, read_index(root))
+    if leaks:
+        more = f" (and {len(leaks) - 1} more)" if len(leaks) > 1 else ""
+        raise BlendSRError(f"{root / INDEX}: {leaks[0]}{more}: a split leak; 'blendsr validate {root}' reports the "
+                           "same, fix the index or re-export the dataset")
 
 
 def _scale_of(clips) -> int:

@@ -79,7 +79,9 @@ def _manifest_cells(clip: Path) -> set | None:
         return None
 
 
-def index_errors(root: Path, index: dict) -> list[str]:
+def split_leaks(root: Path, index: dict) -> list[str]:
+    """What puts one scene, asset or region into two splits (a split leak): the index checks that ``train`` and
+    ``evaluate`` also run on a dataset folder, in the words ``validate`` reports them."""
     errs = region_errors(index, root)
     split_of: dict[str, str] = {}
     asset_split: dict[str, str] = {}
@@ -95,6 +97,12 @@ def index_errors(root: Path, index: dict) -> list[str]:
             s = asset_split.get(Path(cl).stem)
             if s is not None and s != c["split"]:
                 errs.append(f"clip {c['id']} ({c['split']}) uses {Path(cl).stem} of the {s} split as clutter")
+    return errs
+
+
+def index_errors(root: Path, index: dict) -> list[str]:
+    errs = split_leaks(root, index)
+    for c in index["clips"]:
         if not c.get("licence", {}).get("licence"):
             errs.append(f"clip {c['id']}: no licence recorded")
         try:
