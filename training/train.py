@@ -256,11 +256,9 @@ def summarize(trainer: Trainer, reason: str, elapsed: float, times: list, mem_pe
     summary["workers"] = cfg.data.workers
     summary["gpu_max_memory_mb"] = (torch.cuda.max_memory_allocated(device) / 2 ** 20
                                     if device.type == "cuda" else None)
-    try:
-        import resource
-        summary["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    except (ImportError, OSError):
-        summary["max_rss_mb"] = None
+    from gbuffer_export.resources import peak_rss_bytes
+    peak = peak_rss_bytes()
+    summary["max_rss_mb"] = peak / 2**20 if peak is not None else None
     if dist.enabled:
         digest = param_digest(unwrap(trainer.net), params_only=True)
         digests = [None] * dist.world

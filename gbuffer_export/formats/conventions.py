@@ -145,15 +145,15 @@ def rdg_to_motion(stored: np.ndarray) -> np.ndarray:
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 transfer; values clipped to [0, 1] first:
-    Blender's 'Standard' view transform, no tone curve)."""
-    x = np.clip(np.asarray(linear, np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    Blender's 'Standard' view transform, no tone curve): ``colour_spaces.srgb_encode`` (colour-science)."""
+    from ..colour_spaces import srgb_encode as encode
+    return encode(linear)
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1])."""
-    x = np.asarray(encoded, np.float64)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1]): ``colour_spaces.srgb_decode``."""
+    from ..colour_spaces import srgb_decode as decode
+    return decode(encoded)
 
 
 def depth_for_rdg(depth: np.ndarray) -> np.ndarray:
