@@ -104,6 +104,24 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_export)
 
 
+def refuse_dataset(path, option: str) -> None:
+    """A dataset folder given where one clip is expected (``option``: the flag) is one line naming what to pass:
+    ``--clip DATASET: this is a dataset ...: pass DATASET/clips/ID``, with a clip of its index as the example."""
+    from gbuffer_export.dataset.build import DatasetError, INDEX, clip_dir, is_dataset, read_index
+    root = Path(path)
+    if not is_dataset(root):
+        return
+    example = ""
+    try:
+        entries = read_index(root)["clips"]
+        if entries:
+            example = f" (e.g. {clip_dir(root, entries[0])})"
+    except (BlendSRError, OSError):
+        pass
+    raise DatasetError(f"{option} {root}: this is a dataset (it holds {INDEX}), not a clip: pass "
+                       f"{root / 'clips' / 'ID'}, one of its clips{example}")
+
+
 def _frames(text: str | None):
     from gbuffer_export.config import parse_frames
     rng = parse_frames(text)
@@ -242,6 +260,7 @@ def cmd_upscale(args) -> int:
     from gbuffer_export.exr import write_exr
     from training.inference import ClipFrames, load_model, upscale_frame
     from training.device import resolve_device
+    refuse_dataset(args.clip, "--clip")
     clip = open_clip(args.clip)
     from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)
