@@ -368,19 +368,55 @@ class ClipWriter:
     def _flock(self, name: str, mode: int) -> int | None:
         """Open ``CLIP/name`` (never through a link) and flock it with ``mode`` (non-blocking unless ``mode``
         lacks LOCK_NB); the open descriptor, or None when the lock is held elsewhere."""
+        for _ in range(100):
+            try:
+                fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+            except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
+                raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
+            try:
+                fcntl.flock(fd, mode)
+            except BlockingIOError:
+                os.close(fd)
+                return None
+            except BaseException:
+                os.close(fd)
+                raise
+            if self._still_linked(fd, name):
+                return fd
+            os.close(fd)  # the last writer of a finished clip removed this file meanwhile: lock the new one
+        raise ClipError(f"{self.path}: its lock file {name} keeps being replaced; is another program deleting it?")
+
+    def _still_linked(self, fd: int, name: str) -> bool:
+        """True when ``CLIP/name`` is still the file ``fd`` locked (not removed by a finishing writer)."""
         try:
-            fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
-        except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
-            raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
+            now = os.stat(self.path / name, follow_symlinks=False)
+        except FileNotFoundError:
+            return False
+        mine = os.fstat(fd)
+        return (now.st_dev, now.st_ino) == (mine.st_dev, mine.st_ino)
+
+    def _remove_lock_files_if_finished(self) -> None:
+        """The last writer of a finished clip (every planned frame has its record) removes the clip's lock files:
+        it upgrades its hold on ``.lock`` to exclusive (refused while another shard still writes), then deletes
+        ``.lock``, ``.lock.manifest`` and every ``.lock.shard-*`` before releasing it. A writer that opened a lock
+        file just before it was deleted finds it unlinked after locking and locks the new one (``_flock``)."""
+        if fcntl is None or not self._fds:
+            return
         try:
-            fcntl.flock(fd, mode)
-        except BlockingIOError:
-            os.close(fd)
-            return None
-        except BaseException:
-            os.close(fd)
-            raise
-        return fd
+            done = {int(k) for k in json.loads((self.path / MANIFEST).read_text()).get("frame_data", {})}
+        except (OSError, ValueError, AttributeError):
+            return
+        planned = {int(f) for f in self.header.get("frames", [])}
+        if not planned or not planned <= done:
+            return
+        try:
+            fcntl.flock(self._fds[0], fcntl.LOCK_EX | fcntl.LOCK_NB)  # _fds[0] is .lock (shared for a shard)
+        except OSError:
+            return  # another shard of this clip still writes: it removes them when it finishes
+        with self._manifest_lock():
+            for p in [self.path / LOCK, *sorted(self.path.glob(f"{LOCK}.shard-*of*")), self.path / MANIFEST_LOCK]:
+                with contextlib.suppress(OSError):
+                    p.unlink()
 
     def _lock_writer(self) -> None:
         if fcntl is None:
@@ -425,7 +461,11 @@ class ClipWriter:
             os.close(fd)
 
     def close(self) -> None:
-        """Release the clip (its locks) for the next writer; idempotent."""
+        """Release the clip (its locks) for the next writer; idempotent. The last writer of a finished clip leaves
+        no lock file behind."""
+        if getattr(self, "_fds", None):
+            with contextlib.suppress(Exception):
+                self._remove_lock_files_if_finished()
         fds, self._fds = getattr(self, "_fds", []), []
         for fd in fds:
             with contextlib.suppress(OSError):
