@@ -4,8 +4,8 @@ Used by the dataset coordinator (``DATASET/.lock``) and by training (``RUN/.lock
 shared/exclusive scheme in ``gbuffer_export.clip.ClipWriter``. The lock is the operating system's (``flock`` on
 Linux and macOS, ``LockFileEx`` on Windows, through ``filelock.FileLock``): it is released when the process dies
 (kill -9 included), so a stale lock file never blocks a later run. A process forked from the holder (a training
-loader worker) does not keep it: filelock closes the inherited descriptor in the child, and BlendSR's workers also
-end with their parent (``training.loader``).
+loader worker) shares the lock while it lives (filelock 4 closes the inherited descriptor in the child; 3.x does
+not), so BlendSR's forked workers end with their parent (``die_with_parent``, used by ``training.loader``).
 """
 from __future__ import annotations
 
@@ -43,8 +43,8 @@ class FolderLock:
         path = self.root / name
         if path.is_symlink():
             raise UnsafePathError(f"{path}: is a symbolic link; refused")
-        self._lock: filelock.BaseFileLock | None = filelock.FileLock(path, timeout=0, thread_local=False,
-                                                                              is_singleton=False)
+        self._lock: filelock.BaseFileLock | None = filelock.FileLock(
+            path, timeout=0, thread_local=False, is_singleton=False)
         try:
             self._lock.acquire()
         except filelock.Timeout:

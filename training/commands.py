@@ -174,19 +174,20 @@ def cmd_train(args) -> int:
 def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
     """--data arguments with every dataset folder replaced by the finished clips of its ``split``."""
     from gbuffer_export.dataset.build import DatasetError, expand_data_paths, is_dataset, split_clips
-    for p in paths:
-        if is_dataset(p):
-            _refuse_split_leak(Path(p))
     if missing_ok:  # the optional split of dataset folders only
         out = []
         for p in paths:
             if is_dataset(p):
                 out += split_clips(p, split)
-        return out
-    try:
-        return expand_data_paths(paths, split)
-    except DatasetError as exc:
-        raise BlendSRError(str(exc)) from None
+    else:
+        try:
+            out = expand_data_paths(paths, split)  # every index path checked first (clip_dir)
+        except DatasetError as exc:
+            raise BlendSRError(str(exc)) from None
+    for p in paths:
+        if is_dataset(p):
+            _refuse_split_leak(Path(p))
+    return out
 
 
 def _check_radiance(clips, frames) -> None:

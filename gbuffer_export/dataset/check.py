@@ -86,10 +86,9 @@ def split_leaks(root: Path, index: dict) -> list[str]:
     split_of: dict[str, str] = {}
     asset_split: dict[str, str] = {}
     for c in index["clips"]:
-        sid = c.get("scene_id")
-        if sid in split_of and split_of[sid] != c["split"]:
+        sid = c.get("scene_id")  # None: no scene recorded (a hand-made index), nothing to compare
+        if sid is not None and split_of.setdefault(sid, c["split"]) != c["split"]:
             errs.append(f"scene {sid!r} is in both the {split_of[sid]} and the {c['split']} split")
-        split_of.setdefault(sid, c["split"])
         if c.get("asset"):
             asset_split.setdefault(Path(c["asset"]).stem, c["split"])
     for c in index["clips"]:
