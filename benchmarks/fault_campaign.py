@@ -42,8 +42,8 @@ Parts (each prints its counts; the totals come last):
 9. **Huge specs and non-finite values** (``HUGE_AND_NONFINITE``, part ``huge``): specs of a million clips
    (seeds, clips per asset/scene), samples above Cycles' cap, inf/nan floats, a test asset in a train source, a
    million frames, an LR frame under 4 px: each refused in one line within ``RUNAWAY_S`` seconds; NaN/Inf in the
-   ground truth refused by ``evaluate`` naming the file; NaN/Inf in an LR input: ``evaluate`` warns and writes
-   finite JSON, ``upscale`` warns and writes finite EXRs.
+   ground truth or an LR input, and negative LR radiance, refused by ``evaluate`` (and ``train``) naming the file in
+   validate's words; NaN/Inf in an LR input: ``upscale`` warns and writes finite EXRs.
 
 ``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -490,12 +490,22 @@ HUGE_AND_NONFINITE = [
         "evaluate", "--model", "bicubic", "--data", str(f.variant("gt_nan", lambda c: _edit_exr(
             c, 1, "hr/radiance", lambda a: _set(a, (5, 5, 1), float("nan"))))), "--json", str(f.root / "n2.json")],
      (2,), False, True, lambda f, code, err: None if "000001.exr" in err else "the error names no file"),
-    ("evaluate: NaN in an LR input (model output NaN)", lambda f: [
+    ("evaluate: NaN in an LR input (refused as validate refuses it, issue 43)", lambda f: [
         "evaluate", "--model", "bilinear", "--data", str(f.variant("lr_nan", lambda c: _edit_exr(
             c, 2, "lr/radiance", lambda a: _set(a, (3, 4, 0), float("nan"))))), "--json", str(f.root / "n3.json"),
         "--no-flip"],
-     (0,), True, True, lambda f, code, err: ("no warning" if "warning:" not in err else
-                                             _eval_json_finite(f.root / "n3.json"))),
+     (2,), True, True, lambda f, code, err: (None if "000002.exr: frame 2 lr/radiance" in err and "[non-finite]" in err
+                                             else "not validate's words naming the file")),
+    ("evaluate: negative LR radiance (issue 43)", lambda f: [
+        "evaluate", "--model", "bilinear", "--data", str(f.variant("lr_neg", lambda c: _edit_exr(
+            c, 2, "lr/radiance", lambda a: a * 0 - 1.0))), "--json", str(f.root / "n6.json"), "--no-flip"],
+     (2,), True, True, lambda f, code, err: (None if "000002.exr: frame 2 lr/radiance: radiance is negative" in err
+                                             else "not validate's words naming the file")),
+    ("train: negative LR radiance (issue 43)", lambda f: [
+        "train", "--model", "fusesr", "--data", str(f.variant("lr_neg", None)), "-o", str(f.root / "n7"),
+        "--max-steps", "1", "--set", "data.crop=8"],
+     (2,), True, True, lambda f, code, err: (None if "[negative-radiance]" in err and "000002.exr" in err
+                                             else "not validate's words naming the file")),
     ("upscale: NaN in an LR input", lambda f: [
         "upscale", "--model", "bilinear", "--clip", str(f.variant("lr_nan", None)), "-o", str(f.root / "n4")],
      (0,), True, True, lambda f, code, err: ("no warning" if "warning:" not in err else

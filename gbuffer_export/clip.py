@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import BlendSRError
+from .errors import BlendSRError, first_line
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, is_level_name,
                           level_name)
@@ -115,12 +115,17 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     with contextlib.suppress(FileNotFoundError):
         os.unlink(tmp)  # a leftover (or a planted link) of the same name
-    with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk, an interrupt: no temporary is left behind
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def _json_default(o):
@@ -305,6 +310,12 @@ def load_manifest(path: str | os.PathLike) -> dict:
     for key in ("scale", "levels", "buffers", "frames", "frame_data"):
         if key not in manifest:
             raise ClipError(f"{mpath}: manifest lacks {key!r}")
+    fd = manifest["frame_data"]
+    if not isinstance(fd, dict):
+        raise ClipError(f"{mpath}: frame_data is not an object of frame number -> record")
+    for k, rec in fd.items():
+        if not str(k).lstrip("-").isdigit() or not isinstance(rec, dict):
+            raise ClipError(f"{mpath}: frame_data key {k!r} is not a frame number with a record (an object)")
     return manifest
 
 
@@ -314,7 +325,13 @@ def open_clip(path: str | os.PathLike) -> Clip:
     if not root.is_dir():
         raise ClipError(f"{root}: not a directory")
     check_no_links(root, root / FRAMES_DIR)  # a clip with links inside is refused as a whole
-    return Clip(root, load_manifest(root))
+    manifest = load_manifest(root)
+    try:
+        return Clip(root, manifest)
+    except BlendSRError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:  # a hand-edited manifest of the wrong shape
+        raise ClipError(f"{root / MANIFEST}: malformed manifest ({type(exc).__name__}: {first_line(exc)})") from None
 
 
 class ClipWriter:
@@ -351,19 +368,55 @@ class ClipWriter:
     def _flock(self, name: str, mode: int) -> int | None:
         """Open ``CLIP/name`` (never through a link) and flock it with ``mode`` (non-blocking unless ``mode``
         lacks LOCK_NB); the open descriptor, or None when the lock is held elsewhere."""
+        for _ in range(100):
+            try:
+                fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
+            except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
+                raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
+            try:
+                fcntl.flock(fd, mode)
+            except BlockingIOError:
+                os.close(fd)
+                return None
+            except BaseException:
+                os.close(fd)
+                raise
+            if self._still_linked(fd, name):
+                return fd
+            os.close(fd)  # the last writer of a finished clip removed this file meanwhile: lock the new one
+        raise ClipError(f"{self.path}: its lock file {name} keeps being replaced; is another program deleting it?")
+
+    def _still_linked(self, fd: int, name: str) -> bool:
+        """True when ``CLIP/name`` is still the file ``fd`` locked (not removed by a finishing writer)."""
         try:
-            fd = open_nofollow(self.path / name, os.O_RDWR | os.O_CREAT)
-        except OSError as exc:  # read-only, not ours, or full: the clip cannot be written at all
-            raise ClipError(f"{self.path}: cannot write this clip ({exc.strerror or exc}: {name})") from None
+            now = os.stat(self.path / name, follow_symlinks=False)
+        except FileNotFoundError:
+            return False
+        mine = os.fstat(fd)
+        return (now.st_dev, now.st_ino) == (mine.st_dev, mine.st_ino)
+
+    def _remove_lock_files_if_finished(self) -> None:
+        """The last writer of a finished clip (every planned frame has its record) removes the clip's lock files:
+        it upgrades its hold on ``.lock`` to exclusive (refused while another shard still writes), then deletes
+        ``.lock``, ``.lock.manifest`` and every ``.lock.shard-*`` before releasing it. A writer that opened a lock
+        file just before it was deleted finds it unlinked after locking and locks the new one (``_flock``)."""
+        if fcntl is None or not self._fds:
+            return
         try:
-            fcntl.flock(fd, mode)
-        except BlockingIOError:
-            os.close(fd)
-            return None
-        except BaseException:
-            os.close(fd)
-            raise
-        return fd
+            done = {int(k) for k in json.loads((self.path / MANIFEST).read_text()).get("frame_data", {})}
+        except (OSError, ValueError, AttributeError):
+            return
+        planned = {int(f) for f in self.header.get("frames", [])}
+        if not planned or not planned <= done:
+            return
+        try:
+            fcntl.flock(self._fds[0], fcntl.LOCK_EX | fcntl.LOCK_NB)  # _fds[0] is .lock (shared for a shard)
+        except OSError:
+            return  # another shard of this clip still writes: it removes them when it finishes
+        with self._manifest_lock():
+            for p in [self.path / LOCK, *sorted(self.path.glob(f"{LOCK}.shard-*of*")), self.path / MANIFEST_LOCK]:
+                with contextlib.suppress(OSError):
+                    p.unlink()
 
     def _lock_writer(self) -> None:
         if fcntl is None:
@@ -408,7 +461,11 @@ class ClipWriter:
             os.close(fd)
 
     def close(self) -> None:
-        """Release the clip (its locks) for the next writer; idempotent."""
+        """Release the clip (its locks) for the next writer; idempotent. The last writer of a finished clip leaves
+        no lock file behind."""
+        if getattr(self, "_fds", None):
+            with contextlib.suppress(Exception):
+                self._remove_lock_files_if_finished()
         fds, self._fds = getattr(self, "_fds", []), []
         for fd in fds:
             with contextlib.suppress(OSError):

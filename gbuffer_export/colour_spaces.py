@@ -7,8 +7,10 @@ Training and evaluation see every clip in ``TRAINING_SPACE``: ``convert_buffer``
 ``COLOUR_BUFFERS`` with the 3x3 matrix of ``conversion_matrix`` (primaries through CIE XYZ, Bradford adaptation
 between whites, as Blender's OCIO configuration does).
 
-``colour`` is imported inside the functions that need it (its import took 0.7-0.9 s here:
-``python -X importtime -c 'import colour'``).
+``colour`` is imported inside the functions that need it, through ``colour_module`` (its import took 0.7-0.9 s
+here: ``python -X importtime -c 'import colour'``), which keeps colour-science's import-time warnings about
+optional packages BlendSR does not use (``"Matplotlib" related API features are not available`` on a core install)
+out of the commands' output.
 """
 from __future__ import annotations
 
@@ -61,15 +63,34 @@ RGB_TO_YCBCR_709.setflags(write=False)
 YCBCR_TO_RGB_709.setflags(write=False)
 
 
+def colour_module():
+    """``import colour`` without its import-time warnings (optional features: matplotlib, OpenImageIO, ...)."""
+    import sys
+    import warnings
+    if "colour" in sys.modules and sys.modules["colour"] is not None:
+        return sys.modules["colour"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import colour
+    return colour
+
+
 def srgb_encode(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB encoding (inverse EOTF) of linear values, clipped to [0, 1] first; float64."""
-    import colour
+    colour = colour_module()
     return np.asarray(colour.cctf_encoding(np.clip(np.asarray(x, np.float64), 0.0, 1.0), function="sRGB"))
+
+
+def srgb_decode(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding (EOTF) of encoded values in [0, 1] to linear; float64 (the inverse of
+    ``srgb_encode`` on [0, 1])."""
+    colour = colour_module()
+    return np.asarray(colour.cctf_decoding(np.asarray(x, np.float64), function="sRGB"))
 
 
 @lru_cache(maxsize=None)
 def _matrix(src: str, dst: str) -> np.ndarray:
-    import colour
+    colour = colour_module()
     m = colour.matrix_RGB_to_RGB(colour.RGB_COLOURSPACES[WORKING_SPACES[src]],
                                  colour.RGB_COLOURSPACES[WORKING_SPACES[dst]],
                                  chromatic_adaptation_transform=CHROMATIC_ADAPTATION)
@@ -100,4 +121,4 @@ def convert_buffer(name: str, arr: np.ndarray, matrix: np.ndarray | None) -> np.
 
 
 __all__ = ["TRAINING_SPACE", "DEFAULT_WORKING_SPACE", "WORKING_SPACES", "CHROMATIC_ADAPTATION", "COLOUR_BUFFERS",
-           "BT709_LUMA", "RGB_TO_YCBCR_709", "YCBCR_TO_RGB_709", "srgb_encode", "conversion_matrix", "convert_buffer"]
+           "BT709_LUMA", "RGB_TO_YCBCR_709", "YCBCR_TO_RGB_709", "srgb_encode", "srgb_decode", "colour_module", "conversion_matrix", "convert_buffer"]

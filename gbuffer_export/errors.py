@@ -35,14 +35,16 @@ def first_line(exc: BaseException) -> str:
 
 def filesystem_message(exc: BaseException) -> str | None:
     """'PATH: read-only file system' for a filesystem fault the user can fix (see FILESYSTEM_ERRNOS), else None.
-    Looks through ``__cause__``/``__context__`` so a fault re-raised by a library is still recognised."""
+    Looks through ``__cause__``/``__context__`` so a fault re-raised by a library is still recognised, but not
+    through a context the raiser suppressed (``raise ... from None``: its own message already says what is wrong and
+    names the file)."""
     seen = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
         if isinstance(exc, OSError) and exc.errno in FILESYSTEM_ERRNOS:
             what = FILESYSTEM_ERRNOS[exc.errno]
             return f"{exc.filename}: {what}" if exc.filename is not None else what
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__ or (None if exc.__suppress_context__ else exc.__context__)
     return None
 
 

@@ -1,14 +1,17 @@
 """Optional extras: which modules each extra of ``pyproject.toml`` provides, and the one-line check every CLI command
 runs before it starts (``require``), so that a partial install names the extra to install instead of a traceback.
 
-BlendSR is not published on a package index: the hint installs from a checkout (``pip install '.[train]'``) or from a
-built wheel (README, "Install").
+BlendSR is not published on a package index. The hint says what works where BlendSR runs from: in a checkout (the
+source tree beside its ``pyproject.toml``) ``pip install '.[train]'`` there; from an installed wheel
+``pip install 'blendsr[train]'``, which adds the extra's packages to the installed blendsr (pip finds blendsr itself
+installed and fetches only the extra's dependencies). README, "Installing without make".
 """
 from __future__ import annotations
 
 import argparse
 import importlib.util
 import re
+from pathlib import Path
 
 from .errors import BlendSRError
 
@@ -37,8 +40,27 @@ def installed(module: str) -> bool:
         return False
 
 
+def checkout_root() -> Path | None:
+    """The BlendSR source checkout this package runs from (the folder above it holds blendsr's pyproject.toml), or
+    None when it runs from an installed wheel."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        text = (root / "pyproject.toml").read_text(encoding="utf-8")
+    except OSError:
+        return None
+    return root if re.search(r'^name\s*=\s*"blendsr"', text, re.MULTILINE) else None
+
+
 def install_hint(extra: str) -> str:
-    return f"install the [{extra}] extra: pip install '.[{extra}]' (from a BlendSR checkout or with the wheel)"
+    """The pip command that installs ``extra`` for this installation (see module doc)."""
+    root = checkout_root()
+    if root is None:
+        return f"install the [{extra}] extra: pip install 'blendsr[{extra}]' (adds it to the installed blendsr)"
+    try:
+        here = Path.cwd().resolve() == root
+    except OSError:
+        here = False
+    return f"install the [{extra}] extra: pip install '.[{extra}]'" + ("" if here else f" in {root}")
 
 
 def extra_of(module: str) -> str | None:

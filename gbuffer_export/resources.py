@@ -18,14 +18,15 @@ Disk model: the uncompressed payload of the frames still to render, ``(W*H + w*h
 (an upper bound: the EXRs are ZIP-compressed; float32 and uint32 are 4 bytes), plus Cycles' temporary multilayer
 EXR of one frame.
 
-Available memory is the smaller of /proc/meminfo's MemAvailable and the cgroup limit (when there is one);
-elsewhere the free physical pages. ``BLENDSR_MEMORY_AVAILABLE`` (bytes) overrides it, for tests and for machines
-where swap should count.
+Available memory is the smaller of the operating system's available memory (psutil, on Linux, macOS and Windows)
+and what the cgroup memory limit leaves (Linux containers, when there is one). ``BLENDSR_MEMORY_AVAILABLE`` (bytes)
+overrides it, for tests and for machines where swap should count.
 """
 from __future__ import annotations
 
 import os
 import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,34 +72,58 @@ def estimate_render(hr_size: tuple[int, int], scale, buffers, frames: int) -> Re
                           disk_bytes=per_frame * frames + (temp if frames else 0), frames=frames)
 
 
+#: cgroup v2 and v1 files: (limit, usage) of the memory controller (Linux containers; absent elsewhere).
+CGROUP_MEMORY = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                 ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
+
+
+def cgroup_available() -> int | None:
+    """Bytes left under this process's cgroup memory limit (Linux containers); None without a limit or elsewhere."""
+    for limit, usage in CGROUP_MEMORY:
+        try:
+            lim = Path(limit).read_text().strip()
+            if lim != "max" and int(lim) < 2**60:
+                return int(lim) - int(Path(usage).read_text().strip())
+            return None
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def system_available() -> int | None:
+    """The operating system's available memory (``psutil.virtual_memory().available``: Linux, macOS, Windows);
+    None when psutil cannot tell (an unreadable /proc)."""
+    try:
+        import psutil  # imported here: on Linux its import reads /proc
+        return int(psutil.virtual_memory().available)
+    except (ImportError, OSError, RuntimeError, AttributeError):
+        return None
+
+
 def available_memory() -> int | None:
     """Bytes of memory a new allocation can use (see module doc); None when unknown."""
     env = os.environ.get("BLENDSR_MEMORY_AVAILABLE")
     if env:
         return int(float(env))
-    found = []
+    found = [v for v in (system_available(), cgroup_available()) if v is not None]
+    return max(min(found), 0) if found else None
+
+
+def peak_rss_bytes() -> int | None:
+    """Peak resident memory of this process so far: ``getrusage`` where it exists (ru_maxrss is KiB on Linux,
+    bytes on macOS), the peak working set on Windows (psutil); None when unknown."""
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                found.append(int(line.split()[1]) * 1024)
-    except OSError:
+        import resource
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return int(peak) if sys.platform == "darwin" else int(peak) * 1024
+    except (ImportError, OSError, AttributeError):
         pass
-    cgroups = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-               ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
-    for limit, usage in cgroups:
-        try:
-            lim = Path(limit).read_text().strip()
-            if lim != "max" and int(lim) < 2**60:
-                found.append(int(lim) - int(Path(usage).read_text().strip()))
-            break
-        except (OSError, ValueError):
-            continue
-    if not found:
-        try:
-            found.append(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-        except (ValueError, OSError, AttributeError):
-            return None
-    return max(min(found), 0)
+    try:
+        import psutil
+        info = psutil.Process().memory_info()
+        return int(getattr(info, "peak_wset", info.rss))
+    except (ImportError, OSError, RuntimeError):
+        return None
 
 
 def free_disk(path: Path) -> int | None:

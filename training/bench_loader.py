@@ -61,6 +61,7 @@ def _time_loader(sampler, args, device) -> tuple[list[float], float]:
 
 
 def run(args) -> int:
+    from gbuffer_export.errors import BlendSRError
     from gbuffer_export.extras import require
     require("blendsr bench loader", "train")
     import torch
@@ -78,6 +79,9 @@ def run(args) -> int:
         torch.set_num_threads(args.threads)
     tmp = None
     clips = list(args.data)
+    from training.commands import refuse_dataset
+    for c in clips:
+        refuse_dataset(c, "--data")
     if not clips:
         tmp = tempfile.TemporaryDirectory(prefix="blendsr-bench-loader-")
         t = time.perf_counter()
@@ -93,6 +97,11 @@ def run(args) -> int:
                                    exposure_range=tuple(data.exposure_range),
                                    reflectance_range=tuple(data.reflectance_range))
         caches = [ClipCache(c) for c in clips]
+        for c in caches:  # this command's flag, not the training configuration's key
+            w, h = c.sizes["lr"]
+            if args.crop > min(w, h):
+                raise BlendSRError(f"{c.clip_path}: LR size {w}x{h} is smaller than --crop {args.crop}; pass "
+                                   f"--crop {min(w, h)} or less")
         t = time.perf_counter()
         for c in caches:
             c.ensure(spec.cache_keys)

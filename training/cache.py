@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import hashlib
 import json
 import os
@@ -33,6 +32,7 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
+import filelock
 import numpy as np
 
 from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, open_clip, open_nofollow, split_key,
@@ -41,7 +41,8 @@ from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
 
-CACHE_VERSION = 3  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space
+CACHE_VERSION = 4  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space;
+#                  4: radiance checked by validate's rule (non-finite, negative on surfaces)
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
 #: The clip buffers the derived ones are computed from (``demodulate``; emission and flags are optional).
@@ -55,26 +56,43 @@ class NonFiniteError(ClipError):
 
 
 class CacheSpaceError(ClipError):
-    """The cache's filesystem has no room for an array (message names the folder and the size)."""
+    """The cache's filesystem has no room for an array or its index (the message names the file)."""
 
 
 #: errno values that mean "the filesystem is full" (disk or quota)
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 
+def space_error(path: Path, detail: str) -> CacheSpaceError:
+    """The one-line error for a full cache filesystem, naming the file that could not be written."""
+    return CacheSpaceError(f"{path}: no space left for the training cache ({detail}); free space on that "
+                           "filesystem or set data.cache_dir to a folder with room")
+
+
 def reserve(fd: int, size: int, what: Path) -> None:
-    """Allocate ``size`` bytes of the open file ``fd`` now (``os.posix_fallocate``), so that writing into its memory
-    map can never hit a full filesystem (SIGBUS, which kills the process with no message). CacheSpaceError when
-    the filesystem cannot hold it; filesystems without fallocate support are left as they are."""
+    """Allocate ``size`` bytes of the open file ``fd`` now, so that writing into its memory map can never hit a full
+    filesystem (SIGBUS, which kills the process with no message): ``os.posix_fallocate`` where the platform has it
+    (Linux), else the file is filled with zeros (macOS, Windows: every block written once). CacheSpaceError naming
+    ``what`` when the filesystem cannot hold it; filesystems without fallocate support get the zeros too."""
     try:
-        os.posix_fallocate(fd, 0, size)
+        try:
+            os.posix_fallocate(fd, 0, size)
+            return
+        except AttributeError:  # not on this platform
+            pass
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                raise
+        zeros = bytes(min(size, 1 << 22))
+        os.lseek(fd, 0, os.SEEK_SET)
+        left = size
+        while left > 0:
+            left -= os.write(fd, zeros[:min(left, len(zeros))])
+        os.fsync(fd)
     except OSError as exc:
         if exc.errno in NO_SPACE:
-            raise CacheSpaceError(f"{what.parent}: no space left for the training cache ({size / 1e6:.1f} MB for "
-                                  f"{what.name}); free space there or set data.cache_dir to a folder with room"
-                                  ) from None
-        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
-            raise
+            raise space_error(what, f"{size / 1e6:.1f} MB needed") from None
+        raise
 
 
 def storage_dtype(name: str) -> np.dtype:
@@ -171,19 +189,31 @@ class ClipCache:
         self.sizes = self.clip.sizes
         self._arrays: dict[str, np.ndarray] = {}
         self._tmp: set[Path] = set()
+        self._writing: Path = self.path / "index.json"  # the file a full filesystem error names
         self.index = self._load_or_reset()
 
     # -------------------------------------------------------------------------------------------- index
     @contextmanager
     def _lock(self):
-        self.path.mkdir(parents=True, exist_ok=True)
-        fd = open_nofollow(self.path / ".lock", os.O_RDWR | os.O_CREAT)
-        with open(fd, "a+") as fh:
-            fcntl.flock(fh, fcntl.LOCK_EX)
-            try:
-                yield
-            finally:
-                fcntl.flock(fh, fcntl.LOCK_UN)
+        """The cache's lock (``CACHE/.lock``, filelock: flock or LockFileEx), blocking: one builder at a time."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            self._raise_if_full(exc, self.path)
+            raise
+        path = self.path / ".lock"
+        if path.is_symlink():
+            raise UnsafePathError(f"{path}: is a symbolic link; refused")
+        lock = filelock.FileLock(path, thread_local=False, is_singleton=False)
+        try:
+            lock.acquire()
+        except OSError as exc:
+            self._raise_if_full(exc, path)
+            raise
+        try:
+            yield
+        finally:
+            lock.release(force=True)
 
     def _read_index(self) -> dict | None:
         p = self.path / "index.json"
@@ -209,7 +239,7 @@ class ClipCache:
                 try:
                     write_json_atomic(self.path / "index.json", idx)
                 except OSError as exc:
-                    self._raise_if_full(exc)
+                    self._raise_if_full(exc, self.path / "index.json")
                     raise
             else:
                 self.rebuilt = False
@@ -250,6 +280,7 @@ class ClipCache:
             if idx is None or idx.get("identity") != self.identity:
                 raise ClipError(f"{self.path}: cache changed while building; rerun")
             self.index = idx
+            self._writing = self.path / "index.json"
             try:
                 for k in dict.fromkeys(missing):
                     if self._real(k) in self.index["arrays"] and not (k == "lr/depth"
@@ -260,19 +291,20 @@ class ClipCache:
                         self._build_derived(lvl)
                     else:
                         self._build(lvl, name)
-                    write_json_atomic(self.path / "index.json", self.index)
+                    self._writing = self.path / "index.json"
+                    write_json_atomic(self._writing, self.index)
             except OSError as exc:
-                self._raise_if_full(exc)
+                self._raise_if_full(exc, self._writing)
                 raise
             finally:
                 self._discard_tmp()
         return self
 
-    def _raise_if_full(self, exc: OSError) -> None:
-        """CacheSpaceError (one line) when ``exc`` says the cache's filesystem is full."""
+    def _raise_if_full(self, exc: OSError, path: Path) -> None:
+        """CacheSpaceError (one line naming ``path``, the file being written) when ``exc`` says the cache's
+        filesystem is full."""
         if exc.errno in NO_SPACE:
-            raise CacheSpaceError(f"{self.path}: no space left for the training cache ({exc.strerror}); free space "
-                                  "there or set data.cache_dir to a folder with room") from None
+            raise space_error(path, exc.strerror or "filesystem full") from None
 
     def _real(self, key: str) -> str:
         """'lr/radiance' -> 'lr_x2.5/radiance' in a cache of the level at 2.5: the key under which it is stored."""
@@ -283,8 +315,37 @@ class ClipCache:
         a = self.clip.read(frame, key)
         where = f"{self.clip.path_of(frame, key)} (frame {frame})"
         name = split_key(key)[1]
+        if name == "radiance" and self.nonfinite == "error":
+            self._check_radiance(frame, key, a)  # validate's rule and words first
         a = check_finite(a, name, where, self.nonfinite, self.index["sanitized"])
+        if name == "radiance" and self.nonfinite == "sanitize":
+            a = self._sanitize_negative(frame, key, a)
         return convert_buffer(name, a, self.colour_matrix)
+
+    def _radiance_problem(self, frame: int, key: str, a: np.ndarray) -> str | None:
+        """``validate``'s radiance rule (gbuffer_export.validate.values.radiance_problem) on one frame."""
+        from gbuffer_export.validate.values import radiance_problem
+        lvl = split_key(key)[0]
+        extra = {b: self.clip.read(frame, f"{lvl}/{b}") for b in ("flags", "depth") if b in self.clip.buffers}
+        return radiance_problem(frame, self._real(key).split("/")[0], a, extra.get("flags"), extra.get("depth"))
+
+    def _check_radiance(self, frame: int, key: str, a: np.ndarray) -> None:
+        problem = self._radiance_problem(frame, key, a)
+        if problem:
+            raise NonFiniteError(f"{self.clip.path_of(frame, key)}: {problem}; fix the render ('blendsr validate' "
+                                 "reports the same) or set data.nonfinite = \"sanitize\"")
+
+    def _sanitize_negative(self, frame: int, key: str, a: np.ndarray) -> np.ndarray:
+        """data.nonfinite = "sanitize": radiance that validate refuses as negative is clamped to 0 (warned, logged)."""
+        problem = self._radiance_problem(frame, key, a)
+        if not problem:
+            return a
+        where = f"{self.clip.path_of(frame, key)} (frame {frame})"
+        n = int((a < 0).sum())
+        warnings.warn(f"{where}: sanitised {n} negative value(s) in buffer 'radiance' ({problem})", RuntimeWarning,
+                      stacklevel=3)
+        self.index["sanitized"].append({"where": where, "buffer": "radiance", "count": n, "negative": True})
+        return np.maximum(a, 0).astype(a.dtype)
 
     def _new_array(self, key: str) -> tuple[np.ndarray, Path, Path]:
         lvl, name = key.split("/")
@@ -292,6 +353,7 @@ class ClipCache:
         real = self._real(key).replace("/", "__")
         final = self.path / f"{real}.npy"
         tmp = self.path / f".{real}.npy.tmp{os.getpid()}"
+        self._writing = final
         dtype, shape = storage_dtype(name), (len(self.frames), h, w, channels_of(name))
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)  # a leftover (or a planted link) is never written through

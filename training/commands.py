@@ -104,6 +104,24 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_export)
 
 
+def refuse_dataset(path, option: str) -> None:
+    """A dataset folder given where one clip is expected (``option``: the flag) is one line naming what to pass:
+    ``--clip DATASET: this is a dataset ...: pass DATASET/clips/ID``, with a clip of its index as the example."""
+    from gbuffer_export.dataset.build import DatasetError, INDEX, clip_dir, is_dataset, read_index
+    root = Path(path)
+    if not is_dataset(root):
+        return
+    example = ""
+    try:
+        entries = read_index(root)["clips"]
+        if entries:
+            example = f" (e.g. {clip_dir(root, entries[0])})"
+    except (BlendSRError, OSError):
+        pass
+    raise DatasetError(f"{option} {root}: this is a dataset (it holds {INDEX}), not a clip: pass "
+                       f"{root / 'clips' / 'ID'}, one of its clips{example}")
+
+
 def _frames(text: str | None):
     from gbuffer_export.config import parse_frames
     rng = parse_frames(text)
@@ -161,11 +179,37 @@ def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
         for p in paths:
             if is_dataset(p):
                 out += split_clips(p, split)
-        return out
-    try:
-        return expand_data_paths(paths, split)
-    except DatasetError as exc:
-        raise BlendSRError(str(exc)) from None
+    else:
+        try:
+            out = expand_data_paths(paths, split)  # every index path checked first (clip_dir)
+        except DatasetError as exc:
+            raise BlendSRError(str(exc)) from None
+    for p in paths:
+        if is_dataset(p):
+            _refuse_split_leak(Path(p))
+    return out
+
+
+def _check_radiance(clips, frames) -> None:
+    """Refuse radiance that 'blendsr validate' refuses (non-finite, negative on surfaces), in its words, before
+    anything is scored (gbuffer_export.validate.values.check_clip_radiance)."""
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.validate.values import check_clip_radiance
+    for c in clips:
+        clip = open_clip(c)
+        check_clip_radiance(clip, [f for f in frames if f in clip.frames] if frames else None)
+
+
+def _refuse_split_leak(root: Path) -> None:
+    """A dataset whose index puts one scene (asset, region) in two splits is refused, in validate's words
+    (gbuffer_export.dataset.check.split_leaks): nothing is trained or scored on a leaked split."""
+    from gbuffer_export.dataset.build import INDEX, read_index
+    from gbuffer_export.dataset.check import split_leaks
+    leaks = split_leaks(root, read_index(root))
+    if leaks:
+        more = f" (and {len(leaks) - 1} more)" if len(leaks) > 1 else ""
+        raise BlendSRError(f"{root / INDEX}: {leaks[0]}{more}: a split leak; 'blendsr validate {root}' reports the "
+                           "same, fix the index or re-export the dataset")
 
 
 def _scale_of(clips) -> int:
@@ -186,6 +230,7 @@ def cmd_evaluate(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
+    _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
     model = load_model(spec, scale, args.set)
@@ -216,6 +261,7 @@ def cmd_upscale(args) -> int:
     from gbuffer_export.exr import write_exr
     from training.inference import ClipFrames, load_model, upscale_frame
     from training.device import resolve_device
+    refuse_dataset(args.clip, "--clip")
     clip = open_clip(args.clip)
     from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)

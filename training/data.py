@@ -132,7 +132,7 @@ class TrainSampler:
             w, h = c.sizes["lr"]
             if spec.crop > min(w, h):
                 raise ClipError(f"{c.clip_path}: LR size {w}x{h} at scale {c.scale:g} is smaller than data.crop = "
-                                f"{spec.crop}; --set data.crop={min(w, h)} (or less) fits it")
+                                f"{spec.crop}; data.crop = {min(w, h)} (or less) fits it")
             if spec.crop and crop_grid(c.scale, spec.crop)[1] == 0:
                 raise ClipError(f"{c.clip_path}: data.crop = {spec.crop} is smaller than the crop grid of scale "
                                 f"{c.scale:g} ({crop_grid(c.scale, 1)[0]} LR pixels); raise data.crop")

@@ -47,8 +47,9 @@ def peak_memory_mb(device: torch.device) -> float:
         mb = torch.cuda.max_memory_allocated(device) / 2**20
         torch.cuda.reset_peak_memory_stats(device)
         return mb
-    import resource
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    from gbuffer_export.resources import peak_rss_bytes  # getrusage or, on Windows, psutil
+    peak = peak_rss_bytes()
+    return peak / 2**20 if peak is not None else 0.0
 
 
 class RunLog:

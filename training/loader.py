@@ -6,13 +6,20 @@ k, k+1, ... in parallel and ``torch.utils.data.DataLoader`` hands them back in o
 same batches as one without. Workers are forked: the clip caches' memory maps are shared with the parent (the page
 cache holds one copy), nothing is pickled per batch but the result. With ``pin`` (``data.pin_memory``, CUDA only)
 batches arrive in page-locked memory, so the copy to the GPU is asynchronous (``non_blocking``).
+
+Workers end with their trainer: a killed trainer (kill -9) leaves no orphan holding the clip caches or ``RUN/.lock``
+(``gbuffer_export.locks.die_with_parent``: the kernel's parent-death signal on Linux, a watch thread elsewhere).
 """
 from __future__ import annotations
 
+import functools
 import multiprocessing
+import os
 
 import torch
 from torch.utils.data import DataLoader, Dataset
+
+from gbuffer_export.locks import die_with_parent
 
 
 class _Steps(Dataset):
@@ -34,6 +41,10 @@ def _no_collate(item):
     return item
 
 
+def _init_worker(parent: int, worker_id: int) -> None:
+    die_with_parent(parent)
+
+
 class WorkerLoader:
     """``get(step)`` -> (batch of CPU tensors, samples) for consecutive steps from ``start_step`` to ``stop_step``,
     prepared by ``workers`` processes, ``prefetch`` batches ahead each; ``close()`` stops them."""
@@ -47,7 +58,8 @@ class WorkerLoader:
         self.loader = DataLoader(_Steps(sampler, start_step, stop_step), batch_size=None, shuffle=False,
                                  num_workers=workers, collate_fn=_no_collate, pin_memory=bool(pin),
                                  prefetch_factor=max(prefetch, 1), persistent_workers=False,
-                                 multiprocessing_context=ctx)
+                                 multiprocessing_context=ctx,
+                                 worker_init_fn=functools.partial(_init_worker, os.getpid()))
         self.it = iter(self.loader)
 
     def get(self, step: int):

@@ -87,9 +87,8 @@ def delta_e_itp(sr: np.ndarray, gt: np.ndarray) -> float:
     """Mean Delta E ITP (ITU-R BT.2124; 1 is about one just-noticeable difference) of two H x W x 3 linear
     Linear Rec.709 images: radiance 1 is shown at ``ITP_WHITE_NITS`` cd/m^2, converted to BT.2020 and clipped to
     the PQ range [0, 10000] cd/m^2, then ICtCp (BT.2100 PQ) and Delta E ITP per pixel, all with colour-science."""
-    import colour
-
-    from gbuffer_export.colour_spaces import TRAINING_SPACE, conversion_matrix
+    from gbuffer_export.colour_spaces import TRAINING_SPACE, colour_module, conversion_matrix
+    colour = colour_module()
     m = conversion_matrix(TRAINING_SPACE, "Linear Rec.2020")
 
     def ictcp(a: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -184,6 +185,34 @@ def resolve_run(cfg: TrainConfig, clips: dict) -> ResolvedRun:
                        remod_filter=remod_filter(cfg, clips), notes=(note,) if note else ())
 
 
+def run_config_toml(user: TrainConfig, run: ResolvedRun) -> str:
+    """``RUN/config.toml``: the user's configuration, the one the checkpoint holds as ``user_config`` (so that
+    ``--resume --config RUN/config.toml`` is the same run and a new run from it resolves the same way), preceded by
+    comments giving what the run derived from it and the clips (ResolvedRun)."""
+    scales = ", ".join(f"{s:g}" for s in run.scales)
+    lines = ["# The configuration of this run as given; the run resumes from it:",
+             "#   blendsr train -o RUN --resume --config RUN/config.toml",
+             "# Derived from it and the clips (training.run.ResolvedRun; the checkpoints hold both):",
+             f"#   data.crop = {run.crop}   model.scale = {run.scale:g} (LR levels {scales})   "
+             f"model.remod_filter = {run.remod_filter[0]!r} ({float(run.remod_filter[1]):g} px)"
+             + (f"   window = {run.window}" if run.window else ""), ""]
+    return "\n".join(lines) + user.to_toml()
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename (no half-written file after a crash)."""
+    from gbuffer_export.clip import open_nofollow
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.unlink(missing_ok=True)  # a leftover (or a planted link) is never written through
+    try:
+        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 # ------------------------------------------------------------------------------------------------- starting a run
 def open_clips(paths) -> dict:
     """{path: open Clip} (manifests read once)."""
@@ -240,7 +269,15 @@ def _comparable(cfg: TrainConfig, skip: dict) -> dict:
     return d
 
 
-def _compare_configs(cfg: TrainConfig, saved: TrainConfig, source: str, skip: dict) -> None:
+def _compare_configs(cfg: TrainConfig, saved: TrainConfig, source: str, skip: dict, effective: dict | None) -> None:
+    """ConfigError naming the first key of ``cfg`` that differs from the checkpoint's user configuration ``saved``
+    (a different model first, by name). A key whose effect is recorded in ResolvedRun (RESOLVED_KEYS) may also
+    equal the checkpoint's effective value (``effective``, ``ck["config"]``): a configuration that states the
+    derived value (a config.toml written before it held the user's configuration) is the same run."""
+    if cfg.model.name != saved.model.name:
+        raise ConfigError(f"{source}: this run is {saved.model.name}, not {cfg.model.name} (model.name differs from "
+                          f"the checkpoint's); resume with model {saved.model.name} or start a new run in another "
+                          "folder")
     a, b = _comparable(cfg, skip), _comparable(saved, skip)
     if not cfg.data.clips:
         a["data"]["clips"] = b["data"]["clips"]
@@ -248,10 +285,14 @@ def _compare_configs(cfg: TrainConfig, saved: TrainConfig, source: str, skip: di
         a["run"].pop(k), b["run"].pop(k)
     for section in ("data", "model", "loss", "optim", "run"):
         for k in sorted(set(a[section]) | set(b[section])):
-            if a[section].get(k) != b[section].get(k):
-                raise ConfigError(f"{source}: {section}.{k} = {a[section].get(k)!r} differs from the checkpoint's "
-                                  f"{b[section].get(k)!r}; resume with the same configuration (only run.* "
-                                  "budget, logging and device settings may change)")
+            if a[section].get(k) == b[section].get(k):
+                continue
+            if k in RESOLVED_KEYS.get(section, ()) and effective and \
+                    a[section].get(k) == effective.get(section, {}).get(k):
+                continue
+            raise ConfigError(f"{source}: {section}.{k} = {a[section].get(k)!r} differs from the checkpoint's "
+                              f"{b[section].get(k)!r}; resume with the same configuration (only run.* "
+                              "budget, logging and device settings may change)")
 
 
 def resume_run(ck: dict, source: str, cfg: TrainConfig | None, run_overrides: dict | None,
@@ -268,7 +309,7 @@ def resume_run(ck: dict, source: str, cfg: TrainConfig | None, run_overrides: di
         if sorted(str(Path(c).resolve()) for c in data) != have:
             raise ConfigError(f"--resume: --data differs from the checkpoint's clips ({', '.join(have)})")
     if cfg is not None:
-        _compare_configs(cfg, saved, source, RESOLVED_KEYS if old else {})
+        _compare_configs(cfg, saved, source, RESOLVED_KEYS if old else {}, None if old else ck.get("config"))
         for key in RESUMABLE_RUN_KEYS:
             setattr(saved.run, key, getattr(cfg.run, key))
     for key, value in (run_overrides or {}).items():

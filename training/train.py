@@ -5,7 +5,8 @@ and its hooks (``training.hooks``); what the run derives from the configuration 
 Run directory::
 
     RUN/.lock                    held by rank 0 for the whole run (one ``blendsr train`` per run folder)
-    RUN/config.toml              the effective configuration (the user's with the ResolvedRun applied)
+    RUN/config.toml              the user's configuration (what the checkpoint holds as ``user_config``: the run
+                                 resumes from it), the values derived from it and the clips as comments
     RUN/log.csv                  one row every run.log_every steps (loss terms, lr, step and data times)
     RUN/checkpoints/last.pt      the latest checkpoint; step_NNNNNNNN.pt every run.checkpoint_every steps
     RUN/summary.json             steps, time per step, fraction of time spent waiting for data, ...
@@ -42,7 +43,8 @@ from training.config import TrainConfig
 from training.data import BatchSpec, Prefetcher, TrainSampler
 from training.hooks import Checkpoints, Evaluations, RunLog, StepInfo
 from training.models import OPTIONAL_KEYS, build_model
-from training.run import ResolvedRun, manifest_record, refuse_existing, resume_run, start_run
+from training.run import (ResolvedRun, manifest_record, refuse_existing, resume_run, run_config_toml, start_run,
+                          write_text_atomic)
 from training.trainer import Dist, Trainer, TrainingError, param_digest, to_device, unwrap
 
 __all__ = ["train", "TrainingError", "param_digest", "open_caches", "make_loader"]
@@ -175,7 +177,7 @@ def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, 
     record = {"model_name": cfg.model.name, "scale": run.scale, "scales": list(run.scales), "config": cfg.to_dict(),
               "user_config": user.to_dict(), "resolved": run.to_dict(), "data": manifest_record(clips)}
     if dist.main:
-        (run_dir / "config.toml").write_text(cfg.to_toml())
+        write_text_atomic(run_dir / "config.toml", run_config_toml(user, run))
     checkpoints, evaluations = Checkpoints(trainer, run_dir, record), Evaluations(trainer, run_dir, caches)
     runlog = RunLog(trainer, run_dir)
     reason, elapsed, times = _loop(trainer, [runlog, checkpoints, evaluations], checkpoints, stop_at)
@@ -254,11 +256,9 @@ def summarize(trainer: Trainer, reason: str, elapsed: float, times: list, mem_pe
     summary["workers"] = cfg.data.workers
     summary["gpu_max_memory_mb"] = (torch.cuda.max_memory_allocated(device) / 2 ** 20
                                     if device.type == "cuda" else None)
-    try:
-        import resource
-        summary["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    except (ImportError, OSError):
-        summary["max_rss_mb"] = None
+    from gbuffer_export.resources import peak_rss_bytes
+    peak = peak_rss_bytes()
+    summary["max_rss_mb"] = peak / 2**20 if peak is not None else None
     if dist.enabled:
         digest = param_digest(unwrap(trainer.net), params_only=True)
         digests = [None] * dist.world

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 #: The core's benchmarks: name -> module exposing add_arguments(parser) and run(args). Other layers add theirs
 #: through the entry-point group ``blendsr.bench`` (the torch layer: models, loader; see pyproject.toml).
@@ -29,4 +30,8 @@ def register(sub) -> None:
                              description=mod.__doc__, formatter_class=HelpFormatter)
         mod.add_arguments(bp)
         bp.set_defaults(func=mod.run)
-    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    def no_kind(args) -> int:  # 'blendsr bench' alone: usage on stderr and exit 2, as argparse does for an error
+        p.print_usage(sys.stderr)
+        print(f"blendsr bench: error: choose a KIND: {', '.join(bsub.choices)}", file=sys.stderr)
+        return 2
+    p.set_defaults(func=no_kind)

@@ -81,15 +81,16 @@ def _manifest_cells(root: Path, entry: dict) -> set | None:
         return None
 
 
-def index_errors(root: Path, index: dict) -> list[str]:
+def split_leaks(root: Path, index: dict) -> list[str]:
+    """What puts one scene, asset or region into two splits (a split leak): the index checks that ``train`` and
+    ``evaluate`` also run on a dataset folder, in the words ``validate`` reports them."""
     errs = region_errors(index, root)
     split_of: dict[str, str] = {}
     asset_split: dict[str, str] = {}
     for c in index["clips"]:
-        sid = c.get("scene_id")
-        if sid in split_of and split_of[sid] != c["split"]:
+        sid = c.get("scene_id")  # None: no scene recorded (a hand-made index), nothing to compare
+        if sid is not None and split_of.setdefault(sid, c["split"]) != c["split"]:
             errs.append(f"scene {sid!r} is in both the {split_of[sid]} and the {c['split']} split")
-        split_of.setdefault(sid, c["split"])
         if c.get("asset"):
             asset_split.setdefault(Path(c["asset"]).stem, c["split"])
     for c in index["clips"]:
@@ -97,6 +98,12 @@ def index_errors(root: Path, index: dict) -> list[str]:
             s = asset_split.get(Path(cl).stem)
             if s is not None and s != c["split"]:
                 errs.append(f"clip {c['id']} ({c['split']}) uses {Path(cl).stem} of the {s} split as clutter")
+    return errs
+
+
+def index_errors(root: Path, index: dict) -> list[str]:
+    errs = split_leaks(root, index)
+    for c in index["clips"]:
         if not c.get("licence", {}).get("licence"):
             errs.append(f"clip {c['id']}: no licence recorded")
         try:

@@ -157,16 +157,16 @@ def rdg_to_motion(stored: np.ndarray) -> np.ndarray:
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 through colour-science; values clipped to
-    [0, 1] first: Blender's 'Standard' view transform, no tone curve)."""
+    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (IEC 61966-2-1 transfer; values clipped to [0, 1] first:
+    Blender's 'Standard' view transform, no tone curve): ``colour_spaces.srgb_encode`` (colour-science)."""
     from ..colour_spaces import srgb_encode as encode
     return encode(linear)
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1]; colour-science's sRGB EOTF)."""
-    import colour
-    return np.asarray(colour.cctf_decoding(np.asarray(encoded, np.float64), function="sRGB"))
+    """sRGB-encoded [0, 1] -> linear (the inverse of ``srgb_encode`` on [0, 1]): ``colour_spaces.srgb_decode``."""
+    from ..colour_spaces import srgb_decode as decode
+    return decode(encoded)
 
 
 def depth_for_rdg(depth: np.ndarray) -> np.ndarray:

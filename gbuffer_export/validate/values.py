@@ -238,3 +238,53 @@ def check_background_emission(c: Collector, frame: int, lvl: str, b: dict[str, n
         c.add("emission-background", f"radiance differs from emission (the environment) on {fmt_frac(frac)} of "
               f"the background pixels (at most {fmt_frac(BG_EMISSION_MAX_FRACTION)} allowed)", frame=frame,
               key=f"{lvl}/emission", pixels=int(bad.sum()))
+
+
+# ------------------------------------------------------------------------- validate's radiance rule, for readers
+class _Findings:
+    """What ``Collector.add`` records, without a validation run (for ``radiance_problem``)."""
+
+    def __init__(self):
+        self.findings = []
+
+    def add(self, code: str, message: str, *, frame=None, key=None, severity: str = ERROR, **details) -> None:
+        from .report import Finding
+        self.findings.append(Finding(code, severity, message, frame, key, details))
+
+
+def surface_mask(flags=None, depth=None) -> np.ndarray | None:
+    """The surface pixels as validate sees them: flags without BACKGROUND, else finite positive depth; None when
+    neither buffer is given (the negative-radiance rule then cannot apply)."""
+    if flags is not None:
+        return (flags[..., 0] & np.uint32(Flag.BACKGROUND)) == 0
+    if depth is not None:
+        d = depth[..., 0]
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(d) & (d > 0)
+    return None
+
+
+def radiance_problem(frame: int, lvl: str, radiance: np.ndarray, flags=None, depth=None) -> str | None:
+    """Validate's radiance errors of one frame and level (``non-finite``; ``negative-radiance`` on surfaces), for
+    the readers that do not run validate (training's cache, evaluate): the first one as validate words it,
+    ``'frame 2 lr/radiance: radiance is negative on ... [negative-radiance]'``, or None."""
+    c = _Findings()
+    _check_finite_and_radiance(c, frame, lvl, "radiance", radiance, surface_mask(flags, depth))
+    errors = [f for f in c.findings if f.severity == ERROR]
+    if not errors:
+        return None
+    return errors[0].line().split(" ", 1)[1]
+
+
+def check_clip_radiance(clip, frames=None, levels=None) -> None:
+    """Raise ClipError (one line: the file, then validate's words) when a finished frame of ``clip`` (an open
+    Clip) has radiance that validate refuses, at ``levels`` (default: every level) and ``frames`` (default: all)."""
+    from ..clip import ClipError
+    for f in (clip.frames if frames is None else frames):
+        for lvl in (levels or clip.levels):
+            have = clip.buffers
+            problem = radiance_problem(f, lvl, clip.read(f, f"{lvl}/radiance"),
+                                       clip.read(f, f"{lvl}/flags") if "flags" in have else None,
+                                       clip.read(f, f"{lvl}/depth") if "depth" in have else None)
+            if problem:
+                raise ClipError(f"{clip.path_of(f, f'{lvl}/radiance')}: {problem} (as 'blendsr validate' reports)")

@@ -36,16 +36,23 @@ def test_evaluate_refuses_a_non_finite_ground_truth_naming_its_file(clip, tmp_pa
     rc = main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "e.json")])
     err = capsys.readouterr().err.strip()
     assert rc == 2, err
-    assert err.splitlines()[-1].startswith(f"blendsr: error: {p}: the ground truth holds 5 non-finite")
+    kind = "0 NaN, 5 Inf" if value == np.inf else "5 NaN, 0 Inf"
+    assert err.splitlines()[-1] == (f"blendsr: error: {p}: frame 2 hr/radiance: 5 of 2304 pixel(s) non-finite "
+                                    f"({kind}) [non-finite] (as 'blendsr validate' reports)")  # issue 43 item 8
     assert not (tmp_path / "e.json").exists()
 
 
-def test_evaluate_warns_about_and_counts_a_non_finite_model_output(clip, tmp_path, capsys):
-    _poison(clip, 2, "lr", np.nan)
-    assert main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 0
-    err = capsys.readouterr().err
+def test_evaluate_warns_about_and_counts_a_non_finite_model_output(clip, tmp_path, capsys, caplog):
+    """The library's evaluate_model on an LR input with NaN (the command refuses that input: issue 43 item 8)."""
+    from training.evaluate import evaluate_model
+    from training.inference import load_model
+    p = _poison(clip, 2, "lr", np.nan)
+    assert main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 2
+    assert f"{p}: frame 2 lr/radiance: 5 of 144 pixel(s) non-finite" in capsys.readouterr().err
+    caplog.set_level("WARNING", logger="training")
+    res = evaluate_model(load_model("bilinear", 4), [str(clip)], flip=False, warmup=0)
+    err = caplog.text
     assert "warning:" in err and "frame 2" in err and "non-finite" in err
-    res = json.loads((tmp_path / "e.json").read_text())
     assert res["sr_nonfinite_frames"] == 1 and len(res["warnings"]) == 1
     rows = {r["frame"]: r for r in res["per_frame"]}
     assert rows[2]["sr_nonfinite"] > 0 and rows[1]["sr_nonfinite"] == 0

@@ -32,7 +32,9 @@ def test_train_cli_writes_config_log_checkpoint_and_summary(clip, tmp_path):
                                "loss.pixel=\"charbonnier\""])])
     assert rc == 0
     cfg = load_config(run / "config.toml")
-    assert cfg.model.name == "fusesr" and cfg.model.scale == 4 and cfg.data.clips == [str(clip)]
+    # the user's configuration (model.scale 0: the clips' scale), the derived scale in its header comment
+    assert cfg.model.name == "fusesr" and cfg.model.scale == 0 and cfg.data.clips == [str(clip)]
+    assert "model.scale = 4 (LR levels 4)" in (run / "config.toml").read_text()
     rows = list(csv.DictReader(open(run / "log.csv")))
     assert [int(r["step"]) for r in rows] == [1, 2, 3]
     for r in rows:

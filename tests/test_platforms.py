@@ -1,0 +1,84 @@
+"""Issue 42 item 3: every platform Blender runs on. No POSIX-only import on any path (every module imports without
+fcntl and with /proc unreadable), memory from psutil with the cgroup limit kept, the training cache's reservation
+without posix_fallocate, the folder lock through filelock."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ENV, REPO
+
+psutil = pytest.importorskip("psutil", reason="psutil is a dependency of blendsr: pip install -e .")
+
+
+def test_every_module_imports_without_fcntl_and_with_proc_unreadable(tmp_path):
+    proc = subprocess.run([sys.executable, str(Path(__file__).with_name("no_posix_imports.py")), str(REPO),
+                           str(tmp_path)], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    imported = int(proc.stdout.split("imported ")[1].split(",")[0])
+    assert imported >= 60, proc.stdout  # the core alone has more than 60 modules
+
+
+def test_available_memory_is_psutils_bounded_by_the_cgroup_limit(tmp_path, monkeypatch):
+    from gbuffer_export import resources
+    monkeypatch.delenv("BLENDSR_MEMORY_AVAILABLE", raising=False)
+
+    class VM:
+        available = 8 * 2**30
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: VM)
+    limit, usage = tmp_path / "memory.max", tmp_path / "memory.current"
+    monkeypatch.setattr(resources, "CGROUP_MEMORY", ((str(limit), str(usage)),))
+    assert resources.available_memory() == 8 * 2**30  # no cgroup files: the system's
+    limit.write_text("max\n")
+    usage.write_text("123\n")
+    assert resources.available_memory() == 8 * 2**30  # no limit
+    limit.write_text(str(2 * 2**30))
+    usage.write_text(str(2**30))
+    assert resources.available_memory() == 2**30  # the container's limit leaves less
+    monkeypatch.setenv("BLENDSR_MEMORY_AVAILABLE", "5e9")
+    assert resources.available_memory() == 5 * 10**9
+    monkeypatch.delenv("BLENDSR_MEMORY_AVAILABLE")
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: (_ for _ in ()).throw(OSError(13, "no /proc")))
+    assert resources.available_memory() == 2**30  # psutil cannot read /proc: the cgroup's alone
+
+
+def test_peak_rss_is_at_least_the_current_rss():
+    from gbuffer_export.resources import peak_rss_bytes
+    assert peak_rss_bytes() >= psutil.Process().memory_info().rss * 0.9 > 0
+
+
+def test_the_cache_reserves_its_arrays_without_posix_fallocate(tmp_path, monkeypatch):
+    """macOS and Windows have no posix_fallocate: the array is written with zeros (every block allocated), and a
+    full filesystem there is the same one line naming the file."""
+    from training.cache import CacheSpaceError, reserve
+    monkeypatch.delattr(os, "posix_fallocate", raising=False)
+    path = tmp_path / "a.npy"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT)
+    try:
+        reserve(fd, 10_000_003, path)
+    finally:
+        os.close(fd)
+    assert path.stat().st_size == 10_000_003 and path.read_bytes()[-7:] == bytes(7)
+    real = os.write
+    monkeypatch.setattr(os, "write", lambda fd, b: (_ for _ in ()).throw(OSError(28, "No space left on device")))
+    fd = os.open(path, os.O_RDWR)
+    try:
+        with pytest.raises(CacheSpaceError, match=f"^{path}: no space left for the training cache"):
+            reserve(fd, 100, path)
+    finally:
+        monkeypatch.setattr(os, "write", real)
+        os.close(fd)
+
+
+def test_locks_import_no_fcntl_and_use_filelock():
+    import ast
+    for rel in ("gbuffer_export/locks.py", "training/cache.py", "gbuffer_export/resources.py"):
+        tree = ast.parse((REPO / rel).read_text())
+        names = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+                 for a in n.names} | {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        assert "fcntl" not in names and '"/proc/' not in (REPO / rel).read_text(), rel  # no /proc/... path read
+    assert "filelock" in (REPO / "gbuffer_export/locks.py").read_text()
