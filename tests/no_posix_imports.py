@@ -1,4 +1,4 @@
-"""Run by tests/test_platforms.py in a fresh interpreter: ``python no_posix_imports.py REPO LOCK_DIR``.
+"""Run by tests/system/test_platforms.py in a fresh interpreter: ``python no_posix_imports.py REPO LOCK_DIR``.
 
 Imports every module of BlendSR (gbuffer_export, training, blender_addon; a module whose optional extra is not
 installed is skipped) as on a platform without fcntl (nor termios, resource, grp: Windows) and with /proc

@@ -18,7 +18,7 @@ import pytest
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
 
-from conftest import ENV, REPO, set_args  # noqa: E402
+from tests.conftest import ENV, REPO, set_args  # noqa: E402
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ENV, REPO
+from tests.conftest import ENV, REPO
 from gbuffer_export.cli import main
 from gbuffer_export.synthetic import make_synthetic_clip
 

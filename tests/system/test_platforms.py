@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ENV, REPO
+from tests.conftest import ENV, REPO
 
 psutil = pytest.importorskip("psutil", reason="psutil is a dependency of blendsr: pip install -e .")
 
 
 def test_every_module_imports_without_fcntl_and_with_proc_unreadable(tmp_path):
-    proc = subprocess.run([sys.executable, str(Path(__file__).with_name("no_posix_imports.py")), str(REPO),
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parent.parent / "no_posix_imports.py"), str(REPO),
                            str(tmp_path)], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     imported = int(proc.stdout.split("imported ")[1].split(",")[0])
