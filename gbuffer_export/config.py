@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
+from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, parse_exposure, scale_fraction
 from .typed_table import ConfigError, key_error, option, set_checked
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
@@ -132,6 +132,9 @@ class RenderConfig:
     adaptive_min_samples: int = option(0, lo=0)
     camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
     light: str = option("scene", choices=LIGHTS)  # scene: as the file is (refused when unlit); sky: a sun and sky
+    # auto: metered from the clip's HR frames (log-average luminance to 0.18 unless already within 0.05-1.0), or a
+    # multiplier of the rendered radiance; radiance is stored physical, the manifest records the exposure
+    exposure: float | str = option("auto", unit="'auto' or a multiplier of the radiance (1: as rendered)")
     device: str = option("auto", choices=DEVICES)  # Cycles device: auto picks a GPU when Cycles sees one
     seed: int = 0
     jitter: str = option("halton", choices=JITTERS)
@@ -164,6 +167,10 @@ class RenderConfig:
                             f"choose one of {', '.join(CAMERA_PATHS)}, scene:NAME or scene:*")
         set_checked(self, names=[f.name for f in dataclasses.fields(self)
                                  if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
+        try:
+            self.exposure = parse_exposure(self.exposure)
+        except ValueError as exc:
+            raise key_error("exposure", self.exposure, str(exc)) from None
         self._check_only_frames()
         if self.hr_size is not None:
             self.check_size(self.hr_size, "hr_size")
