@@ -89,13 +89,13 @@ def _trace(width, height, k, world_from_camera, jitter):
 def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: float = 4,
                         buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2,
                         scene_linear: str = "Linear Rec.709", scales=None, light: float = 1.0,
-                        exposure: str | float = 1.0) -> Path:
+                        exposure: str | float = 1.0, camera=camera_at) -> Path:
     """Write a complete synthetic clip to ``path`` and return it. HR radiance is supersampled
     ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered).
     ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says).
     ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``.
     ``light`` multiplies the radiance (a scene lit in other units); ``exposure``: the render setting ('auto' or a
-    multiplier; 1 writes no ``exposure`` key, as ``blendsr render`` does)."""
+    multiplier; 1 writes no ``exposure`` key, as ``blendsr render`` does). ``camera``: t -> world_from_camera."""
     from .conventions import halton_jitter
 
     w, h = hr_size
@@ -119,7 +119,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
     }
     wr = ClipWriter(path, header)
     for i, f in enumerate(frames):
-        m, m_prev, m_next = camera_at(f), camera_at(f - 1), camera_at(f + 1)
+        m, m_prev, m_next = camera(f), camera(f - 1), camera(f + 1)
         record = {}
         for lvl, (lw, lh) in sizes.items():
             k = scale_intrinsics(k_hr, lw / w)
