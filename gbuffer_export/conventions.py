@@ -30,6 +30,11 @@ Forward motion (``motion_next``)
 Jitter (dx, dy)
     Pixels of the level, image coordinates. The radiance sample of pixel centre p was taken at
     image position ``p + (dx, dy)`` of the un-jittered camera described by the intrinsics.
+
+Exposure
+    Radiance and emission are stored physical (as rendered); the manifest's ``exposure`` is one multiplier that
+    every reader applies (``expose``, ``exposure_of``; absent: 1). Auto exposure meters the HR frames
+    (``luminance_stats``, ``metered_exposure``).
 """
 from __future__ import annotations
 
@@ -186,9 +191,9 @@ def parse_buffer_list(text: str) -> tuple[str, ...]:
 EXPOSED_BUFFERS = ("radiance", "emission")
 #: Auto exposure aims the clip's log-average luminance at this value (middle grey), as a game camera does.
 EXPOSURE_KEY = 0.18
-#: Auto exposure keeps exposure 1 for a clip whose log-average luminance already lies in this range (well exposed:
-#: the built-in scene meters 0.15-0.16, the shipped specs' HDRI-lit assets 0.2-0.5), so existing data keep their
-#: values; a clip outside it is brought to EXPOSURE_KEY.
+#: Auto exposure keeps exposure 1 for a clip whose log-average luminance already lies in this range (well exposed;
+#: measured: clips of the built-in scene 0.15-0.37, HDRI-lit glTF assets 0.20 and 0.48), so existing data keep
+#: their values; a clip outside it is brought to EXPOSURE_KEY.
 AUTO_EXPOSURE_BAND = (0.05, 1.0)
 #: The multipliers an exposure may take, auto or set (2^-16 .. 2^20, 36 stops): auto exposure clamps to them, so a
 #: clip darker than 0.18 / 2^20 (about 2e-7: practically unlit) stays dark and ``validate`` refuses it.
