@@ -30,8 +30,8 @@ import numpy as np
 
 from .errors import BlendSRError
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
-from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, expose,
-                          exposure_of, is_level_name, level_name, luminance_stats, metered_exposure)
+from .conventions import (BUFFERS, LEVELS, METERED_KEYS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes,
+                          expose, exposure_of, is_level_name, level_name, luminance_stats, metered_exposure)
 from .exr import read_exr, write_exr
 
 try:
@@ -134,6 +134,8 @@ def _json_default(o):
 def header_identity(header: dict) -> str:
     """Hash of the clip header without its volatile keys: two processes may write one clip only when equal."""
     stable = {k: v for k, v in header.items() if k not in VOLATILE_KEYS}
+    if isinstance(stable.get("exposure"), dict) and stable["exposure"].get("mode") == "auto":  # the request only
+        stable["exposure"] = {k: v for k, v in stable["exposure"].items() if k not in METERED_KEYS}
     return hashlib.sha256(json.dumps(stable, sort_keys=True, default=_json_default).encode()).hexdigest()[:16]
 
 

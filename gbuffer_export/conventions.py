@@ -283,6 +283,11 @@ def frame_luminance(record) -> dict | None:
     return lum if isinstance(lum, dict) else None
 
 
+#: The keys ``metered_exposure`` adds to an auto exposure block: they follow the finished frames, so they are no part
+#: of the clip's identity (``clip.header_identity``).
+METERED_KEYS = ("value", "ev", "log_average", "frames_metered")
+
+
 def metered_exposure(block: dict, records: dict) -> dict:
     """A header's auto ``exposure`` block completed from the finished frames' records (``frame_luminance``):
     ``value`` (the multiplier), ``ev`` (log2 of it), ``log_average`` (of the physical HR radiance) and

@@ -240,3 +240,49 @@ def test_training_and_inference_read_the_exposed_radiance(dim_auto, tmp_path):
     np.testing.assert_allclose(cache.read(2, "hr/radiance"), want, rtol=2e-3)  # the cache may store half
     np.testing.assert_allclose(ClipFrames(src).read(2, "lr/radiance"), c.read(2, "lr/radiance", exposed=True),
                                rtol=1e-6)
+
+
+def test_an_auto_clip_written_by_two_writers_meters_every_frame(dim_auto, tmp_path):
+    """Shards and resumed runs: each writer meters the frames it writes, every merge computes the exposure over all
+    finished frames, and the header read back from the manifest is the same clip (its metered keys are no part of
+    the identity)."""
+    from gbuffer_export.clip import ClipWriter
+    from gbuffer_export.conventions import BUFFERS
+    src = open_clip(dim_auto)
+    header = {k: v for k, v in src.manifest.items() if k not in ("frame_data", "identity")}
+    out = tmp_path / "two"
+    for frames in ((1, 2), (3,)):
+        w = ClipWriter(out, header)
+        for f in frames:
+            for lvl in src.levels:
+                for b in src.buffers:
+                    w.write_buffer(f, lvl, b, read_exr(buffer_path(dim_auto, f, lvl, b), BUFFERS[b].channels))
+            w.commit_frame(f, {k: {kk: vv for kk, vv in v.items() if kk != "luminance"}
+                               for k, v in src.record(f).items()})
+        w.close()
+        m = open_clip(out).manifest
+        assert m["exposure"]["frames_metered"] == len(m["frame_data"]) == max(frames)
+    assert m["exposure"]["value"] == pytest.approx(src.exposure, rel=1e-9)
+    assert m["identity"] == src.manifest["identity"]
+    assert validate_clip(out).ok
+
+
+def test_the_documented_thresholds_are_the_code_s():
+    from pathlib import Path
+
+    from gbuffer_export.validate import CODES
+    from gbuffer_export.validate import exposure as ve
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "clip-format.md").read_text()
+    for v in (ve.DARK_LOG_AVERAGE, ve.DARK_LUMINANCE, ve.BRIGHT_LOG_AVERAGE, ve.NEAR_FAR_RATIO):
+        forms = (f"{v:g}", f"{v:.1f}", f"{v:.0e}".replace("e-0", "e-"))
+        assert any(f"**{t}**" in doc for t in forms), v
+    for v in (ve.DARK_MAX_FRACTION, ve.NEAR_FAR_MIN_FRACTION):
+        assert f"**{100 * v:g}%**" in doc, v
+    assert f"{ve.DARK_LOG_AVERAGE:g}" in CODES["dark-frame"] and "1e-3" in CODES["dark-frame"]
+    assert ve.DARK_LUMINANCE == 1e-3
+    assert f"{100 * ve.DARK_MAX_FRACTION:g}%" in CODES["dark-frame"]
+    assert f"{ve.BRIGHT_LOG_AVERAGE:g}" in CODES["bright-frame"]
+    assert f"{100 * ve.NEAR_FAR_MIN_FRACTION:g}%" in CODES["flat-view"]
+    assert f"{ve.NEAR_FAR_RATIO:g}" in CODES["flat-view"]
+    lo, hi = cv.AUTO_EXPOSURE_BAND
+    assert f'"band": [{lo}, {hi}]' in doc and f'"key": {cv.EXPOSURE_KEY:g}' in doc
