@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import edit_manifest, run_cli
+from conftest import edit_manifest, make_blend, requires_bpy, run_cli
 from gbuffer_export import conventions as cv
 from gbuffer_export.clip import buffer_path, open_clip
 from gbuffer_export.config import RenderConfig
@@ -286,3 +286,32 @@ def test_the_documented_thresholds_are_the_code_s():
     assert f"{ve.NEAR_FAR_RATIO:g}" in CODES["flat-view"]
     lo, hi = cv.AUTO_EXPOSURE_BAND
     assert f'"band": [{lo}, {hi}]' in doc and f'"key": {cv.EXPOSURE_KEY:g}' in doc
+
+
+@pytest.mark.bpy
+@requires_bpy
+def test_a_scene_lit_by_a_weak_lamp_renders_well_exposed(blend_dir, tmp_path):
+    """Blender end to end: a scene lit by a 0.01 W lamp and a sky of 1e-4 (its own light, in other units; a black
+    sky would leave 40% of the frame black at any exposure, which validate refuses) is rendered with the
+    default auto exposure: its physical radiance is stored, the manifest records an exposure that brings it to
+    middle grey, the clip validates and its contact sheet is lit. Read at exposure 1 it is practically black."""
+    scene = make_blend("dimlamp", blend_dir / "dimlamp.blend")
+    out = tmp_path / "clip"
+    proc = run_cli("render", str(scene), "-o", str(out), "--frames", "1:2", "--hr-size", "64x36", "--scale", "2",
+                   "--hr-spp", "8", "--lr-spp", "2", "--threads", "1", "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    c = open_clip(out)
+    block = c.manifest["exposure"]
+    assert block["mode"] == "auto" and block["frames_metered"] == 2
+    assert block["log_average"] < 1e-3 and c.exposure > 100  # a dim render, brought up
+    assert block["log_average"] == pytest.approx(_hr_log_average(out), rel=1e-5)
+    r = validate_clip(out)
+    assert r.ok, [f.line() for f in r.errors]
+    assert all(0.02 <= v["log_average"] <= 2.0 for v in r.stats["exposed_frames"].values())
+    from PIL import Image
+
+    from gbuffer_export.preview import contact_sheet
+    sheet = np.asarray(Image.open(contact_sheet(c, tmp_path / "sheet.png", frames=[1], legend=False)))
+    assert sheet[-36:, 64:128].mean() > 40  # the HR radiance tile
+    edit_manifest(out, lambda m: m.pop("exposure"))  # the same data read at exposure 1
+    assert "dark-frame" in validate_clip(out).codes()
