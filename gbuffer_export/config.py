@@ -132,7 +132,7 @@ class RenderConfig:
     adaptive_min_samples: int = option(0, lo=0)
     camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
     light: str = option("scene", choices=LIGHTS)  # scene: as the file is (refused when unlit); sky: a sun and sky
-    # auto: metered from the clip's HR frames (log-average luminance to 0.18 unless already within 0.05-1.0), or a
+    # auto: metered from the clip's HR frames (log-average luminance to 0.18 unless already within 0.05-1.5), or a
     # multiplier of the rendered radiance; radiance is stored physical, the manifest records the exposure
     exposure: float | str = option("auto", unit="'auto' or a multiplier of the radiance (1: as rendered)")
     device: str = option("auto", choices=DEVICES)  # Cycles device: auto picks a GPU when Cycles sees one

@@ -192,9 +192,11 @@ EXPOSED_BUFFERS = ("radiance", "emission")
 #: Auto exposure aims the clip's log-average luminance at this value (middle grey), as a game camera does.
 EXPOSURE_KEY = 0.18
 #: Auto exposure keeps exposure 1 for a clip whose log-average luminance already lies in this range (well exposed;
-#: measured: clips of the built-in scene 0.15-0.37, HDRI-lit glTF assets 0.20 and 0.48), so existing data keep
-#: their values; a clip outside it is brought to EXPOSURE_KEY.
-AUTO_EXPOSURE_BAND = (0.05, 1.0)
+#: measured: clips of the built-in scene 0.15-0.37, HDRI-lit glTF assets 0.20 and 0.48, the town level under the
+#: added sun and sky 0.84 at a sun elevation of 38 degrees), so existing data keep their values; a clip outside it
+#: is brought to EXPOSURE_KEY. Its edges leave 1.3 stops (0.05 / 0.02) and 0.4 stops (2.0 / 1.5) for frames darker
+#: or brighter than their clip before ``validate`` calls them practically black or blown out.
+AUTO_EXPOSURE_BAND = (0.05, 1.5)
 #: The multipliers an exposure may take, auto or set (2^-16 .. 2^20, 36 stops): auto exposure clamps to them, so a
 #: clip darker than 0.18 / 2^20 (about 2e-7: practically unlit) stays dark and ``validate`` refuses it.
 EXPOSURE_LIMITS = (2.0 ** -16, 2.0 ** 20)
