@@ -279,10 +279,18 @@ def auto_exposure_value(log_average: float | None) -> float:
 
 
 def frame_luminance(record) -> dict | None:
-    """The metering a frame record carries (``record["hr"]["luminance"]``), None when it has none."""
+    """The metering a frame record carries (``record["hr"]["luminance"]``), None when it has none or a malformed
+    one (``log_mean`` a finite number or None, ``lit_pixels`` an integer >= 0)."""
     hr = record.get("hr") if isinstance(record, dict) else None
     lum = hr.get("luminance") if isinstance(hr, dict) else None
-    return lum if isinstance(lum, dict) else None
+    if not isinstance(lum, dict):
+        return None
+    lm, n = lum.get("log_mean"), lum.get("lit_pixels")
+    if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
+        return None
+    if lm is not None and (isinstance(lm, bool) or not isinstance(lm, (int, float)) or not math.isfinite(lm)):
+        return None
+    return lum
 
 
 #: The keys ``metered_exposure`` adds to an auto exposure block: they follow the finished frames, so they are no part

@@ -315,3 +315,14 @@ def test_a_scene_lit_by_a_weak_lamp_renders_well_exposed(blend_dir, tmp_path):
     assert sheet[-36:, 64:128].mean() > 40  # the HR radiance tile
     edit_manifest(out, lambda m: m.pop("exposure"))  # the same data read at exposure 1
     assert "dark-frame" in validate_clip(out).codes()
+
+
+def test_a_malformed_metering_is_no_metering():
+    rec = {"hr": {"luminance": {"log_mean": "x", "lit_pixels": 4}}}
+    assert cv.frame_luminance(rec) is None
+    assert cv.frame_luminance({"hr": {"luminance": {"log_mean": 0.5, "lit_pixels": -1}}}) is None
+    good = {"hr": {"luminance": {"log_mean": -1.0, "lit_pixels": 4, "pixels": 4}}}
+    assert cv.frame_luminance(good) == good["hr"]["luminance"]
+    block = cv.exposure_header("auto")["exposure"]
+    m = cv.metered_exposure(block, {"1": rec, "2": good, "3": "not a record"})
+    assert m["frames_metered"] == 1 and m["log_average"] == pytest.approx(math.exp(-1.0)) and m["value"] == 1.0
