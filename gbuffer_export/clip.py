@@ -30,8 +30,8 @@ import numpy as np
 
 from .errors import BlendSRError, first_line
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
-from .conventions import (BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes, is_level_name,
-                          level_name)
+from .conventions import (BUFFERS, LEVELS, METERED_KEYS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes,
+                          expose, exposure_of, is_level_name, level_name, luminance_stats, metered_exposure)
 from .exr import read_exr, write_exr
 
 try:
@@ -139,6 +139,8 @@ def _json_default(o):
 def header_identity(header: dict) -> str:
     """Hash of the clip header without its volatile keys: two processes may write one clip only when equal."""
     stable = {k: v for k, v in header.items() if k not in VOLATILE_KEYS}
+    if isinstance(stable.get("exposure"), dict) and stable["exposure"].get("mode") == "auto":  # the request only
+        stable["exposure"] = {k: v for k, v in stable["exposure"].items() if k not in METERED_KEYS}
     return hashlib.sha256(json.dumps(stable, sort_keys=True, default=_json_default).encode()).hexdigest()[:16]
 
 
@@ -213,6 +215,12 @@ class Clip:
         self.levels: tuple[str, ...] = tuple(manifest["levels"])
         self.level_scale: dict[str, float] = level_scales(manifest)
         self.scales: list[float] = sorted(s for lvl, s in self.level_scale.items() if lvl != "hr")
+        #: the multiplier of radiance and emission that every reader applies (``read(..., exposed=True)``; 1 for
+        #: clips without ``exposure``: docs/clip-format.md, "Exposure")
+        try:
+            self.exposure: float = exposure_of(manifest)
+        except BlendSRError as exc:
+            raise ClipError(f"{path / MANIFEST}: {exc}") from None
 
     def __repr__(self) -> str:
         return f"Clip({str(self.path)!r}, frames={len(self.frames)}, scale={self.scale})"
@@ -248,10 +256,12 @@ class Clip:
         level, name = split_key(key)
         return buffer_path(self.path, frame, self.level_dirs.get(level, level), name)
 
-    def read(self, frame: int, key: str, *, space: str | None = None) -> np.ndarray:
+    def read(self, frame: int, key: str, *, space: str | None = None, exposed: bool = False) -> np.ndarray:
         """Buffer ``key`` ('hr/fbeta', 'lr/radiance', 'lr_x2.5/depth', ...) of ``frame`` as H x W x C float32
         (the ``flags`` buffer as uint32). ``space``: a working space (e.g. ``colour_spaces.TRAINING_SPACE``) to
-        convert the colour buffers (radiance, emission, albedo, fbeta) into; None gives them as stored."""
+        convert the colour buffers (radiance, emission, albedo, fbeta) into; None gives them as stored.
+        ``exposed``: radiance and emission multiplied by the clip's exposure (``conventions.expose``), as every
+        consumer of the data reads them; False gives the physical values stored."""
         level, name = split_key(key)
         if level not in self.sizes:
             raise ClipError(f"{self.path}: clip has no level {level!r} (has {', '.join(self.levels)})")
@@ -260,6 +270,8 @@ class Clip:
         if frame not in self.frame_data and str(frame) not in self.frame_data:
             raise ClipError(f"{self.path}: frame {frame} is not a finished frame of this clip")
         a = read_exr(check_no_links(self.path, self.path_of(frame, key)), buffer_spec(name).channels)
+        if exposed:
+            a = expose(name, a, self.exposure)
         return a if space is None else convert_buffer(name, a, self.colour_matrix(space))
 
     def colour_matrix(self, space: str) -> np.ndarray | None:
@@ -352,6 +364,8 @@ class ClipWriter:
         self.header.setdefault("schema_version", SCHEMA_VERSION)
         self.header["identity"] = header_identity(self.header)
         self._fds: list[int] = []
+        #: frame -> metering of its HR radiance, for an auto exposure (added to the frame's record on commit)
+        self._metering: dict[int, dict] = {}
         self._check_existing()
         self.path.mkdir(parents=True, exist_ok=True)
         try:
@@ -533,13 +547,18 @@ class ClipWriter:
             data = data.astype(np.float32)
         write_exr(self._target(buffer_path(self.path, frame, level, name)),
                   {c: data[..., i] for i, c in enumerate(spec.channels)})
+        if level == "hr" and name == "radiance" and (self.header.get("exposure") or {}).get("mode") == "auto":
+            self._metering[frame] = luminance_stats(data, self.header.get("scene_linear", DEFAULT_WORKING_SPACE))
 
     def commit_frame(self, frame: int, record: dict) -> None:
-        """Mark ``frame`` finished with its record (per level: cameras, jitter, spp, seed, seconds) and merge."""
+        """Mark ``frame`` finished with its record (per level: cameras, jitter, spp, seed, seconds) and merge. A clip
+        with an auto exposure adds the metering of the frame's HR radiance (``hr.luminance``) to the record."""
         for lvl in self.header["levels"]:
             for b in self.header["buffers"]:
                 if not buffer_path(self.path, frame, lvl, b).is_file():
                     raise ClipError(f"{self.path}: cannot commit frame {frame}: {lvl}/{b} was not written")
+        if frame in self._metering and isinstance(record.get("hr"), dict):
+            record = {**record, "hr": {**record["hr"], "luminance": self._metering.pop(frame)}}
         write_json_atomic(self._target(self.record_path(frame)), record)
         self.merge()
 
@@ -573,6 +592,8 @@ class ClipWriter:
                     continue  # a torn record is not a finished frame
         manifest = dict(self.header)
         manifest["frame_data"] = {k: data[k] for k in sorted(data, key=int)}
+        if isinstance(manifest.get("exposure"), dict):  # an auto exposure metered over the finished frames
+            manifest["exposure"] = metered_exposure(manifest["exposure"], manifest["frame_data"])
         write_json_atomic(self.path / MANIFEST, manifest)
         return manifest
 

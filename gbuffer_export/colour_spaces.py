@@ -99,6 +99,25 @@ def _matrix(src: str, dst: str) -> np.ndarray:
     return m
 
 
+def luminance_weights(space: str) -> tuple[float, float, float]:
+    """The weights (wr, wg, wb) with luminance Y = wr R + wg G + wb B for linear RGB in the working space ``space``:
+    the Y row of its RGB -> CIE XYZ matrix (``BT709_LUMA`` for Linear Rec.709). ValueError naming the space when it
+    is not one of ``WORKING_SPACES``."""
+    if space not in WORKING_SPACES:
+        raise BlendSRError(f"working colour space {space!r} is not one blendsr converts (known: "
+                           f"{', '.join(WORKING_SPACES)})")
+    if space == "Linear Rec.709":
+        return BT709_LUMA
+    return _luminance_row(space)
+
+
+@lru_cache(maxsize=None)
+def _luminance_row(space: str) -> tuple[float, float, float]:
+    import colour
+    row = np.asarray(colour.RGB_COLOURSPACES[WORKING_SPACES[space]].matrix_RGB_to_XYZ, np.float64)[1]
+    return float(row[0]), float(row[1]), float(row[2])
+
+
 def conversion_matrix(src: str, dst: str = TRAINING_SPACE) -> np.ndarray | None:
     """3x3 matrix M (float64) with ``rgb_dst = M @ rgb_src`` between two working spaces, or None when they are the
     same space. ValueError naming the space when one is not in ``WORKING_SPACES``."""
@@ -121,4 +140,5 @@ def convert_buffer(name: str, arr: np.ndarray, matrix: np.ndarray | None) -> np.
 
 
 __all__ = ["TRAINING_SPACE", "DEFAULT_WORKING_SPACE", "WORKING_SPACES", "CHROMATIC_ADAPTATION", "COLOUR_BUFFERS",
-           "BT709_LUMA", "RGB_TO_YCBCR_709", "YCBCR_TO_RGB_709", "srgb_encode", "srgb_decode", "colour_module", "conversion_matrix", "convert_buffer"]
+           "BT709_LUMA", "RGB_TO_YCBCR_709", "YCBCR_TO_RGB_709", "srgb_encode", "srgb_decode", "colour_module",
+           "conversion_matrix", "convert_buffer", "luminance_weights"]

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, scale_fraction
+from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, parse_exposure, scale_fraction
 from .scene_formats import SCENE_SUFFIXES, formats_text
 from .typed_table import ConfigError, key_error, option, set_checked
 
@@ -164,6 +164,11 @@ class RenderConfig:
     light: str = option("scene", choices=LIGHTS, shells=(CLI, CLIP_PANEL),
                         help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
                              "physical sky, sun direction drawn from seed (recorded in the manifest)")
+    exposure: float | str = option("auto", unit="'auto' or a multiplier of the radiance (1: as rendered)",
+                                   metavar="auto|X", help=(
+        "the clip's exposure, as a game camera's: auto (the log-average luminance of the clip's HR frames brought to "
+        "0.18 unless already within 0.05-1.5, clamped to 2^-16..2^20) or a multiplier; radiance is stored physical "
+        "and the manifest records the exposure that every reader applies (docs/clip-format.md, \"Exposure\")"))
     device: str = option("auto", choices=DEVICES, shells=(CLI, CLIP_PANEL),
                          help="Cycles device: auto uses a GPU when Cycles sees one (OptiX, CUDA, HIP, Metal, oneAPI), "
                               "else the CPU; the device and its name go into the manifest")
@@ -212,6 +217,10 @@ class RenderConfig:
                             f"choose one of {', '.join(CAMERA_PATHS)}, scene:NAME or scene:*")
         set_checked(self, names=[f.name for f in dataclasses.fields(self)
                                  if f.name not in ("output", "scene", "scale", "scales", "buffers", "extra")])
+        try:
+            self.exposure = parse_exposure(self.exposure)
+        except ValueError as exc:
+            raise key_error("exposure", self.exposure, str(exc)) from None
         self._check_only_frames()
         self._check_unit_scale()
         if self.hr_size is not None:

@@ -30,6 +30,11 @@ Forward motion (``motion_next``)
 Jitter (dx, dy)
     Pixels of the level, image coordinates. The radiance sample of pixel centre p was taken at
     image position ``p + (dx, dy)`` of the un-jittered camera described by the intrinsics.
+
+Exposure
+    Radiance and emission are stored physical (as rendered); the manifest's ``exposure`` is one multiplier that
+    every reader applies (``expose``, ``exposure_of``; absent: 1). Auto exposure meters the HR frames
+    (``luminance_stats``, ``metered_exposure``).
 """
 from __future__ import annotations
 
@@ -170,6 +175,165 @@ def parse_buffer_list(text: str) -> tuple[str, ...]:
         buffer_spec(n)
     ordered = [n for n in ALL_BUFFERS if n in names or n == "radiance"]
     return tuple(ordered)
+
+
+# ----------------------------------------------------------------------------------------------
+# Exposure
+# ----------------------------------------------------------------------------------------------
+# Radiance is stored physical: ``radiance`` and ``emission`` hold what Cycles rendered, in the scene's own light
+# units. A clip's exposure is one multiplier in its manifest (``exposure.value``; a manifest without ``exposure``
+# reads as 1, as every clip rendered before the key), and every reader of radiance multiplies by it through
+# ``expose`` (``Clip.read(..., exposed=True)``): training, evaluation, previews, upscaling, the add-on and the
+# exporters. ``validate`` checks the exposed frames. F_beta and albedo are ratios and stay as they are, so
+# L_D = (radiance - emission) / fbeta scales with the exposure like the radiance.
+
+#: The buffers in units of radiance, which the exposure multiplies.
+EXPOSED_BUFFERS = ("radiance", "emission")
+#: Auto exposure aims the clip's log-average luminance at this value (middle grey), as a game camera does.
+EXPOSURE_KEY = 0.18
+#: Auto exposure keeps exposure 1 for a clip whose log-average luminance already lies in this range (well exposed;
+#: measured: clips of the built-in scene 0.15-0.37, HDRI-lit glTF assets 0.20 and 0.48, the town level under the
+#: added sun and sky 0.84 at a sun elevation of 38 degrees), so existing data keep their values; a clip outside it
+#: is brought to EXPOSURE_KEY. Its edges leave 1.3 stops (0.05 / 0.02) and 0.4 stops (2.0 / 1.5) for frames darker
+#: or brighter than their clip before ``validate`` calls them practically black or blown out.
+AUTO_EXPOSURE_BAND = (0.05, 1.5)
+#: The multipliers an exposure may take, auto or set (2^-16 .. 2^20, 36 stops): auto exposure clamps to them, so a
+#: clip darker than 0.18 / 2^20 (about 2e-7: practically unlit) stays dark and ``validate`` refuses it.
+EXPOSURE_LIMITS = (2.0 ** -16, 2.0 ** 20)
+
+
+def parse_exposure(value) -> str | float:
+    """A render's ``exposure`` setting: ``"auto"``, or a multiplier of the rendered radiance (a number or its text,
+    ``2``, ``"0.5"``) within ``EXPOSURE_LIMITS``. BlendSRError saying what is wrong otherwise."""
+    if isinstance(value, str):
+        if value.strip().lower() == "auto":
+            return "auto"
+        try:
+            value = float(value)
+        except ValueError:
+            raise BlendSRError("expected 'auto' or a positive multiplier such as 1 or 0.5") from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise BlendSRError("expected 'auto' or a positive multiplier such as 1 or 0.5")
+    lo, hi = EXPOSURE_LIMITS
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise BlendSRError(f"a multiplier must lie in [2^{math.log2(lo):g}, 2^{math.log2(hi):g}]")
+    return float(value)
+
+
+def exposure_header(value) -> dict:
+    """The manifest header's ``exposure`` for a render's setting: {} for 1 (a clip without the key reads as 1, so
+    a clip rendered at exposure 1 keeps the identity it had before the key), ``{"exposure": {"mode": "fixed",
+    "value", "ev"}}`` for a set multiplier, ``{"exposure": {"mode": "auto", "key", "band", "limits"}}`` for auto
+    (its ``value`` is metered from the frames as they finish: ``metered_exposure``)."""
+    value = parse_exposure(value)
+    if value == "auto":
+        return {"exposure": {"mode": "auto", "key": EXPOSURE_KEY, "band": list(AUTO_EXPOSURE_BAND),
+                             "limits": list(EXPOSURE_LIMITS)}}
+    if value == 1.0:
+        return {}
+    return {"exposure": {"mode": "fixed", "value": value, "ev": math.log2(value)}}
+
+
+def luminance(rgb: np.ndarray, scene_linear: str) -> np.ndarray:
+    """Luminance Y (H x W float64) of linear RGB (H x W x 3) in the working space ``scene_linear``; BT.709's weights
+    for a space blendsr does not convert (``validate`` warns about such a clip: ``manifest-colour-space``)."""
+    from .colour_spaces import BT709_LUMA, luminance_weights
+    try:
+        w = luminance_weights(scene_linear)
+    except BlendSRError:
+        w = BT709_LUMA
+    return np.asarray(rgb, np.float64)[..., :3] @ np.asarray(w, np.float64)
+
+
+def luminance_stats(radiance: np.ndarray, scene_linear: str) -> dict:
+    """The metering of one HR frame: ``log_mean``, the mean natural log of the luminance over its lit pixels
+    (luminance > 0 and finite; None when none is), ``lit_pixels`` and ``pixels``. Luminance is Y of the clip's
+    working space ``scene_linear`` (BT.709's weights for a space blendsr does not convert). Pixels without light
+    (exact 0: a black void) are left out of the metering, as a camera's meter ignores them; ``validate`` counts them
+    (``dark-frame``)."""
+    lum = luminance(radiance, scene_linear)
+    with np.errstate(invalid="ignore"):
+        lit = np.isfinite(lum) & (lum > 0)
+    n = int(lit.sum())
+    return {"log_mean": float(np.log(lum[lit]).mean()) if n else None, "lit_pixels": n, "pixels": int(lum.size)}
+
+
+def log_average_luminance(stats) -> float | None:
+    """exp of the mean log luminance over the lit pixels of every frame's ``luminance_stats``; None when no frame
+    has a lit pixel."""
+    total, n = 0.0, 0
+    for s in stats:
+        if s.get("lit_pixels") and s.get("log_mean") is not None:
+            total += float(s["log_mean"]) * int(s["lit_pixels"])
+            n += int(s["lit_pixels"])
+    return math.exp(total / n) if n else None
+
+
+def auto_exposure_value(log_average: float | None) -> float:
+    """The auto exposure of a clip whose log-average luminance is ``log_average``: 1 inside AUTO_EXPOSURE_BAND (and
+    for a clip without any lit pixel), else EXPOSURE_KEY / log_average clamped to EXPOSURE_LIMITS."""
+    lo, hi = AUTO_EXPOSURE_BAND
+    if log_average is None or lo <= log_average <= hi:
+        return 1.0
+    return float(min(max(EXPOSURE_KEY / log_average, EXPOSURE_LIMITS[0]), EXPOSURE_LIMITS[1]))
+
+
+def frame_luminance(record) -> dict | None:
+    """The metering a frame record carries (``record["hr"]["luminance"]``), None when it has none or a malformed
+    one (``log_mean`` a finite number or None, ``lit_pixels`` an integer >= 0)."""
+    hr = record.get("hr") if isinstance(record, dict) else None
+    lum = hr.get("luminance") if isinstance(hr, dict) else None
+    if not isinstance(lum, dict):
+        return None
+    lm, n = lum.get("log_mean"), lum.get("lit_pixels")
+    if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
+        return None
+    if lm is not None and (isinstance(lm, bool) or not isinstance(lm, (int, float)) or not math.isfinite(lm)):
+        return None
+    return lum
+
+
+#: The keys ``metered_exposure`` adds to an auto exposure block: they follow the finished frames, so they are no part
+#: of the clip's identity (``clip.header_identity``).
+METERED_KEYS = ("value", "ev", "log_average", "frames_metered")
+
+
+def metered_exposure(block: dict, records: dict) -> dict:
+    """A header's auto ``exposure`` block completed from the finished frames' records (``frame_luminance``):
+    ``value`` (the multiplier), ``ev`` (log2 of it), ``log_average`` (of the physical HR radiance) and
+    ``frames_metered``. A fixed block is returned as it is."""
+    if block.get("mode") != "auto":
+        return block
+    stats = [s for s in (frame_luminance(r) for r in records.values()) if s is not None]
+    la = log_average_luminance(stats)
+    value = auto_exposure_value(la)
+    return {**block, "value": value, "ev": math.log2(value), "log_average": la, "frames_metered": len(stats)}
+
+
+def exposure_of(manifest: dict) -> float:
+    """The multiplier every reader applies to the clip's radiance and emission: the manifest's ``exposure.value``;
+    1 when the manifest has no ``exposure`` (rendered before the key, or at exposure 1) or its auto exposure has no
+    finished frame yet. BlendSRError naming the key when the block is malformed."""
+    block = manifest.get("exposure")
+    if block is None:
+        return 1.0
+    if not isinstance(block, dict) or block.get("mode") not in ("auto", "fixed"):
+        raise BlendSRError(f"exposure {block!r:.80}: expected an object with mode 'auto' or 'fixed'")
+    value = block.get("value")
+    if value is None and block["mode"] == "auto":
+        return 1.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise BlendSRError(f"exposure.value {value!r}: expected a positive number (the radiance multiplier)")
+    return float(value)
+
+
+def expose(name: str, arr: np.ndarray, exposure: float) -> np.ndarray:
+    """Buffer ``name`` as the clip's readers see it: multiplied by ``exposure`` when it is one of
+    ``EXPOSED_BUFFERS``, unchanged (the same array) otherwise or at exposure 1. Keeps a float dtype."""
+    if name not in EXPOSED_BUFFERS or exposure == 1.0:
+        return arr
+    return (np.asarray(arr) * np.float32(exposure)).astype(arr.dtype if arr.dtype.kind == "f" else np.float32,
+                                                            copy=False)
 
 
 # ----------------------------------------------------------------------------------------------

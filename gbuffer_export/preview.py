@@ -188,16 +188,17 @@ def legend_strip(width: int) -> np.ndarray:
 def contact_sheet(clip, path: str | Path, frames: list[int] | None = None, max_frames: int = 3,
                   legend: bool = True) -> Path:
     """PNG contact sheet of a clip: per frame one row with LR radiance (nearest-upscaled), HR radiance and every HR
-    G-buffer the clip holds; colours converted from the clip's working space to Linear Rec.709 (sRGB primaries).
+    G-buffer the clip holds; radiance and emission exposed (the clip's exposure), colours converted from the clip's
+    working space to Linear Rec.709 (sRGB primaries).
     Depth and motion tiles name the range their grey / colours stand for; ``legend`` adds a strip below with the
     flag colours, the motion colour wheel and the depth ramp."""
     frames = frames or clip.frames[:: max(1, len(clip.frames) // max_frames)][:max_frames]
     rows = []
     for f in frames:
-        lr = clip.read(f, "lr/radiance", space=DISPLAY_SPACE)
+        lr = clip.read(f, "lr/radiance", space=DISPLAY_SPACE, exposed=True)
         row = [(f"f{f} lr/radiance", upscale_nearest(visualize("radiance", lr), clip.scale))]
         for b in clip.buffers:
-            arr = clip.read(f, f"hr/{b}", space=DISPLAY_SPACE)
+            arr = clip.read(f, f"hr/{b}", space=DISPLAY_SPACE, exposed=True)
             row.append((tile_label(f"hr/{b}", arr), visualize(b, arr)))
         rows.append(row)
     grid = labelled_grid(rows)
@@ -216,7 +217,7 @@ def _fit(img: np.ndarray, h: int, w: int) -> np.ndarray:
 
 def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=None) -> tuple[Path, int]:
     """PNG contact sheet of a dataset: one row per finished clip (index order, or only ``splits``) with its first
-    and last frame's HR radiance at ``width`` pixels wide, labelled with the clip id, camera kind and split.
+    and last frame's HR radiance (exposed) at ``width`` pixels wide, labelled with the clip id, camera kind and split.
     Returns (path, clips shown); BlendSRError when the dataset has no finished clip. Every clip folder comes
     from the index through the one path rule (``dataset.build.clip_dir``): a path that leaves the dataset is refused
     with one line before anything is drawn."""
@@ -237,7 +238,7 @@ def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=N
             continue
         row = []
         for f in (clip.frames[0], clip.frames[-1]):
-            img = visualize("radiance", clip.read(f, "hr/radiance", space=DISPLAY_SPACE))
+            img = visualize("radiance", clip.read(f, "hr/radiance", space=DISPLAY_SPACE, exposed=True))
             h = max(1, round(img.shape[0] * width / img.shape[1]))
             label = f"{c['id']} f{f}" if f == clip.frames[0] else f"{c.get('camera')} {c.get('split')} f{f}"
             row.append((label, _fit(img, h, width)))

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .clip import ClipWriter, levels_header, scale_value
-from .conventions import (ALL_BUFFERS, Flag, pixel_grid, rays_camera, reprojection_motion,
+from .conventions import (ALL_BUFFERS, Flag, exposure_header, pixel_grid, rays_camera, reprojection_motion,
                           scale_intrinsics, world_to_camera_normals)
 
 SPHERES = ((np.array([0.0, 1.0, 0.0]), 1.0), (np.array([2.2, 0.6, -0.8]), 0.6), (np.array([-2.0, 0.8, 1.0]), 0.8))
@@ -88,11 +88,14 @@ def _trace(width, height, k, world_from_camera, jitter):
 
 def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: float = 4,
                         buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2,
-                        scene_linear: str = "Linear Rec.709", scales=None) -> Path:
+                        scene_linear: str = "Linear Rec.709", scales=None, light: float = 1.0,
+                        exposure: str | float = 1.0, camera=camera_at) -> Path:
     """Write a complete synthetic clip to ``path`` and return it. HR radiance is supersampled
     ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered).
     ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says).
-    ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``."""
+    ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``.
+    ``light`` multiplies the radiance (a scene lit in other units); ``exposure``: the render setting ('auto' or a
+    multiplier; 1 writes no ``exposure`` key, as ``blendsr render`` does). ``camera``: t -> world_from_camera."""
     from .conventions import halton_jitter
 
     w, h = hr_size
@@ -112,11 +115,11 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
             "hr": {"pixel_filter": "BOX" if hr_supersample > 1 else "GAUSSIAN",
                    "filter_width_px": 1.0 if hr_supersample > 1 else 0.01},
             "lr": {"pixel_filter": "GAUSSIAN", "filter_width_px": 0.01}},
-        "materials": {}, "material_summary": {},
+        "materials": {}, "material_summary": {}, **exposure_header(exposure),
     }
     wr = ClipWriter(path, header)
     for i, f in enumerate(frames):
-        m, m_prev, m_next = camera_at(f), camera_at(f - 1), camera_at(f + 1)
+        m, m_prev, m_next = camera(f), camera(f - 1), camera(f + 1)
         record = {}
         for lvl, (lw, lh) in sizes.items():
             k = scale_intrinsics(k_hr, lw / w)
@@ -135,7 +138,7 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
                 radiance = g["radiance"]
             depth = g["depth"]
             bufs = {
-                "radiance": radiance,
+                "radiance": radiance * light,
                 "albedo": g["albedo"],
                 "normal": world_to_camera_normals(g["normal_world"], m),
                 "depth": depth,

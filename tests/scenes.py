@@ -11,6 +11,7 @@ Kinds:
   occluder  a box sliding sideways in front of a wall (known disocclusions), camera panning slowly
   colours   basic plus an emissive cube of coloured base and emission colour (Linear Rec.709 working space)
   acescg    colours with the blend file's working colour space changed to ACEScg (its colours converted)
+  dimlamp   basic lit by a point lamp of 0.01 W under a sky of strength 1e-4 (a level lit in other units)
 """
 from __future__ import annotations
 
@@ -159,6 +160,11 @@ def main(kind: str, out: str) -> None:
         basic(ortho=True)
     elif kind == "occluder":
         occluder()
+    elif kind == "dimlamp":
+        basic()
+        sc.world.node_tree.nodes["Background"].inputs[1].default_value = 1e-4
+        bpy.ops.object.light_add(type="POINT", location=(0.0, -3.0, 4.0))
+        bpy.context.object.data.energy = 0.01
     elif kind in ("colours", "acescg"):
         basic()
         bpy.ops.mesh.primitive_cube_add(location=(-2.5, 0, 0.5), size=1)

@@ -312,7 +312,7 @@ class ClipCache:
         return f"{self._lr_dir}/{name}" if level == "lr" else key
 
     def _read_checked(self, frame: int, key: str) -> np.ndarray:
-        a = self.clip.read(frame, key)
+        a = self.clip.read(frame, key, exposed=True)  # radiance and emission times the clip's exposure
         where = f"{self.clip.path_of(frame, key)} (frame {frame})"
         name = split_key(key)[1]
         if name == "radiance" and self.nonfinite == "error":

@@ -288,6 +288,7 @@ def cmd_upscale(args) -> int:
         write_exr(out / f"{f:06d}.exr", {c: sr[..., i] for i, c in enumerate("RGB")})
         times[str(f)] = r["ms"]
     write_json_atomic(out / "upscale.json", {"model": model.spec, "clip": str(args.clip), "scale": clip.scale,
+                                            "exposure": clip.exposure,  # the EXRs hold exposed radiance
                                             "frames": [int(f) for f in frames], "ms": times,
                                             "nonfinite_values": nonfinite})
     print(f"wrote {len(frames)} frames to {out}"

@@ -71,7 +71,7 @@ class ClipFrames:
             self._put((frame, f"{level}/irradiance"), irr)
             self._put((frame, f"{level}/fbeta_used"), fbu)
             return irr if name == "irradiance" else fbu
-        a = self.clip.read(frame, key, space=TRAINING_SPACE)
+        a = self.clip.read(frame, key, space=TRAINING_SPACE, exposed=True)
         self._put(k, a)
         return a
 

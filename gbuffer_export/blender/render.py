@@ -32,8 +32,8 @@ import numpy as np
 from .. import __version__
 from ..clip import FRAMES_DIR, ClipWriter, frame_name, levels_header
 from ..config import ConfigError, RenderConfig
-from ..conventions import (Flag, computed_buffers, halton_jitter, intrinsics_from_projection, level_name,
-                           material_flags_for_source, pass_seed)
+from ..conventions import (Flag, computed_buffers, exposure_header, halton_jitter, intrinsics_from_projection,
+                           level_name, material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
@@ -471,6 +471,7 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         "camera": r.camera_report,
         "light": r.light,
         "scene_linear": _scene_linear_name(),
+        **exposure_header(cfg.exposure),  # auto: metered as frames finish (ClipWriter); 1: no key
         "render": {
             "engine": "CYCLES", "device": device["device"], "device_names": device["names"],
             "device_requested": device["requested"], "seed": cfg.seed, "jitter": cfg.jitter,

@@ -13,8 +13,11 @@ from ..extras import HelpFormatter as _Formatter
 HELP = """Check a clip directory: manifest and frame records, every buffer file of every finished frame at both
 levels (exists, readable EXR, level size, channels, sample type), values (finite; depth > 0 on surfaces and +inf
 on background; unit normals; fbeta in [0, 1.05] on surfaces and 1 on background; material buffers in [0, 1];
-known flag bits) and motion (agreement with reprojection from depth and cameras on static surface pixels, with the
-camera's rotation-only motion on background pixels). A half-written clip (planned frames missing, buffer files of
+known flag bits), usable views (the HR radiance times the clip's exposure neither practically black, log-average
+luminance below 0.02 or over 20% of the pixels below 1e-3, nor blown out, log-average above 2; a warning when fewer
+than 75% of the frames hold near and far content, HR depth p90/p10 >= 3; docs/clip-format.md "Usable views") and
+motion (agreement with reprojection from depth and cameras on static surface pixels, with the camera's
+rotation-only motion on background pixels). A half-written clip (planned frames missing, buffer files of
 unfinished frames) never passes.
 
 Prints one line per finding ('ERROR frame 12 hr/normal: ... [code]') and a summary line; with --json one JSON

@@ -145,12 +145,12 @@ def export_sequence(clip, frames: list[int], out, name: str, *, framerate: int =
     records = []
     for j, f in enumerate(frames):
         fn = f"{j:04d}.exr"
-        _exr_rgba(out / "ground_truth" / name / fn, clip.read(f, "hr/radiance", space=NSS_SPACE))
+        _exr_rgba(out / "ground_truth" / name / fn, clip.read(f, "hr/radiance", space=NSS_SPACE, exposed=True))
         _exr_rg(out / "motion_gt" / name / fn, cv.motion_to_uv(clip.read(f, "hr/motion")))
         per_ratio = []
         for lvl, r in zip(lr_levels, ratios):
             base = out / f"x{r}"
-            _exr_rgba(base / "color" / name / fn, clip.read(f, f"{lvl}/radiance", space=NSS_SPACE))
+            _exr_rgba(base / "color" / name / fn, clip.read(f, f"{lvl}/radiance", space=NSS_SPACE, exposed=True))
             _exr_r32(base / "depth" / name / fn, cv.view_depth_to_device(clip.read(f, f"{lvl}/depth")[..., 0],
                                                                          near, far))
             _exr_rg(base / "motion" / name / fn, cv.motion_to_uv(clip.read(f, f"{lvl}/motion")))
@@ -166,7 +166,9 @@ def export_sequence(clip, frames: list[int], out, name: str, *, framerate: int =
             "Jitter": {"X": float(jit[0]), "Y": float(jit[1])},
             "NormalizedPerRatioJitter": per_ratio,
             "CameraCut": j == 0,
-            "Exposure": 1.0,  # optional in the specification; the model gym's NSSDataset reads the feature
+            # the colour files hold exposed radiance (the clip's exposure applied: half floats keep their precision
+            # for a clip of any brightness), so the exposure left to apply is 1; the clip's is in BlendSR.exposure
+            "Exposure": 1.0,
             "BlendSRFrame": int(f),
         })
     meta = {
@@ -184,7 +186,7 @@ def export_sequence(clip, frames: list[int], out, name: str, *, framerate: int =
         "Frames": records,
         "BlendSR": {"clip": str(clip.path), "frames": [int(f) for f in frames],
                     "scales": [float(s) for s in clip.scales], "source_scene_linear": clip.scene_linear,
-                    "colour_space": NSS_SPACE, "identity": clip.manifest.get("identity")},
+                    "colour_space": NSS_SPACE, "exposure": clip.exposure, "identity": clip.manifest.get("identity")},
     }
     write_json_atomic(out / f"{name}.json", meta)
     return meta
@@ -474,7 +476,8 @@ def read_frame(root, seq: str | int, j: int, meta: dict | None = None) -> dict:
 def nss_to_clip(root, seq: str | int, out) -> Path:
     """Write NSS sequence ``seq`` as a BlendSR clip at ``out`` (buffers radiance, depth, motion; one LR level per
     ratio). NSS has no HR depth: ``hr/depth`` is the first LR level's depth repeated nearest-neighbour (the
-    manifest's ``imported.hr_depth`` says so). The first frame's previous camera is its own camera. The JSON and
+    manifest's ``imported.hr_depth`` says so). The first frame's previous camera is its own camera. A frame's
+    ``Exposure`` (when given) multiplies its colour: the clip holds exposed radiance, at exposure 1. The JSON and
     every file are checked (``check_sequence_meta``, ``check_capture_files``) before the clip is created."""
     root = Path(root)
     meta = read_sequence_meta(root, seq)
@@ -501,6 +504,11 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
     prev = None
     for j in frames:
         fr = read_frame(root, seq, j, meta)
+        exposure = meta["Frames"][j].get("Exposure", 1.0)
+        if isinstance(exposure, bool) or not isinstance(exposure, (int, float)) or not 0 < exposure < float("inf"):
+            raise NssError(f"{root / f'{int(seq):04d}.json' if not isinstance(seq, str) else root / f'{seq}.json'}: "
+                           f"Frames[{j}].Exposure {exposure!r} is not a positive number")
+        fr = {k: a * np.float32(exposure) if k.endswith("/radiance") else a for k, a in fr.items()}
         record = {}
         cam = (fr["world_from_camera"], fr["intrinsics"])
         pcam = prev or cam

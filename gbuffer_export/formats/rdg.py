@@ -96,12 +96,13 @@ def _rgb_exr(path: Path, a: np.ndarray) -> None:
 
 
 def rdg_buffer(clip, frame: int, level: str, name: str) -> np.ndarray:
-    """RDG buffer ``name`` (a key of BUFFER_MAP, or 'Image' as linear values before sRGB encoding) of a frame."""
+    """RDG buffer ``name`` (a key of BUFFER_MAP, or 'Image' as linear values before sRGB encoding) of a frame;
+    radiance and emission exposed (the clip's exposure), so Image = BRDF * irradiance + Emit holds as in the clip."""
     if name == "Image":
-        return clip.read(frame, f"{level}/radiance", space=NSS_SPACE)
+        return clip.read(frame, f"{level}/radiance", space=NSS_SPACE, exposed=True)
     src = BUFFER_MAP[name]
     if src in ("fbeta", "emission"):
-        return clip.read(frame, f"{level}/{src}", space=NSS_SPACE)
+        return clip.read(frame, f"{level}/{src}", space=NSS_SPACE, exposed=True)
     a = clip.read(frame, f"{level}/{src}")
     if name == "Depth":
         return cv.depth_for_rdg(a[..., 0])

@@ -15,6 +15,10 @@ Checks, in the order ``runner.run`` calls them (one module per family):
     values     (``values``) per buffer of a frame and level: finite; depth > 0 on surfaces and +inf exactly on
                background; unit normals on surfaces, zero on background; fbeta in [0, fbeta_max] on surfaces and 1
                on background; material buffers in [0, 1]; emission >= 0; only known flag bits;
+    views      (``exposure``) the manifest's exposure; each HR frame, exposed (radiance times the exposure), neither
+               practically black nor blown out, its radiance the one its auto exposure was metered on; near and
+               far content (HR depth p90/p10) on most frames (a warning); black frames and level cameras in
+               ``camera``;
     motion     (``motion``) stored motion against ``reprojection_motion`` on static surface pixels and against the
                rotation-only motion on background pixels (fractions within tolerance); ``motion_next`` the same
                way towards the next camera.

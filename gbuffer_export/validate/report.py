@@ -64,6 +64,14 @@ CODES: dict[str, str] = {
     "emission-background": "on a point-sampled LR level, radiance is not the environment that emission holds on "
                            "background (render.gbuffer.emission_background = \"environment\")",
     "black-frame": "radiance is zero, or not finite, on every pixel of a frame (an unlit scene)",
+    # usable views (exposure, depth)
+    "exposure-invalid": "the manifest's exposure is malformed, or not the auto exposure its frames' metering gives",
+    "dark-frame": "an exposed HR frame is practically black (log-average luminance < 0.02, or more than 20% of its "
+                  "pixels below 1e-3)",
+    "bright-frame": "an exposed HR frame is blown out (log-average luminance > 2)",
+    "metering-mismatch": "the HR radiance is not the radiance its auto exposure was metered on (changed after "
+                         "rendering)",
+    "flat-view": "fewer than 75% of the checked frames hold near and far content (HR depth p90/p10 >= 3) (warning)",
     # level cameras (manifest camera.kind walk or fly)
     "camera-view": "a level camera's HR frame is half background or more, or its median depth exceeds the level",
     "camera-motion": "a level camera moves faster than declared, or its planned clearance is below its rule",

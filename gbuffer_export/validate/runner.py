@@ -1,5 +1,6 @@
-"""The order of the checks: ``run`` takes the clip through the manifest, frame, record, file, value and motion
-checks (per frame and level) and summarises the statistics; ``validate_clip`` is the entry point."""
+"""The order of the checks: ``run`` takes the clip through the manifest, frame, record, file, value, usable-view
+(exposure, depth) and motion checks (per frame and level) and summarises the statistics; ``validate_clip`` is the
+entry point."""
 from __future__ import annotations
 
 import sys
@@ -12,6 +13,7 @@ import numpy as np
 from ..errors import BlendSRError
 from ..clip import ClipError
 from .camera import check_black_frame, check_level_motion, check_level_view, level_report
+from .exposure import check_exposed_frame, check_exposure, check_flat_views, depth_ratio
 from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
 from .motion import check_motion, check_motion_next
@@ -78,6 +80,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     env_bg = isinstance(render.get("gbuffer"), dict) and render["gbuffer"].get("emission_background") == "environment"
     lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
     level_cam = level_report(manifest)
+    exposure = check_exposure(c, manifest)
+    ratios: dict[int, float] = {}
     if frames is not None:
         wanted = set(int(f) for f in frames)
         selected = [f for f in finished if f in wanted]
@@ -102,6 +106,11 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                     continue
                 surface = check_values(c, f, lvl, b)
                 check_black_frame(c, f, lvl, b)
+                if lvl == "hr":
+                    check_exposed_frame(c, f, b, exposure, manifest, h["frame_data"][f])
+                    r = depth_ratio(b)
+                    if r is not None:
+                        ratios[f] = r
                 if lvl == "hr" and level_cam is not None:
                     view = check_level_view(c, f, b, level_cam)
                     if view:
@@ -124,6 +133,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
             bar.close()
     if level_cam is not None:
         check_level_motion(c, selected, h["frame_data"], level_cam)
+    check_flat_views(c, ratios)
     summarise(c, h)
 
 

@@ -15,7 +15,7 @@ from gbuffer_export.cli import main
 from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.conventions import BUFFERS, SCHEMA_VERSION, Flag
 from gbuffer_export.exr import read_exr, write_exr
-from gbuffer_export.synthetic import make_synthetic_clip
+from gbuffer_export.synthetic import look_at, make_synthetic_clip
 from gbuffer_export.validate import CODES, ERROR, WARNING, ValidationOptions, validate_clip
 
 FRAMES = (1, 2, 3)
@@ -220,9 +220,28 @@ def _moved_prev_camera(clip):
     edit_record(clip, 3, fn)
 
 
+def _ground_only(clip):
+    """The clip replaced by one whose camera looks straight down at the ground from 1 unit: every frame shows one
+    surface at about one depth."""
+    shutil.rmtree(clip)
+    make_synthetic_clip(clip, frames=FRAMES, hr_size=HR, scale=SCALE, camera=lambda t: look_at(
+        np.array([20.0 + 0.05 * t, 1.0, 20.0]), np.array([20.0 + 0.05 * t, 0.0, 20.001])))
+
+
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).
 CASES = {
     "black-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", np.zeros_like), ERROR, 2, "hr/radiance"),
+    # usable views (validate/exposure.py): the exposed radiance (1e-5 of it: practically black; 100 times: blown
+    # out), a malformed exposure, a metering that is not the radiance's, a view of one surface at one depth
+    "dark-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", lambda a: a * np.float32(1e-5)), ERROR, 2,
+                   "hr/radiance"),
+    "bright-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", lambda a: a * np.float32(100)), ERROR, 2,
+                     "hr/radiance"),
+    "exposure-invalid": (lambda c: edit_manifest(c, lambda m: m.__setitem__("exposure", {"mode": "auto", "value": -1})),
+                         ERROR, None, "exposure"),
+    "metering-mismatch": (lambda c: edit_record(c, 2, lambda r: r["hr"].__setitem__(
+        "luminance", {"log_mean": 0.0, "lit_pixels": 1, "pixels": 1})), ERROR, 2, "hr/radiance"),
+    "flat-view": (_ground_only, WARNING, None, "hr/depth"),
     "camera-view": (lambda c: _level_camera(c, level_extent_m=1e-3), ERROR, 2, "hr/depth"),
     "camera-motion": (lambda c: _level_camera(c, clearance_m=0.1), ERROR, None, None),
     "camera-region": (lambda c: _level_camera(c, region={"lo": [1e3, 1e3], "hi": [2e3, 2e3], "grid": [1, 1],
