@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import edit_manifest, make_blend, requires_bpy, run_cli
+from tests.conftest import edit_manifest, make_blend, requires_bpy, run_cli
 from gbuffer_export import conventions as cv
 from gbuffer_export.clip import buffer_path, open_clip
 from gbuffer_export.config import RenderConfig
@@ -272,7 +272,7 @@ def test_the_documented_thresholds_are_the_code_s():
 
     from gbuffer_export.validate import CODES
     from gbuffer_export.validate import exposure as ve
-    doc = (Path(__file__).resolve().parents[1] / "docs" / "clip-format.md").read_text()
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "clip-format.md").read_text()
     for v in (ve.DARK_LOG_AVERAGE, ve.DARK_LUMINANCE, ve.BRIGHT_LOG_AVERAGE, ve.NEAR_FAR_RATIO):
         forms = (f"{v:g}", f"{v:.1f}", f"{v:.0e}".replace("e-0", "e-"))
         assert any(f"**{t}**" in doc for t in forms), v
