@@ -55,7 +55,7 @@ def test_every_fast_path_matches_the_fp32_eager_reference(name, norm):
     for precision in ("none", "bf16", "fp16"):
         for channels_last in (False, True):
             fast = prepare_inference(copy.deepcopy(ref), precision=precision, channels_last=channels_last)
-            assert fast.fast_ops
+            assert fast.module.fast_ops
             with torch.inference_mode():
                 got = forward(fast, batch)
             assert got.dtype == torch.float32 and got.shape == want.shape
@@ -262,10 +262,11 @@ def test_cuda_fast_path_bf16_compiled_matches_the_cpu_fp32_reference(name):
 
 @cuda
 def test_bench_models_speed_mode_on_cuda(tmp_path):
-    from training.bench_models import speed_benchmark
-    res = speed_benchmark([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], tmp_path, size=(256, 128),
-                          device=torch.device("cuda"), precisions=["none", "bf16"], compiles=[False, True],
-                          warmup=2, repeats=3, log=lambda m: None)
+    from training.bench_models import SpeedOptions, load_models, speed_benchmark
+    models = load_models([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], 4, fast=False)
+    res = speed_benchmark([(label, m.to("cuda")) for label, m in models], tmp_path, SpeedOptions(
+        size=(256, 128), precisions=("none", "bf16"), compiles=(False, True), warmup=2, repeats=3,
+        log=lambda m: None))
     assert "CUDA events" in res["timing"] and len(res["rows"]) == 8
     assert all(r["ms"] > 0 and r["roofline_ms"] > 0 for r in res["rows"])
 

@@ -8,6 +8,8 @@ from pathlib import Path
 from gbuffer_export.errors import BlendSRError
 
 from gbuffer_export.extras import HelpFormatter, require
+from training.clip_sets import dataset_clips as _dataset_clips
+from training.clip_sets import scale_of as _scale_of
 
 FMT = HelpFormatter
 
@@ -153,29 +155,6 @@ def cmd_train(args) -> int:
     return 0
 
 
-def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
-    """--data arguments with every dataset folder replaced by the finished clips of its ``split``."""
-    from gbuffer_export.dataset.build import DatasetError, expand_data_paths, is_dataset, split_clips
-    if missing_ok:  # the optional split of dataset folders only
-        out = []
-        for p in paths:
-            if is_dataset(p):
-                out += split_clips(p, split)
-        return out
-    try:
-        return expand_data_paths(paths, split)
-    except DatasetError as exc:
-        raise BlendSRError(str(exc)) from None
-
-
-def _scale_of(clips) -> int:
-    from gbuffer_export.clip import open_clip
-    scales = {open_clip(c).scale for c in clips}
-    if len(scales) != 1:
-        raise BlendSRError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
-    return scales.pop()
-
-
 def cmd_evaluate(args) -> int:
     require("blendsr evaluate", "train")
     import torch
@@ -188,17 +167,18 @@ def cmd_evaluate(args) -> int:
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
-    model = load_model(spec, scale, args.set)
-    device = resolve_device(args.device)
+    model = load_model(spec, scale, args.set).to(resolve_device(args.device))
     if args.compile:
         from training.fastpath import prepare_inference
-        prepare_inference(model, device, compile=True)
+        prepare_inference(model, compile=True)
     frames = _frames(args.frames)
-    result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
-                            device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
-                            delta_e_itp=args.delta_e_itp,
-                            save_images=args.save_images, warmup=args.warmup, progress=not args.no_progress)
+    from training.evaluate import EvalOptions
+    result = evaluate_model(model, args.data, EvalOptions(
+        frames={str(c): frames for c in args.data} if frames else None, amp=amp_dtype(args.amp, model.device),
+        flip=not args.no_flip, delta_e_itp=args.delta_e_itp, save_images=args.save_images, warmup=args.warmup,
+        progress=not args.no_progress))
     write_json_atomic(args.json, result)
+    from training.evaluate import worst_case_line
     m = result["mean"]
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
           f"FLIP {m['flip'] if m['flip'] is None else round(m['flip'], 4)}  {m['ms_per_frame']:.2f} ms/frame  "
@@ -207,6 +187,7 @@ def cmd_evaluate(args) -> int:
         print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
             f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
             for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
+    print(worst_case_line(result))
     return 0
 
 
