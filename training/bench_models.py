@@ -148,7 +148,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
     out = []
     for label, spec in models:
         name = label.split(" ")[0]
-        if spec == name and MODELS[name].learned:
+        if spec == name and name in MODELS and MODELS[name].learned:
             out.append((label, InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)))
             continue
         if spec != name:
