@@ -107,9 +107,9 @@ def test_fast_upsampling_by_class_and_guided_match_the_references(batch):
                                    rtol=1e-6, atol=1e-6)
         lg, hg = torch.randn(batch, 4, h, w, generator=g), torch.randn(batch, 4, h * s, w * s, generator=g)
         fb = torch.rand(batch, 3, h * s, w * s, generator=g)
-        for cls in ((lm, hm), (None, None)):
-            want = upsample_guided(x, lg, hg, s, fb, jit, *cls)
-            torch.testing.assert_close(fast_ops.upsample_guided(x, lg, hg, s, fb, jit, *cls), want,
+        for cls in ((lm, hm), None):
+            want = upsample_guided(x, lg, hg, s, fb, jit, cls)
+            torch.testing.assert_close(fast_ops.upsample_guided(x, lg, hg, s, fb, jit, cls), want,
                                        rtol=1e-5, atol=1e-6)
     # the batch-1 index_select shortcut and the gather used under tracing give the same rows
     idx = torch.tensor([[2, 0, 1, 1]])

@@ -357,7 +357,7 @@ def test_upsample_guided_matches_a_per_pixel_reference():
     c_hr = (torch.rand(1, 1, h * s, w * s, generator=g) < 0.7).float()
     fallback = torch.full((1, 3, h * s, w * s), -1.0)
     j = torch.tensor([[0.3, -0.45]])
-    out = upsample_guided(x, g_lr, g_hr, s, fallback, j, c_lr, c_hr, floor=1e-3)
+    out = upsample_guided(x, g_lr, g_hr, s, fallback, j, (c_lr, c_hr), floor=1e-3)
     ref = _guided_reference(x[0].double().numpy(), g_lr[0].double().numpy(), g_hr[0].double().numpy(), s,
                             (0.3, -0.45), c_lr[0, 0].numpy(), c_hr[0, 0].numpy(), 1e-3, fallback[0].numpy())
     np.testing.assert_allclose(out[0].numpy(), ref, rtol=2e-4, atol=2e-4)
@@ -400,7 +400,7 @@ def test_demod_jbu_and_fusesr_guided_residual():
     j = cur["lr_jitter"]
 
     def jbu(x):
-        return upsample_guided(x, *guides, 4, upsample_by_class(x, *masks, 4, j), j, *masks)
+        return upsample_guided(x, *guides, 4, upsample_by_class(x, *masks, 4, j), j, masks)
 
     model = build_model(ModelConfig(name="demod-jbu", remod_filter="NONE"), 4).eval()
     assert {"hr/depth", "hr/normal", "lr/depth", "lr/normal"} <= set(model.needs())

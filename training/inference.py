@@ -206,4 +206,5 @@ def upscale_frame(model: InferenceModel, clip, frame: int) -> dict:
     return out
 
 
-__all__ = ["load_model", "upscale_frame", "run_frame", "missing_keys", "ClipFrames", "model_inputs", "run_model", "InferenceModel"]
+__all__ = ["load_model", "upscale_frame", "run_frame", "missing_keys", "ClipFrames", "model_inputs", "run_model",
+           "InferenceModel"]

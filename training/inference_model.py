@@ -81,9 +81,17 @@ class InferenceModel:
         return self
 
     def forward(self, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
-        """SR of ``batch`` (tensors on the device) with the fast-path settings (``training.fastpath.forward``)."""
-        from training.fastpath import forward
-        return forward(self, batch, amp)
+        """SR of ``batch`` (tensors on the device) with the fast-path settings of ``prepare_inference``
+        (``training.fastpath``): channels-last inputs, the compiled module, autocast to the prepared dtype; ``amp``
+        overrides the prepared dtype when given."""
+        from training.device import autocast
+        dtype = amp if amp is not None else self.settings.get("dtype")
+        if self.settings.get("channels_last"):
+            batch = channels_last_batch(batch)
+        fn = self.settings.get("compiled")
+        fn = self.module if fn is None else fn
+        with autocast(next(iter(batch.values())).device, dtype):
+            return fn(batch)
 
     def run(self, inputs: dict[str, np.ndarray], amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
         """(SR H x W x 3 float32, ms) of the whole input window (numpy (1, T, C, H, W)), no state: the forward pass
@@ -138,6 +146,16 @@ class InferenceModel:
 
     def __repr__(self) -> str:
         return f"InferenceModel({self.spec!r}, {type(self.module).__name__}, {self.n_params} parameters)"
+
+
+def channels_last_batch(batch: dict) -> dict:
+    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
+    out = {}
+    for k, v in batch.items():
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
+            v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
+        out[k] = v
+    return out
 
 
 def _image(sr: torch.Tensor) -> np.ndarray:

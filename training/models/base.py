@@ -153,7 +153,7 @@ class SRModel(nn.Module):
             return base
         guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
                   for lv in ("lr", "hr")]
-        return guided(x, *guides, scale, base, jitter, *(classes or (None, None)))
+        return guided(x, *guides, scale, base, jitter, classes)
 
     def demod_base(self, batch: dict, jitter: torch.Tensor | None, scale: float | None = None) -> torch.Tensor:
         """The residual base of the option ``residual`` (``options.ResidualOptions``; not in the papers): T(L_D^LR
