@@ -157,11 +157,12 @@ class Baseline:
     """The baseline of the worst-case metrics (``metrics.BASELINE``) on the frames a model is scored on, as
     ``blendsr evaluate --model NAME`` scores it: per (clip, scale, frame) its PSNR and where its ``pixel_error`` is
     below ``metrics.ARTIFACT_BASELINE``, computed once and kept (bit-packed), so one object serves several models
-    (``bench models``). A clip that lacks the baseline's buffers has none (``missing``: clip -> reason)."""
+    (``bench models``). A clip that lacks the baseline's buffers, or a scale it does not take, has none
+    (``missing``: (clip, scale) -> reason)."""
 
     def __init__(self, name: str = metrics.BASELINE):
         self.name = name
-        self.missing: dict[str, str] = {}
+        self.missing: dict[tuple[str, float], str] = {}
         self._models: dict = {}
         self._sources: dict = {}
         self._frames: dict = {}
@@ -185,14 +186,18 @@ class Baseline:
 
     def _source(self, clip_path, clip, scale: float):
         from training.inference import load_model
+        from training.models import model_class
         skey = (str(clip_path), float(scale))
+        if skey not in self._sources and not model_class(self.name).supports_scale(scale):
+            self.missing[skey] = f"{self.name} does not upscale by {scale:g}"
+            self._sources[skey] = None
         if skey not in self._sources:
             if float(scale) not in self._models:
                 self._models[float(scale)] = load_model(self.name, scale)
             src = ClipFrames(clip.at_scale(scale))
             lacking = missing_keys(self._models[float(scale)], src)
             if lacking:
-                self.missing[str(clip_path)] = f"lacks {', '.join(lacking)}"
+                self.missing[skey] = f"the clip lacks {', '.join(lacking)}"
                 src = None
             else:
                 self._models[float(scale)].module.follow_reference_filter(src.clip.manifest)
@@ -227,8 +232,9 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
     if not per_frame:
         raise ClipError("no frame evaluated")
     if baseline is not None:
-        warnings += [f"{c}: no {baseline.name} baseline ({why})" for c, why in baseline.missing.items()
-                     if c in {str(j[0]) for j in jobs}]
+        mine = {(str(c), float(sc)) for c, _, sc in jobs}
+        warnings += [f"{c} (x{sc:g}): no {baseline.name} baseline ({why})"
+                     for (c, sc), why in baseline.missing.items() if (c, sc) in mine]
     return _result(model, clips, o, per_frame, warnings, runner)
 
 
