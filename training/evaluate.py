@@ -71,9 +71,9 @@ def eval_scales(model, clip, wanted=None) -> list[float]:
     for a model that takes any scale, else ``model.scale``. ClipError (one line) when the clip lacks a level or the
     model cannot take it."""
     scales = [float(s) for s in wanted] if wanted else (
-        list(clip.scales) if getattr(model, "SCALES", ()) is None else [float(model.scale)])
+        list(clip.scales) if model.SCALES is None else [float(model.scale)])
     for s in scales:
-        if getattr(model, "SCALES", ()) is not None and s != float(model.scale):
+        if model.SCALES is not None and s != float(model.scale):
             raise ClipError(f"{clip.path}: clip scale {s:g} but the model upscales by {model.scale}")
         if not any(abs(s - v) < 1e-9 for v in clip.scales):
             if len(clip.scales) == 1:

@@ -26,6 +26,8 @@ class SRModel(nn.Module):
     model reads the factor of each batch from ``batch_scale(batch)`` (``batch['scale']``, (B,) float, all equal)."""
 
     learned = False
+    #: Whether the model predicts the demodulated irradiance and remodulates it (``remodulate``).
+    demod = False
     #: A model that carries a state from frame to frame (``training.recurrent``; ``step(batch, state)``).
     recurrent = False
     #: This class's row in ``training.models.MODELS``: its options are ``MODELS[NAME].options``.
@@ -105,7 +107,7 @@ class SRModel(nn.Module):
     def remod_filter_mismatch(self, manifest: dict, clip_path) -> str | None:
         """A one-line reason when this model remodulates with a pixel filter other than the one the clip's ground
         truth was rendered with (manifest ``render.hr``), else None."""
-        if not getattr(self, "demod", False) or self.config.remod_filter in ("NONE", "REFERENCE"):
+        if not self.demod or self.config.remod_filter in ("NONE", "REFERENCE"):
             return None
         from gbuffer_export.pixel_filter import reference_filter
         kind, width = reference_filter(manifest)
