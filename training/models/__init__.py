@@ -7,6 +7,8 @@ HR keys at least the current frame) plus ``'depth_ref'`` (B, T). SR is (B, 3, H_
 
 Options: a row's ``options`` is the dataclass of the model's own ``[model.<name>]`` table
 (``training.models.options``; ``NoOptions``, the default, for a model without any), built as ``cfg.options``.
+A model class takes the shared keys and its options by keyword (``FuseSR(4, width=64)``; ``base.SRModel``);
+``build_model`` unpacks a ``ModelConfig`` into them (``model_keys``).
 """
 from __future__ import annotations
 
