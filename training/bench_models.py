@@ -3,7 +3,11 @@
 With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of
 ``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
-products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). With
+products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted), and
+the worst case beside the means (``training.evaluate``: the margin over ``demod-jbu`` and its smallest per-clip
+value, the worst 1 % share, artifact pixels; ``demod-jbu`` scored once for all rows). A model whose inputs a clip
+lacks is left out with a one-line note instead of failing the table. Models are ``InferenceModel``s
+(``load_models``); the options of a run are ``BenchOptions`` (``SpeedOptions`` for the speed mode). With
 ``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
 OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
 mode (below) for one frame of the clips.
@@ -200,8 +204,8 @@ class BenchOptions:
     """How ``benchmark`` scores: ``frames`` (clip path -> frames; default all), ``amp`` (autocast dtype), ``flip``,
     ``warmup``, ``precision`` and ``compile`` (the fast path's, ``prepare_inference``; None/False: as loaded),
     ``peak_tflops`` and ``bandwidth_gbs`` (the roofline's device peaks; 0: ``device_peaks``), ``progress`` (bars on
-    stderr), ``baseline`` (the model of the worst-case columns, ``metrics.BASELINE``; None: none) and ``log``
-    (where each row's line goes)."""
+    stderr), ``baseline`` (the worst-case columns against ``metrics.BASELINE``; False: none) and ``log`` (where
+    each row's line goes)."""
 
     frames: dict | None = None
     amp: object = None
@@ -212,7 +216,7 @@ class BenchOptions:
     peak_tflops: float = 0.0
     bandwidth_gbs: float = 0.0
     progress: bool = False
-    baseline: str | None = "demod-jbu"
+    baseline: bool = True
     log: Callable = print
 
 
@@ -225,7 +229,8 @@ def benchmark(models: list[tuple[str, object]], clips, out, options: BenchOption
     from training.evaluate import Baseline, EvalOptions, evaluate_model
     o = options
     scale = scale_of(clips)
-    baseline = Baseline(o.baseline) if o.baseline else None  # scored once, shared by every model
+    # scored once, shared by every model, on their device
+    baseline = Baseline(device=models[0][1].device) if o.baseline and models else None
     rows, results, left_out = [], [], []
     peaks: dict = {}
     for label, model in models:

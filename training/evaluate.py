@@ -158,10 +158,11 @@ class Baseline:
     ``blendsr evaluate --model NAME`` scores it: per (clip, scale, frame) its PSNR and where its ``pixel_error`` is
     below ``metrics.ARTIFACT_BASELINE``, computed once and kept (bit-packed), so one object serves several models
     (``bench models``). A clip that lacks the baseline's buffers, or a scale it does not take, has none
-    (``missing``: (clip, scale) -> reason)."""
+    (``missing``: (clip, scale) -> reason). It runs on ``device`` (default: the CPU)."""
 
-    def __init__(self, name: str = metrics.BASELINE):
+    def __init__(self, name: str = metrics.BASELINE, device=None):
         self.name = name
+        self.device = device
         self.missing: dict[tuple[str, float], str] = {}
         self._models: dict = {}
         self._sources: dict = {}
@@ -176,6 +177,7 @@ class Baseline:
             if src is None:
                 return None
             model = self._models[float(scale)]
+            model.module.follow_reference_filter(src.clip.manifest)  # this clip's ground-truth filter
             sr, _, inputs = run_frame(model, src, frame, f"{clip_path}@x{scale:g}")
             gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
             sr, _ = sanitize_output(sr)
@@ -193,14 +195,12 @@ class Baseline:
             self._sources[skey] = None
         if skey not in self._sources:
             if float(scale) not in self._models:
-                self._models[float(scale)] = load_model(self.name, scale)
+                self._models[float(scale)] = load_model(self.name, scale).to(self.device or "cpu")
             src = ClipFrames(clip.at_scale(scale))
             lacking = missing_keys(self._models[float(scale)], src)
             if lacking:
                 self.missing[skey] = f"the clip lacks {', '.join(lacking)}"
                 src = None
-            else:
-                self._models[float(scale)].module.follow_reference_filter(src.clip.manifest)
             self._sources[skey] = src
         return self._sources[skey]
 
@@ -216,7 +216,7 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
         scales = {str(c): [float(o.scale)] for c in clips}
     model.eval()
     runner = FlipRunner() if o.flip else None
-    baseline = Baseline(o.baseline) if isinstance(o.baseline, str) else o.baseline
+    baseline = Baseline(o.baseline, model.device) if isinstance(o.baseline, str) else o.baseline
     per_frame: list[dict] = []
     warnings: list[str] = []
     try:
