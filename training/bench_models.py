@@ -66,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", default=None,
                         help="comma-separated: model names, or NAME:CHECKPOINT for learned models (default: the "
                              "non-learned models with --data, every model without)")
-    parser.add_argument("--size", default="1920x1080", metavar="WxH", help="HR size of the random inputs")
+    parser.add_argument("--size", default="x".join(map(str, SpeedOptions.size)), metavar="WxH",
+                        help="HR size of the random inputs")
     parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
     parser.add_argument("--precision", default=None,
                         help="comma-separated precisions to time: none (float32), bf16, fp16, auto (default none; "
@@ -77,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "measure without and with")
     parser.add_argument("--eager-reference", action="store_true",
                         help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
-    parser.add_argument("--repeats", type=int, default=30, help="timed runs per variant (speed mode)")
+    parser.add_argument("--repeats", type=int, default=SpeedOptions.repeats, help="timed runs per variant (speed mode)")
     parser.add_argument("--peak-tflops", type=float, default=0.0,
                         help="device peak for the roofline, TFLOPS in the timed precision (0: DEVICE_PEAKS, else "
                              "measured)")
@@ -92,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                         help="autocast (with --data; --precision takes precedence)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
+    parser.add_argument("--warmup", type=int, default=BenchOptions.warmup, help="untimed runs before timing")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
                              "without)")
