@@ -120,6 +120,7 @@ def test_bench_models_leaves_out_a_model_whose_buffers_a_clip_lacks(clips, tmp_p
     bil, jbu = res["rows"]
     assert jbu["margin"] == 0 and jbu["artifact_fraction"] == 0
     assert bil["margin"] == pytest.approx(bil["psnr"] - jbu["psnr"], abs=1e-9) and bil["margin_min"] == bil["margin"]
+    assert bil["margin_min_clip"] == str(clip) and [c["margin"] for c in bil["per_clip"]] == [bil["margin"]]
     with pytest.raises(ValueError, match="no model could be scored"):
         bench_models.run(p.parse_args(["--data", str(clip), "--models", "pretrained:nsrd", "--warmup", "0",
                                        "--no-progress"]))

@@ -288,7 +288,9 @@ def _row(label: str, model, res: dict, clips, o: BenchOptions, peaks: dict, amp)
     m = res["mean"]
     inputs = model_inputs(model, src, first[0])
     row = {"model": label, "params": model.n_params, "macs_per_px": macs_per_pixel(model, inputs),
-           **{k: m[k] for k in COLUMNS if k in m}}
+           **{k: m[k] for k in COLUMNS if k in m}, "margin_min_clip": m.get("margin_min_clip"),
+           "per_clip": [{k: c[k] for k in ("clip", "margin", "worst_share", "artifact_pixels", "artifact_fraction")}
+                        for c in res["per_clip"]]}
     scale = src.scale
     hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
     nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.module.needs())) + 3 * hw * 4
