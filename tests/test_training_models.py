@@ -453,3 +453,32 @@ def test_zero_init_refine_starts_exactly_at_the_residual_base(hr_guide):
     out.mean().backward()
     grad = (net.refine[-1] if hr_guide else net.refine).weight.grad
     assert grad is not None and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_a_model_is_built_by_keyword_with_the_configurations_defaults(name):
+    """Every class names its row; built with no keys it holds exactly the default configuration (one place for
+    defaults: ModelConfig and training.models.options), and build_model passes a configuration's keys through."""
+    from training.models import model_class, model_keys
+    cls = model_class(name)
+    assert cls.NAME == name
+    scale = 2 if cls.SCALES is None else 4
+    bare = cls(scale)
+    assert bare.config.to_dict() == ModelConfig.of(name).to_dict()
+    assert bare.by_class and bare.use_jitter  # the [model] table's defaults (an old fallback said by_class False)
+    assert bare.config.remod_filter == "REFERENCE" and bare.remod_taps is not None
+    cfg = ModelConfig.of(name, jitter=False, remod_filter="NONE")
+    built = build_model(cfg, scale)
+    assert built.config.to_dict() == cfg.to_dict() and model_keys(cfg)["jitter"] is False
+    assert not built.use_jitter and built.remod_kernel is None
+    with pytest.raises(ConfigError, match=f"model {name}: no key 'no_such_key'"):
+        cls(scale, no_such_key=1)
+
+
+def test_fusesr_fast_reads_fusesrs_switches_through_one_class():
+    from training.models.fusesr import FuseSRFrame
+    from training.models.fusesr_fast import FuseSRFast
+    fast, full = FuseSRFast(4, hr_gbuffer=False, demodulation=False), FuseSR(4, hr_gbuffer=False, demodulation=False)
+    for m in (fast, full):
+        assert isinstance(m, FuseSRFrame) and not m.use_hr and not m.demod and not m.guided
+        assert m.color_key == "lr/radiance" and "hr/fbeta_used" not in m.needs()
