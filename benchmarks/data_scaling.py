@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import split_clips
     from training.config import load_config
-    from training.evaluate import evaluate_model, group_means
+    from training.evaluate import EvalOptions, evaluate_model, group_means
     from training.inference import load_model
     from training.train import train
 
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
 
     def score(spec: str) -> dict:
         model = load_model(spec, 4)
-        r = evaluate_model(model, test_clips, flip=False, scale=4)
+        r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=4))
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip}
 

@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import read_index, split_clips
     from training.bench_models import parse_models
-    from training.evaluate import evaluate_model, group_means
+    from training.evaluate import EvalOptions, evaluate_model, group_means
     from training.inference import load_model
 
     index = read_index(a.dataset)
@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     clips = [str(c) for c in split_clips(a.dataset, a.split)]
     result = {"dataset": str(a.dataset), "split": a.split, "clips": [Path(c).name for c in clips], "models": {}}
     for label, spec in parse_models(a.models):  # as bench models reads --models (NAME:CHECKPOINT, pretrained:NAME)
-        r = evaluate_model(load_model(spec, 4), clips, flip=False, scale=4)
+        r = evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
         per = group_means(r, lambda c: group_of.get(c, c))
         result["models"][label] = {"mean": {k: r["mean"][k] for k in ("psnr", "ssim", "tpsnr")}, "per_asset": per}
         print(f"{label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)

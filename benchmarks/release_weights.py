@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index, split_clips
     from training.checkpoint import load_checkpoint
-    from training.evaluate import evaluate_model, group_means
+    from training.evaluate import EvalOptions, evaluate_model, group_means
     from training.inference import load_model
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     from training.release import release
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     index = read_index(a.dataset)
 
     def score(spec: str, clips: list[str] = test) -> dict:
-        r = evaluate_model(load_model(spec, 4), clips, flip=False, scale=4)
+        r = evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
         per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
                 "psnr_hdr": round(r["mean"]["psnr_hdr"], 3), "tpsnr": r["mean"].get("tpsnr"),

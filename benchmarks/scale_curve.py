@@ -19,7 +19,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
     model at its trained scale, an arbitrary-scale one at every level, a non-learned model at every level it
     supports (one instance per scale)."""
     from training.checkpoint import load_checkpoint
-    from training.evaluate import evaluate_model
+    from training.evaluate import EvalOptions, evaluate_model
     from training.inference import load_model
     from training.models import model_class
     if spec.startswith("pretrained:"):  # shipped weights (pretrained:NAME, NAME the model): every level it takes
@@ -38,7 +38,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
         models = {s: load_model(spec, s) for s in clip_scales if cls.supports_scale(s)}
     per = {}
     for s, model in models.items():
-        res = evaluate_model(model, clips, flip=flip, warmup=1, scale=s)
+        res = evaluate_model(model, clips, EvalOptions(flip=flip, warmup=1, scale=s))
         per[f"{s:g}"] = {k: res["mean"].get(k) for k in ("psnr", "ssim", "flip", "ms_per_frame", "frames")}
     return label, per
 

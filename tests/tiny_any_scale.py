@@ -9,11 +9,12 @@ from training.models.base import SRModel, current, upsample
 
 class TinyAnyScale(SRModel):
     learned = True
+    NAME = "tiny-any"  # the row test_scales_training.py registers
     SCALES = None
     seen: list[float] = []
 
-    def __init__(self, cfg, scale):
-        super().__init__(cfg, scale)
+    def __init__(self, scale, **keys):
+        super().__init__(scale, **keys)
         self.mix = nn.Conv2d(3, 3, 1)
 
     def needs(self):

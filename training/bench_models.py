@@ -3,7 +3,11 @@
 With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of
 ``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
-products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). With
+products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted), and
+the worst case beside the means (``training.evaluate``: the margin over ``demod-jbu`` and its smallest per-clip
+value, the worst 1 % share, artifact pixels; ``demod-jbu`` scored once for all rows). A model whose inputs a clip
+lacks is left out with a one-line note instead of failing the table. Models are ``InferenceModel``s
+(``load_models``); the options of a run are ``BenchOptions`` (``SpeedOptions`` for the speed mode). With
 ``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
 OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
 mode (below) for one frame of the clips.
@@ -26,13 +30,16 @@ import argparse
 import csv
 import json
 import statistics
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from gbuffer_export.errors import BlendSRError
 
-COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "ssim", "psnr_hdr", "flip", "tpsnr",
-           "warp_error", "roofline_ms", "ratio")
+COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "margin", "margin_min", "ssim", "psnr_hdr",
+           "flip", "tpsnr", "warp_error", "worst_share", "artifact_fraction", "artifact_fraction_max", "roofline_ms",
+           "ratio")
 
 
 #: Dense datasheet peaks per device kind: name substring -> (TFLOPS fp32 convolutions (TF32 tensor cores, torch's
@@ -59,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", default=None,
                         help="comma-separated: model names, or NAME:CHECKPOINT for learned models (default: the "
                              "non-learned models with --data, every model without)")
-    parser.add_argument("--size", default="1920x1080", metavar="WxH", help="HR size of the random inputs")
+    parser.add_argument("--size", default="x".join(map(str, SpeedOptions.size)), metavar="WxH",
+                        help="HR size of the random inputs")
     parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
     parser.add_argument("--precision", default=None,
                         help="comma-separated precisions to time: none (float32), bf16, fp16, auto (default none; "
@@ -70,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "measure without and with")
     parser.add_argument("--eager-reference", action="store_true",
                         help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
-    parser.add_argument("--repeats", type=int, default=30, help="timed runs per variant (speed mode)")
+    parser.add_argument("--repeats", type=int, default=SpeedOptions.repeats, help="timed runs per variant (speed mode)")
     parser.add_argument("--peak-tflops", type=float, default=0.0,
                         help="device peak for the roofline, TFLOPS in the timed precision (0: DEVICE_PEAKS, else "
                              "measured)")
@@ -85,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                         help="autocast (with --data; --precision takes precedence)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
+    parser.add_argument("--warmup", type=int, default=BenchOptions.warmup, help="untimed runs before timing")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
                              "without)")
@@ -121,16 +129,39 @@ def checkpoint_label(name: str, path: str) -> str:
     return f"{name} ({tag})"
 
 
-def macs_per_pixel(model, inputs: dict, device) -> float:
-    """Multiply-accumulates per HR output pixel of one forward pass (flop counter / 2)."""
+def macs_per_pixel(model, inputs: dict) -> float:
+    """Multiply-accumulates per HR output pixel of one forward pass of ``model`` (an ``InferenceModel``) on its
+    device (flop counter / 2)."""
     import torch
     from torch.utils.flop_counter import FlopCounterMode
-    needs = set(model.needs())
-    batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items() if k in needs}
+    needs = set(model.module.needs())
+    batch = {k: torch.from_numpy(v).to(model.device) for k, v in inputs.items() if k in needs}
     counter = FlopCounterMode(display=False)
     with torch.inference_mode(), counter:
-        sr = model(batch)
+        sr = model.module(batch)
     return counter.get_total_flops() / 2.0 / (sr.shape[-1] * sr.shape[-2])
+
+
+def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) -> list[tuple[str, object]]:
+    """(label, spec) pairs of ``parse_models`` -> (label, ``InferenceModel``) on the CPU at ``scale``. A
+    NAME:CHECKPOINT must hold model NAME; a learned model named alone (speed only) gets its initial weights.
+    ``fast``: prepared for the fast path (``load_model``)."""
+    from training.checkpoint import load_checkpoint
+    from training.config import ModelConfig
+    from training.inference import InferenceModel, load_model
+    from training.models import MODELS, build_model
+    out = []
+    for label, spec in models:
+        name = label.split(" ")[0]
+        if spec == name and name in MODELS and MODELS[name].learned:
+            out.append((label, InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)))
+            continue
+        if spec != name:
+            ck_name = load_checkpoint(spec)["model_name"]
+            if ck_name != name:
+                raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
+        out.append((label, load_model(spec, scale, fast=fast)))
+    return out
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
@@ -169,78 +200,125 @@ def plot(rows: list[dict], path: Path, device: str) -> None:
     plt.close(fig)
 
 
-def benchmark(models: list[tuple[str, str]], clips, out, *, frames: dict | None = None, device=None, amp=None,
-              flip: bool = False, warmup: int = 2, log=print, precision: str | None = None,
-              compile: bool = False, peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0,
-              progress: bool = False) -> dict:
-    """Evaluate ``models`` ((label, spec) pairs, spec a name or a checkpoint) on ``clips`` at the clips' 'lr' level
-    (every model at the same scale); write the table files and ``pareto.png`` under ``out``; return {device,
-    scale, rows, results}."""
-    from training.commands import _scale_of
-    from training.evaluate import evaluate_model
-    from training.inference import ClipFrames, load_model, model_inputs
-    from training.checkpoint import load_checkpoint
-    from training.device import dtype_label, resolve_device
+@dataclass(frozen=True)
+class BenchOptions:
+    """How ``benchmark`` scores: ``frames`` (clip path -> frames; default all), ``amp`` (autocast dtype), ``flip``,
+    ``warmup``, ``precision`` and ``compile`` (the fast path's, ``prepare_inference``; None/False: as loaded),
+    ``peak_tflops`` and ``bandwidth_gbs`` (the roofline's device peaks; 0: ``device_peaks``), ``progress`` (bars on
+    stderr), ``baseline`` (the worst-case columns against ``metrics.BASELINE``; False: none) and ``log`` (where
+    each row's line goes)."""
 
-    scale = _scale_of(clips)
-    device = device or resolve_device("auto")
-    rows, results = [], []
+    frames: dict | None = None
+    amp: object = None
+    flip: bool = False
+    warmup: int = 2
+    precision: str | None = None
+    compile: bool = False
+    peak_tflops: float = 0.0
+    bandwidth_gbs: float = 0.0
+    progress: bool = False
+    baseline: bool = True
+    log: Callable = print
+
+
+def benchmark(models: list[tuple[str, object]], clips, out, options: BenchOptions = BenchOptions()) -> dict:
+    """Evaluate ``models`` ((label, ``InferenceModel``) pairs, ``load_models``, all on one device) on ``clips`` at
+    the clips' 'lr' level (every model at the same scale); write the table files and ``pareto.png`` under ``out``
+    (None: nothing written); return {device, scale, rows, results, left_out, table}. A model whose inputs a clip
+    lacks is left out with a one-line note (``left_out``) instead of failing the table."""
+    from training.clip_sets import scale_of
+    from training.evaluate import Baseline, EvalOptions, evaluate_model
+    o = options
+    scale = scale_of(clips)
+    # scored once, shared by every model, on their device
+    baseline = Baseline(device=models[0][1].device) if o.baseline and models else None
+    rows, results, left_out = [], [], []
     peaks: dict = {}
-    for label, spec in models:
-        name = label.split(" ")[0]
-        if spec != name:
-            ck_name = load_checkpoint(spec)["model_name"]
-            if ck_name != name:
-                raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
-        model = load_model(spec, scale).to(device)
-        if precision is not None or compile:
+    for label, model in models:
+        note = _lacking(label, model, clips)
+        if note:
+            o.log(note)
+            left_out.append(note)
+            continue
+        if o.precision is not None or o.compile:
             from training.fastpath import prepare_inference
-            prepare_inference(model, device, precision or "none", compile=compile)
-            amp = None
-        res = evaluate_model(model, clips, frames=frames, device=device, amp=amp, flip=flip, warmup=warmup,
-                             label=label, progress=progress, scale=scale)
-        src = ClipFrames(clips[0], eps=model.demod_eps)
-        first = (frames or {}).get(str(clips[0])) or src.frames
-        m = res["mean"]
-        inputs = model_inputs(model, src, first[0])
-        row = {"model": label, "params": model.n_params,
-               "macs_per_px": macs_per_pixel(model, inputs, device),
-               **{k: m[k] for k in COLUMNS if k in m}}
-        # roofline of one frame of these clips (bytes: the model's inputs read once, the output written once)
-        hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
-        nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.needs())) + 3 * hw * 4
-        dt = model.inference.get("dtype") or amp
-        key = dtype_label(dt)
-        if key not in peaks:
-            peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
-        row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
-                                        nbytes / (peaks[key]["gbs"] * 1e9))
-        row["ratio"] = row["ms_per_frame"] / row["roofline_ms"]
-        rows.append(row)
+            prepare_inference(model, None, o.precision or "none", compile=o.compile)
+        amp = None if o.precision is not None or o.compile else o.amp
+        res = evaluate_model(model, clips, EvalOptions(frames=o.frames, amp=amp, flip=o.flip, warmup=o.warmup,
+                                                       label=label, progress=o.progress, scale=scale,
+                                                       baseline=baseline))
+        rows.append(_row(label, model, res, clips, o, peaks, amp))
         results.append(res)
-        log(f"{label:24s} {row['ms_per_frame']:9.2f} ms  PSNR {row['psnr']:6.2f} dB  SSIM {row['ssim']:.4f}")
+        r = rows[-1]
+        o.log(f"{label:24s} {r['ms_per_frame']:9.2f} ms  PSNR {r['psnr']:6.2f} dB  SSIM {r['ssim']:.4f}"
+              + (f"  margin {r['margin']:+.2f} dB (min {r['margin_min']:+.2f})" if r.get("margin") is not None
+                 else ""))
+    if not rows:
+        raise BlendSRError("bench models: no model could be scored on these clips (" + "; ".join(left_out) + ")")
     device_name = results[0]["device"]
     md = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in rows:
         md.append("| " + " | ".join(_fmt(r.get(k)) for k in COLUMNS) + " |")
-    table = "\n".join(md)
-    log(table)
-    result = {"device": device_name, "scale": scale, "rows": rows, "results": results, "table": table}
-    if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
-        return result
-    out = Path(out)
+    table = "\n".join(md + [""] + [f"- {n}" for n in left_out]).rstrip()
+    o.log(table)
+    result = {"device": device_name, "scale": scale, "rows": rows, "results": results, "left_out": left_out,
+              "table": table}
+    if out is not None:  # nothing written where nobody asked (blendsr bench models without -o)
+        _write_bench(Path(out), result, peaks, clips)
+    return result
+
+
+def _lacking(label: str, model, clips) -> str | None:
+    """A one-line note when a clip lacks inputs of ``model`` (it is then left out of the table), else None."""
+    from training.inference import ClipFrames, missing_keys
+    for c in clips:
+        lacking = missing_keys(model, ClipFrames(c, eps=model.demod_eps))
+        if lacking:
+            return f"left out {label}: {c} lacks {', '.join(lacking)}, which it reads"
+    return None
+
+
+def _row(label: str, model, res: dict, clips, o: BenchOptions, peaks: dict, amp) -> dict:
+    """The table row of one evaluated model, with its roofline on one frame of these clips (bytes: the model's
+    inputs read once, the output written once)."""
+    from training.device import dtype_label
+    from training.inference import ClipFrames, model_inputs
+    src = ClipFrames(clips[0], eps=model.demod_eps)
+    first = (o.frames or {}).get(str(clips[0])) or src.frames
+    m = res["mean"]
+    inputs = model_inputs(model, src, first[0])
+    row = {"model": label, "params": model.n_params, "macs_per_px": macs_per_pixel(model, inputs),
+           **{k: m[k] for k in COLUMNS if k in m}, "margin_min_clip": m.get("margin_min_clip"),
+           "per_clip": [{k: c[k] for k in ("clip", "margin", "worst_share", "artifact_pixels", "artifact_fraction")}
+                        for c in res["per_clip"]]}
+    scale = src.scale
+    hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
+    nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.module.needs())) + 3 * hw * 4
+    dt = model.settings.get("dtype") or amp
+    key = dtype_label(dt)
+    if key not in peaks:
+        peaks[key] = device_peaks(model.device, dt, o.peak_tflops, o.bandwidth_gbs)
+    row["roofline_ms"] = 1000 * max(2 * row["macs_per_px"] * hw / (peaks[key]["tflops"] * 1e12),
+                                    nbytes / (peaks[key]["gbs"] * 1e9))
+    row["ratio"] = row["ms_per_frame"] / row["roofline_ms"]
+    return row
+
+
+def _write_bench(out: Path, result: dict, peaks: dict, clips) -> None:
+    """OUT/bench_models.json, .csv, .md and pareto.png."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_models.json").write_text(json.dumps({"device": device_name, "scale": scale, "peaks": peaks,
-                                                       "clips": [str(c) for c in clips], "rows": rows,
-                                                       "transform": results[0]["transform"]}, indent=1) + "\n")
+    rows, device_name, scale = result["rows"], result["device"], result["scale"]
+    (out / "bench_models.json").write_text(json.dumps(
+        {"device": device_name, "scale": scale, "peaks": peaks, "clips": [str(c) for c in clips], "rows": rows,
+         "left_out": result["left_out"], "transform": result["results"][0]["transform"],
+         "worst_case": result["results"][0]["worst_case"]}, indent=1) + "\n")
     with open(out / "bench_models.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()
         for r in rows:
             w.writerow({k: r.get(k) for k in COLUMNS})
-    (out / "bench_models.md").write_text(f"Device: {device_name}; scale {scale}\n\n{table}\n")
+    (out / "bench_models.md").write_text(f"Device: {device_name}; scale {scale}\n\n{result['table']}\n")
     plot(rows, out / "pareto.png", device_name)
-    return result
 
 
 def run(args) -> int:
@@ -249,22 +327,26 @@ def run(args) -> int:
     import torch
 
     from gbuffer_export.config import parse_frames
+    from training.clip_sets import dataset_clips, scale_of
     from training.device import amp_dtype, resolve_device
 
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
-    from training.commands import _dataset_clips
-    args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
+    args.data = [str(c) for c in dataset_clips(args.data, args.split)]
     precisions = _precisions(args.precision)
     compiles = {"off": [False], "on": [True], "both": [False, True], "off,on": [False, True]}[args.compile]
     if not args.data:
         from training.models import MODELS
-        models = parse_models(args.models or ",".join(MODELS), need_checkpoints=False)
-        speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
-                        precisions=precisions or ["none"], compiles=compiles, warmup=args.warmup,
-                        repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-                        reference=args.eager_reference, progress=not args.no_progress)
+        w, h = _size(args.size)
+        if w % args.scale or h % args.scale:
+            raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {args.scale}")
+        models = load_models(parse_models(args.models or ",".join(MODELS), need_checkpoints=False), args.scale,
+                             fast=False)
+        speed_benchmark([(label, m.to(device)) for label, m in models], args.output, SpeedOptions(
+            size=(w, h), precisions=tuple(precisions or ["none"]), compiles=tuple(compiles), warmup=args.warmup,
+            repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
+            reference=args.eager_reference, progress=not args.no_progress))
         if args.output:
             print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
@@ -272,10 +354,12 @@ def run(args) -> int:
         raise BlendSRError("--data: one --precision and one --compile setting at a time")
     rng = parse_frames(args.frames)
     frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
-    benchmark(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"), list(args.data),
-              args.output, frames=frames, device=device, amp=amp_dtype(args.amp, device), flip=args.flip,
-              warmup=args.warmup, precision=precisions[0] if precisions else None, compile=compiles[0],
-              peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress)
+    models = load_models(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"),
+                         scale_of(args.data))
+    benchmark([(label, m.to(device)) for label, m in models], list(args.data), args.output, BenchOptions(
+        frames=frames, amp=amp_dtype(args.amp, device), flip=args.flip, warmup=args.warmup,
+        precision=precisions[0] if precisions else None, compile=compiles[0], peak_tflops=args.peak_tflops,
+        bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress))
     if args.output:
         print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
     return 0
@@ -431,88 +515,107 @@ def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None
                                         f"roofline peaks: {peak_txt}\n\n{table}\n")
 
 
-def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
-                    precisions=("none",), compiles=(False,), warmup: int = 2, repeats: int = 30,
-                    peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
-                    log=print, progress: bool = False) -> dict:
-    """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
-    return the result. ``progress``: bars on stderr while the models are prepared and while they are timed."""
-    import copy
-    import statistics
+@dataclass(frozen=True)
+class SpeedOptions:
+    """How ``speed_benchmark`` times: HR ``size`` (W, H) of the random inputs, the ``precisions`` and ``compiles``
+    settings of the fast path, ``warmup`` and ``repeats``, the roofline's ``peak_tflops`` and ``bandwidth_gbs`` (0:
+    ``device_peaks``), ``reference`` (also the fp32 eager reference path), ``progress`` and ``log``."""
 
+    size: tuple[int, int] = (1920, 1080)
+    precisions: tuple[str, ...] = ("none",)
+    compiles: tuple[bool, ...] = (False,)
+    warmup: int = 2
+    repeats: int = 30
+    peak_tflops: float = 0.0
+    bandwidth_gbs: float = 0.0
+    reference: bool = False
+    progress: bool = False
+    log: Callable = print
+
+
+def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions = SpeedOptions()) -> dict:
+    """Time ``models`` ((label, ``InferenceModel``) pairs, not yet prepared, all on one device and at one scale;
+    ``load_models(..., fast=False)``) on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out``
+    None: nothing); return the result."""
     import torch
 
-    from training.config import ModelConfig
-    from training.evaluate import describe_device
-    from training.export import example_inputs
     from training.device import amp_dtype, dtype_label
-    from training.fastpath import channels_last_batch, forward, prepare_inference
-    from training.inference import InferenceModel, load_model
-    from training.models import build_model
-    from training.device import resolve_device
+    from training.evaluate import describe_device
 
-    device = device or resolve_device("auto")
-    w, h = size
+    o = options
+    device = models[0][1].device
+    scale = models[0][1].module.scale
+    w, h = o.size
     if w % scale or h % scale:
         raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
-    variants = ([("fp32 eager reference", None)] if reference else []) + \
+    variants = ([("fp32 eager reference", None)] if o.reference else []) + \
         [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}", (p, c))
-         for c in compiles for p in precisions]  # labelled by the dtype that runs ("auto" resolved)
+         for c in o.compiles for p in o.precisions]  # labelled by the dtype that runs ("auto" resolved)
     peaks = {}
     for _, v in variants:
         dt = None if v is None else amp_dtype(v[0], device)
-        key = dtype_label(dt)
-        if key not in peaks:
-            peaks[key] = device_peaks(device, dt, peak_tflops, bandwidth_gbs)
-    timer = _timer(device)
-    runners = []  # every (model, variant) is prepared first, then all are timed round-robin: side by side
-    for label, spec in _bar(models, "prepare", "model", progress):
-        name = label.split(" ")[0]
-        if spec == name:
-            base = InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)
-        else:
-            base = load_model(spec, scale, fast=False)
-        n_params = sum(p.numel() for p in base.parameters())
-        base.to(device)
-        inputs = example_inputs(base, None, (w, h))
-        batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
-        info = {"model": label, "params": n_params, "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
-                "macs": macs_per_pixel(base, inputs, device) * w * h if n_params else 0.0}
-        for vlabel, v in variants:
-            m = copy.deepcopy(base).to(device)
-            if v is not None:
-                prepare_inference(m, device, v[0], compile=v[1])
-            settings = m.inference
-            dt = settings.get("dtype")
-            # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
-            b = channels_last_batch(batch) if settings.get("channels_last") else batch
-            runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
-                            "key": dtype_label(dt)})
-        del base, batch
-    with torch.inference_mode():
-        for r in runners:
-            for _ in range(max(warmup, 1)):
-                forward(r["module"], r["batch"])
-            _sync(device)
-        for _ in _bar(range(repeats), f"time {len(runners)} variants", "round", progress):  # round-robin: every
-            # model and variant sees the same machine state
-            for r in runners:
-                r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
-    records = [_speed_record(r, peaks[r["key"]], w * h, log) for r in runners]
+        if dtype_label(dt) not in peaks:
+            peaks[dtype_label(dt)] = device_peaks(device, dt, o.peak_tflops, o.bandwidth_gbs)
+    runners = _speed_runners(models, variants, o)
+    _time_runners(runners, device, o)
+    records = [_speed_record(r, peaks[r["key"]], w * h, o.log) for r in runners]
     del runners
-    device_name = describe_device(device)
-    meta = {"device": device_name, "size": [w, h], "scale": scale, "batch": 1, "warmup": warmup,
-            "repeats": repeats, "timing": "median of the repeats; " + ("CUDA events" if device.type == "cuda"
-                                                                       else "perf_counter"),
+    meta = {"device": describe_device(device), "size": [w, h], "scale": scale, "batch": 1, "warmup": o.warmup,
+            "repeats": o.repeats, "timing": "median of the repeats; " + ("CUDA events" if device.type == "cuda"
+                                                                         else "perf_counter"),
             "threads": torch.get_num_threads() if device.type == "cpu" else None, "peaks": peaks,
             "torch": torch.__version__}
     table = speed_table(records, [vl for vl, _ in variants])
-    log(table)
-    result = {**meta, "rows": records, "table": table}
-    if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
-        return result
-    _write_speed(Path(out), meta, records, table)
-    return result
+    o.log(table)
+    if out is not None:  # nothing written where nobody asked (blendsr bench models without -o)
+        _write_speed(Path(out), meta, records, table)
+    return {**meta, "rows": records, "table": table}
+
+
+def _speed_runners(models, variants, o: SpeedOptions) -> list[dict]:
+    """Every (model, variant) prepared, with its inputs on the device in the layout the variant reads (as
+    evaluate times the forward pass), before any is timed."""
+    import copy
+
+    import torch
+
+    from training.device import dtype_label
+    from training.export import example_inputs
+    from training.fastpath import channels_last_batch, prepare_inference
+    w, h = o.size
+    runners = []
+    for label, base in _bar(models, "prepare", "model", o.progress):
+        device = base.device
+        inputs = example_inputs(base, None, (w, h))
+        batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
+        info = {"model": label, "params": base.n_params,
+                "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
+                "macs": macs_per_pixel(base, inputs) * w * h if base.n_params else 0.0}
+        for vlabel, v in variants:
+            m = copy.deepcopy(base)
+            if v is not None:
+                prepare_inference(m, device, v[0], compile=v[1])
+            b = channels_last_batch(batch) if m.settings.get("channels_last") else batch
+            runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
+                            "key": dtype_label(m.settings.get("dtype"))})
+    return runners
+
+
+def _time_runners(runners: list[dict], device, o: SpeedOptions) -> None:
+    """Warm every runner up, then time them round-robin ``o.repeats`` times: every model and variant sees the same
+    machine state."""
+    import torch
+
+    from training.fastpath import forward
+    timer = _timer(device)
+    with torch.inference_mode():
+        for r in runners:
+            for _ in range(max(o.warmup, 1)):
+                forward(r["module"], r["batch"])
+            _sync(device)
+        for _ in _bar(range(o.repeats), f"time {len(runners)} variants", "round", o.progress):
+            for r in runners:
+                r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
 
 
 def speed_table(records: list[dict], variants: list[str]) -> str:

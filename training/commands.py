@@ -8,6 +8,8 @@ from pathlib import Path
 from gbuffer_export.errors import BlendSRError
 
 from gbuffer_export.extras import HelpFormatter, require
+from training.clip_sets import dataset_clips as _dataset_clips
+from training.clip_sets import scale_of as _scale_of
 
 FMT = HelpFormatter
 
@@ -171,25 +173,6 @@ def cmd_train(args) -> int:
     return 0
 
 
-def _dataset_clips(paths, split: str, missing_ok: bool = False) -> list[Path]:
-    """--data arguments with every dataset folder replaced by the finished clips of its ``split``."""
-    from gbuffer_export.dataset.build import DatasetError, expand_data_paths, is_dataset, split_clips
-    if missing_ok:  # the optional split of dataset folders only
-        out = []
-        for p in paths:
-            if is_dataset(p):
-                out += split_clips(p, split)
-    else:
-        try:
-            out = expand_data_paths(paths, split)  # every index path checked first (clip_dir)
-        except DatasetError as exc:
-            raise BlendSRError(str(exc)) from None
-    for p in paths:
-        if is_dataset(p):
-            _refuse_split_leak(Path(p))
-    return out
-
-
 def _check_radiance(clips, frames) -> None:
     """Refuse radiance that 'blendsr validate' refuses (non-finite, negative on surfaces), in its words, before
     anything is scored (gbuffer_export.validate.values.check_clip_radiance)."""
@@ -198,26 +181,6 @@ def _check_radiance(clips, frames) -> None:
     for c in clips:
         clip = open_clip(c)
         check_clip_radiance(clip, [f for f in frames if f in clip.frames] if frames else None)
-
-
-def _refuse_split_leak(root: Path) -> None:
-    """A dataset whose index puts one scene (asset, region) in two splits is refused, in validate's words
-    (gbuffer_export.dataset.check.split_leaks): nothing is trained or scored on a leaked split."""
-    from gbuffer_export.dataset.build import INDEX, read_index
-    from gbuffer_export.dataset.check import split_leaks
-    leaks = split_leaks(root, read_index(root))
-    if leaks:
-        more = f" (and {len(leaks) - 1} more)" if len(leaks) > 1 else ""
-        raise BlendSRError(f"{root / INDEX}: {leaks[0]}{more}: a split leak; 'blendsr validate {root}' reports the "
-                           "same, fix the index or re-export the dataset")
-
-
-def _scale_of(clips) -> int:
-    from gbuffer_export.clip import open_clip
-    scales = {open_clip(c).scale for c in clips}
-    if len(scales) != 1:
-        raise BlendSRError(f"clips have different scales {sorted(scales)}; evaluate one scale at a time")
-    return scales.pop()
 
 
 def cmd_evaluate(args) -> int:
@@ -233,17 +196,18 @@ def cmd_evaluate(args) -> int:
     _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
-    model = load_model(spec, scale, args.set)
-    device = resolve_device(args.device)
+    model = load_model(spec, scale, args.set).to(resolve_device(args.device))
     if args.compile:
         from training.fastpath import prepare_inference
-        prepare_inference(model, device, compile=True)
+        prepare_inference(model, compile=True)
     frames = _frames(args.frames)
-    result = evaluate_model(model, args.data, frames={str(c): frames for c in args.data} if frames else None,
-                            device=device, amp=amp_dtype(args.amp, device), flip=not args.no_flip,
-                            delta_e_itp=args.delta_e_itp,
-                            save_images=args.save_images, warmup=args.warmup, progress=not args.no_progress)
+    from training.evaluate import EvalOptions
+    result = evaluate_model(model, args.data, EvalOptions(
+        frames={str(c): frames for c in args.data} if frames else None, amp=amp_dtype(args.amp, model.device),
+        flip=not args.no_flip, delta_e_itp=args.delta_e_itp, save_images=args.save_images, warmup=args.warmup,
+        progress=not args.no_progress))
     write_json_atomic(args.json, result)
+    from training.evaluate import worst_case_line
     m = result["mean"]
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
           f"FLIP {m['flip'] if m['flip'] is None else round(m['flip'], 4)}  {m['ms_per_frame']:.2f} ms/frame  "
@@ -252,6 +216,7 @@ def cmd_evaluate(args) -> int:
         print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
             f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
             for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
+    print(worst_case_line(result))
     return 0
 
 

@@ -32,7 +32,8 @@ FINETUNE_OVERRIDES = ("data.crop=32", "data.batch_size=4", "optim.lr=1e-4", "opt
 
 
 def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l") -> dict:
-    from training.bench_models import benchmark
+    from training.bench_models import BenchOptions, benchmark, load_models
+    from training.clip_sets import scale_of
     from training.config import config_from_checkpoint, load_config
     from training.pretrained import available
     from training.checkpoint import load_checkpoint
@@ -60,7 +61,8 @@ def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fu
         summary = json.loads((run_dir / "summary.json").read_text())
         label = f"{model} ({'fine-tuned ' if init else ''}{int(steps)} steps)"
         models.append((label, str(run_dir / "checkpoints" / "last.pt")))
-    bench = benchmark(models, [str(c) for c in test_clips], out / "bench", flip=False)
+    clips = [str(c) for c in test_clips]
+    bench = benchmark(load_models(models, scale_of(clips)), clips, out / "bench", BenchOptions(flip=False))
     shutil.copyfile(out / "bench" / "pareto.png", out / "pareto.png")
     learned = [r for r in bench["rows"] if r["model"] not in dict(models[:4])]
     best = max(learned, key=lambda r: r["psnr"])["model"] if learned else None

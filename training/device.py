@@ -58,7 +58,10 @@ def autocast(device: torch.device, dtype: torch.dtype | None):
     return torch.autocast(device_type=device.type, dtype=dtype)
 
 
-def model_device(model: torch.nn.Module) -> torch.device:
+def model_device(model) -> torch.device:
+    """Where ``model`` runs: an ``InferenceModel``'s ``device``, else the device of a module's first tensor."""
+    if not isinstance(model, torch.nn.Module):
+        return model.device
     for t in list(model.parameters()) + list(model.buffers()):
         return t.device
     return getattr(model, "device", torch.device("cpu"))

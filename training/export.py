@@ -31,7 +31,7 @@ import torch
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
-from training.inference_model import module_of
+from training.inference_model import InferenceModel, as_inference
 
 
 @contextlib.contextmanager
@@ -46,9 +46,9 @@ def _legacy_exporter_warnings():
         yield
 
 
-def scale_keys(model) -> list[str]:
+def scale_keys(module) -> list[str]:
     """``["scale"]`` for an arbitrary-scale model (its graph takes the scale as an input), else []."""
-    return ["scale"] if getattr(model, "SCALES", ()) is None else []
+    return ["scale"] if module.SCALES is None else []
 
 
 def dynamic_axes_of(key: str) -> dict:
@@ -71,28 +71,32 @@ class PositionalWrapper(torch.nn.Module):
         return self.model(dict(zip(self.keys, tensors)))
 
 
-def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, seed: int = 0) -> dict[str, np.ndarray]:
-    """Inputs of the model for one frame of ``clip`` (its last frame) or random plausible values."""
-    keys = list(model.needs())
+def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None,
+                   seed: int = 0) -> dict[str, np.ndarray]:
+    """Inputs of ``model`` (an ``InferenceModel`` or a module) for one frame of ``clip`` (its last frame) or random
+    plausible values."""
+    model = as_inference(model)
+    module = model.module
+    keys = list(module.needs())
     if clip:
         from training.inference import ClipFrames
-        src = ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
-        spec = BatchSpec.for_model(model, targets=())
+        src = ClipFrames(clip, eps=model.demod_eps)
+        spec = BatchSpec.for_model(module, targets=())
         inputs = frame_window(src, src.frames[-1], spec)
         for k in keys:  # optional keys absent from the clip
             if k not in inputs:
                 ref = inputs[next(x for x in inputs if x.startswith(k.split("/")[0] + "/"))]
                 inputs[k] = np.zeros(ref.shape[:2] + (3,) + ref.shape[3:], np.float32)
         out = {k: inputs[k] for k in keys}
-        for k in scale_keys(model):
+        for k in scale_keys(module):
             out[k] = np.array([src.scale], np.float32)
         return out
     w, h = hr_size or (128, 72)
-    s = model.scale
+    s = module.scale
     if (w / s) % 1 or (h / s) % 1:
         raise BlendSRError(f"--hr-size {w}x{h} is not divisible by the scale {s}")
     rng = np.random.default_rng(seed)
-    t = model.window
+    t = module.window
     out = {}
     for k in keys:
         if k == "depth_ref":
@@ -115,7 +119,7 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None, see
             a = a - 0.5
             a /= np.linalg.norm(a, axis=2, keepdims=True) + 1e-6
         out[k] = a.astype(np.float32)
-    for k in scale_keys(model):  # last: the graph's inputs are the model's keys, then the scale
+    for k in scale_keys(module):  # last: the graph's inputs are the model's keys, then the scale
         out[k] = np.array([s], np.float32)
     return out
 
@@ -136,28 +140,30 @@ class StepExport(torch.nn.Module):
         return (sr, *state)
 
 
-def recurrent_example_frames(model, clip: str | None, hr_size, frames: int = 3) -> list[dict[str, np.ndarray]]:
+def recurrent_example_frames(model: InferenceModel, clip: str | None, hr_size,
+                             frames: int = 3) -> list[dict[str, np.ndarray]]:
     """``frames`` consecutive frames of inputs: the last ones of ``clip``, or random ones (moving content)."""
+    module = model.module
     if clip:
         from training.inference import ClipFrames
-        src = ClipFrames(clip, eps=getattr(model, "demod_eps", 0.01))
+        src = ClipFrames(clip, eps=model.demod_eps)
         if len(src.frames) < frames:
             raise BlendSRError(f"{clip}: the check needs {frames} consecutive frames, the clip has {len(src.frames)}")
-        spec = BatchSpec.for_model(model, targets=())
+        spec = BatchSpec.for_model(module, targets=())
         out = []
         for f in src.frames[-frames:]:
             inputs = frame_window(src, f, spec)
-            for k in model.needs():
+            for k in module.needs():
                 if k not in inputs:
                     ref = inputs[next(x for x in inputs if x.startswith(k.split("/")[0] + "/"))]
                     inputs[k] = np.zeros(ref.shape[:2] + (3,) + ref.shape[3:], np.float32)
-            out.append({**{k: inputs[k] for k in model.needs()},
-                        **{k: np.array([src.scale], np.float32) for k in scale_keys(model)}})
+            out.append({**{k: inputs[k] for k in module.needs()},
+                        **{k: np.array([src.scale], np.float32) for k in scale_keys(module)}})
         return out
     return [example_inputs(model, None, hr_size, seed=i) for i in range(frames)]
 
 
-def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -> dict:
+def export_recurrent(model: InferenceModel, path: Path, clip: str | None, hr_size, opset: int) -> dict:
     import onnx
     import onnxruntime as ort
     frames = recurrent_example_frames(model, clip, hr_size)
@@ -167,13 +173,13 @@ def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -
     with torch.no_grad():
         state = None
         for inp in frames:
-            sr, state = model.step({k: torch.from_numpy(v) for k, v in inp.items()}, state)
+            sr, state = model.module.step({k: torch.from_numpy(v) for k, v in inp.items()}, state)
             refs.append(sr.numpy())
             states.append(state)
     n = len(states[0])
     s_names = [f"state_{i}" for i in range(n)]
     o_names = [f"state_out_{i}" for i in range(n)]
-    wrapper = StepExport(module_of(model), keys, n).eval()
+    wrapper = StepExport(model.module, keys, n).eval()
     example = tuple(torch.from_numpy(frames[1][k]) for k in keys) + tuple(states[0]) + (torch.zeros(1),)
     dyn = {nm: dynamic_axes_of(k) for k, nm in zip(keys, names)}
     for i, st in enumerate(states[0]):
@@ -198,20 +204,21 @@ def export_recurrent(model, path: Path, clip: str | None, hr_size, opset: int) -
     diff = max(diffs)
     scale_ref = max(float(np.max(np.abs(r))) for r in refs) or 1.0
     h, w = frames[0][keys[0]].shape[-2:]
-    return {"onnx": str(path), "model": getattr(model, "spec", type(model).__name__), "scale": model.scale,
+    return {"onnx": str(path), "model": model.spec, "scale": model.module.scale,
             "opset": opset, "recurrent": True, "inputs": {nm: list(frames[0][k].shape) for k, nm in zip(keys, names)},
             "state": {nm: list(s.shape) for nm, s in zip(s_names, states[0])}, "lr_size_mod4": [h % 4, w % 4],
             "output_shape": list(refs[0].shape), "frames_checked": len(frames), "max_abs_diff_per_frame": diffs,
             "max_abs_diff": diff, "max_rel_diff": diff / scale_ref, "match": bool(diff <= 1e-4 * scale_ref + 1e-5)}
 
 
-def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int = 17) -> dict:
-    """Export ``model`` to ``path`` and compare onnxruntime with torch on the example inputs. Returns a report
-    with ``max_abs_diff``, ``max_rel_diff`` (relative to the largest output magnitude) and ``match``."""
+def export_onnx(model: InferenceModel, path, clip: str | None = None, hr_size=None, opset: int = 17) -> dict:
+    """Export ``model`` (moved to the CPU) to ``path`` and compare onnxruntime with torch on the example inputs.
+    Returns a report with ``max_abs_diff``, ``max_rel_diff`` (relative to the largest output magnitude) and
+    ``match``."""
     import onnx
     import onnxruntime as ort
-    model = model.cpu().eval()
-    if getattr(model, "recurrent", False):
+    model = model.to("cpu").eval()
+    if model.recurrent:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         report = export_recurrent(model, path, clip, hr_size, opset)
@@ -222,7 +229,7 @@ def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int =
     inputs = example_inputs(model, clip, hr_size)
     keys = list(inputs)
     names = [k.replace("/", "_") for k in keys]
-    wrapper = PositionalWrapper(module_of(model), keys).eval()
+    wrapper = PositionalWrapper(model.module, keys).eval()
     tensors = tuple(torch.from_numpy(inputs[k]) for k in keys)
     dyn = {n: dynamic_axes_of(k) for k, n in zip(keys, names)}
     dyn["sr"] = {0: "batch", 2: "hr_height", 3: "hr_width"}
@@ -238,7 +245,7 @@ def export_onnx(model, path, clip: str | None = None, hr_size=None, opset: int =
     got = sess.run(["sr"], {n: inputs[k] for k, n in zip(keys, names)})[0]
     diff = float(np.max(np.abs(got - ref)))
     scale_ref = float(np.max(np.abs(ref))) or 1.0
-    report = {"onnx": str(path), "model": getattr(model, "spec", type(model).__name__), "scale": model.scale,
+    report = {"onnx": str(path), "model": model.spec, "scale": model.module.scale,
               "opset": opset, "inputs": {n: list(inputs[k].shape) for k, n in zip(keys, names)},
               "output_shape": list(ref.shape), "max_abs_diff": diff, "max_rel_diff": diff / scale_ref,
               "match": bool(diff <= 1e-4 * scale_ref + 1e-5)}

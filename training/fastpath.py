@@ -11,8 +11,8 @@
 - ``compile``: ``torch.compile`` (inductor; mode ``reduce-overhead`` on CUDA, i.e. CUDA graphs replayed for a
   fixed input size), which also fuses the element-wise chains and gathers of the non-learned parts.
 
-``forward(model, batch)`` runs it with those settings; ``inference.run_model`` calls it. The reference path (fp32,
-eager, NCHW, reference ops) is a model fresh from ``build_model``; tests/train/test_fastpath.py compares every
+``forward(model, batch)`` (``InferenceModel.forward``) runs it with those settings. The reference path (fp32, eager,
+NCHW, reference ops) is a model fresh from ``build_model``; tests/train/test_fastpath.py compares every
 setting with it on the CPU.
 """
 from __future__ import annotations
@@ -20,8 +20,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 from gbuffer_export.errors import BlendSRError
-from training.device import amp_dtype, autocast, dtype_label
-from training.inference_model import InferenceModel, as_inference
+from training.device import amp_dtype, dtype_label
+from training.inference_model import InferenceModel, as_inference, channels_last_batch
+
 
 def _fused(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
     return torch.nn.utils.fusion.fuse_conv_bn_eval(conv, bn)
@@ -63,29 +64,18 @@ def fold_batchnorm(model: nn.Module) -> int:
     return n
 
 
-def channels_last_batch(batch: dict) -> dict:
-    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
-    out = {}
-    for k, v in batch.items():
-        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
-            v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
-        out[k] = v
-    return out
-
-
 def prepare_inference(model, device: torch.device | str | None = None, precision: str = "none",
                       compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> InferenceModel:
     """Make ``model`` (eval mode) the fast inference model described in the module doc, in place; returns it as an
     ``InferenceModel`` (``model`` itself when it is one, else a new one around the module). Settings are kept as
-    its ``inference`` dict and applied by ``forward``. ``precision`` (``training.device.PRECISIONS``) is validated
+    its ``settings`` dict and applied by ``forward``. ``precision`` (``training.device.PRECISIONS``) is validated
     for ``device``."""
     wrapped = as_inference(model)
     model = wrapped.module
     model.eval()
     if device is not None:
-        model.to(torch.device(device))
-    from training.device import model_device
-    dev = model_device(model)
+        wrapped.to(device)
+    dev = wrapped.device
     dtype = amp_dtype(precision, dev)
     if fast_ops:
         model.fast_ops = True
@@ -99,23 +89,16 @@ def prepare_inference(model, device: torch.device | str | None = None, precision
         mode = "reduce-overhead" if dev.type == "cuda" else None
         compiled = torch.compile(model, mode=mode, dynamic=False)
     # kept out of the module tree (not a submodule, not in the state dict)
-    wrapped.inference = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
+    wrapped.settings = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
                          "precision": dtype_label(dtype), "compile": bool(compile), "fast_ops": bool(fast_ops)}
     return wrapped
 
 
 def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
     """SR of ``batch`` (tensors on the model's device) with an InferenceModel's settings (``prepare_inference``;
-    a plain module: plain call). ``amp`` overrides the prepared precision when given."""
-    settings = model.inference if isinstance(model, InferenceModel) else {}
-    dtype = amp if amp is not None else settings.get("dtype")
-    if settings.get("channels_last"):
-        batch = channels_last_batch(batch)
-    fn = settings.get("compiled")
-    fn = model if fn is None else fn
-    device = next(iter(batch.values())).device
-    with autocast(device, dtype):
-        return fn(batch)
+    ``InferenceModel.forward``); a plain module: a plain call. ``amp`` overrides the prepared precision when
+    given."""
+    return as_inference(model).forward(batch, amp)
 
 
 __all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch"]

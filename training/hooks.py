@@ -177,10 +177,17 @@ class Evaluations:
         pass
 
 
+def _evaluated(model, cfg, device):
+    """The trained module as an ``InferenceModel`` on ``device`` with the run's demodulation eps."""
+    from training.inference_model import InferenceModel
+    return InferenceModel(model, demod_eps=cfg.data.demod_eps).to(device)
+
+
 def validate_clips(model, cfg, out: Path, device, dtype) -> dict:
     """Evaluate the whole ``data.val_clips`` (clips never trained on); writes ``out``."""
-    from training.evaluate import evaluate_model
-    result = evaluate_model(model, list(cfg.data.val_clips), device=device, amp=dtype, flip=False, data_cfg=cfg.data)
+    from training.evaluate import EvalOptions, evaluate_model
+    result = evaluate_model(_evaluated(model, cfg, device), list(cfg.data.val_clips),
+                            EvalOptions(amp=dtype, flip=False, baseline=None))
     write_json_atomic(out, result)
     model.train()
     return result
@@ -188,13 +195,13 @@ def validate_clips(model, cfg, out: Path, device, dtype) -> dict:
 
 def validate_frames(model, caches, cfg, out: Path, device, dtype) -> dict:
     """Evaluate the held-out last ``data.val_frames`` frames of every training clip; writes ``out``."""
-    from training.evaluate import evaluate_model
+    from training.evaluate import EvalOptions, evaluate_model
     frames = {str(c.clip_path): c.frames[-cfg.data.val_frames:] for c in caches}
     scales: dict[str, list[float]] = {}
     for c in caches:  # one cache per clip and scale
         scales.setdefault(str(c.clip_path), []).append(float(c.scale))
-    result = evaluate_model(model, list(dict.fromkeys(c.clip_path for c in caches)), frames=frames, device=device,
-                            amp=dtype, flip=False, data_cfg=cfg.data, scales=scales)
+    result = evaluate_model(_evaluated(model, cfg, device), list(dict.fromkeys(c.clip_path for c in caches)),
+                            EvalOptions(frames=frames, amp=dtype, flip=False, scales=scales, baseline=None))
     write_json_atomic(out, result)
     model.train()
     return result

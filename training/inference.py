@@ -13,7 +13,6 @@ with.
 from __future__ import annotations
 
 import os
-import time
 from collections import OrderedDict
 from pathlib import Path
 
@@ -25,24 +24,24 @@ from gbuffer_export.clip import Clip, ClipError, open_clip, scale_value
 from gbuffer_export.colour_spaces import TRAINING_SPACE
 from gbuffer_export.conventions import LEVELS
 from training.cache import DERIVED, lr_jitter
-from training.config import ModelConfig
-from training.data import BATCH_KEYS, BatchSpec, frame_window
+from training.config import DataConfig, ModelConfig
+from training.data import BATCH_KEYS, FRAME_KEYS, BatchSpec, frame_window
 from training.demod import demodulate
-from training.models import MODELS, build_model, model_class
-from training.device import model_device  # noqa: F401  (re-exported)
-from training.inference_model import InferenceModel, as_inference
+from training.inference_model import InferenceModel, module_of
+from training.models import MODELS, OPTIONAL_KEYS, build_model
 from training.models.base import upsample
+from training.recurrent import lead_in
 
 
 class ClipFrames:
     """Frames of a clip read from its EXR files, with the derived buffers of ``ClipCache`` ('irradiance',
     'fbeta_used') and the per-frame depth reference. Keeps the last few decoded buffers."""
 
-    def __init__(self, clip: Clip | str | os.PathLike, eps: float = 0.01, keep: int = 64):
+    def __init__(self, clip: Clip | str | os.PathLike, eps: float | None = None, keep: int = 64):
         self.clip = clip if isinstance(clip, Clip) else open_clip(clip)
         self.clip.colour_matrix(TRAINING_SPACE)  # ClipError now for a working space blendsr cannot convert
         self.clip_path = Path(self.clip.path)
-        self.eps = float(eps)
+        self.eps = float(DataConfig.demod_eps if eps is None else eps)  # default: the training default
         self.frames = list(self.clip.frames)
         self.scale = self.clip.scale
         self.sizes = self.clip.sizes
@@ -104,8 +103,8 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     """A model in eval mode on the CPU, as an ``InferenceModel``: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
     ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``).
     ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
-    a non-learned model (a checkpoint's is fixed). The wrapper holds ``spec``, ``demod_eps``, ``config`` and
-    ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
+    a non-learned model (a checkpoint's is fixed). The model holds ``module``, ``spec``, ``demod_eps``,
+    ``config`` and ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
     scale = scale_value(scale)
@@ -149,54 +148,55 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     return model
 
 
+def missing_keys(model: InferenceModel, source) -> list[str]:
+    """The inputs of ``model`` that ``source`` (a ``ClipFrames``) cannot provide (optional keys aside): a model
+    such a clip cannot run."""
+    skip = set(FRAME_KEYS) | set(BATCH_KEYS) | set(OPTIONAL_KEYS)
+    return [k for k in model.module.needs() if k not in skip and not source.has(k)]
+
+
 def model_inputs(model, source, frame: int, with_reference: bool = True) -> dict[str, np.ndarray]:
-    """Full-frame numpy inputs (1, T, C, H, W) of ``model`` for ``frame`` plus 'lr/radiance' and, when present,
-    'hr/radiance' (the reference) and 'hr/motion'/'hr/flags' for metrics."""
+    """Full-frame numpy inputs (1, T, C, H, W) of ``model`` (an ``InferenceModel`` or a module) for ``frame`` plus
+    'lr/radiance' and, when present, 'hr/radiance' (the reference) and 'hr/motion'/'hr/flags' for metrics."""
     targets = ["lr/radiance"]
     if with_reference:
         targets += [k for k in ("hr/radiance", "hr/motion", "hr/flags") if source.has(k)]
-    return frame_window(source, frame, BatchSpec.for_model(model, targets=tuple(targets)))
+    return frame_window(source, frame, BatchSpec.for_model(module_of(model), targets=tuple(targets)))
 
 
-def run_model(model, inputs: dict[str, np.ndarray], device: torch.device | None = None,
-              amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
-    """(SR H x W x 3 float32, milliseconds of the forward pass, synchronised on GPU). ``amp`` overrides the
-    precision set by ``fastpath.prepare_inference``."""
-    from training.fastpath import forward
-    device = device or model_device(model)
-    needs = set(model.needs()) | set(BATCH_KEYS)
-    batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items() if k in needs}
-    with torch.inference_mode():
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        sr = forward(model, batch, amp)  # the model's inference settings (training.fastpath), autocast ``amp``
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        ms = 1000 * (time.perf_counter() - t0)
-    return sr[0].float().permute(1, 2, 0).cpu().numpy(), ms
+def run_model(model: InferenceModel, inputs: dict[str, np.ndarray], amp: torch.dtype | None = None
+              ) -> tuple[np.ndarray, float]:
+    """(SR H x W x 3 float32, milliseconds of the forward pass, synchronised on GPU): ``model.run``. ``amp``
+    overrides the precision set by ``fastpath.prepare_inference``."""
+    return model.run(inputs, amp)
 
 
-def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
-    """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. A recurrent model keeps
-    its state between calls (``training.recurrent.state_for``): frames asked in order carry it; another frame is
-    reached by running the clip from its start. Returns ``sr`` and
-    ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when
-    the clip has it)."""
-    model = as_inference(model)  # a plain module: no state kept between calls
-    source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=model.demod_eps)
-    if model.SCALES is not None and source.scale != model.scale:
-        raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {model.scale}")
-    model.follow_reference_filter(source.clip.manifest)
+def run_frame(model: InferenceModel, source: "ClipFrames", frame: int, key: str | None = None,
+              amp: torch.dtype | None = None) -> tuple[np.ndarray, float, dict]:
+    """(SR, ms, inputs) of ``frame`` of ``source``. A recurrent model continues its state when the previous call
+    under the same ``key`` (default: the clip's path) was the previous frame, else first runs the frames of
+    ``recurrent.lead_in`` from the clip's start (untimed, unscored)."""
+    key = str(source.clip_path) if key is None else key
     inputs = model_inputs(model, source, int(frame))
-    from training.recurrent import is_recurrent, run_step, state_for
-    if is_recurrent(model):  # state carried from the previous call's frame, else run from the clip's start
-        device = model_device(model)
-        state = state_for(model, source, int(frame), lambda g: model_inputs(model, source, g, False), device)
-        sr, ms, new = run_step(model, inputs, state, device)
-        model.clip_state.put(str(source.clip_path), int(frame), new)
-    else:
-        sr, ms = run_model(model, inputs)
+    if model.recurrent and not model.follows(key, frame):
+        model.reset()
+        for g in lead_in(source.frames, frame):
+            model.step(model_inputs(model, source, g, False), (key, g), amp)
+    sr, ms = model.step(inputs, (key, int(frame)), amp)
+    return sr, ms, inputs
+
+
+def upscale_frame(model: InferenceModel, clip, frame: int) -> dict:
+    """Upscale one frame of ``clip`` (a Clip, a clip path or a ClipFrames) with ``model``. A recurrent model keeps
+    its state between calls (``run_frame``): frames asked in order carry it; another frame is reached by running
+    the clip from its start. Returns ``sr`` and ``bilinear`` (HR H x W x 3 float32 linear, jitter-compensated like
+    the ``bilinear`` model), ``ms`` (model milliseconds) and ``reference`` (hr/radiance, when the clip has it)."""
+    source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=model.demod_eps)
+    module = model.module
+    if module.SCALES is not None and source.scale != module.scale:
+        raise ClipError(f"{source.clip_path}: clip scale {source.scale} but the model upscales by {module.scale}")
+    module.follow_reference_filter(source.clip.manifest)
+    sr, ms, inputs = run_frame(model, source, int(frame))
     lr = torch.from_numpy(inputs["lr/radiance"][:, -1])
     bil = upsample(lr, source.scale, "bilinear", torch.from_numpy(source.jitter(int(frame)))[None])
     out = {"sr": np.ascontiguousarray(sr, dtype=np.float32),
@@ -206,5 +206,5 @@ def upscale_frame(model: torch.nn.Module, clip, frame: int) -> dict:
     return out
 
 
-__all__ = ["load_model", "upscale_frame", "ClipFrames", "model_inputs", "run_model", "model_device",
+__all__ = ["load_model", "upscale_frame", "run_frame", "missing_keys", "ClipFrames", "model_inputs", "run_model",
            "InferenceModel"]

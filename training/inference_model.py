@@ -1,63 +1,166 @@
 """``InferenceModel``: a model ready for inference and what inference keeps beside it (torch), instead of
-attributes bolted onto the ``nn.Module``. ``training.inference.load_model`` returns one and
-``training.fastpath.prepare_inference`` fills in its fast-path settings.
+attributes bolted onto the ``nn.Module``. ``training.inference.load_model`` returns one,
+``training.fastpath.prepare_inference`` fills in its fast-path settings, and ``evaluate``, ``upscale``, ``export``,
+the benches and the add-on preview take one.
+
+It is a plain object: the module's own attributes are read on ``model.module`` (``model.module.scale``,
+``model.module.needs()``). It owns a recurrent model's state along a clip (``step``), so callers never hold it.
 """
 from __future__ import annotations
 
+import time
+
+import numpy as np
 import torch
 
 
+class ClipState:
+    """The state of a recurrent model along a clip: ``get(clip, frame)`` is the state to use for ``frame`` (None
+    at a clip's first frame, after a gap in the frame numbers, or on another clip); ``put`` stores the state after
+    it."""
+
+    def __init__(self):
+        self.key = None
+        self.state = None
+
+    def follows(self, clip, frame: int) -> bool:
+        """Whether the stored state is the one after frame ``frame - 1`` of ``clip``."""
+        return self.key is not None and self.key == (str(clip), int(frame) - 1)
+
+    def get(self, clip, frame: int):
+        return self.state if self.follows(clip, frame) else None
+
+    def put(self, clip, frame: int, state) -> None:
+        self.key = (str(clip), int(frame))
+        self.state = state
+
+    def reset(self) -> None:
+        self.key = None
+        self.state = None
+
+
 class InferenceModel:
-    """``module``: the model (an ``SRModel``); ``spec``: the name or checkpoint it came from; ``demod_eps``: the floor
-    of F_beta its demodulated inputs use; ``config``: the checkpoint's ``TrainConfig`` (None for a non-learned model);
-    ``n_params``: its parameter count; ``inference``: the fast-path settings of ``prepare_inference`` (dtype,
-    channels_last, compiled module, precision, ...; empty until prepared); ``clip_state``: a recurrent model's state
-    between ``upscale_frame`` calls (``training.recurrent.ClipState``). Every other attribute is the module's, read
-    and written through, so the object is used like the module (``to`` and ``eval`` return the wrapper)."""
+    """``module``: the model (an ``SRModel``), in eval mode; ``spec``: the name or checkpoint it came from;
+    ``demod_eps``: the floor of F_beta its demodulated inputs use (the checkpoint's ``data.demod_eps``; default
+    ``DataConfig``'s);
+    ``config``: the checkpoint's ``TrainConfig`` (None for a non-learned model); ``n_params``: its parameter count;
+    ``settings``: the fast-path settings of ``prepare_inference`` (dtype, channels_last, compiled module, precision,
+    ...; empty until prepared); ``device``: where it runs. ``step`` runs one frame and, for a recurrent model, carries
+    the state from the previous frame of the same clip."""
 
-    OWN = ("module", "spec", "demod_eps", "config", "n_params", "inference", "clip_state")
-
-    def __init__(self, module: torch.nn.Module, spec: str | None = None, demod_eps: float = 0.01, config=None):
-        from training.recurrent import ClipState
-        object.__setattr__(self, "module", module)
+    def __init__(self, module: torch.nn.Module, spec: str | None = None, demod_eps: float | None = None,
+                 config=None):
+        from training.config import DataConfig  # torch-free; its table holds the default eps
+        self.module = module
         self.spec = str(spec) if spec is not None else type(module).__name__
-        self.demod_eps = float(demod_eps)
+        self.demod_eps = float(DataConfig.demod_eps if demod_eps is None else demod_eps)
         self.config = config
         self.n_params = sum(p.numel() for p in module.parameters())
-        self.inference = {}
-        self.clip_state = ClipState()
+        self.settings: dict = {}
+        self.state = ClipState()
+        self._device = torch.device("cpu")
 
-    def __getattr__(self, name):  # only for names that are not the wrapper's own
-        if name.startswith("__") or "module" not in self.__dict__:
-            raise AttributeError(name)
-        return getattr(self.__dict__["module"], name)
+    @property
+    def recurrent(self) -> bool:
+        return bool(getattr(self.module, "recurrent", False))
 
-    def __setattr__(self, name, value) -> None:
-        if name in self.OWN:
-            object.__setattr__(self, name, value)
-        else:
-            setattr(self.module, name, value)
+    @property
+    def device(self) -> torch.device:
+        """The device of the module's tensors; for a module without any, the one it was last moved to."""
+        for t in list(self.module.parameters()) + list(self.module.buffers()):
+            return t.device
+        return self._device
 
-    def __call__(self, *args, **kwargs):
-        return self.module(*args, **kwargs)
-
-    def to(self, *args, **kwargs) -> "InferenceModel":
-        self.module.to(*args, **kwargs)
+    def to(self, device) -> "InferenceModel":
+        self._device = torch.device(device)
+        self.module.to(self._device)
         return self
-
-    def cpu(self) -> "InferenceModel":
-        return self.to("cpu")
 
     def eval(self) -> "InferenceModel":
         self.module.eval()
         return self
 
-    def train(self, mode: bool = True) -> "InferenceModel":
-        self.module.train(mode)
-        return self
+    def forward(self, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
+        """SR of ``batch`` (tensors on the device) with the fast-path settings of ``prepare_inference``
+        (``training.fastpath``): channels-last inputs, the compiled module, autocast to the prepared dtype; ``amp``
+        overrides the prepared dtype when given."""
+        from training.device import autocast
+        dtype = amp if amp is not None else self.settings.get("dtype")
+        if self.settings.get("channels_last"):
+            batch = channels_last_batch(batch)
+        fn = self.settings.get("compiled")
+        fn = self.module if fn is None else fn
+        with autocast(next(iter(batch.values())).device, dtype):
+            return fn(batch)
+
+    def run(self, inputs: dict[str, np.ndarray], amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
+        """(SR H x W x 3 float32, ms) of the whole input window (numpy (1, T, C, H, W)), no state: the forward pass
+        timed with the inputs on the device (GPU synchronised). ``amp`` overrides the prepared precision."""
+        from training.data import BATCH_KEYS
+        needs = set(self.module.needs()) | set(BATCH_KEYS)
+        batch = {k: torch.from_numpy(v).to(self.device) for k, v in inputs.items() if k in needs}
+        sr, ms = self._timed(lambda: self.forward(batch, amp))
+        return _image(sr), ms
+
+    def step(self, inputs: dict[str, np.ndarray], at: tuple | None = None,
+             amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
+        """(SR H x W x 3 float32, ms) of the current frame of ``inputs``. A recurrent model runs one step
+        (``module.step``) from the state this object holds when ``at`` = (clip, frame) follows the last stored
+        step, else from none, and stores the new state under ``at`` (``at`` None: nothing kept, e.g. warm-up
+        runs). A feed-forward model is ``run``."""
+        if not self.recurrent:
+            return self.run(inputs, amp)
+        needs = set(self.module.needs())
+        batch = {k: torch.from_numpy(v[:, -1:] if v.ndim > 1 else v).to(self.device) for k, v in inputs.items()
+                 if k in needs or k == "scale"}  # 'scale' (B,): per batch element, no time axis
+        state = self.state.get(*at) if at is not None else None
+        dtype = amp if amp is not None else self.settings.get("dtype")
+        from training.device import autocast
+
+        def one():
+            with autocast(self.device, dtype):
+                return self.module.step(batch, state)
+        (sr, new), ms = self._timed(one)
+        if at is not None:
+            self.state.put(*at, new)
+        return _image(sr), ms
+
+    def follows(self, clip, frame: int) -> bool:
+        """Whether a recurrent model's stored state is the one after frame ``frame - 1`` of ``clip``."""
+        return self.state.follows(clip, frame)
+
+    def reset(self) -> None:
+        """Forget the recurrent state."""
+        self.state.reset()
+
+    def _timed(self, fn):
+        dev = self.device
+        with torch.inference_mode():
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            t0 = time.perf_counter()
+            out = fn()
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            return out, 1000 * (time.perf_counter() - t0)
 
     def __repr__(self) -> str:
         return f"InferenceModel({self.spec!r}, {type(self.module).__name__}, {self.n_params} parameters)"
+
+
+def channels_last_batch(batch: dict) -> dict:
+    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
+    out = {}
+    for k, v in batch.items():
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
+            v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
+        out[k] = v
+    return out
+
+
+def _image(sr: torch.Tensor) -> np.ndarray:
+    """The first image of an SR batch as H x W x 3 float32 numpy."""
+    return sr[0].float().permute(1, 2, 0).cpu().numpy()
 
 
 def as_inference(model) -> InferenceModel:

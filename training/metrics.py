@@ -10,6 +10,14 @@
 - ``delta_e_itp``: mean Delta E ITP (ITU-R BT.2124) of the linear HDR images shown with radiance 1 at
   ``ITP_WHITE_NITS`` cd/m^2 (colour-science's ICtCp, BT.2100 PQ); optional (``evaluate --delta-e-itp``).
 PSNR values are capped at ``PSNR_CAP`` dB (identical images) so that JSON stays finite.
+
+The worst case (docs/evaluation.md, "The worst case"), beside the means:
+
+- ``worst_share``: the share of a frame's squared tonemapped error (the PSNR's) carried by its worst
+  ``WORST_FRACTION`` of pixels.
+- ``artifact_mask``: "artifact pixels", where the tonemapped error of the model (``pixel_error``, the largest of the
+  three channels) is above ``ARTIFACT_ERROR`` while that of the baseline ``BASELINE`` is below ``ARTIFACT_BASELINE``:
+  a visible error the guided non-learned upsampling does not make (the streaks of a network that fails on content).
 """
 from __future__ import annotations
 
@@ -26,6 +34,14 @@ from training.transforms import HDR_PEAK, tonemap
 PSNR_CAP = 100.0
 #: Luminance (cd/m^2) at which Delta E ITP shows linear radiance 1: the HDR reference white of ITU-R BT.2408.
 ITP_WHITE_NITS = 203.0
+#: The worst case: the baseline a model must not fall below, per clip and per pixel.
+BASELINE = "demod-jbu"
+#: The share of the squared error in this fraction of the pixels (the worst ones) is ``worst_share``.
+WORST_FRACTION = 0.01
+#: An artifact pixel: the model's tonemapped error above ARTIFACT_ERROR where the baseline's is below
+#: ARTIFACT_BASELINE (``pixel_error``: the largest of the three channels' absolute differences, values in [0, 1]).
+ARTIFACT_ERROR = 0.25
+ARTIFACT_BASELINE = 0.05
 TRANSFORM = "reinhard-srgb: sRGB_OETF(x / (1 + x)) per channel, x = max(linear radiance, 0); values in [0, 1]"
 
 
@@ -96,3 +112,35 @@ def delta_e_itp(sr: np.ndarray, gt: np.ndarray) -> float:
         return colour.RGB_to_ICtCp(nits, method="ITU-R BT.2100-2 PQ")
 
     return float(np.mean(colour.delta_E(ictcp(sr), ictcp(gt), method="ITP")))
+
+
+def squared_error(sr: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """H x W squared tonemapped error, the mean over channels (its mean over pixels is ``psnr``'s MSE)."""
+    return ((tonemapped(sr) - tonemapped(gt)) ** 2).mean(dim=1)[0].numpy()
+
+
+def pixel_error(sr: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """H x W tonemapped error per pixel: the largest of the three channels' |T(sr) - T(gt)| (values in [0, 1])."""
+    return (tonemapped(sr) - tonemapped(gt)).abs().amax(dim=1)[0].numpy()
+
+
+def worst_share(sq: np.ndarray, fraction: float = WORST_FRACTION) -> float | None:
+    """The share of the summed squared error ``sq`` (H x W, ``squared_error``) in its worst ``fraction`` of pixels
+    (at least one pixel); None for an error-free frame."""
+    flat = np.asarray(sq, np.float64).ravel()
+    total = float(flat.sum())
+    if total <= 0.0:
+        return None
+    n = max(1, int(math.ceil(fraction * flat.size)))
+    return float(np.partition(flat, flat.size - n)[flat.size - n:].sum() / total)
+
+
+def artifact_mask(error: np.ndarray, baseline_ok: np.ndarray) -> np.ndarray:
+    """H x W bool: artifact pixels of a model with ``pixel_error`` ``error`` where ``baseline_ok`` (H x W bool) says
+    the baseline's error is below ``ARTIFACT_BASELINE`` (``baseline_good``)."""
+    return (error > ARTIFACT_ERROR) & baseline_ok
+
+
+def baseline_good(baseline_error: np.ndarray) -> np.ndarray:
+    """H x W bool: where the baseline's ``pixel_error`` is below ``ARTIFACT_BASELINE``."""
+    return baseline_error < ARTIFACT_BASELINE

@@ -6,11 +6,11 @@ clip's first frame. Training feeds windows of ``data.window`` consecutive frames
 (``window_losses``): the state is carried across the window and detached every ``data.detach_every`` frames
 (truncated back-propagation: each chunk is back-propagated as soon as it is complete, so only one chunk's graph is
 held). Evaluation, ``upscale``, the add-on preview and ``bench models`` run a clip's frames in order with the state
-reset at its first frame (``ClipState``).
+reset at its first frame: ``training.inference_model.InferenceModel.step`` holds the state, ``lead_in`` says which
+frames lead to a frame asked out of order.
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 
@@ -97,29 +97,6 @@ class StepWrapper(torch.nn.Module):
         return self.model.step(batch, state)
 
 
-class ClipState:
-    """The state of a recurrent model along a clip: ``get(clip, frame)`` is the state to use for ``frame`` (None
-    at a clip's first frame, after a gap in the frame numbers, or on another clip); ``put`` stores the state after
-    it. For non-recurrent models it always holds None."""
-
-    def __init__(self):
-        self.key = None
-        self.state = None
-
-    def get(self, clip, frame: int):
-        if self.key is not None and self.key == (str(clip), int(frame) - 1):
-            return self.state
-        return None
-
-    def put(self, clip, frame: int, state) -> None:
-        self.key = (str(clip), int(frame))
-        self.state = state
-
-    def reset(self) -> None:
-        self.key = None
-        self.state = None
-
-
 def lead_in(frames, first: int) -> list[int]:
     """The run of consecutive clip frames that ends just before ``first`` (what a recurrent model runs, from the
     clip's start or the last gap, before it reaches ``first``)."""
@@ -130,39 +107,3 @@ def lead_in(frames, first: int) -> list[int]:
         out.append(g)
         g -= 1
     return out[::-1]
-
-
-def state_for(model, source, frame: int, inputs_fn, device, amp=None):
-    """The state of a recurrent model for ``frame`` of ``source`` (a ``ClipFrames``) kept on the model
-    (an ``InferenceModel``'s ``clip_state``): the stored one when the previous call was the previous frame of the
-    same clip, else the frames of ``lead_in`` are run first from the clip's start."""
-    st = model.clip_state
-    clip = str(source.clip_path)
-    if st.key == (clip, int(frame) - 1):
-        return st.state
-    state = None
-    for g in lead_in(source.frames, frame):
-        state = run_step(model, inputs_fn(g), state, device, amp)[2]
-    return state
-
-
-def run_step(model, inputs: dict[str, np.ndarray], state, device: torch.device, amp=None):
-    """One timed frame of a recurrent model: (SR H x W x 3 float32, ms, new state)."""
-    import time
-    needs = set(model.needs())
-    batch = {k: torch.from_numpy(v[:, -1:] if v.ndim > 1 else v).to(device) for k, v in inputs.items()
-             if k in needs or k == "scale"}  # 'scale' (B,): per batch element, no time axis
-    ctx = torch.autocast(device_type=device.type, dtype=amp) if amp is not None else None
-    with torch.inference_mode():
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        if ctx is None:
-            sr, new = model.step(batch, state)
-        else:
-            with ctx:
-                sr, new = model.step(batch, state)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        ms = 1000 * (time.perf_counter() - t0)
-    return sr[0].float().permute(1, 2, 0).cpu().numpy(), ms, new

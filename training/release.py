@@ -50,6 +50,6 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
             "step": ck.get("step")}
     write_json_atomic(out.with_suffix(".json"), meta)  # the loader checks the sha256 recorded here
     model = load_model(str(out), int(ck["scale"]))
-    meta = {**meta, "params": sum(p.numel() for p in model.parameters()), "param_digest": param_digest(model)}
+    meta = {**meta, "params": model.n_params, "param_digest": param_digest(model.module)}
     write_json_atomic(out.with_suffix(".json"), meta)
     return meta

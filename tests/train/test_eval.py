@@ -211,7 +211,7 @@ def test_no_model_reads_the_ground_truth(clip, checkpoint):
     src = ClipFrames(clip)
     for spec in ["bilinear", "bicubic", "demod-bilinear", str(checkpoint)]:
         model = load_model(spec, 4)
-        assert "hr/radiance" not in model.needs()
+        assert "hr/radiance" not in model.module.needs()
         inputs = model_inputs(model, src, 2)
         a, _ = run_model(model, inputs)
         inputs["hr/radiance"] = np.full_like(inputs["hr/radiance"], 123.0)
@@ -246,7 +246,7 @@ def test_onnx_export_of_a_model_that_remodulates_through_the_pixel_filter(name, 
     path = tmp_path / "m.onnx"
     assert main(["export", "--model", name, "--onnx", str(path), "--hr-size", "64x32"]) == 0
     model = load_model(name, 4)
-    assert model.remod_kernel is not None
+    assert model.module.remod_kernel is not None
     assert json.loads(path.with_suffix(".onnx.json").read_text())["match"]
     inputs = example_inputs(model, None, (96, 48), seed=4)
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
@@ -275,10 +275,10 @@ def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
 
     def hook(mod, inp, outp):
         total.append(outp.numel() * mod.in_channels // mod.groups * mod.kernel_size[0] * mod.kernel_size[1])
-    hs = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    hs = [m.register_forward_hook(hook) for m in model.module.modules() if isinstance(m, torch.nn.Conv2d)]
     inputs = model_inputs(model, ClipFrames(clip), 1)
     with torch.no_grad():
-        model({k: torch.from_numpy(v) for k, v in inputs.items() if k in model.needs()})
+        model.module({k: torch.from_numpy(v) for k, v in inputs.items() if k in model.module.needs()})
     for h in hs:
         h.remove()
     assert rows[2]["macs_per_px"] == pytest.approx(sum(total) / (128 * 72), rel=1e-6)

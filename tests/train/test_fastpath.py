@@ -54,7 +54,7 @@ def test_every_fast_path_matches_the_fp32_eager_reference(name, norm):
     for precision in ("none", "bf16", "fp16"):
         for channels_last in (False, True):
             fast = prepare_inference(copy.deepcopy(ref), precision=precision, channels_last=channels_last)
-            assert fast.fast_ops
+            assert fast.module.fast_ops
             with torch.inference_mode():
                 got = forward(fast, batch)
             assert got.dtype == torch.float32 and got.shape == want.shape
@@ -106,9 +106,9 @@ def test_fast_upsampling_by_class_and_guided_match_the_references(batch):
                                    rtol=1e-6, atol=1e-6)
         lg, hg = torch.randn(batch, 4, h, w, generator=g), torch.randn(batch, 4, h * s, w * s, generator=g)
         fb = torch.rand(batch, 3, h * s, w * s, generator=g)
-        for cls in ((lm, hm), (None, None)):
-            want = upsample_guided(x, lg, hg, s, fb, jit, *cls)
-            torch.testing.assert_close(fast_ops.upsample_guided(x, lg, hg, s, fb, jit, *cls), want,
+        for cls in ((lm, hm), None):
+            want = upsample_guided(x, lg, hg, s, fb, jit, cls)
+            torch.testing.assert_close(fast_ops.upsample_guided(x, lg, hg, s, fb, jit, cls), want,
                                        rtol=1e-5, atol=1e-6)
     # the batch-1 index_select shortcut and the gather used under tracing give the same rows
     idx = torch.tensor([[2, 0, 1, 1]])
@@ -261,10 +261,11 @@ def test_cuda_fast_path_bf16_compiled_matches_the_cpu_fp32_reference(name):
 
 @cuda
 def test_bench_models_speed_mode_on_cuda(tmp_path):
-    from training.bench_models import speed_benchmark
-    res = speed_benchmark([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], tmp_path, size=(256, 128),
-                          device=torch.device("cuda"), precisions=["none", "bf16"], compiles=[False, True],
-                          warmup=2, repeats=3, log=lambda m: None)
+    from training.bench_models import SpeedOptions, load_models, speed_benchmark
+    models = load_models([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], 4, fast=False)
+    res = speed_benchmark([(label, m.to("cuda")) for label, m in models], tmp_path, SpeedOptions(
+        size=(256, 128), precisions=("none", "bf16"), compiles=(False, True), warmup=2, repeats=3,
+        log=lambda m: None))
     assert "CUDA events" in res["timing"] and len(res["rows"]) == 8
     assert all(r["ms"] > 0 and r["roofline_ms"] > 0 for r in res["rows"])
 

@@ -187,8 +187,8 @@ def test_spatial_mask_thresholds_are_options():
     assert mask[0, 0].tolist() == [[1.0, 1.0], [1.0, 0.0]]
     loose = fsr.FourierSROptions(mask_depth=0.05, mask_albedo=0.3, mask_normal=0.5)
     assert fsr.spatial_mask(hr, up, loose).sum() == 0
-    assert fsr.options_of(ModelConfig(name="fourier-sr")) == fsr.FourierSROptions()
-    assert fsr.options_of(ModelConfig.of("fourier-sr", mask_depth=0.02)).mask_depth == 0.02
+    assert fsr.FourierSR(2).opts == fsr.FourierSROptions()
+    assert fsr.FourierSR(2, mask_depth=0.02).opts.mask_depth == 0.02
 
 
 # ------------------------------------------------------------------------------------------ training and the rest
@@ -220,16 +220,17 @@ def test_evaluates_at_a_scale_it_never_trained_on(trained, clips, tmp_path):
     res = json.loads(out.read_text())
     assert res["scale"] == 4 and res["mean"]["frames"] == 3 and math.isfinite(res["mean"]["psnr"])
     model = load_model(str(ck), 4)  # the scale-2 weights at scale 4
-    assert model.scale == 4 and model.n_params == 531883
+    assert model.module.scale == 4 and model.n_params == 531883
 
 
 def test_onnx_export_takes_the_scale_as_an_input_and_matches_torch_at_two_scales(tmp_path):
     import onnxruntime as ort
 
     from training.export import export_onnx
+    from training.inference_model import InferenceModel
     m = model_at(2)
     path = tmp_path / "fsr.onnx"
-    report = export_onnx(m, path, hr_size=(32, 24))
+    report = export_onnx(InferenceModel(m), path, hr_size=(32, 24))
     assert report["match"] and report["recurrent"] and "scale" in report["inputs"]
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     names = [i.name for i in sess.get_inputs()]

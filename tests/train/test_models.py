@@ -136,22 +136,22 @@ def _changes_output(model, batch, key, frame_index):
 def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
     torch.manual_seed(0)
     batch = make_batch()
-    full = FuseSR(ModelConfig.of(name="fusesr", upsample_by_class=False, guided_upsample=False), 4).eval()
+    full = FuseSR(4, upsample_by_class=False, guided_upsample=False).eval()
     assert full.history == 2 and full.window == 3
     assert _changes_output(full, batch, "lr/irradiance", 0)      # history frame t-2
     assert _changes_output(full, batch, "hr/albedo", -1)         # HR G-buffer branch
-    no_hr = FuseSR(ModelConfig.of(name="fusesr", hr_gbuffer=False), 4).eval()
+    no_hr = FuseSR(4, hr_gbuffer=False).eval()
     assert "hr/albedo" not in no_hr.needs() and "hr/fbeta_used" in no_hr.needs()
     assert not {"hr/depth", "hr/normal"} & set(no_hr.needs())  # no guided base without the HR G-buffers
     assert not _changes_output(no_hr, batch, "hr/albedo", -1)
-    no_demod = FuseSR(ModelConfig.of(name="fusesr", demodulation=False), 4).eval()
+    no_demod = FuseSR(4, demodulation=False).eval()
     assert "lr/radiance" in no_demod.needs() and "lr/irradiance" not in no_demod.needs()
     assert not _changes_output(no_demod, batch, "lr/irradiance", -1)
-    plain = FuseSR(ModelConfig.of(name="fusesr", demodulation=False, hr_gbuffer=False), 4).eval()
+    plain = FuseSR(4, demodulation=False, hr_gbuffer=False).eval()
     assert not any(k.startswith("hr/") for k in plain.needs())
     assert _changes_output(full, batch, "lr_jitter", -1)          # the current frame's jitter
     assert _changes_output(full, batch, "lr_jitter", 0)           # history alignment
-    no_jit = FuseSR(ModelConfig(name="fusesr", jitter=False), 4).eval()
+    no_jit = FuseSR(4, jitter=False).eval()
     assert "lr_jitter" not in no_jit.needs() and not _changes_output(no_jit, batch, "lr_jitter", -1)
     # residual head: with the last convolution zeroed the output is the bilinear upsampling of T(L_D) remodulated
     from training.transforms import forward_transform, inverse_transform
@@ -164,7 +164,7 @@ def test_fusesr_reads_history_and_hr_gbuffers_and_the_switches_remove_them():
             + batch["hr/emission"][:, -1]  # point samples, then the ground truth's pixel filter
         np.testing.assert_allclose(_np(full(batch)), pf.convolve(_np(expect), pf.weights_1d("BLACKMAN_HARRIS", 1.5)),
                                    rtol=1e-5, atol=1e-5)
-    authors = FuseSR(ModelConfig.of(name="fusesr", residual=False, remod_filter="NONE"), 4).eval()
+    authors = FuseSR(4, residual=False, remod_filter="NONE").eval()
     with torch.no_grad():
         authors.refine.weight.zero_()
         authors.refine.bias.zero_()
@@ -250,8 +250,8 @@ def test_fusesr_hr_guide_reads_the_hr_gbuffers_at_full_resolution():
     from training.config import ConfigError
     torch.manual_seed(0)
     batch = make_batch()
-    guided = FuseSR(ModelConfig.of(name="fusesr", hr_guide=True, remod_filter="NONE"), 4).eval()
-    plain = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    guided = FuseSR(4, hr_guide=True, remod_filter="NONE").eval()
+    plain = FuseSR(4, remod_filter="NONE").eval()
     assert not plain.hr_guide and guided.hr_guide
     assert sum(p.numel() for p in guided.parameters()) - sum(p.numel() for p in plain.parameters()) == \
         (13 * 16 * 9 + 16) + (16 * 3 * 9 + 3) - (3 * 3 * 9 + 3)
@@ -312,7 +312,7 @@ def test_demod_bilinear_and_fusesr_residual_upsample_by_class():
     old = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE", upsample_by_class=False), 4).eval()
     assert "lr/fbeta_used" not in old.needs() and not torch.allclose(old(batch), db(batch))
     from training.transforms import forward_transform, inverse_transform
-    net = FuseSR(ModelConfig.of(name="fusesr", remod_filter="NONE", guided_upsample=False), 4).eval()
+    net = FuseSR(4, remod_filter="NONE", guided_upsample=False).eval()
     with torch.no_grad():
         net.refine.weight.zero_()
         net.refine.bias.zero_()
@@ -356,7 +356,7 @@ def test_upsample_guided_matches_a_per_pixel_reference():
     c_hr = (torch.rand(1, 1, h * s, w * s, generator=g) < 0.7).float()
     fallback = torch.full((1, 3, h * s, w * s), -1.0)
     j = torch.tensor([[0.3, -0.45]])
-    out = upsample_guided(x, g_lr, g_hr, s, fallback, j, c_lr, c_hr, floor=1e-3)
+    out = upsample_guided(x, g_lr, g_hr, s, fallback, j, (c_lr, c_hr), floor=1e-3)
     ref = _guided_reference(x[0].double().numpy(), g_lr[0].double().numpy(), g_hr[0].double().numpy(), s,
                             (0.3, -0.45), c_lr[0, 0].numpy(), c_hr[0, 0].numpy(), 1e-3, fallback[0].numpy())
     np.testing.assert_allclose(out[0].numpy(), ref, rtol=2e-4, atol=2e-4)
@@ -399,7 +399,7 @@ def test_demod_jbu_and_fusesr_guided_residual():
     j = cur["lr_jitter"]
 
     def jbu(x):
-        return upsample_guided(x, *guides, 4, upsample_by_class(x, *masks, 4, j), j, *masks)
+        return upsample_guided(x, *guides, 4, upsample_by_class(x, *masks, 4, j), j, masks)
 
     model = build_model(ModelConfig(name="demod-jbu", remod_filter="NONE"), 4).eval()
     assert {"hr/depth", "hr/normal", "lr/depth", "lr/normal"} <= set(model.needs())
@@ -407,7 +407,7 @@ def test_demod_jbu_and_fusesr_guided_residual():
     torch.testing.assert_close(model(batch), expect)
     db = build_model(ModelConfig(name="demod-bilinear", remod_filter="NONE"), 4).eval()
     assert "hr/depth" not in db.needs() and not torch.allclose(db(batch), expect)
-    net = FuseSR(ModelConfig(name="fusesr", remod_filter="NONE"), 4).eval()
+    net = FuseSR(4, remod_filter="NONE").eval()
     assert net.guided and "hr/normal" in net.needs()
     with torch.no_grad():
         net.refine.weight.zero_()
@@ -418,11 +418,11 @@ def test_demod_jbu_and_fusesr_guided_residual():
         torch.testing.assert_close(net(batch), expect, rtol=1e-5, atol=1e-5)
     net.refine.bias.data.fill_(0.1)
     assert _changes_output(net, batch, "hr/depth", -1)  # through the guided base alone (HR branch zeroed)
-    no_guide = FuseSR(ModelConfig.of(name="fusesr", guided_upsample=False), 4)
+    no_guide = FuseSR(4, guided_upsample=False)
     assert not no_guide.guided and "hr/normal" in no_guide.needs()  # still read by the HR branch
-    no_hr = FuseSR(ModelConfig.of(name="fusesr", hr_gbuffer=False), 4)
+    no_hr = FuseSR(4, hr_gbuffer=False)
     assert not no_hr.guided
-    authors = FuseSR(ModelConfig.of(name="fusesr", residual=False), 4)  # no residual base to guide
+    authors = FuseSR(4, residual=False)  # no residual base to guide
     assert not authors.guided and "lr/normal" in authors.needs() and "lr/fbeta_used" not in authors.needs()
 
 
@@ -439,9 +439,9 @@ def test_zero_init_refine_starts_exactly_at_the_residual_base(hr_guide):
     residual base, remodulated), and the last conv still gets a gradient."""
     batch = make_batch()
     torch.manual_seed(0)
-    net = FuseSR(ModelConfig.of(name="fusesr", zero_init_refine=True, hr_guide=hr_guide), 4)
+    net = FuseSR(4, zero_init_refine=True, hr_guide=hr_guide)
     torch.manual_seed(0)
-    ref = FuseSR(ModelConfig.of(name="fusesr", hr_guide=hr_guide), 4)
+    ref = FuseSR(4, hr_guide=hr_guide)
     last = ref.refine[-1] if hr_guide else ref.refine
     with torch.no_grad():
         assert last.weight.abs().sum() > 0
@@ -452,3 +452,32 @@ def test_zero_init_refine_starts_exactly_at_the_residual_base(hr_guide):
     out.mean().backward()
     grad = (net.refine[-1] if hr_guide else net.refine).weight.grad
     assert grad is not None and grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_a_model_is_built_by_keyword_with_the_configurations_defaults(name):
+    """Every class names its row; built with no keys it holds exactly the default configuration (one place for
+    defaults: ModelConfig and training.models.options), and build_model passes a configuration's keys through."""
+    from training.models import model_class, model_keys
+    cls = model_class(name)
+    assert cls.NAME == name
+    scale = 2 if cls.SCALES is None else 4
+    bare = cls(scale)
+    assert bare.config.to_dict() == ModelConfig.of(name).to_dict()
+    assert bare.by_class and bare.use_jitter  # the [model] table's defaults (an old fallback said by_class False)
+    assert bare.config.remod_filter == "REFERENCE" and bare.remod_taps is not None
+    cfg = ModelConfig.of(name, jitter=False, remod_filter="NONE")
+    built = build_model(cfg, scale)
+    assert built.config.to_dict() == cfg.to_dict() and model_keys(cfg)["jitter"] is False
+    assert not built.use_jitter and built.remod_kernel is None
+    with pytest.raises(ConfigError, match=f"model {name}: no key 'no_such_key'"):
+        cls(scale, no_such_key=1)
+
+
+def test_fusesr_fast_reads_fusesrs_switches_through_one_class():
+    from training.models.fusesr import FuseSRFrame
+    from training.models.fusesr_fast import FuseSRFast
+    fast, full = FuseSRFast(4, hr_gbuffer=False, demodulation=False), FuseSR(4, hr_gbuffer=False, demodulation=False)
+    for m in (fast, full):
+        assert isinstance(m, FuseSRFrame) and not m.use_hr and not m.demod and not m.guided
+        assert m.color_key == "lr/radiance" and "hr/fbeta_used" not in m.needs()

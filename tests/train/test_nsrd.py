@@ -131,9 +131,10 @@ def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, residual, tmp
     then run at an odd LR size (10 x 7, padded inside the graph) against torch with the state carried."""
     import onnxruntime as ort
     from training.export import example_inputs, export_onnx
+    from training.inference_model import InferenceModel
     torch.manual_seed(0)
     model = build_model(ModelConfig.of("nsrd", residual=residual), scale).eval()
-    report = export_onnx(model, tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
+    report = export_onnx(InferenceModel(model), tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))
     assert report["match"] and report["frames_checked"] == 3
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
     state, reset = None, np.ones(1, np.float32)

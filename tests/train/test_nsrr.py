@@ -210,6 +210,7 @@ def test_base_nsrr_trains_on_five_frame_windows(clip, tmp_path):
 
 def test_base_nsrr_exports_to_onnx(tmp_path):
     from training.export import export_onnx
+    from training.inference_model import InferenceModel
     model = build_model(ModelConfig(name="nsrr"), 4).eval()
-    report = export_onnx(model, tmp_path / "nsrr.onnx", hr_size=(32, 24))
+    report = export_onnx(InferenceModel(model), tmp_path / "nsrr.onnx", hr_size=(32, 24))
     assert report["match"] and report["inputs"]["lr_radiance"] == [1, 5, 3, 6, 8]

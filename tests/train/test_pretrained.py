@@ -55,7 +55,7 @@ def test_release_is_float16_safetensors_small_and_matches_the_checkpoint(run, cl
     a = upscale_frame(load_model(str(ck), 4), src, 2)["sr"]
     b = upscale_frame(load_model(str(tmp_path / "w.safetensors"), 4), src, 2)["sr"]
     assert np.abs(a - b).max() <= 2e-3 * max(1.0, float(np.abs(a).max()))  # fp16 weights
-    assert param_digest(load_model(str(tmp_path / "w.safetensors"), 4)) == meta["param_digest"]
+    assert param_digest(load_model(str(tmp_path / "w.safetensors"), 4).module) == meta["param_digest"]
     # releasing the released file again changes no bit (how the shipped .pt files were converted)
     again = release(tmp_path / "w.safetensors", tmp_path / "again" / "w.safetensors", {"model": "fusesr-l"})
     assert again["param_digest"] == meta["param_digest"] and again["sha256"] == meta["sha256"]
@@ -126,7 +126,7 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
     train(cfg, tmp_path / "ft")
     a = load_model(str(run / "checkpoints" / "last.pt"), 4)
     b = load_model(str(tmp_path / "ft" / "checkpoints" / "last.pt"), 4)
-    for (k, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+    for (k, x), (_, y) in zip(a.module.state_dict().items(), b.module.state_dict().items()):
         assert torch.allclose(x, y, atol=1e-6), k
     bad = load_config(None, SMALL + ['model.name="fusesr"', "run.max_steps=1",
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
@@ -146,7 +146,7 @@ def test_installed_weights_match_their_metadata(name):
     assert path.stat().st_size == meta["bytes"] <= pretrained.MAX_BYTES
     assert file_sha256(path) == meta["sha256"]
     model = load_model(f"pretrained:{name}", 4)
-    assert param_digest(model) == meta["param_digest"]
+    assert param_digest(model.module) == meta["param_digest"]
     assert meta["commands"] and meta["dataset"]["test_clips"]
     scores = meta["scores_on_test_split"]
     assert scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(meta["gain_over_demod_jbu_db"],

@@ -90,8 +90,8 @@ def _manual(model, clip, frames):
     with torch.no_grad():
         for f in frames:
             inp = model_inputs(model, src, f)
-            b = {k: torch.from_numpy(v) for k, v in inp.items() if k in model.needs()}
-            sr, state = model.step(b, state)
+            b = {k: torch.from_numpy(v) for k, v in inp.items() if k in model.module.needs()}
+            sr, state = model.module.step(b, state)
             out[f] = sr[0].permute(1, 2, 0).numpy()
     return out
 
@@ -133,13 +133,13 @@ def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name
 
 def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
     from training import metrics
-    from training.evaluate import evaluate_model
+    from training.evaluate import EvalOptions, evaluate_model
     from training.inference import ClipFrames, load_model
     model = load_model(str(checkpoint), 4)
     ref = _manual(model, clip, [1, 2, 3, 4, 5, 6])
     src = ClipFrames(clip)
     for frames in ([1, 2, 3, 4, 5, 6], [4, 5, 6]):  # scored frames starting later: the earlier ones run first
-        res = evaluate_model(model, [clip], frames={str(clip): frames}, flip=False, warmup=1)
+        res = evaluate_model(model, [clip], EvalOptions(frames={str(clip): frames}, flip=False, warmup=1))
         assert [r["frame"] for r in res["per_frame"]] == frames
         for row in res["per_frame"]:
             gt = src.read(row["frame"], "hr/radiance")
@@ -177,14 +177,14 @@ def test_onnx_export_carries_the_state_over_three_frames(name, clip, checkpoint,
 
 
 def test_bench_models_row(name, clip, checkpoint, tmp_path):
-    from training.bench_models import benchmark
+    from training.bench_models import BenchOptions, benchmark, load_models
     from training.inference import load_model
     flip = name == "nsrr-fec"  # FLIP (the slow metric) and a baseline row beside the checkpoint, each for one model
     baseline = [("bicubic", "bicubic")] if name == "rdg-s" else []
-    res = benchmark([(f"{name} (x)", str(checkpoint)), *baseline], [str(clip)], tmp_path / "b", flip=flip,
-                    log=lambda m: None)
+    res = benchmark(load_models([(f"{name} (x)", str(checkpoint)), *baseline], 4), [str(clip)], tmp_path / "b",
+                    BenchOptions(flip=flip, log=lambda m: None))
     row = res["rows"][0]
-    assert row["params"] == n_params(load_model(str(checkpoint), 4))
+    assert row["params"] == n_params(load_model(str(checkpoint), 4).module)
     assert row["params"] == n_params(build_model(load_config(None, small(name)).model, 4))
     if CASES[name]["params"] is not None:
         assert row["params"] == CASES[name]["params"]

@@ -13,7 +13,7 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.cache import ClipCache  # noqa: E402
 from training.config import ConfigError, ModelConfig, load_config  # noqa: E402
 from training.data import BatchSpec, TrainSampler, crop_grid  # noqa: E402
-from training.evaluate import evaluate_model  # noqa: E402
+from training.evaluate import EvalOptions, evaluate_model  # noqa: E402
 from training.inference import load_model  # noqa: E402
 from training.models import MODELS, ModelInfo, build_model  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
@@ -148,7 +148,7 @@ def test_any_scale_model_trains_on_a_mix_of_scales(multi, tmp_path, tiny_model):
     assert {r["scale"] for r in val["per_frame"]} == {2.0, 2.5, 4.0}
     # the checkpoint loads at any scale and is evaluated at every level of the clip
     model = load_model(str(tmp_path / "run" / "checkpoints" / "last.pt"), 2)
-    res = evaluate_model(model, [str(multi)], flip=False, warmup=0)
+    res = evaluate_model(model, [str(multi)], EvalOptions(flip=False, warmup=0))
     assert set(res["per_scale"]) == {"2", "2.5", "4"} and res["mean"]["frames"] == 15
 
 
@@ -181,22 +181,22 @@ def test_refusals_are_one_line_exit_2(multi, tmp_path, capsys, sets, needle):
 # ------------------------------------------------------------------------------------------- evaluation
 
 def test_evaluation_reports_per_scale(multi):
-    res = evaluate_model(load_model("bilinear", 2), [str(multi)], flip=False, warmup=0)
+    res = evaluate_model(load_model("bilinear", 2), [str(multi)], EvalOptions(flip=False, warmup=0))
     assert set(res["per_scale"]) == {"2", "2.5", "4"} and res["mean"]["frames"] == 15
     ps = res["per_scale"]
     assert all(ps[k]["frames"] == 5 for k in ps)
     assert ps["2"]["psnr"] > ps["2.5"]["psnr"] > ps["4"]["psnr"]  # fewer LR pixels, worse bilinear
     # an integer-scale model is scored at its own level only; a level the clip lacks is one clear line
-    res4 = evaluate_model(load_model("demod-bilinear", 4), [str(multi)], flip=False, warmup=0)
+    res4 = evaluate_model(load_model("demod-bilinear", 4), [str(multi)], EvalOptions(flip=False, warmup=0))
     assert set(res4["per_scale"]) == {"4"}
     with pytest.raises(ValueError, match="no LR level at scale 8 .has 2, 2.5, 4"):
-        evaluate_model(load_model("demod-bilinear", 8), [str(multi)], flip=False, warmup=0)
+        evaluate_model(load_model("demod-bilinear", 8), [str(multi)], EvalOptions(flip=False, warmup=0))
     # scale=: one level only, scored exactly as that level is within the evaluation of every level
-    one = evaluate_model(load_model("bilinear", 2), [str(multi)], flip=False, warmup=0, scale=2.5)
+    one = evaluate_model(load_model("bilinear", 2), [str(multi)], EvalOptions(flip=False, warmup=0, scale=2.5))
     assert set(one["per_scale"]) == {"2.5"} and one["mean"]["frames"] == 5
     assert one["mean"]["psnr"] == pytest.approx(ps["2.5"]["psnr"], abs=1e-9)
     with pytest.raises(ValueError, match="give scales or scale, not both"):
-        evaluate_model(load_model("bilinear", 2), [str(multi)], scale=2.5, scales={str(multi): [2.5]})
+        evaluate_model(load_model("bilinear", 2), [str(multi)], EvalOptions(scale=2.5, scales={str(multi): [2.5]}))
 
 
 def test_fourier_sr_trains_on_scales_2_and_4_and_is_scored_at_2_5(multi, tmp_path):
@@ -210,6 +210,6 @@ def test_fourier_sr_trains_on_scales_2_and_4_and_is_scored_at_2_5(multi, tmp_pat
     summary = train(cfg, tmp_path / "run")
     assert summary["scales"] == [2.0, 4.0]
     model = load_model(str(tmp_path / "run" / "checkpoints" / "last.pt"), 2.5)
-    res = evaluate_model(model, [str(multi)], flip=False, warmup=0)
+    res = evaluate_model(model, [str(multi)], EvalOptions(flip=False, warmup=0))
     assert set(res["per_scale"]) == {"2", "2.5", "4"}
     assert np.isfinite(res["per_scale"]["2.5"]["psnr"]) and res["per_scale"]["2.5"]["frames"] == 5

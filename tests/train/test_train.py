@@ -173,7 +173,7 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
     del ck["config"]["data"]["reflectance_range"]
     old = tmp_path / "old.pt"
     torch.save(ck, old)
-    model = load_model(str(old), 4, fast=False)  # fast=True folds the BatchNorm layers into the convolutions
+    model = load_model(str(old), 4, fast=False).module  # fast=True folds the BatchNorm layers into the convolutions
     assert not model.use_jitter and "lr_jitter" not in model.needs()
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
     assert model.remod_kernel is None  # remodulated without the ground truth's pixel filter, as before session 3
@@ -231,7 +231,7 @@ def test_ema_weights_are_the_moving_average_and_resume_bit_identically(clip, tmp
     # what inference and the shipped-weights writer read
     from training.inference import load_model
     model = load_model(str(straight / "checkpoints" / "last.pt"), 4)
-    for k, v in model.state_dict().items():
+    for k, v in model.module.state_dict().items():
         assert torch.equal(v, last["ema_model"][k]), k
     from training.release import release
     release(straight / "checkpoints" / "last.pt", tmp_path / "w.safetensors", {})

@@ -7,9 +7,13 @@ HR keys at least the current frame) plus ``'depth_ref'`` (B, T). SR is (B, 3, H_
 
 Options: a row's ``options`` is the dataclass of the model's own ``[model.<name>]`` table
 (``training.models.options``; ``NoOptions``, the default, for a model without any), built as ``cfg.options``.
+A model class takes the shared keys and its options by keyword (``FuseSR(4, width=64)``; ``base.SRModel``);
+``build_model`` unpacks a ``ModelConfig`` into them (``model_keys``).
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import importlib
 from dataclasses import dataclass
 
@@ -84,9 +88,19 @@ def model_class(name: str):
     return getattr(importlib.import_module(info.module), info.cls)
 
 
-def build_model(cfg, scale: int):
-    """Instantiate the model of a ``ModelConfig`` for upscaling factor ``scale``."""
-    return model_class(cfg.name)(cfg, scale)
+def model_keys(cfg) -> dict:
+    """The keyword arguments of model ``cfg.name``'s constructor from a ``ModelConfig``: its shared ``[model]`` keys
+    (all but ``name``, ``scale`` and ``options``), then its own options' fields."""
+    shared = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
+              if f.name not in ("name", "scale", "options")}
+    own = {f.name: getattr(cfg.options, f.name) for f in dataclasses.fields(cfg.options)}
+    return copy.deepcopy({**shared, **own})
 
 
-__all__ = ["MODELS", "ModelInfo", "OPTIONAL_KEYS", "model_class", "build_model"]
+def build_model(cfg, scale: float):
+    """The model of a ``ModelConfig`` for upscaling factor ``scale``: its class called with the configuration's keys
+    (``model_keys``), e.g. ``FuseSR(4, width=128, jitter=True, ...)``."""
+    return model_class(cfg.name)(scale, **model_keys(cfg))
+
+
+__all__ = ["MODELS", "ModelInfo", "OPTIONAL_KEYS", "model_class", "model_keys", "build_model"]

@@ -26,26 +26,52 @@ class SRModel(nn.Module):
     model reads the factor of each batch from ``batch_scale(batch)`` (``batch['scale']``, (B,) float, all equal)."""
 
     learned = False
+    #: Whether the model predicts the demodulated irradiance and remodulates it (``remodulate``).
+    demod = False
+    #: A model that carries a state from frame to frame (``training.recurrent``; ``step(batch, state)``).
+    recurrent = False
+    #: This class's row in ``training.models.MODELS``: its options are ``MODELS[NAME].options``.
+    NAME = ""
     SCALES: tuple[int, ...] | None = (2, 4, 8)
     #: The inference fast path (``training.models.fast_ops``; ``training.fastpath.prepare_inference`` sets it):
     #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
     fast_ops = False
 
-    def __init__(self, cfg, scale: float):
+    def __init__(self, scale: float, **keys):
+        """A model upscaling by ``scale``. ``keys``: the shared ``[model]`` keys (``training.config.ModelConfig``:
+        ``history``, ``jitter``, ``input_transform``, ``depth_norm``, ``upsample_by_class``, ``remod_filter``,
+        ``remod_filter_px``) and the model's own options (its ``[model.<NAME>]`` table, ``training.models.options``)
+        by keyword, e.g. ``FuseSR(4, width=64, jitter=False)``; a key left out takes the configuration's default
+        (one place for every default). ``self.config`` holds the resulting validated ``ModelConfig``. ConfigError
+        (one line) for a key the model does not have or a value out of range."""
         super().__init__()
         if not self.supports_scale(scale):
-            raise BlendSRError(f"scale {scale:g}: model {getattr(cfg, 'name', type(self).__name__)} supports "
-                             f"{self.scales_text()}")
-        self.cfg = cfg
+            raise BlendSRError(f"scale {scale:g}: model {self.NAME or type(self).__name__} supports "
+                               f"{self.scales_text()}")
+        from training.config import ModelConfig  # torch-free; its tables hold the defaults
+        self.config = cfg = ModelConfig.of(self.NAME, **keys)
         self.scale = int(scale) if float(scale).is_integer() else float(scale)
         self.history = 0
-        self.use_jitter = bool(getattr(cfg, "jitter", True))
-        self.by_class = bool(getattr(cfg, "upsample_by_class", False))
+        self.transform = cfg.input_transform
+        self.depth_norm = cfg.depth_norm
+        self.use_jitter = bool(cfg.jitter)
+        self.by_class = bool(cfg.upsample_by_class)
         self.guided = False  # subclasses that may read the HR geometry set it and ``guide_sigmas`` from their options
         self.guide_sigmas: tuple[float, float] | None = None  # (depth, normal) tolerances of the guided upsampling
-        w1 = remod_weights(cfg)
-        self.register_buffer("remod_kernel", None if w1 is None else torch.tensor(w1, dtype=torch.float32),
-                             persistent=False)
+        self._set_remod_weights(remod_weights(cfg.remod_filter, cfg.remod_filter_px))
+
+    @property
+    def options(self):
+        """The model's own options (the dataclass of its ``[model.<NAME>]`` table)."""
+        return self.config.options
+
+    def _set_remod_weights(self, w1) -> None:
+        device = self.remod_kernel.device if getattr(self, "remod_kernel", None) is not None else None
+        kernel = None if w1 is None else torch.tensor(w1, dtype=torch.float32, device=device)
+        if "remod_kernel" in self._buffers:
+            self.remod_kernel = kernel
+        else:
+            self.register_buffer("remod_kernel", kernel, persistent=False)
         self.remod_taps = None if w1 is None else tuple(float(v) for v in w1)  # the same weights, for fast_ops
 
     @classmethod
@@ -73,21 +99,19 @@ class SRModel(nn.Module):
     def follow_reference_filter(self, manifest: dict) -> None:
         """With ``model.remod_filter = "REFERENCE"`` (non-learned models; training resolves it into the checkpoint),
         remodulate through the pixel filter of this clip's ground truth (manifest ``render.hr``)."""
-        if getattr(self.cfg, "remod_filter", "NONE") == "REFERENCE":
+        if self.config.remod_filter == "REFERENCE":
             from gbuffer_export.pixel_filter import reference_filter
-            w1 = remod_weights(self.cfg, reference_filter(manifest))
-            device = self.remod_kernel.device if self.remod_kernel is not None else None
-            self.remod_kernel = None if w1 is None else torch.tensor(w1, dtype=torch.float32, device=device)
-            self.remod_taps = None if w1 is None else tuple(float(v) for v in w1)
+            self._set_remod_weights(remod_weights("REFERENCE", self.config.remod_filter_px,
+                                                  reference_filter(manifest)))
 
     def remod_filter_mismatch(self, manifest: dict, clip_path) -> str | None:
         """A one-line reason when this model remodulates with a pixel filter other than the one the clip's ground
         truth was rendered with (manifest ``render.hr``), else None."""
-        if not getattr(self, "demod", False) or getattr(self.cfg, "remod_filter", "NONE") in ("NONE", "REFERENCE"):
+        if not self.demod or self.config.remod_filter in ("NONE", "REFERENCE"):
             return None
         from gbuffer_export.pixel_filter import reference_filter
         kind, width = reference_filter(manifest)
-        mine = (self.cfg.remod_filter, float(self.cfg.remod_filter_px))
+        mine = (self.config.remod_filter, float(self.config.remod_filter_px))
         if (kind, width) == mine:
             return None
         return (f"{clip_path}: the ground truth was rendered with the {kind} {width:g} px pixel filter but the model "
@@ -131,7 +155,7 @@ class SRModel(nn.Module):
             return base
         guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
                   for lv in ("lr", "hr")]
-        return guided(x, *guides, scale, base, jitter, *(classes or (None, None)))
+        return guided(x, *guides, scale, base, jitter, classes)
 
     def demod_base(self, batch: dict, jitter: torch.Tensor | None, scale: float | None = None) -> torch.Tensor:
         """The residual base of the option ``residual`` (``options.ResidualOptions``; not in the papers): T(L_D^LR
@@ -168,15 +192,14 @@ class SRModel(nn.Module):
         return self.history + 1
 
 
-def remod_weights(cfg, reference: tuple[str, float] | None = None):
-    """1-D weights of ``cfg.remod_filter`` (None for NONE or a point-sampling filter); REFERENCE uses
-    ``reference`` (type, width px), by default BlendSR's own HR filter until a clip's manifest says otherwise."""
-    kind = getattr(cfg, "remod_filter", "NONE")
+def remod_weights(kind: str, px: float, reference: tuple[str, float] | None = None):
+    """1-D weights of the remodulation filter ``kind`` (``model.remod_filter``) of width ``px`` pixels
+    (``model.remod_filter_px``); None for NONE or a point-sampling filter. REFERENCE uses ``reference`` (type,
+    width px), by default BlendSR's own HR filter until a clip's manifest says otherwise."""
     if kind == "NONE":
         return None
     from gbuffer_export.pixel_filter import HR_REFERENCE_FILTER, weights_1d
-    w1 = weights_1d(*(reference or HR_REFERENCE_FILTER)) if kind == "REFERENCE" else \
-        weights_1d(kind, getattr(cfg, "remod_filter_px", 1.5))
+    w1 = weights_1d(*(reference or HR_REFERENCE_FILTER)) if kind == "REFERENCE" else weights_1d(kind, px)
     return None if len(w1) == 1 else w1
 
 

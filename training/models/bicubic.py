@@ -6,6 +6,7 @@ from training.models.base import SRModel, current, upsample
 
 class Bicubic(SRModel):
     learned = False
+    NAME = "bicubic"
     SCALES = None  # any scale >= 1: the factor of each batch (batch['scale'])
 
     def needs(self):

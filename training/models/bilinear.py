@@ -6,6 +6,7 @@ from training.models.base import SRModel, current, upsample
 
 class Bilinear(SRModel):
     learned = False
+    NAME = "bilinear"
     SCALES = None  # any scale >= 1: the factor of each batch (batch['scale'])
     mode = "bilinear"
 

@@ -14,6 +14,7 @@ from training.models.base import SRModel, current
 
 class DemodBilinear(SRModel):
     learned = False
+    NAME = "demod-bilinear"
     demod = True
 
     def needs(self):

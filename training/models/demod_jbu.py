@@ -15,7 +15,9 @@ from training.models.demod_bilinear import DemodBilinear
 class DemodJBU(DemodBilinear):
     """``DemodBilinear`` whose ``upsample_input`` is guided (``SRModel.guided``); needs and forward are shared."""
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
+    NAME = "demod-jbu"
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: DemodJBUOptions
         self.guided = True
-        self.guide_sigmas = (cfg.options.guide_sigma_depth, cfg.options.guide_sigma_normal)
+        self.guide_sigmas = (self.options.guide_sigma_depth, self.options.guide_sigma_normal)

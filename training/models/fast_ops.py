@@ -90,8 +90,7 @@ def upsample_by_class(x: torch.Tensor, lr_mask: torch.Tensor, hr_mask: torch.Ten
 
 def upsample_guided(x: torch.Tensor, lr_guide: torch.Tensor, hr_guide: torch.Tensor, scale: int,
                     fallback: torch.Tensor, jitter: torch.Tensor | None = None,
-                    lr_class: torch.Tensor | None = None, hr_class: torch.Tensor | None = None,
-                    floor: float = 1e-4) -> torch.Tensor:
+                    classes: tuple[torch.Tensor, torch.Tensor] | None = None, floor: float = 1e-4) -> torch.Tensor:
     """``guided.upsample_guided`` with row-then-column gathers (module doc). float32 inside like the reference."""
     b, c, h, w = x.shape
     hh, ww = h * scale, w * scale
@@ -102,6 +101,7 @@ def upsample_guided(x: torch.Tensor, lr_guide: torch.Tensor, hr_guide: torch.Ten
     ux = (torch.arange(ww, device=dev, dtype=torch.float32) + 0.5) / scale - 0.5 - jx   # (B, W) LR index space
     uy = (torch.arange(hh, device=dev, dtype=torch.float32) + 0.5) / scale - 0.5 - jy   # (B, H)
     x0, y0 = torch.floor(ux), torch.floor(uy)
+    lr_class, hr_class = classes if classes is not None else (None, None)
     parts = [x.float(), lr_guide.float()] + ([lr_class.float()] if lr_class is not None else [])
     lr_all = torch.cat(parts, dim=1)                                                     # (B, K, h, w)
     hr_g = hr_guide.float()

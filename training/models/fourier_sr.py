@@ -68,12 +68,6 @@ MLP_WIDTH = 64                   # HFFM: C in Eq. 2
 GBUFFER_CHANNELS = 7             # depth 1, normal 3, albedo 3
 
 
-def options_of(cfg) -> FourierSROptions:
-    """The mask thresholds of a model configuration (its ``[model.fourier-sr]`` table, ``cfg.options``)."""
-    got = getattr(cfg, "options", None)
-    return got if isinstance(got, FourierSROptions) else FourierSROptions()
-
-
 def lr_positions(n_out: int, pitch: int, scale: torch.Tensor, jit: torch.Tensor) -> torch.Tensor:
     """(B, n_out) positions on the LR sampling grid (LR pixels; LR pixel i spans [i, i + 1)) of output samples
     whose centres lie at ``pitch`` (k + 0.5) HR pixels, k < n_out: (pitch (k + 0.5) / s) - jitter, because LR
@@ -160,13 +154,13 @@ class FourierSR(SRModel):
     recurrent = True
     SCALES = None  # any positive scale, integer or not
 
-    def __init__(self, cfg, scale):
-        super().__init__(cfg, scale)
+    NAME = "fourier-sr"
+
+    def __init__(self, scale, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: FourierSROptions (the mask thresholds)
         self.history = 0
         self.demod = True
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
-        self.opts = options_of(cfg)
+        self.opts = self.options
         half = HR_WIDTH // 2
         self.lr_extractor = plain_stack(3, LR_CHANNELS)
         self.hr_extractor = nn.Sequential(

@@ -84,24 +84,48 @@ class HistoryGate(nn.Module):
         return torch.sigmoid(self.net(torch.cat([motion / 16.0, depth_prev_warped, depth_cur], dim=1)))
 
 
-class FuseSR(SRModel):
-    learned = True
-    default_history = 2
-    hr_channels = 64
-    separable = False
+class FuseSRFrame(SRModel):
+    """What ``fusesr`` (and ``fusesr-l``) and ``fusesr-fast`` share around their networks: the switches of
+    ``FuseSRFastOptions`` (read here, once), the input colour key and the output (the residual base, the final
+    ReLU, T^-1 and the remodulation)."""
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
-        self.history = self.default_history if cfg.history < 0 else cfg.history
-        opt = cfg.options  # training.models.options.FuseSROptions (FuseSRLightOptions)
+    learned = True
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)
+        opt = self.options  # training.models.options.FuseSRFastOptions or a subclass
         self.demod = bool(opt.demodulation)
         self.use_hr = bool(opt.hr_gbuffer)
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
         self.residual = bool(opt.residual)
         # the guided upsampling is the residual base: it needs the HR G-buffers and the residual head
         self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
         self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+
+    @property
+    def color_key(self) -> str:
+        """The LR colour input: the demodulated irradiance, or the radiance with ``demodulation = false``."""
+        return "lr/irradiance" if self.demod else "lr/radiance"
+
+    def output(self, y: torch.Tensor, color: torch.Tensor, batch: dict, j_t) -> torch.Tensor:
+        """SR from the refined network output ``y`` (B, 3, H, W) in the transformed space: plus the upsampled
+        transformed LR colour ``color`` (B, 3, h, w) with ``residual``, ReLU, T^-1, and the remodulation with
+        ``demodulation``."""
+        if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
+            y = y + self.upsample_input(color, batch, j_t, self.demod)
+        out = inverse_transform(F.relu(y).float(), self.transform)
+        return self.remodulate(out, batch) if self.demod else out
+
+
+class FuseSR(FuseSRFrame):
+    NAME = "fusesr"
+    default_history = 2
+    hr_channels = 64
+    separable = False
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: FuseSROptions (FuseSRLightOptions)
+        self.history = self.default_history if self.config.history < 0 else self.config.history
+        opt = self.options
         width, blocks = opt.width, opt.blocks
         s = self.scale
         self.encoder = Encoder(7, opt.norm)
@@ -125,7 +149,7 @@ class FuseSR(SRModel):
             nn.init.zeros_(last.bias)
 
     def needs(self):
-        keys = ["lr/irradiance" if self.demod else "lr/radiance", "lr/depth", "lr/normal", "depth_ref"]
+        keys = [self.color_key, "lr/depth", "lr/normal", "depth_ref"]
         if self.history:
             keys.append("lr/motion")
         if self.use_hr:
@@ -137,8 +161,7 @@ class FuseSR(SRModel):
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def _lr_input(self, batch, back: int):
-        key = "lr/irradiance" if self.demod else "lr/radiance"
-        color = forward_transform(frame(batch, key, back), self.transform)
+        color = forward_transform(frame(batch, self.color_key, back), self.transform)
         depth = depth_features(batch, "lr", back, self.depth_norm)
         return torch.cat([color, depth, frame(batch, "lr/normal", back)], dim=1), depth
 
@@ -163,10 +186,4 @@ class FuseSR(SRModel):
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         y = F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale)
         y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
-        if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
-            y = y + self.upsample_input(x[:, :3], batch, j_t, self.demod)
-        y = F.relu(y)
-        out = inverse_transform(y.float(), self.transform)
-        if self.demod:
-            out = self.remodulate(out, batch)
-        return out
+        return self.output(y, x[:, :3], batch, j_t)

@@ -30,8 +30,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from gbuffer_export.errors import BlendSRError
-from training.models.base import DWSConv, SRModel, conv, current, depth_features, frame
-from training.transforms import forward_transform, inverse_transform
+from training.models.base import DWSConv, conv, current, depth_features, frame
+from training.models.fusesr import FuseSRFrame
+from training.transforms import forward_transform
 
 PRIMARY = 32
 ENCODER_CHANNELS = (16, 12, 12, 16)
@@ -72,22 +73,15 @@ class InvertedResidual(nn.Module):
         return x + self.norm2(self.pointwise(F.relu6(self.norm1(self.depthwise(x)))))
 
 
-class FuseSRFast(SRModel):
-    learned = True
+class FuseSRFast(FuseSRFrame):
+    NAME = "fusesr-fast"
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
-        if cfg.history > 0:
-            raise BlendSRError(f"model.history {cfg.history}: fusesr-fast reads no history (set -1 or 0)")
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: FuseSRFastOptions (switches read by FuseSRFrame)
+        if self.config.history > 0:
+            raise BlendSRError(f"model.history {self.config.history}: fusesr-fast reads no history (set -1 or 0)")
         self.history = 0
-        opt = cfg.options  # training.models.options.FuseSRFastOptions
-        self.demod = bool(opt.demodulation)
-        self.use_hr = bool(opt.hr_gbuffer)
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
-        self.residual = bool(opt.residual)
-        self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
-        self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+        opt = self.options
         norm, width, blocks = opt.norm, opt.width, opt.blocks
         s = self.scale
         self.encoder = FastEncoder(7, norm)
@@ -102,7 +96,7 @@ class FuseSRFast(SRModel):
             nn.init.zeros_(self.refine.bias)
 
     def needs(self):
-        keys = ["lr/irradiance" if self.demod else "lr/radiance", "lr/depth", "lr/normal", "depth_ref"]
+        keys = [self.color_key, "lr/depth", "lr/normal", "depth_ref"]
         if self.use_hr or self.demod:
             keys.append("hr/fbeta_used")
         if self.demod:
@@ -112,8 +106,7 @@ class FuseSRFast(SRModel):
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def forward(self, batch):
-        key = "lr/irradiance" if self.demod else "lr/radiance"
-        color = forward_transform(frame(batch, key, 0), self.transform)
+        color = forward_transform(frame(batch, self.color_key, 0), self.transform)
         x = torch.cat([color, depth_features(batch, "lr", 0, self.depth_norm), current(batch, "lr/normal")], dim=1)
         f_s, f_f = self.encoder(x)
         feats = [self.expand(f_f)]
@@ -124,10 +117,4 @@ class FuseSRFast(SRModel):
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
-        if self.residual:
-            y = y + self.upsample_input(x[:, :3], batch, j_t, self.demod)
-        y = F.relu(y)
-        out = inverse_transform(y.float(), self.transform)
-        if self.demod:
-            out = self.remodulate(out, batch)
-        return out
+        return self.output(y, x[:, :3], batch, j_t)

@@ -8,6 +8,7 @@ from training.models.fusesr import FuseSR
 
 class FuseSRLight(FuseSR):
     learned = True
+    NAME = "fusesr-l"
     default_history = 0  # width 64: training.models.options.FuseSRLightOptions
     hr_channels = 32
     separable = True

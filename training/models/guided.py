@@ -34,13 +34,12 @@ def guide_features(depth: torch.Tensor, normal: torch.Tensor, sigma_depth: float
 
 def upsample_guided(x: torch.Tensor, lr_guide: torch.Tensor, hr_guide: torch.Tensor, scale: int,
                     fallback: torch.Tensor, jitter: torch.Tensor | None = None,
-                    lr_class: torch.Tensor | None = None, hr_class: torch.Tensor | None = None,
-                    floor: float = 1e-4) -> torch.Tensor:
+                    classes: tuple[torch.Tensor, torch.Tensor] | None = None, floor: float = 1e-4) -> torch.Tensor:
     """Joint bilateral upsampling of ``x`` (B, C, h, w) by ``scale`` (module doc).
 
     ``lr_guide`` (B, G, h, w) and ``hr_guide`` (B, G, H, W) are scaled guides (``guide_features``); ``fallback``
     (B, C, H, W) is used where the weights sum below ``floor``; ``jitter`` (B, 2) LR pixels as in ``base.upsample``;
-    ``lr_class`` (B, 1, h, w) / ``hr_class`` (B, 1, H, W) optional 0/1 classes that must match (e.g.
+    ``classes``: optional 0/1 classes that must match, (LR (B, 1, h, w), HR (B, 1, H, W)) (e.g.
     ``base.demodulated_mask``). Returns (B, C, H, W) in the dtype of ``x``."""
     b, c, h, w = x.shape
     hh, ww = h * scale, w * scale
@@ -52,6 +51,7 @@ def upsample_guided(x: torch.Tensor, lr_guide: torch.Tensor, hr_guide: torch.Ten
     uy = (torch.arange(hh, device=dev, dtype=torch.float32) + 0.5) / scale - 0.5 - jy   # (B, H)
     x0, y0 = torch.floor(ux), torch.floor(uy)
     g = lr_guide.shape[1]
+    lr_class, hr_class = classes if classes is not None else (None, None)
     parts = [x.float(), lr_guide.float()] + ([lr_class.float()] if lr_class is not None else [])
     lr_all = torch.cat(parts, dim=1).flatten(2)                                          # (B, C + G (+1), h w)
     hr_g = hr_guide.float()

@@ -138,11 +138,11 @@ class NSRD(SRModel):
     recurrent = True
     demod = True
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
+    NAME = "nsrd"
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: NSRDOptions
         self.history = 0  # previous frames come from the state, not from the batch
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
         s = self.scale
         self.current_conv = conv(IN_CH + (2 if self.use_jitter else 0), FEATS)
         self.previous_conv = GatedConv(IN_CH + 1, FEATS)
@@ -150,7 +150,7 @@ class NSRD(SRModel):
         self.lstm = ConvLSTM(FEATS * (PREVIOUS + 2), HIDDEN)
         self.unet = UNet(HIDDEN)
         self.head = nn.Sequential(conv(HIDDEN, FEATS), conv(FEATS, 3 * s * s))
-        opt = cfg.options
+        opt = self.options
         self.residual = bool(opt.residual)
         if opt.zero_init_head:  # a fresh network outputs its residual base: demod-bilinear (module doc)
             zero_init(self.head[-1])

@@ -161,15 +161,16 @@ class NSRR(SRModel):
     learned = True
     enhanced = False
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
+    NAME = "nsrr"
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: NSRROptions
+        cfg = self.config
         n = HISTORY if cfg.history < 0 else int(cfg.history)
         if not 1 <= n <= 4:
             raise BlendSRError(f"model.history {cfg.history}: {cfg.name} needs 1..4 previous frames")
         self.n_prev = n
-        self.history = 0 if getattr(self, "recurrent", False) else n
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
+        self.history = 0 if self.recurrent else n
         to_ycbcr, to_rgb = ycbcr_matrices()
         self.register_buffer("to_ycbcr", torch.tensor(to_ycbcr, dtype=torch.float32), persistent=False)
         self.register_buffer("to_rgb", torch.tensor(to_rgb, dtype=torch.float32), persistent=False)
@@ -180,9 +181,9 @@ class NSRR(SRModel):
             self.gbuffer_features = FeatureExtractor(sum(c for _, c in GBUFFERS))
             cin += self.gbuffer_features.out_channels
         self.unet = UNet(cin)
-        opt = cfg.options
-        self.residual = self.demod = bool(getattr(opt, "residual", False))
-        if getattr(opt, "zero_init_head", False):  # a fresh network outputs its residual base (module doc)
+        opt = self.options
+        self.residual = self.demod = bool(opt.residual)
+        if opt.zero_init_head:  # a fresh network outputs its residual base (module doc)
             zero_init(self.unet.out)
 
     def needs(self):
@@ -248,6 +249,7 @@ class NSRR(SRModel):
 class NSRRFEC(NSRR):
     """NSRR with feature enhancement and caching (module doc); recurrent, the state is the feature cache."""
 
+    NAME = "nsrr-fec"
     recurrent = True
     enhanced = True
 

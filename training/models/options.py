@@ -2,8 +2,9 @@
 
 One dataclass per model, named in its row of ``training.models.MODELS``; the shared ``[model]`` keys (scale,
 history, jitter, input transform, remodulation filter, ...) are ``training.config.ModelConfig``'s. A model reads
-its options as ``cfg.options`` (``cfg`` the ``ModelConfig`` it is built from). A model without options of its own
-uses ``NoOptions`` (the table's default), so it needs no class here.
+its options as ``self.options`` (its constructor takes them by keyword and validates them through
+``ModelConfig.of``: these dataclasses and ``ModelConfig`` hold every default, once). A model without options of
+its own uses ``NoOptions`` (the table's default), so it needs no class here.
 
 The classes live here and not beside their ``nn.Module`` because a model's file imports torch, and the configuration
 is validated without torch (``blendsr train`` checks its configuration before it imports the trainer).

@@ -231,12 +231,12 @@ class RDG(SRModel):
     learned = True
     recurrent = True
 
-    def __init__(self, cfg, scale: int):
-        super().__init__(cfg, scale)
+    NAME = "rdg"
+
+    def __init__(self, scale: int, **keys):
+        super().__init__(scale, **keys)  # keys: SRModel's; options: RDGOptions (RDGSmallOptions)
         self.history = 0
-        self.transform = cfg.input_transform
-        self.depth_norm = cfg.depth_norm
-        opt = cfg.options  # training.models.options.RDGOptions (RDGSmallOptions)
+        opt = self.options
         self.demod = bool(opt.demod)
         self.gbuffers = tuple(opt.gbuffers)
         c = opt.width
@@ -348,3 +348,5 @@ class RDG(SRModel):
 
 class RDGSmall(RDG):
     """RDG at width 16 (``RDGSmallOptions``)."""
+
+    NAME = "rdg-s"
