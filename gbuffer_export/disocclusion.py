@@ -47,11 +47,13 @@ def from_motion(motion: np.ndarray, motion_next_prev: np.ndarray, *, tol_px: flo
     return ~valid | ~(err <= tol_px)
 
 
-def from_depth(depth: np.ndarray, motion: np.ndarray, depth_prev: np.ndarray, intrinsics, world_from_camera,
-               prev_world_from_camera, *, rel_tol: float = DEPTH_REL_TOL, jitter=(0.0, 0.0),
-               jitter_prev=(0.0, 0.0)) -> np.ndarray:
+def from_depth(depth: np.ndarray, motion: np.ndarray, depth_prev: np.ndarray, cam: dict, *,
+               rel_tol: float = DEPTH_REL_TOL, jitter_prev=(0.0, 0.0)) -> np.ndarray:
     """Disocclusion of frame t w.r.t. t-1 (H x W bool) from view depth of both frames (H x W, +inf on background),
-    ``motion`` of frame t and the cameras of frames t and t-1 (``intrinsics`` of frame t: fx, fy, cx, cy)."""
+    ``motion`` of frame t and frame t's camera record as ``Clip.camera`` gives it: ``intrinsics`` (fx, fy, cx, cy),
+    ``world_from_camera``, ``prev_world_from_camera`` (frame t-1's) and ``jitter`` (default 0, 0)."""
+    intrinsics, world_from_camera = cam["intrinsics"], cam["world_from_camera"]
+    prev_world_from_camera, jitter = cam["prev_world_from_camera"], cam.get("jitter", (0.0, 0.0))
     depth = np.asarray(depth, np.float64)
     surface = np.isfinite(depth) & (depth > 0)
     pts = unproject(np.where(surface, depth, 1.0), intrinsics, jitter)
@@ -83,5 +85,4 @@ def clip_mask(clip, frame: int, level: str, method: str = "auto", **kw) -> np.nd
     if method == "motion":
         return from_motion(motion, clip.read(frame - 1, f"{level}/motion_next"), **jit, **kw)
     depth, depth_prev = (clip.read(f, f"{level}/depth")[..., 0] for f in (frame, frame - 1))
-    return from_depth(depth, motion, depth_prev, cam["intrinsics"], cam["world_from_camera"],
-                      cam["prev_world_from_camera"], **jit, **kw)
+    return from_depth(depth, motion, depth_prev, cam, jitter_prev=cam_prev["jitter"], **kw)

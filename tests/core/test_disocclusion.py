@@ -36,7 +36,8 @@ def test_sliding_square_flags_exactly_the_uncovered_pixels():
     assert uncovered.sum() == 8 * SHIFT
     k, eye = (30.0, 30.0, W / 2, H / 2), np.eye(4)
     by_motion = disocclusion.from_motion(motion, motion_next_prev)
-    by_depth = disocclusion.from_depth(depth, motion, depth_prev, k, eye, eye)
+    cam = {"intrinsics": k, "world_from_camera": eye, "prev_world_from_camera": eye}
+    by_depth = disocclusion.from_depth(depth, motion, depth_prev, cam)
     np.testing.assert_array_equal(by_motion, uncovered)
     np.testing.assert_array_equal(by_depth, uncovered)
 

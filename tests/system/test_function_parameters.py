@@ -18,7 +18,6 @@ PENDING = {
     "gbuffer_export/blender/assets.py:build_asset_scene",
     "gbuffer_export/blender/level_cameras.py:plan_level_path",
     "gbuffer_export/blender/render.py:set_sampling",
-    "gbuffer_export/disocclusion.py:from_depth",
     "gbuffer_export/resources.py:check_render_resources",
     "gbuffer_export/synthetic.py:make_synthetic_clip",
 }
