@@ -401,12 +401,13 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
              device: str = "auto") -> None:
     if not todo:
         return
+    from .ray_cluster import bound_gcs_connection, connect
+    bound_gcs_connection(address)
     try:
         import ray
     except ImportError:
         from ..extras import install_hint
         raise SpecError(f"--executor ray needs the 'ray' package: {install_hint('cluster')}") from None
-    from .ray_cluster import connect
     started = connect(address, {"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
     refs: dict = {}
     try:

@@ -22,9 +22,10 @@ from ..errors import BlendSRError
 PROBE_S = 5.0
 
 #: Ray's settings (environment, read by ``ray.init``) that bound its connection to an existing cluster's GCS:
-#: one attempt of about 10 s instead of retries without end. Set only for an explicit address, and only when unset.
-GCS_ENV = {"RAY_gcs_server_port_wait_time_s": "1", "RAY_gcs_rpc_server_reconnect_timeout_s": "10",
-           "RAY_py_gcs_connect_timeout_s": "10"}
+#: one attempt of about 15 s instead of retries without end. Set only for an explicit address, only when unset, and
+#: before ``import ray`` (a process that imported Ray earlier keeps Ray's defaults).
+GCS_ENV = {"RAY_gcs_server_port_wait_time_s": "1", "RAY_gcs_rpc_server_reconnect_timeout_s": "5",
+           "RAY_py_gcs_connect_timeout_s": "5"}
 
 FORMS = "HOST:PORT (a cluster's GCS, e.g. 10.0.0.1:6379), auto (the cluster this machine has joined) or " \
         "ray://HOST:10001 (Ray Client)"
@@ -88,10 +89,18 @@ def check_address(address: str) -> tuple[str, tuple[str, int] | None]:
     return "gcs", parse_host_port(address, what)
 
 
+def bound_gcs_connection(address: str | None) -> None:
+    """``GCS_ENV`` into this process's environment for an explicit address (call it before ``import ray``)."""
+    if address is not None:
+        for k, v in GCS_ENV.items():
+            os.environ.setdefault(k, v)
+
+
 def connect(address: str | None, runtime_env: dict) -> bool:
     """``ray.init`` on the cluster at ``address`` (None: start a local one); True when this call initialised Ray
     (the caller shuts it down). RayConnectError (one line naming the address) when the cluster cannot be reached
     or refuses this driver."""
+    bound_gcs_connection(address)
     import ray
     if ray.is_initialized():
         return False
@@ -102,8 +111,6 @@ def connect(address: str | None, runtime_env: dict) -> bool:
     what = f"--address {address}"
     if host_port is not None:
         probe(*host_port, what)
-    for k, v in GCS_ENV.items():
-        os.environ.setdefault(k, v)
     auth_error = getattr(ray.exceptions, "AuthenticationError", ())  # Ray >= 2.52
     try:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
@@ -129,4 +136,4 @@ def _first(exc: BaseException) -> str:
     return text.splitlines()[0].rstrip(".") if text else type(exc).__name__
 
 
-__all__ = ["GCS_ENV", "PROBE_S", "RayConnectError", "check_address", "connect", "parse_host_port", "probe"]
+__all__ = ["bound_gcs_connection", "GCS_ENV", "PROBE_S", "RayConnectError", "check_address", "connect", "parse_host_port", "probe"]
