@@ -369,7 +369,7 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
     """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (``model.NAME.key=value`` for a
     model's own option; values in TOML syntax; bare words are taken as strings)."""
     data: dict = {}
-    source = "--set" if overrides else "defaults"  # what an error names: the file, the --set values, or neither
+    source = "--set" if overrides else "defaults"  # what an error names: the file, else the --set values
     if path:
         p = Path(path)
         if not p.is_file():
@@ -378,7 +378,7 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
             data = tomllib.loads(p.read_text())
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML ({exc})") from None
-        source = f"{p} with --set" if overrides else str(p)
+        source = str(p)
     for item in overrides or []:
         key, sep, text = item.partition("=")
         parts = [k.strip() for k in key.split(".")]
