@@ -38,12 +38,19 @@ Parts (each prints its counts; the totals come last):
    a clip that validates (each counts as a fault survived).
 8. **Full filesystem**: the training cache on a 1 MB tmpfs (root mounts one; otherwise only the simulated case) and
    a simulated ENOSPC from ``posix_fallocate`` must stop training with one line (exit 2), no SIGBUS and no stray
-   temporary file.
+   temporary file; a disk that fills while ``render`` or ``dataset`` writes (an 8 MB tmpfs filled after the first
+   frame) must give a line naming the file and leave no temporary file.
 9. **Huge specs and non-finite values** (``HUGE_AND_NONFINITE``, part ``huge``): specs of a million clips
    (seeds, clips per asset/scene), samples above Cycles' cap, inf/nan floats, a test asset in a train source, a
    million frames, an LR frame under 4 px: each refused in one line within ``RUNAWAY_S`` seconds; NaN/Inf in the
    ground truth refused by ``evaluate`` naming the file; NaN/Inf in an LR input: ``evaluate`` warns and writes
-   finite JSON, ``upscale`` warns and writes finite EXRs.
+   finite JSON, ``upscale`` warns and writes finite EXRs. Issue 43's bad inputs: spec ``scales = []``, a spec key
+   of the wrong type (the spec named once), ``regions = "axb"`` (echoed as written), ``preview --splits bogus``
+   and ``--width 100000`` (checked against memory), ``--camera-path fly`` on a mesh of zero extent, and Ray
+   addresses that are malformed, Ray Client or where nothing listens (a runaway before).
+10. **Signals during a dataset** (part ``dsignals``, two rounds): SIGINT to the process group, then to the
+   coordinator alone, after a dataset's first frame must stop it with exit 130 within ``DATASET_STOP_S`` (10 s),
+   leave no clip process and start no further clip; the rerun must finish a dataset that validates.
 
 ``--quick`` runs the subset ``tests/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
