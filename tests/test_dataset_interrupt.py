@@ -53,11 +53,12 @@ def _coordinators_children(pid: int) -> list[int]:
     return out
 
 
-def _interrupt(spec: Path, out: Path, to_group: bool) -> tuple[int, float, str, list[int]]:
+def _interrupt(spec: Path, out: Path, to_group: bool, extra=("--workers", "1"), env=None
+               ) -> tuple[int, float, str, list[int]]:
     """Start the dataset, SIGINT it once its first frame is written: (exit code, seconds to stop, stderr, the
     clip processes it had)."""
     proc = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "dataset", str(spec), "-o", str(out),
-                             "--workers", "1", "--threads", "1", "--no-progress"], cwd=REPO, env=ENV,
+                             *extra, "--threads", "1", "--no-progress"], cwd=REPO, env=env or ENV,
                             start_new_session=True, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 300
@@ -118,6 +119,42 @@ def test_ctrl_c_stops_a_dataset_within_seconds_and_the_rerun_renders_what_is_mis
     # the frames finished before Ctrl-C were not rendered again
     assert done_before >= 1 and all(p.stat().st_mtime_ns == t for p, t in kept.items() if p.exists())
     assert all(p.exists() for p in kept if "frames" in p.parts)
+
+
+def _dataset_jobs_under(out: Path) -> list[int]:
+    """Processes rendering a clip of the dataset ``out`` (their command line names it)."""
+    found = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"gbuffer_export.blender.dataset_job" in cmd and any(str(out).encode() in c for c in cmd):
+                found.append(int(d.name))
+    return found
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_ctrl_c_stops_a_ray_dataset_within_seconds(tmp_path):
+    """The Ray executor (a local instance this test starts, loopback only, its token in a HOME of its own): Ctrl-C
+    to the coordinator cancels the tasks, and no clip process keeps rendering."""
+    pytest.importorskip("ray")
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    out = tmp_path / "ds"
+    (tmp_path / "home").mkdir()
+    env = {**{k: v for k, v in ENV.items() if not k.startswith("RAY_")}, "HOME": str(tmp_path / "home"),
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+    code, took, err, _ = _interrupt(spec, out, False, extra=("--executor", "ray"), env=env)
+    assert code == 130 and "Traceback" not in err, err[-2000:]
+    assert took < 10, f"stopped after {took:.1f} s"
+    deadline = time.time() + 5
+    while _dataset_jobs_under(out) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not _dataset_jobs_under(out), "a clip process outlived the interrupted Ray run"
+    assert any(c["state"] != "done" for c in read_index(out)["clips"])
 
 
 def test_child_processes_stop_ends_running_ones_and_refuses_new_ones(tmp_path):
