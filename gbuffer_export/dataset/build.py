@@ -11,7 +11,9 @@ Layout::
 Only this coordinator writes ``dataset.json`` (atomically, after every clip); a second coordinator on the same
 folder is refused. Every run recomputes each clip's state from its folder, so a run killed at any moment (kill -9
 included) resumes: finished clips are skipped, partial clips resume at their first missing frame, and at most the
-frames in flight are rendered again. Worker processes die with the coordinator (Linux parent-death signal).
+frames in flight are rendered again. Worker processes die with the coordinator (Linux parent-death signal). Ctrl-C
+(SIGINT to the process group or to the coordinator alone) starts no further clip, stops the clip processes in
+flight (``ChildProcesses.stop``; Ray tasks are cancelled) and exits within seconds; the rerun resumes.
 """
 from __future__ import annotations
 
