@@ -115,7 +115,8 @@ def connect(address: str | None, runtime_env: dict) -> bool:
     try:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
     except auth_error as exc:
-        raise RayConnectError(f"{what}: the Ray cluster refused this driver's token ({_first(exc)}); "
+        raise RayConnectError(f"{what}: the Ray cluster refused this driver's token "
+                              f"({getattr(exc, 'message', None) or _first(exc)}); "
                               f"{token_hint()}") from None
     except ConnectionError as exc:
         if kind == "auto" and "Could not find any running Ray instance" in str(exc):
@@ -123,9 +124,10 @@ def connect(address: str | None, runtime_env: dict) -> bool:
                                   "'ray start --head', or give its address as HOST:PORT)") from None
         with contextlib.suppress(Exception):
             ray.shutdown()
+        port = "its Ray Client server port (10001 by default)" if kind == "client" else \
+            "the head's GCS port (6379 by default)"
         raise RayConnectError(f"{what}: the Ray cluster there did not accept this driver ({_first(exc)}); "
-                              f"{token_hint()}, and the address must be the head's GCS port (6379 by "
-                              "default)") from None
+                              f"{token_hint()}, and the address must be {port}") from None
     except ValueError as exc:  # Ray's own address checks
         raise RayConnectError(f"{what}: {_first(exc)}; give {FORMS}") from None
     return True
@@ -136,4 +138,5 @@ def _first(exc: BaseException) -> str:
     return text.splitlines()[0].rstrip(".") if text else type(exc).__name__
 
 
-__all__ = ["bound_gcs_connection", "GCS_ENV", "PROBE_S", "RayConnectError", "check_address", "connect", "parse_host_port", "probe"]
+__all__ = ["GCS_ENV", "PROBE_S", "RayConnectError", "bound_gcs_connection", "check_address", "connect",
+           "parse_host_port", "probe"]
