@@ -38,12 +38,19 @@ Parts (each prints its counts; the totals come last):
    a clip that validates (each counts as a fault survived).
 8. **Full filesystem**: the training cache on a 1 MB tmpfs (root mounts one; otherwise only the simulated case) and
    a simulated ENOSPC from ``posix_fallocate`` must stop training with one line (exit 2), no SIGBUS and no stray
-   temporary file.
+   temporary file; a disk that fills while ``render`` or ``dataset`` writes (an 8 MB tmpfs filled after the first
+   frame) must give a line naming the file and leave no temporary file.
 9. **Huge specs and non-finite values** (``HUGE_AND_NONFINITE``, part ``huge``): specs of a million clips
    (seeds, clips per asset/scene), samples above Cycles' cap, inf/nan floats, a test asset in a train source, a
    million frames, an LR frame under 4 px: each refused in one line within ``RUNAWAY_S`` seconds; NaN/Inf in the
    ground truth or an LR input, and negative LR radiance, refused by ``evaluate`` (and ``train``) naming the file in
-   validate's words; NaN/Inf in an LR input: ``upscale`` warns and writes finite EXRs.
+   validate's words; NaN/Inf in an LR input: ``upscale`` warns and writes finite EXRs. Issue 43's bad inputs: spec ``scales = []``, a spec key
+   of the wrong type (the spec named once), ``regions = "axb"`` (echoed as written), ``preview --splits bogus``
+   and ``--width 100000`` (checked against memory), ``--camera-path fly`` on a mesh of zero extent, and Ray
+   addresses that are malformed, Ray Client or where nothing listens (a runaway before).
+10. **Signals during a dataset** (part ``dsignals``, two rounds): SIGINT to the process group, then to the
+   coordinator alone, after a dataset's first frame must stop it with exit 130 within ``DATASET_STOP_S`` (10 s),
+   leave no clip process and start no further clip; the rerun must finish a dataset that validates.
 
 ``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -455,6 +462,50 @@ def _eval_json_finite(path: Path) -> str | None:
     return None
 
 
+def _preview_ds(fx: Fixtures) -> Path:
+    """A dataset index of three 64x32 clips (no clip folders) for the ``preview`` cases."""
+    d = fx.root / "preview_ds"
+    if not (d / "dataset.json").is_file():
+        d.mkdir(exist_ok=True)
+        clips = [{"id": f"c{i}", "path": f"clips/c{i}", "split": "train", "state": "done", "frames_planned": 2,
+                  "render": {"hr_size": [64, 32]}} for i in range(3)]
+        (d / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "name": "p",
+                                                    "seed": 0, "splits": {}, "clips": clips}))
+    return d
+
+
+def _zero_extent_glb(fx: Fixtures) -> Path:
+    """A glTF whose only mesh is one triangle collapsed to a point."""
+    p = fx.root / "zero_extent.glb"
+    if not p.is_file():
+        import numpy as np
+        import trimesh
+        trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False).export(p)
+    return p
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ray(fx: Fixtures, name: str, address: str) -> list[str]:
+    return ["dataset", str(_spec_file(fx, name, 'name = "b"\nkind = "builtin"\nseeds = "0:0"\n')), "-o",
+            str(fx.root / f"ds_{name}"), "--executor", "ray", "--address", address, "--no-progress"]
+
+
+def _names_once(path_of):
+    """A check: the error names ``path_of(fx)`` exactly once."""
+    return lambda f, code, err: (None if err.count(str(path_of(f))) == 1 else
+                                 f"the error names {path_of(f)} {err.count(str(path_of(f)))} times")
+
+
+def _says(*words):
+    return lambda f, code, err: next((f"the error does not say {w!r}" for w in words if w not in err), None)
+
+
 #: name, argv(fx), expected exit codes, quick, in-process, extra check(fx, code, stderr) -> problem or None.
 HUGE_AND_NONFINITE = [
     # huge specs: refused in one line, at once (before anything is expanded, built or rendered)
@@ -515,6 +566,31 @@ HUGE_AND_NONFINITE = [
             c, 1, "lr/radiance", lambda a: _set(a, (2, 2, 2), float("inf"))))), "-o", str(f.root / "n5")],
      (0,), False, True, lambda f, code, err: ("no warning" if "warning:" not in err else
                                              _sr_finite(f.root / "n5"))),
+    # issue 43 (reliability 3): bad input that was a traceback, an echo of None, a path printed twice, a runaway
+    ("spec: scales = []", lambda f: _ds(f, "scales0", 'kind = "builtin"\nseeds = "0:0"\n', "scales = []\n"),
+     (2,), True, True, _says("render.scales = []")),
+    ("spec: hr_size given as a number (names the spec once)", lambda f: _ds(
+        f, "hrnum", 'kind = "builtin"\nseeds = "0:0"\n', "hr_size = 5\n"), (2,), True, True,
+     _names_once(lambda f: f.root / "hrnum.toml")),
+    ("spec: regions = \"axb\" (echoed as written)", lambda f: (_asset_dir(f), _ds(
+        f, "regions", 'kind = "scene"\npaths = ["assets"]\nregions = "axb"\n'))[1], (2,), True, True,
+     _says("regions = 'axb'")),
+    ("preview: --splits bogus", lambda f: ["preview", str(_preview_ds(f)), "-o", str(f.root / "p1.png"),
+                                           "--splits", "bogus"], (2,), True, True,
+     _says("unknown split 'bogus'", "train, val, test")),
+    ("preview: --width 100000 (checked against memory)", lambda f: [
+        "preview", str(_preview_ds(f)), "-o", str(f.root / "p2.png"), "--width", "100000"], (2,), True, True,
+     _says("of memory")),
+    ("render: --camera-path fly on a mesh of zero extent", lambda f: _r(
+        str(_zero_extent_glb(f)), "-o", str(f.root / "z1"), "--camera-path", "fly", "--light", "sky", "--hr-size",
+        "64x36", "--frames", "1:2", "--hr-spp", "1", "--threads", "1"), (2,), False, False, _says("zero extent")),
+    ("dataset: Ray address not HOST:PORT", lambda f: _ray(f, "raybad", "not an address"), (2,), False, False,
+     _says("--address not an address")),
+    ("dataset: Ray Client address (ray://) with nothing there", lambda f: _ray(f, "rayclient",
+                                                                               "ray://127.0.0.1:1"),
+     (2,), False, False, _says("--address ray://127.0.0.1:1")),
+    ("dataset: Ray address with nothing listening (a runaway before)", lambda f: _ray(
+        f, "raynone", f"127.0.0.1:{_free_port()}"), (2,), False, False, _says("--address 127.0.0.1:")),
 ]
 
 
@@ -1249,6 +1325,96 @@ def signal_render(root: Path, tally: Tally, signals: int, rng: random.Random, fr
             f"{'valid' if rep is not None and rep.ok else 'INVALID'}")
 
 
+#: Ctrl-C must stop ``blendsr dataset`` within this many seconds (issue 43).
+DATASET_STOP_S = 10.0
+
+DATASET_SIGNAL_SPEC = """[dataset]
+name = "ctrlc"
+seed = 1
+[render]
+frames = 2
+hr_size = "64x32"
+hr_spp = 1
+lr_spp = 1
+gbuffer_spp = 1
+hr_denoise = false
+[[source]]
+name = "builtin"
+kind = "builtin"
+seeds = "0:2"
+cameras = ["scene"]
+"""
+
+
+def _children_of(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(d.name))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def signal_dataset(root: Path, tally: Tally, rng: random.Random, rounds: int = 2, log=print) -> None:
+    """Part 10 (issue 43): SIGINT to the process group (a terminal's Ctrl-C; even rounds) or to the coordinator
+    alone (odd rounds) at a random moment after a dataset's first frame: exit 130 within ``DATASET_STOP_S``, no
+    clip process left, no clip started after it; the rerun finishes every clip and the dataset validates."""
+    work = root / "dataset_signals"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    spec = work / "spec.toml"
+    spec.write_text(DATASET_SIGNAL_SPEC)
+    for r in range(rounds):
+        out = work / f"ds{r}"
+        proc = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "dataset", str(spec), "-o", str(out),
+                                 "--threads", "1", "--no-progress"], cwd=REPO, env=ENV, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True, start_new_session=True)
+        t0 = time.perf_counter()
+        while not list(out.glob("clips/*/frames/*.json")) and proc.poll() is None and time.perf_counter() - t0 < 300:
+            time.sleep(0.02)
+        time.sleep(rng.uniform(0.0, 0.5))
+        children = _children_of(proc.pid)
+        started = {p.name for p in (out / "clips").iterdir()} if (out / "clips").is_dir() else set()
+        t1 = time.perf_counter()
+        if proc.poll() is None:
+            (os.killpg if r % 2 == 0 else os.kill)(proc.pid, signal.SIGINT)
+        try:
+            rc = proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            rc = None
+        took = time.perf_counter() - t1
+        err = proc.stderr.read()
+        tally.faults += 1
+        problems = []
+        if rc != 130 or TRACEBACK in err:
+            tally.tracebacks += int(TRACEBACK in err)
+            problems.append(f"exit {rc}: {err.strip()[-200:]}")
+        if took > DATASET_STOP_S:
+            problems.append(f"stopped after {took:.1f} s")
+        if any(Path(f"/proc/{c}").exists() and "Z" not in Path(f"/proc/{c}/stat").read_text().rsplit(")", 1)[1][:3]
+               for c in children):
+            problems.append("a clip process outlived the coordinator")
+        later = {p.name for p in (out / "clips").iterdir()} - started if (out / "clips").is_dir() else set()
+        if later:
+            problems.append(f"clips started after Ctrl-C: {sorted(later)}")
+        done = cli(["dataset", str(spec), "-o", str(out), "--threads", "1", "--no-progress"])
+        valid = cli(["validate", str(out), "--quick", "--no-progress"]) if done.returncode == 0 else None
+        if valid is None or valid.returncode != 0:
+            tally.corrupt_clips += 1
+            problems.append(f"the rerun did not finish a valid dataset: {(done.stderr or '').strip()[-200:]}")
+        for pr in problems:
+            tally.fail(f"dataset signals round {r} ({'group' if r % 2 == 0 else 'coordinator'}): {pr}")
+        tally.faults_survived += int(not problems)
+        log(f"  {'FAIL' if problems else 'ok  '} dataset signals round {r}: SIGINT to the "
+            f"{'group' if r % 2 == 0 else 'coordinator'} -> exit {rc} in {took:.1f} s")
+
+
 # -------------------------------------------------------------------------------------------- full filesystem
 def full_filesystem(fx: Fixtures, tally: Tally, log=print) -> None:
     """Part 8 (see module doc)."""
@@ -1292,12 +1458,48 @@ def full_filesystem(fx: Fixtures, tally: Tally, log=print) -> None:
             tally.fail("full filesystem: a temporary cache file stayed behind on the tmpfs")
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
+    spec = work / "spec.toml"
+    spec.write_text(DATASET_SIGNAL_SPEC)
+    for name, argv, expect in (
+            ("render", ["render", "-o", str(mnt / "clip"), *render_args(4)], (2,)),
+            ("dataset", ["dataset", str(spec), "-o", str(mnt / "ds"), "--threads", "1", "--no-progress"], (1, 2))):
+        if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)],
+                          capture_output=True).returncode:
+            return
+        try:
+            code, err = _filled_during(argv, mnt)
+            label = f"full filesystem: the disk fills during {name} (issue 43)"
+            if _outcome(tally, label, code, err, expect, log=log) and \
+                    "no space left on device" in err and f"{mnt}/" not in err:
+                tally.fail(f"{label}: the error names no file: {err.strip()[-200:]}")
+            left = [str(p) for p in mnt.rglob("*") if ".tmp" in p.name]
+            if left:
+                tally.fail(f"{label}: temporary files stayed behind: {left[:3]}")
+        finally:
+            subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def _filled_during(argv: list[str], mnt: Path) -> tuple[int, str]:
+    """Run ``blendsr ARGV`` and fill the file system ``mnt`` once its first frame is written: (exit, stderr)."""
+    proc = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", *argv], cwd=REPO, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.perf_counter()
+    while not list(mnt.glob("**/frames/*.json")) and proc.poll() is None and time.perf_counter() - t0 < 300:
+        time.sleep(0.02)
+    with open(mnt / "filler", "wb") as f:
+        with contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 65536)
+                f.flush()
+    out, err = proc.communicate(timeout=600)
+    (mnt / "filler").unlink()
+    return proc.returncode, out + err
 
 
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
              parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs",
-                    "huge"),
+                    "huge", "dsignals"),
              signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
@@ -1333,6 +1535,9 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "fullfs" in parts:
         log("full filesystem:")
         full_filesystem(fx, tally, log=log)
+    if "dsignals" in parts and signals:
+        log("signals during a dataset:")
+        signal_dataset(out, tally, rng, rounds=2, log=log)
     return tally
 
 
@@ -1342,7 +1547,8 @@ def main(argv=None) -> int:
     p.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (render, train)")
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
-    p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge",
+    p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge,"
+                                      "dsignals",
                    help="comma-separated parts to run")
     p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
     p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "

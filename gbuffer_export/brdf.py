@@ -355,9 +355,18 @@ def split_sum_fbeta(c, metallic, f0_dielectric, a, b) -> np.ndarray:
     return (1.0 - m) * c + f0 * np.asarray(a)[..., None] + np.asarray(b)[..., None]
 
 
+#: Upper end of a table source's F_beta. The split-sum formula F = (1 - m) c + F0 A + B adds the diffuse albedo c
+#: to the specular albedo F0 A + B without the energy split of a layered BSDF (Cycles and ``model`` weight the
+#: diffuse by 1 - the specular albedo), so on a bright dielectric at grazing angles it exceeds 1: up to 1.9 for a
+#: white smooth one (B -> 1 as NoV -> 0). A directional albedo above 1 is not physical, and ``validate`` refuses
+#: F_beta above its ``fbeta_max`` (1.05): every table source clamps to 1, which is also the layered value for white.
+FBETA_MAX = 1.0
+
+
 def compute_fbeta(source: str, gbuf: dict[str, np.ndarray], intrinsics, jitter=(0.0, 0.0),
                   lut: Lut | None = None) -> np.ndarray:
-    """F_beta (H x W x 3 float32, finite, >= 0; 1.0 on background pixels) of a table source from G-buffers.
+    """F_beta (H x W x 3 float32, finite, in [0, FBETA_MAX]; 1.0 on background pixels) of a table source from
+    G-buffers.
 
     source: 'lut', 'lut-paper' or 'model' (see the module doc). gbuf: albedo (H x W x 3), normal (H x W x 3,
     camera space), roughness, metallic, specular (H x W x 1 each), optional flags (H x W x 1 uint32).
@@ -378,11 +387,12 @@ def compute_fbeta(source: str, gbuf: dict[str, np.ndarray], intrinsics, jitter=(
         a, b = table.lookup(nov, mat.roughness)
         f0d = mat.f0_dielectric if source == "lut" else np.full_like(mat.roughness, 0.04)
         f = split_sum_fbeta(mat.c, mat.metallic, f0d, a, b)
+    f = np.minimum(np.nan_to_num(f, nan=1.0, posinf=1.0, neginf=0.0), FBETA_MAX)  # see FBETA_MAX
     f = np.where(mat.background[..., None], 1.0, f)
-    return np.nan_to_num(f, nan=1.0, posinf=1.0, neginf=0.0).astype(np.float32)
+    return f.astype(np.float32)
 
 
-__all__ = ["LutSpec", "Lut", "CONVENTIONS", "SOURCES", "alpha_k", "hammersley", "integrate_ab", "generate_lut",
-           "lookup_table", "lookup_ab", "write_lut", "read_lut", "cache_dir", "cached_lut_path",
-           "load_or_generate_lut", "default_spec", "compute_nov", "compute_fbeta", "split_sum_fbeta", "material_from_gbuf",
-           "Material", "texel_centres"]
+__all__ = ["LutSpec", "Lut", "CONVENTIONS", "SOURCES", "FBETA_MAX", "alpha_k", "hammersley", "integrate_ab",
+           "generate_lut", "lookup_table", "lookup_ab", "write_lut", "read_lut", "cache_dir", "cached_lut_path",
+           "load_or_generate_lut", "default_spec", "compute_nov", "compute_fbeta", "split_sum_fbeta",
+           "material_from_gbuf", "Material", "texel_centres"]

@@ -122,9 +122,11 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:  # a full disk, an interrupt: no temporary is left behind
+    except BaseException as exc:  # a full disk, Ctrl-C: no temporary left behind; the error names the file
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
 
 

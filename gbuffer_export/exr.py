@@ -49,9 +49,22 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], *, half:
         with OpenEXR.File(header, out) as f:
             f.write(str(tmp))
         os.replace(tmp, path)
+    except RuntimeError as exc:  # OpenEXR's write errors: a full disk names the file, as an OSError would
+        raise write_error(path, exc) from None
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def write_error(path: Path, exc: RuntimeError) -> Exception:
+    """OpenEXR's RuntimeError of a failed write as the error to raise: an OSError naming ``path`` when its message
+    is a filesystem fault the user can fix (``errors.FILESYSTEM_ERRNOS``: a full disk, a quota), else ExrError."""
+    from .errors import FILESYSTEM_ERRNOS, first_line
+    text = first_line(exc)
+    for eno in FILESYSTEM_ERRNOS:
+        if os.strerror(eno).lower() in text.lower():
+            return OSError(eno, os.strerror(eno), str(path))
+    return ExrError(f"{path}: could not write the EXR ({text})")
 
 
 def read_exr_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -137,6 +137,14 @@ def free_disk(path: Path) -> int | None:
         return None
 
 
+def check_memory(need: int, what: str, fix: str, *, memory: int | None = None) -> None:
+    """Raise ResourceError ('WHAT needs about N of memory and M is available; FIX') when an allocation of ``need``
+    bytes exceeds the available memory (``available_memory``), before it is made."""
+    memory = available_memory() if memory is None else memory
+    if memory is not None and need > memory:
+        raise ResourceError(f"{what} needs about {human(need)} of memory and {human(memory)} is available; {fix}")
+
+
 def check_render_resources(hr_size: tuple[int, int], scale, buffers, frames: int, output: Path,
                            *, memory: int | None = None, disk: int | None = None, scene_bytes: int = 0,
                            scene: str | None = None) -> RenderEstimate:

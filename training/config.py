@@ -399,7 +399,7 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
     """Read a TOML config (None: defaults) and apply ``section.key=value`` overrides (``model.NAME.key=value`` for a
     model's own option; values in TOML syntax; bare words are taken as strings)."""
     data: dict = {}
-    source = "defaults"
+    source = "--set" if overrides else "defaults"  # what an error names: the file, else the --set values
     if path:
         p = Path(path)
         if not p.is_file():

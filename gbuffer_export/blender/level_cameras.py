@@ -40,6 +40,13 @@ WALKABLE_COS = math.cos(math.radians(45.0))  # a surface within 45 degrees of ho
 LEVEL_KINDS = ("walk", "fly")
 
 
+#: Blender keys the camera and records its matrices in 32-bit floats, and Embree casts rays in 32 bits: a planned
+#: step may change by at most this fraction of its length when its eyes are rounded to float32, or the rendered
+#: motion is not the planned one (validate allows the declared speed + 2%). Far from the scene's origin a float32
+#: position is coarse (0.5 m at 5000 km): a level whose allowed region lies that far is refused before planning.
+FLOAT32_STEP_TOLERANCE = 0.01
+
+
 class PathError(BlendSRError):
     """No path meets the rules (one line naming the level and the rule that failed most)."""
 
@@ -312,6 +319,39 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     return (eyes, eyes + np.array(looks)), None
 
 
+def float32_step_error(eyes: np.ndarray) -> float:
+    """The largest relative change of a step's length between consecutive eyes when they are rounded to float32
+    (what Blender stores); 0 for a path that does not move."""
+    e = np.asarray(eyes, np.float64)
+    d64 = np.linalg.norm(np.diff(e, axis=0), axis=1)
+    d32 = np.linalg.norm(np.diff(e.astype(np.float32).astype(np.float64), axis=0), axis=1)
+    moving = d64 > 0
+    return float(np.max(np.abs(d32[moving] - d64[moving]) / d64[moving])) if moving.any() else 0.0
+
+
+def check_level_scale(geom: LevelGeometry, kind: str, fps: float, region: Region, rules: PathRules) -> None:
+    """Refuse, before planning, a level where no ``kind`` path can move as declared: one whose allowed region
+    lies so far from the origin that float32 positions there are coarser than ``FLOAT32_STEP_TOLERANCE`` of a
+    step (``speed / fps``), or whose content is smaller than a camera's clearance. PathError naming the numbers
+    in metres."""
+    mpu = geom.metres_per_unit
+    speed = rules.walk_speed_mps if kind == "walk" else rules.fly_speed_mps
+    step = geom.units(speed) / fps
+    lo, hi = np.array(region.lo, np.float64), np.array(region.hi, np.float64)
+    z_lo, z_hi = geom.bounds()[0][2], geom.bounds()[1][2]
+    nearest = np.abs(np.append(np.clip(0.0, lo, hi), np.clip(0.0, z_lo, z_hi)))  # the region's point nearest 0
+    ulp = float(np.spacing(np.float32(nearest.max())))
+    if not math.isfinite(ulp) or ulp > FLOAT32_STEP_TOLERANCE * step:
+        raise PathError(f"{kind} path: the level's allowed region lies {nearest.max() * mpu:.4g} m from the scene's "
+                        f"origin, where Blender's 32-bit positions are {ulp * mpu:.3g} m apart, too coarse for "
+                        f"steps of {step * mpu:.3g} m a frame ({speed:g} m/s at {fps:g} fps); move the level "
+                        "towards the origin or check its unit scale")
+    extent_m = geom.extent * mpu
+    if extent_m < 4 * rules.clearance_m:
+        raise PathError(f"{kind} path: the level's content is {extent_m:.3g} m across, too small to hold a camera "
+                        f"that keeps {rules.clearance_m:g} m from every surface (is its unit scale right?)")
+
+
 def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, hfov: float,
                     vfov: float, region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
     """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
@@ -321,6 +361,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
     if region is None:
         lo, hi = geom.content_bounds()
         region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+    check_level_scale(geom, kind, fps, region, rules)
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, LEVEL_KINDS.index(kind), 7])
     reasons: dict[str, int] = {}
     found: list[LevelPath] = []
@@ -333,7 +374,9 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
         vs = view_stats(geom, eyes, targets, hfov, vfov)
         extent_m = geom.extent * geom.metres_per_unit
         why = None
-        if vs["background"].max() > rules.max_background:
+        if float32_step_error(eyes) > FLOAT32_STEP_TOLERANCE:
+            why = "moves by less than Blender's 32-bit positions resolve here (too far from the origin)"
+        elif vs["background"].max() > rules.max_background:
             why = "looks at the sky or background"
         elif vs["median_depth_m"].min() < rules.min_view_depth_m:
             why = "stares at a surface closer than min_view_depth_m"

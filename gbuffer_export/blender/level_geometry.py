@@ -27,6 +27,10 @@ from ..errors import BlendSRError
 GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "SURFACE", "META", "FONT"})
 
 
+class LevelGeometryError(BlendSRError):
+    """A level whose triangles cannot hold a camera path (none, or none of non-zero area)."""
+
+
 def _ray_engine(mesh):
     try:
         from trimesh.ray.ray_pyembree import RayMeshIntersector
@@ -51,10 +55,13 @@ class LevelGeometry:
         self.vertices = np.asarray(self.vertices, np.float64)
         self.faces = np.asarray(self.faces, np.int64)
         if len(self.faces) == 0:
-            raise BlendSRError("the level has no renderable triangles")
+            raise LevelGeometryError("the level has no renderable triangles")
         owner = np.zeros(len(self.faces), np.int64) if self.owner is None else np.asarray(self.owner, np.int64)
         self.mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         keep = self.mesh.area_faces > 0
+        if not keep.any():  # every triangle collapsed to a line or a point (a mesh scaled to zero)
+            raise LevelGeometryError(f"the level has no triangle of non-zero area (all {len(self.faces)} are "
+                               "degenerate: a mesh of zero extent), so no camera path can be planned in it")
         if not keep.all():  # degenerate triangles have no normal and break Embree's winding test
             self.mesh = trimesh.Trimesh(self.vertices, self.faces[keep], process=False)
             owner = owner[keep]

@@ -127,12 +127,13 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
     """The clip's camera and its report for the manifest (the planned path's rules and measurements)."""
     if uses_level_camera(cfg):
         from .level_cameras import PathError, PathRules
+        from .level_geometry import LevelGeometryError
         from .scene_setup import make_level_camera
         try:
             rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
                                      region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale)
-        except PathError as exc:
+        except (PathError, LevelGeometryError) as exc:
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
                               "framed by camera_path orbit", key="camera_path") from None
     if cfg.camera_path in ("orbit", "walk"):

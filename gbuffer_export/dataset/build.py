@@ -11,10 +11,13 @@ Layout::
 Only this coordinator writes ``dataset.json`` (atomically, after every clip); a second coordinator on the same
 folder is refused. Every run recomputes each clip's state from its folder, so a run killed at any moment (kill -9
 included) resumes: finished clips are skipped, partial clips resume at their first missing frame, and at most the
-frames in flight are rendered again. Worker processes die with the coordinator (Linux parent-death signal).
+frames in flight are rendered again. Worker processes die with the coordinator (Linux parent-death signal). Ctrl-C
+(SIGINT to the process group or to the coordinator alone) starts no further clip, stops the clip processes in
+flight (``ChildProcesses.stop``; Ray tasks are cancelled) and exits within seconds; the rerun resumes.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -41,6 +44,8 @@ SCHEMA = "blendsr-dataset"
 SCHEMA_VERSION = 1
 STATES = ("pending", "partial", "done", "failed")
 EXECUTORS = ("local", "ray")
+#: Seconds a clip process has to stop after Ctrl-C before it is killed (``ChildProcesses.stop``).
+STOP_GRACE_S = 4.0
 
 
 class DatasetError(BlendSRError):
@@ -72,6 +77,12 @@ class RunOptions:
             raise SpecError(f"--threads {self.threads}: must be >= 0")
         if self.blender and self.executor != "local":
             raise SpecError(f"a Blender executable ({self.blender}) renders clips on the local executor only")
+        if self.executor == "ray" and self.address is not None:  # its form, before anything is written
+            from .ray_cluster import check_address
+            try:
+                check_address(self.address)
+            except ImportError:  # no Ray: _ray_map names the extra
+                pass
 
     def clip_threads(self) -> int:
         """Cycles threads of each clip. ``threads`` 0 means: locally, this machine's cores divided by ``workers``;
@@ -253,28 +264,94 @@ def job_command(job_path: Path, clip_dir: Path, threads: int, device: str = "aut
     return [sys.executable, "-m", "gbuffer_export.blender.dataset_job", *args]
 
 
+class ChildProcesses:
+    """The clip processes this coordinator runs, so that Ctrl-C stops them: ``stop`` refuses new ones and ends the
+    running ones (SIGINT, which a worker answers by stopping after its render pass, or at once when it had one
+    from the terminal already; SIGKILL for any still running ``grace`` seconds later). Frames are written
+    atomically, so a killed worker loses at most its frame in flight, as after kill -9."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._procs: set[subprocess.Popen] = set()
+        self.stopping = False
+
+    def run(self, cmd: list[str], **kw) -> int | None:
+        """Run ``cmd`` to its end and return its exit code; None (nothing started) once ``stop`` was called."""
+        with self._lock:
+            if self.stopping:
+                return None
+            proc = subprocess.Popen(cmd, **kw)
+            self._procs.add(proc)
+        try:
+            return proc.wait()
+        finally:
+            with self._lock:
+                self._procs.discard(proc)
+
+    def stop(self, grace: float = STOP_GRACE_S) -> None:
+        """Start no more processes and end the running ones within about ``grace`` seconds (a second Ctrl-C
+        meanwhile kills them at once)."""
+        with self._lock:
+            self.stopping = True
+            procs = list(self._procs)
+        hurry = threading.Event()
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGINT, lambda *_: hurry.set())
+        try:
+            for p in procs:
+                with contextlib.suppress(ProcessLookupError):
+                    p.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + grace
+            while any(p.poll() is None for p in procs) and time.monotonic() < deadline and not hurry.is_set():
+                time.sleep(0.05)
+            for p in procs:
+                if p.poll() is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        p.kill()
+                    p.wait()
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
+
+    def reset(self) -> None:
+        with self._lock:
+            self.stopping = False
+
+
+#: The clip processes of this coordinator (``run_job_process``).
+CHILDREN = ChildProcesses()
+
+
 def run_job_process(job_path: str, clip_dir: str, log_path: str, threads: int,
                     cpu: int | None = None, device: str = "auto", blender: str = "") -> tuple[int, str]:
     """Render one clip in a child process (on core ``cpu`` when given and ``threads`` is 1; with Blender's
-    executable ``blender`` when given: ``job_command``); returns (exit code, the last line of its stderr)."""
+    executable ``blender`` when given: ``job_command``); returns (exit code, the last line of its stderr): exit
+    code 130 without starting it once the coordinator is stopping (``CHILDREN.stop``)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if cpu is not None:
         env["BLENDSR_CPU"] = str(cpu)
     repo = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    if CHILDREN.stopping:
+        return 130, "interrupted"
     with open(log_path, "w") as log:
-        proc = subprocess.run(job_command(Path(job_path), Path(clip_dir), threads, device, blender),
-                              stdout=subprocess.DEVNULL, stderr=log, env=env,
-                              preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+        rc = CHILDREN.run(job_command(Path(job_path), Path(clip_dir), threads, device, blender),
+                          stdout=subprocess.DEVNULL, stderr=log, env=env,
+                          preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+    if rc is None:
+        return 130, "interrupted"
     lines = [ln for ln in Path(log_path).read_text(errors="replace").splitlines()
              if ln.strip() and not ln.startswith(("render:", "\r"))]
     err = next((ln for ln in reversed(lines) if "error" in ln.lower()), lines[-1] if lines else "")
-    return proc.returncode, err.strip()
+    return rc, err.strip()
 
 
 def _local_map(todo, run_one, workers: int, on_done) -> None:
-    """Run ``run_one(job, slot)`` for every job on ``workers`` threads, each holding one slot 0..workers-1."""
+    """Run ``run_one(job, slot)`` for every job on ``workers`` threads, each holding one slot 0..workers-1. On
+    Ctrl-C (KeyboardInterrupt in this thread) no further job starts, the running clip processes are stopped
+    (``CHILDREN.stop``) and the KeyboardInterrupt goes on."""
     import queue
     slots: queue.Queue = queue.Queue()
     for k in range(workers):
@@ -287,13 +364,20 @@ def _local_map(todo, run_one, workers: int, on_done) -> None:
         finally:
             slots.put(k)
 
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    CHILDREN.reset()
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
         futures = {pool.submit(with_slot, j): j for j in todo}
         pending = set(futures)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in done:
                 on_done(futures[fut], *fut.result())
+    except BaseException:
+        CHILDREN.stop()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def fit_ray_threads(nodes: list, threads: int, explicit: bool, address: str | None) -> int:
@@ -319,16 +403,15 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
              device: str = "auto") -> None:
     if not todo:
         return
+    from .ray_cluster import bound_gcs_connection, connect
+    bound_gcs_connection(address)
     try:
         import ray
     except ImportError:
         from ..extras import install_hint
         raise SpecError(f"--executor ray needs the 'ray' package: {install_hint('cluster')}") from None
-    started = False
-    if not ray.is_initialized():
-        ray.init(address=address or "local", include_dashboard=False, log_to_driver=False,
-                 runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
-        started = True
+    started = connect(address, {"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[2])}})
+    refs: dict = {}
     try:
         threads = fit_ray_threads(ray.nodes(), threads, explicit, address)
         remote = ray.remote(num_cpus=max(1, threads))(run_job_process)
@@ -343,6 +426,11 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
                 except Exception as exc:  # noqa: BLE001 - a lost worker node: record and go on
                     rc, err = 1, f"ray task failed: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                 on_done(refs[r], rc, err)
+    except KeyboardInterrupt:  # Ctrl-C: the tasks still queued or running are cancelled (their clip processes
+        for r in refs:         # die with their Ray worker: parent-death signal)
+            with contextlib.suppress(Exception):
+                ray.cancel(r, force=True)
+        raise
     finally:
         if started:
             ray.shutdown()
@@ -419,6 +507,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
     root.mkdir(parents=True, exist_ok=True)
     lock = FolderLock(root, "another 'blendsr dataset' is running on this folder")
     try:
+        remove_stale_temporaries(root)
         for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
             for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
                 check_no_links(root, root / sub)
@@ -470,18 +559,48 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                                    opts.blender)
 
         t0 = time.perf_counter()
-        if opts.executor == "local":
-            _local_map(todo, run_one, opts.workers, on_done)
-        else:
-            _ray_map(todo, root, threads, opts.address, on_done, explicit=bool(opts.threads), device=opts.device)
-        if bar is not None:
-            bar.close()
+        try:
+            if opts.executor == "local":
+                _local_map(todo, run_one, opts.workers, on_done)
+            else:
+                _ray_map(todo, root, threads, opts.address, on_done, explicit=bool(opts.threads),
+                         device=opts.device)
+        except KeyboardInterrupt:  # Ctrl-C: the clip processes are stopped; the index says what is left
+            _record_states(root, jobs, index)
+            raise
+        finally:
+            if bar is not None:
+                bar.close()
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,
                              "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1)}
         write_json_atomic(root / INDEX, index)
         return index
     finally:
         lock.close()
+
+
+def _record_states(root: Path, jobs: list[ClipJob], index: dict) -> None:
+    """After an interrupted run: each clip's state and finished frames as its folder has them, in the index
+    (another Ctrl-C meanwhile leaves the previous index, which the next run recomputes anyway)."""
+    by_id = {e["id"]: e for e in index["clips"]}
+    for j in jobs:
+        state, n = clip_state(root / "clips" / j.id, j.render["frames"])
+        e = by_id[j.id]
+        if e["state"] != "failed" or state == "done":
+            e.update(state=state, frames_done=n)
+    write_json_atomic(root / INDEX, index)
+
+
+def remove_stale_temporaries(root: Path) -> None:
+    """The temporary files of an earlier coordinator that was killed or met a full disk while writing the index
+    or a job (``.NAME.tmpPID``; ``write_json_atomic``): removed, this run holding the folder's lock."""
+    for folder in (root, root / "jobs"):
+        if not folder.is_dir() or folder.is_symlink():
+            continue
+        for tmp in folder.glob(".*.json.tmp*"):
+            if tmp.name.rsplit(".tmp", 1)[1].isdigit() and (tmp.is_file() or tmp.is_symlink()):
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
 
 
 def summary(index: dict) -> str:

@@ -202,21 +202,26 @@ def _render_settings(base: RenderSettings, table: dict, where: str, spec_path) -
             continue
         v, path = table[k], f"{where}.{k}"
         if k == "hr_size":
+            v = _typed(v, str, path, spec_path)  # a SpecError naming the file once
             try:
-                v = parse_size(_typed(v, str, path, spec_path))
+                v = parse_size(v)
             except ConfigError as exc:
                 raise SpecError(f"{spec_path}: {where}.{exc}", key=path) from None
         elif k == "buffers":
             if isinstance(v, list):
                 v = ",".join(_typed(x, str, path, spec_path) for x in v)
+            v = _typed(v, str, path, spec_path)
             try:
-                v = parse_buffer_list(_typed(v, str, path, spec_path))
+                v = parse_buffer_list(v)
             except (KeyError, ValueError) as exc:
                 raise SpecError(f"{spec_path}: {path}: {str(exc).strip(chr(39))}", key=path) from None
         else:
             v = _typed(v, spec[k][0], path, spec_path, spec[k][1])
         out[k] = v
     out = dataclasses.replace(base, **out)
+    if out.scales is not None and len(out.scales) == 0:
+        raise SpecError(f"{spec_path}: {where}.scales = []: list the clip's LR scales, its scale first (e.g. "
+                        f"scales = [{out.scale}, 2]), or leave the key out for one level", key=f"{where}.scales")
     if out.scales is not None and len(out.scales) == 1 and float(out.scales[0]) == float(out.scale):
         out = dataclasses.replace(out, scales=None)  # one level: the same clip as without the key
     if out.scales is not None and float(out.scales[0]) != float(out.scale):
@@ -346,7 +351,8 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
 
 
 def _grid(v, where, spec_path) -> tuple[int, int]:
-    """'NxM', [N, M] or N (N x N)."""
+    """'NxM', [N, M] or N (N x N); SpecError echoing the value as written otherwise."""
+    given = v
     if isinstance(v, int) and not isinstance(v, bool):
         v = [v, v]
     elif isinstance(v, str):
@@ -356,7 +362,8 @@ def _grid(v, where, spec_path) -> tuple[int, int]:
             v = None
     if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
             and 1 <= v[0] <= 16 and 1 <= v[1] <= 16):
-        raise SpecError(f"{spec_path}: {where} {v!r}: expected 'NxM' (1 to 16 cells a side), e.g. \"3x3\"")
+        raise SpecError(f"{spec_path}: {where} = {given!r}: expected 'NxM' (1 to 16 cells a side), e.g. \"3x3\"",
+                        key=where)
     return v[0], v[1]
 
 

@@ -180,3 +180,26 @@ def _lut():
     if not _L:
         _L["t"] = generate_lut(LutSpec(size=16, samples=1024))
     return _L["t"]
+
+
+@pytest.mark.parametrize("source", ["lut", "lut-paper"])
+def test_a_bright_dielectric_at_grazing_angles_stays_within_what_validate_accepts(luts, source):
+    """The split-sum formula adds the diffuse albedo to the specular albedo without an energy split: on a white,
+    smooth dielectric seen at grazing angles it gave F_beta up to 1.9 (issue 43: 1.38 on a clip, above validate's
+    1.05). Table sources clamp to FBETA_MAX = 1 (docs/brdf.md); below it the formula is unchanged."""
+    from gbuffer_export.brdf import FBETA_MAX
+    from gbuffer_export.validate.options import ValidationOptions
+    table = luts["ibl" if source == "lut" else "paper"]
+    v = view_dirs(18, 32)
+    for nov in (0.02, 0.1, 0.3):
+        g = gbuf(c=(1.0, 1.0, 1.0), r=0.05, normal=normals_with_nov(v, nov))
+        nv = compute_nov(g["normal"], K).astype(np.float64)
+        a, b = table.lookup(nv, np.full_like(nv, 0.05))
+        raw = brdf.split_sum_fbeta(g["albedo"].astype(np.float64), np.zeros_like(nv),
+                              np.full_like(nv, 0.04), a, b)
+        assert raw.max() > 1.05  # what the formula gives here
+        f = compute_fbeta(source, g, K, lut=table)
+        assert f.max() <= FBETA_MAX <= ValidationOptions().fbeta_max
+        np.testing.assert_allclose(f, np.minimum(raw, 1.0), atol=1e-6)
+    dark = gbuf(c=(0.2, 0.2, 0.2), r=0.05, normal=normals_with_nov(v, 0.3))
+    assert compute_fbeta(source, dark, K, lut=table).max() < 1.0  # unclamped where the formula stays below 1

@@ -190,7 +190,7 @@ def test_train_prints_a_note_for_the_table_of_another_model(tmp_path, capsys):
     from gbuffer_export.cli import main
     code = main(["train", "--model", "fusesr-l", "-o", str(tmp_path / "run"), "--set", "model.rdg.demod=true"])
     err = capsys.readouterr().err
-    assert code == 2 and "note: defaults: [model.rdg] is not used (model.name is 'fusesr-l')" in err
+    assert code == 2 and "note: --set: [model.rdg] is not used (model.name is 'fusesr-l')" in err
     assert "no training clips" in err
 
 
