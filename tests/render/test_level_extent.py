@@ -11,11 +11,11 @@ import pytest
 
 pytest.importorskip("trimesh")
 
-from conftest import requires_bpy, run_cli  # noqa: E402
+from tests.conftest import requires_bpy, run_cli  # noqa: E402
 from gbuffer_export.blender.level_cameras import (FLOAT32_STEP_TOLERANCE, PathError, PathRules,  # noqa: E402
                                                   float32_step_error, plan_level_path)
 from gbuffer_export.blender.level_geometry import LevelGeometry, LevelGeometryError  # noqa: E402
-from test_level_cameras import FPS, HFOV, VFOV, _room  # noqa: E402
+from tests.render.test_level_cameras import FPS, HFOV, VFOV, _room  # noqa: E402
 
 
 def _scaled(scale: float, shift: float = 0.0) -> LevelGeometry:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ENV, REPO, requires_bpy
+from tests.conftest import ENV, REPO, requires_bpy
 from gbuffer_export.clip import write_json_atomic
 from gbuffer_export.dataset.build import ChildProcesses, read_index
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ENV, REPO
+from tests.conftest import ENV, REPO
 
 pytest.importorskip("ray")
 
