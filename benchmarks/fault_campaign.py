@@ -120,7 +120,7 @@ class Fixtures:
     """Files the bad inputs refer to, built once under ``root``."""
 
     def __init__(self, root: Path):
-        from gbuffer_export.synthetic import make_synthetic_clip
+        from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         self.clip = make_synthetic_clip(root / "clip", frames=range(1, 5), hr_size=(64, 36), scale=4)
@@ -1447,8 +1447,8 @@ def full_filesystem(fx: Fixtures, tally: Tally, log=print) -> None:
         log("  (no tmpfs: mounting needs root; the real full-filesystem case is skipped)")
         return
     try:
-        from gbuffer_export.synthetic import make_synthetic_clip
-        big = make_synthetic_clip(work / "big", frames=range(1, 5), hr_size=(256, 144), scale=4, hr_supersample=1)
+        from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
+        big = make_synthetic_clip(work / "big", frames=range(1, 5), hr_size=(256, 144), scale=4, look=SyntheticLook(hr_supersample=1))
         proc = cli(["train", "--model", "fusesr", "--data", str(big), "-o", str(work / "run"), "--max-steps", "1",
                     *sum((["--set", x] for x in TRAIN_SETS if not x.startswith("data.crop")), []),
                     "--set", f'data.cache_dir="{mnt}"'])

@@ -146,12 +146,14 @@ def check_memory(need: int, what: str, fix: str, *, memory: int | None = None) -
 
 
 def check_render_resources(hr_size: tuple[int, int], scale, buffers, frames: int, output: Path,
-                           *, memory: int | None = None, disk: int | None = None, scene_bytes: int = 0,
+                           *, available: tuple[int | None, int | None] = (None, None), scene_bytes: int = 0,
                            scene: str | None = None) -> RenderEstimate:
     """Raise ResourceError when the estimate (plus ``scene_bytes``, the scene's own geometry and textures in
-    Cycles) exceeds the available memory or the free disk; return it."""
+    Cycles) exceeds the available memory or the free disk; return it. ``available``: (memory, disk) in bytes to
+    check against instead of this machine's (None: measured)."""
     est = estimate_render(hr_size, scale, buffers, frames)
     w, h = hr_size
+    memory, disk = available
     memory = available_memory() if memory is None else memory
     if memory is not None and est.memory_bytes > memory:
         raise ResourceError(f"--hr-size {w}x{h}: rendering needs about {human(est.memory_bytes)} of memory and "

@@ -6,7 +6,9 @@ shading (fbeta = albedo), and the scene is static (motion and motion_next are pu
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -86,17 +88,30 @@ def _trace(width, height, k, world_from_camera, jitter):
     return {"depth": best, "normal_world": normal, "albedo": albedo, "radiance": radiance, "flags": flags}
 
 
+@dataclass(frozen=True)
+class SyntheticLook:
+    """How a synthetic clip is lit, filtered, declared and framed. HR radiance is supersampled ``hr_supersample``^2
+    times (anti-aliased); ``scene_linear`` is the working space the manifest declares (the values are the same
+    whatever it says); ``light`` multiplies the radiance (a scene lit in other units); ``exposure``: the render
+    setting ('auto' or a multiplier; 1 writes no ``exposure`` key, as ``blendsr render`` does); ``camera``:
+    t -> world_from_camera."""
+    hr_supersample: int = 2
+    scene_linear: str = "Linear Rec.709"
+    light: float = 1.0
+    exposure: str | float = 1.0
+    camera: Callable = camera_at
+
+
 def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), scale: float = 4,
-                        buffers=ALL_BUFFERS, jitter: bool = False, hr_supersample: int = 2,
-                        scene_linear: str = "Linear Rec.709", scales=None, light: float = 1.0,
-                        exposure: str | float = 1.0, camera=camera_at) -> Path:
-    """Write a complete synthetic clip to ``path`` and return it. HR radiance is supersampled
-    ``hr_supersample``^2 times (anti-aliased), LR radiance is point-sampled (optionally Halton-jittered).
-    ``scene_linear`` is the working space the manifest declares (the values are the same whatever it says).
-    ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``.
-    ``light`` multiplies the radiance (a scene lit in other units); ``exposure``: the render setting ('auto' or a
-    multiplier; 1 writes no ``exposure`` key, as ``blendsr render`` does). ``camera``: t -> world_from_camera."""
+                        buffers=ALL_BUFFERS, jitter: bool = False, scales=None,
+                        look: SyntheticLook = SyntheticLook()) -> Path:
+    """Write a complete synthetic clip to ``path`` and return it. LR radiance is point-sampled (optionally
+    Halton-jittered); ``scales`` (e.g. (2, 2.5, 4)): one LR level per scale, the first is 'lr'; None: ``(scale,)``;
+    ``look``: lighting, filtering, declared colour space and camera (``SyntheticLook``)."""
     from .conventions import halton_jitter
+
+    hr_supersample, scene_linear, light = look.hr_supersample, look.scene_linear, look.light
+    exposure, camera = look.exposure, look.camera
 
     w, h = hr_size
     scales = tuple(float(s) for s in (scales or (scale,)))

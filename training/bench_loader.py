@@ -66,7 +66,7 @@ def run(args) -> int:
     require("blendsr bench loader", "train")
     import torch
 
-    from gbuffer_export.synthetic import make_synthetic_clip
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
     from training.cache import ClipCache
     from training.config import DataConfig, LossConfig, ModelConfig
     from training.data import BatchSpec, TrainSampler
@@ -86,7 +86,7 @@ def run(args) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="blendsr-bench-loader-")
         t = time.perf_counter()
         clips = [str(make_synthetic_clip(Path(tmp.name) / "clip", frames=range(1, 9), hr_size=(512, 288),
-                                         scale=4, hr_supersample=1))]
+                                         scale=4, look=SyntheticLook(hr_supersample=1)))]
         print(f"synthetic clip 512x288 x4, 8 frames written in {time.perf_counter() - t:.1f} s")
     try:
         scales = {ClipCache(c).scale for c in clips}

@@ -309,12 +309,15 @@ def camera_with_clearance(scene, kind: str, frames: tuple[int, int], seed: int, 
     return cam, q
 
 
-def build_asset_scene(asset: Path, *, frames: tuple[int, int], resolution: tuple[int, int], seed: int,
-                      camera: str, hdri: str, hdri_rotation_deg: float, hdri_strength: float,
-                      target_size_m: float = 1.5, clutter=(), ground_plane: bool = True) -> tuple[object, dict]:
-    """A factory-empty scene with ``asset`` normalised at the origin, a seeded ground, the HDRI world, clutter and
-    a camera path with clearance. Returns (scene, info for the clip's manifest)."""
-    asset = Path(asset)
+def build_asset_scene(job, *, frames: tuple[int, int], resolution: tuple[int, int],
+                      ground_plane: bool = True) -> tuple[object, dict]:
+    """A factory-empty scene with the dataset job's asset (``gbuffer_export.dataset.spec.ClipJob``: ``asset``,
+    ``seed``, ``camera``, ``hdri``, ``hdri_rotation_deg``, ``hdri_strength``, ``target_size_m``, ``clutter``)
+    normalised at the origin, a seeded ground, the HDRI world, clutter and a camera path with clearance. Returns
+    (scene, info for the clip's manifest)."""
+    asset, seed, camera, hdri = Path(job.asset), job.seed, job.camera, job.hdri
+    hdri_rotation_deg, hdri_strength = job.hdri_rotation_deg, job.hdri_strength
+    target_size_m, clutter = job.target_size_m, job.clutter
     rng = random.Random(seed)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene

@@ -58,10 +58,7 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
     else:
         from .assets import build_asset_scene
         from .render import file_sha256
-        scene, extra = build_asset_scene(Path(job.asset), frames=frames, resolution=cfg.hr_size, seed=job.seed,
-                                         camera=job.camera, hdri=job.hdri, hdri_rotation_deg=job.hdri_rotation_deg,
-                                         hdri_strength=job.hdri_strength, target_size_m=job.target_size_m,
-                                         clutter=job.clutter)
+        scene, extra = build_asset_scene(job, frames=frames, resolution=cfg.hr_size)
         info = {"file": Path(job.asset).name, "sha256": file_sha256(Path(job.asset)), "builtin": None, **extra}
     info["dataset_clip"] = job.id
     info["licence"] = job.licence

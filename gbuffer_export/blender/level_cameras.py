@@ -352,10 +352,11 @@ def check_level_scale(geom: LevelGeometry, kind: str, fps: float, region: Region
                         f"that keeps {rules.clearance_m:g} m from every surface (is its unit scale right?)")
 
 
-def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, hfov: float,
-                    vfov: float, region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
+def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                    region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
     """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
-    ``rules.tries`` draws. ``hfov``/``vfov``: half angles of the camera in radians."""
+    ``rules.tries`` draws. ``fov``: the camera's (horizontal, vertical) half angles in radians."""
+    hfov, vfov = fov
     if kind not in LEVEL_KINDS:
         raise BlendSRError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
     if region is None:

@@ -130,7 +130,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     regions = level_regions(geom, region) if isinstance(region, dict) else [region]
     for k, reg in enumerate(regions):
         try:
-            path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, hfov, vfov, reg,
+            path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, (hfov, vfov), reg,
                                    rules or PathRules())
             break
         except PathError:

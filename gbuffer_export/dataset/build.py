@@ -451,7 +451,7 @@ def check_clip_resources(jobs, root: Path, spec_path) -> None:
         seen.add(key)
         try:
             check_render_resources(tuple(r["hr_size"]), scales, r["buffers"], r["frames"], root,
-                                   memory=1 << 62)
+                                   available=(1 << 62, None))
         except ResourceError as exc:
             raise ResourceError(f"{spec_path}: clip {j.id}: {exc}") from None
 

@@ -79,9 +79,9 @@ def test_conversion_matrices_match_published_ones():
 @pytest.fixture(scope="module")
 def acescg_clip(tmp_path_factory):
     """A synthetic clip whose manifest declares ACEScg (the stored values are what the generator writes)."""
-    from gbuffer_export.synthetic import make_synthetic_clip
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
     return make_synthetic_clip(tmp_path_factory.mktemp("acescg") / "clip", frames=(1, 2), hr_size=(32, 16),
-                               scale=4, scene_linear="ACEScg")
+                               scale=4, look=SyntheticLook(scene_linear="ACEScg"))
 
 
 def test_clip_read_converts_colour_buffers_only(acescg_clip):
@@ -110,10 +110,10 @@ def test_contact_sheet_shows_rec709_colours(tmp_path):
 
     from gbuffer_export.clip import open_clip
     from gbuffer_export.preview import contact_sheet
-    from gbuffer_export.synthetic import make_synthetic_clip
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
     sheet = {}
     for space in ("ACEScg", "Linear Rec.709"):
-        clip = make_synthetic_clip(tmp_path / space, frames=(1,), hr_size=(64, 36), scale=4, scene_linear=space)
+        clip = make_synthetic_clip(tmp_path / space, frames=(1,), hr_size=(64, 36), scale=4, look=SyntheticLook(scene_linear=space))
         sheet[space] = np.asarray(Image.open(contact_sheet(open_clip(clip), tmp_path / f"{space}.png")), np.int16)
     assert sheet["ACEScg"].shape == sheet["Linear Rec.709"].shape
     assert np.abs(sheet["ACEScg"] - sheet["Linear Rec.709"]).max() > 50
@@ -143,8 +143,8 @@ def test_training_cache_and_evaluation_see_the_training_space(acescg_clip, tmp_p
 
 def test_unknown_working_space_is_one_clear_error(tmp_path):
     from gbuffer_export.clip import ClipError, open_clip
-    from gbuffer_export.synthetic import make_synthetic_clip
-    path = make_synthetic_clip(tmp_path / "clip", frames=(1,), hr_size=(16, 8), scale=4, scene_linear="Filmic Log")
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
+    path = make_synthetic_clip(tmp_path / "clip", frames=(1,), hr_size=(16, 8), scale=4, look=SyntheticLook(scene_linear="Filmic Log"))
     with pytest.raises(ClipError, match=r"manifest\.json: scene_linear: working colour space 'Filmic Log'"):
         open_clip(path).read(1, "hr/radiance", space="Linear Rec.709")
     pytest.importorskip("torch")

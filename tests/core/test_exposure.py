@@ -16,7 +16,7 @@ from gbuffer_export.clip import buffer_path, open_clip
 from gbuffer_export.config import RenderConfig
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.exr import read_exr, write_exr
-from gbuffer_export.synthetic import make_synthetic_clip
+from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
 from gbuffer_export.typed_table import ConfigError
 from gbuffer_export.validate import validate_clip
 
@@ -26,8 +26,8 @@ HR = (64, 36)
 BRIGHT = 0.59
 
 
-def _clip(tmp_path, name="clip", **kw):
-    return make_synthetic_clip(tmp_path / name, frames=FRAMES, hr_size=HR, scale=4, **kw)
+def _clip(tmp_path, name="clip", **look):
+    return make_synthetic_clip(tmp_path / name, frames=FRAMES, hr_size=HR, scale=4, look=SyntheticLook(**look))
 
 
 def _scale_radiance(clip, factor):
@@ -48,7 +48,7 @@ def _hr_log_average(clip) -> float:
 def dim_auto(tmp_path_factory):
     """A scene lit in other units (radiance 1e-4 of the bright scene's), rendered with auto exposure."""
     return make_synthetic_clip(tmp_path_factory.mktemp("dim") / "clip", frames=FRAMES, hr_size=HR, scale=4,
-                               scales=(4, 2), light=1e-4, exposure="auto")  # NSS needs the 2x level
+                               scales=(4, 2), look=SyntheticLook(light=1e-4, exposure="auto"))  # NSS needs the 2x level
 
 
 # ------------------------------------------------------------------------------------------- the rule itself

@@ -15,7 +15,7 @@ from gbuffer_export.cli import main
 from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.conventions import BUFFERS, SCHEMA_VERSION, Flag
 from gbuffer_export.exr import read_exr, write_exr
-from gbuffer_export.synthetic import look_at, make_synthetic_clip
+from gbuffer_export.synthetic import SyntheticLook, look_at, make_synthetic_clip
 from gbuffer_export.validate import CODES, ERROR, WARNING, ValidationOptions, validate_clip
 
 FRAMES = (1, 2, 3)
@@ -224,8 +224,8 @@ def _ground_only(clip):
     """The clip replaced by one whose camera looks straight down at the ground from 1 unit: every frame shows one
     surface at about one depth."""
     shutil.rmtree(clip)
-    make_synthetic_clip(clip, frames=FRAMES, hr_size=HR, scale=SCALE, camera=lambda t: look_at(
-        np.array([20.0 + 0.05 * t, 1.0, 20.0]), np.array([20.0 + 0.05 * t, 0.0, 20.001])))
+    make_synthetic_clip(clip, frames=FRAMES, hr_size=HR, scale=SCALE, look=SyntheticLook(camera=lambda t: look_at(
+        np.array([20.0 + 0.05 * t, 1.0, 20.0]), np.array([20.0 + 0.05 * t, 0.0, 20.001]))))
 
 
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).

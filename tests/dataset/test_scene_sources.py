@@ -97,7 +97,7 @@ def test_render_config_takes_scene_files_cameras_lights_devices(level, tmp_path)
 
 def test_scene_memory_above_the_machine_is_refused_naming_the_scene(tmp_path):
     with pytest.raises(ResourceError, match=r"city.blend: its geometry and textures need about 40 GB"):
-        check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, memory=16 * 10**9, disk=10**12,
+        check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, available=(16 * 10**9, 10**12),
                                scene_bytes=40 * 10**9, scene="city.blend")
-    check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, memory=16 * 10**9, disk=10**12,
+    check_render_resources((64, 36), 4, ("radiance",), 1, tmp_path, available=(16 * 10**9, 10**12),
                            scene_bytes=10**9, scene="city.blend")

@@ -54,7 +54,7 @@ def room():
 
 @pytest.fixture(scope="module")
 def walks(room):
-    return [plan_level_path(room, "walk", 25, FPS, s, HFOV, VFOV) for s in range(3)]
+    return [plan_level_path(room, "walk", 25, FPS, s, (HFOV, VFOV)) for s in range(3)]
 
 
 def test_walk_eye_height_speed_turn_and_clearance(room, walks):
@@ -95,14 +95,14 @@ def test_views_have_content(room, walks):
 
 
 def test_same_seed_same_path_other_seed_differs(room, walks):
-    again = plan_level_path(room, "walk", 25, FPS, 0, HFOV, VFOV)
+    again = plan_level_path(room, "walk", 25, FPS, 0, (HFOV, VFOV))
     assert np.array_equal(again.eyes, walks[0].eyes) and np.array_equal(again.targets, walks[0].targets)
     assert not np.allclose(walks[0].eyes, walks[1].eyes)
 
 
 def test_fly_keeps_clearance_height_and_speed(room):
     rules = PathRules()
-    p = plan_level_path(room, "fly", 25, FPS, 4, HFOV, VFOV)
+    p = plan_level_path(room, "fly", 25, FPS, 4, (HFOV, VFOV))
     step = np.linalg.norm(np.diff(p.eyes, axis=0), axis=1)
     assert np.allclose(step, rules.fly_speed_mps / FPS, rtol=1e-6)
     _, d, _ = trimesh.proximity.closest_point(room.mesh, p.eyes)
@@ -113,8 +113,8 @@ def test_fly_keeps_clearance_height_and_speed(room):
 def test_units_are_metres_whatever_the_scene_scale():
     """A level modelled in centimetres (1 unit = 0.01 m): the same path in metres."""
     cm = _room(unit=0.01)
-    p = plan_level_path(cm, "walk", 13, FPS, 0, HFOV, VFOV)
-    m = plan_level_path(_room(), "walk", 13, FPS, 0, HFOV, VFOV)
+    p = plan_level_path(cm, "walk", 13, FPS, 0, (HFOV, VFOV))
+    m = plan_level_path(_room(), "walk", 13, FPS, 0, (HFOV, VFOV))
     assert np.allclose(p.eyes * 0.01, m.eyes, atol=1e-6)
     assert p.report["speed_mps"] == pytest.approx(1.4)
 
@@ -123,7 +123,7 @@ def test_regions_keep_the_eyes_in_their_cell(room):
     lo, hi = room.content_bounds()
     region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), 2, 2, ((1, 0),))
     for kind in ("walk", "fly"):
-        p = plan_level_path(room, kind, 25, FPS, 1, HFOV, VFOV, region)
+        p = plan_level_path(room, kind, 25, FPS, 1, (HFOV, VFOV), region)
         assert region.contains(p.eyes[:, :2]).all()
         assert (region.cell_of(p.eyes[:, :2]) == [1, 0]).all()
 
@@ -134,7 +134,7 @@ def test_content_box_ignores_a_huge_ground_plane_and_inside_test():
     assert np.all(hi[:2] - lo[:2] < 20) and g.extent < 25  # the 2 km plane does not define the level
     assert g.inside_closed_mesh(np.array([1.5, 1.0, 1.0]))      # inside the pillar
     assert not g.inside_closed_mesh(np.array([0.0, -2.0, 1.6]))  # in the room
-    p = plan_level_path(g, "walk", 9, FPS, 0, HFOV, VFOV)
+    p = plan_level_path(g, "walk", 9, FPS, 0, (HFOV, VFOV))
     assert np.all(np.abs(p.eyes[:, :2]) < 6)
 
 
@@ -159,7 +159,7 @@ def test_a_skybox_object_does_not_widen_the_content_box_and_encloses_the_camera(
     g = _parts(floor, *blocks, sky)
     lo, hi = g.content_bounds()
     assert np.all(hi - lo < 40) and len(sky.faces) > 0.5 * g.n_triangles
-    p = plan_level_path(g, "walk", 13, FPS, 2, HFOV, VFOV)
+    p = plan_level_path(g, "walk", 13, FPS, 2, (HFOV, VFOV))
     assert np.all(np.abs(p.eyes[:, :2]) < 16)
 
 
@@ -172,13 +172,13 @@ def test_a_room_with_outward_normals_is_still_a_room():
     g = _parts(room, shelf)
     assert not g.inside_closed_mesh(np.array([0.0, 0.0, 1.6]))
     assert g.inside_closed_mesh(np.array([0.0, 3.6, 1.0]))  # inside the shelf
-    plan_level_path(g, "walk", 9, FPS, 0, HFOV, VFOV)
+    plan_level_path(g, "walk", 9, FPS, 0, (HFOV, VFOV))
 
 
 def test_no_floor_in_the_region_is_a_one_line_error(room):
     far = Region((100.0, 100.0), (110.0, 110.0))
     with pytest.raises(PathError, match="no walk path meets the rules after 5 tries") as e:
-        plan_level_path(room, "walk", 9, FPS, 0, HFOV, VFOV, far, PathRules(tries=5))
+        plan_level_path(room, "walk", 9, FPS, 0, (HFOV, VFOV), far, PathRules(tries=5))
     assert "\n" not in str(e.value)
 
 
@@ -187,7 +187,7 @@ def test_a_view_of_only_sky_is_redrawn_then_refused():
     plane = trimesh.creation.box(extents=(200.0, 200.0, 0.01))
     g = LevelGeometry(plane.vertices, plane.faces)
     with pytest.raises(PathError, match="sky or background"):
-        plan_level_path(g, "walk", 9, FPS, 0, HFOV, VFOV, rules=PathRules(tries=6))
+        plan_level_path(g, "walk", 9, FPS, 0, (HFOV, VFOV), rules=PathRules(tries=6))
 
 
 def test_a_sky_lit_level_refuses_eyes_under_a_roof():
@@ -196,8 +196,8 @@ def test_a_sky_lit_level_refuses_eyes_under_a_roof():
     roofed, courtyard = _room(), _room(roof=False)
     rules = PathRules(min_sky_fraction=0.05, tries=8)
     with pytest.raises(PathError, match="under a roof"):
-        plan_level_path(roofed, "walk", 9, FPS, 0, HFOV, VFOV, rules=rules)
-    p = plan_level_path(courtyard, "walk", 9, FPS, 0, HFOV, VFOV, rules=rules)
+        plan_level_path(roofed, "walk", 9, FPS, 0, (HFOV, VFOV), rules=rules)
+    p = plan_level_path(courtyard, "walk", 9, FPS, 0, (HFOV, VFOV), rules=rules)
     up = trimesh.sample.sample_surface_sphere(400)
     up = up[up[:, 2] > 0]
     mesh = trimesh.Trimesh(courtyard.vertices, courtyard.faces, process=False)
@@ -206,4 +206,4 @@ def test_a_sky_lit_level_refuses_eyes_under_a_roof():
         assert 1 - hit.mean() >= 0.05
     assert p.report["sky_fraction_min"] >= 0.05
     # without the rule (a level lit by its own lights) the roofed room is a valid place
-    assert "sky_fraction_min" not in plan_level_path(roofed, "walk", 9, FPS, 0, HFOV, VFOV).report
+    assert "sky_fraction_min" not in plan_level_path(roofed, "walk", 9, FPS, 0, (HFOV, VFOV)).report

@@ -34,7 +34,7 @@ def test_a_1e7_m_level_gives_paths_blender_moves_as_planned_or_none(kind):
     assert geom.extent > 1e7
     rules = PathRules(tries=20)
     try:
-        path = plan_level_path(geom, kind, 12, FPS, 0, HFOV, VFOV, rules=rules)
+        path = plan_level_path(geom, kind, 12, FPS, 0, (HFOV, VFOV), rules=rules)
     except PathError as exc:
         assert "32-bit" in str(exc)
         return
@@ -49,20 +49,20 @@ def test_a_level_far_from_the_origin_is_refused_at_once(kind):
     geom = _scaled(1.0, shift=1e7)  # a 12 m room 10 000 km from the origin: float32 positions 1 m apart
     t0 = time.perf_counter()
     with pytest.raises(PathError, match=r"from the scene's origin.*32-bit positions are 1 m apart"):
-        plan_level_path(geom, kind, 12, FPS, 0, HFOV, VFOV)
+        plan_level_path(geom, kind, 12, FPS, 0, (HFOV, VFOV))
     assert time.perf_counter() - t0 < 2
 
 
 def test_a_large_level_near_the_origin_plans_exactly():
     geom = _scaled(1e3)  # 12 km across, centred on the origin
-    path = plan_level_path(geom, "fly", 12, FPS, 1, HFOV, VFOV, rules=PathRules(tries=20))
+    path = plan_level_path(geom, "fly", 12, FPS, 1, (HFOV, VFOV), rules=PathRules(tries=20))
     assert float32_step_error(path.eyes) <= FLOAT32_STEP_TOLERANCE
     assert np.allclose(_as_blender_moves(path.eyes) * FPS, PathRules().fly_speed_mps, rtol=0.02)
 
 
 def test_a_level_smaller_than_a_cameras_clearance_is_refused():
     with pytest.raises(PathError, match="too small to hold a camera"):
-        plan_level_path(_scaled(0.02), "fly", 6, FPS, 0, HFOV, VFOV)
+        plan_level_path(_scaled(0.02), "fly", 6, FPS, 0, (HFOV, VFOV))
 
 
 def test_a_mesh_of_zero_extent_is_a_typed_error():

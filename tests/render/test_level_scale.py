@@ -151,7 +151,7 @@ def test_walk_speed_and_eye_height_are_metres_of_the_depicted_world():
     rec = level_scale.resolve_unit_scale(g, "auto")
     assert rec["requested"] == "auto" and rec["declared"] == 1.0 and g.metres_per_unit == 0.01
     hfov, vfov = math.atan(0.75), math.atan(0.75 * 9 / 16)
-    p = plan_level_path(g, "walk", 13, 24.0, 0, hfov, vfov, rules=PathRules(tries=30))
+    p = plan_level_path(g, "walk", 13, 24.0, 0, (hfov, vfov), rules=PathRules(tries=30))
     step = np.linalg.norm(np.diff(p.eyes[:, :2], axis=0), axis=1)
     assert np.median(step) * 24.0 == pytest.approx(140.0, rel=0.01)
     floors = np.array([0.0, 300.0])

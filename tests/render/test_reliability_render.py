@@ -25,9 +25,9 @@ def test_estimate_grows_with_size_frames_and_buffers():
 
 def test_resources_refused_with_needed_and_available(tmp_path):
     with pytest.raises(ResourceError, match=r"needs about .* of memory and 1 GB is available"):
-        check_render_resources((4000, 4000), 4, DEFAULT_BUFFERS, 1, tmp_path, memory=10**9, disk=10**12)
+        check_render_resources((4000, 4000), 4, DEFAULT_BUFFERS, 1, tmp_path, available=(10**9, 10**12))
     with pytest.raises(ResourceError, match=r"100 frame\(s\) .* need up to .* of disk and 1 MB is free"):
-        check_render_resources((640, 360), 4, DEFAULT_BUFFERS, 100, tmp_path, memory=10**11, disk=10**6)
+        check_render_resources((640, 360), 4, DEFAULT_BUFFERS, 100, tmp_path, available=(10**11, 10**6))
     est = check_render_resources((64, 36), 4, DEFAULT_BUFFERS, 4, tmp_path / "new" / "clip")  # this machine
     assert est.frames == 4 and est.memory_bytes < 2**31
 

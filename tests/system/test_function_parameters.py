@@ -15,11 +15,7 @@ LIMIT = 8
 #: removed when its function gets an options object. Fixing one without removing it here fails the test, as does a
 #: new offender.
 PENDING = {
-    "gbuffer_export/blender/assets.py:build_asset_scene",
-    "gbuffer_export/blender/level_cameras.py:plan_level_path",
     "gbuffer_export/blender/render.py:set_sampling",
-    "gbuffer_export/resources.py:check_render_resources",
-    "gbuffer_export/synthetic.py:make_synthetic_clip",
 }
 
 

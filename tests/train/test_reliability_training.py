@@ -10,7 +10,7 @@ torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
 
 from gbuffer_export.cli import main  # noqa: E402
-from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
+from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip  # noqa: E402
 from training.checkpoint import CheckpointError, load_checkpoint  # noqa: E402
 from tests.conftest import set_args  # noqa: E402
 
@@ -231,7 +231,7 @@ def test_training_on_a_full_tmpfs_stops_with_one_line_not_sigbus(tmp_path):
         pytest.skip("mounting a tmpfs is not permitted here (needs root); the monkeypatched test covers the logic")
     try:
         clip = make_synthetic_clip(tmp_path / "big", frames=range(1, 5), hr_size=(256, 144), scale=4,
-                                   hr_supersample=1)
+                                   look=SyntheticLook(hr_supersample=1))
         proc = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", "train", "--model", "fusesr",
                                "--data", str(clip), "-o", str(tmp_path / "run"), "--max-steps", "1",
                                *set_args(SMALL + [f'data.cache_dir="{mnt}"'])],
