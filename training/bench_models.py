@@ -5,8 +5,8 @@ With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT
 the median ms per frame, the parameter count and the multiply-accumulates per output pixel (convolutions and matrix
 products counted by ``torch.utils.flop_counter``; interpolation and element-wise operations are not counted). With
 ``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
-OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
-mode (below) for one frame of the clips.
+OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined, the data stated: ``plot``), with the
+roofline columns of the speed mode (below) for one frame of the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
@@ -198,12 +198,20 @@ def _line_boxes(line, px: float) -> list:
     return out
 
 
+def _put(ann, ox: float, oy: float, dx: int, dy: int) -> None:
+    """Set a label ``(ox, oy)`` points from its point, aligned away from it in the direction ``(dx, dy)``."""
+    ann.set_position((ox, oy))
+    ann.set_ha({1: "left", -1: "right", 0: "center"}[dx])
+    ann.set_va({1: "bottom", -1: "top", 0: "center"}[dy])
+
+
 def place_labels(ax, points: list[tuple[float, float]], texts: list[str], fontsize: float = 8,
                  avoid=()) -> list:
     """Annotate ``points`` (data coordinates) with ``texts`` so that no two labels overlap each other, a marker,
-    the artists ``avoid`` (the legend; a line: along its path) or the axes' edge: each label takes the first free place of 8 directions at growing distances (offset
-    points), a leader line drawn when it sits away from its point; a label with no free place takes the place
-    that overlaps least. The figure's layout must be final (no tight_layout afterwards). Returns the labels."""
+    the artists ``avoid`` (the legend; a line: along its path) or the axes' edge: each label takes the first free
+    place of 8 directions at growing distances (offset points), with a leader line when it sits away from its
+    point; a label with no free place takes the place that overlaps least. The figure's layout must be final (no
+    tight_layout afterwards). Returns the labels, in the order of ``points``."""
     fig = ax.figure
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
@@ -220,24 +228,20 @@ def place_labels(ax, points: list[tuple[float, float]], texts: list[str], fontsi
     labels = []
     order = sorted(range(len(points)), key=lambda i: -points[i][1])
     for i in order:
-        ann = ax.annotate(texts[i], points[i], xytext=(0, 0), textcoords="offset points", fontsize=fontsize, zorder=4,
-                          annotation_clip=False)
+        ann = ax.annotate(texts[i], points[i], xytext=(0, 0), textcoords="offset points", fontsize=fontsize,
+                          zorder=4, annotation_clip=False)
         best = None
-        for ox, oy, dx, dy in tries:
-            ann.set_position((ox, oy))
-            ann.set_ha({1: "left", -1: "right", 0: "center"}[dx])
-            ann.set_va({1: "bottom", -1: "top", 0: "center"}[dy])
+        for place in tries:
+            _put(ann, *place)
             box = ann.get_window_extent(renderer)
             clash = sum(_overlap(box, t) for t in taken) + (0 if inside.contains(box.x0, box.y0) and
                                                             inside.contains(box.x1, box.y1) else 1)
             if best is None or clash < best[0]:
-                best = (clash, ox, oy, dx, dy)
+                best = (clash, place)
             if clash == 0:
                 break
-        _, ox, oy, dx, dy = best
-        ann.set_position((ox, oy))
-        ann.set_ha({1: "left", -1: "right", 0: "center"}[dx])
-        ann.set_va({1: "bottom", -1: "top", 0: "center"}[dy])
+        _put(ann, *best[1])
+        ox, oy = best[1][:2]
         if abs(ox) + abs(oy) > 14:  # a leader line from the label to its point
             ax.annotate("", points[i], xytext=(ox, oy), textcoords="offset points",
                         arrowprops={"arrowstyle": "-", "color": "0.55", "lw": 0.6, "shrinkA": 0, "shrinkB": 3})

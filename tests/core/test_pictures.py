@@ -70,7 +70,8 @@ def test_material_buffers_are_normalised_and_say_their_range():
     spec[0, 0] = 0.0  # background
     img = preview.visualize("specular", spec)
     assert img[1, 1].min() == 1.0 and img[0, 0].max() == 0.0  # 0.04 is the brightest value: white, not near-black
-    assert preview.describe("specular", spec) == ["grey: 0 black .. 0.04 white", "min 0 max 0.04 mean 0.0388"]  # 31 of 32 at 0.04
+    want = ["grey: 0 black .. 0.04 white", "min 0 max 0.04 mean 0.0388"]  # 31 of 32 pixels at 0.04
+    assert preview.describe("specular", spec) == want
     assert preview.describe("metallic", np.zeros((2, 2, 1))) == ["grey: 0 black .. 0 white", "constant 0"]
     assert preview.visualize("metallic", np.zeros((2, 2, 1))).max() == 0.0
     rough = np.linspace(0.0, 1.6, 9).reshape(3, 3, 1)  # ALPHA pixels may leave [0, 1]: the range says so
