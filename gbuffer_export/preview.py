@@ -376,69 +376,86 @@ def tile_size(size: tuple[int, int], col_max: int) -> tuple[int, int]:
     return col_max, max(1, round(h * col_max / w))
 
 
+def _legend_text(x: int, lines: list[str]):
+    """A painter of ``lines`` from ``x``: (canvas, draw, y) -> None."""
+    def paint(canvas, draw, y):
+        for k, ln in enumerate(lines):
+            draw.text((x, y + k * line_height()), ln, fill=WHITE, font=_font())
+    return paint
+
+
+def _legend_flags(width: int):
+    """(height, painter) of the flag swatches, wrapped to ``width``."""
+    lh, x0 = line_height(), PAD + text_width("flags:") + 8
+    rows, cur, x = [], [], x0
+    for name, _, colour, _ in FLAG_COLOURS:
+        wd = 16 + text_width(name) + 12
+        if cur and x + wd > width - PAD:
+            rows.append(cur)
+            cur, x = [], x0
+        cur.append((x, name, tuple(int(255 * c) for c in colour)))
+        x += wd
+    rows.append(cur)
+    note = wrap("(moving and emissive add their colour to the others)", width - 2 * PAD)
+
+    def paint(canvas, draw, y):
+        draw.text((PAD, y), "flags:", fill=WHITE, font=_font())
+        for i, row in enumerate(rows):
+            for x, name, colour in row:
+                yy = y + i * lh
+                draw.rectangle([x, yy + 2, x + 11, yy + 13], fill=colour, outline=(200, 200, 200))
+                draw.text((x + 16, yy), name, fill=WHITE, font=_font())
+        for k, ln in enumerate(note):
+            draw.text((PAD, y + (len(rows) + k) * lh), ln, fill=GREY, font=_font())
+    return (len(rows) + len(note)) * lh, paint
+
+
+def _legend_motion(width: int):
+    """(height, painter) of the motion colour wheel: each pixel's offset from the centre as a motion vector."""
+    from PIL import Image
+    r = 14
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
+    wheel = motion_rgb(np.stack([xx, yy], axis=-1) / r, max_px=1.0) * (np.hypot(xx, yy) <= r)[..., None]
+    lines = wrap("motion: hue = direction of p_prev - p (as on this wheel, image axes, y down), brightness = "
+                 "length, full at the px its tile names", width - 2 * PAD - 2 * r - 8)
+    text = _legend_text(PAD + 2 * r + 8, lines)
+
+    def paint(canvas, draw, y):
+        canvas.paste(Image.fromarray(_u8(wheel)), (PAD, y))
+        text(canvas, draw, y)
+    return max(2 * r + 1, len(lines) * line_height()), paint
+
+
+def _legend_depth(width: int):
+    """(height, painter) of the depth ramp."""
+    from PIL import Image
+    ramp = np.repeat(np.linspace(1.0, 0.0, 60)[None, :, None], 12, axis=0).repeat(3, axis=-1)
+    lines = wrap("depth: log scale, near (white) to far (black) at the 1st and 99th percentile its tile names "
+                 "(scene units); background black", width - 2 * PAD - 68)
+    text = _legend_text(PAD + 68, lines)
+
+    def paint(canvas, draw, y):
+        canvas.paste(Image.fromarray(_u8(ramp)), (PAD, y + 2))
+        text(canvas, draw, y)
+    return max(14, len(lines) * line_height()), paint
+
+
 def legend_strip(width: int, buffers=("depth", "motion", "flags")) -> np.ndarray:
     """The contact sheet's legend, ``width`` pixels wide, for the ``buffers`` shown: the flag colours, the motion
-    colour wheel, the depth ramp (log scale) and the grey of the material buffers."""
+    colour wheel, the depth ramp (log scale) and the grey of the material buffers; wrapped to the width."""
     from PIL import Image, ImageDraw
-    lh, x0 = line_height(), PAD
-    items = []  # (height, draw(canvas, draw, y))
-    font = _font()
-
-    def text_block(x, lines):
-        def paint(canvas, draw, y):
-            for k, ln in enumerate(lines):
-                draw.text((x, y + k * lh), ln, fill=WHITE, font=font)
-        return paint
-
-    if any(b == "flags" for b in buffers):
-        rows, cur, x = [], [], x0 + text_width("flags:") + 8
-        for name, _, colour, _ in FLAG_COLOURS:
-            wd = 16 + text_width(name) + 12
-            if cur and x + wd > width - PAD:
-                rows.append(cur)
-                cur, x = [], x0 + text_width("flags:") + 8
-            cur.append((x, name, colour))
-            x += wd
-        rows.append(cur)
-        note = wrap("(moving and emissive add their colour to the others)", width - 2 * PAD)
-
-        def paint_flags(canvas, draw, y, rows=rows, note=note):
-            draw.text((x0, y), "flags:", fill=WHITE, font=font)
-            for i, row in enumerate(rows):
-                for x, name, colour in row:
-                    yy = y + i * lh
-                    draw.rectangle([x, yy + 2, x + 11, yy + 13], fill=tuple(int(255 * c) for c in colour),
-                                   outline=(200, 200, 200))
-                    draw.text((x + 16, yy), name, fill=WHITE, font=font)
-            for k, ln in enumerate(note):
-                draw.text((x0, y + (len(rows) + k) * lh), ln, fill=GREY, font=font)
-        items.append(((len(rows) + len(note)) * lh, paint_flags))
-    if any(b in ("motion", "motion_next") for b in buffers):
-        r = 14  # each pixel's offset from the centre as a motion vector (image axes, +y down)
-        yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
-        wheel = motion_rgb(np.stack([xx, yy], axis=-1) / r, max_px=1.0) * (np.hypot(xx, yy) <= r)[..., None]
-        lines = wrap("motion: hue = direction of p_prev - p (as on this wheel, image axes, y down), brightness = "
-                     "length, full at the px its tile names", width - 2 * PAD - 2 * r - 8)
-
-        def paint_motion(canvas, draw, y, wheel=wheel, lines=lines):
-            canvas.paste(Image.fromarray(_u8(wheel)), (x0, y))
-            text_block(x0 + 2 * r + 8, lines)(canvas, draw, y)
-        items.append((max(2 * r + 1, len(lines) * lh), paint_motion))
+    items = []  # (height, painter)
+    if "flags" in buffers:
+        items.append(_legend_flags(width))
+    if "motion" in buffers or "motion_next" in buffers:
+        items.append(_legend_motion(width))
     if "depth" in buffers:
-        ramp = np.repeat(np.linspace(1.0, 0.0, 60)[None, :, None], 12, axis=0).repeat(3, axis=-1)
-        lines = wrap("depth: log scale, near (white) to far (black) at the 1st and 99th percentile its tile names "
-                     "(scene units); background black", width - 2 * PAD - 68)
-
-        def paint_depth(canvas, draw, y, ramp=ramp, lines=lines):
-            canvas.paste(Image.fromarray(_u8(ramp)), (x0, y + 2))
-            text_block(x0 + 68, lines)(canvas, draw, y)
-        items.append((max(14, len(lines) * lh), paint_depth))
+        items.append(_legend_depth(width))
     if any(b in ("roughness", "metallic", "specular") for b in buffers):
         lines = wrap("roughness, metallic, specular: grey normalised per buffer, the values at black and white on "
                      "its tile", width - 2 * PAD)
-        items.append((len(lines) * lh, text_block(x0, lines)))
-    height = PAD + sum(h + PAD for h, _ in items)
-    canvas = Image.new("RGB", (width, height), BACKGROUND)
+        items.append((len(lines) * line_height(), _legend_text(PAD, lines)))
+    canvas = Image.new("RGB", (width, PAD + sum(h + PAD for h, _ in items)), BACKGROUND)
     draw = ImageDraw.Draw(canvas)
     y = PAD
     for h, paint in items:
