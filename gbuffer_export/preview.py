@@ -42,15 +42,17 @@ def depth_range(d: np.ndarray) -> tuple[float, float] | None:
 
 def depth_rgb(d: np.ndarray) -> np.ndarray:
     """Depth as grey on a log scale: white at the near end of ``depth_range``, black at the far end, in between
-    log(far / depth) / log(far / near); background (not finite) black."""
+    log(far / depth) / log(far / near); background (not finite) black; a view at one depth white."""
     rng = depth_range(d)
     d = np.asarray(d, np.float64)[..., 0]
     if rng is None:
         return np.zeros((*d.shape, 3))
     fin = np.isfinite(d)
     near, far = rng
+    if far <= near * (1 + 1e-6):  # one depth (a flat wall): white, told apart from the black background
+        return np.repeat(fin[..., None].astype(np.float64), 3, axis=-1)
     logd = np.log(np.maximum(np.where(fin, d, far), 1e-6))
-    v = np.clip((np.log(far) - logd) / max(np.log(far / near), 1e-9), 0, 1) * fin
+    v = np.clip((np.log(far) - logd) / np.log(far / near), 0, 1) * fin
     return np.repeat(v[..., None], 3, axis=-1)
 
 
