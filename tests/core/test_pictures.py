@@ -130,6 +130,21 @@ def test_dataset_sheet_puts_several_clips_on_a_row_with_their_labels(tmp_path):
     assert preview.dataset_sheet_layout(ds, 128, ["test"]).tiles[0].key == "clip-1"
 
 
+def test_depth_range_is_what_depth_rgb_shows_on_a_log_scale():
+    d = np.geomspace(1.0, 100.0, 1000).reshape(10, 100, 1)
+    d[0, 0] = np.inf
+    near, far = preview.depth_range(d)
+    assert near == np.percentile(d[np.isfinite(d)], 1) and far == np.percentile(d[np.isfinite(d)], 99)
+    img = preview.depth_rgb(d)
+    assert img[0, 0].max() == 0.0  # background black
+    for depth, grey in ((near, 1.0), (far, 0.0), (np.sqrt(near * far), 0.5)):  # the geometric mean: mid-grey
+        i = np.unravel_index(np.argmin(np.abs(d[..., 0] - depth)), d.shape[:2])
+        assert abs(img[i][0] - grey) < 0.01, (depth, img[i][0])
+    wall = np.full((4, 4, 1), 3.0)
+    wall[0] = np.inf
+    assert preview.depth_rgb(wall)[1:].min() == 1.0 and preview.depth_rgb(wall)[0].max() == 0.0
+
+
 def test_comparison_sheet_titles_never_clip_and_crops_are_full_resolution():
     rng = np.random.default_rng(0)
     h, w = 36, 64
