@@ -2,6 +2,7 @@
 (numpy, colour-science and Pillow)."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,27 +30,29 @@ def normal_rgb(n: np.ndarray) -> np.ndarray:
 
 
 def depth_range(d: np.ndarray) -> tuple[float, float] | None:
-    """(near, far) in scene units that ``depth_rgb`` shows as white and black: the 99th and 1st percentiles of
-    inverse depth over finite pixels; None when no pixel is finite (all background)."""
-    d = d[..., 0]
-    fin = np.isfinite(d)
-    if not fin.any():
+    """(near, far) in scene units that ``depth_rgb`` shows as white and black: the 1st and 99th percentiles of the
+    finite depths; None when no pixel is finite (all background)."""
+    d = np.asarray(d, np.float64)[..., 0]
+    fin = d[np.isfinite(d)]
+    if not fin.size:
         return None
-    inv = 1.0 / np.maximum(d[fin], 1e-6)
-    lo, hi = np.percentile(inv, [1, 99])
-    return 1.0 / max(hi, 1e-9), 1.0 / max(lo, 1e-9)
+    near, far = np.percentile(np.maximum(fin, 1e-6), [1, 99])
+    return float(near), float(far)
 
 
 def depth_rgb(d: np.ndarray) -> np.ndarray:
-    """Inverse depth as grey: white at the near end of ``depth_range``, black at the far end and on background."""
+    """Depth as grey on a log scale: white at the near end of ``depth_range``, black at the far end, in between
+    log(far / depth) / log(far / near); background (not finite) black; a view at one depth white."""
     rng = depth_range(d)
-    d = d[..., 0]
+    d = np.asarray(d, np.float64)[..., 0]
     if rng is None:
         return np.zeros((*d.shape, 3))
     fin = np.isfinite(d)
-    inv = np.where(fin, 1.0 / np.maximum(d, 1e-6), 0.0)
-    lo, hi = 1.0 / rng[1], 1.0 / rng[0]
-    v = np.clip((inv - lo) / max(hi - lo, 1e-9), 0, 1) * fin
+    near, far = rng
+    if far <= near * (1 + 1e-6):  # one depth (a flat wall): white, told apart from the black background
+        return np.repeat(fin[..., None].astype(np.float64), 3, axis=-1)
+    logd = np.log(np.maximum(np.where(fin, d, far), 1e-6))
+    v = np.clip((np.log(far) - logd) / np.log(far / near), 0, 1) * fin
     return np.repeat(v[..., None], 3, axis=-1)
 
 
@@ -92,12 +95,34 @@ def flags_rgb(f: np.ndarray) -> np.ndarray:
     return np.clip(out, 0, 1)
 
 
+def scalar_range(arr: np.ndarray) -> tuple[float, float] | None:
+    """(black, white) of ``scalar_rgb``: min(0, minimum) and the maximum over finite pixels; None when no pixel is
+    finite."""
+    v = np.asarray(arr, np.float64)[..., 0]
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return None
+    return min(0.0, float(v.min())), float(v.max())
+
+
+def scalar_rgb(arr: np.ndarray) -> np.ndarray:
+    """A one-channel buffer (roughness, metallic, specular...) as grey normalised per buffer: ``scalar_range``'s
+    black end (0, or the minimum when negative) black, its maximum white; non-finite pixels black. A buffer whose
+    maximum is its black end (all 0) is black."""
+    rng = scalar_range(arr)
+    v = np.asarray(arr, np.float64)[..., 0]
+    if rng is None or rng[1] <= rng[0]:
+        return np.zeros((*v.shape, 3))
+    g = np.clip((np.nan_to_num(v, nan=rng[0], posinf=rng[0], neginf=rng[0]) - rng[0]) / (rng[1] - rng[0]), 0, 1)
+    return np.repeat(g[..., None], 3, axis=-1)
+
+
 def visualize(name: str, arr: np.ndarray) -> np.ndarray:
-    """H x W x 3 display image in [0, 1] of a clip buffer."""
+    """H x W x 3 display image in [0, 1] of a clip buffer (the mappings of ``describe``)."""
     if name in ("radiance", "emission"):
         return tonemap(arr)
     if name in ("albedo", "fbeta"):
-        return srgb_encode(arr)
+        return srgb_encode(np.clip(np.nan_to_num(arr), 0, 1))
     if name == "normal":
         return normal_rgb(arr)
     if name == "depth":
@@ -106,7 +131,61 @@ def visualize(name: str, arr: np.ndarray) -> np.ndarray:
         return motion_rgb(arr)
     if name == "flags":
         return flags_rgb(arr)
-    return np.repeat(np.clip(arr[..., :1], 0, 1), 3, axis=-1)
+    return scalar_rgb(arr)
+
+
+def _g(v: float) -> str:
+    return f"{v:.3g}"
+
+
+def _pct(mask: np.ndarray) -> str:
+    return f"{100.0 * float(np.mean(mask)):.0f}%"
+
+
+def describe(name: str, arr: np.ndarray) -> list[str]:
+    """What a tile of buffer ``name`` shows, as label lines after its name: the mapping of ``visualize`` and the
+    range of values it stands for (radiance and emission: as read, exposed; Y is BT.709 luminance)."""
+    a = np.asarray(arr)
+    if name in ("radiance", "emission"):
+        from .colour_spaces import BT709_LUMA
+        y = np.asarray(a[..., :3], np.float64) @ np.asarray(BT709_LUMA)
+        fin = y[np.isfinite(y)]
+        p1, p99 = np.percentile(fin, [1, 99]) if fin.size else (0.0, 0.0)
+        bad = y.size - fin.size
+        return ["Reinhard v/(1+v), then sRGB",
+                f"Y p1 {_g(p1)} p99 {_g(p99)} max {_g(fin.max() if fin.size else 0.0)}"
+                + (f"; {bad} px not finite" if bad else "")]
+    if name in ("albedo", "fbeta"):
+        fin = a[np.isfinite(a)]
+        return ["sRGB of the value (0..1)", f"min {_g(fin.min())} max {_g(fin.max())}" if fin.size else "no value"]
+    if name == "normal":
+        bg = np.linalg.norm(a, axis=-1) == 0
+        return ["RGB = (n + 1) / 2, camera space", f"x right, y up, z to viewer; bg black ({_pct(bg)})"]
+    if name == "depth":
+        rng = depth_range(a)
+        if rng is None:
+            return ["log depth", "no finite depth (all background)"]
+        fin = a[np.isfinite(a)]
+        return [f"log: white {_g(rng[0])} (p1) .. black {_g(rng[1])} (p99)",
+                f"min {_g(fin.min())} max {_g(fin.max())}; bg {_pct(~np.isfinite(a))} black"]
+    if name in ("motion", "motion_next"):
+        mag = np.linalg.norm(a, axis=-1)
+        return ["hue: direction, brightness: length",
+                f"full at {_g(motion_scale(a))} px (p99); max {_g(float(np.nanmax(mag)))} px"]
+    if name == "flags":
+        from .conventions import UNTRUSTED
+        f = a[..., 0].astype(np.int64)
+        parts = [f"{label.split(' ')[0].replace('background', 'bg')} "
+                 f"{_pct((f & (int(UNTRUSTED) if bits is None else bits)) > 0)}" for label, bits, _, _ in FLAG_COLOURS]
+        return ["colours: legend below", " ".join(parts)]
+    rng = scalar_range(a)
+    if rng is None:
+        return ["grey", "no finite value"]
+    fin = a[np.isfinite(a)]
+    if fin.min() == fin.max():
+        return [f"grey: {_g(rng[0])} black .. {_g(rng[1])} white", f"constant {_g(fin.min())}"]
+    return [f"grey: {_g(rng[0])} black .. {_g(rng[1])} white",
+            f"min {_g(fin.min())} max {_g(fin.max())} mean {_g(fin.mean())}"]
 
 
 def upscale_nearest(img: np.ndarray, factor: float) -> np.ndarray:
@@ -125,87 +204,12 @@ def save_png(path: str | Path, img: np.ndarray) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
-    Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(tmp)
+    Image.fromarray(_u8(img)).save(tmp)
     os.replace(tmp, path)
 
 
-def labelled_grid(tiles: list[list[tuple[str, np.ndarray]]], pad: int = 4) -> np.ndarray:
-    """Compose rows of (label, image) tiles of equal size into one image with labels drawn on the tiles."""
-    from PIL import Image, ImageDraw
-    h, w = tiles[0][0][1].shape[:2]
-    ncol = max(len(r) for r in tiles)
-    canvas = Image.new("RGB", (ncol * (w + pad) + pad, len(tiles) * (h + pad) + pad), (24, 24, 24))
-    draw = ImageDraw.Draw(canvas)
-    for i, row in enumerate(tiles):
-        for j, (label, img) in enumerate(row):
-            x, y = pad + j * (w + pad), pad + i * (h + pad)
-            canvas.paste(Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)), (x, y))
-            draw.rectangle([x, y, x + 6 * len(label) + 4, y + 12], fill=(0, 0, 0))
-            draw.text((x + 2, y), label, fill=(255, 255, 255))
-    return np.asarray(canvas).astype(np.float64) / 255.0
-
-
-def tile_label(name: str, arr: np.ndarray) -> str:
-    """A tile's label with the range its false colours stand for (depth: near-far, motion: full-brightness px)."""
-    if name.endswith("/depth"):
-        rng = depth_range(arr)
-        return f"{name} {rng[0]:.3g}-{rng[1]:.3g}" if rng else f"{name} (none)"
-    if name.endswith(("/motion", "/motion_next")):
-        return f"{name} <={motion_scale(arr):.3g}px"
-    return name
-
-
-def legend_strip(width: int) -> np.ndarray:
-    """The contact sheet's legend, ``width`` pixels wide: flag colours, the motion colour wheel, the depth ramp."""
-    from PIL import Image, ImageDraw
-    h = 46
-    canvas = Image.new("RGB", (width, h), (24, 24, 24))
-    draw = ImageDraw.Draw(canvas)
-    x = 4
-    draw.text((x, 2), "flags:", fill=(255, 255, 255))
-    x += 40
-    for name, _, colour, _ in FLAG_COLOURS:
-        draw.rectangle([x, 3, x + 10, 13], fill=tuple(int(255 * c) for c in colour), outline=(200, 200, 200))
-        draw.text((x + 14, 2), name, fill=(255, 255, 255))
-        x += 14 + 6 * len(name) + 10
-    draw.text((x, 2), "(moving and emissive add to the others)", fill=(170, 170, 170))
-    r = 13  # motion colour wheel: each pixel's offset from the centre as a motion vector (image axes, +y down)
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
-    wheel = motion_rgb(np.stack([xx, yy], axis=-1) / r, max_px=1.0) * (np.hypot(xx, yy) <= r)[..., None]
-    canvas.paste(Image.fromarray((wheel * 255 + 0.5).astype(np.uint8)), (4, 18))
-    draw.text((4 + 2 * r + 6, 18), "motion: hue = direction (as on this wheel), brightness = length, full at",
-              fill=(255, 255, 255))
-    draw.text((4 + 2 * r + 6, 30), "the px in the tile's label", fill=(255, 255, 255))
-    x0 = 4 + 2 * r + 6 + 6 * 74
-    ramp = np.repeat(np.linspace(1.0, 0.0, 60)[None, :, None], 10, axis=0).repeat(3, axis=-1)
-    if x0 + 70 < width:
-        canvas.paste(Image.fromarray((ramp * 255 + 0.5).astype(np.uint8)), (x0, 21))
-        draw.text((x0 + 66, 18), "depth: near ... far (scene units in the tile's label;", fill=(255, 255, 255))
-        draw.text((x0 + 66, 30), "1/depth percentiles 99, 1; background black)", fill=(255, 255, 255))
-    return np.asarray(canvas).astype(np.float64) / 255.0
-
-
-def contact_sheet(clip, path: str | Path, frames: list[int] | None = None, max_frames: int = 3,
-                  legend: bool = True) -> Path:
-    """PNG contact sheet of a clip: per frame one row with LR radiance (nearest-upscaled), HR radiance and every HR
-    G-buffer the clip holds; radiance and emission exposed (the clip's exposure), colours converted from the clip's
-    working space to Linear Rec.709 (sRGB primaries).
-    Depth and motion tiles name the range their grey / colours stand for; ``legend`` adds a strip below with the
-    flag colours, the motion colour wheel and the depth ramp."""
-    frames = frames or clip.frames[:: max(1, len(clip.frames) // max_frames)][:max_frames]
-    rows = []
-    for f in frames:
-        lr = clip.read(f, "lr/radiance", space=DISPLAY_SPACE, exposed=True)
-        row = [(f"f{f} lr/radiance", upscale_nearest(visualize("radiance", lr), clip.scale))]
-        for b in clip.buffers:
-            arr = clip.read(f, f"hr/{b}", space=DISPLAY_SPACE, exposed=True)
-            row.append((tile_label(f"hr/{b}", arr), visualize(b, arr)))
-        rows.append(row)
-    grid = labelled_grid(rows)
-    if legend:
-        grid = np.concatenate([grid, legend_strip(grid.shape[1])], axis=0)
-    save_png(path, grid)
-    return Path(path)
+def _u8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
 def _fit(img: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -215,18 +219,306 @@ def _fit(img: np.ndarray, h: int, w: int) -> np.ndarray:
     return img[ys][:, xs]
 
 
-def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=None) -> tuple[Path, int]:
-    """PNG contact sheet of a dataset: one row per finished clip (index order, or only ``splits``) with its first
-    and last frame's HR radiance (exposed) at ``width`` pixels wide, labelled with the clip id, camera kind and split.
-    Returns (path, clips shown); BlendSRError when the dataset has no finished clip. Every clip folder comes
-    from the index through the one path rule (``dataset.build.clip_dir``): a path that leaves the dataset is refused
-    with one line before anything is drawn."""
+def _resize(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """A display image at h x w: nearest when enlarged (pixels stay visible), box-filtered when reduced."""
+    if h >= img.shape[0] and w >= img.shape[1]:
+        return _fit(img, h, w)
+    from PIL import Image
+    return np.asarray(Image.fromarray(_u8(img)).resize((w, h), Image.Resampling.BOX)).astype(np.float64) / 255.0
+
+
+# ------------------------------------------------------------------------------------------------ sheet layout
+#: Layout of the sheets: grey background, gaps between tiles, text colours.
+BACKGROUND, PAD = (24, 24, 24), 6
+WHITE, GREY, HEADING = (255, 255, 255), (170, 170, 170), (255, 220, 0)
+
+
+def _font():
+    """Pillow's default font at 12 px (its bitmap font where Pillow has no FreeType)."""
+    from PIL import ImageFont
+    global _FONT
+    if _FONT is None:
+        try:
+            _FONT = ImageFont.load_default(size=12)
+        except (TypeError, ImportError, OSError):
+            _FONT = ImageFont.load_default()
+    return _FONT
+
+
+_FONT = None
+
+
+def line_height() -> int:
+    box = _font().getbbox("Ag|")
+    return int(box[3] - min(box[1], 0)) + 3
+
+
+def text_width(text: str) -> int:
+    return int(np.ceil(_font().getlength(text)))
+
+
+def wrap(text: str, width: int) -> list[str]:
+    """``text`` in lines of at most ``width`` pixels of ``_font`` (words split only when one alone is wider)."""
+    out: list[str] = []
+    for word in text.split(" "):
+        cur = f"{out[-1]} {word}" if out else word
+        if out and text_width(cur) <= width:
+            out[-1] = cur
+            continue
+        while text_width(word) > width and len(word) > 1:
+            k = len(word) - 1
+            while k > 1 and text_width(word[:k]) > width:
+                k -= 1
+            out.append(word[:k])
+            word = word[k:]
+        out.append(word)
+    return out or [""]
+
+
+@dataclass
+class Tile:
+    """One picture of a sheet: its image at ``(x, y)`` under its label lines, which fill ``label_box``."""
+    key: str
+    frame: int | None
+    lines: list[str]
+    image: np.ndarray = field(repr=False)
+    x: int = 0
+    y: int = 0
+    label_y: int = 0
+    label_h: int = 0
+    col_w: int = 0
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        """(x, y, w, h) of the image on the sheet."""
+        return self.x, self.y, self.image.shape[1], self.image.shape[0]
+
+    @property
+    def label_box(self) -> tuple[int, int, int, int]:
+        """(x, y, w, h) of the label strip above the image (no text is drawn over an image)."""
+        return self.x, self.label_y, self.col_w, self.label_h
+
+
+@dataclass
+class SheetLayout:
+    """Where everything of a sheet goes: ``texts`` (x, y, line, colour), ``tiles``, and ``legend`` (an image) at
+    ``legend_y``; ``render_sheet`` draws it."""
+    width: int
+    height: int = 0
+    tiles: list[Tile] = field(default_factory=list)
+    texts: list[tuple[int, int, str, tuple]] = field(default_factory=list)
+    legend: np.ndarray | None = field(default=None, repr=False)
+    legend_y: int = 0
+
+    def tile(self, key: str, frame: int | None = None) -> Tile:
+        """The tile of ``key`` (and ``frame``); KeyError when the sheet has none."""
+        for t in self.tiles:
+            if t.key == key and (frame is None or t.frame == frame):
+                return t
+        raise KeyError(f"{key} (frame {frame})")
+
+    def heading(self, text: str, colour=WHITE) -> None:
+        """Lines of ``text`` across the sheet, wrapped to its width, below what is placed so far."""
+        y = self.height or PAD
+        for ln in wrap(text, self.width - 2 * PAD):
+            self.texts.append((PAD, y, ln, colour))
+            y += line_height()
+        self.height = y
+
+    def row(self, cells: list[tuple[str, int | None, list[str], np.ndarray]], col_w: int) -> None:
+        """A row of tiles (key, frame, label lines, image), ``col_w`` apart, each label wrapped to ``col_w``."""
+        y = self.height or PAD
+        labels = [[ln for text in lines for ln in wrap(text, col_w)] for _, _, lines, _ in cells]
+        label_h = line_height() * max(len(lb) for lb in labels) + 2
+        for j, ((key, frame, _, img), lb) in enumerate(zip(cells, labels)):
+            self.tiles.append(Tile(key, frame, lb, img, PAD + j * (col_w + PAD), y + label_h, y, label_h, col_w))
+        self.height = y + label_h + max(img.shape[0] for *_, img in cells) + PAD
+
+    def add_legend(self, img: np.ndarray) -> None:
+        self.legend_y = self.height or PAD
+        self.legend = img
+        self.height = self.legend_y + img.shape[0]
+
+
+def render_sheet(layout: SheetLayout) -> np.ndarray:
+    """The picture of ``layout``: H x W x 3 in [0, 1]."""
+    from PIL import Image, ImageDraw
+    canvas = Image.new("RGB", (layout.width, layout.height), BACKGROUND)
+    draw = ImageDraw.Draw(canvas)
+    font = _font()
+    for x, y, text, colour in layout.texts:
+        draw.text((x, y), text, fill=colour, font=font)
+    lh = line_height()
+    for t in layout.tiles:
+        for k, text in enumerate(t.lines):
+            draw.text((t.x, t.label_y + k * lh), text, fill=WHITE if k == 0 else GREY, font=font)
+        canvas.paste(Image.fromarray(_u8(t.image)), (t.x, t.y))
+    if layout.legend is not None:
+        canvas.paste(Image.fromarray(_u8(layout.legend)), (0, layout.legend_y))
+    return np.asarray(canvas).astype(np.float64) / 255.0
+
+
+def grid_columns(n: int, max_width: int, min_col: int = 240) -> tuple[int, int]:
+    """(columns, widest column) of a grid of ``n`` tiles within ``max_width`` pixels: as many columns of at least
+    ``min_col`` as fit, then as few as give the same number of rows (no half-empty last row)."""
+    most = max(1, min(n, (max_width - PAD) // (min_col + PAD)))
+    rows = -(-n // most)
+    cols = -(-n // rows)
+    return cols, max(16, (max_width - PAD) // cols - PAD)
+
+
+def tile_size(size: tuple[int, int], col_max: int) -> tuple[int, int]:
+    """(w, h) of a tile of an image of ``size`` (W, H) in a column of ``col_max``: enlarged by the largest whole
+    factor that fits when that fills at least 80% of the column, else scaled to the column's width, keeping the
+    aspect."""
+    w, h = size
+    f = col_max // w
+    if f >= 1 and w * f >= 0.8 * col_max:
+        return w * f, h * f
+    return col_max, max(1, round(h * col_max / w))
+
+
+def _legend_text(x: int, lines: list[str]):
+    """A painter of ``lines`` from ``x``: (canvas, draw, y) -> None."""
+    def paint(canvas, draw, y):
+        for k, ln in enumerate(lines):
+            draw.text((x, y + k * line_height()), ln, fill=WHITE, font=_font())
+    return paint
+
+
+def _legend_flags(width: int):
+    """(height, painter) of the flag swatches, wrapped to ``width``."""
+    lh, x0 = line_height(), PAD + text_width("flags:") + 8
+    rows, cur, x = [], [], x0
+    for name, _, colour, _ in FLAG_COLOURS:
+        wd = 16 + text_width(name) + 12
+        if cur and x + wd > width - PAD:
+            rows.append(cur)
+            cur, x = [], x0
+        cur.append((x, name, tuple(int(255 * c) for c in colour)))
+        x += wd
+    rows.append(cur)
+    note = wrap("(moving and emissive add their colour to the others)", width - 2 * PAD)
+
+    def paint(canvas, draw, y):
+        draw.text((PAD, y), "flags:", fill=WHITE, font=_font())
+        for i, row in enumerate(rows):
+            for x, name, colour in row:
+                yy = y + i * lh
+                draw.rectangle([x, yy + 2, x + 11, yy + 13], fill=colour, outline=(200, 200, 200))
+                draw.text((x + 16, yy), name, fill=WHITE, font=_font())
+        for k, ln in enumerate(note):
+            draw.text((PAD, y + (len(rows) + k) * lh), ln, fill=GREY, font=_font())
+    return (len(rows) + len(note)) * lh, paint
+
+
+def _legend_motion(width: int):
+    """(height, painter) of the motion colour wheel: each pixel's offset from the centre as a motion vector."""
+    from PIL import Image
+    r = 14
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
+    wheel = motion_rgb(np.stack([xx, yy], axis=-1) / r, max_px=1.0) * (np.hypot(xx, yy) <= r)[..., None]
+    lines = wrap("motion: hue = direction of p_prev - p (as on this wheel, image axes, y down), brightness = "
+                 "length, full at the px its tile names", width - 2 * PAD - 2 * r - 8)
+    text = _legend_text(PAD + 2 * r + 8, lines)
+
+    def paint(canvas, draw, y):
+        canvas.paste(Image.fromarray(_u8(wheel)), (PAD, y))
+        text(canvas, draw, y)
+    return max(2 * r + 1, len(lines) * line_height()), paint
+
+
+def _legend_depth(width: int):
+    """(height, painter) of the depth ramp."""
+    from PIL import Image
+    ramp = np.repeat(np.linspace(1.0, 0.0, 60)[None, :, None], 12, axis=0).repeat(3, axis=-1)
+    lines = wrap("depth: log scale, near (white) to far (black) at the 1st and 99th percentile its tile names "
+                 "(scene units); background black", width - 2 * PAD - 68)
+    text = _legend_text(PAD + 68, lines)
+
+    def paint(canvas, draw, y):
+        canvas.paste(Image.fromarray(_u8(ramp)), (PAD, y + 2))
+        text(canvas, draw, y)
+    return max(14, len(lines) * line_height()), paint
+
+
+def legend_strip(width: int, buffers=("depth", "motion", "flags")) -> np.ndarray:
+    """The contact sheet's legend, ``width`` pixels wide, for the ``buffers`` shown: the flag colours, the motion
+    colour wheel, the depth ramp (log scale) and the grey of the material buffers; wrapped to the width."""
+    from PIL import Image, ImageDraw
+    items = []  # (height, painter)
+    if "flags" in buffers:
+        items.append(_legend_flags(width))
+    if "motion" in buffers or "motion_next" in buffers:
+        items.append(_legend_motion(width))
+    if "depth" in buffers:
+        items.append(_legend_depth(width))
+    if any(b in ("roughness", "metallic", "specular") for b in buffers):
+        lines = wrap("roughness, metallic, specular: grey normalised per buffer, the values at black and white on "
+                     "its tile", width - 2 * PAD)
+        items.append((len(lines) * line_height(), _legend_text(PAD, lines)))
+    canvas = Image.new("RGB", (width, PAD + sum(h + PAD for h, _ in items)), BACKGROUND)
+    draw = ImageDraw.Draw(canvas)
+    y = PAD
+    for h, paint in items:
+        paint(canvas, draw, y)
+        y += h + PAD
+    return np.asarray(canvas).astype(np.float64) / 255.0
+
+
+def contact_sheet_layout(clip, frames: list[int] | None = None, max_frames: int = 3, legend: bool = True, *,
+                         max_width: int = 1600) -> SheetLayout:
+    """The layout of ``contact_sheet``: a title naming the clip, its sizes and exposure; per frame a heading and
+    a grid of tiles (LR radiance enlarged by nearest neighbours, HR radiance, every other HR buffer of the clip),
+    each under its name, mapping and value range (``describe``); the legend below. At most ``max_width`` wide."""
+    frames = frames or clip.frames[:: max(1, len(clip.frames) // max_frames)][:max_frames]
+    buffers = ["radiance", *(b for b in clip.buffers if b != "radiance")]
+    cols, col_max = grid_columns(1 + len(buffers), max_width)
+    tw, th = tile_size(clip.sizes["hr"], col_max)
+    col_w = max(tw, min(col_max, 240))
+    layout = SheetLayout(width=PAD + cols * (col_w + PAD))
+    (w, h), (lw, lh) = clip.sizes["hr"], clip.sizes["lr"]
+    block = clip.manifest.get("exposure") or {}
+    layout.heading(f"{clip.path.name}: HR {w}x{h}, LR {lw}x{lh} (scale {clip.scale:g}); frames "
+                   f"{', '.join(map(str, frames))} of {len(clip.frames)}; exposure x{clip.exposure:.4g} "
+                   f"({block.get('mode', 'none')}); colours in Linear Rec.709 shown as sRGB; tiles {tw}x{th}")
+    for f in frames:
+        layout.heading(f"frame {f}", HEADING)
+        lr = clip.read(f, "lr/radiance", space=DISPLAY_SPACE, exposed=True)
+        cells = [("lr/radiance", f, [f"lr/radiance {lw}x{lh}, nearest", *describe("radiance", lr)],
+                  _fit(visualize("radiance", lr), th, tw))]
+        for b in buffers:
+            arr = clip.read(f, f"hr/{b}", space=DISPLAY_SPACE, exposed=True)
+            cells.append((f"hr/{b}", f, [f"hr/{b}", *describe(b, arr)], _resize(visualize(b, arr), th, tw)))
+        for i in range(0, len(cells), cols):
+            layout.row(cells[i:i + cols], col_w)
+    if legend:
+        layout.add_legend(legend_strip(layout.width, buffers))
+    return layout
+
+
+def contact_sheet(clip, path: str | Path, frames: list[int] | None = None, max_frames: int = 3,
+                  legend: bool = True, *, max_width: int = 1600) -> Path:
+    """PNG contact sheet of a clip (``contact_sheet_layout``): per frame a grid of LR radiance (nearest-upscaled),
+    HR radiance and every HR G-buffer the clip holds, each tile labelled with its buffer, mapping and value range;
+    radiance and emission exposed (the clip's exposure), colours converted from the clip's working space to
+    Linear Rec.709 (sRGB primaries); depth log-scaled, motion as a colour wheel, material buffers normalised.
+    ``legend`` adds the flag colours, the motion wheel and the depth ramp below. At most ``max_width`` wide."""
+    save_png(path, render_sheet(contact_sheet_layout(clip, frames, max_frames, legend, max_width=max_width)))
+    return Path(path)
+
+
+def dataset_sheet_layout(root: str | Path, width: int = 256, splits=None, *, max_width: int = 1600) -> SheetLayout:
+    """The layout of ``dataset_sheet``: every finished clip (index order, or only ``splits``) as two tiles, its
+    first and last frame's HR radiance (exposed, tonemapped) at ``width`` pixels wide, labelled with the clip id,
+    camera kind, split, frame and exposure; as many clips side by side as fit ``max_width``. BlendSRError when the
+    dataset has no finished clip; a clip path that leaves the dataset is refused (``dataset.build.clip_dir``)."""
     from .clip import ClipError, UnsafePathError, open_clip
     from .dataset.build import clip_dir, read_index
     root = Path(root)
     index = read_index(root)
     dirs = [(c, clip_dir(root, c)) for c in index["clips"] if not splits or c.get("split") in splits]
-    rows = []
+    cells = []
     for c, folder in dirs:
         try:
             clip = open_clip(folder)
@@ -236,19 +528,29 @@ def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=N
             continue
         if not clip.frames:
             continue
-        row = []
-        for f in (clip.frames[0], clip.frames[-1]):
+        for f, which in ((clip.frames[0], "first"), (clip.frames[-1], "last")):
             img = visualize("radiance", clip.read(f, "hr/radiance", space=DISPLAY_SPACE, exposed=True))
             h = max(1, round(img.shape[0] * width / img.shape[1]))
-            label = f"{c['id']} f{f}" if f == clip.frames[0] else f"{c.get('camera')} {c.get('split')} f{f}"
-            row.append((label, _fit(img, h, width)))
-        rows.append(row)
-    if not rows:
+            lines = [str(c["id"]), f"{c.get('camera')}, {c.get('split')}; {which} frame {f}",
+                     f"HR {img.shape[1]}x{img.shape[0]}, exposure x{clip.exposure:.3g}"]
+            cells.append((str(c["id"]), f, lines, _resize(img, h, width)))
+    if not cells:
         raise BlendSRError(f"{root}: no finished clip to show")
-    h = max(r[0][1].shape[0] for r in rows)
-    rows = [[(lab, _fit(img, h, width)) for lab, img in r] for r in rows]
-    save_png(path, labelled_grid(rows))
-    return Path(path), len(rows)
+    per_row = 2 * max(1, (max_width - PAD) // (2 * (width + PAD)))
+    layout = SheetLayout(width=PAD + min(per_row, len(cells)) * (width + PAD))
+    layout.heading(f"{root.name}: {len(cells) // 2} finished clips{' in ' + ', '.join(splits) if splits else ''}; "
+                   "HR radiance of the first and last frame, exposed, Reinhard v/(1+v) then sRGB")
+    for i in range(0, len(cells), per_row):
+        layout.row(cells[i:i + per_row], width)
+    return layout
+
+
+def dataset_sheet(root: str | Path, path: str | Path, width: int = 256, splits=None, *,
+                  max_width: int = 1600) -> tuple[Path, int]:
+    """PNG contact sheet of a dataset (``dataset_sheet_layout``). Returns (path, clips shown)."""
+    layout = dataset_sheet_layout(root, width, splits, max_width=max_width)
+    save_png(path, render_sheet(layout))
+    return Path(path), len(layout.tiles) // 2
 
 
 def _fit_lines(lines: list[str], width: int) -> list[str]:

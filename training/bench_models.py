@@ -9,8 +9,8 @@ value, the worst 1 % share, artifact pixels; ``demod-jbu`` scored once for all r
 lacks is left out with a one-line note instead of failing the table. Models are ``InferenceModel``s
 (``load_models``); the options of a run are ``BenchOptions`` (``SpeedOptions`` for the speed mode). With
 ``-o OUT`` it writes OUT/bench_models.json, OUT/bench_models.csv, OUT/bench_models.md and the Pareto plot
-OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined), with the roofline columns of the speed
-mode (below) for one frame of the clips.
+OUT/pareto.png (PSNR against ms per frame, the non-dominated models joined, the data stated: ``plot``), with the
+roofline columns of the speed mode (below) for one frame of the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
@@ -175,29 +175,149 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-def plot(rows: list[dict], path: Path, device: str) -> None:
+@dataclass
+class BenchData:
+    """What a speed-against-error plot states about its data: the clips (paths), their HR sizes, the scale, the
+    frames scored per model, the device, the precisions that ran and the metric's tonemap."""
+    clips: list[str]
+    hr_sizes: list[tuple[int, int]]
+    scale: float
+    frames: int
+    device: str
+    precision: str
+    transform: str = "reinhard-srgb"
+
+    @classmethod
+    def of(cls, clips, result: dict, precisions) -> "BenchData":
+        """From ``benchmark``'s clips and first model's result (``evaluate_model``) and the dtypes that ran."""
+        from gbuffer_export.clip import open_clip
+        sizes = list(dict.fromkeys(open_clip(c).sizes["hr"] for c in clips))
+        return cls([str(c) for c in clips], sizes, float(result["scale"]), len(result["per_frame"]),
+                   result["device"], ", ".join(precisions), result["transform"].split(":")[0])
+
+    def lines(self) -> list[str]:
+        """Two lines: the data (clips, sizes, frames), then how it was measured (device, precision, metric)."""
+        names = [Path(c).name for c in self.clips]
+        parents = {Path(c).parent for c in self.clips}
+        where = ""
+        if len(parents) == 1 and next(iter(parents)).name == "clips":  # DATASET/clips/ID
+            where = f" of {next(iter(parents)).parent.name}"
+        shown = ", ".join(names) if len(names) <= 3 else f"{len(names)} clips{where} ({names[0]}, ..., {names[-1]})"
+        if len(names) <= 3 and where:
+            shown += where
+        sizes = ", ".join(f"{w}x{h}" for w, h in self.hr_sizes)
+        lr = ", ".join(f"{round(w / self.scale)}x{round(h / self.scale)}" for w, h in self.hr_sizes)
+        return [f"{shown}: HR {sizes}, LR {lr} (x{self.scale:g}); {self.frames} frames per model",
+                f"{self.device}; {self.precision}; PSNR of the {self.transform} tonemap, mean over the frames"]
+
+
+def _overlap(a, b, gap: float = 1.0) -> bool:
+    """Two matplotlib Bboxes (display pixels) closer than ``gap``."""
+    return not (a.x1 + gap <= b.x0 or b.x1 + gap <= a.x0 or a.y1 + gap <= b.y0 or b.y1 + gap <= a.y0)
+
+
+def _line_boxes(line, px: float) -> list:
+    """Small boxes (display pixels) every 3 px along a Line2D, for labels to keep off it."""
+    from matplotlib.transforms import Bbox
+    xy = line.get_transform().transform(line.get_xydata())
+    out = []
+    for (x0, y0), (x1, y1) in zip(xy[:-1], xy[1:]):
+        n = max(1, int(np.hypot(x1 - x0, y1 - y0) / (3 * px)))
+        out += [Bbox.from_bounds(x0 + (x1 - x0) * k / n - px, y0 + (y1 - y0) * k / n - px, 2 * px, 2 * px)
+                for k in range(n + 1)]
+    return out
+
+
+def _put(ann, ox: float, oy: float, dx: int, dy: int) -> None:
+    """Set a label ``(ox, oy)`` points from its point, aligned away from it in the direction ``(dx, dy)``."""
+    ann.set_position((ox, oy))
+    ann.set_ha({1: "left", -1: "right", 0: "center"}[dx])
+    ann.set_va({1: "bottom", -1: "top", 0: "center"}[dy])
+
+
+def place_labels(ax, points: list[tuple[float, float]], texts: list[str], fontsize: float = 8,
+                 avoid=()) -> list:
+    """Annotate ``points`` (data coordinates) with ``texts`` so that no two labels overlap each other, a marker,
+    the artists ``avoid`` (the legend; a line: along its path) or the axes' edge: each label takes the first free
+    place of 8 directions at growing distances (offset points), with a leader line when it sits away from its
+    point; a label with no free place takes the place that overlaps least. The figure's layout must be final (no
+    tight_layout afterwards). Returns the labels, in the order of ``points``."""
+    fig = ax.figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    inside = ax.get_window_extent(renderer).padded(-2)
+    px = fig.dpi / 72.0
+    from matplotlib.transforms import Bbox
+    taken = [Bbox.from_bounds(x - 4 * px, y - 4 * px, 8 * px, 8 * px)
+             for x, y in ax.transData.transform(points)]
+    for art in avoid:
+        taken += _line_boxes(art, px) if hasattr(art, "get_xydata") else [art.get_window_extent(renderer)]
+    dirs = [(1, 0), (1, 1), (1, -1), (-1, 0), (-1, 1), (-1, -1), (0, 1), (0, -1)]
+    tries = [(r * dx / (1.4 if dx and dy else 1), r * dy / (1.4 if dx and dy else 1), dx, dy)
+             for r in (6, 14, 24, 36, 50, 66, 84) for dx, dy in dirs]
+    labels = []
+    order = sorted(range(len(points)), key=lambda i: -points[i][1])
+    for i in order:
+        ann = ax.annotate(texts[i], points[i], xytext=(0, 0), textcoords="offset points", fontsize=fontsize,
+                          zorder=4, annotation_clip=False)
+        best = None
+        for place in tries:
+            _put(ann, *place)
+            box = ann.get_window_extent(renderer)
+            clash = sum(_overlap(box, t) for t in taken) + (0 if inside.contains(box.x0, box.y0) and
+                                                            inside.contains(box.x1, box.y1) else 1)
+            if best is None or clash < best[0]:
+                best = (clash, place)
+            if clash == 0:
+                break
+        _put(ann, *best[1])
+        ox, oy = best[1][:2]
+        if abs(ox) + abs(oy) > 14:  # a leader line from the label to its point
+            ax.annotate("", points[i], xytext=(ox, oy), textcoords="offset points",
+                        arrowprops={"arrowstyle": "-", "color": "0.55", "lw": 0.6, "shrinkA": 0, "shrinkB": 3})
+        taken.append(ann.get_window_extent(renderer))
+        labels.append(ann)
+    return [labels[order.index(i)] for i in range(len(points))]
+
+
+def plot(rows: list[dict], path: Path, device: str, data: BenchData | None = None) -> dict:
+    """OUT/pareto.png: PSNR against median ms per frame (log scale) of every row, the non-dominated rows joined,
+    each point labelled with its model where no other label, marker or the axes' edge is (``place_labels``);
+    ``data``'s lines (clips, sizes, frames, device, precision) under the title. Returns {'labels': [(model,
+    (x0, y0, x1, y1))], 'points', 'axes', 'legend', 'texts', 'size'}: the labels', markers', axes' and legend's
+    places in the PNG's pixels (from the bottom, as matplotlib's renderer measured them) and the lines stated."""
     import matplotlib
     matplotlib.use("Agg")
+    import textwrap
+
     import matplotlib.pyplot as plt
     pts = [(max(r["ms_per_frame"], 1e-3), r["psnr"]) for r in rows]
     front = pareto_front(pts)
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    ax.scatter([p[0] for p in pts], [p[1] for p in pts], c="tab:blue", zorder=3)
-    placed: list[tuple[float, float]] = []
-    for r, p in zip(rows, pts):  # labels of near-coincident points are stacked downwards instead of overprinted
-        k = sum(1 for q in placed if abs(q[1] - p[1]) < 0.25 and abs(np.log10(q[0] / p[0])) < 0.3)
-        placed.append(p)
-        ax.annotate(r["model"], p, textcoords="offset points", xytext=(5, 4 - 10 * k), fontsize=8)
-    ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", c="tab:orange", label="Pareto front")
+    about = data.lines() if data is not None else [device]
+    wrapped = [ln for text in about for ln in textwrap.wrap(text, 105)]
+    fig, ax = plt.subplots(figsize=(7.2, 4.6 + 0.14 * len(wrapped)), dpi=120)
+    ax.scatter([p[0] for p in pts], [p[1] for p in pts], c="tab:blue", s=18, zorder=3)
+    line, = ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", c="tab:orange",
+                    label="Pareto front", zorder=2)
     ax.set_xscale("log")
+    ax.margins(x=0.25, y=0.18)
     ax.set_xlabel("ms per frame (median, log scale)")
-    ax.set_ylabel("PSNR (dB, reinhard-srgb tonemap)")
-    ax.set_title(f"Error against time ({device})", fontsize=9)
+    ax.set_ylabel(f"PSNR (dB, {data.transform if data else 'reinhard-srgb'} tonemap)")
+    fig.suptitle(f"Error against time per frame, {len(rows)} models", fontsize=10, x=0.02, ha="left")
+    ax.set_title("\n".join(wrapped), fontsize=7.5, loc="left", color="0.25")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    legend = ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
+    labels = place_labels(ax, pts, [r["model"] for r in rows], avoid=[legend, line])
+    renderer = fig.canvas.get_renderer()
+    out = {"labels": [(r["model"], tuple(lab.get_window_extent(renderer).extents)) for r, lab in zip(rows, labels)],
+           "points": [tuple(p) for p in ax.transData.transform(pts)],
+           "axes": tuple(ax.get_window_extent(renderer).extents), "texts": wrapped,
+           "legend": tuple(legend.get_window_extent(renderer).extents),
+           "size": tuple(int(v) for v in fig.canvas.get_width_height())}
     fig.savefig(path)
     plt.close(fig)
+    return out
 
 
 @dataclass(frozen=True)
@@ -318,7 +438,7 @@ def _write_bench(out: Path, result: dict, peaks: dict, clips) -> None:
         for r in rows:
             w.writerow({k: r.get(k) for k in COLUMNS})
     (out / "bench_models.md").write_text(f"Device: {device_name}; scale {scale}\n\n{result['table']}\n")
-    plot(rows, out / "pareto.png", device_name)
+    plot(rows, out / "pareto.png", device_name, BenchData.of(clips, result["results"][0], list(peaks)))
 
 
 def run(args) -> int:

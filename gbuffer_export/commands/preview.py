@@ -6,9 +6,9 @@ from ..errors import BlendSRError
 
 from ..extras import HelpFormatter
 
-HELP = """Write a contact sheet of a dataset: one row per finished clip with the HR radiance of its first and last
-frame (tonemapped: Reinhard, then sRGB), labelled with the clip's id, camera kind (walk, fly, orbit, scene...)
-and split."""
+HELP = """Write a contact sheet of a dataset: the HR radiance of every finished clip's first and last frame
+(exposed, tonemapped: Reinhard, then sRGB), as many clips side by side as fit 1600 px, each labelled with the
+clip's id, camera kind (walk, fly, orbit, scene...), split, frame, HR size and exposure."""
 
 #: Bytes the sheet holds per pixel of its tiles while it is composed: float64 RGB tiles, the 8-bit canvas and its
 #: float64 copy (``preview.dataset_sheet``, ``labelled_grid``).

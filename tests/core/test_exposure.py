@@ -197,13 +197,14 @@ def test_near_and_far_content(tmp_path):
 def test_previews_and_exporters_read_the_exposed_radiance(dim_auto, tmp_path):
     from gbuffer_export.formats.nss import export_clip, nss_to_clip
     from gbuffer_export.formats.rdg import rdg_buffer
-    from gbuffer_export.preview import contact_sheet
+    from gbuffer_export.preview import contact_sheet, contact_sheet_layout
     c = open_clip(dim_auto)
     exposed = c.read(1, "hr/radiance", exposed=True)
     # contact sheet: the dim clip is visibly lit (its physical radiance would encode to black)
     from PIL import Image
     sheet = np.asarray(Image.open(contact_sheet(c, tmp_path / "sheet.png", frames=[1], legend=False)))
-    tile = sheet[-HR[1]:, HR[0]:2 * HR[0]]  # hr/radiance, right of the (upscaled) LR tile
+    x, y, w, h = contact_sheet_layout(c, frames=[1], legend=False).tile("hr/radiance").box
+    tile = sheet[y:y + h, x:x + w]
     assert tile.mean() > 60, tile.mean()
     # RDG: the image and the emission of the exposed radiance
     np.testing.assert_allclose(rdg_buffer(c, 1, "hr", "Image"), exposed, rtol=1e-6)
@@ -310,9 +311,10 @@ def test_a_scene_lit_by_a_weak_lamp_renders_well_exposed(blend_dir, tmp_path):
     assert all(0.02 <= v["log_average"] <= 2.0 for v in r.stats["exposed_frames"].values())
     from PIL import Image
 
-    from gbuffer_export.preview import contact_sheet
+    from gbuffer_export.preview import contact_sheet, contact_sheet_layout
     sheet = np.asarray(Image.open(contact_sheet(c, tmp_path / "sheet.png", frames=[1], legend=False)))
-    assert sheet[-36:, 64:128].mean() > 40  # the HR radiance tile
+    x, y, w, h = contact_sheet_layout(c, frames=[1], legend=False).tile("hr/radiance").box
+    assert sheet[y:y + h, x:x + w].mean() > 40  # the HR radiance tile
     edit_manifest(out, lambda m: m.pop("exposure"))  # the same data read at exposure 1
     assert "dark-frame" in validate_clip(out).codes()
 
