@@ -108,3 +108,20 @@ def status(path: str = "", refresh: bool = False) -> LibraryStatus:
 def worker_paths(st: LibraryStatus) -> dict[str, list[str]]:
     """What a worker process must add to ``sys.path`` to import the library as this process does."""
     return {"site_dirs": list(ADDED_SITE_DIRS), "sys_path": [st.root] if st.root else []}
+
+
+_NOTES: dict[str, str] | None = None
+
+
+def pretrained_notes() -> dict[str, str]:
+    """{'pretrained:NAME': note} for the shipped networks the library marks (``training.pretrained``:
+    'below demod-jbu on val', from the JSON beside the weights; json only, no torch); {} while the library is not
+    importable (looked for again on the next call)."""
+    global _NOTES
+    if _NOTES is None:
+        try:
+            from training import pretrained
+        except ImportError:
+            return {}
+        _NOTES = {pretrained.PREFIX + n: pretrained.below_baseline_note(n) for n in pretrained.PRETRAINED}
+    return {k: v for k, v in _NOTES.items() if v}

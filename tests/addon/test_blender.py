@@ -95,13 +95,21 @@ def test_register_unregister_twice_and_defaults():
                     for p in rna if p.identifier not in ("rna_type", "name", "dataset")}  # dataset: its own test
         read_only = {k: rna[k].is_readonly for k in ("preview_ms", "preview_psnr", "preview_metric",
                                                      "preview_info", "preview_clip", "last_export")}
-        enums = {k: [i.identifier for i in rna[k].enum_items]
-                 for k in ("camera_path", "jitter", "fbeta_source", "preview_model")}
+        enums = {k: [i.identifier for i in rna[k].enum_items] for k in ("camera_path", "jitter", "fbeta_source")}
+        # the model menu's items come from a callback (the library marks a network below demod-jbu)
+        enums["preview_model"] = [i[0] for i in props.preview_model_items(s, bpy.context)]
+        defaults["preview_model"] = s.preview_model
+        model_labels = {i[0]: i[1] for i in props.preview_model_items(s, bpy.context)}
+        s.preview_model = "pretrained:nsrd"
+        model_set = [s.preview_model]
         from blender_addon import panels
         emit({"before": before, "lib_after_register": "gbuffer_export" in sys.modules, "states": states,
-              "defaults": defaults, "read_only": read_only, "enums": enums,
+              "defaults": defaults, "read_only": read_only, "enums": enums, "model_labels": model_labels,
+              "model_set": model_set,
               "panels": {c.__name__: [c.bl_space_type, c.bl_region_type, getattr(c, "bl_context", ""),
-                                      getattr(c, "bl_category", "")] for c in panels.CLASSES}})
+                                      getattr(c, "bl_category", "")] for c in panels.CLASSES},
+              "closed": {c.__name__: [getattr(c, "bl_parent_id", ""), "DEFAULT_CLOSED" in getattr(c, "bl_options", ())]
+                         for c in panels.CLASSES}})
     ''')
     assert not r["before"] and not r["lib_after_register"], "the add-on must not import the library at register"
     for i, st in enumerate(r["states"]):
@@ -113,6 +121,11 @@ def test_register_unregister_twice_and_defaults():
     assert all(r["read_only"].values()), r["read_only"]
     assert r["panels"]["BLENDSR_PT_output"] == ["PROPERTIES", "WINDOW", "output", ""]
     assert r["panels"]["BLENDSR_PT_view3d"] == ["VIEW_3D", "UI", "", "BlendSR"]
+    # collapsible subpanels (closed at first) instead of one long panel; a subpanel registers after its parent
+    subs = {k: v for k, v in r["closed"].items() if v[0]}
+    assert len(subs) >= 10 and all(closed for _, closed in subs.values()), r["closed"]
+    order = list(r["closed"])
+    assert all(order.index(p) < order.index(k) for k, (p, _) in subs.items())
 
     # Defaults equal the CLI's (and RenderConfig's where the two agree).
     from gbuffer_export.commands.render import add_render_arguments
@@ -146,6 +159,12 @@ def test_register_unregister_twice_and_defaults():
     for m in r["enums"]["preview_model"]:  # shipped weights, or non-learned models
         assert (m.startswith(PREFIX) and m[len(PREFIX):] in PRETRAINED) or (m in MODELS and not MODELS[m].learned), m
     assert {PREFIX + n for n in PRETRAINED} <= set(r["enums"]["preview_model"])  # every shipped network is offered
+    # a shipped network below demod-jbu on its val split says so in the menu (training.pretrained, the weights' JSON)
+    from training.pretrained import below_baseline
+    for n in PRETRAINED:
+        label = r["model_labels"][PREFIX + n]
+        assert ("below demod-jbu on val" in label) is below_baseline(n), label
+    assert r["model_set"][0] == "pretrained:nsrd"
 
 
 def test_mapping_equals_cli_config(tmp_path):
@@ -163,7 +182,8 @@ def test_mapping_equals_cli_config(tmp_path):
         s.use_scene_resolution = False; s.hr_width, s.hr_height = 96, 48
         s.scale = 2; s.hr_spp = 7; s.lr_spp = 3; s.gbuffer_spp = 2; s.hr_denoise = True; s.adaptive = True
         s.adaptive_threshold = 0.05; s.adaptive_min_samples = 5; s.camera_path = "orbit"; s.seed = 11
-        s.jitter = "none"; s.buffers = "depth,normal"; s.fbeta_source = "lut-paper"; s.use_max_bounces = True
+        s.jitter = "none"; s.buffers = "custom"; s.buffer_set = {"depth", "normal"}; s.fbeta_source = "lut-paper"
+        s.use_max_bounces = True
         s.max_bounces = 3; s.threads = 1
         b = mapping.render_config(s, sc).to_json()
         s.hr_width = 97
@@ -208,6 +228,7 @@ class Rec:
     def column(self, **kw): return self._child("column")
     def box(self): return self._child("box")
     def split(self, **kw): return self._child("split")
+    def column_flow(self, **kw): return self._child("column_flow")
     def separator(self, **kw): pass
     def prop(self, data, name, **kw):
         ok = name in data.bl_rna.properties
@@ -219,15 +240,21 @@ class Rec:
         self.log.append(("operator", idname, hasattr(getattr(bpy.ops, mod), op)))
         return type("OpProps", (), {})()
 
+def draw_tree(root, skip=()):
+    """The log of ``root`` and every subpanel below it (drawn open), in drawing order."""
+    from blender_addon import panels
+    log = []
+    for cls in panels.subtree(root, skip):
+        if hasattr(cls, "poll") and not cls.poll(bpy.context):
+            continue
+        log.append(("panel", cls.bl_idname, getattr(cls, "bl_parent_id", "")))
+        cls.draw(type("FakePanel", (), {"layout": Rec(log)})(), bpy.context)
+    return log
+
 def draw_all():
     from blender_addon import panels
-    out = {}
-    for cls in panels.MAIN_PANELS:  # the Dataset subpanels: tests/addon/test_dataset.py
-        log = []
-        fake = type("FakePanel", (), {"layout": Rec(log)})()
-        cls.draw(fake, bpy.context)
-        out[cls.__name__] = log
-    return out
+    # the Dataset subpanels: tests/addon/test_dataset.py
+    return {cls.__name__: draw_tree(cls, panels.DATASET_PANELS) for cls in panels.MAIN_PANELS}
 '''
 
 
@@ -273,8 +300,15 @@ def test_panels_draw_with_library(tmp_path):
         assert {"output_dir", "scale", "hr_spp", "lr_spp", "camera_path", "buffers", "fbeta_source", "jitter",
                 "frame_start", "frame_end", "hr_width", "hr_height", "checkpoint", "with_reference"} <= drawn
         ops = [e for e in log if e[0] == "operator"]
-        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale",
-                                         "blendsr.create_camera_paths"} and all(e[2] for e in ops)
+        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale", "blendsr.open_output",
+                                       "blendsr.contact_sheet", "blendsr.create_camera_paths"} and all(e[2] for e in ops)
+        # collapsible subpanels under the head, closed at first; the head holds the export and its buttons
+        subs = [e for e in log if e[0] == "panel"]
+        assert subs[0][2] == "" and len(subs) >= 5 and all(e[2] == subs[0][1] for e in subs[1:]), subs
+        head = log[:next(i for i, e in enumerate(log) if e[0] == "panel" and e[2])]
+        assert [e[1] for e in head if e[0] == "operator"] == ["blendsr.export_dataset", "blendsr.open_output",
+                                                              "blendsr.contact_sheet"]
+        assert len([e for e in head if e[0] == "prop"]) <= 2, head  # the ~35 settings sit in the subpanels
         assert any(e[0] == "open" and e[2] >= 1 for e in log), "nested layouts are drawn"
         labels = [e[1] for e in log if e[0] == "label"]
         # default buffers x 2 levels x 2 frames; size from the channel counts (float32).
@@ -286,8 +320,9 @@ def test_panels_draw_with_library(tmp_path):
         assert any(t.startswith("Time: about") and "cost model" in t for t in labels)
         assert not any("pip install" in t for t in labels)
     labels = [e[1] for e in r["no_torch"] if e[0] == "label"]
-    assert any("torch is not importable" in t for t in labels)
-    assert any("External Python" in t for t in labels)
+    from blender_addon.panels import TORCH_MISSING
+    assert [t for t in labels if "torch" in t] == [TORCH_MISSING]  # one line: the preview needs [train]
+    assert "External Python" in TORCH_MISSING and "blendsr[train]" in TORCH_MISSING
     labels = [e[1] for e in r["with_results"] if e[0] == "label"]
     assert "Inference: 12.5 ms" in labels and "PSNR: 31.25 dB" in labels
 
