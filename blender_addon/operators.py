@@ -52,12 +52,12 @@ CLIP_SCENE_DIR = ".blendsr_scene"
 def scene_file_for_clip(scene, output: Path, job_dir: Path) -> Path:
     """The .blend a clip export renders: ``OUTPUT/.blendsr_scene/<name>.blend``, a copy of the open scene kept with
     its ``scene_fingerprint``. While the fingerprint is the same, the copy is reused (same file, same sha256 in the
-    clip's manifest: the export resumes after changes that do not affect the render, e.g. the selection or a save);
-    otherwise it is replaced by the current state (the renderer then refuses to mix it into a clip it has started,
-    naming the folder)."""
+    clip's manifest: the export resumes after changes that do not affect the render, e.g. the selection or a save).
+    A different fingerprint replaces the copy before the clip has a manifest, and is refused (ClipError naming the
+    folder, the copy kept) once it has one."""
     import json
 
-    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.clip import MANIFEST, ClipError, write_json_atomic
     name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
     dest = Path(output) / CLIP_SCENE_DIR / name
     meta = dest.with_suffix(".json")
@@ -68,6 +68,10 @@ def scene_file_for_clip(scene, output: Path, job_dir: Path) -> Path:
         same = False
     if same:
         return dest
+    if dest.is_file() and (Path(output) / MANIFEST).is_file():
+        raise ClipError(f"{output}: the open scene differs from the copy this clip was rendered from "
+                        f"({CLIP_SCENE_DIR}/{name}: moved, added or edited objects, materials, lights or camera); "
+                        "choose another output folder, or delete the clip to start again")
     tmp = Path(job_dir) / name
     save_scene_copy(tmp)
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -107,6 +111,33 @@ def _tree_signature(tree) -> tuple:
     return tuple(nodes), tuple(links)
 
 
+def _action_signature(action) -> tuple:
+    """An action's keys: every F-curve's data path, index and keyframes (layered actions of Blender 4.4+ and the
+    older flat ones)."""
+    if action is None:
+        return ()
+    curves = list(getattr(action, "fcurves", None) or [])
+    for layer in getattr(action, "layers", ()):
+        for strip in layer.strips:
+            for bag in getattr(strip, "channelbags", ()):
+                curves += list(bag.fcurves)
+    return tuple((fc.data_path, fc.array_index, tuple(_values((k.co, k.handle_left, k.handle_right, k.interpolation))
+                                                      for k in fc.keyframe_points)) for fc in curves)
+
+
+TRANSFORM_CHANNELS = ("location", "rotation_euler", "rotation_quaternion", "scale")
+
+
+def _moves(ob) -> bool:
+    """Whether the object's world matrix depends on the frame: it, or an object it hangs from, is animated or
+    constrained."""
+    while ob is not None:
+        if (ob.animation_data and ob.animation_data.action) or len(ob.constraints):
+            return True
+        ob = ob.parent
+    return False
+
+
 def scene_fingerprint(scene) -> str:
     """sha256 of what a render of ``scene`` depends on, as far as cheaply read: the frame range, fps, unit scale,
     colour management, the world and its nodes; every object's name, type, visibility in renders, world matrix,
@@ -127,8 +158,15 @@ def scene_fingerprint(scene) -> str:
         h.update(repr(_tree_signature(scene.world.node_tree)).encode())
     materials = {}
     for ob in sorted(scene.objects, key=lambda o: o.name):
-        m = np.round(np.array(ob.matrix_world, dtype=np.float64), 5)
-        act = ob.animation_data.action.name if ob.animation_data and ob.animation_data.action else None
+        action = ob.animation_data.action if ob.animation_data else None
+        keys = _action_signature(action)
+        act = (ob.parent.name if ob.parent else None, [c.type for c in ob.constraints], keys)
+        if _moves(ob):  # its matrix at the current frame changes with the frame: its keys and unkeyed channels
+            keyed = {(k[0], k[1]) for k in keys}
+            m = np.array([round(v, 5) for attr in TRANSFORM_CHANNELS for i, v in enumerate(getattr(ob, attr))
+                          if (attr, i) not in keyed])
+        else:
+            m = np.round(np.array(ob.matrix_world, dtype=np.float64), 5)
         slots = [sl.material.name if sl.material else None for sl in ob.material_slots]
         materials.update({sl.material.name: sl.material for sl in ob.material_slots if sl.material})
         h.update(repr((ob.name, ob.type, ob.hide_render, m.tobytes().hex(), act, slots,
@@ -509,7 +547,12 @@ class BLENDSR_OT_open_output(bpy.types.Operator):
         except ValueError as exc:
             self.report({"ERROR"}, f"BlendSR: {exc}")
             return {"CANCELLED"}
-        return bpy.ops.wm.path_open(filepath=str(path))
+        return open_folder(path)
+
+
+def open_folder(path: Path) -> set:
+    """Open ``path`` in the system's file browser (``wm.path_open``)."""
+    return bpy.ops.wm.path_open(filepath=str(path))
 
 
 SHEET_IMAGE = "BlendSR contact sheet"

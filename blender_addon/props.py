@@ -75,25 +75,12 @@ PREVIEW_MODEL_ITEMS = (
 )
 
 
-def marked_items(items, notes: dict[str, str]) -> list[tuple]:
-    """``items`` as numbered enum items (number = position, as saved files store them), a shipped network's label
-    carrying its note: "NSRD (pretrained, below demod-jbu on val)"."""
-    out = []
-    for i, (ident, label, desc) in enumerate(items):
-        note = notes.get(ident)
-        if note:
-            label = label[:-1] + f", {note})" if label.endswith(")") else f"{label} ({note})"
-            desc = f"{desc}. Scores {note} (training/weights/*.json)"
-        out.append((ident, label, desc, i))
-    return out
-
-
 _MODEL_ITEMS: list = []  # Blender keeps no reference to a callback's strings: the list lives here
 
 
 def preview_model_items(self, context):
     """The model menu's items: ``PREVIEW_MODEL_ITEMS`` with the library's marks (``library.pretrained_notes``)."""
-    from .library import pretrained_notes
+    from .library import marked_items, pretrained_notes
     _MODEL_ITEMS[:] = marked_items(PREVIEW_MODEL_ITEMS, pretrained_notes())
     return _MODEL_ITEMS
 

@@ -368,11 +368,65 @@ def test_export_dataset_operator(tmp_path):
         engine = sc.render.engine
         res = bpy.ops.blendsr.export_dataset()
         mats = bpy.data.materials["red"].node_tree.nodes
-        emit({"res": sorted(res), "last": s.last_export, "engine_before": engine, "engine": sc.render.engine,
-              "aovs": len(bpy.context.view_layer.aovs), "nodes": len(mats), "res_x": sc.render.resolution_x,
-              "pass_index": [ob.pass_index for ob in sc.objects], "dirty": bpy.data.is_dirty})
+        first = {"res": sorted(res), "last": s.last_export, "engine_before": engine, "engine": sc.render.engine,
+                 "aovs": len(bpy.context.view_layer.aovs), "nodes": len(mats), "res_x": sc.render.resolution_x,
+                 "pass_index": [ob.pass_index for ob in sc.objects], "dirty": bpy.data.is_dirty}
+        import hashlib, os, pathlib
+        from blender_addon import operators
+        out = pathlib.Path(sys.argv[1])
+        copy = out / operators.CLIP_SCENE_DIR / "untitled.blend"
+        sha = lambda: hashlib.sha256(copy.read_bytes()).hexdigest()
+        first["copy_sha"] = sha()
+        # Open output (the system's file browser, recorded here) and the contact sheet in the Image Editor
+        opened = []
+        operators.open_folder = lambda path: opened.append(str(path)) or {"FINISHED"}
+        first["open"] = [sorted(bpy.ops.blendsr.open_output(target="clip")), opened]
+        first["sheet"] = sorted(bpy.ops.blendsr.contact_sheet(target="clip"))
+        img = bpy.data.images["BlendSR contact sheet"]
+        from PIL import Image  # the PNG gbuffer_export.preview.contact_sheet wrote (in Blender's temporary folder)
+        with Image.open(img.filepath) as im:
+            first["sheet_image"] = [list(img.size), list(im.size)]
+        s.dataset.output_dir = sys.argv[1] + "_dataset"
+        try:
+            bpy.ops.blendsr.open_output(target="dataset")
+            first["no_dataset"] = ""
+        except RuntimeError as exc:
+            first["no_dataset"] = str(exc)
+        # interrupted after frame 1 (frame 2's record gone), then changes a render does not read: selection, the
+        # active object, the current frame, the preview's settings
+        os.remove(out / "frames" / "000002.json")
+        fp = operators.scene_fingerprint(sc)
+        for ob in sc.objects:
+            ob.select_set(ob.type == "MESH")
+        bpy.context.view_layer.objects.active = sc.objects[0]
+        sc.frame_current, s.with_reference, s.preview_model = 2, True, "bicubic"
+        unchanged = operators.scene_fingerprint(sc) == fp
+        resumed = sorted(bpy.ops.blendsr.export_dataset())
+        resumed_sha, resumed_last = sha(), s.last_export
+        # what a render reads changes the fingerprint: a material's colour, a moved object (refused: other clip)
+        mat_in = bpy.data.materials["red"].node_tree.nodes["Principled BSDF"].inputs["Base Color"]
+        mat_in.default_value = (0.1, 0.8, 0.1, 1)
+        material_changes = operators.scene_fingerprint(sc) != fp
+        mat_in.default_value = (0.8, 0.1, 0.1, 1)
+        back = operators.scene_fingerprint(sc) == fp
+        sc.objects[0].location.x += 1
+        try:
+            moved = str(sorted(bpy.ops.blendsr.export_dataset()))
+        except RuntimeError as exc:
+            moved = str(exc)
+        emit({**first, "unchanged": unchanged, "resumed": resumed, "resumed_sha": resumed_sha,
+              "resumed_last": resumed_last, "material_changes": material_changes, "back": back, "moved": moved})
     ''', out)
     assert r["res"] == ["FINISHED"], r
+    # a clip export resumes after changes that do not affect what it renders (the scene copy's fingerprint)
+    assert r["unchanged"] and r["resumed"] == ["FINISHED"] and r["resumed_sha"] == r["copy_sha"], r
+    assert "OK" in r["resumed_last"]
+    assert r["material_changes"] and r["back"]
+    assert r["open"] == [["FINISHED"], [str(out)]]
+    assert r["sheet"] == ["FINISHED"] and min(r["sheet_image"][0]) > 36, r["sheet_image"]  # the clip's tiles
+    assert r["sheet_image"][0] == r["sheet_image"][1]
+    assert "no such folder yet; render the dataset first" in r["no_dataset"], r["no_dataset"]
+    assert "the open scene differs from the copy this clip was rendered from" in r["moved"], r["moved"]
     # the user's scene is untouched: the render happened in the worker
     assert r["engine"] == r["engine_before"] and r["aovs"] == 0 and r["nodes"] == 2 and r["res_x"] == 1920
     assert r["pass_index"] == [0, 0, 0]

@@ -178,6 +178,9 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
         res = sorted(bpy.ops.blendsr.render_dataset())
         after = [sc.render.engine, sc.render.resolution_x, len(bpy.context.view_layer.aovs), bpy.data.filepath]
         first = [ds.last_dataset, ds.last_dataset_ok]
+        # the dataset's contact sheet (gbuffer_export.preview.dataset_sheet) as an image: a row per clip
+        sheet = sorted(bpy.ops.blendsr.contact_sheet(target="dataset"))
+        first.append([sheet, list(bpy.data.images["BlendSR contact sheet"].size)])
         # the same scene opened again: the run resumes (nothing left to render)
         bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
         ds = tiny_dataset(sys.argv[2])
@@ -204,6 +207,7 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
               "failed_panel": [ds.last_dataset, ds.last_dataset_ok]})
     ''', garage, out, helpers=TINY, timeout=300)
     assert r["res"] == ["FINISHED"] and r["first"][1] is True, r
+    assert r["first"][2][0] == ["FINISHED"] and r["first"][2][1][1] > 2 * 36, r["first"]  # two clips' rows
     assert r["first"][0].startswith(f"OK: {out}: 2/2 clips valid"), r["first"]
     assert r["before"] == r["after"], "the open scene is untouched: clips render in worker processes"
     from gbuffer_export.dataset.check import validate_dataset
