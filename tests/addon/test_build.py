@@ -44,7 +44,7 @@ def test_zip_carries_the_library_and_its_wheels(addon_zip):
         names = set(z.namelist())
         manifest = z.read("blender_manifest.toml").decode()
     assert {"blender_manifest.toml", "__init__.py", "operators.py", "panels.py", "props.py", "worker.py",
-            "external_infer.py", "render_keys.py", "render_keys.json"} <= names
+            "external_infer.py", "render_keys.py", "render_keys.json", "choices.json"} <= names
     assert not {"build.py", "calibrate.py"} & names and not any("__pycache__" in n for n in names)
     wheels = sorted(n.removeprefix("wheels/") for n in names if n.startswith("wheels/"))
     projects = {build._name(w.split("-")[0]) for w in wheels}
