@@ -18,7 +18,7 @@ from pathlib import Path
 
 import bpy
 
-from . import images, jobs, library, mapping
+from . import images, jobs, library, mapping, render_keys
 from .prefs import Prefs
 from .props import store_preview_results
 
@@ -492,7 +492,10 @@ class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
     bl_label = "Create camera paths"
     bl_options = {"REGISTER", "UNDO"}
 
-    kinds: bpy.props.StringProperty(name="Kinds", default="walk,fly")
+    kinds: bpy.props.EnumProperty(name="Kinds", options={"ENUM_FLAG"}, default={"walk", "fly"},
+                                  items=tuple((k, k.capitalize(), f"A generated {k} path") for k in
+                                              render_keys.CHOICES["level_camera_paths"]),
+                                  description="Path kinds, cycling over the clips")
     clips: bpy.props.IntProperty(name="Clips", default=2, min=1, max=64)
     seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
 
@@ -500,7 +503,7 @@ class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
         from gbuffer_export.blender.scene_setup import make_level_camera
 
         scene = context.scene
-        kinds = [k.strip() for k in self.kinds.split(",") if k.strip() in ("walk", "fly")] or ["walk"]
+        kinds = render_keys.flag_list(self.kinds, render_keys.CHOICES["level_camera_paths"]) or ["walk"]
         old_camera = scene.camera
         frames = (scene.frame_start, scene.frame_end)
         made = []

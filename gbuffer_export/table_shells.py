@@ -324,14 +324,14 @@ def replace_between(text: str, begin: str, end: str, body: str) -> str:
 
 def addon_choices() -> dict:
     """What the add-on's menus and checkboxes offer, from the one place each lives: camera paths
-    (``config.CAMERA_PATHS`` and ``scene:*``), buffers (``conventions.BUFFERS``, ``DEFAULT_BUFFERS``), models
+    (``config.CAMERA_PATHS`` and ``scene:*``; ``LEVEL_CAMERA_PATHS``), buffers (``conventions.BUFFERS``, ``DEFAULT_BUFFERS``), models
     (the model-buffer table's, for *For models*) and the integer scales the fixed-scale models take (its
     ``scales``; any-scale models take these too)."""
-    from .config import CAMERA_PATHS
+    from .config import CAMERA_PATHS, LEVEL_CAMERA_PATHS
     from .conventions import BUFFERS, DEFAULT_BUFFERS
     from .dataset.buffers import MODEL_BUFFERS, MODEL_SCALES
     scales = sorted({k for v in MODEL_SCALES.values() if v for k in v})
-    return {"camera_paths": [*CAMERA_PATHS, "scene:*"],
+    return {"camera_paths": [*CAMERA_PATHS, "scene:*"], "level_camera_paths": list(LEVEL_CAMERA_PATHS),
             "buffers": [{"name": b.name, "help": b.meaning} for b in BUFFERS.values()],
             "default_buffers": list(DEFAULT_BUFFERS), "models": list(MODEL_BUFFERS), "scales": scales}
 

@@ -593,7 +593,7 @@ def test_create_camera_paths_on_garage_keeps_eyes_clear():
         blender_addon.register()
         sc = bpy.context.scene
         sc.frame_start, sc.frame_end = 1, 3
-        res = bpy.ops.blendsr.create_camera_paths(kinds="walk,fly", clips=2, seed=0)
+        res = bpy.ops.blendsr.create_camera_paths(kinds={"walk", "fly"}, clips=2, seed=0)
         from gbuffer_export.blender.level_geometry import from_scene
         geom = from_scene(sc, 1)
         out = {"res": list(res), "cams": {}}
