@@ -1,23 +1,58 @@
-"""Build the installable extension zip with Blender's own extension tooling and validate it.
+"""Build the installable extension zips with Blender's own extension tooling and validate them.
 
-    python -m blender_addon.build -o dist        (``make addon``)
+    python -m blender_addon.build -o dist                      (``make addon``: every platform of PLATFORMS)
+    python -m blender_addon.build -o dist --platform linux-x64 (one platform)
+
+Each zip carries the BlendSR library and what Blender's Python lacks as wheels listed in the manifest's ``wheels``
+(Blender's mechanism for self-contained extensions: Blender installs them when the extension is enabled), so an
+artist installs one file and needs no pip. The wheels are the ``blendsr`` wheel built from this checkout and, from
+PyPI (``pip download --only-binary=:all:``), the dependencies of what an artist uses (export, dataset, preview):
+``[project].dependencies`` and the ``render`` extra of pyproject.toml, less what Blender ships (bpy and the bpy
+wheel's own requirements: numpy, requests, ...), resolved against Blender's numpy. Per-platform wheels make one zip
+per platform (``blender_ext.py build --split-platforms``: ``<id>-<version>-<platform>.zip``). torch (the
+``train`` extra) is not bundled: the preview's models need it (docs/addon.md).
 
 Uses ``blender_ext.py`` (its ``build`` and ``validate`` commands), found in the bpy wheel of this Python or given
 with ``--blender-ext``; tags are checked against Blender's list of valid tags when it is there. Needs no Blender
-binary and does not import bpy. Prints the zip's path; exit 0, or 2 with a one-line error.
+binary and does not import bpy. Prints the zips' paths; exit 0, or 2 with a one-line error.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import importlib.metadata
 import importlib.util
+import json
+import re
+import shutil
 import subprocess
 import sys
+import tempfile
 import zipfile
 from pathlib import Path
 
 SOURCE = Path(__file__).resolve().parent
+REPO = SOURCE.parent
 BL_PKG_CLI = Path("scripts", "addons_core", "bl_pkg", "cli", "blender_ext.py")
 TAGS = Path("scripts", "modules", "_bpy_internal", "extensions", "tags.py")
+#: Blender's Python version (4.2 to 5.0; 5.1 moved to 3.13, hence the manifest's blender_version_max).
+PYTHON_VERSION = "3.11"
+#: Blender platform -> the pip platform tags its wheels may carry (the oldest system each Blender release runs on;
+#: pip does not widen a given tag to older ones, so they are listed).
+PLATFORMS = {
+    "linux-x64": ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x86_64", "manylinux_2_17_x86_64",
+                  "manylinux2014_x86_64", "manylinux2010_x86_64", "manylinux_2_12_x86_64"),
+    "windows-x64": ("win_amd64",),
+    "macos-arm64": ("macosx_12_0_arm64", "macosx_11_0_arm64", "macosx_10_9_universal2"),
+    "macos-x64": ("macosx_10_15_x86_64", "macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_9_x86_64",
+                  "macosx_10_9_universal2"),
+}
+#: Bundled where a wheel exists, left out elsewhere: level cameras then use trimesh's own ray engine
+#: (gbuffer_export/blender/level_geometry.py), same answers, slower (embreex has no macOS arm64 wheel for 3.11).
+OPTIONAL = ("embreex",)
+#: The extra whose packages the add-on's export and dataset paths import, besides the base dependencies.
+EXTRAS = ("render",)
+WHEEL_CACHE = REPO / "build" / "addon-wheels"
 
 
 class BuildError(RuntimeError):
@@ -53,17 +88,133 @@ def manifest_version(source: Path = SOURCE) -> tuple[str, str]:
     return m["id"], m["version"]
 
 
-def _run(cmd: list[str]) -> str:
+def _name(requirement: str) -> str:
+    """The normalised project name of a requirement string ('colour-science>=0.4.6' -> 'colour-science')."""
+    return re.sub(r"[-_.]+", "-", re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", requirement).group(1)).lower()
+
+
+def blender_ships() -> tuple[set[str], dict[str, str]]:
+    """(names Blender's Python already has, {name: pinned version} for the resolver): bpy and the bpy wheel's own
+    requirements (numpy, requests, ...), numpy pinned to the installed one (Blender's)."""
+    try:
+        reqs = importlib.metadata.requires("bpy") or []
+    except importlib.metadata.PackageNotFoundError:
+        raise BuildError("bpy is not installed in this Python: its numpy is the one the wheels must match") from None
+    names = {"bpy", *(_name(r) for r in reqs if "extra ==" not in r)}
+    return names, {"numpy": importlib.metadata.version("numpy")}
+
+
+def requirements() -> tuple[list[str], list[str]]:
+    """(required, optional) requirement strings of the bundled wheels, from pyproject.toml."""
+    import tomllib
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    ships, _ = blender_ships()
+    reqs = [*project["dependencies"], *(r for e in EXTRAS for r in project["optional-dependencies"][e])]
+    reqs = [r for r in reqs if _name(r) not in ships]
+    return [r for r in reqs if _name(r) not in OPTIONAL], [r for r in reqs if _name(r) in OPTIONAL]
+
+
+def _run(cmd: list[str], what: str) -> str:
     proc = subprocess.run(cmd, capture_output=True, text=True)
     out = (proc.stdout + proc.stderr).strip()
     if proc.returncode != 0:
-        lines = [ln for ln in out.splitlines() if ln.strip()]
-        raise BuildError(f"{Path(cmd[2]).name} {cmd[3]} failed: {lines[-1] if lines else 'no output'}")
+        lines = [ln for ln in out.splitlines() if ln.strip() and "is ignored" not in ln]
+        raise BuildError(f"{what} failed: {lines[-1] if lines else 'no output'}")
     return out
 
 
-def build(output_dir: Path, blender_ext: Path | None = None, python: str = sys.executable) -> Path:
-    """Validate the source, build ``<id>-<version>.zip`` in ``output_dir``, validate the zip; return its path."""
+def _pip_download(platform: str, reqs: list[str], dest: Path, constraints: Path, python: str) -> None:
+    cmd = [python, "-m", "pip", "download", "--disable-pip-version-check", "--quiet", "--only-binary=:all:",
+           "--python-version", PYTHON_VERSION, "--implementation", "cp", "-c", str(constraints), "-d", str(dest)]
+    for tag in PLATFORMS[platform]:
+        cmd += ["--platform", tag]
+    _run([*cmd, *reqs], f"pip download for {platform} ({', '.join(_name(r) for r in reqs)})")
+
+
+def dependency_wheels(platform: str, python: str = sys.executable, cache: Path = WHEEL_CACHE) -> list[Path]:
+    """The PyPI wheels of ``platform`` (downloaded once into ``cache/<platform>``, kept while the requirements are
+    the same), less Blender's own packages."""
+    required, optional = requirements()
+    ships, pins = blender_ships()
+    key = hashlib.sha256(json.dumps([required, optional, sorted(pins.items()), PLATFORMS[platform]]).encode())
+    dest = cache / platform
+    stamp = dest / "requirements.sha256"
+    if not (stamp.is_file() and stamp.read_text() == key.hexdigest()):
+        shutil.rmtree(dest, ignore_errors=True)
+        dest.mkdir(parents=True)
+        constraints = dest / "constraints.txt"
+        constraints.write_text("".join(f"{k}=={v}\n" for k, v in pins.items()))
+        _pip_download(platform, required, dest, constraints, python)
+        for req in optional:
+            try:
+                _pip_download(platform, [req], dest, constraints, python)
+            except BuildError as exc:
+                print(f"blender_addon.build: {platform}: {_name(req)} left out ({exc})", file=sys.stderr)
+        stamp.write_text(key.hexdigest())
+    return sorted(w for w in dest.glob("*.whl") if _name(w.name.split("-")[0]) not in ships)
+
+
+def checkout_copy(dest: Path) -> Path:
+    """The checkout's files (git's tracked and untracked-not-ignored ones) copied to ``dest``."""
+    try:
+        out = subprocess.run(["git", "-C", str(REPO), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+                             capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        raise BuildError(f"{REPO}: not a git checkout (git ls-files failed); the blendsr wheel is built from "
+                         "a checkout") from None
+    for rel in filter(None, out.decode().split("\0")):
+        src = REPO / rel
+        if src.is_file():
+            (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / rel)
+    return dest
+
+
+def blendsr_wheel(dest: Path, python: str = sys.executable) -> Path:
+    """The ``blendsr`` wheel built from this checkout (no dependencies) into ``dest``."""
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="blendsr-wheel-") as tmp:
+        src = checkout_copy(Path(tmp) / "src")  # setuptools builds in the tree: a copy keeps stale build/ out
+        _run([python, "-m", "pip", "wheel", "--disable-pip-version-check", "--quiet", "--no-deps",
+              "--no-build-isolation", "-w", tmp, str(src)], "building the blendsr wheel")
+        built = sorted(Path(tmp).glob("blendsr-*.whl"))
+        if not built:
+            raise BuildError(f"{REPO}: pip wheel made no blendsr wheel")
+        out = dest / built[0].name
+        shutil.copyfile(built[0], out)
+    return out
+
+
+def stage(stage_dir: Path, wheels: list[Path], platforms: list[str]) -> Path:
+    """A copy of the add-on source in ``stage_dir`` with ``wheels/`` and the manifest's ``wheels`` and
+    ``platforms`` lists (generated here: the wheel file names change with each release)."""
+    shutil.rmtree(stage_dir, ignore_errors=True)
+    shutil.copytree(SOURCE, stage_dir, ignore=shutil.ignore_patterns("__pycache__", "wheels"))
+    (stage_dir / "wheels").mkdir()
+    for w in wheels:
+        shutil.copyfile(w, stage_dir / "wheels" / w.name)
+    names = sorted({w.name for w in wheels})
+    manifest = stage_dir / "blender_manifest.toml"
+    text = manifest.read_text()
+    if re.search(r"^(wheels|platforms)\s*=", text, re.M):
+        raise BuildError(f"{SOURCE / 'blender_manifest.toml'}: 'wheels' and 'platforms' are generated by the build; "
+                         "remove them from the source manifest")
+    head, sep, tail = text.partition("\n[")
+    generated = ("\n# Generated by blender_addon/build.py.\n"
+                 f"platforms = [{', '.join(json.dumps(p) for p in platforms)}]\n"
+                 "wheels = [\n" + "".join(f'  "./wheels/{n}",\n' for n in names) + "]\n")
+    manifest.write_text(head + generated + sep + tail)
+    return stage_dir
+
+
+def build(output_dir: Path, blender_ext: Path | None = None, python: str = sys.executable,
+          platforms: list[str] | None = None) -> list[Path]:
+    """Build and validate ``<id>-<version>-<platform>.zip`` in ``output_dir`` for each platform (default: all of
+    PLATFORMS); return their paths."""
+    platforms = list(platforms or PLATFORMS)
+    unknown = [p for p in platforms if p not in PLATFORMS]
+    if unknown:
+        raise BuildError(f"--platform {unknown[0]}: not one of {', '.join(PLATFORMS)}")
     tags = None
     if blender_ext is None:
         blender_ext, tags = find_blender_ext()
@@ -71,34 +222,52 @@ def build(output_dir: Path, blender_ext: Path | None = None, python: str = sys.e
     output_dir = Path(output_dir).resolve()
     output_dir.mkdir(parents=True, exist_ok=True)
     pkg_id, version = manifest_version()
-    zip_path = output_dir / f"{pkg_id}-{version}.zip"
-    if zip_path.exists():
-        zip_path.unlink()
-    _run([python, str(blender_ext), "validate", *tag_args, str(SOURCE)])
-    _run([python, str(blender_ext), "build", "--source-dir", str(SOURCE), "--output-filepath", str(zip_path),
-          *tag_args])
-    _run([python, str(blender_ext), "validate", *tag_args, str(zip_path)])
+    tool = Path(blender_ext).name
+    _run([python, str(blender_ext), "validate", *tag_args, str(SOURCE)], f"{tool} validate")
+    with tempfile.TemporaryDirectory(prefix="blendsr-addon-") as tmp:
+        wheels = [blendsr_wheel(Path(tmp) / "own", python)]
+        for p in platforms:
+            wheels += dependency_wheels(p, python)
+        src = stage(Path(tmp) / "src", wheels, platforms)
+        zip_base = output_dir / f"{pkg_id}-{version}.zip"
+        zips = [output_dir / f"{pkg_id}-{version}-{p.replace('-', '_')}.zip" for p in platforms]
+        for z in zips:
+            z.unlink(missing_ok=True)
+        _run([python, str(blender_ext), "build", "--source-dir", str(src), "--output-filepath", str(zip_base),
+              "--split-platforms", *tag_args], f"{tool} build")
+    for z in zips:
+        _run([python, str(blender_ext), "validate", *tag_args, str(z)], f"{tool} validate {z.name}")
+        check_zip(z)
+    return zips
+
+
+def check_zip(zip_path: Path) -> None:
+    """The zip holds the add-on's modules and the blendsr wheel its manifest lists."""
     with zipfile.ZipFile(zip_path) as z:
         names = set(z.namelist())
     for required in ("__init__.py", "blender_manifest.toml", "worker.py", "external_infer.py", "dataset_ops.py"):
         if required not in names:
             raise BuildError(f"{zip_path}: {required} is missing from the package")
-    return zip_path
+    if not any(n.startswith("wheels/blendsr-") for n in names):
+        raise BuildError(f"{zip_path}: the blendsr wheel is missing from the package")
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m blender_addon.build", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("-o", "--output", type=Path, default=Path("dist"), help="folder for the zip")
+    p.add_argument("-o", "--output", type=Path, default=Path("dist"), help="folder for the zips")
+    p.add_argument("--platform", action="append", choices=list(PLATFORMS), default=None,
+                   help="build for this Blender platform only (repeatable; default: all)")
     p.add_argument("--blender-ext", type=Path, default=None,
                    help="path of blender_ext.py (default: the one inside this Python's bpy package)")
     a = p.parse_args(argv)
     try:
-        path = build(a.output, a.blender_ext)
+        paths = build(a.output, a.blender_ext, platforms=a.platform)
     except BuildError as exc:
         print(f"blender_addon.build: error: {exc}", file=sys.stderr)
         return 2
-    print(path)
+    for path in paths:
+        print(path)
     return 0
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import bpy
 
 from . import jobs, library, mapping
-from .operators import _JobOperator, save_scene_copy
+from .operators import _JobOperator, save_scene_copy, scene_fingerprint
 
 #: What may lie in a dataset folder before its first index is written (a start that stopped early).
 OWN_ENTRIES = {mapping.SPEC_FILE, mapping.SCENE_DIR, "dataset.json", "clips", "jobs", "logs", ".lock"}
@@ -29,33 +29,6 @@ def check_foreign(root: Path) -> None:
     if other:
         raise DatasetError(f"{root}: not empty and not a BlendSR dataset (holds {', '.join(other[:3])}); choose "
                            "a new or empty folder")
-
-
-def scene_fingerprint(scene) -> str:
-    """sha256 of what a render of ``scene`` depends on, as far as cheaply read: every object's name, type,
-    world matrix, modifiers, material slots and animation; mesh vertex positions and face counts; lamps' type,
-    energy and colour; the world; frame range, fps and unit scale (not node values inside materials). A saved
-    .blend cannot be compared byte for byte: it stores memory addresses, different in every Blender session."""
-    import hashlib
-
-    import numpy as np
-    h = hashlib.sha256()
-    r = scene.render
-    h.update(repr((scene.frame_start, scene.frame_end, r.fps, r.fps_base, scene.unit_settings.scale_length,
-                   scene.world.name if scene.world else None, scene.camera.name if scene.camera else None)).encode())
-    for ob in sorted(scene.objects, key=lambda o: o.name):
-        m = np.round(np.array(ob.matrix_world, dtype=np.float64), 5)
-        act = ob.animation_data.action.name if ob.animation_data and ob.animation_data.action else None
-        h.update(repr((ob.name, ob.type, m.tobytes().hex(), [md.type for md in ob.modifiers], act,
-                       [sl.material.name if sl.material else None for sl in ob.material_slots])).encode())
-        data = ob.data
-        if ob.type == "MESH" and data is not None:
-            co = np.empty(len(data.vertices) * 3, dtype=np.float32)
-            data.vertices.foreach_get("co", co)
-            h.update(np.round(co, 5).tobytes() + repr(len(data.polygons)).encode())
-        elif ob.type == "LIGHT" and data is not None:
-            h.update(repr((data.type, round(data.energy, 5), tuple(round(c, 5) for c in data.color))).encode())
-    return h.hexdigest()
 
 
 def place_scene_copy(root: Path, stem: str, job_dir: Path, fingerprint: str) -> Path:

@@ -68,7 +68,8 @@ def install_hint() -> tuple[str, ...]:
     """Lines telling the user how to make the library importable from this Python."""
     py = sys.executable or "python"
     return (
-        "Install the BlendSR library into Blender's Python:",
+        "The extension zip of 'make addon' bundles it (reinstall that zip), or",
+        "install the BlendSR library into Blender's Python:",
         f'"{py}" -m pip install blendsr    (from a checkout: -m pip install -e PATH)',
         "or set 'Library path' in the add-on preferences to a",
         "virtual environment, its site-packages or a BlendSR checkout.",
@@ -108,3 +109,33 @@ def status(path: str = "", refresh: bool = False) -> LibraryStatus:
 def worker_paths(st: LibraryStatus) -> dict[str, list[str]]:
     """What a worker process must add to ``sys.path`` to import the library as this process does."""
     return {"site_dirs": list(ADDED_SITE_DIRS), "sys_path": [st.root] if st.root else []}
+
+
+_NOTES: dict[str, str] | None = None
+
+
+def pretrained_notes() -> dict[str, str]:
+    """{'pretrained:NAME': note} for the shipped networks the library marks (``training.pretrained``:
+    'below demod-jbu on val', from the JSON beside the weights; json only, no torch); {} while the library is not
+    importable (looked for again on the next call)."""
+    global _NOTES
+    if _NOTES is None:
+        try:
+            from training import pretrained
+        except ImportError:
+            return {}
+        _NOTES = {pretrained.PREFIX + n: pretrained.below_baseline_note(n) for n in pretrained.PRETRAINED}
+    return {k: v for k, v in _NOTES.items() if v}
+
+
+def marked_items(items, notes: dict[str, str]) -> list[tuple]:
+    """``items`` as numbered enum items (number = position, as saved files store them), a shipped network's label
+    carrying its note: "NSRD (pretrained, below demod-jbu on val)"."""
+    out = []
+    for i, (ident, label, desc) in enumerate(items):
+        note = notes.get(ident)
+        if note:
+            label = label[:-1] + f", {note})" if label.endswith(")") else f"{label} ({note})"
+            desc = f"{desc}. Scores {note} (training/weights/*.json)"
+        out.append((ident, label, desc, i))
+    return out

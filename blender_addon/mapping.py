@@ -55,11 +55,20 @@ def render_config(settings, scene, *, scene_path: str | Path | None = None, outp
         hr_size=hr_size,
         scale=settings.scale,
         camera_path=settings.camera_path,
-        buffers=settings.buffers,
+        buffers=buffers_value(settings),
         max_bounces=settings.max_bounces if settings.use_max_bounces else None,
         progress=False,
         **render_keys.values(settings, render_keys.CLIP_PANEL),  # the keys derived from RenderConfig's fields
     )
+
+
+def buffers_value(settings) -> str:
+    """The Buffers menu and checkboxes as ``RenderConfig.buffers`` takes them: 'default', 'all', or the ticked
+    buffers in the conventions' order, radiance first (always written)."""
+    if settings.buffers != "custom":
+        return settings.buffers
+    order = [b["name"] for b in render_keys.CHOICES["buffers"]]
+    return ",".join(render_keys.flag_list({"radiance", *settings.buffer_set}, order))
 
 
 def _float32_decimal(v: float) -> float:
@@ -95,17 +104,36 @@ def scene_stem(blend_path: str) -> str:
     return slug(Path(blend_path).stem) if blend_path else "untitled"
 
 
-def parse_scales(text: str) -> list[int]:
-    """'4' or '2,4' -> [4] / [2, 4] (distinct, in the order given); ConfigError naming the setting otherwise."""
+def parse_scales(value) -> list[int]:
+    """The ticked Scales (a set of '2', '4', ...; or text '2,4' as a spec writes them) -> [2, 4], ascending;
+    ConfigError naming the setting when none is ticked or one is not an integer >= 1."""
     from gbuffer_export.config import ConfigError
-    parts = [p.strip() for p in str(text).split(",") if p.strip()]
+    parts = [p.strip() for p in (str(value).split(",") if isinstance(value, str) else value) if p.strip()]
     try:
         scales = [int(p) for p in parts]
     except ValueError:
         scales = []
     if not scales or any(k < 1 for k in scales) or len(set(scales)) != len(scales):
-        raise ConfigError(f"dataset Scales {text!r}: expected distinct integers >= 1, comma-separated, e.g. '2,4'")
-    return scales
+        raise ConfigError(f"dataset Scales {_shown(value)}: tick at least one scale (distinct integers >= 1)")
+    return sorted(scales) if not isinstance(value, str) else scales
+
+
+def _shown(value) -> str:
+    return repr(value) if isinstance(value, str) else repr(",".join(sorted(value)))
+
+
+def cameras(ds) -> list[str]:
+    """The ticked Cameras in the menu's order; ConfigError when none is."""
+    from gbuffer_export.config import ConfigError
+    names = render_keys.flag_list(ds.cameras, render_keys.CHOICES["camera_paths"])
+    if not names:
+        raise ConfigError("dataset Cameras: tick at least one camera path")
+    return names
+
+
+def for_models(ds) -> list[str]:
+    """The ticked *For models*, in the model table's order."""
+    return render_keys.flag_list(ds.for_models, render_keys.CHOICES["models"])
 
 
 def preview_scale(settings) -> tuple[bool, str]:
@@ -119,13 +147,9 @@ def preview_scale(settings) -> tuple[bool, str]:
     return spec in MODEL_SCALES and MODEL_SCALES[spec] is None, scale_problem(spec, settings.scale)
 
 
-def _names(text: str) -> list[str]:
-    return [t.strip() for t in str(text).split(",") if t.strip()]
-
-
 def model_buffers(ds) -> tuple[str, ...]:
-    """The buffers the models of *For models* read (``buffers_for_models``; empty when none is named)."""
-    names = _names(ds.for_models)
+    """The buffers the models of *For models* read (``buffers_for_models``; empty when none is ticked)."""
+    names = for_models(ds)
     if not names:
         return ()
     from gbuffer_export.config import ConfigError
@@ -134,7 +158,7 @@ def model_buffers(ds) -> tuple[str, ...]:
     try:
         return buffers_for_models(names)
     except BlendSRError as exc:
-        raise ConfigError(f"dataset For models {ds.for_models!r}: "
+        raise ConfigError(f"dataset For models {','.join(names)!r}: "
                           f"{str(exc).removeprefix('--for-models: ')}") from None
 
 
@@ -147,12 +171,12 @@ def dataset_spec_dict(ds, stem: str) -> dict:
     scales = parse_scales(ds.scales)
     models = model_buffers(ds)
     render = {"frames": ds.frames, "hr_size": f"{ds.hr_width}x{ds.hr_height}", "scale": scales[0],
-              "buffers": list(models) if models else ds.buffers.strip() or "default",
+              "buffers": list(models) if models else buffers_value(ds),
               **render_keys.values(ds, render_keys.DATASET_PANEL)}  # the keys derived from RenderConfig's fields
     if len(scales) > 1:
         render["scales"] = scales
     src = {"name": "scene", "kind": "scene", "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips,
-           "cameras": _names(ds.cameras), "light": ds.light, "regions": [ds.regions_x, ds.regions_y],
+           "cameras": cameras(ds), "light": ds.light, "regions": [ds.regions_x, ds.regions_y],
            "region_val": ds.region_val, "region_test": ds.region_test, **variation_keys(ds)}
     return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": [src]}
 
@@ -180,7 +204,7 @@ def dataset_run_options(ds, blender: str = ""):
     '' for this Python with bpy as a module)."""
     from gbuffer_export.dataset.build import RunOptions
     opts = RunOptions(executor="local", workers=ds.workers, threads=ds.threads,
-                      buffers_for=tuple(_names(ds.for_models)), progress=False, device=ds.device, blender=blender)
+                      buffers_for=tuple(for_models(ds)), progress=False, device=ds.device, blender=blender)
     opts.validate()
     model_buffers(ds)
     return opts

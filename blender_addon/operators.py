@@ -18,7 +18,7 @@ from pathlib import Path
 
 import bpy
 
-from . import images, jobs, library, mapping
+from . import images, jobs, library, mapping, render_keys
 from .prefs import Prefs
 from .props import store_preview_results
 
@@ -34,14 +34,158 @@ def interactive() -> bool:
 
 
 def scene_file_for_job(job_dir: Path) -> Path:
-    """The .blend the worker opens: the saved file itself when it has no unsaved changes, else a copy of the
-    current state (``save_scene_copy``) named like the file, in ``job_dir``."""
+    """The .blend the preview's worker opens: the saved file itself when it has no unsaved changes, else a copy of
+    the current state (``save_scene_copy``) named like the file, in ``job_dir``."""
     if bpy.data.filepath and not bpy.data.is_dirty:
         return Path(bpy.data.filepath)
     name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
     path = Path(job_dir) / name
     save_scene_copy(path)
     return path
+
+
+#: Inside a clip's folder (a dot folder: the clip writer and validation leave it alone): the .blend the export's
+#: worker opens and its fingerprint.
+CLIP_SCENE_DIR = ".blendsr_scene"
+
+
+def scene_file_for_clip(scene, output: Path, job_dir: Path) -> Path:
+    """The .blend a clip export renders: ``OUTPUT/.blendsr_scene/<name>.blend``, a copy of the open scene kept with
+    its ``scene_fingerprint``. While the fingerprint is the same, the copy is reused (same file, same sha256 in the
+    clip's manifest: the export resumes after changes that do not affect the render, e.g. the selection or a save).
+    A different fingerprint replaces the copy before the clip has a manifest, and is refused (ClipError naming the
+    folder, the copy kept) once it has one."""
+    import json
+
+    from gbuffer_export.clip import MANIFEST, ClipError, write_json_atomic
+    name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
+    dest = Path(output) / CLIP_SCENE_DIR / name
+    meta = dest.with_suffix(".json")
+    fingerprint = scene_fingerprint(scene)
+    try:
+        same = dest.is_file() and json.loads(meta.read_text()).get("fingerprint") == fingerprint
+    except (OSError, ValueError, AttributeError):
+        same = False
+    if same:
+        return dest
+    if dest.is_file() and (Path(output) / MANIFEST).is_file():
+        raise ClipError(f"{output}: the open scene differs from the copy this clip was rendered from "
+                        f"({CLIP_SCENE_DIR}/{name}: moved, added or edited objects, materials, lights or camera); "
+                        "choose another output folder, or delete the clip to start again")
+    tmp = Path(job_dir) / name
+    save_scene_copy(tmp)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    part = dest.with_name(f".{dest.name}.part{os.getpid()}")
+    shutil.copyfile(tmp, part)
+    os.replace(part, dest)
+    write_json_atomic(meta, {"fingerprint": fingerprint, "source": bpy.data.filepath or None})
+    return dest
+
+
+def _values(v):
+    """A property value as plain, rounded Python (floats to 5 decimals; arrays as tuples; IDs by name)."""
+    if isinstance(v, float):
+        return round(v, 5)
+    if isinstance(v, (bool, int, str)) or v is None:
+        return v
+    if hasattr(v, "name") and hasattr(v, "rna_type"):  # an ID (image, object, ...)
+        return v.name
+    try:
+        return tuple(_values(x) for x in v)
+    except TypeError:
+        return repr(type(v).__name__)
+
+
+def _tree_signature(tree) -> tuple:
+    """What a node tree renders: each node's type, name, input values and image, and the links."""
+    if tree is None:
+        return ()
+    nodes = []
+    for n in sorted(tree.nodes, key=lambda n: n.name):
+        inputs = tuple(_values(getattr(s, "default_value", None)) for s in n.inputs)
+        extra = tuple(_values(getattr(n, a)) for a in ("image", "node_tree", "operation", "blend_type", "data_type")
+                      if hasattr(n, a))
+        nodes.append((n.bl_idname, n.name, inputs, extra, n.mute))
+    links = sorted((lk.from_node.name, lk.from_socket.identifier, lk.to_node.name, lk.to_socket.identifier)
+                   for lk in tree.links)
+    return tuple(nodes), tuple(links)
+
+
+def _action_signature(action) -> tuple:
+    """An action's keys: every F-curve's data path, index and keyframes (layered actions of Blender 4.4+ and the
+    older flat ones)."""
+    if action is None:
+        return ()
+    curves = list(getattr(action, "fcurves", None) or [])
+    for layer in getattr(action, "layers", ()):
+        for strip in layer.strips:
+            for bag in getattr(strip, "channelbags", ()):
+                curves += list(bag.fcurves)
+    return tuple((fc.data_path, fc.array_index, tuple(_values((k.co, k.handle_left, k.handle_right, k.interpolation))
+                                                      for k in fc.keyframe_points)) for fc in curves)
+
+
+TRANSFORM_CHANNELS = ("location", "rotation_euler", "rotation_quaternion", "scale")
+
+
+def _moves(ob) -> bool:
+    """Whether the object's world matrix depends on the frame: it, or an object it hangs from, is animated or
+    constrained."""
+    while ob is not None:
+        if (ob.animation_data and ob.animation_data.action) or len(ob.constraints):
+            return True
+        ob = ob.parent
+    return False
+
+
+def scene_fingerprint(scene) -> str:
+    """sha256 of what a render of ``scene`` depends on, as far as cheaply read: the frame range, fps, unit scale,
+    colour management, the world and its nodes; every object's name, type, visibility in renders, world matrix,
+    modifiers, material slots (their node trees' values and links) and animation; mesh vertex positions and face
+    counts; lamps' type, energy and colour; cameras' lens, sensor and clipping. Not the selection, the active
+    object, the UI or anything else a render does not read. A saved .blend cannot be compared byte for byte: it
+    stores memory addresses, different in every Blender session."""
+    import hashlib
+
+    import numpy as np
+    h = hashlib.sha256()
+    r, vs = scene.render, scene.view_settings
+    h.update(repr((scene.frame_start, scene.frame_end, r.fps, r.fps_base, scene.unit_settings.scale_length,
+                   scene.world.name if scene.world else None, scene.camera.name if scene.camera else None,
+                   vs.view_transform, vs.look, round(vs.exposure, 5), round(vs.gamma, 5),
+                   scene.display_settings.display_device, r.film_transparent)).encode())
+    if scene.world is not None:
+        h.update(repr(_tree_signature(scene.world.node_tree)).encode())
+    materials = {}
+    for ob in sorted(scene.objects, key=lambda o: o.name):
+        action = ob.animation_data.action if ob.animation_data else None
+        keys = _action_signature(action)
+        act = (ob.parent.name if ob.parent else None, [c.type for c in ob.constraints], keys)
+        if _moves(ob):  # its matrix at the current frame changes with the frame: its keys and unkeyed channels
+            keyed = {(k[0], k[1]) for k in keys}
+            m = np.array([round(v, 5) for attr in TRANSFORM_CHANNELS for i, v in enumerate(getattr(ob, attr))
+                          if (attr, i) not in keyed])
+        else:
+            m = np.round(np.array(ob.matrix_world, dtype=np.float64), 5)
+        slots = [sl.material.name if sl.material else None for sl in ob.material_slots]
+        materials.update({sl.material.name: sl.material for sl in ob.material_slots if sl.material})
+        h.update(repr((ob.name, ob.type, ob.hide_render, m.tobytes().hex(), act, slots,
+                       [(md.type, md.show_render) for md in ob.modifiers])).encode())
+        data = ob.data
+        if ob.type == "MESH" and data is not None:
+            co = np.empty(len(data.vertices) * 3, dtype=np.float32)
+            data.vertices.foreach_get("co", co)
+            h.update(np.round(co, 5).tobytes() + repr(len(data.polygons)).encode())
+        elif ob.type == "LIGHT" and data is not None:
+            h.update(repr((data.type, round(data.energy, 5), tuple(round(c, 5) for c in data.color))).encode())
+        elif ob.type == "CAMERA" and data is not None:
+            h.update(repr(_values((data.type, data.lens, data.sensor_width, data.sensor_height, data.clip_start,
+                                   data.clip_end, data.shift_x, data.shift_y))).encode())
+    for name in sorted(materials):
+        mat = materials[name]
+        h.update(repr((name, _tree_signature(mat.node_tree) if mat.node_tree else _values(mat.diffuse_color)))
+                 .encode())
+    return h.hexdigest()
 
 
 def save_scene_copy(path: Path) -> None:
@@ -176,7 +320,7 @@ class BLENDSR_OT_export_dataset(_JobOperator, bpy.types.Operator):
         scene = context.scene
         cfg = mapping.render_config(scene.blendsr, scene)
         job_dir = jobs.new_job_dir("blendsr-export-")
-        cfg = dataclasses.replace(cfg, scene=scene_file_for_job(job_dir))
+        cfg = dataclasses.replace(cfg, scene=scene_file_for_clip(scene, cfg.output, job_dir))
         a, b = cfg.frames
         return jobs.RenderJob(cfg.to_json(), list(range(a, b + 1)), job_dir=job_dir,
                               library_paths=library.worker_paths(st), validate="quick",
@@ -348,7 +492,10 @@ class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
     bl_label = "Create camera paths"
     bl_options = {"REGISTER", "UNDO"}
 
-    kinds: bpy.props.StringProperty(name="Kinds", default="walk,fly")
+    kinds: bpy.props.EnumProperty(name="Kinds", options={"ENUM_FLAG"}, default={"walk", "fly"},
+                                  items=tuple((k, k.capitalize(), f"A generated {k} path") for k in
+                                              render_keys.CHOICES["level_camera_paths"]),
+                                  description="Path kinds, cycling over the clips")
     clips: bpy.props.IntProperty(name="Clips", default=2, min=1, max=64)
     seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
 
@@ -356,7 +503,7 @@ class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
         from gbuffer_export.blender.scene_setup import make_level_camera
 
         scene = context.scene
-        kinds = [k.strip() for k in self.kinds.split(",") if k.strip() in ("walk", "fly")] or ["walk"]
+        kinds = render_keys.flag_list(self.kinds, render_keys.CHOICES["level_camera_paths"]) or ["walk"]
         old_camera = scene.camera
         frames = (scene.frame_start, scene.frame_end)
         made = []
@@ -375,7 +522,103 @@ class BLENDSR_OT_create_camera_paths(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (BLENDSR_OT_export_dataset, BLENDSR_OT_preview_upscale, BLENDSR_OT_create_camera_paths)
+OUTPUT_TARGETS = (("clip", "Clip", "The clip export's output folder"),
+                  ("dataset", "Dataset", "The Dataset settings' folder"))
+
+
+def target_folder(context, target: str) -> Path:
+    """The clip's or the dataset's absolute folder, which must exist (ValueError saying to render first)."""
+    s = context.scene.blendsr
+    path = mapping.output_path(s) if target == "clip" else mapping.dataset_output(s.dataset)
+    if not path.is_dir():
+        what = "export the clip" if target == "clip" else "render the dataset"
+        raise ValueError(f"{path}: no such folder yet; {what} first")
+    return path
+
+
+class BLENDSR_OT_open_output(bpy.types.Operator):
+    """Open the clip's or the dataset's folder in the system's file browser"""
+    bl_idname = "blendsr.open_output"
+    bl_label = "Open output"
+    bl_options = {"REGISTER"}
+
+    target: bpy.props.EnumProperty(name="Target", items=OUTPUT_TARGETS, default="clip")
+
+    def execute(self, context):
+        try:
+            path = target_folder(context, self.target)
+        except ValueError as exc:
+            self.report({"ERROR"}, f"BlendSR: {exc}")
+            return {"CANCELLED"}
+        return open_folder(path)
+
+
+def open_folder(path: Path) -> set:
+    """Open ``path`` in the system's file browser (``wm.path_open``)."""
+    return bpy.ops.wm.path_open(filepath=str(path))
+
+
+SHEET_IMAGE = "BlendSR contact sheet"
+
+
+def make_contact_sheet(context, target: str) -> Path:
+    """The clip's (``gbuffer_export.preview.contact_sheet``) or the dataset's (``dataset_sheet``) contact sheet,
+    written as a PNG in Blender's temporary folder; returns its path. Library errors pass through (one line)."""
+    from gbuffer_export import open_clip
+    from gbuffer_export import preview
+    folder = target_folder(context, target)
+    out = Path(bpy.app.tempdir or tempfile.gettempdir()) / "blendsr_sheets"
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{target}-{mapping.slug(folder.name)}.png"
+    if target == "clip":
+        preview.contact_sheet(open_clip(folder), path)
+    else:
+        preview.dataset_sheet(folder, path)
+    return path
+
+
+def show_sheet(context, path: Path):
+    """Load ``path`` as the image 'BlendSR contact sheet' (replacing the last one) and show it in the open Image
+    Editors, or in a new window with one (in the Blender application)."""
+    old = bpy.data.images.get(SHEET_IMAGE)
+    if old is not None:
+        bpy.data.images.remove(old)
+    img = bpy.data.images.load(str(path), check_existing=False)
+    img.name = SHEET_IMAGE
+    if images.show_in_image_editors(img, context) == 0 and interactive():
+        bpy.ops.wm.window_new()
+        area = context.window_manager.windows[-1].screen.areas[0]
+        area.type = "IMAGE_EDITOR"
+        area.spaces.active.image = img
+    return img
+
+
+class BLENDSR_OT_contact_sheet(bpy.types.Operator):
+    """Make the clip's or the dataset's contact sheet (every buffer of a few frames; a dataset's clips) and show it
+    in the Image Editor"""
+    bl_idname = "blendsr.contact_sheet"
+    bl_label = "Contact sheet"
+    bl_options = {"REGISTER"}
+
+    target: bpy.props.EnumProperty(name="Target", items=OUTPUT_TARGETS, default="clip")
+
+    def execute(self, context):
+        st = library.status(Prefs(context).library_path)
+        if not st.ok:
+            self.report({"ERROR"}, f"{st.message}; see the BlendSR panel for how to install it")
+            return {"CANCELLED"}
+        try:
+            path = make_contact_sheet(context, self.target)
+        except Exception as exc:  # no clip yet, a broken folder: one line, never a traceback
+            self.report({"ERROR"}, f"BlendSR contact sheet: {str(exc).splitlines()[0] if str(exc) else exc!r}")
+            return {"CANCELLED"}
+        img = show_sheet(context, path)
+        self.report({"INFO"}, f"BlendSR contact sheet: {path} ({img.size[0]}x{img.size[1]})")
+        return {"FINISHED"}
+
+
+CLASSES = (BLENDSR_OT_export_dataset, BLENDSR_OT_preview_upscale, BLENDSR_OT_create_camera_paths,
+           BLENDSR_OT_open_output, BLENDSR_OT_contact_sheet)
 
 
 def register() -> None:

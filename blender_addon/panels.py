@@ -43,10 +43,10 @@ def summary(context) -> tuple[list[str], str]:
 
 
 def draw_blendsr(layout, context) -> None:
-    """Draw the whole panel into ``layout`` (shared by both panels)."""
+    """The clip panel's head: the library's state, the output folder, what the export writes, the export button and
+    the buttons that open its folder and contact sheet. The settings are in the subpanels (``SECTIONS``)."""
     s = context.scene.blendsr
-    prefs = Prefs(context)
-    st = library.status(prefs.library_path)
+    st = library.status(Prefs(context).library_path)
     if not st.ok:
         box = layout.box()
         box.alert = True
@@ -54,45 +54,53 @@ def draw_blendsr(layout, context) -> None:
         for line in st.hint:
             box.label(text=line)
     layout.prop(s, "output_dir")
-    _draw_frames(layout.box(), s)
-    _draw_sampling(layout.box(), s)
-    box = layout.box()
-    box.label(text="Camera and buffers", icon="CAMERA_DATA")
-    for key in CLIP_CAMERA_KEYS:
-        box.prop(s, key)
-    _draw_more(layout, s, render_keys.CLIP_PANEL, CLIP_PLACED)
     _draw_summary(layout.box(), "Export summary", st, lambda: summary(context))
     _draw_job(layout, st, "export", "Exporting", "blendsr.export_dataset", "EXPORT")
-    row = layout.row()
-    row.enabled = st.ok
-    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
+    _draw_open_buttons(layout, st, "clip")
     if s.last_export:
         layout.label(text=f"Last export: {s.last_export}")
-    _draw_preview(layout.box(), s, st, prefs)
+
+
+def _draw_open_buttons(layout, st, target: str) -> None:
+    """'Open output' and 'Contact sheet' of the clip or the dataset (``operators.BLENDSR_OT_open_output``, ...)."""
+    row = layout.row(align=True)
+    row.enabled = st.ok
+    row.operator("blendsr.open_output", icon="FILEBROWSER").target = target
+    row.operator("blendsr.contact_sheet", icon="IMAGE_DATA").target = target
 
 
 #: Where the clip settings' render keys are drawn; a key derived from RenderConfig that none of these places is drawn
 #: under "More render settings" (``_draw_more``), so a new key shows up before it is given a place.
 SPP_KEYS = ("hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise", "lr_denoise")
-CLIP_CAMERA_KEYS = ("camera_path", "light", "device", "jitter", "buffers", "fbeta_source", "hr_fbeta")
-CLIP_PLACED = {*SPP_KEYS, *CLIP_CAMERA_KEYS, "adaptive", "adaptive_threshold", "adaptive_min_samples", "seed",
-               "threads"}
-DATASET_BUFFER_KEYS = ("jitter", "fbeta_source", "hr_fbeta", "buffers", "for_models")
-DATASET_PLACED = {*SPP_KEYS, *DATASET_BUFFER_KEYS, "light", "device", "threads"}
+CLIP_CAMERA_KEYS = ("camera_path", "light", "device", "jitter", "fbeta_source", "hr_fbeta")
+BUFFER_KEYS = ("buffers", "buffer_set")
+CLIP_PLACED = {*SPP_KEYS, *CLIP_CAMERA_KEYS, *BUFFER_KEYS, "adaptive", "adaptive_threshold", "adaptive_min_samples",
+               "seed", "threads"}
+DATASET_BUFFER_KEYS = ("jitter", "fbeta_source", "hr_fbeta")
+DATASET_PLACED = {*SPP_KEYS, *DATASET_BUFFER_KEYS, *BUFFER_KEYS, "for_models", "light", "device", "threads"}
+
+
+def _more_keys(shell: str, placed) -> list[str]:
+    return [render_keys.prop_name(k) for k in render_keys.keys(shell) if render_keys.prop_name(k) not in placed]
 
 
 def _draw_more(layout, s, shell: str, placed) -> None:
     """The render keys ``shell`` derives that the panel does not place (none: nothing drawn)."""
-    rest = [render_keys.prop_name(k) for k in render_keys.keys(shell) if render_keys.prop_name(k) not in placed]
-    if rest:
-        box = layout.box()
-        box.label(text="More render settings", icon="PREFERENCES")
-        for key in rest:
-            box.prop(s, key)
+    for key in _more_keys(shell, placed):
+        layout.prop(s, key)
+
+
+def _draw_buffers(layout, s, active: bool = True) -> None:
+    """The Buffers menu, and its checkboxes when it says Choose."""
+    col = layout.column()
+    col.active = active
+    col.prop(s, "buffers")
+    if s.buffers == "custom":
+        grid = col.column(align=True)
+        grid.prop(s, "buffer_set", expand=True)
 
 
 def _draw_frames(box, s) -> None:
-    box.label(text="Frames and size", icon="RENDER_ANIMATION")
     for switch, keys in (("use_scene_frames", ("frame_start", "frame_end")),
                          ("use_scene_resolution", ("hr_width", "hr_height"))):
         box.prop(s, switch)
@@ -114,7 +122,6 @@ def _draw_spp(box, s) -> None:
 
 
 def _draw_sampling(box, s) -> None:
-    box.label(text="Sampling", icon="RENDER_STILL")
     _draw_spp(box, s)
     box.prop(s, "adaptive")
     row = box.row(align=True)
@@ -129,6 +136,16 @@ def _draw_sampling(box, s) -> None:
     row = box.row(align=True)
     row.prop(s, "seed")
     row.prop(s, "threads")
+
+
+def _draw_camera(layout, context) -> None:
+    s = context.scene.blendsr
+    for key in CLIP_CAMERA_KEYS:
+        layout.prop(s, key)
+    _draw_buffers(layout, s)
+    row = layout.row()
+    row.enabled = library.status(Prefs(context).library_path).ok
+    row.operator("blendsr.create_camera_paths", icon="CAMERA_DATA")
 
 
 def _draw_summary(box, title: str, st, make_lines) -> None:
@@ -172,8 +189,12 @@ def _draw_preview_scale(box, s, st) -> None:
         col.label(text=problem, icon="ERROR")
 
 
+#: The preview's models need torch, which the extension does not bundle (the [train] extra): one line.
+TORCH_MISSING = ("The preview needs torch (blendsr[train]): install it into Blender's Python or set "
+                 "External Python in the add-on preferences")
+
+
 def _draw_preview(box, s, st, prefs) -> None:
-    box.label(text="Preview upscaling (current frame)", icon="IMAGE_DATA")
     box.prop(s, "checkpoint")
     row = box.row()
     row.active = not s.checkpoint.strip()
@@ -186,9 +207,7 @@ def _draw_preview(box, s, st, prefs) -> None:
             col.label(text=f"torch is not in Blender's Python: inference runs with {prefs.python_path}")
         else:
             col.alert = True
-            col.label(text="torch is not importable from Blender's Python.", icon="ERROR")
-            col.label(text="Install blendsr[train] into it, or set 'External Python'")
-            col.label(text="in Preferences > Add-ons > BlendSR to a Python with torch.")
+            col.label(text=TORCH_MISSING, icon="ERROR")
     from .operators import ACTIVE
     pjob = ACTIVE.get("preview")
     if pjob is not None:
@@ -236,110 +255,128 @@ def dataset_summary(context) -> tuple[list[str], str]:
 
 
 def draw_dataset(layout, context) -> None:
-    """The Dataset subpanel: ``Scene.blendsr.dataset``, what it makes, the button and the last outcome."""
+    """The Dataset subpanel's head: folder, name, what it makes, the button, the last outcome, open buttons."""
     ds = context.scene.blendsr.dataset
     st = library.status(Prefs(context).library_path)
     layout.prop(ds, "output_dir")
     row = layout.row(align=True)
     row.prop(ds, "dataset_name")
     row.prop(ds, "seed")
-    box = layout.box()
-    box.label(text="Clips", icon="RENDER_ANIMATION")
-    row = box.row(align=True)
-    row.prop(ds, "clips")
-    row.prop(ds, "frames")
-    box.prop(ds, "cameras")
-    row = box.row(align=True)
-    row.prop(ds, "hr_width")
-    row.prop(ds, "hr_height")
-    box.prop(ds, "scales")
-    box.prop(ds, "light")
-    box = layout.box()
-    box.label(text="Sampling and buffers", icon="RENDER_STILL")
-    _draw_spp(box, ds)
-    for key in DATASET_BUFFER_KEYS:
-        box.prop(ds, key)
-    _draw_more(layout, ds, render_keys.DATASET_PANEL, DATASET_PLACED)
-    box = layout.box()
-    box.label(text="Light variation (per clip, recorded)", icon="LIGHT_SUN")
-    for switch, lo, hi in (("vary_world", "world_strength_min", "world_strength_max"),
-                           ("vary_lights", "light_strength_min", "light_strength_max"),
-                           ("vary_sun", "sun_elevation_min", "sun_elevation_max")):
-        row = box.row(align=True)
-        row.prop(ds, switch)
-        sub = row.row(align=True)
-        sub.active = getattr(ds, switch)
-        sub.prop(ds, lo)
-        sub.prop(ds, hi)
-    box = layout.box()
-    box.label(text="Split regions and workers", icon="MOD_ARRAY")
-    row = box.row(align=True)
-    for key in ("regions_x", "regions_y", "region_val", "region_test"):
-        row.prop(ds, key)
-    row = box.row(align=True)
-    for key in ("workers", "threads", "device"):
-        row.prop(ds, key)
     _draw_summary(layout.box(), "Dataset summary", st, lambda: dataset_summary(context))
     _draw_job(layout, st, "dataset", "Rendering dataset", "blendsr.render_dataset", "RENDER_ANIMATION")
+    _draw_open_buttons(layout, st, "dataset")
     if ds.last_dataset:
         row = layout.row()
         row.alert = not ds.last_dataset_ok
         row.label(text=f"Last dataset: {ds.last_dataset}")
 
 
-class BLENDSR_PT_output(bpy.types.Panel):
-    bl_idname = "BLENDSR_PT_output"
-    bl_label = "BlendSR Dataset"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
-    bl_context = "output"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        draw_blendsr(self.layout, context)
-
-
-class BLENDSR_PT_view3d(bpy.types.Panel):
-    bl_idname = "BLENDSR_PT_view3d"
-    bl_label = "BlendSR"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "BlendSR"
-
-    def draw(self, context):
-        draw_blendsr(self.layout, context)
+def _draw_dataset_clips(layout, context) -> None:
+    ds = context.scene.blendsr.dataset
+    row = layout.row(align=True)
+    row.prop(ds, "clips")
+    row.prop(ds, "frames")
+    layout.label(text="Cameras (clip k: the k-th ticked, cycling)")
+    layout.row(align=True).prop(ds, "cameras", expand=True)
+    row = layout.row(align=True)
+    row.prop(ds, "hr_width")
+    row.prop(ds, "hr_height")
+    layout.label(text="Scales (an LR level each)")
+    layout.row(align=True).prop(ds, "scales", expand=True)
+    layout.prop(ds, "light")
 
 
-class BLENDSR_PT_output_dataset(bpy.types.Panel):
-    bl_idname = "BLENDSR_PT_output_dataset"
-    bl_label = "Dataset"
-    bl_parent_id = "BLENDSR_PT_output"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
-    bl_context = "output"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        draw_dataset(self.layout, context)
+def _draw_dataset_sampling(layout, context) -> None:
+    ds = context.scene.blendsr.dataset
+    _draw_spp(layout, ds)
+    for key in DATASET_BUFFER_KEYS:
+        layout.prop(ds, key)
+    layout.label(text="For models (their buffers; none: Buffers below)")
+    layout.column_flow(columns=3, align=True).prop(ds, "for_models", expand=True)
+    _draw_buffers(layout, ds, active=not ds.for_models)
+    _draw_more(layout, ds, render_keys.DATASET_PANEL, DATASET_PLACED)
 
 
-class BLENDSR_PT_view3d_dataset(bpy.types.Panel):
-    bl_idname = "BLENDSR_PT_view3d_dataset"
-    bl_label = "Dataset"
-    bl_parent_id = "BLENDSR_PT_view3d"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "BlendSR"
-    bl_options = {"DEFAULT_CLOSED"}
+def _draw_dataset_light(layout, context) -> None:
+    ds = context.scene.blendsr.dataset
+    for switch, lo, hi in (("vary_world", "world_strength_min", "world_strength_max"),
+                           ("vary_lights", "light_strength_min", "light_strength_max"),
+                           ("vary_sun", "sun_elevation_min", "sun_elevation_max")):
+        row = layout.row(align=True)
+        row.prop(ds, switch)
+        sub = row.row(align=True)
+        sub.active = getattr(ds, switch)
+        sub.prop(ds, lo)
+        sub.prop(ds, hi)
 
-    def draw(self, context):
-        draw_dataset(self.layout, context)
+
+def _draw_dataset_regions(layout, context) -> None:
+    ds = context.scene.blendsr.dataset
+    row = layout.row(align=True)
+    for key in ("regions_x", "regions_y", "region_val", "region_test"):
+        row.prop(ds, key)
+    row = layout.row(align=True)
+    for key in ("workers", "threads", "device"):
+        row.prop(ds, key)
 
 
-#: The clip panels and their Dataset subpanels (a subpanel after its parent).
-CLASSES = (BLENDSR_PT_output, BLENDSR_PT_view3d, BLENDSR_PT_output_dataset, BLENDSR_PT_view3d_dataset)
-MAIN_PANELS = CLASSES[:2]
-DATASET_PANELS = CLASSES[2:]
+def _draw_preview_panel(layout, context) -> None:
+    prefs = Prefs(context)
+    _draw_preview(layout, context.scene.blendsr, library.status(prefs.library_path), prefs)
+
+
+#: Where each panel lives: the Properties editor's Output tab and the 3D viewport's sidebar (tab 'BlendSR').
+SPACES = {
+    "output": {"bl_space_type": "PROPERTIES", "bl_region_type": "WINDOW", "bl_context": "output"},
+    "view3d": {"bl_space_type": "VIEW_3D", "bl_region_type": "UI", "bl_category": "BlendSR"},
+}
+#: (id suffix, label, draw(layout, context), parent's suffix or None for the head, closed at first), in drawing
+#: order: the head, its collapsible subpanels, the Dataset subpanel and its own.
+SECTIONS = (
+    ("", "BlendSR", draw_blendsr, None, False),
+    ("_frames", "Frames and size", lambda lay, ctx: _draw_frames(lay, ctx.scene.blendsr), "", True),
+    ("_sampling", "Sampling", lambda lay, ctx: _draw_sampling(lay, ctx.scene.blendsr), "", True),
+    ("_camera", "Camera and buffers", _draw_camera, "", True),
+    ("_more", "More render settings",
+     lambda lay, ctx: _draw_more(lay, ctx.scene.blendsr, render_keys.CLIP_PANEL, CLIP_PLACED), "", True),
+    ("_preview", "Preview upscaling (current frame)", _draw_preview_panel, "", True),
+    ("_dataset", "Dataset", draw_dataset, "", True),
+    ("_dataset_clips", "Clips and cameras", _draw_dataset_clips, "_dataset", True),
+    ("_dataset_sampling", "Sampling and buffers", _draw_dataset_sampling, "_dataset", True),
+    ("_dataset_light", "Light variation (per clip, recorded)", _draw_dataset_light, "_dataset", True),
+    ("_dataset_regions", "Split regions and workers", _draw_dataset_regions, "_dataset", True),
+)
+#: The head panels' labels (the Output tab's is closed at first: it sits among Blender's own output panels).
+HEAD_LABELS = {"output": "BlendSR Dataset", "view3d": "BlendSR"}
+
+
+def _panel(space: str, suffix: str, label: str, draw, parent, closed: bool) -> type:
+    attrs = {"bl_idname": f"BLENDSR_PT_{space}{suffix}", "bl_label": HEAD_LABELS[space] if parent is None else label,
+             **SPACES[space], "draw": lambda self, context: draw(self.layout, context)}
+    if parent is not None:
+        attrs["bl_parent_id"] = f"BLENDSR_PT_{space}{parent}"
+    if closed or (parent is None and space == "output"):
+        attrs["bl_options"] = {"DEFAULT_CLOSED"}
+    if suffix == "_more":
+        attrs["poll"] = classmethod(lambda cls, context: bool(_more_keys(render_keys.CLIP_PANEL, CLIP_PLACED)))
+    return type(attrs["bl_idname"], (bpy.types.Panel,), attrs)
+
+
+#: Every panel class, a subpanel after its parent.
+CLASSES = tuple(_panel(space, *sec) for space in SPACES for sec in SECTIONS)
+_BY_ID = {c.bl_idname: c for c in CLASSES}
+BLENDSR_PT_output, BLENDSR_PT_view3d = _BY_ID["BLENDSR_PT_output"], _BY_ID["BLENDSR_PT_view3d"]
+MAIN_PANELS = (BLENDSR_PT_output, BLENDSR_PT_view3d)
+DATASET_PANELS = (_BY_ID["BLENDSR_PT_output_dataset"], _BY_ID["BLENDSR_PT_view3d_dataset"])
+
+
+def subtree(cls, skip=()) -> list[type]:
+    """``cls`` and the panels below it (in drawing order), without the subtrees of ``skip``."""
+    out = [cls]
+    for c in CLASSES:
+        if getattr(c, "bl_parent_id", None) == cls.bl_idname and c not in skip:
+            out += subtree(c, skip)
+    return out
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

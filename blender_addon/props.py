@@ -7,14 +7,47 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from .render_keys import CLIP_PANEL, DATASET_PANEL, properties, render_property
+from .render_keys import CHOICES, CLIP_PANEL, DATASET_PANEL, properties, render_property
 
-CAMERA_PATH_ITEMS = (
-    ("scene", "Scene", "The file's own (animated) scene camera"),
-    ("orbit", "Orbit", "A generated, seeded orbit framed from the scene bounds"),
-    ("walk", "Walk", "A generated, seeded walk through the level (eye 1.6 m above the floor)"),
-    ("fly", "Fly", "A generated, seeded free flight through the level"),
+#: Help of each camera path (the paths themselves: ``config.CAMERA_PATHS`` through choices.json).
+CAMERA_HELP = {
+    "scene": "The file's own (animated) scene camera",
+    "orbit": "A generated, seeded orbit framed from the scene bounds",
+    "walk": "A generated, seeded walk through the level (eye 1.6 m above the floor)",
+    "fly": "A generated, seeded free flight through the level",
+    "scene:*": "Each clip the next of the file's own cameras",
+}
+
+
+def _label(name: str) -> str:
+    return "Scene cameras" if name == "scene:*" else name.replace("-", " ").capitalize()
+
+
+#: Dataset cameras (checkboxes; clip k uses the k-th ticked kind, cycling) and the clip's one camera path (a menu).
+CAMERA_ITEMS = tuple((c, _label(c), CAMERA_HELP.get(c, c)) for c in CHOICES["camera_paths"])
+CAMERA_PATH_ITEMS = tuple(i for i in CAMERA_ITEMS if ":" not in i[0])
+#: Buffers (``conventions.BUFFERS``) as checkboxes; radiance is always written.
+BUFFER_ITEMS = tuple((b["name"], b["name"].replace("_", " ").capitalize(), b["help"]) for b in CHOICES["buffers"])
+BUFFER_PRESET_ITEMS = (
+    ("default", "Default", "The default buffers: " + ", ".join(CHOICES["default_buffers"])),
+    ("all", "All", "Every buffer BlendSR writes"),
+    ("custom", "Choose", "The buffers ticked below (radiance is always written)"),
 )
+#: Models of *For models* (the model-buffer table's), and the scales the models take.
+MODEL_ITEMS = tuple((m, m, f"Render the buffers {m} reads") for m in CHOICES["models"])
+SCALE_ITEMS = tuple((str(k), f"{k}x", f"An LR level at 1/{k} of the HR size") for k in CHOICES["scales"])
+
+
+def buffer_properties(default_set) -> dict:
+    """The Buffers menu (default, all, choose) and its checkboxes (``mapping.buffers_value`` reads both)."""
+    return {
+        "buffers": EnumProperty(name="Buffers", items=BUFFER_PRESET_ITEMS, default="default",
+                                description="Buffers to write: the default set, all, or the ones ticked below"),
+        "buffer_set": EnumProperty(name="Buffer set", items=BUFFER_ITEMS, options={"ENUM_FLAG"},
+                                   default=set(default_set), description="Buffers to write (Buffers: Choose)"),
+    }
+
+
 #: Models the preview runs when no checkpoint is chosen: the weights shipped with blendsr (training/pretrained.py;
 #: their datasets in training/weights/*.json) and the non-learned models of training.models.MODELS.
 PREVIEW_MODEL_ITEMS = (
@@ -42,6 +75,16 @@ PREVIEW_MODEL_ITEMS = (
 )
 
 
+_MODEL_ITEMS: list = []  # Blender keeps no reference to a callback's strings: the list lives here
+
+
+def preview_model_items(self, context):
+    """The model menu's items: ``PREVIEW_MODEL_ITEMS`` with the library's marks (``library.pretrained_notes``)."""
+    from .library import marked_items, pretrained_notes
+    _MODEL_ITEMS[:] = marked_items(PREVIEW_MODEL_ITEMS, pretrained_notes())
+    return _MODEL_ITEMS
+
+
 def _result(key: str, default):
     """Getter of a read-only result stored as an ID property (set by the preview operator)."""
     return lambda self: self.get(key, default)
@@ -58,24 +101,21 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Dataset seed: every clip's seed derives from it")
     clips: IntProperty(name="Clips", default=4, min=1, max=1000,
                        description="Clips of the scene (per scale); clip k uses camera kind k (cycling)")
-    cameras: StringProperty(name="Cameras", default="walk,fly",
-                            description="Camera kinds, comma-separated: walk, fly, orbit, scene (the active "
-                                        "camera), scene:* (each clip the next of the file's cameras), scene:NAME")
+    cameras: EnumProperty(name="Cameras", items=CAMERA_ITEMS, options={"ENUM_FLAG"}, default={"walk", "fly"},
+                          description="Camera kinds of the clips: clip k uses the k-th ticked kind (cycling)")
     frames: IntProperty(name="Frames", default=12, min=1, description="Frames per clip (scene frames 1..N)")
     hr_width: IntProperty(name="HR width", default=256, min=1, subtype="PIXEL",
                           description="HR (target) width in pixels; divisible by every scale")
     hr_height: IntProperty(name="HR height", default=144, min=1, subtype="PIXEL",
                            description="HR (target) height in pixels; divisible by every scale")
-    scales: StringProperty(name="Scales", default="4",
-                           description="Integer upscaling factors, comma-separated; each scale is a source of "
-                                       "its own (its own clips, one LR level each)")
-    buffers: StringProperty(name="Buffers", default="default",
-                            description="Comma-separated buffers, 'default' or 'all' (For models overrides it)")
+    scales: EnumProperty(name="Scales", items=SCALE_ITEMS, options={"ENUM_FLAG"}, default={"4"},
+                         description="Upscaling factors: every clip gets one LR level per ticked scale (the "
+                                     "smallest is the level 'lr'); NSS datasets need 2x")
     light: render_property("light")  # the source's light (a [[source]] key), RenderConfig's choices and default
     device: render_property("device")  # the run's device (blendsr dataset --device)
-    for_models: StringProperty(name="For models", default="",
-                               description="Render only the buffers these models read (comma-separated model "
-                                           "names, as --for-models); empty: the Buffers setting")
+    for_models: EnumProperty(name="For models", items=MODEL_ITEMS, options={"ENUM_FLAG"}, default=set(),
+                             description="Render only the buffers the ticked models read (as --for-models); "
+                                         "none ticked: the Buffers setting")
     vary_world: BoolProperty(name="Vary world strength", default=False,
                              description="Multiply the world's background strength per clip (log-uniform in the range)")
     world_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest world multiplier")
@@ -128,13 +168,10 @@ class BlendSRSettings(bpy.types.PropertyGroup):
     # -- buffers and camera --------------------------------------------------------------------------------------
     camera_path: EnumProperty(name="Camera path", items=CAMERA_PATH_ITEMS, default="scene",
                               description="Camera of the clip")
-    buffers: StringProperty(name="Buffers", default="default",
-                            description="Comma-separated buffers to write, 'default' or 'all'; radiance is always "
-                                        "written")
     # -- preview -------------------------------------------------------------------------------------------------
     checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", default="",
                                description="Trained model checkpoint; empty: the non-learned model below")
-    preview_model: EnumProperty(name="Model", items=PREVIEW_MODEL_ITEMS, default="pretrained:fusesr-l",
+    preview_model: EnumProperty(name="Model", items=preview_model_items, default=0,  # pretrained:fusesr-l
                                 description="Model used when no checkpoint is chosen: shipped pretrained weights "
                                             "or a non-learned model")
     with_reference: BoolProperty(name="With reference", default=False,
@@ -159,6 +196,8 @@ class BlendSRSettings(bpy.types.PropertyGroup):
 #: The render keys of RenderConfig each group derives (types, defaults, ranges, labels, help: render_keys.json).
 BlendSRSettings.__annotations__.update(properties(CLIP_PANEL))
 BlendSRDatasetSettings.__annotations__.update(properties(DATASET_PANEL))
+for _cls in (BlendSRSettings, BlendSRDatasetSettings):
+    _cls.__annotations__.update(buffer_properties(CHOICES["default_buffers"]))
 
 
 def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str) -> None:

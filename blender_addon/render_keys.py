@@ -74,3 +74,13 @@ def value(settings, key: str):
 def values(settings, shell: str) -> dict:
     """{key: value} of every key ``shell`` derives."""
     return {k: value(settings, k) for k in keys(shell)}
+
+
+#: The menus' and checkboxes' choices (``choices.json``, written with ``render_keys.json`` by
+#: ``python -m gbuffer_export.table_shells``): camera paths, buffers, default buffers, models, scales.
+CHOICES: dict = json.loads((Path(__file__).parent / "choices.json").read_text())
+
+
+def flag_list(selected, order) -> list[str]:
+    """The members of an enum-flag value (a set) in the items' order (``order``: the identifiers)."""
+    return [k for k in order if k in selected]

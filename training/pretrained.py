@@ -55,3 +55,28 @@ def info(name: str) -> dict:
     """The JSON beside a pretrained weight file (spec, commands, scores)."""
     path = WEIGHTS_DIR / PRETRAINED[name]
     return json.loads(path.with_suffix(".json").read_text())
+
+
+#: The guided non-learned baseline every shipped network is measured against (issue: "never worse than it").
+BASELINE = "demod-jbu"
+
+
+def val_margin(name: str) -> float | None:
+    """The shipped network's PSNR minus ``demod-jbu``'s on its val split, in dB, from the JSON beside its weights
+    (``scores_on_val_split``: both scored on the same frames); None when the JSON holds no such scores."""
+    try:
+        scores = info(name).get("scores_on_val_split") or {}
+        return float(scores[name]["psnr"]) - float(scores[BASELINE]["psnr"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def below_baseline(name: str) -> bool:
+    """True when the shipped network scores below ``demod-jbu`` on its val split (``val_margin`` < 0)."""
+    margin = val_margin(name)
+    return margin is not None and margin < 0
+
+
+def below_baseline_note(name: str) -> str:
+    """'below demod-jbu on val' for a shipped network that is (``below_baseline``), else ''."""
+    return f"below {BASELINE} on val" if below_baseline(name) else ""

@@ -95,13 +95,21 @@ def test_register_unregister_twice_and_defaults():
                     for p in rna if p.identifier not in ("rna_type", "name", "dataset")}  # dataset: its own test
         read_only = {k: rna[k].is_readonly for k in ("preview_ms", "preview_psnr", "preview_metric",
                                                      "preview_info", "preview_clip", "last_export")}
-        enums = {k: [i.identifier for i in rna[k].enum_items]
-                 for k in ("camera_path", "jitter", "fbeta_source", "preview_model")}
+        enums = {k: [i.identifier for i in rna[k].enum_items] for k in ("camera_path", "jitter", "fbeta_source")}
+        # the model menu's items come from a callback (the library marks a network below demod-jbu)
+        enums["preview_model"] = [i[0] for i in props.preview_model_items(s, bpy.context)]
+        defaults["preview_model"] = s.preview_model
+        model_labels = {i[0]: i[1] for i in props.preview_model_items(s, bpy.context)}
+        s.preview_model = "pretrained:nsrd"
+        model_set = [s.preview_model]
         from blender_addon import panels
         emit({"before": before, "lib_after_register": "gbuffer_export" in sys.modules, "states": states,
-              "defaults": defaults, "read_only": read_only, "enums": enums,
+              "defaults": defaults, "read_only": read_only, "enums": enums, "model_labels": model_labels,
+              "model_set": model_set,
               "panels": {c.__name__: [c.bl_space_type, c.bl_region_type, getattr(c, "bl_context", ""),
-                                      getattr(c, "bl_category", "")] for c in panels.CLASSES}})
+                                      getattr(c, "bl_category", "")] for c in panels.CLASSES},
+              "closed": {c.__name__: [getattr(c, "bl_parent_id", ""), "DEFAULT_CLOSED" in getattr(c, "bl_options", ())]
+                         for c in panels.CLASSES}})
     ''')
     assert not r["before"] and not r["lib_after_register"], "the add-on must not import the library at register"
     for i, st in enumerate(r["states"]):
@@ -113,6 +121,11 @@ def test_register_unregister_twice_and_defaults():
     assert all(r["read_only"].values()), r["read_only"]
     assert r["panels"]["BLENDSR_PT_output"] == ["PROPERTIES", "WINDOW", "output", ""]
     assert r["panels"]["BLENDSR_PT_view3d"] == ["VIEW_3D", "UI", "", "BlendSR"]
+    # collapsible subpanels (closed at first) instead of one long panel; a subpanel registers after its parent
+    subs = {k: v for k, v in r["closed"].items() if v[0]}
+    assert len(subs) >= 10 and all(closed for _, closed in subs.values()), r["closed"]
+    order = list(r["closed"])
+    assert all(order.index(p) < order.index(k) for k, (p, _) in subs.items())
 
     # Defaults equal the CLI's (and RenderConfig's where the two agree).
     from gbuffer_export.commands.render import add_render_arguments
@@ -146,6 +159,12 @@ def test_register_unregister_twice_and_defaults():
     for m in r["enums"]["preview_model"]:  # shipped weights, or non-learned models
         assert (m.startswith(PREFIX) and m[len(PREFIX):] in PRETRAINED) or (m in MODELS and not MODELS[m].learned), m
     assert {PREFIX + n for n in PRETRAINED} <= set(r["enums"]["preview_model"])  # every shipped network is offered
+    # a shipped network below demod-jbu on its val split says so in the menu (training.pretrained, the weights' JSON)
+    from training.pretrained import below_baseline
+    for n in PRETRAINED:
+        label = r["model_labels"][PREFIX + n]
+        assert ("below demod-jbu on val" in label) is below_baseline(n), label
+    assert r["model_set"][0] == "pretrained:nsrd"
 
 
 def test_mapping_equals_cli_config(tmp_path):
@@ -163,7 +182,8 @@ def test_mapping_equals_cli_config(tmp_path):
         s.use_scene_resolution = False; s.hr_width, s.hr_height = 96, 48
         s.scale = 2; s.hr_spp = 7; s.lr_spp = 3; s.gbuffer_spp = 2; s.hr_denoise = True; s.adaptive = True
         s.adaptive_threshold = 0.05; s.adaptive_min_samples = 5; s.camera_path = "orbit"; s.seed = 11
-        s.jitter = "none"; s.buffers = "depth,normal"; s.fbeta_source = "lut-paper"; s.use_max_bounces = True
+        s.jitter = "none"; s.buffers = "custom"; s.buffer_set = {"depth", "normal"}; s.fbeta_source = "lut-paper"
+        s.use_max_bounces = True
         s.max_bounces = 3; s.threads = 1
         b = mapping.render_config(s, sc).to_json()
         s.hr_width = 97
@@ -208,6 +228,7 @@ class Rec:
     def column(self, **kw): return self._child("column")
     def box(self): return self._child("box")
     def split(self, **kw): return self._child("split")
+    def column_flow(self, **kw): return self._child("column_flow")
     def separator(self, **kw): pass
     def prop(self, data, name, **kw):
         ok = name in data.bl_rna.properties
@@ -219,15 +240,21 @@ class Rec:
         self.log.append(("operator", idname, hasattr(getattr(bpy.ops, mod), op)))
         return type("OpProps", (), {})()
 
+def draw_tree(root, skip=()):
+    """The log of ``root`` and every subpanel below it (drawn open), in drawing order."""
+    from blender_addon import panels
+    log = []
+    for cls in panels.subtree(root, skip):
+        if hasattr(cls, "poll") and not cls.poll(bpy.context):
+            continue
+        log.append(("panel", cls.bl_idname, getattr(cls, "bl_parent_id", "")))
+        cls.draw(type("FakePanel", (), {"layout": Rec(log)})(), bpy.context)
+    return log
+
 def draw_all():
     from blender_addon import panels
-    out = {}
-    for cls in panels.MAIN_PANELS:  # the Dataset subpanels: tests/addon/test_dataset.py
-        log = []
-        fake = type("FakePanel", (), {"layout": Rec(log)})()
-        cls.draw(fake, bpy.context)
-        out[cls.__name__] = log
-    return out
+    # the Dataset subpanels: tests/addon/test_dataset.py
+    return {cls.__name__: draw_tree(cls, panels.DATASET_PANELS) for cls in panels.MAIN_PANELS}
 '''
 
 
@@ -273,8 +300,15 @@ def test_panels_draw_with_library(tmp_path):
         assert {"output_dir", "scale", "hr_spp", "lr_spp", "camera_path", "buffers", "fbeta_source", "jitter",
                 "frame_start", "frame_end", "hr_width", "hr_height", "checkpoint", "with_reference"} <= drawn
         ops = [e for e in log if e[0] == "operator"]
-        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale",
-                                         "blendsr.create_camera_paths"} and all(e[2] for e in ops)
+        assert {e[1] for e in ops} == {"blendsr.export_dataset", "blendsr.preview_upscale", "blendsr.open_output",
+                                       "blendsr.contact_sheet", "blendsr.create_camera_paths"} and all(e[2] for e in ops)
+        # collapsible subpanels under the head, closed at first; the head holds the export and its buttons
+        subs = [e for e in log if e[0] == "panel"]
+        assert subs[0][2] == "" and len(subs) >= 5 and all(e[2] == subs[0][1] for e in subs[1:]), subs
+        head = log[:next(i for i, e in enumerate(log) if e[0] == "panel" and e[2])]
+        assert [e[1] for e in head if e[0] == "operator"] == ["blendsr.export_dataset", "blendsr.open_output",
+                                                              "blendsr.contact_sheet"]
+        assert len([e for e in head if e[0] == "prop"]) <= 2, head  # the ~35 settings sit in the subpanels
         assert any(e[0] == "open" and e[2] >= 1 for e in log), "nested layouts are drawn"
         labels = [e[1] for e in log if e[0] == "label"]
         # default buffers x 2 levels x 2 frames; size from the channel counts (float32).
@@ -286,8 +320,9 @@ def test_panels_draw_with_library(tmp_path):
         assert any(t.startswith("Time: about") and "cost model" in t for t in labels)
         assert not any("pip install" in t for t in labels)
     labels = [e[1] for e in r["no_torch"] if e[0] == "label"]
-    assert any("torch is not importable" in t for t in labels)
-    assert any("External Python" in t for t in labels)
+    from blender_addon.panels import TORCH_MISSING
+    assert [t for t in labels if "torch" in t] == [TORCH_MISSING]  # one line: the preview needs [train]
+    assert "External Python" in TORCH_MISSING and "blendsr[train]" in TORCH_MISSING
     labels = [e[1] for e in r["with_results"] if e[0] == "label"]
     assert "Inference: 12.5 ms" in labels and "PSNR: 31.25 dB" in labels
 
@@ -333,11 +368,65 @@ def test_export_dataset_operator(tmp_path):
         engine = sc.render.engine
         res = bpy.ops.blendsr.export_dataset()
         mats = bpy.data.materials["red"].node_tree.nodes
-        emit({"res": sorted(res), "last": s.last_export, "engine_before": engine, "engine": sc.render.engine,
-              "aovs": len(bpy.context.view_layer.aovs), "nodes": len(mats), "res_x": sc.render.resolution_x,
-              "pass_index": [ob.pass_index for ob in sc.objects], "dirty": bpy.data.is_dirty})
+        first = {"res": sorted(res), "last": s.last_export, "engine_before": engine, "engine": sc.render.engine,
+                 "aovs": len(bpy.context.view_layer.aovs), "nodes": len(mats), "res_x": sc.render.resolution_x,
+                 "pass_index": [ob.pass_index for ob in sc.objects], "dirty": bpy.data.is_dirty}
+        import hashlib, os, pathlib
+        from blender_addon import operators
+        out = pathlib.Path(sys.argv[1])
+        copy = out / operators.CLIP_SCENE_DIR / "untitled.blend"
+        sha = lambda: hashlib.sha256(copy.read_bytes()).hexdigest()
+        first["copy_sha"] = sha()
+        # Open output (the system's file browser, recorded here) and the contact sheet in the Image Editor
+        opened = []
+        operators.open_folder = lambda path: opened.append(str(path)) or {"FINISHED"}
+        first["open"] = [sorted(bpy.ops.blendsr.open_output(target="clip")), opened]
+        first["sheet"] = sorted(bpy.ops.blendsr.contact_sheet(target="clip"))
+        img = bpy.data.images["BlendSR contact sheet"]
+        from PIL import Image  # the PNG gbuffer_export.preview.contact_sheet wrote (in Blender's temporary folder)
+        with Image.open(img.filepath) as im:
+            first["sheet_image"] = [list(img.size), list(im.size)]
+        s.dataset.output_dir = sys.argv[1] + "_dataset"
+        try:
+            bpy.ops.blendsr.open_output(target="dataset")
+            first["no_dataset"] = ""
+        except RuntimeError as exc:
+            first["no_dataset"] = str(exc)
+        # interrupted after frame 1 (frame 2's record gone), then changes a render does not read: selection, the
+        # active object, the current frame, the preview's settings
+        os.remove(out / "frames" / "000002.json")
+        fp = operators.scene_fingerprint(sc)
+        for ob in sc.objects:
+            ob.select_set(ob.type == "MESH")
+        bpy.context.view_layer.objects.active = sc.objects[0]
+        sc.frame_current, s.with_reference, s.preview_model = 2, True, "bicubic"
+        unchanged = operators.scene_fingerprint(sc) == fp
+        resumed = sorted(bpy.ops.blendsr.export_dataset())
+        resumed_sha, resumed_last = sha(), s.last_export
+        # what a render reads changes the fingerprint: a material's colour, a moved object (refused: other clip)
+        mat_in = bpy.data.materials["red"].node_tree.nodes["Principled BSDF"].inputs["Base Color"]
+        mat_in.default_value = (0.1, 0.8, 0.1, 1)
+        material_changes = operators.scene_fingerprint(sc) != fp
+        mat_in.default_value = (0.8, 0.1, 0.1, 1)
+        back = operators.scene_fingerprint(sc) == fp
+        sc.objects[0].location.x += 1
+        try:
+            moved = str(sorted(bpy.ops.blendsr.export_dataset()))
+        except RuntimeError as exc:
+            moved = str(exc)
+        emit({**first, "unchanged": unchanged, "resumed": resumed, "resumed_sha": resumed_sha,
+              "resumed_last": resumed_last, "material_changes": material_changes, "back": back, "moved": moved})
     ''', out)
     assert r["res"] == ["FINISHED"], r
+    # a clip export resumes after changes that do not affect what it renders (the scene copy's fingerprint)
+    assert r["unchanged"] and r["resumed"] == ["FINISHED"] and r["resumed_sha"] == r["copy_sha"], r
+    assert "OK" in r["resumed_last"]
+    assert r["material_changes"] and r["back"]
+    assert r["open"] == [["FINISHED"], [str(out)]]
+    assert r["sheet"] == ["FINISHED"] and min(r["sheet_image"][0]) > 36, r["sheet_image"]  # the clip's tiles
+    assert r["sheet_image"][0] == r["sheet_image"][1]
+    assert "no such folder yet; render the dataset first" in r["no_dataset"], r["no_dataset"]
+    assert "the open scene differs from the copy this clip was rendered from" in r["moved"], r["moved"]
     # the user's scene is untouched: the render happened in the worker
     assert r["engine"] == r["engine_before"] and r["aovs"] == 0 and r["nodes"] == 2 and r["res_x"] == 1920
     assert r["pass_index"] == [0, 0, 0]
@@ -504,7 +593,7 @@ def test_create_camera_paths_on_garage_keeps_eyes_clear():
         blender_addon.register()
         sc = bpy.context.scene
         sc.frame_start, sc.frame_end = 1, 3
-        res = bpy.ops.blendsr.create_camera_paths(kinds="walk,fly", clips=2, seed=0)
+        res = bpy.ops.blendsr.create_camera_paths(kinds={"walk", "fly"}, clips=2, seed=0)
         from gbuffer_export.blender.level_geometry import from_scene
         geom = from_scene(sc, 1)
         out = {"res": list(res), "cams": {}}

@@ -21,7 +21,7 @@ TINY = r'''
 def tiny_dataset(out):
     ds = bpy.context.scene.blendsr.dataset
     ds.output_dir = out
-    ds.clips, ds.frames, ds.cameras = 2, 2, "walk,fly"
+    ds.clips, ds.frames, ds.cameras = 2, 2, {"walk", "fly"}
     ds.hr_width, ds.hr_height = 64, 36
     ds.hr_spp, ds.lr_spp, ds.gbuffer_spp, ds.hr_denoise = 1, 1, 1, False
     ds.threads = 1
@@ -40,12 +40,12 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         from gbuffer_export.dataset.writer import spec_to_toml
         ds = sc.blendsr.dataset
         rna = ds.bl_rna.properties
-        defaults = {p.identifier: p.default for p in rna if p.identifier not in ("rna_type", "name")
-                    and not p.is_readonly}
+        defaults = {p.identifier: sorted(p.default_flag) if getattr(p, "is_enum_flag", False) else p.default
+                    for p in rna if p.identifier not in ("rna_type", "name") and not p.is_readonly}
         spec_path = sys.argv[1] + "/spec.toml"
         default_toml = spec_to_toml(mapping.dataset_spec(ds, "lvl", spec_path))
         default_opts = mapping.run_options_json(mapping.dataset_run_options(ds))
-        ds.scales, ds.for_models, ds.regions_x, ds.regions_y, ds.region_val, ds.region_test = "2,4", "nsrr", 3, 3, 1, 1
+        ds.scales, ds.for_models, ds.regions_x, ds.regions_y, ds.region_val, ds.region_test = {"2", "4"}, {"nsrr"}, 3, 3, 1, 1
         ds.dataset_name = "mine"
         ds.vary_sun, ds.sun_elevation_min, ds.sun_elevation_max = True, 25.0, 60.0
         ds.vary_world, ds.world_strength_min, ds.world_strength_max = True, 0.7, 1.3
@@ -53,7 +53,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         custom_toml = spec_to_toml(mapping.dataset_spec(ds, "lvl", spec_path))
         custom_opts = mapping.run_options_json(mapping.dataset_run_options(ds, blender="/opt/blender"))
         errors = {}
-        for key, value in (("scales", "4,x"), ("scales", "4,4"), ("cameras", "walk,bogus"), ("for_models", "nope"),
+        for key, value in (("scales", set()), ("cameras", set()),
                            ("hr_width", 66), ("region_val", 9), ("world_strength_max", 0.5)):
             old = getattr(ds, key)
             setattr(ds, key, value)
@@ -64,11 +64,8 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
             except ValueError as exc:
                 errors[f"{key}={value}"] = str(exc)
             setattr(ds, key, old)
-        draws = {}
-        for cls in panels.DATASET_PANELS:
-            log = []
-            cls.draw(type("P", (), {"layout": Rec(log)})(), bpy.context)
-            draws[cls.__name__] = log
+        ds.buffers = "custom"  # its checkboxes are drawn
+        draws = {cls.__name__: draw_tree(cls) for cls in panels.DATASET_PANELS}
         emit({"defaults": defaults, "default_toml": default_toml, "default_opts": default_opts,
               "custom_doc": custom_doc, "custom_toml": custom_toml, "custom_opts": custom_opts, "errors": errors,
               "draws": draws, "parents": {c.__name__: getattr(c, "bl_parent_id", "") for c in panels.CLASSES}})
@@ -83,7 +80,8 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     plain = parse_spec({"dataset": {"name": "lvl"}, "source": [
         {"name": "scene", "kind": "scene", "paths": ["scene/lvl.blend"]}]}, spec_path)
     assert default == plain and default.sources[0].render == RenderSettings()
-    assert (d["frames"], d["hr_width"], d["hr_height"], d["scales"]) == (12, 256, 144, "4")
+    assert (d["frames"], d["hr_width"], d["hr_height"], d["scales"]) == (12, 256, 144, ["4"])
+    assert d["cameras"] == ["fly", "walk"] and d["for_models"] == [] and d["buffers"] == "default"
     opts = RunOptions(**{**r["default_opts"], "buffers_for": tuple(r["default_opts"]["buffers_for"])})
     assert opts == RunOptions(progress=False)
     assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "scene" and d["device"] == "auto"
@@ -105,9 +103,8 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
 
     # Bad settings: one line naming the setting or the spec key.
     e = r["errors"]
-    assert "dataset Scales '4,x'" in e["scales=4,x"] and "distinct" in e["scales=4,4"]
-    assert "cameras item 'bogus'" in e["cameras=walk,bogus"]
-    assert "For models 'nope'" in e["for_models=nope"] and "unknown model 'nope'" in e["for_models=nope"]
+    assert "dataset Scales" in e["scales=set()"] and "tick at least one scale" in e["scales=set()"]
+    assert "dataset Cameras: tick at least one camera path" in e["cameras=set()"]
     assert "not divisible by scale" in e["hr_width=66"] and "region_val" in e["region_val=9"]
     assert "world_strength" in e["world_strength_max=0.5"] and "low <= high" in e["world_strength_max=0.5"]
     assert all("\n" not in v and v for v in e.values()), e
@@ -120,7 +117,11 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         assert all(e[2] for e in log if e[0] == "prop"), log
         settable = {k for k in d if k != "last_dataset_ok"}
         assert props == settable, (name, settable ^ props)
-        assert [e[1:] for e in log if e[0] == "operator"] == [["blendsr.render_dataset", True]]
+        assert [e[1:] for e in log if e[0] == "operator"] == [["blendsr.render_dataset", True],
+                                                              ["blendsr.open_output", True],
+                                                              ["blendsr.contact_sheet", True]]
+        subs = [e for e in log if e[0] == "panel"]  # collapsible subpanels under the Dataset subpanel
+        assert len(subs) == 5 and all(e[2] == subs[0][1] for e in subs[1:]), subs
         labels = [e[1] for e in log if e[0] == "label"]
         assert "4 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
         assert "cameras walk, fly (clip k: kind k), light scene" in labels
@@ -177,6 +178,9 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
         res = sorted(bpy.ops.blendsr.render_dataset())
         after = [sc.render.engine, sc.render.resolution_x, len(bpy.context.view_layer.aovs), bpy.data.filepath]
         first = [ds.last_dataset, ds.last_dataset_ok]
+        # the dataset's contact sheet (gbuffer_export.preview.dataset_sheet) as an image: a row per clip
+        sheet = sorted(bpy.ops.blendsr.contact_sheet(target="dataset"))
+        first.append([sheet, list(bpy.data.images["BlendSR contact sheet"].size)])
         # the same scene opened again: the run resumes (nothing left to render)
         bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
         ds = tiny_dataset(sys.argv[2])
@@ -192,7 +196,7 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
             changed = str(exc)
         again_text = ds.last_dataset
         # a clip that fails (no camera of that name): the run reports it, the subpanel says failed
-        ds.output_dir, ds.cameras, ds.clips = sys.argv[2] + "_bad", "scene:Nope", 1
+        ds.output_dir, ds.device, ds.clips = sys.argv[2] + "_bad", "metal", 1  # no Metal device on Linux
         try:
             bpy.ops.blendsr.render_dataset()
             failed = ""
@@ -203,6 +207,7 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
               "failed_panel": [ds.last_dataset, ds.last_dataset_ok]})
     ''', garage, out, helpers=TINY, timeout=300)
     assert r["res"] == ["FINISHED"] and r["first"][1] is True, r
+    assert r["first"][2][0] == ["FINISHED"] and r["first"][2][1][1] > 2 * 36, r["first"]  # two clips' rows
     assert r["first"][0].startswith(f"OK: {out}: 2/2 clips valid"), r["first"]
     assert r["before"] == r["after"], "the open scene is untouched: clips render in worker processes"
     from gbuffer_export.dataset.check import validate_dataset
@@ -223,7 +228,7 @@ def test_render_dataset_on_the_open_garage_validates_resumes_and_refuses_a_chang
     assert index["spec"]["text"] == (out / "spec.toml").read_text()
     assert r["again"] == ["FINISHED"] and "2 done" in r["again_text"] and r["again_s"] < 30
     assert "differs from the copy this dataset's clips were rendered from" in r["changed"]
-    assert "1 of 1 clips not done; scene-garage-00:" in r["failed"] and "Nope" in r["failed"], r["failed"]
+    assert "1 of 1 clips not done; scene-garage-00:" in r["failed"] and "METAL" in r["failed"], r["failed"]
     assert r["failed_panel"][0].startswith("failed: 1 of 1 clips not done") and r["failed_panel"][1] is False
     assert "FAILED" in r["failed_panel"][0]  # the validation's verdict too
     # The written spec re-runs the same dataset from the command line: nothing left to render.
@@ -262,7 +267,7 @@ def test_render_dataset_modal_progress_on_an_unsaved_scene(tmp_path):
         sc = tiny_scene()
         blender_addon.register()
         ds = tiny_dataset(sys.argv[1])
-        ds.cameras, ds.vary_lights = "scene", False
+        ds.cameras, ds.vary_lights = {"scene"}, False
         operators.interactive = lambda: True
         Event = type("Event", (), {})
         def event(kind, value="NOTHING"):

@@ -145,3 +145,35 @@ def test_format_seconds():
     assert jobs.format_seconds(42) == "42 s"
     assert jobs.format_seconds(600) == "10.0 min"
     assert jobs.format_seconds(7200) == "2.0 h"
+
+
+def test_below_baseline_marks_follow_the_weights_json(tmp_path, monkeypatch):
+    """A shipped network below demod-jbu on its val split is marked, from the JSON beside its weights (json only, no
+    torch), in the add-on's model menu and in the README's shipped-networks sentence."""
+    code = ("import sys; from training import pretrained as p; "
+            "print([p.below_baseline(n) for n in p.PRETRAINED], 'torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("False"), proc.stderr  # no torch imported
+    from training import pretrained
+    readme = (REPO / "README.md").read_text()
+    for name in pretrained.PRETRAINED:  # the README marks exactly the networks the JSON puts below demod-jbu
+        marked = f"`pretrained:{name}` (below `demod-jbu` on val" in readme
+        assert marked is pretrained.below_baseline(name), name
+        if marked:
+            assert f"{pretrained.val_margin(name):+.2f} dB)" in readme
+    # the rule on made-up scores: below by 0.2 dB -> marked; above, or no val scores -> not
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
+    for name, scores, below in (("fusesr", {"fusesr": {"psnr": 30.0}, "demod-jbu": {"psnr": 30.2}}, True),
+                                ("nsrd", {"nsrd": {"psnr": 30.3}, "demod-jbu": {"psnr": 30.2}}, False),
+                                ("rdg-s", None, False)):
+        doc = {"model": name} if scores is None else {"model": name, "scores_on_val_split": scores}
+        (tmp_path / pretrained.PRETRAINED[name]).with_suffix(".json").write_text(json.dumps(doc))
+        assert pretrained.below_baseline(name) is below, name
+        assert pretrained.below_baseline_note(name) == ("below demod-jbu on val" if below else "")
+    assert pretrained.val_margin("fusesr") == pytest.approx(-0.2)
+    # the menu's label: "NSRD (pretrained, below demod-jbu on val)"
+    from blender_addon.library import marked_items
+    items = marked_items((("pretrained:nsrd", "NSRD (pretrained)", "d"), ("bicubic", "Bicubic", "b")),
+                         {"pretrained:nsrd": "below demod-jbu on val"})
+    assert [i[:2] for i in items] == [("pretrained:nsrd", "NSRD (pretrained, below demod-jbu on val)"),
+                                      ("bicubic", "Bicubic")] and [i[3] for i in items] == [0, 1]
