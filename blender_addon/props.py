@@ -12,6 +12,8 @@ CAMERA_PATH_ITEMS = (
     ("fly", "Fly", "A generated, seeded free flight through the level"),
 )
 LIGHT_ITEMS = (
+    ("auto", "Auto", "The file's own lights where they light what the cameras see, else an added sun and sky "
+                     "and/or lamps under the ceilings (measured; recorded in the manifest)"),
     ("scene", "Scene", "The file's own lights (refused when the scene is unlit)"),
     ("sky", "Sky", "Add a seeded sun and sky"),
 )
@@ -94,7 +96,7 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
                             description="Comma-separated buffers, 'default' or 'all' (For models overrides it)")
     fbeta_source: EnumProperty(name="F_beta source", items=FBETA_ITEMS, default="cycles",
                                description="Source of the pre-integrated BRDF")
-    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of every clip")
+    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="auto", description="Lighting of every clip")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
     for_models: StringProperty(name="For models", default="",
                                description="Render only the buffers these models read (comma-separated model "
@@ -165,7 +167,7 @@ class BlendSRSettings(bpy.types.PropertyGroup):
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of camera paths and Cycles noise")
     threads: IntProperty(name="Threads", default=0, min=0, description="Render threads (0 = all cores)")
     # -- buffers and camera --------------------------------------------------------------------------------------
-    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="scene", description="Lighting of the export")
+    light: EnumProperty(name="Light", items=LIGHT_ITEMS, default="auto", description="Lighting of the export")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto", description="Cycles render device")
     camera_path: EnumProperty(name="Camera path", items=CAMERA_PATH_ITEMS, default="scene",
                               description="Camera of the clip")

@@ -16,7 +16,7 @@ from .typed_table import ConfigError, key_error, option, set_checked
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
 #: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
 LEVEL_CAMERA_PATHS = ("walk", "fly")
-LIGHTS = ("scene", "sky")
+LIGHTS = ("auto", "scene", "sky")
 DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
 SCENE_SUFFIXES = (".blend", ".gltf", ".glb", ".usd", ".usda", ".usdc", ".usdz")
 
@@ -131,7 +131,9 @@ class RenderConfig:
     adaptive_threshold: float = option(0.01, lo=0, hi=1, hi_open=True)
     adaptive_min_samples: int = option(0, lo=0)
     camera_path: str = "scene"             # scene, scene:NAME, scene:*, orbit, walk, fly
-    light: str = option("scene", choices=LIGHTS)  # scene: as the file is (refused when unlit); sky: a sun and sky
+    light: str = option("auto", choices=LIGHTS)  # auto: the file's light where it lights what the cameras see, a
+                                     # sun and sky and/or ceiling lights where not (docs/rendering.md); scene: as
+                                     # the file is (refused when unlit); sky: a sun and sky
     device: str = option("auto", choices=DEVICES)  # Cycles device: auto picks a GPU when Cycles sees one
     seed: int = 0
     jitter: str = option("halton", choices=JITTERS)

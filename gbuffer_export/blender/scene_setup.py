@@ -130,9 +130,10 @@ def level_regions(geom, spec: dict) -> list:
     return out
 
 
-def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None):
+def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None, geom=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
-    returns (camera, report for the manifest). The level's geometry is taken at the first frame."""
+    returns (camera, report for the manifest). ``geom``: the level's geometry (default: every renderable object
+    at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``)."""
     from .camera_paths import half_fov, key_look_at
     from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
@@ -140,7 +141,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
-    geom = from_scene(scene, start)
+    geom = geom if geom is not None else from_scene(scene, start)
     hfov, vfov = half_fov(scene, cam.data)
     regions = level_regions(geom, region) if isinstance(region, dict) else [region]
     for k, reg in enumerate(regions):
@@ -228,12 +229,12 @@ def material_emits(mat) -> bool:
     return False
 
 
-def light_sources(scene) -> dict:
-    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects, and whether
-    the world emits."""
+def light_sources(scene, exclude: set = frozenset()) -> dict:
+    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects (those of the
+    objects named in ``exclude`` left out: sky meshes, which light nothing), and whether the world emits."""
     lamps = [ob for ob in scene.objects if ob.type == "LIGHT" and not ob.hide_render and ob.data.energy > 0]
     emissive = {s.material.name for ob in scene.objects if ob.type == "MESH" and not ob.hide_render
-                for s in ob.material_slots if material_emits(s.material)}
+                and ob.name not in exclude for s in ob.material_slots if material_emits(s.material)}
     return {"lamps": len(lamps), "sun_lamps": sum(ob.data.type == "SUN" for ob in lamps),
             "emissive_materials": len(emissive), "world": world_emits(scene)}
 
@@ -243,7 +244,8 @@ def check_lit(scene, where, light: str) -> dict:
     src = light_sources(scene)
     if light == "scene" and not (src["lamps"] or src["emissive_materials"] or src["world"]):
         raise ConfigError(f"{where}: the scene has no lights, no emissive material and a black world, so every "
-                          "frame would be black; pass --light sky (a default sun and sky, recorded in the manifest)")
+                          "frame would be black; set light auto (it adds a sun and sky where the cameras see the sky "
+                          "and lights under the ceilings where they do not, recorded in the manifest)", key="light")
     return src
 
 

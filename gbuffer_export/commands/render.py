@@ -58,9 +58,12 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "level; fly: a free path at 3 m/s inside the level (both keep 0.25 m from every triangle and "
                         "look at content; docs/rendering.md); orbit: an arc around the scene's bounds (the built-in "
                         "scene's walk is a loop framed from its bounds)")
-    p.add_argument("--light", choices=LIGHTS, default="scene",
-                   help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
-                        "physical sky, sun direction drawn from --seed (recorded in the manifest)")
+    p.add_argument("--light", choices=LIGHTS, default=RenderConfig.light,
+                   help="auto: the file's own lights where they light what the cameras see (measured by a probe "
+                        "render), else a sun and sky where the cameras see the sky and lamps under the ceilings "
+                        "where they do not; scene: the file's own lights (an unlit scene is refused); sky: add a "
+                        "sun lamp and a physical sky, sun direction drawn from --seed (all recorded in the "
+                        "manifest)")
     p.add_argument("--world-strength", type=float, default=None, metavar="X",
                    help="multiply the world's background strength by X (recorded in the manifest)")
     p.add_argument("--light-strength", type=float, default=None, metavar="X",

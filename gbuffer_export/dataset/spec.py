@@ -119,7 +119,7 @@ class Source:
     sun: bool = True                              # builtin: keep the sun lamp
     props: tuple[str, ...] = option((), items=BUILTIN_PROPS, unique=True)  # builtin: opt-in props added to every clip
     clips_per_scene: int = option(4, lo=1)        # scene: clips per scene file
-    light: str = option("scene", choices=LIGHTS)  # scene: "scene" (the file's) or "sky" (add a sun and sky)
+    light: str = option("auto", choices=LIGHTS)  # scene: "auto", "scene" (the file's) or "sky" (a sun and sky)
     regions: tuple[int, int] = (1, 1)             # scene: grid of split regions over the level's content box
     region_val: int = option(0, lo=0)             # scene: grid cells whose clips are val
     region_test: int = option(0, lo=0)            # scene: grid cells whose clips are test
