@@ -59,8 +59,9 @@ KEY = 0.18
 DARK = 1e-3
 #: The file's light lights what the cameras see: at most this fraction of the level's pixels are dark (keyed) ...
 LIT_MAX_DARK = 0.2
-#: ... and their log-average luminance is at least this (an exposure of at most 2^10 keys it).
-LIT_MIN_LOG_AVERAGE = KEY / 1024
+#: ... and their log-average luminance is at least this: an exposure of at most 2^4 (+4 stops, a game camera's usual
+#: auto-exposure range) keys it. Blender's default grey world through a window or a dim emissive strip is less.
+LIT_MIN_LOG_AVERAGE = KEY / 16
 #: Luminance floor inside the log-average (a black pixel counts as this).
 LOG_EPS = 1e-8
 #: An eye sees the sky: this fraction of its upper hemisphere's rays leave the level (as ``render.SKY_LIT_MIN_SKY``).
@@ -243,15 +244,16 @@ def eye_sky(level: LevelGeometry, eye: np.ndarray, rays: np.ndarray) -> tuple[fl
 
 
 @contextlib.contextmanager
-def _overridden(pairs):
-    """Set each (object, attribute, value) and restore the old values after."""
+def _overridden(pairs, restore_in_order: bool = False):
+    """Set each (object, attribute, value) and restore the old values after (in reverse order, or in the same
+    order where one value constrains the next: an image format's media type, then its format and depth)."""
     saved = [(o, a, getattr(o, a)) for o, a, _ in pairs]
     try:
         for o, a, v in pairs:
             setattr(o, a, v)
         yield
     finally:
-        for o, a, v in reversed(saved):
+        for o, a, v in (saved if restore_in_order else reversed(saved)):
             setattr(o, a, v)
 
 
@@ -272,10 +274,11 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
     if threads:
         pairs.append((r, "threads", threads))
     s = r.image_settings
-    fmt = [(s, "media_type", "MULTI_LAYER_IMAGE"), (s, "color_depth", "32"), (s, "exr_codec", "ZIP")]
+    fmt = [(s, "media_type", "MULTI_LAYER_IMAGE"), (s, "file_format", "OPEN_EXR_MULTILAYER"),
+           (s, "color_depth", "32"), (s, "exr_codec", "ZIP")]
     out, frame0 = [], scene.frame_current
     luma = np.array(BT709_LUMA, np.float32)
-    with tempfile.TemporaryDirectory(prefix="blendsr-probe-") as tmp, _overridden(pairs), _overridden(fmt):
+    with tempfile.TemporaryDirectory(prefix="blendsr-probe-") as tmp, _overridden(pairs), _overridden(fmt, True):
         for f in frames:
             scene.frame_set(f)
             path = Path(tmp) / f"probe_{f}.exr"
@@ -432,8 +435,10 @@ def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight
         scene.frame_set(frame0)
         return rec
     rec["why"] = ("the file has no light source" if before is None else
-                  f"the file's light leaves {before['dark_fraction_keyed']:.0%} of what the cameras see dark "
-                  f"(log-average luminance {before['log_average']:.3g})")
+                  f"the file's light leaves {before['dark_fraction_keyed']:.0%} of what the cameras see dark"
+                  if before["dark_fraction_keyed"] > LIT_MAX_DARK else
+                  f"the file's light is too dim: log-average luminance {before['log_average']:.3g} "
+                  f"< {LIT_MIN_LOG_AVERAGE:.3g}")
     added = []
     open_max, sees_max = max(v.open_sky for v in views), max(v.sees_sky for v in views)
     if open_max >= OPEN_SKY_MIN or sees_max >= SEES_SKY_MIN:
