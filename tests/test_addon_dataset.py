@@ -86,7 +86,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert (d["frames"], d["hr_width"], d["hr_height"], d["scales"]) == (12, 256, 144, "4")
     opts = RunOptions(**{**r["default_opts"], "buffers_for": tuple(r["default_opts"]["buffers_for"])})
     assert opts == RunOptions(progress=False)
-    assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "scene" and d["device"] == "auto"
+    assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "auto" and d["device"] == "auto"
 
     # Several scales: every clip with an LR level per scale; the settings round-trip through spec.toml.
     custom = parse_spec(tomllib.loads(r["custom_toml"]), spec_path)
@@ -123,7 +123,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         assert [e[1:] for e in log if e[0] == "operator"] == [["blendsr.render_dataset", True]]
         labels = [e[1] for e in log if e[0] == "label"]
         assert "4 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
-        assert "cameras walk, fly (clip k: kind k), light scene" in labels
+        assert "cameras walk, fly (clip k: kind k), light auto" in labels
         assert any("relative to the .blend file: save the file first" in t for t in labels)  # unsaved file
 
 
