@@ -12,7 +12,9 @@
    - *sun and sky* (``scene_setup.add_sky``: it replaces the world) when a camera eye sees the sky: at least
      ``OPEN_SKY_MIN`` of the rays over its upper hemisphere leave the level, or at least ``SEES_SKY_MIN`` of its
      view rays do;
-   - *ceiling lights* when an eye stands under a roof (less than ``OPEN_SKY_MIN`` open sky): area lamps facing
+   - *ceiling lights* when an eye of the camera path (up to 64 spread over the clip) stands under a roof: at least
+     ``ROOF_MIN`` of the rays within ``ROOF_CONE_DEG`` of its zenith hit the level (a room with doorways to the
+     void is under a roof; a street is not). They are area lamps facing
      down just under the ceilings of the walkable space around the cameras (floors within ``INTERIOR_REACH_M`` of
      the eyes' paths on a ``INTERIOR_SPACING_M`` grid, at most ``INTERIOR_MAX_LIGHTS``, nearest first), each of
      ``INTERIOR_IRRADIANCE`` W/m^2 times its grid cell's area in scene units (the floor below receives about that
@@ -68,6 +70,9 @@ LOG_EPS = 1e-8
 OPEN_SKY_MIN = 0.05
 #: ... or this fraction of its view rays do.
 SEES_SKY_MIN = 0.02
+#: An eye stands under a roof: this fraction of the rays within ``ROOF_CONE_DEG`` of its zenith hit the level.
+ROOF_MIN = 0.5
+ROOF_CONE_DEG = 45.0
 #: Ceiling lights: grid spacing and reach around the eyes (metres), most lamps, floor irradiance of each (W/m^2 over
 #: its cell), lamp size (metres), highest ceiling above a floor (metres).
 INTERIOR_SPACING_M = 3.0
@@ -233,6 +238,17 @@ def camera_rays(cam, scene, width: int, height: int) -> tuple[np.ndarray, np.nda
     jj, ii = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     d = np.stack([(jj - cx) / fx, -(ii - cy) / fy, -np.ones_like(jj)], axis=-1).reshape(-1, 3) @ rot.T
     return m[:3, 3].copy(), d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def roofed(level: LevelGeometry, eyes: np.ndarray, n: int = 256) -> np.ndarray:
+    """Per eye: the fraction of rays within ``ROOF_CONE_DEG`` of the zenith (of ``n`` over the sphere) that hit the
+    level within its extent."""
+    from .level_geometry import sphere_directions
+    d = sphere_directions(n)
+    d = d[d[:, 2] >= math.cos(math.radians(ROOF_CONE_DEG))]
+    eyes = np.asarray(eyes, np.float64).reshape(-1, 3)
+    dist, _ = level.first_hits(np.repeat(eyes, len(d), axis=0), np.tile(d, (len(eyes), 1)))
+    return (dist <= level.extent).reshape(len(eyes), len(d)).mean(axis=1)
 
 
 def eye_sky(level: LevelGeometry, eye: np.ndarray, rays: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -423,7 +439,8 @@ def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight
     src = light_sources(scene, exclude=set(ll.sky_meshes))
     rec = {"light": "auto", "scene_sources": src,
            "rule": {"lit_max_dark_fraction_keyed": LIT_MAX_DARK, "lit_min_log_average": LIT_MIN_LOG_AVERAGE,
-                    "key": KEY, "dark": DARK, "open_sky_min": OPEN_SKY_MIN, "sees_sky_min": SEES_SKY_MIN},
+                    "key": KEY, "dark": DARK, "open_sky_min": OPEN_SKY_MIN, "sees_sky_min": SEES_SKY_MIN,
+                    "roof_min": ROOF_MIN, "roof_cone_deg": ROOF_CONE_DEG},
            "views": [{"frame": v.frame, "open_sky": round(v.open_sky, 4), "sees_sky": round(v.sees_sky, 4)}
                      for v in views],
            "probe": {"size": list(size), "spp": PROBE_SPP, "frames": [v.frame for v in views]}}
@@ -445,8 +462,11 @@ def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight
         world = scene.world.name if scene.world is not None and src["world"] else None
         rec["sky"] = {**add_sky(scene, cfg.seed), "replaced_world": world}
         added.append("sky")
-    if min(v.open_sky for v in views) < OPEN_SKY_MIN:
-        pts, heights, spacing = ceiling_points(ll.level, path_eyes(scene, cam, list(frames)))
+    eyes = path_eyes(scene, cam, list(frames))
+    roof = roofed(ll.level, eyes)
+    rec["path"] = {"eyes": len(eyes), "roofed_fraction": round(float((roof >= ROOF_MIN).mean()), 4)}
+    if (roof >= ROOF_MIN).any():
+        pts, heights, spacing = ceiling_points(ll.level, eyes[roof >= ROOF_MIN])
         if len(pts):
             rec["ceiling_lights"] = add_ceiling_lights(scene, pts, heights, spacing, ll.level.metres_per_unit)
             added.append("ceiling_lights")
