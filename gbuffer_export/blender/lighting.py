@@ -277,8 +277,7 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
     """Luminance images (H, W) of ``cam`` at ``frames``: a small, noisy Cycles render with the scene's own light
     paths; every render setting is restored after."""
     from .convert import read_passes
-    from .render import quiet_stdout
-    from .scene_setup import select_device
+    from .scene_setup import _quiet_fds, select_device
     r, c = scene.render, scene.cycles
     select_device(scene, device)
     pairs = [(r, "engine", "CYCLES"), (r, "resolution_x", size[0]), (r, "resolution_y", size[1]),
@@ -299,7 +298,7 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
             scene.frame_set(f)
             path = Path(tmp) / f"probe_{f}.exr"
             r.filepath = str(path)
-            with quiet_stdout():
+            with _quiet_fds():  # Blender's per-render log lines (BLENDSR_VERBOSE=1 keeps them)
                 bpy.ops.render.render(write_still=True, scene=scene.name)
             rgb = read_passes(path)["Combined"][..., :3]
             out.append(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0) @ luma)
