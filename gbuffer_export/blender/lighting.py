@@ -124,23 +124,30 @@ def object_unlit(ob) -> bool:
     return bool(mats) and all(material_unlit(m) for m in mats)
 
 
+def object_boxes(geom: LevelGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The owner indices of ``geom`` and each one's bounding box (lo, hi: (N, 3)), in one pass over the triangles."""
+    order = np.argsort(geom.owner, kind="stable")
+    owner = geom.owner[order]
+    tri = geom.mesh.triangles[order]
+    ids, starts = np.unique(owner, return_index=True)
+    return ids, np.minimum.reduceat(tri.min(axis=1), starts), np.maximum.reduceat(tri.max(axis=1), starts)
+
+
 def find_sky_meshes(geom: LevelGeometry, unlit: set) -> tuple[list[int], list[dict]]:
     """Owner indices of the sky meshes of ``geom`` (module doc; ``unlit``: names of objects drawn unlit) and the
     measured numbers of every object that holds the others' box."""
-    ids = np.unique(geom.owner)
+    ids, lo_all, hi_all = object_boxes(geom)
     if len(ids) < 2:
         return [], []
-    pts = geom.mesh.triangles
-    boxes = {i: (pts[geom.owner == i].reshape(-1, 3).min(axis=0), pts[geom.owner == i].reshape(-1, 3).max(axis=0))
-             for i in ids}
+    glo, ghi = lo_all.min(axis=0), hi_all.max(axis=0)
     found, report = [], []
-    for i in ids:
-        lo, hi = boxes[i]
-        rlo = np.min([boxes[j][0] for j in ids if j != i], axis=0)  # the rest of the level
-        rhi = np.max([boxes[j][1] for j in ids if j != i], axis=0)
+    for k, i in enumerate(ids):
+        lo, hi = lo_all[k], hi_all[k]
         tol = 1e-3 * float(np.max(hi - lo))
-        if not (np.all(lo <= rlo + tol) and np.all(hi >= rhi - tol)):
-            continue
+        if not (np.all(lo <= glo + tol) and np.all(hi >= ghi - tol)):
+            continue  # (a): only an object whose box is the level's whole box holds every other one
+        rest = np.arange(len(ids)) != k
+        rlo, rhi = lo_all[rest].min(axis=0), hi_all[rest].max(axis=0)  # the rest of the level
         enc = enclosure(trimesh_of(geom.mesh.triangles[geom.owner == i]), rlo, rhi, SKY_MESH_RAYS)
         upper, inward, below = enc["upper_hits"], enc["front_inside"], enc["gap_below"]
         size = float(np.max(rhi - rlo)) or 1.0
@@ -276,6 +283,7 @@ def _overridden(pairs, restore_in_order: bool = False):
 def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: str, threads: int) -> list:
     """Luminance images (H, W) of ``cam`` at ``frames``: a small, noisy Cycles render with the scene's own light
     paths; every render setting is restored after."""
+    from ..interrupt import check_interrupt
     from .convert import read_passes
     from .scene_setup import _quiet_fds, select_device
     r, c = scene.render, scene.cycles
@@ -300,6 +308,7 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
             r.filepath = str(path)
             with _quiet_fds():  # Blender's per-render log lines (BLENDSR_VERBOSE=1 keeps them)
                 bpy.ops.render.render(write_still=True, scene=scene.name)
+            check_interrupt()  # Ctrl-C during the probe: stop here
             rgb = read_passes(path)["Combined"][..., :3]
             out.append(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0) @ luma)
     scene.frame_set(frame0)
