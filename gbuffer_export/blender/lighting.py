@@ -440,7 +440,7 @@ def measure(scene, cam, views: list[ProbeView], size, cfg) -> dict:
 def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight) -> dict:
     """``light = "auto"`` on a user's level (module doc): keep the file's light when it lights what the clip's
     cameras see, else add a sun and sky and/or ceiling lights. Returns the manifest's ``light`` record."""
-    from .scene_setup import add_sky, light_sources
+    from .scene_setup import light_sources
     frame0 = scene.frame_current
     size = (PROBE_WIDTH, max(4, round(PROBE_WIDTH * hr_size[1] / hr_size[0])))
     views = probe_views(scene, cam, probe_frames(frames), ll.level, size)
@@ -457,38 +457,48 @@ def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight
     rec["probe"]["scene_light"] = before
     if before is not None and is_lit(before):
         rec.update(kept="scene", added=[], why="the file's light lights what the cameras see")
-        scene.frame_set(frame0)
-        return rec
-    rec["why"] = ("the file has no light source" if before is None else
-                  f"the file's light leaves {before['dark_fraction_keyed']:.0%} of what the cameras see dark"
-                  if before["dark_fraction_keyed"] > LIT_MAX_DARK else
-                  f"the file's light is too dim: log-average luminance {before['log_average']:.3g} "
-                  f"< {LIT_MIN_LOG_AVERAGE:.3g}")
-    added = []
-    open_max, sees_max = max(v.open_sky for v in views), max(v.sees_sky for v in views)
-    if open_max >= OPEN_SKY_MIN or sees_max >= SEES_SKY_MIN:
-        world = scene.world.name if scene.world is not None and src["world"] else None
-        rec["sky"] = {**add_sky(scene, cfg.seed), "replaced_world": world}
-        added.append("sky")
-    eyes = path_eyes(scene, cam, list(frames))
-    roof = roofed(ll.level, eyes)
-    rec["path"] = {"eyes": len(eyes), "roofed_fraction": round(float((roof >= ROOF_MIN).mean()), 4)}
-    if (roof >= ROOF_MIN).any():
-        pts, heights, spacing = ceiling_points(ll.level, eyes[roof >= ROOF_MIN])
-        if len(pts):
-            rec["ceiling_lights"] = add_ceiling_lights(scene, pts, heights, spacing, ll.level.metres_per_unit)
-            added.append("ceiling_lights")
-    if not added:  # under a roof whose ceiling is out of reach: the sky is the light left
-        world = scene.world.name if scene.world is not None and src["world"] else None
-        rec["sky"] = {**add_sky(scene, cfg.seed), "replaced_world": world}
-        added.append("sky")
-    rec.update(kept="scene" if has_source else None, added=added)
-    after = measure(scene, cam, views, size, cfg)
-    rec["probe"]["with_added_light"] = after
-    if not is_lit(after):
-        log.warning("blendsr: %s: light auto added %s but %.0f%% of what the cameras see stays dark "
-                    "(log-average %.3g)", cfg.scene or "scene", " and ".join(added),
-                    100 * after["dark_fraction_keyed"], after["log_average"])
-    log.info("blendsr: %s: light auto: %s (%s)", cfg.scene or "scene", " + ".join(added), rec["why"])
+    else:
+        rec.update(why=_why_dark(before), kept="scene" if has_source else None)
+        rec.update(add_light(scene, cfg.seed, cam, frames, views, ll, src))
+        after = rec["probe"]["with_added_light"] = measure(scene, cam, views, size, cfg)
+        added = " and ".join(rec["added"])
+        if not is_lit(after):
+            log.warning("blendsr: %s: light auto added %s but %.0f%% of what the cameras see stays dark "
+                        "(log-average %.3g)", cfg.scene or "scene", added, 100 * after["dark_fraction_keyed"],
+                        after["log_average"])
+        log.info("blendsr: %s: light auto: added %s (%s)", cfg.scene or "scene", added, rec["why"])
     scene.frame_set(frame0)
     return rec
+
+
+def _why_dark(before: dict | None) -> str:
+    if before is None:
+        return "the file has no light source"
+    if before["dark_fraction_keyed"] > LIT_MAX_DARK:
+        return f"the file's light leaves {before['dark_fraction_keyed']:.0%} of what the cameras see dark"
+    return f"the file's light is too dim: log-average luminance {before['log_average']:.3g} < {LIT_MIN_LOG_AVERAGE:.3g}"
+
+
+def add_light(scene, seed: int, cam, frames, views: list[ProbeView], ll: LevelLight, src: dict) -> dict:
+    """Add a sun and sky where the probe views see the sky and ceiling lights over the path's eyes that stand
+    under a roof (a sun and sky when neither applies). Returns the manifest's entries (``added``, ``sky``,
+    ``ceiling_lights``, ``path``)."""
+    from .scene_setup import add_sky
+    out, added = {}, []
+    world = scene.world.name if scene.world is not None and src["world"] else None
+    if max(v.open_sky for v in views) >= OPEN_SKY_MIN or max(v.sees_sky for v in views) >= SEES_SKY_MIN:
+        out["sky"] = {**add_sky(scene, seed), "replaced_world": world}
+        added.append("sky")
+    eyes = path_eyes(scene, cam, list(frames))
+    under = roofed(ll.level, eyes) >= ROOF_MIN
+    out["path"] = {"eyes": len(eyes), "roofed_fraction": round(float(under.mean()), 4)}
+    if under.any():
+        pts, heights, spacing = ceiling_points(ll.level, eyes[under])
+        if len(pts):
+            out["ceiling_lights"] = add_ceiling_lights(scene, pts, heights, spacing, ll.level.metres_per_unit)
+            added.append("ceiling_lights")
+    if not added:  # no sky in view and no ceiling within reach: the sky is the light left
+        out["sky"] = {**add_sky(scene, seed), "replaced_world": world}
+        added.append("sky")
+    out["added"] = added
+    return out
