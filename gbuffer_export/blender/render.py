@@ -420,8 +420,13 @@ def _clip_context(cfg: RenderConfig, scene, scene_info: dict) -> dict:
     all_frames = resolve_frames(cfg, scene)
     ll = None
     if not built_by_blendsr(scene_info) and (uses_level_camera(cfg) or cfg.light in ("auto", "sky")):
+        from ..errors import BlendSRError
         from .lighting import level_light
-        ll = level_light(scene, all_frames[0])  # the level's geometry and its sky meshes
+        try:
+            ll = level_light(scene, all_frames[0])  # the level's geometry and its sky meshes
+        except BlendSRError:  # no triangles (points, volumes): nothing to plan on or measure
+            if uses_level_camera(cfg):
+                raise
     cam, camera_report = setup_camera(cfg, scene, all_frames, ll.level if ll is not None else None)
     check_camera(cam, cfg)
     scene.camera = cam
@@ -557,9 +562,14 @@ def prepare_light(cfg: RenderConfig, scene, cam, frames: list[int], hr_size: tup
     elif cfg.light == "auto" and ll is not None:
         from .lighting import auto_light
         out = auto_light(scene, cfg, cam, frames, hr_size, ll)
-    elif cfg.light == "auto":
-        out = {"light": "auto", "kept": "scene", "added": [], "scene_sources": light_sources(scene),
-               "why": "BlendSR built this scene and its light"}
+    elif cfg.light == "auto":  # not measured: a scene BlendSR built and lit, or one without triangles
+        src = light_sources(scene)
+        if src["lamps"] or src["emissive_materials"] or src["world"]:
+            out = {"light": "auto", "kept": "scene", "added": [], "scene_sources": src,
+                   "why": "not measured (a scene BlendSR built, or no triangles): the scene's own light"}
+        else:
+            out = {"light": "auto", "kept": None, "added": ["sky"], "scene_sources": src,
+                   "sky": add_sky(scene, cfg.seed), "why": "the file has no light source (not measured: no triangles)"}
     else:
         out = {"light": "scene", "scene_sources": check_lit(scene, cfg.scene or "scene", "scene")}
     out.update(sky_meshes)
