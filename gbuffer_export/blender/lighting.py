@@ -437,6 +437,18 @@ def measure(scene, cam, views: list[ProbeView], size, cfg) -> dict:
                            np.concatenate([v.level_mask.ravel() for v in views]))
 
 
+def unmeasured_auto_light(scene, seed: int) -> dict:
+    """``light = "auto"`` where nothing is measured: a scene BlendSR built and lit, or one without triangles (no ray
+    to cast), which keeps its own light or, having none, gets a sun and sky."""
+    from .scene_setup import add_sky, light_sources
+    src = light_sources(scene)
+    if src["lamps"] or src["emissive_materials"] or src["world"]:
+        return {"light": "auto", "kept": "scene", "added": [], "scene_sources": src,
+                "why": "not measured (a scene BlendSR built, or no triangles): the scene's own light"}
+    return {"light": "auto", "kept": None, "added": ["sky"], "scene_sources": src, "sky": add_sky(scene, seed),
+            "why": "the file has no light source (not measured: no triangles)"}
+
+
 def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight) -> dict:
     """``light = "auto"`` on a user's level (module doc): keep the file's light when it lights what the clip's
     cameras see, else add a sun and sky and/or ceiling lights. Returns the manifest's ``light`` record."""

@@ -418,6 +418,9 @@ def _clip_context(cfg: RenderConfig, scene, scene_info: dict) -> dict:
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
     all_frames = resolve_frames(cfg, scene)
+    if cfg.light == "scene":
+        from .scene_setup import check_lit
+        check_lit(scene, cfg.scene or "scene", "scene")  # an unlit scene is refused before its camera is planned
     ll = None
     if not built_by_blendsr(scene_info) and (uses_level_camera(cfg) or cfg.light in ("auto", "sky")):
         from ..errors import BlendSRError
@@ -551,7 +554,7 @@ def prepare_light(cfg: RenderConfig, scene, cam, frames: list[int], hr_size: tup
     light, refused when nothing lights it. ``ll``: the user's level and its sky meshes (``lighting.LevelLight``;
     None for a scene BlendSR built, whose light is its own); under auto and sky its sky meshes are seen by the
     camera only. Returns the manifest's ``light`` record."""
-    from .scene_setup import add_sky, apply_variation, check_lit, light_sources
+    from .scene_setup import add_sky, apply_variation, check_lit
     sky_meshes = {}
     if ll is not None:
         from .lighting import treat_sky_meshes
@@ -562,14 +565,9 @@ def prepare_light(cfg: RenderConfig, scene, cam, frames: list[int], hr_size: tup
     elif cfg.light == "auto" and ll is not None:
         from .lighting import auto_light
         out = auto_light(scene, cfg, cam, frames, hr_size, ll)
-    elif cfg.light == "auto":  # not measured: a scene BlendSR built and lit, or one without triangles
-        src = light_sources(scene)
-        if src["lamps"] or src["emissive_materials"] or src["world"]:
-            out = {"light": "auto", "kept": "scene", "added": [], "scene_sources": src,
-                   "why": "not measured (a scene BlendSR built, or no triangles): the scene's own light"}
-        else:
-            out = {"light": "auto", "kept": None, "added": ["sky"], "scene_sources": src,
-                   "sky": add_sky(scene, cfg.seed), "why": "the file has no light source (not measured: no triangles)"}
+    elif cfg.light == "auto":
+        from .lighting import unmeasured_auto_light
+        out = unmeasured_auto_light(scene, cfg.seed)
     else:
         out = {"light": "scene", "scene_sources": check_lit(scene, cfg.scene or "scene", "scene")}
     out.update(sky_meshes)
