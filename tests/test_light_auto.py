@@ -73,6 +73,27 @@ def test_the_sky_mesh_rule_finds_domes_and_boxes_not_rooms_or_ground():
     assert find_sky_meshes(_geometry(_town()), unlit=set())[0] == []
 
 
+def test_ceiling_lamps_stand_under_the_ceiling_of_the_eyes_storey():
+    import trimesh
+    from gbuffer_export.blender.lighting import ceiling_points, roofed
+    at = trimesh.transformations.translation_matrix
+    room = trimesh.creation.box((12, 9, 3), at((0, 0, 1.5)))
+    room.invert()
+    upstairs = trimesh.creation.box((12, 9, 3), at((0, 0, 4.6)))  # another storey over a 0.1 m slab
+    upstairs.invert()
+    pillar = trimesh.creation.box((2, 2, 3), at((1.5, 0, 1.5)))  # a solid where a grid point would fall
+    geom = _geometry([room, upstairs, pillar])
+    eyes = np.array([[-3.0, -2.0, 1.6], [-2.0, -1.0, 1.6], [0.0, -3.0, 1.6]])
+    assert (roofed(geom, eyes) == 1.0).all()
+    pts, heights, spacing = ceiling_points(geom, eyes)
+    assert spacing == 3.0 and 6 <= len(pts) <= 12  # a 3 m grid over the 12 x 9 m room, the pillar's point left out
+    assert np.allclose(pts[:, 2], 2.95) and np.allclose(heights, 2.95)  # 5 cm under this storey's ceiling
+    assert not any(abs(p[0] - 1.5) < 1.0 and abs(p[1]) < 1.0 for p in pts)
+    outdoors = _geometry(_town())
+    assert (roofed(outdoors, np.array([[0.0, 0.0, 1.6]])) == 0.0).all()
+    assert len(ceiling_points(outdoors, np.array([[0.0, 0.0, 1.6]]))[0]) == 0
+
+
 def test_luminance_stats_key_the_log_average():
     from gbuffer_export.blender.lighting import is_lit, luminance_stats
     lit = luminance_stats(np.full(100, 0.2))

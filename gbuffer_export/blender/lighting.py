@@ -15,8 +15,9 @@
    - *ceiling lights* when an eye of the camera path (up to 64 spread over the clip) stands under a roof: at least
      ``ROOF_MIN`` of the rays within ``ROOF_CONE_DEG`` of its zenith hit the level (a room with doorways to the
      void is under a roof; a street is not). They are area lamps facing
-     down just under the ceilings of the walkable space around the cameras (floors within ``INTERIOR_REACH_M`` of
-     the eyes' paths on a ``INTERIOR_SPACING_M`` grid, at most ``INTERIOR_MAX_LIGHTS``, nearest first), each of
+     down just under the ceilings of the space around the roofed eyes (points of a ``INTERIOR_SPACING_M`` grid
+     within ``INTERIOR_REACH_M`` of them, each at its nearest eye's height, with a floor below and a ceiling above:
+     ``ceiling_points``; at most ``INTERIOR_MAX_LIGHTS``, nearest first), each of
      ``INTERIOR_IRRADIANCE`` W/m^2 times its grid cell's area in scene units (the floor below receives about that
      irradiance from it, as the added sun gives ``SKY_SUN_STRENGTH`` W/m^2 outdoors).
    The probe is rendered again with the added light and both measurements go into the manifest.
@@ -338,43 +339,37 @@ def is_lit(stats: dict) -> bool:
 # ----------------------------------------------------------------------------------------------
 
 def ceiling_points(level: LevelGeometry, eyes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Points just under the ceilings over the walkable floors around ``eyes`` (module doc), nearest first, their
-    heights above their floors (scene units) and the grid spacing (scene units)."""
-    from .level_cameras import UP, WALKABLE_COS, floors_below
-    s = level.units(INTERIOR_SPACING_M)
-    reach = level.units(INTERIOR_REACH_M)
-    lo, hi = eyes[:, :2].min(axis=0) - reach, eyes[:, :2].max(axis=0) + reach
+    """Points just under the ceilings of the walkable space around ``eyes`` (module doc), nearest first, their
+    heights above their floors (scene units) and the grid spacing (scene units). A grid point stands at the height
+    of its nearest eye, free (0.25 m from every triangle, not inside a solid), with a floor below and a ceiling
+    above (neither steep; the ceiling facing down) less than ``CEILING_MAX_M`` apart: that eye's storey."""
+    from .level_cameras import UP, WALKABLE_COS
+    s, reach = level.units(INTERIOR_SPACING_M), level.units(INTERIOR_REACH_M)
     clo, chi = level.content_bounds(0.0)
-    lo, hi = np.maximum(lo, clo[:2]), np.minimum(hi, chi[:2])
-    xs = np.arange(lo[0] + 0.5 * s, hi[0], s) if hi[0] > lo[0] else np.array([0.5 * (lo[0] + hi[0])])
-    ys = np.arange(lo[1] + 0.5 * s, hi[1], s) if hi[1] > lo[1] else np.array([0.5 * (lo[1] + hi[1])])
-    top = level.bounds()[1][2] + level.units(1.0)
-    zlo, zhi = eyes[:, 2].min() - level.units(4.0), eyes[:, 2].max() + level.units(2.0)
-    pts, heights = [], []
-    for x in xs:
-        for y in ys:
-            xy = np.array([x, y])
-            if np.min(np.linalg.norm(eyes[:, :2] - xy, axis=1)) > reach:
-                continue
-            for zf in floors_below(level, xy, top):
-                if not (zlo <= zf <= zhi):
-                    continue
-                p = np.array([x, y, zf + level.units(1.0)])
-                if level.nearest_distance(p[None])[0] < level.units(0.25):
-                    continue  # inside a wall or a prop
-                dist, tri = level.first_hits(p[None], UP[None])
-                if tri[0] < 0 or dist[0] > level.units(CEILING_MAX_M):
-                    continue  # open sky above
-                if level.normals[tri[0]][2] > -WALKABLE_COS and level.normals[tri[0]][2] < WALKABLE_COS:
-                    continue  # a steep surface: not a ceiling
-                pts.append(p + UP * (dist[0] - level.units(0.05)))
-                heights.append(pts[-1][2] - zf)
-    if not pts:
+    lo = np.maximum(eyes[:, :2].min(axis=0) - reach, clo[:2])
+    hi = np.minimum(eyes[:, :2].max(axis=0) + reach, chi[:2])
+    axes = [np.arange(a + 0.5 * s, b, s) if b - a > s else np.array([0.5 * (a + b)]) for a, b in zip(lo, hi)]
+    xy = np.stack(np.meshgrid(*axes), axis=-1).reshape(-1, 2)
+    gap = np.linalg.norm(xy[:, None, :] - eyes[None, :, :2], axis=2)
+    near = gap.argmin(axis=1)
+    keep = gap.min(axis=1) <= reach
+    pts = np.column_stack([xy, eyes[near, 2]])[keep]
+    if len(pts) == 0:
         return np.zeros((0, 3)), np.zeros(0), s
-    pts, heights = np.array(pts), np.array(heights)
-    near = np.min(np.linalg.norm(pts[:, None, :] - eyes[None, :, :], axis=2), axis=1)
-    order = np.argsort(near, kind="stable")[:INTERIOR_MAX_LIGHTS]
-    return pts[order], heights[order], s
+    up_d, up_t = level.first_hits(pts, np.repeat(UP[None], len(pts), axis=0))
+    dn_d, dn_t = level.first_hits(pts, np.repeat(-UP[None], len(pts), axis=0))
+    flat = np.abs(level.normals[np.maximum(up_t, 0)][:, 2]) >= WALKABLE_COS
+    flat &= np.abs(level.normals[np.maximum(dn_t, 0)][:, 2]) >= WALKABLE_COS
+    ok = (up_t >= 0) & (dn_t >= 0) & flat & (up_d + dn_d <= level.units(CEILING_MAX_M))
+    # a ceiling faces down: a game draws front faces, so a room's look inwards (inside a solid, a house's block or
+    # a slab, the surface above is the back of its top)
+    ok &= level.normals[np.maximum(up_t, 0)][:, 2] < 0
+    ok &= level.nearest_distance(pts) >= level.units(0.25)
+    idx = [k for k in np.flatnonzero(ok) if not level.inside_closed_mesh(pts[k])]
+    lamps = pts[idx] + UP[None] * (up_d[idx] - level.units(0.05))[:, None]
+    heights = up_d[idx] + dn_d[idx] - level.units(0.05)  # of the lamp above its floor
+    order = np.argsort(gap.min(axis=1)[keep][idx], kind="stable")[:INTERIOR_MAX_LIGHTS]
+    return lamps[order], heights[order], s
 
 
 def add_ceiling_lights(scene, points: np.ndarray, heights: np.ndarray, spacing: float, metres_per_unit: float) -> dict:
