@@ -89,7 +89,9 @@ def test_ceiling_lamps_stand_under_the_ceiling_of_the_eyes_storey():
     assert spacing == 3.0 and 6 <= len(pts) <= 12  # a 3 m grid over the 12 x 9 m room, the pillar's point left out
     assert np.allclose(pts[:, 2], 2.95) and np.allclose(heights, 2.95)  # 5 cm under this storey's ceiling
     assert not any(abs(p[0] - 1.5) < 1.0 and abs(p[1]) < 1.0 for p in pts)
-    outdoors = _geometry(_town())
+    outward = _geometry([trimesh.creation.box((12, 9, 3), at((0, 0, 1.5)))])  # a default cube scaled into a room
+    assert np.allclose(ceiling_points(outward, eyes)[0][:, 2], 2.95)
+    outdoors = _geometry(_town())  # the eye is not under a roof; grid points inside the houses are not seen
     assert (roofed(outdoors, np.array([[0.0, 0.0, 1.6]])) == 0.0).all()
     assert len(ceiling_points(outdoors, np.array([[0.0, 0.0, 1.6]]))[0]) == 0
 

@@ -341,8 +341,9 @@ def is_lit(stats: dict) -> bool:
 def ceiling_points(level: LevelGeometry, eyes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Points just under the ceilings of the walkable space around ``eyes`` (module doc), nearest first, their
     heights above their floors (scene units) and the grid spacing (scene units). A grid point stands at the height
-    of its nearest eye, free (0.25 m from every triangle, not inside a solid), with a floor below and a ceiling
-    above (neither steep; the ceiling facing down) less than ``CEILING_MAX_M`` apart: that eye's storey."""
+    of its nearest eye, 0.25 m from every triangle, seen from one of its 4 nearest eyes (the cameras' space: not
+    behind a wall, not inside a solid), with a floor below and a ceiling above (neither steep) less than
+    ``CEILING_MAX_M`` apart: that eye's storey."""
     from .level_cameras import UP, WALKABLE_COS
     s, reach = level.units(INTERIOR_SPACING_M), level.units(INTERIOR_REACH_M)
     clo, chi = level.content_bounds(0.0)
@@ -361,15 +362,24 @@ def ceiling_points(level: LevelGeometry, eyes: np.ndarray) -> tuple[np.ndarray, 
     flat = np.abs(level.normals[np.maximum(up_t, 0)][:, 2]) >= WALKABLE_COS
     flat &= np.abs(level.normals[np.maximum(dn_t, 0)][:, 2]) >= WALKABLE_COS
     ok = (up_t >= 0) & (dn_t >= 0) & flat & (up_d + dn_d <= level.units(CEILING_MAX_M))
-    # a ceiling faces down: a game draws front faces, so a room's look inwards (inside a solid, a house's block or
-    # a slab, the surface above is the back of its top)
-    ok &= level.normals[np.maximum(up_t, 0)][:, 2] < 0
     ok &= level.nearest_distance(pts) >= level.units(0.25)
-    idx = [k for k in np.flatnonzero(ok) if not level.inside_closed_mesh(pts[k])]
+    idx = [k for k in np.flatnonzero(ok) if _seen_from(level, pts[k], eyes)]
     lamps = pts[idx] + UP[None] * (up_d[idx] - level.units(0.05))[:, None]
     heights = up_d[idx] + dn_d[idx] - level.units(0.05)  # of the lamp above its floor
     order = np.argsort(gap.min(axis=1)[keep][idx], kind="stable")[:INTERIOR_MAX_LIGHTS]
     return lamps[order], heights[order], s
+
+
+def _seen_from(level: LevelGeometry, p: np.ndarray, eyes: np.ndarray, k: int = 4) -> bool:
+    """Whether one of the ``k`` eyes nearest to ``p`` sees it (nothing between): ``p`` is in the cameras' space, not
+    behind a wall or inside a solid."""
+    near = eyes[np.argsort(np.linalg.norm(eyes - p, axis=1))[:k]]
+    d = p[None] - near
+    n = np.linalg.norm(d, axis=1)
+    if (n < 1e-9).any():
+        return True
+    dist, _ = level.first_hits(near, d / n[:, None])
+    return bool((dist >= n - level.units(0.01)).any())
 
 
 def add_ceiling_lights(scene, points: np.ndarray, heights: np.ndarray, spacing: float, metres_per_unit: float) -> dict:
