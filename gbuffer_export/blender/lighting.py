@@ -101,7 +101,6 @@ class LevelLight:
     level: LevelGeometry
     sky_meshes: list = field(default_factory=list)
     sky_report: list = field(default_factory=list)
-    treated: list = field(default_factory=list)
 
 
 def subset(geom: LevelGeometry, keep_owner: np.ndarray) -> LevelGeometry:
@@ -200,7 +199,6 @@ def treat_sky_meshes(scene, ll: LevelLight) -> list:
                     slot.material = _unlit_copy(slot.material)
                     made_unlit.append(slot.material.name)
         done.append({"object": name, "visible": ["camera"], "made_unlit": made_unlit})
-    ll.treated = done
     return done
 
 
