@@ -17,7 +17,7 @@ from .typed_table import ConfigError, key_error, option, set_checked
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
 #: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
 LEVEL_CAMERA_PATHS = ("walk", "fly")
-LIGHTS = ("scene", "sky")
+LIGHTS = ("auto", "scene", "sky")
 DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
 #: ``unit_scale``'s names for common units (metres per unit); "auto" detects the unit from the level's geometry
 #: (``gbuffer_export.blender.level_scale``, docs/rendering.md "A level's unit").
@@ -161,9 +161,11 @@ class RenderConfig:
         "name; walk: an eye 1.6 m above the floor walking at 1.4 m/s inside the level; fly: a free path at 3 m/s "
         "inside the level (both keep 0.25 m from every triangle and look at content; docs/rendering.md); orbit: an "
         "arc around the scene's bounds (the built-in scene's walk is a loop framed from its bounds)"))
-    light: str = option("scene", choices=LIGHTS, shells=(CLI, CLIP_PANEL),
-                        help="scene: the file's own lights (an unlit scene is refused); sky: add a sun lamp and a "
-                             "physical sky, sun direction drawn from seed (recorded in the manifest)")
+    light: str = option("auto", choices=LIGHTS, shells=(CLI, CLIP_PANEL), help=(
+        "auto: the file's own lights where they light what the cameras see (measured by a probe render), else a sun "
+        "and sky where the cameras see the sky and lamps under the ceilings where they do not; scene: the file's own "
+        "lights (an unlit scene is refused); sky: add a sun lamp and a physical sky, sun direction drawn from seed "
+        "(all recorded in the manifest; docs/rendering.md)"))
     exposure: float | str = option("auto", unit="'auto' or a multiplier of the radiance (1: as rendered)",
                                    metavar="auto|X", help=(
         "the clip's exposure, as a game camera's: auto (the log-average luminance of the clip's HR frames brought to "

@@ -45,10 +45,17 @@ LEVEL_KINDS = ("walk", "fly")
 #: motion is not the planned one (validate allows the declared speed + 2%). Far from the scene's origin a float32
 #: position is coarse (0.5 m at 5000 km): a level whose allowed region lies that far is refused before planning.
 FLOAT32_STEP_TOLERANCE = 0.01
+#: Why a path is refused under ``min_sky_fraction`` (an eye under a roof).
+ROOF = "stands under a roof (sees no sky; the level is lit by the sky alone)"
 
 
 class PathError(BlendSRError):
-    """No path meets the rules (one line naming the level and the rule that failed most)."""
+    """No path meets the rules (one line naming each rule that failed, the most frequent first);
+    ``most_often``: that rule."""
+
+    def __init__(self, message: str, most_often: str | None = None):
+        super().__init__(message)
+        self.most_often = most_often
 
 
 @dataclass(frozen=True)
@@ -385,7 +392,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
             why = "looks beyond the level's extent"
         sky = float(sky_fraction(geom, eyes).min()) if rules.min_sky_fraction > 0 and not why else None
         if sky is not None and sky < rules.min_sky_fraction:
-            why = "stands under a roof (sees no sky; the level is lit by the sky alone)"
+            why = ROOF
         if why:
             reasons[why] = reasons.get(why, 0) + 1
             continue
@@ -411,6 +418,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
             break
     if found:  # the valid path that sees the most walls and objects (not only floor and sky)
         return max(found, key=lambda p: p.report["structure_fraction_mean"])
-    worst = max(reasons, key=reasons.get) if reasons else "no attempt"
-    raise PathError(f"no {kind} path meets the rules after {rules.tries} tries (most often: {worst}; "
-                    f"{', '.join(f'{k}: {v}' for k, v in sorted(reasons.items()))})")
+    ranked = sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))
+    text = "; ".join(f"{k}: {v}" for k, v in ranked) or "no attempt"
+    raise PathError(f"no {kind} path meets the rules after {rules.tries} tries ({text})",
+                    ranked[0][0] if ranked else None)

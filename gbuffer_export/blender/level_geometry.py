@@ -105,7 +105,9 @@ class LevelGeometry:
             centre = 0.5 * (lo + hi)
             if np.all(bhi[:2] - blo[:2] >= 3 * np.maximum(hi[:2] - lo[:2], 1e-9)) \
                     and np.all(blo[:2] <= centre[:2]) and np.all(bhi[:2] >= centre[:2]):
-                mask[self.owner == i] = False
+                shell = enclosure(trimesh_of(tri[self.owner == i]), lo, hi)
+                if not (shell["upper_hits"] >= SHELL_UPPER_HITS and shell["gap_below"] < SHELL_FLOOR_GAP):
+                    mask[self.owner == i] = False  # a room's shell (roof over, floor under the others) stays
         return mask if mask.any() else np.ones(len(c), dtype=bool)
 
     def content_bounds(self, pct: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -116,19 +118,7 @@ class LevelGeometry:
 
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance to the first hit along each unit ray (inf on a miss) and the triangle hit (-1 on a miss)."""
-        origins = np.asarray(origins, np.float64).reshape(-1, 3)
-        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
-        dist = np.full(len(origins), np.inf)
-        tri = np.full(len(origins), -1, dtype=np.int64)
-        if len(origins) == 0:
-            return dist, tri
-        t, r, loc = self.rays.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-        if len(t):
-            d = np.linalg.norm(loc - origins[r], axis=1)
-            order = np.argsort(-d)  # keep the nearest when an engine reports several per ray
-            dist[r[order]] = d[order]
-            tri[r[order]] = t[order]
-        return dist, tri
+        return nearest_hits(self.rays, origins, dirs)
 
     def all_hits(self, origin: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every hit along one ray, sorted by distance: (distances, triangles)."""
@@ -170,6 +160,60 @@ class LevelGeometry:
         if back.mean() <= frac:
             return False
         return bool(np.median(dist[back]) * self.metres_per_unit <= solid_m)
+
+
+#: An object around the others is their room when it covers this fraction of the upper hemisphere seen from their
+#: centre and its floor lies under them within this fraction of their size (``enclosure``).
+SHELL_UPPER_HITS = 0.9
+SHELL_FLOOR_GAP = 0.25
+
+
+def trimesh_of(triangles: np.ndarray):
+    """A trimesh of the triangles (T, 3, 3)."""
+    import trimesh
+    t = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+    return trimesh.Trimesh(t.reshape(-1, 3), np.arange(len(t) * 3).reshape(-1, 3), process=False)
+
+
+def enclosure(mesh, lo: np.ndarray, hi: np.ndarray, n: int = 256) -> dict:
+    """How the mesh ``mesh`` (a trimesh) surrounds the box ``lo``..``hi`` (the rest of a level): ``upper_hits``,
+    the fraction of ``n``/2 rays from the box's centre over the upper hemisphere that hit it; ``front_inside``,
+    the fraction of those hits on a face turned to the centre; ``gap_below``, the median distance from the box's
+    bottom down to it along vertical rays from a 5x5 grid over the box, over the box's largest side (about 0 when
+    it is the floor the box stands on, inf when nothing is below)."""
+    rays, _ = _ray_engine(mesh)
+    d = sphere_directions(n)
+    up = d[d[:, 2] > 0.05]
+    centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
+    _, first = nearest_hits(rays, np.repeat(centre[None], len(up), axis=0), up)
+    hit = first >= 0
+    normals = np.asarray(mesh.face_normals)
+    inside = float((np.einsum("ij,ij->i", normals[first[hit]], up[hit]) < 0).mean()) if hit.any() else 0.0
+    u = (np.arange(5) + 0.5) / 5
+    xx, yy = np.meshgrid(lo[0] + u * (hi[0] - lo[0]), lo[1] + u * (hi[1] - lo[1]))
+    origins = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, hi[2])], axis=1)
+    dist, _ = nearest_hits(rays, origins, np.repeat(np.array([[0.0, 0.0, -1.0]]), len(origins), axis=0))
+    gap = dist - (hi[2] - lo[2])  # from the box's bottom
+    size = float(np.max(np.asarray(hi) - np.asarray(lo))) or 1.0
+    return {"upper_hits": float(hit.mean()), "front_inside": inside, "gap_below": float(np.median(gap)) / size}
+
+
+def nearest_hits(rays, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to the first hit of each unit ray on the intersector ``rays`` (inf on a miss) and the triangle hit
+    (-1 on a miss)."""
+    origins = np.asarray(origins, np.float64).reshape(-1, 3)
+    dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+    dist = np.full(len(origins), np.inf)
+    tri = np.full(len(origins), -1, dtype=np.int64)
+    if len(origins) == 0:
+        return dist, tri
+    t, r, loc = rays.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    if len(t):
+        d = np.linalg.norm(loc - origins[r], axis=1)
+        order = np.argsort(-d)  # keep the nearest when an engine reports several per ray
+        dist[r[order]] = d[order]
+        tri[r[order]] = t[order]
+    return dist, tri
 
 
 def _bvh_tree(mesh):

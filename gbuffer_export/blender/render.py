@@ -123,17 +123,23 @@ def uses_level_camera(cfg: RenderConfig) -> bool:
 SKY_LIT_MIN_SKY = 0.05
 
 
-def setup_camera(cfg: RenderConfig, scene, frames: list[int]):
-    """The clip's camera and its report for the manifest (the planned path's rules and measurements)."""
+def setup_camera(cfg: RenderConfig, scene, frames: list[int], level=None):
+    """The clip's camera and its report for the manifest (the planned path's rules and measurements). ``level``:
+    the level's geometry for a level camera (``lighting.LevelLight.level``; None: taken from the scene)."""
     if uses_level_camera(cfg):
-        from .level_cameras import PathError, PathRules
+        from .level_cameras import ROOF, PathError, PathRules
         from .level_geometry import LevelGeometryError
         from .scene_setup import make_level_camera
         try:
             rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale)
+                                     region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale,
+                                     geom=level)
         except (PathError, LevelGeometryError) as exc:
+            if isinstance(exc, PathError) and exc.most_often == ROOF:
+                raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; set light auto (it lights a level under a roof "
+                                  "with lamps under its ceilings, and adds the sun and sky where the cameras see "
+                                  "the sky)", key="light") from None
             raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
                               "framed by camera_path orbit", key="camera_path") from None
     if cfg.camera_path in ("orbit", "walk"):
@@ -401,18 +407,44 @@ class ResolvedRender:
     moving: tuple[str, ...]
 
 
-def resolve_render(cfg: RenderConfig, scene) -> ResolvedRender:
+def built_by_blendsr(scene_info: dict) -> bool:
+    """The built-in scene or an asset in a generated environment: BlendSR built it and its light (sun, HDRI)."""
+    return bool(scene_info.get("builtin")) or "asset" in scene_info
+
+
+def _level_light(cfg: RenderConfig, scene, scene_info: dict, first_frame: int):
+    """The level's geometry and its sky meshes (``lighting.level_light``) where a level camera plans on it or the
+    light is measured (auto, sky) on a scene BlendSR did not build; None otherwise, or for a scene without
+    triangles that needs no level camera."""
+    if built_by_blendsr(scene_info) or not (uses_level_camera(cfg) or cfg.light in ("auto", "sky")):
+        return None
+    from ..errors import BlendSRError
+    from .lighting import level_light
+    try:
+        return level_light(scene, first_frame)
+    except BlendSRError:  # no triangles (points, volumes): nothing to plan on or measure
+        if uses_level_camera(cfg):
+            raise
+        return None
+
+
+def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> ResolvedRender:
     """Check the scene against ``cfg`` and settle everything the manifest and every frame need: the one place the
     configuration meets the scene (frames inside the scene's range, sizes, light, camera, resources, materials,
-    passes). Sets up the scene for it (light, camera, AOVs, pass indices of moving objects)."""
+    passes). Sets up the scene for it (light, camera, AOVs, pass indices of moving objects). ``scene_info``: what
+    loading the scene recorded (``load_scene``; the built-in scene and generated environments keep their light)."""
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
     frames = resolve_frames(cfg, scene)
-    light = prepare_light(cfg, scene)
-    cam, camera_report = setup_camera(cfg, scene, frames)
+    if cfg.light == "scene":
+        from .scene_setup import check_lit
+        check_lit(scene, cfg.scene or "scene", "scene")  # an unlit scene is refused before its camera is planned
+    ll = _level_light(cfg, scene, scene_info or {}, frames[0])
+    cam, camera_report = setup_camera(cfg, scene, frames, ll.level if ll is not None else None)
     check_camera(cam, cfg)
     scene.camera = cam
     hr_size = resolve_size(cfg, scene)
+    light = prepare_light(cfg, scene, cam, frames, hr_size, ll)
     my_frames = tuple(cfg.my_frames(frames))
     undone = [f for f in my_frames if not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
     from .scene_setup import scene_memory_bytes
@@ -505,7 +537,7 @@ def _footprint(cfg: RenderConfig, plan: PassPlan) -> bool:
 
 def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     """Render the clip from an already loaded scene (the add-on calls this inside Blender)."""
-    r = resolve_render(cfg, scene)
+    r = resolve_render(cfg, scene, scene_info)
     device = base_settings(scene, r.view_layer, cfg)
     # One pass set for every render of the clip, set here once: with persistent data, Cycles 5.0.1 renders a frame
     # whose Vector pass was switched off since the previous render with stale texture lookups (measured:
@@ -549,14 +581,29 @@ def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
             bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
 
 
-def prepare_light(cfg: RenderConfig, scene) -> dict:
-    """``cfg.light`` "sky": add a default sun and sky; "scene": keep the file's light, refused when nothing lights
-    it. Returns the manifest's ``light`` record."""
+def prepare_light(cfg: RenderConfig, scene, cam, frames: list[int], hr_size: tuple[int, int], ll=None) -> dict:
+    """``cfg.light`` "auto": keep the file's light where it lights what ``cam`` sees, add a sun and sky and/or
+    ceiling lights where it does not (``lighting``); "sky": add a default sun and sky; "scene": keep the file's
+    light, refused when nothing lights it. ``ll``: the user's level and its sky meshes (``lighting.LevelLight``;
+    None for a scene BlendSR built, whose light is its own); under auto and sky its sky meshes are seen by the
+    camera only. Returns the manifest's ``light`` record."""
     from .scene_setup import add_sky, apply_variation, check_lit
+    sky_meshes = {}
+    if ll is not None:
+        from .lighting import treat_sky_meshes
+        treated = treat_sky_meshes(scene, ll) if cfg.light in ("auto", "sky") else []
+        sky_meshes = {"sky_meshes": {"found": list(ll.sky_meshes), "treated": treated, "candidates": ll.sky_report}}
     if cfg.light == "sky":
         out = {**add_sky(scene, cfg.seed), "scene_sources": check_lit(scene, cfg.scene or "scene", "sky")}
+    elif cfg.light == "auto" and ll is not None:
+        from .lighting import auto_light
+        out = auto_light(scene, cfg, cam, frames, hr_size, ll)
+    elif cfg.light == "auto":
+        from .lighting import unmeasured_auto_light
+        out = unmeasured_auto_light(scene, cfg.seed)
     else:
         out = {"light": "scene", "scene_sources": check_lit(scene, cfg.scene or "scene", "scene")}
+    out.update(sky_meshes)
     variation = apply_variation(scene, cfg.extra.get("variation"))
     if variation:
         out["variation"] = variation

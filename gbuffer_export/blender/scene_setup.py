@@ -112,10 +112,11 @@ def level_regions(geom, spec: dict) -> list:
 
 
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
-                      unit_scale="auto"):
+                      unit_scale="auto", geom=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
-    returns (camera, report for the manifest). The level's geometry is taken at the first frame; its metres per
-    unit are ``unit_scale`` ("auto": detected, ``level_scale``)."""
+    returns (camera, report for the manifest). ``geom``: the level's geometry (default: every renderable object
+    at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``); its metres per unit
+    are ``unit_scale`` ("auto": detected, ``level_scale``)."""
     from .camera_paths import half_fov, key_look_at
     from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
@@ -124,7 +125,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
-    geom = from_scene(scene, start)
+    geom = geom if geom is not None else from_scene(scene, start)
     unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
     regions = level_regions(geom, region) if isinstance(region, dict) else [region]
@@ -213,12 +214,12 @@ def material_emits(mat) -> bool:
     return False
 
 
-def light_sources(scene) -> dict:
-    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects, and whether
-    the world emits."""
+def light_sources(scene, exclude: set = frozenset()) -> dict:
+    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects (those of the
+    objects named in ``exclude`` left out: sky meshes, which light nothing), and whether the world emits."""
     lamps = [ob for ob in scene.objects if ob.type == "LIGHT" and not ob.hide_render and ob.data.energy > 0]
     emissive = {s.material.name for ob in scene.objects if ob.type == "MESH" and not ob.hide_render
-                for s in ob.material_slots if material_emits(s.material)}
+                and ob.name not in exclude for s in ob.material_slots if material_emits(s.material)}
     return {"lamps": len(lamps), "sun_lamps": sum(ob.data.type == "SUN" for ob in lamps),
             "emissive_materials": len(emissive), "world": world_emits(scene)}
 
@@ -228,7 +229,8 @@ def check_lit(scene, where, light: str) -> dict:
     src = light_sources(scene)
     if light == "scene" and not (src["lamps"] or src["emissive_materials"] or src["world"]):
         raise ConfigError(f"{where}: the scene has no lights, no emissive material and a black world, so every "
-                          "frame would be black; pass --light sky (a default sun and sky, recorded in the manifest)")
+                          "frame would be black; set light auto (it adds a sun and sky where the cameras see the sky "
+                          "and lights under the ceilings where they do not, recorded in the manifest)", key="light")
     return src
 
 

@@ -484,7 +484,13 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
         o = old_jobs.get(j.id)
         if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
                 (root / "clips" / j.id / "manifest.json").is_file():
-            raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec; render the changed "
+            changed = sorted(k for k in j.to_json() if o.get(k) != j.to_json()[k])
+            if changed == ["light"] and o.get("light") == "scene" and j.to_json()["light"] == "auto":
+                raise DatasetError(f"{root}: clip {j.id} was rendered with light = \"scene\", before \"auto\" became "
+                                   "the default; set light = \"scene\" in its [[source]] to keep these clips, or "
+                                   "render the spec into another folder")
+            raise DatasetError(f"{root}: clip {j.id} was rendered from a different spec ({', '.join(changed)}); "
+                               "render the changed "
                                "spec into another folder")
     return old
 

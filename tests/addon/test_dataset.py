@@ -84,7 +84,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert d["cameras"] == ["fly", "walk"] and d["for_models"] == [] and d["buffers"] == "default"
     opts = RunOptions(**{**r["default_opts"], "buffers_for": tuple(r["default_opts"]["buffers_for"])})
     assert opts == RunOptions(progress=False)
-    assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "scene" and d["device"] == "auto"
+    assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "auto" and d["device"] == "auto"
 
     # Several scales: every clip with an LR level per scale; the settings round-trip through spec.toml.
     custom = parse_spec(tomllib.loads(r["custom_toml"]), spec_path)
@@ -124,7 +124,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         assert len(subs) == 5 and all(e[2] == subs[0][1] for e in subs[1:]), subs
         labels = [e[1] for e in log if e[0] == "label"]
         assert "4 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
-        assert "cameras walk, fly (clip k: kind k), light scene" in labels
+        assert "cameras walk, fly (clip k: kind k), light auto" in labels
         assert any("relative to the .blend file: save the file first" in t for t in labels)  # unsaved file
 
 

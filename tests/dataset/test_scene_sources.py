@@ -36,7 +36,7 @@ def test_scene_files_clips_cameras_and_regions(level):
     for j in hall:
         assert j.region["cell"] in cells[j.split] and j.scene_id == f"hall@cell{j.region['cell'][0]}-" \
                                                                     f"{j.region['cell'][1]}"
-    assert {j.kind for j in jobs} == {"scene"} and all(j.light == "scene" for j in jobs)
+    assert {j.kind for j in jobs} == {"scene"} and all(j.light == "auto" for j in jobs)
     again = expand(_spec(level, clips_per_scene=5, cameras=["walk", "fly"], regions="3x2", region_test=1,
                          region_val=1))
     assert [j.to_json() for j in again] == [j.to_json() for j in jobs]

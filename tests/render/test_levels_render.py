@@ -31,7 +31,8 @@ def test_the_garages_own_camera_renders_through_scene_star(tmp_path):
     m = _manifest(out)
     assert m["scene"]["camera"] == "Camera" and m["camera"] == {"kind": "scene", "choice": "scene:*",
                                                                "name": "Camera"}
-    assert m["light"]["light"] == "scene" and m["light"]["scene_sources"]["lamps"] == 2
+    assert m["light"]["light"] == "auto" and m["light"]["kept"] == "scene" and not m["light"]["added"]
+    assert m["light"]["scene_sources"]["lamps"] == 2 and m["light"]["probe"]["scene_light"]["log_average"] > 0.02
     assert m["render"]["device"] == "CPU" and m["render"]["device_names"]
     assert "CUEW" not in r.stderr  # probing for GPUs prints nothing
     v = run_cli("validate", out)
@@ -58,12 +59,13 @@ def test_walk_inside_the_garage_keeps_its_rules_and_validates(tmp_path):
         "level_extent_m"] for x in views.values())
 
 
-def test_an_unlit_level_is_refused_with_the_fix_then_lit_with_sky(tmp_path):
+def test_an_unlit_level_is_refused_under_scene_with_the_fix_then_lit_with_sky(tmp_path):
     town = shared_or_skip(TOWN)
-    r = run_cli("render", town, "-o", tmp_path / "dark", "--camera-path", "fly", "--frames", "1:1", *TINY)
+    r = run_cli("render", town, "-o", tmp_path / "dark", "--camera-path", "fly", "--light", "scene", "--frames",
+                "1:1", *TINY)
     assert r.returncode == 2
     line = r.stderr.strip().splitlines()[-1]
-    assert "no lights" in line and "--light sky" in line and str(town.name) in line
+    assert "no lights" in line and "set --light auto" in line and str(town.name) in line
     assert not (tmp_path / "dark" / "manifest.json").exists()
     out = tmp_path / "sky"
     r = run_cli("render", town, "-o", out, "--camera-path", "fly", "--light", "sky", "--frames", "1:2", *TINY)
