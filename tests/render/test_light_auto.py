@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ENV, REPO, requires_bpy, run_cli, shared_or_skip
+from tests.conftest import ENV, REPO, requires_bpy, run_cli, shared_or_skip
 from gbuffer_export import open_clip
 
 pytestmark = [requires_bpy, pytest.mark.bpy]
