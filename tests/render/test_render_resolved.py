@@ -61,7 +61,7 @@ def test_a_render_is_resolved_once_and_passes_come_from_their_rows(tmp_path):
     assert {"depth", "normal", "index"} <= plans["fbeta/lut"]
     assert r["frozen"] and r["frames"] == [2, 3, 4, 5] and r["my_frames"] == [3, 5]  # shard 2/2
     assert r["hr_size"] == [64, 32] and r["levels"] == {"hr": [64, 32], "lr": [32, 16], "lr_x4": [16, 8]}
-    assert r["light"] == "scene" and r["report"] == "scene" and r["flag_lut"]
+    assert r["light"] == "auto" and r["report"] == "scene" and r["flag_lut"]  # the default; the built-in keeps its own
     assert r["plan"]["depth"] and r["plan"]["vector"] and not r["plan"]["colors"] and not r["plan"]["normal"]
     assert r["moving"], "the built-in scene's ball moves"
     on = {s for s, v in r["switches"].items() if v}
