@@ -217,9 +217,14 @@ def set_passes(view_layer, plan: PassPlan) -> None:
             setattr(cyc, name, False)
 
 
-def set_sampling(scene, *, spp: int, filter_width: float, filter_type: str, bounces: bool, denoise: bool,
-                 adaptive: bool, cfg: RenderConfig, seed: int, light_paths: dict) -> dict:
-    """Apply one pass's sampling settings; returns them for the manifest."""
+def set_sampling(scene, *, spp: int, pixel_filter: tuple[str, float], denoise: bool, adaptive: bool,
+                 cfg: RenderConfig, seed: int, light_paths: dict | None) -> dict:
+    """Apply one pass's sampling settings (``pixel_filter``: Cycles' filter type and width in pixels, as
+    ``POINT_FILTER``; ``light_paths``: the scene's bounce limits, or None for a pass without bounces, every limit
+    0); returns them for the manifest."""
+    filter_type, filter_width = pixel_filter
+    bounces = light_paths is not None
+    light_paths = light_paths if bounces else dict.fromkeys(LIGHT_PATH_KEYS, 0)
     c = scene.cycles
     c.samples = spp
     c.pixel_filter_type = filter_type
@@ -659,9 +664,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     scene.render.resolution_x, scene.render.resolution_y = ctx.resolved.hr_size
     seconds, hr_out = {}, {}
     if plan.any:
-        set_sampling(scene, spp=cfg.gbuffer_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
-                     bounces=False, denoise=False, adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 0),
-                     light_paths=ctx.light_paths)
+        set_sampling(scene, spp=cfg.gbuffer_spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False, cfg=cfg,
+                     seed=pass_seed(cfg.seed, frame, 0), light_paths=None)
         t = time.perf_counter()
         passes = render_to(scene, ctx.tmpdir / "hr_gbuffer.exr")
         seconds["gbuffer"] = time.perf_counter() - t
@@ -671,8 +675,7 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = _footprint(cfg, plan)
-    settings_hr = set_sampling(scene, spp=cfg.hr_spp, filter_width=HR_REFERENCE_FILTER[1],
-                               filter_type=HR_REFERENCE_FILTER[0], bounces=True, denoise=cfg.hr_denoise,
+    settings_hr = set_sampling(scene, spp=cfg.hr_spp, pixel_filter=HR_REFERENCE_FILTER, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
                                light_paths=ctx.light_paths)
     t = time.perf_counter()
@@ -704,9 +707,9 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     base_shift = (cam.data.shift_x, cam.data.shift_y)
     cam.data.shift_x = base_shift[0] + jit[0] / max(lw, lh)
     cam.data.shift_y = base_shift[1] - jit[1] / max(lw, lh)
-    settings_lr = set_sampling(scene, spp=cfg.lr_spp, filter_width=POINT_FILTER[1], filter_type=POINT_FILTER[0],
-                               bounces=True, denoise=cfg.lr_denoise, adaptive=False, cfg=cfg,
-                               seed=pass_seed(cfg.seed, frame, 2 + i), light_paths=ctx.light_paths)
+    settings_lr = set_sampling(scene, spp=cfg.lr_spp, pixel_filter=POINT_FILTER, denoise=cfg.lr_denoise,
+                               adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 2 + i),
+                               light_paths=ctx.light_paths)
     seconds = {}
     try:
         t = time.perf_counter()
