@@ -156,9 +156,11 @@ def view_dirs(forward: np.ndarray, hfov: float, vfov: float, nx: int = 16, ny: i
 
 
 def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov: float, vfov: float) -> dict:
-    """Per frame: background fraction (rays missing or beyond the extent) and median depth along the view axis of
-    the rays that hit (metres; inf when none does)."""
-    bg, med, steep = [], [], []
+    """Per frame: background fraction (rays missing or beyond the extent), median depth along the view axis of the
+    rays that hit (metres; inf when none does), the share of rays on walls and objects (``structure``) and the
+    view's depth p90/p10 with background counted as infinitely far (``depth_ratio``: validate's ``flat-view``
+    measure on the ray grid; 1 when nothing is hit)."""
+    bg, med, steep, ratio = [], [], [], []
     for e, t in zip(eyes, targets):
         f = (t - e) / np.linalg.norm(t - e)
         d = view_dirs(f, hfov, vfov)
@@ -168,7 +170,34 @@ def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov:
         z = dist[hit] * (d[hit] @ f)
         med.append(float(np.median(z)) * geom.metres_per_unit if hit.any() else math.inf)
         steep.append(float((np.abs(geom.normals[tri[hit]][:, 2]) < WALKABLE_COS).sum()) / len(d))
-    return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep)}
+        zall = np.where(hit, dist * (d @ f), np.inf)
+        p10, p90 = np.quantile(zall, [0.1, 0.9], method="nearest")
+        ratio.append(float(p90 / p10) if math.isfinite(p10) and p10 > 0 else 1.0)
+    return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep),
+            "depth_ratio": np.array(ratio)}
+
+
+def near_far_fraction(depth_ratio: np.ndarray) -> float:
+    """The share of frames whose view holds near and far content (depth p90/p10 at least validate's
+    ``NEAR_FAR_RATIO``)."""
+    from ..validate.exposure import NEAR_FAR_RATIO
+    return float((np.asarray(depth_ratio) >= NEAR_FAR_RATIO).mean()) if len(depth_ratio) else 0.0
+
+
+def _has_depth(path: "LevelPath") -> bool:
+    from ..validate.exposure import NEAR_FAR_MIN_FRACTION
+    return path.report["near_far_fraction"] >= NEAR_FAR_MIN_FRACTION
+
+
+def choose_path(found: list["LevelPath"]) -> "LevelPath":
+    """The valid path that sees the most walls and objects (not only floor and sky); when it frames one flat
+    surface on too many frames (under validate's ``NEAR_FAR_MIN_FRACTION`` of them with near and far content), the
+    one with the most such frames instead (then the most structure)."""
+    from ..validate.exposure import NEAR_FAR_MIN_FRACTION
+    best = max(found, key=lambda p: p.report["structure_fraction_mean"])
+    if best.report["near_far_fraction"] >= NEAR_FAR_MIN_FRACTION:
+        return best
+    return max(found, key=lambda p: (p.report["near_far_fraction"], p.report["structure_fraction_mean"]))
 
 
 def sky_fraction(geom: LevelGeometry, eyes: np.ndarray, n: int = 128) -> np.ndarray:
@@ -411,13 +440,14 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
                   "background_fraction_mean": float(vs["background"].mean()),
                   "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
                   "structure_fraction_mean": float(vs["structure"].mean()), "candidates_drawn": len(found) + 1,
+                  "near_far_fraction": near_far_fraction(vs["depth_ratio"]),
                   **({"sky_fraction_min": sky} if sky is not None else {}),
                   "ray_engine": geom.engine}
         found.append(LevelPath(kind, eyes, targets, report))
-        if len(found) >= rules.candidates:
-            break
-    if found:  # the valid path that sees the most walls and objects (not only floor and sky)
-        return max(found, key=lambda p: p.report["structure_fraction_mean"])
+        if len(found) >= rules.candidates and (_has_depth(choose_path(found)) or len(found) >= 3 * rules.candidates):
+            break  # enough candidates, or three times as many when none of them shows near and far content
+    if found:
+        return choose_path(found)
     ranked = sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))
     text = "; ".join(f"{k}: {v}" for k, v in ranked) or "no attempt"
     raise PathError(f"no {kind} path meets the rules after {rules.tries} tries ({text})",

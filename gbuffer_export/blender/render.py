@@ -427,9 +427,9 @@ def _level_light(cfg: RenderConfig, scene, scene_info: dict, first_frame: int):
     from .lighting import level_light
     try:
         return level_light(scene, first_frame)
-    except BlendSRError:  # no triangles (points, volumes): nothing to plan on or measure
+    except BlendSRError as exc:  # no triangles (points, volumes): nothing to plan on or measure
         if uses_level_camera(cfg):
-            raise
+            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}", key="camera_path") from None
         return None
 
 

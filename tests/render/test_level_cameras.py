@@ -207,3 +207,25 @@ def test_a_sky_lit_level_refuses_eyes_under_a_roof():
     assert p.report["sky_fraction_min"] >= 0.05
     # without the rule (a level lit by its own lights) the roofed room is a valid place
     assert "sky_fraction_min" not in plan_level_path(roofed, "walk", 9, FPS, 0, (HFOV, VFOV)).report
+
+
+def test_a_path_framing_one_flat_surface_gives_way_to_one_with_near_and_far_content():
+    """choose_path: the most structure wins when it shows near and far content on at least validate's share of
+    frames (NEAR_FAR_MIN_FRACTION); otherwise the path with the most such frames (validate's flat-view measure)."""
+    from gbuffer_export.blender.level_cameras import LevelPath, choose_path, near_far_fraction
+    from gbuffer_export.validate.exposure import NEAR_FAR_MIN_FRACTION, NEAR_FAR_RATIO
+    assert near_far_fraction(np.array([1.0, NEAR_FAR_RATIO, 10.0, 2.9])) == 0.5
+
+    def path(structure, near_far):
+        return LevelPath("walk", np.zeros((2, 3)), np.ones((2, 3)),
+                         {"structure_fraction_mean": structure, "near_far_fraction": near_far})
+    wall, deep, deeper = path(0.9, 0.2), path(0.5, 0.8), path(0.4, 1.0)
+    assert choose_path([wall, deep, deeper]) is deeper
+    good_wall = path(0.9, NEAR_FAR_MIN_FRACTION)
+    assert choose_path([good_wall, deeper]) is good_wall
+
+
+def test_planned_views_report_their_depth_spread():
+    room = _room()
+    p = plan_level_path(room, "walk", 13, FPS, 0, (HFOV, VFOV))
+    assert 0.0 <= p.report["near_far_fraction"] <= 1.0
