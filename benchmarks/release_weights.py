@@ -7,6 +7,10 @@ seed networks, each with RUNS/<run>/command.txt, the training command). Writes t
 (.safetensors and .json: the file's sha256, dataset spec and index digest, commands, scores of the model and of
 bicubic, demod-bilinear and demod-jbu on the same test clips, and on the val clips when the dataset has a val split:
 the scenes that choose between trainings, while the test assets only report) and RUNS/release.json.
+
+With a val split, a run replaces the shipped weights of its name only when ``training.selection.choose`` says so
+(the worst-case rule: the smallest per-clip margin over demod-jbu does not fall, artifact pixels do not rise, mean
+PSNR, SSIM and tPSNR do not fall, all on val); ``--force`` writes them anyway (the JSON records the verdict).
 """
 from __future__ import annotations
 
@@ -53,6 +57,7 @@ def main(argv=None) -> int:
     p.add_argument("--script", default="benchmarks/pretrain.sh", help="the script that made RUNS (for the JSON)")
     p.add_argument("--env", default="", help="the variables the script ran with, as written before it in the "
                                              "JSON's command (e.g. \"INIT='pretrained:<M>' LR=2e-4\")")
+    p.add_argument("--force", action="store_true", help="write the weights even when the val rule keeps the shipped ones")
     p.add_argument("--attach", action="append", default=[], metavar="KEY=FILE",
                    help="a JSON file put under KEY in every weight file's JSON (e.g. scale curves)")
     a = p.parse_args(argv)
@@ -70,12 +75,15 @@ def main(argv=None) -> int:
     train = [c.name for c in split_clips(a.dataset, "train")]
     index = read_index(a.dataset)
 
-    def score(spec: str, clips: list[str] = test) -> dict:
+    def score(spec: str, clips: list[str] = test, full: bool = False) -> dict:
         r = evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
+        if full:
+            return r
         per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
-        return {"psnr": round(r["mean"]["psnr"], 3), "ssim": round(r["mean"]["ssim"], 4),
-                "psnr_hdr": round(r["mean"]["psnr_hdr"], 3), "tpsnr": r["mean"].get("tpsnr"),
-                "per_clip": per, "frames": r["mean"]["frames"]}
+        m = r["mean"]
+        return {"psnr": round(m["psnr"], 3), "ssim": round(m["ssim"], 4),
+                "psnr_hdr": round(m["psnr_hdr"], 3), "tpsnr": m.get("tpsnr"), "per_clip": per, "frames": m["frames"],
+                "margin_min": m.get("margin_min"), "artifact_pixels": m.get("artifact_pixels")}
 
     baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
     val_baselines = {m: score(m, val) for m in ("demod-bilinear", "demod-jbu")} if val else {}
@@ -92,6 +100,14 @@ def main(argv=None) -> int:
         if not ck.is_file():
             print(f"skip {name}: {ck} not found", file=sys.stderr)
             continue
+        verdict = None
+        if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
+            from training.selection import choose
+            verdict = choose(score(str(ck), val, full=True), score(f"pretrained:{name}", val, full=True))
+            print(f"{name}: val rule {'replaces' if verdict.replace else 'keeps'} the shipped weights"
+                  + ("" if verdict.replace else ": " + "; ".join(verdict.reasons)), file=sys.stderr)
+            if not verdict.replace and not a.force:
+                continue
         s = {**score(str(ck)), "steps": int(load_checkpoint(ck)["step"])}
         meta = {
             "model": name, "scale": 4, "date": out["date"],
@@ -107,6 +123,8 @@ def main(argv=None) -> int:
         if val:
             meta["scores_on_val_split"] = {"metric": meta["scores_on_test_split"]["metric"],
                                            name: score(str(ck), val), **val_baselines}
+        if verdict is not None:
+            meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
         for item in a.attach:
             key, _, path = item.partition("=")
             meta[key] = json.loads(Path(path).read_text())
