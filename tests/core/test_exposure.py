@@ -298,8 +298,9 @@ def test_a_scene_lit_by_a_weak_lamp_renders_well_exposed(blend_dir, tmp_path):
     middle grey, the clip validates and its contact sheet is lit. Read at exposure 1 it is practically black."""
     scene = make_blend("dimlamp", blend_dir / "dimlamp.blend")
     out = tmp_path / "clip"
+    # --light scene: the file's own weak light alone (auto would add a sun and sky to a view this dim, then expose)
     proc = run_cli("render", str(scene), "-o", str(out), "--frames", "1:2", "--hr-size", "64x36", "--scale", "2",
-                   "--hr-spp", "8", "--lr-spp", "2", "--threads", "1", "--no-progress")
+                   "--hr-spp", "8", "--lr-spp", "2", "--threads", "1", "--no-progress", "--light", "scene")
     assert proc.returncode == 0, proc.stderr[-2000:]
     c = open_clip(out)
     block = c.manifest["exposure"]
