@@ -1486,11 +1486,10 @@ def _filled_during(argv: list[str], mnt: Path) -> tuple[int, str]:
     t0 = time.perf_counter()
     while not list(mnt.glob("**/frames/*.json")) and proc.poll() is None and time.perf_counter() - t0 < 300:
         time.sleep(0.02)
-    with open(mnt / "filler", "wb") as f:
-        with contextlib.suppress(OSError):
+    with contextlib.suppress(OSError):  # closing a file whose last write failed raises ENOSPC again
+        with open(mnt / "filler", "wb", buffering=0) as f:
             while True:
                 f.write(b"\0" * 65536)
-                f.flush()
     out, err = proc.communicate(timeout=600)
     (mnt / "filler").unlink()
     return proc.returncode, out + err
