@@ -163,6 +163,8 @@ class FuseSR(SRModel):
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         y = F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale)
         y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
+        if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
+            return self.fused_hr(batch, x[:, :3], j_t, net=y, demodulated=self.demod)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + self.upsample_input(x[:, :3], batch, j_t, self.demod)
         y = F.relu(y)

@@ -124,6 +124,8 @@ class FuseSRFast(SRModel):
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
+        if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
+            return self.fused_hr(batch, x[:, :3], j_t, net=y, demodulated=self.demod)
         if self.residual:
             y = y + self.upsample_input(x[:, :3], batch, j_t, self.demod)
         y = F.relu(y)
