@@ -9,7 +9,11 @@
 - channels-last weights and inputs (cuDNN and oneDNN run NHWC natively: no layout conversions between layers);
 - ``precision`` fp32, bf16 or fp16 autocast (``auto``: bf16 where the device has it, fp16 on older GPUs, else fp32);
 - ``compile``: ``torch.compile`` (inductor; mode ``reduce-overhead`` on CUDA, i.e. CUDA graphs replayed for a
-  fixed input size), which also fuses the element-wise chains and gathers of the non-learned parts.
+  fixed input size), which also fuses the element-wise chains and gathers of the non-learned parts;
+- ``path``: ``fast`` (the above) or ``fused``: the HR stage of the guided models in one fused pass
+  (``training.kernels.hr_stage``: Triton kernels on CUDA, inductor-compiled C++ on the CPU; ``SRModel.hr_impl``)
+  and, with a bf16/fp16 precision, the weights held in that dtype (``hold_weights``) instead of autocast, which
+  casts every weight on every call.
 
 ``forward(model, batch)`` runs it with those settings; ``inference.run_model`` calls it. The reference path (fp32,
 eager, NCHW, reference ops) is a model fresh from ``build_model``; tests/train/test_fastpath.py compares every
@@ -63,6 +67,36 @@ def fold_batchnorm(model: nn.Module) -> int:
     return n
 
 
+#: ``prepare_inference`` paths: ``fast`` (fast ops, autocast) and ``fused`` (fused HR stage, weights held in the
+#: precision's dtype). The reference path is the model as built (fp32 eager, reference ops).
+PATHS = ("fast", "fused")
+_HELD = (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)
+
+
+def _cast_input(module, args):
+    """Forward pre-hook: floating tensor inputs to the dtype of the module's weight (a no-op when they match)."""
+    dt = module.weight.dtype
+    return tuple(a.to(dt) if torch.is_tensor(a) and a.is_floating_point() and a.dtype != dt else a for a in args)
+
+
+def hold_weights(model: nn.Module, dtype: torch.dtype) -> int:
+    """Convert the weights and biases of every convolution and linear layer to ``dtype`` (inference only) and give
+    each layer with a weight a pre-hook that brings its input to its weight's dtype, so the network runs in
+    ``dtype`` without autocast: a cast happens where an fp32 tensor enters a layer (the network's inputs), not for
+    every weight on every call. Normalisation layers keep fp32 weights (their input is cast up). Returns the number
+    of layers converted."""
+    n = 0
+    for mod in model.modules():
+        w = getattr(mod, "weight", None)
+        if not isinstance(w, torch.nn.Parameter):
+            continue
+        if isinstance(mod, _HELD):
+            mod.to(dtype)
+            n += 1
+        mod.register_forward_pre_hook(_cast_input)
+    return n
+
+
 def channels_last_batch(batch: dict) -> dict:
     """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
     out = {}
@@ -74,11 +108,14 @@ def channels_last_batch(batch: dict) -> dict:
 
 
 def prepare_inference(model, device: torch.device | str | None = None, precision: str = "none",
-                      compile: bool = False, channels_last: bool = True, fast_ops: bool = True) -> InferenceModel:
+                      compile: bool = False, channels_last: bool = True, fast_ops: bool = True,
+                      path: str = "fast") -> InferenceModel:
     """Make ``model`` (eval mode) the fast inference model described in the module doc, in place; returns it as an
     ``InferenceModel`` (``model`` itself when it is one, else a new one around the module). Settings are kept as
     its ``inference`` dict and applied by ``forward``. ``precision`` (``training.device.PRECISIONS``) is validated
-    for ``device``."""
+    for ``device``; ``path`` is one of ``PATHS``."""
+    if path not in PATHS:
+        raise BlendSRError(f"inference path {path!r}: choose one of {', '.join(PATHS)}")
     wrapped = as_inference(model)
     model = wrapped.module
     model.eval()
@@ -87,9 +124,16 @@ def prepare_inference(model, device: torch.device | str | None = None, precision
     from training.device import model_device
     dev = model_device(model)
     dtype = amp_dtype(precision, dev)
-    if fast_ops:
+    if fast_ops or path == "fused":
         model.fast_ops = True
         fold_batchnorm(model)
+    held = None
+    if path == "fused":
+        from training.kernels.hr_stage import default_impl
+        model.hr_impl = default_impl(dev)
+        if dtype is not None:
+            hold_weights(model, dtype)
+            held, dtype = dtype, None  # no autocast: the weights are in the precision's dtype
     if channels_last:
         model.to(memory_format=torch.channels_last)
     if dev.type == "cuda":
@@ -100,7 +144,9 @@ def prepare_inference(model, device: torch.device | str | None = None, precision
         compiled = torch.compile(model, mode=mode, dynamic=False)
     # kept out of the module tree (not a submodule, not in the state dict)
     wrapped.inference = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
-                         "precision": dtype_label(dtype), "compile": bool(compile), "fast_ops": bool(fast_ops)}
+                         "precision": dtype_label(held or dtype), "compile": bool(compile),
+                         "fast_ops": bool(fast_ops or path == "fused"), "path": path,
+                         "hr_impl": model.hr_impl, "weights": dtype_label(held) if held else None}
     return wrapped
 
 
@@ -118,4 +164,4 @@ def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS"]

@@ -79,7 +79,7 @@ def tap_axes(n_lr: int, scale: int, jit: torch.Tensor) -> list[tuple[torch.Tenso
 
 
 def _lr_planes(spec: HRStage, t: HRInputs) -> torch.Tensor:
-    """(B, K, h w) float32: the image (3), the scaled guide (4, ``guided``) and the class (1, ``by_class``)."""
+    """(B, K, h, w) float32: the image (3), the scaled guide (4, ``guided``) and the class (1, ``by_class``)."""
     planes = [t.lr.float()]
     if spec.guided:
         planes += [m.guide_depth(t.lr_depth[:, :1].float(), spec.inv_sigmas[0]),
@@ -87,38 +87,52 @@ def _lr_planes(spec: HRStage, t: HRInputs) -> torch.Tensor:
     if spec.by_class:
         f = t.lr_fbeta.float()
         planes.append(m.demodulated(f[:, 0:1], f[:, 1:2], f[:, 2:3]))
-    return torch.cat(planes, dim=1).flatten(2)
+    return torch.cat(planes, dim=1)
 
 
-def hr_stage_torch(spec: HRStage, t: HRInputs) -> torch.Tensor:
-    """The HR stage (module doc) on tensors: (B, 3, H, W) float32."""
-    b, _, h, w = t.lr.shape
-    s = spec.scale
-    hh, ww = h * s, w * s
-    jit = torch.zeros(b, 2, device=t.lr.device) if t.jitter is None else t.jitter.float()
-    xs, ys = tap_axes(w, s, jit[:, :1]), tap_axes(h, s, jit[:, 1:2])
+def lr_columns(spec: HRStage, t: HRInputs) -> list[torch.Tensor]:
+    """The two column taps of every HR column at LR height: [(B, K, h, W)] (``_lr_planes`` gathered along x)."""
     lr_all = _lr_planes(spec, t)
-    k = lr_all.shape[1]
+    b, k, h, w = lr_all.shape
+    jit = _jitter(t)
+    return [torch.gather(lr_all, 3, ix.view(b, 1, 1, -1).expand(b, k, h, -1))
+            for ix, _ in tap_axes(w, spec.scale, jit[:, :1])]
+
+
+def _jitter(t: HRInputs) -> torch.Tensor:
+    b = t.lr.shape[0]
+    return torch.zeros(b, 2, device=t.lr.device) if t.jitter is None else t.jitter.float()
+
+
+def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Tensor:
+    """Steps 1-5 of the module doc from the column taps ``cols`` (``lr_columns``): each HR row reads whole rows of
+    them (an index per row, contiguous along x): (B, 3, H, W) float32."""
+    b, k, h, ww = cols[0].shape
+    s = spec.scale
+    hh = h * s
+    jit = _jitter(t)
+    wxs = [wx.view(b, 1, 1, ww) for _, wx in tap_axes(ww // s, s, jit[:, :1])]
     if spec.by_class:
         f = t.hr_fbeta.float()
         cls = m.demodulated(f[:, 0:1], f[:, 1:2], f[:, 2:3])
-    if spec.guided:
-        g_hr = torch.cat([m.guide_depth(t.hr_depth[:, :1].float(), spec.inv_sigmas[0]),
-                          m.guide_normal(t.hr_normal.float(), spec.inv_sigmas[1])], dim=1)
+    if spec.guided:  # one tensor per channel: no stacked HR buffer for the compiler to realise
+        n_hr = t.hr_normal.float()
+        g_hr = [m.guide_depth(t.hr_depth[:, :1].float(), spec.inv_sigmas[0])] + \
+            [m.guide_normal(n_hr[:, i:i + 1], spec.inv_sigmas[1]) for i in range(3)]
     plain = cnum = cden = gnum = gden = 0.0
-    for iy, wy in ys:
-        for ix, wx in xs:
-            idx = (iy.view(b, hh, 1) * w + ix.view(b, 1, ww)).view(b, 1, hh * ww)
-            v = torch.gather(lr_all, 2, idx.expand(-1, k, -1)).view(b, k, hh, ww)
+    for iy, wy in tap_axes(h, s, jit[:, 1:2]):
+        wy = wy.view(b, 1, hh, 1)
+        for col, wx in zip(cols, wxs):
+            v = torch.gather(col, 2, iy.view(b, 1, hh, 1).expand(b, k, hh, ww))
             x = v[:, :3]
-            wb = wy.view(b, 1, hh, 1) * wx.view(b, 1, 1, ww)
+            wb = wy * wx
             plain = plain + wb * x
             if spec.by_class:
                 same = v[:, k - 1:] == cls
                 wc = torch.where(same, wb, 0.0)
                 cnum, cden = cnum + wc * x, cden + wc
             if spec.guided:
-                d2 = (v[:, 3:7] - g_hr).square().sum(dim=1, keepdim=True)
+                d2 = sum((v[:, 3 + i:4 + i] - g).square() for i, g in enumerate(g_hr))
                 wg = wb * m.similarity(d2)
                 if spec.by_class:
                     wg = torch.where(same, wg, 0.0)
@@ -132,15 +146,30 @@ def hr_stage_torch(spec: HRStage, t: HRInputs) -> torch.Tensor:
             out = m.inverse_log1p(out)
     if spec.remod:
         out = m.remodulate(out, t.hr_fbeta.float(), t.hr_emission.float())
-    if spec.taps is not None:
-        from training.models.fast_ops import shift_filter
-        out = shift_filter(out, spec.taps)
     return out
+
+
+def pixel_filter(spec: HRStage, x: torch.Tensor) -> torch.Tensor:
+    """The separable pixel filter ``spec.taps`` (edges replicated), or ``x`` without one."""
+    if spec.taps is None:
+        return x
+    from training.models.fast_ops import shift_filter
+    return shift_filter(x, spec.taps)
+
+
+def hr_stage_torch(spec: HRStage, t: HRInputs) -> torch.Tensor:
+    """The HR stage (module doc) on tensors: (B, 3, H, W) float32."""
+    return pixel_filter(spec, hr_pixels(spec, t, lr_columns(spec, t)))
 
 
 @functools.lru_cache(maxsize=None)
 def _compiled(spec: HRStage):
-    return torch.compile(functools.partial(hr_stage_torch, spec), dynamic=False)
+    """``hr_stage_torch`` as two compiled graphs: the column taps at LR height are materialised (compiled in one
+    graph, inductor would inline their gathers into the HR loop, a scattered load per tap and channel) and the HR
+    loop then reads whole rows of them, contiguous along x (vectorised loads)."""
+    cols = torch.compile(functools.partial(lr_columns, spec), dynamic=False)
+    pixels = torch.compile(lambda t, c: pixel_filter(spec, hr_pixels(spec, t, c)), dynamic=False)
+    return lambda t: pixels(t, cols(t))
 
 
 def triton_available() -> bool:

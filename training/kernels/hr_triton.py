@@ -1,0 +1,182 @@
+"""Triton kernels of the fused HR stage (``hr_stage``; CUDA): two launches per frame.
+
+``hr_pixels_kernel``: steps 1-5 of ``hr_stage``'s module doc for a block of HR pixels of one row, reading the raw
+LR buffers at the 4 bilinear taps (LR guides and classes computed per tap: no LR pre-pass) and the HR buffers once;
+``pixel_filter_kernel``: the separable pixel filter as its full 2-D stencil (taps x taps loads, L1-resident). Every
+tensor is addressed through its strides, so NCHW and channels-last inputs run without a layout copy. The per-pixel
+math is ``hr_math``'s helpers, jitted with ``ops`` = ``triton.language`` (``hr_math.jit_for_triton``): the same
+code the CPU path runs. Tests run both kernels under ``TRITON_INTERPRET=1`` on the CPU against the torch path
+(tests/train/test_hr_stage.py).
+"""
+from __future__ import annotations
+
+import torch
+import triton
+import triton.language as tl
+
+from training.kernels import hr_math
+
+_h = hr_math.jit_for_triton()
+tap_position, tap_weight, tap_index = _h["tap_position"], _h["tap_weight"], _h["tap_index"]
+demodulated, guide_depth, guide_normal = _h["demodulated"], _h["guide_depth"], _h["guide_normal"]
+similarity, class_or_plain, guided_or_fallback = _h["similarity"], _h["class_or_plain"], _h["guided_or_fallback"]
+head, inverse_log1p, remodulate = _h["head"], _h["inverse_log1p"], _h["remodulate"]
+
+BLOCK = 128
+
+
+@triton.jit
+def _ld(ptr, b, c, y, x, s, mask):
+    """float32 value of ptr[b, c, y, x] with strides s = (sb, sc, sy, sx)."""
+    return tl.load(ptr + b * s[0] + c * s[1] + y * s[2] + x * s[3], mask=mask, other=0.0).to(tl.float32)
+
+
+@triton.jit
+def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
+                     hr_fb, hr_d, hr_n, hr_e, net, out, s_hfb, s_hd, s_hn, s_he, s_net, s_out,
+                     jit, s_jit, h, w, ww, scale, inv_sd, inv_sn, floor,
+                     BY_CLASS: tl.constexpr, GUIDED: tl.constexpr, HEAD: tl.constexpr, LOG1P: tl.constexpr,
+                     REMOD: tl.constexpr, HAS_JITTER: tl.constexpr, BLOCK: tl.constexpr):
+    xb = tl.program_id(0)
+    y = tl.program_id(1)
+    b = tl.program_id(2)
+    x = xb * BLOCK + tl.arange(0, BLOCK)
+    mask = x < ww
+    if HAS_JITTER:
+        jx = tl.load(jit + b * s_jit[0]).to(tl.float32)
+        jy = tl.load(jit + b * s_jit[0] + s_jit[1]).to(tl.float32)
+    else:
+        jx = 0.0
+        jy = 0.0
+    ux = tap_position(x.to(tl.float32), scale, jx)
+    uy = tap_position(y.to(tl.float32), scale, jy)
+    fx = tl.floor(ux)
+    fy = tl.floor(uy)
+    if BY_CLASS:
+        cls = demodulated(_ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_fb, b, 1, y, x, s_hfb, mask),
+                          _ld(hr_fb, b, 2, y, x, s_hfb, mask))
+    if GUIDED:
+        gh0 = guide_depth(_ld(hr_d, b, 0, y, x, s_hd, mask), inv_sd)
+        gh1 = guide_normal(_ld(hr_n, b, 0, y, x, s_hn, mask), inv_sn)
+        gh2 = guide_normal(_ld(hr_n, b, 1, y, x, s_hn, mask), inv_sn)
+        gh3 = guide_normal(_ld(hr_n, b, 2, y, x, s_hn, mask), inv_sn)
+    zero = tl.zeros([BLOCK], dtype=tl.float32)
+    p0, p1, p2 = zero, zero, zero
+    c0, c1, c2, cden = zero, zero, zero, zero
+    g0, g1, g2, gden = zero, zero, zero, zero
+    for dy in tl.static_range(2):
+        fyd = fy + dy
+        wy = tap_weight(uy, fyd)
+        iy = tap_index(fyd, h).to(tl.int32)
+        for dx in tl.static_range(2):
+            fxd = fx + dx
+            wb = wy * tap_weight(ux, fxd)
+            ix = tap_index(fxd, w).to(tl.int32)
+            v0 = _ld(lr, b, 0, iy, ix, s_lr, mask)
+            v1 = _ld(lr, b, 1, iy, ix, s_lr, mask)
+            v2 = _ld(lr, b, 2, iy, ix, s_lr, mask)
+            p0, p1, p2 = p0 + wb * v0, p1 + wb * v1, p2 + wb * v2
+            if BY_CLASS:
+                same = demodulated(_ld(lr_fb, b, 0, iy, ix, s_lfb, mask), _ld(lr_fb, b, 1, iy, ix, s_lfb, mask),
+                                   _ld(lr_fb, b, 2, iy, ix, s_lfb, mask)) == cls
+                wc = tl.where(same, wb, 0.0)
+                c0, c1, c2, cden = c0 + wc * v0, c1 + wc * v1, c2 + wc * v2, cden + wc
+            if GUIDED:
+                e0 = guide_depth(_ld(lr_d, b, 0, iy, ix, s_ld, mask), inv_sd) - gh0
+                e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), inv_sn) - gh1
+                e2 = guide_normal(_ld(lr_n, b, 1, iy, ix, s_ln, mask), inv_sn) - gh2
+                e3 = guide_normal(_ld(lr_n, b, 2, iy, ix, s_ln, mask), inv_sn) - gh3
+                wg = wb * similarity(e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3)
+                if BY_CLASS:
+                    wg = tl.where(same, wg, 0.0)
+                g0, g1, g2, gden = g0 + wg * v0, g1 + wg * v1, g2 + wg * v2, gden + wg
+    o0, o1, o2 = p0, p1, p2
+    if BY_CLASS:
+        o0, o1, o2 = class_or_plain(c0, cden, o0), class_or_plain(c1, cden, o1), class_or_plain(c2, cden, o2)
+    if GUIDED:
+        o0 = guided_or_fallback(g0, gden, o0, floor)
+        o1 = guided_or_fallback(g1, gden, o1, floor)
+        o2 = guided_or_fallback(g2, gden, o2, floor)
+    if HEAD:
+        o0 = head(_ld(net, b, 0, y, x, s_net, mask), o0)
+        o1 = head(_ld(net, b, 1, y, x, s_net, mask), o1)
+        o2 = head(_ld(net, b, 2, y, x, s_net, mask), o2)
+        if LOG1P:
+            o0, o1, o2 = inverse_log1p(o0), inverse_log1p(o1), inverse_log1p(o2)
+    if REMOD:
+        o0 = remodulate(o0, _ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_e, b, 0, y, x, s_he, mask))
+        o1 = remodulate(o1, _ld(hr_fb, b, 1, y, x, s_hfb, mask), _ld(hr_e, b, 1, y, x, s_he, mask))
+        o2 = remodulate(o2, _ld(hr_fb, b, 2, y, x, s_hfb, mask), _ld(hr_e, b, 2, y, x, s_he, mask))
+    base = out + b * s_out[0] + y * s_out[2] + x * s_out[3]
+    tl.store(base, o0, mask=mask)
+    tl.store(base + s_out[1], o1, mask=mask)
+    tl.store(base + 2 * s_out[1], o2, mask=mask)
+
+
+#: Longest pixel filter the kernel takes (taps as compile-time constants); longer ones run ``fast_ops.shift_filter``.
+MAX_TAPS = 5
+
+
+@triton.jit
+def pixel_filter_kernel(src, dst, s_src, s_dst, hh, ww, NT: tl.constexpr, T0: tl.constexpr, T1: tl.constexpr,
+                        T2: tl.constexpr, T3: tl.constexpr, T4: tl.constexpr, BLOCK: tl.constexpr):
+    """dst[b, c, y, x] = sum_ij T_i T_j src[b, c, clamp(y + i - k), clamp(x + j - k)], k = NT // 2 (NT <= 5)."""
+    xb = tl.program_id(0)
+    y = tl.program_id(1)
+    bc = tl.program_id(2)
+    b = bc // 3
+    c = bc % 3
+    x = xb * BLOCK + tl.arange(0, BLOCK)
+    mask = x < ww
+    acc = tl.zeros([BLOCK], dtype=tl.float32)
+    for i in tl.static_range(NT):
+        yy = tl.minimum(tl.maximum(y + i - NT // 2, 0), hh - 1)
+        ti = T0 if i == 0 else (T1 if i == 1 else (T2 if i == 2 else (T3 if i == 3 else T4)))
+        row = tl.zeros([BLOCK], dtype=tl.float32)
+        for j in tl.static_range(NT):
+            tj = T0 if j == 0 else (T1 if j == 1 else (T2 if j == 2 else (T3 if j == 3 else T4)))
+            xx = tl.minimum(tl.maximum(x + j - NT // 2, 0), ww - 1)
+            row += tj * _ld(src, b, c, yy, xx, s_src, mask)
+        acc += ti * row
+    tl.store(dst + b * s_dst[0] + c * s_dst[1] + y * s_dst[2] + x * s_dst[3], acc, mask=mask)
+
+
+def _strides(t: torch.Tensor | None) -> tuple[int, int, int, int]:
+    return tuple(t.stride()) if t is not None else (0, 0, 0, 0)
+
+
+def hr_stage_triton(spec, t) -> torch.Tensor:
+    """``hr_stage.hr_stage_torch``'s result with the two kernels: (B, 3, H, W) float32 (channels-last when the
+    network output or the HR F_used is)."""
+    b, _, h, w = t.lr.shape
+    s = spec.scale
+    hh, ww = h * s, w * s
+    like = t.net if t.net is not None else (t.hr_fbeta if t.hr_fbeta is not None else t.lr)
+    cl = like.dim() == 4 and like.is_contiguous(memory_format=torch.channels_last) and like.shape[1] > 1
+    fmt = torch.channels_last if cl else torch.contiguous_format
+    out = torch.empty(b, 3, hh, ww, device=t.lr.device, dtype=torch.float32, memory_format=fmt)
+    dummy = t.lr
+    pick = (lambda v: v if v is not None else dummy)
+    jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
+    inv = spec.inv_sigmas or (1.0, 1.0)
+    grid = (triton.cdiv(ww, BLOCK), hh, b)
+    hr_pixels_kernel[grid](
+        t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal),
+        t.lr.stride(), _strides(t.lr_fbeta), _strides(t.lr_depth), _strides(t.lr_normal),
+        pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out,
+        _strides(t.hr_fbeta), _strides(t.hr_depth), _strides(t.hr_normal), _strides(t.hr_emission),
+        _strides(t.net), out.stride(),
+        jit, jit.stride(), h, w, ww, float(s), float(inv[0]), float(inv[1]), float(spec.floor),
+        BY_CLASS=spec.by_class, GUIDED=spec.guided, HEAD=spec.head, LOG1P=spec.log1p, REMOD=spec.remod,
+        HAS_JITTER=t.jitter is not None, BLOCK=BLOCK)
+    if spec.taps is None:
+        return out
+    if len(spec.taps) > MAX_TAPS:
+        from training.models.fast_ops import shift_filter
+        return shift_filter(out, spec.taps)
+    dst = torch.empty_like(out)
+    t5 = tuple(float(v) for v in spec.taps) + (0.0,) * (MAX_TAPS - len(spec.taps))
+    pixel_filter_kernel[(triton.cdiv(ww, BLOCK), hh, b * 3)](out, dst, out.stride(), dst.stride(), hh, ww,
+                                                             NT=len(spec.taps), T0=t5[0], T1=t5[1], T2=t5[2],
+                                                             T3=t5[3], T4=t5[4], BLOCK=BLOCK)
+    return dst
