@@ -47,7 +47,7 @@ DEVICE_PEAKS = {
     "RTX 3090": (35.6, 71.0, 936.0),
 }
 SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
-                 "ratio")
+                 "ratio", "kernels", "max_rel_err", "tolerance")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -89,6 +89,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
                              "without)")
+    parser.add_argument("--path", default=None, metavar="PATHS",
+                        help="speed mode: comma-separated inference paths timed side by side: reference (fp32 eager, "
+                             "= --eager-reference), fast (fast ops, autocast; the default), fused (fused HR stage, "
+                             "weights held in the precision's dtype); adds kernels per frame and each output's "
+                             "error to the fp32 reference, checked against the precision's tolerance")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -264,7 +269,7 @@ def run(args) -> int:
         speed_benchmark(models, args.output, size=_size(args.size), scale=args.scale, device=device,
                         precisions=precisions or ["none"], compiles=compiles, warmup=args.warmup,
                         repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-                        reference=args.eager_reference, progress=not args.no_progress)
+                        reference=args.eager_reference, progress=not args.no_progress, paths=_paths(args.path))
         if args.output:
             print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
@@ -289,6 +294,18 @@ def _bar(items, desc: str, unit: str, on: bool):
 
     from tqdm import tqdm
     return tqdm(items, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
+
+
+def _paths(text: str | None) -> list[str] | None:
+    """--path: None (the fast path alone) or the paths among reference, fast, fused."""
+    if not text:
+        return None
+    from training.fastpath import PATHS
+    out = [p.strip() for p in text.split(",") if p.strip()]
+    bad = [p for p in out if p not in ("reference",) + PATHS]
+    if bad or not out:
+        raise BlendSRError(f"--path {text!r}: comma-separated reference, {', '.join(PATHS)}")
+    return out
 
 
 def _precisions(text: str | None) -> list[str] | None:
@@ -408,7 +425,8 @@ def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
     ms = statistics.median(r["times"])
     rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / pixels,
            "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
-           "roofline_ms": roof, "ratio": ms / roof}
+           "roofline_ms": roof, "ratio": ms / roof,
+           **{k: r[k] for k in ("kernels", "max_rel_err", "tolerance") if k in r}}
     log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
         f"x{rec['ratio']:.0f})")
     return rec
@@ -434,9 +452,12 @@ def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None
 def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), scale: int = 4, device=None,
                     precisions=("none",), compiles=(False,), warmup: int = 2, repeats: int = 30,
                     peak_tflops: float = 0.0, bandwidth_gbs: float = 0.0, reference: bool = False,
-                    log=print, progress: bool = False) -> dict:
+                    log=print, progress: bool = False, paths: list[str] | None = None) -> dict:
     """Time ``models`` on random inputs (module doc); write OUT/bench_speed.{json,csv,md} (``out`` None: nothing);
-    return the result. ``progress``: bars on stderr while the models are prepared and while they are timed."""
+    return the result. ``progress``: bars on stderr while the models are prepared and while they are timed.
+    ``paths`` (``--path``): the inference paths to time (reference, fast, fused; default fast); given, every
+    variant's kernels per frame and output error to the fp32 reference are measured too, and a variant outside
+    its precision's tolerance (``fastpath.TOLERANCE``) fails the run (BlendSRError, after the files are written)."""
     import copy
     import statistics
 
@@ -455,9 +476,16 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     w, h = size
     if w % scale or h % scale:
         raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
+    checked = paths is not None
+    paths = paths or ["fast"]
+    reference = reference or "reference" in paths
     variants = ([("fp32 eager reference", None)] if reference else []) + \
-        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}", (p, c))
-         for c in compiles for p in precisions]  # labelled by the dtype that runs ("auto" resolved)
+        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}{' fused' if fp == 'fused' else ''}",
+          (p, c, fp)) for fp in paths if fp != "reference" for c in compiles for p in precisions]
+    # labelled by the dtype that runs ("auto" resolved)
+    if checked and device.type == "cpu":  # inductor's C++ kernels appear in the profiler (kernels per frame)
+        import torch._inductor.config as inductor_config
+        inductor_config.cpp.enable_kernel_profile = True
     peaks = {}
     for _, v in variants:
         dt = None if v is None else amp_dtype(v[0], device)
@@ -478,16 +506,19 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         batch = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
         info = {"model": label, "params": n_params, "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
                 "macs": macs_per_pixel(base, inputs, device) * w * h if n_params else 0.0}
+        if checked:  # the fp32 eager reference's output, every variant's is compared with
+            with torch.inference_mode():
+                info["want"] = base(batch).float()
         for vlabel, v in variants:
             m = copy.deepcopy(base).to(device)
             if v is not None:
-                prepare_inference(m, device, v[0], compile=v[1])
+                prepare_inference(m, device, v[0], compile=v[1], path=v[2])
             settings = m.inference
             dt = settings.get("dtype")
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
             b = channels_last_batch(batch) if settings.get("channels_last") else batch
             runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
-                            "key": dtype_label(dt)})
+                            "key": settings.get("precision") or dtype_label(dt)})
         del base, batch
     with torch.inference_mode():
         for r in runners:
@@ -498,6 +529,9 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             # model and variant sees the same machine state
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
+        if checked:
+            for r in runners:
+                r.update(_check_variant(r, device))
     records = [_speed_record(r, peaks[r["key"]], w * h, log) for r in runners]
     del runners
     device_name = describe_device(device)
@@ -507,12 +541,91 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             "threads": torch.get_num_threads() if device.type == "cpu" else None, "peaks": peaks,
             "torch": torch.__version__}
     table = speed_table(records, [vl for vl, _ in variants])
+    if checked:
+        table += "\n\n" + check_table(records)
     log(table)
     result = {**meta, "rows": records, "table": table}
     if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
         return result
     _write_speed(Path(out), meta, records, table)
+    _refuse_out_of_tolerance(records)
     return result
+
+
+def _check_variant(r: dict, device) -> dict:
+    """{kernels, max_rel_err, tolerance} of a prepared variant: kernels per frame (``kernels_per_frame``) and
+    max |out - reference| / max |reference| against the fp32 reference output ``r['want']``."""
+    import torch
+
+    from training.fastpath import TOLERANCE, forward
+    with torch.inference_mode():
+        got = forward(r["module"], r["batch"]).float()
+        kernels = kernels_per_frame(lambda: forward(r["module"], r["batch"]), device)
+    want = r.pop("want")
+    err = float((got - want).abs().max()) / max(float(want.abs().max()), 1e-30)
+    return {"kernels": kernels, "max_rel_err": err, "tolerance": TOLERANCE[r["key"]]}
+
+
+#: CPU operators that only make views or allocate (no loop over data): not counted as kernels.
+_NO_WORK = {"aten::" + n for n in ("view", "as_strided", "reshape", "_reshape_alias", "permute", "expand", "slice",
+                                    "select", "unsqueeze", "squeeze", "t", "transpose", "empty", "empty_strided",
+                                    "empty_like", "alias", "detach", "lift_fresh", "_unsafe_view", "unbind",
+                                    "split", "chunk", "narrow", "contiguous", "to", "resolve_conj", "resolve_neg",
+                                    "view_as", "expand_as", "unflatten", "flatten", "set_", "zeros")}
+
+
+def kernels_per_frame(fn, device, frames: int = 2) -> float:
+    """Kernels one call of ``fn`` launches, from torch.profiler over ``frames`` calls. CUDA: device-side events
+    (kernels, memcpy, memset). CPU: the operators that loop over data, counted at the top level (an operator's own
+    sub-operators are not counted again; views and allocations are not counted) plus each C++ kernel of a
+    compiled graph (inductor's kernel profiling is switched on by the speed mode)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    _sync(device)
+    with profile(activities=acts) as prof:
+        for _ in range(frames):
+            fn()
+        _sync(device)
+    if device.type == "cuda":
+        n = sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
+        return n / frames
+
+    def counted(e):
+        return e.name.startswith("aten::") or "cpp_fused" in e.name
+
+    def top(e):
+        p = e.cpu_parent
+        while p is not None:
+            if counted(p):
+                return False
+            p = p.cpu_parent
+        return True
+    n = sum(1 for e in prof.events() if counted(e) and e.name not in _NO_WORK and top(e))
+    return n / frames
+
+
+def check_table(records: list[dict]) -> str:
+    """Markdown: per model and variant, ms, kernels per frame, ratio to the roofline and the output's error to the
+    fp32 reference against the precision's tolerance."""
+    head = ["model", "variant", "ms", "kernels/frame", "roofline ms", "ms / roofline", "max rel. error", "tolerance",
+            "ok"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in records:
+        ok = r["max_rel_err"] <= r["tolerance"]
+        lines.append("| " + " | ".join([r["model"], r["variant"], _ms(r["ms"]), f"{r['kernels']:.0f}",
+                                        f"{r['roofline_ms']:.3g}", f"{r['ratio']:.1f}", f"{r['max_rel_err']:.2e}",
+                                        f"{r['tolerance']:.0e}", "yes" if ok else "NO"]) + " |")
+    return "\n".join(lines)
+
+
+def _refuse_out_of_tolerance(records: list[dict]) -> None:
+    bad = [r for r in records if "max_rel_err" in r and not r["max_rel_err"] <= r["tolerance"]]
+    if bad:
+        r = bad[0]
+        raise BlendSRError(f"bench models: {r['model']} {r['variant']} differs from the fp32 reference by "
+                           f"{r['max_rel_err']:.2e} of its peak (tolerance {r['tolerance']:.0e}); "
+                           f"{len(bad)} variant(s) out of tolerance")
 
 
 def speed_table(records: list[dict], variants: list[str]) -> str:

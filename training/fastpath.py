@@ -67,6 +67,11 @@ def fold_batchnorm(model: nn.Module) -> int:
     return n
 
 
+#: max |out - fp32 reference| / max |fp32 reference| a prepared model may reach, by the precision it computes in
+#: (the label of ``training.device.dtype_label``): fp32 reorders sums and uses other exp/log implementations
+#: (inductor's), bf16/fp16 round every activation. tests/train and ``bench models --path`` check it.
+TOLERANCE = {"fp32": 2e-5, "bf16": 2e-2, "fp16": 4e-3}
+
 #: ``prepare_inference`` paths: ``fast`` (fast ops, autocast) and ``fused`` (fused HR stage, weights held in the
 #: precision's dtype). The reference path is the model as built (fp32 eager, reference ops).
 PATHS = ("fast", "fused")
@@ -164,4 +169,4 @@ def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS", "TOLERANCE"]
