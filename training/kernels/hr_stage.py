@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 
 from training.kernels import hr_math as m
 
@@ -106,7 +107,9 @@ def _jitter(t: HRInputs) -> torch.Tensor:
 
 def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Tensor:
     """Steps 1-5 of the module doc from the column taps ``cols`` (``lr_columns``): each HR row reads whole rows of
-    them (an index per row, contiguous along x): (B, 3, H, W) float32."""
+    them (an index per row, contiguous along x): (B, 3, H, W) float32. Written per channel ((B, 1, H, W) tensors,
+    joined at the end) so that inductor computes the weights once per pixel in one loop for all three channels
+    instead of realising them in HR buffers for a loop over channels."""
     b, k, h, ww = cols[0].shape
     s = spec.scale
     hh = h * s
@@ -115,46 +118,53 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
     if spec.by_class:
         f = t.hr_fbeta.float()
         cls = m.demodulated(f[:, 0:1], f[:, 1:2], f[:, 2:3])
-    if spec.guided:  # one tensor per channel: no stacked HR buffer for the compiler to realise
+    if spec.guided:
         n_hr = t.hr_normal.float()
         g_hr = [m.guide_depth(t.hr_depth[:, :1].float(), spec.inv_sigmas[0])] + \
             [m.guide_normal(n_hr[:, i:i + 1], spec.inv_sigmas[1]) for i in range(3)]
-    plain = cnum = cden = gnum = gden = 0.0
+    plain, cnum, gnum = [0.0] * 3, [0.0] * 3, [0.0] * 3
+    cden = gden = 0.0
     for iy, wy in tap_axes(h, s, jit[:, 1:2]):
         wy = wy.view(b, 1, hh, 1)
         for col, wx in zip(cols, wxs):
-            v = torch.gather(col, 2, iy.view(b, 1, hh, 1).expand(b, k, hh, ww))
-            x = v[:, :3]
+            v = [torch.gather(col[:, i:i + 1], 2, iy.view(b, 1, hh, 1).expand(b, 1, hh, ww)) for i in range(k)]
             wb = wy * wx
-            plain = plain + wb * x
+            plain = [p + wb * v[i] for i, p in enumerate(plain)]
             if spec.by_class:
-                same = v[:, k - 1:] == cls
+                same = v[k - 1] == cls
                 wc = torch.where(same, wb, 0.0)
-                cnum, cden = cnum + wc * x, cden + wc
+                cnum, cden = [c + wc * v[i] for i, c in enumerate(cnum)], cden + wc
             if spec.guided:
-                d2 = sum((v[:, 3 + i:4 + i] - g).square() for i, g in enumerate(g_hr))
+                d2 = sum((v[3 + i] - g).square() for i, g in enumerate(g_hr))
                 wg = wb * m.similarity(d2)
                 if spec.by_class:
                     wg = torch.where(same, wg, 0.0)
-                gnum, gden = gnum + wg * x, gden + wg
-    out = m.class_or_plain(cnum, cden, plain) if spec.by_class else plain
+                gnum, gden = [g + wg * v[i] for i, g in enumerate(gnum)], gden + wg
+    out = [m.class_or_plain(cnum[i], cden, plain[i]) for i in range(3)] if spec.by_class else plain
     if spec.guided:
-        out = m.guided_or_fallback(gnum, gden, out, spec.floor)
+        out = [m.guided_or_fallback(gnum[i], gden, out[i], spec.floor) for i in range(3)]
     if spec.head:
-        out = m.head(t.net.float(), out)
+        net = t.net.float()
+        out = [m.head(net[:, i:i + 1], o) for i, o in enumerate(out)]
         if spec.log1p:
-            out = m.inverse_log1p(out)
+            out = [m.inverse_log1p(o) for o in out]
     if spec.remod:
-        out = m.remodulate(out, t.hr_fbeta.float(), t.hr_emission.float())
-    return out
+        fb, em = t.hr_fbeta.float(), t.hr_emission.float()
+        out = [m.remodulate(o, fb[:, i:i + 1], em[:, i:i + 1]) for i, o in enumerate(out)]
+    return torch.cat(out, dim=1)
 
 
 def pixel_filter(spec: HRStage, x: torch.Tensor) -> torch.Tensor:
-    """The separable pixel filter ``spec.taps`` (edges replicated), or ``x`` without one."""
+    """The separable pixel filter ``spec.taps`` x ``spec.taps`` (edges replicated) as its 2-D stencil over the
+    replicate-padded image (the Triton kernel's formulation; compiled, one padded buffer and one pass), or ``x``
+    without a filter."""
     if spec.taps is None:
         return x
-    from training.models.fast_ops import shift_filter
-    return shift_filter(x, spec.taps)
+    k = len(spec.taps) // 2
+    hh, ww = x.shape[-2:]
+    p = F.pad(x, (k, k, k, k), mode="replicate")
+    return sum(ti * tj * p[..., i:i + hh, j:j + ww] for i, ti in enumerate(spec.taps)
+               for j, tj in enumerate(spec.taps))
 
 
 def hr_stage_torch(spec: HRStage, t: HRInputs) -> torch.Tensor:
@@ -165,8 +175,10 @@ def hr_stage_torch(spec: HRStage, t: HRInputs) -> torch.Tensor:
 @functools.lru_cache(maxsize=None)
 def _compiled(spec: HRStage):
     """``hr_stage_torch`` as two compiled graphs: the column taps at LR height are materialised (compiled in one
-    graph, inductor would inline their gathers into the HR loop, a scattered load per tap and channel) and the HR
-    loop then reads whole rows of them, contiguous along x (vectorised loads)."""
+    graph, inductor would inline their gathers into the HR loop, a scattered load per tap and channel), then the
+    HR loop reads whole rows of them, contiguous along x (vectorised loads), and writes the padded image the
+    filter's stencil reads in the same graph. Measured at 1080p on one CPU thread: 94 -> 27 ms for the HR loop
+    with per-channel tensors, 10 ms for the columns, 29 ms for the HR loop with the filter."""
     cols = torch.compile(functools.partial(lr_columns, spec), dynamic=False)
     pixels = torch.compile(lambda t, c: pixel_filter(spec, hr_pixels(spec, t, c)), dynamic=False)
     return lambda t: pixels(t, cols(t))
