@@ -467,7 +467,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
     from training.evaluate import describe_device
     from training.export import example_inputs
     from training.device import amp_dtype, dtype_label
-    from training.fastpath import channels_last_batch, forward, prepare_inference
+    from training.fastpath import forward, prepare_inference, prepared_batch
     from training.inference import InferenceModel, load_model
     from training.models import build_model
     from training.device import resolve_device
@@ -516,7 +516,7 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
             settings = m.inference
             dt = settings.get("dtype")
             # inputs on the device in the layout the variant reads (as evaluate times the forward pass)
-            b = channels_last_batch(batch) if settings.get("channels_last") else batch
+            b = prepared_batch(m, batch)
             runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
                             "key": settings.get("precision") or dtype_label(dt)})
         del base, batch

@@ -102,11 +102,12 @@ def hold_weights(model: nn.Module, dtype: torch.dtype) -> int:
     return n
 
 
-def channels_last_batch(batch: dict) -> dict:
-    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
+def channels_last_batch(batch: dict, levels: tuple[str, ...] = ("lr", "hr")) -> dict:
+    """Image tensors (B, T, C, H, W) of the ``levels`` ('lr/...', 'hr/...' keys) re-laid out so that every frame
+    (B, C, H, W) is channels-last; others as is."""
     out = {}
     for k, v in batch.items():
-        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1 and k.split("/")[0] in levels:
             v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
         out[k] = v
     return out
@@ -151,8 +152,19 @@ def prepare_inference(model, device: torch.device | str | None = None, precision
     wrapped.inference = {"dtype": dtype, "channels_last": bool(channels_last), "compiled": compiled,
                          "precision": dtype_label(held or dtype), "compile": bool(compile),
                          "fast_ops": bool(fast_ops or path == "fused"), "path": path,
-                         "hr_impl": model.hr_impl, "weights": dtype_label(held) if held else None}
+                         "hr_impl": model.hr_impl, "weights": dtype_label(held) if held else None,
+                         # the fused HR stage reads every HR channel as a contiguous plane (vectorised loads on
+                         # the CPU, coalesced on CUDA): only the network's LR inputs go channels-last
+                         "channels_last_levels": ("lr",) if path == "fused" else ("lr", "hr")}
     return wrapped
+
+
+def prepared_batch(model, batch: dict) -> dict:
+    """``batch`` in the layout ``forward`` gives a prepared model (bench models times the forward pass alone)."""
+    settings = model.inference if isinstance(model, InferenceModel) else {}
+    if not settings.get("channels_last"):
+        return batch
+    return channels_last_batch(batch, settings.get("channels_last_levels", ("lr", "hr")))
 
 
 def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
@@ -161,7 +173,7 @@ def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
     settings = model.inference if isinstance(model, InferenceModel) else {}
     dtype = amp if amp is not None else settings.get("dtype")
     if settings.get("channels_last"):
-        batch = channels_last_batch(batch)
+        batch = channels_last_batch(batch, settings.get("channels_last_levels", ("lr", "hr")))
     fn = settings.get("compiled")
     fn = model if fn is None else fn
     device = next(iter(batch.values())).device
@@ -169,4 +181,5 @@ def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS", "TOLERANCE"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS", "TOLERANCE",
+           "prepared_batch"]
