@@ -186,3 +186,59 @@ def interpreted():
 @pytest.mark.parametrize("k", range(len(SPECS)))
 def test_triton_kernels_match_the_torch_path_under_the_interpreter(interpreted, k):
     assert interpreted[k] <= 1e-6, (SPECS[k], interpreted[k])
+
+
+# ------------------------------------------------------------------------------------------------ on a GPU
+cuda = pytest.mark.skipif(not (torch.cuda.is_available() and hr_stage.triton_available()),
+                          reason="needs a CUDA device and triton")
+GUIDED = ["demod-bilinear", "demod-jbu", "fusesr-fast", "fusesr-l", "fusesr"]
+
+
+@cuda
+@pytest.mark.parametrize("k", range(len(SPECS)))
+def test_cuda_triton_kernels_match_the_torch_path(k):
+    from training.kernels.hr_triton import hr_stage_triton
+    spec = SPECS[k]
+    for b, cl, jit in ((1, False, True), (2, True, k % 2 == 0)):
+        t = HRInputs(*[v.cuda() if v is not None else None for v in _inputs(b, 40, 72, spec.scale, cl, jit, k)])
+        want = hr_stage.hr_stage_torch(spec, t)
+        got = hr_stage_triton(spec, t)
+        assert _rel(got, want) <= 1e-5, (b, cl, _rel(got, want))
+
+
+@cuda
+def test_cuda_fused_hr_stage_launches_two_kernels():
+    from torch.profiler import ProfilerActivity, profile
+    spec = SPECS[0]
+    t = HRInputs(*[v.cuda() if v is not None else None for v in _inputs(1, 64, 96, 4, False, True)])
+    hr_stage.run(spec, t, "triton")
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        hr_stage.run(spec, t, "triton")
+        torch.cuda.synchronize()
+    names = [e.name for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+    names = sorted(names)
+    assert len(names) == 2 and names[0].startswith("hr_pixels_kernel") and \
+        names[1].startswith("pixel_filter_kernel"), names
+
+
+@cuda
+@pytest.mark.parametrize("name", GUIDED)
+def test_cuda_fused_path_matches_the_cpu_fp32_reference(name):
+    """On a GPU: the fused path (Triton HR stage), bf16 weights held, eager and torch.compile (reduce-overhead: CUDA
+    graphs), against the fp32 eager reference computed on the CPU."""
+    ref = build_model(ModelConfig.of(name), 4).eval()
+    cpu_batch = _batch(ref, size=(128, 64))
+    with torch.inference_mode():
+        want = ref(cpu_batch)
+    dev = torch.device("cuda")
+    batch = {k: v.to(dev) for k, v in cpu_batch.items()}
+    tol_fp32 = 1e-3 if MODELS[name].learned else TOL["none"]  # TF32 convolutions on CUDA
+    for precision, comp, tol in (("none", False, tol_fp32), ("bf16", False, TOL["bf16"]),
+                                 ("bf16", True, TOL["bf16"])):
+        fused = prepare_inference(copy.deepcopy(ref), dev, precision, compile=comp, path="fused")
+        assert fused.module.hr_impl == "triton"
+        with torch.inference_mode():
+            for _ in range(3):  # CUDA-graph warm-up and replay
+                got = forward(fused, batch).cpu()
+        assert _rel(got, want) <= tol, (precision, comp, _rel(got, want))
