@@ -181,5 +181,5 @@ def forward(model, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         return fn(batch)
 
 
-__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS", "TOLERANCE",
-           "prepared_batch"]
+__all__ = ["prepare_inference", "forward", "fold_batchnorm", "channels_last_batch", "hold_weights", "PATHS",
+           "TOLERANCE", "prepared_batch"]

@@ -242,3 +242,27 @@ def test_cuda_fused_path_matches_the_cpu_fp32_reference(name):
             for _ in range(3):  # CUDA-graph warm-up and replay
                 got = forward(fused, batch).cpu()
         assert _rel(got, want) <= tol, (precision, comp, _rel(got, want))
+
+
+@pytest.mark.parametrize("name", ["fusesr-l", "fusesr-fast", "fusesr"])
+def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
+    """A shipped network on a rendered-like synthetic clip frame: the fused path's output (fp32) is the reference
+    path's within the fp32 tolerance, so its scores are unchanged."""
+    from gbuffer_export.synthetic import make_synthetic_clip
+    from training import pretrained
+    from training.inference import ClipFrames, load_model, model_inputs
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).is_file():
+        pytest.skip(f"{name} not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4, jitter=True)
+    ref = load_model(f"pretrained:{name}", 4, fast=False)
+    src = ClipFrames(clip, eps=ref.demod_eps)
+    inputs = model_inputs(ref, src, src.frames[-1])
+    batch = {k: torch.from_numpy(v) for k, v in inputs.items() if k in set(ref.needs())}
+    with torch.inference_mode():
+        want = ref(batch)
+        fused = prepare_inference(load_model(f"pretrained:{name}", 4, fast=False), path="fused")
+        got = forward(fused, batch)
+    assert _rel(got, want) <= TOL["none"], _rel(got, want)
+    hr = torch.from_numpy(inputs["hr/radiance"][:, -1])
+    psnr = [float(-10 * torch.log10(((x - hr) ** 2).mean())) for x in (want, got)]
+    assert abs(psnr[0] - psnr[1]) < 1e-3, psnr
