@@ -168,6 +168,24 @@ def interpreter_errors() -> list:
     return out
 
 
+COMPILED = ("demod-jbu", "fusesr-l")
+
+
+def interpreter_model_errors() -> list:
+    """Per model of COMPILED, the fused path with the Triton implementation (the custom operator
+    blendsr::hr_stage) under torch.compile, against the fp32 reference: relative error."""
+    out = []
+    for name in COMPILED:
+        ref = build_model(ModelConfig.of(name), 4).eval()
+        batch = _batch(ref, size=(32, 16))
+        with torch.inference_mode():
+            want = ref(batch)
+            fused = prepare_inference(copy.deepcopy(ref), compile=True, path="fused")
+            fused.module.hr_impl = "triton"
+            out.append(_rel(forward(fused, batch), want))
+    return out
+
+
 @pytest.fixture(scope="module")
 def interpreted():
     """``interpreter_errors`` in a fresh interpreter with TRITON_INTERPRET=1 (triton reads it when first imported,
@@ -177,7 +195,8 @@ def interpreted():
     import subprocess
     import sys
     env = {**os.environ, "TRITON_INTERPRET": "1"}
-    code = "import json, tests.train.test_hr_stage as t; print(json.dumps(t.interpreter_errors()))"
+    code = ("import json, tests.train.test_hr_stage as t; "
+            "print(json.dumps([t.interpreter_errors(), t.interpreter_model_errors()]))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -185,7 +204,12 @@ def interpreted():
 
 @pytest.mark.parametrize("k", range(len(SPECS)))
 def test_triton_kernels_match_the_torch_path_under_the_interpreter(interpreted, k):
-    assert interpreted[k] <= 1e-6, (SPECS[k], interpreted[k])
+    assert interpreted[0][k] <= 1e-6, (SPECS[k], interpreted[0][k])
+
+
+@pytest.mark.parametrize("k", range(len(COMPILED)))
+def test_triton_stage_runs_inside_torch_compile_as_one_operator(interpreted, k):
+    assert interpreted[1][k] <= TOL["none"], (COMPILED[k], interpreted[1][k])
 
 
 # ------------------------------------------------------------------------------------------------ on a GPU

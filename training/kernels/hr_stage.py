@@ -202,9 +202,9 @@ def default_impl(device: torch.device) -> str:
 
 def run(spec: HRStage, t: HRInputs, impl: str = "compiled") -> torch.Tensor:
     """The HR stage with implementation ``impl`` (``IMPLS``): (B, 3, H, W) float32."""
-    if impl == "triton":
-        from training.kernels.hr_triton import hr_stage_triton
-        return hr_stage_triton(spec, t)
+    if impl == "triton":  # as the custom operator blendsr::hr_stage (opaque to torch.compile)
+        from training.kernels.hr_triton import _spec_params, hr_stage_op
+        return hr_stage_op(list(t), _spec_params(spec))
     if impl == "compiled":
         return _compiled(spec)(t)
     if impl == "torch":

@@ -151,10 +151,7 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     b, _, h, w = t.lr.shape
     s = spec.scale
     hh, ww = h * s, w * s
-    like = t.net if t.net is not None else (t.hr_fbeta if t.hr_fbeta is not None else t.lr)
-    cl = like.dim() == 4 and like.is_contiguous(memory_format=torch.channels_last) and like.shape[1] > 1
-    fmt = torch.channels_last if cl else torch.contiguous_format
-    out = torch.empty(b, 3, hh, ww, device=t.lr.device, dtype=torch.float32, memory_format=fmt)
+    out = torch.empty(b, 3, hh, ww, device=t.lr.device, dtype=torch.float32, memory_format=_out_format(list(t)))
     dummy = t.lr
     pick = (lambda v: v if v is not None else dummy)
     jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
@@ -180,3 +177,43 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
                                                              NT=len(spec.taps), T0=t5[0], T1=t5[1], T2=t5[2],
                                                              T3=t5[3], T4=t5[4], BLOCK=BLOCK)
     return dst
+
+
+def _spec_params(spec) -> list[float]:
+    """``HRStage`` as the flat float list the custom op takes (``_spec_of`` inverts it)."""
+    inv = spec.inv_sigmas or (1.0, 1.0)
+    return [float(spec.scale), float(spec.by_class), float(spec.guided), float(inv[0]), float(inv[1]),
+            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), *map(float, spec.taps or ())]
+
+
+def _spec_of(params: list[float]):
+    from training.kernels.hr_stage import HRStage
+    p = list(params)
+    return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
+                   inv_sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
+                   taps=tuple(p[9:]) or None, floor=p[8])
+
+
+def _out_format(tensors: list) -> torch.memory_format:
+    """The output's layout: channels-last when the network output (or else the HR F_used) is."""
+    net, hr_fbeta = tensors[9], tensors[3]
+    like = net if net is not None else (hr_fbeta if hr_fbeta is not None else tensors[0])
+    cl = like.dim() == 4 and like.shape[1] > 1 and like.is_contiguous(memory_format=torch.channels_last)
+    return torch.channels_last if cl else torch.contiguous_format
+
+
+@torch.library.custom_op("blendsr::hr_stage", mutates_args=())
+def hr_stage_op(tensors: list[torch.Tensor | None], params: list[float]) -> torch.Tensor:
+    """The fused HR stage as one opaque operator (``hr_stage.HRInputs`` as a list, the ``HRStage`` as
+    ``_spec_params``): torch.compile keeps it as an external call inside its graph (and its CUDA graphs) instead of
+    tracing into the launches."""
+    from training.kernels.hr_stage import HRInputs
+    return hr_stage_triton(_spec_of(params), HRInputs(*tensors))
+
+
+@hr_stage_op.register_fake
+def _(tensors, params):
+    lr = tensors[0]
+    s = int(params[0])
+    return torch.empty(lr.shape[0], 3, lr.shape[2] * s, lr.shape[3] * s, device=lr.device, dtype=torch.float32,
+                       memory_format=_out_format(tensors))
