@@ -144,10 +144,10 @@ def _inputs(b, h, w, s, channels_last, jitter, seed=0):
 
 
 BH = (0.11859148, 0.76281703, 0.11859148)
-SPECS = [HRStage(4, True, True, (10.0, 5.0), False, False, True, BH),                       # demod-jbu
+SPECS = [HRStage(4, True, True, (0.1, 0.2), False, False, True, BH),                       # demod-jbu
          HRStage(4, True, False, None, False, False, True, BH),                             # demod-bilinear
-         HRStage(4, True, True, (10.0, 5.0), True, True, True, BH),                         # fusesr family
-         HRStage(2, False, True, (10.0, 5.0), True, False, False, None),                     # no demodulation
+         HRStage(4, True, True, (0.1, 0.2), True, True, True, BH),                         # fusesr family
+         HRStage(2, False, True, (0.1, 0.2), True, False, False, None),                     # no demodulation
          HRStage(4, False, False, None, False, False, True, (0.05, 0.2, 0.5, 0.2, 0.05)),   # 5 taps
          HRStage(4, True, False, None, False, False, True, (0.1,) * 7)]                     # 7 taps: torch filter
 

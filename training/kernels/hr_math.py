@@ -68,16 +68,16 @@ def demodulated(f0, f1, f2):
     return ops.where((f0 != 1.0) | (f1 != 1.0) | (f2 != 1.0), 1.0, 0.0)
 
 
-def guide_depth(d, inv_sigma):
+def guide_depth(d, sigma):
     """log(depth) / sigma_depth with depth's NaN and +inf -> DEPTH_MAX, clamped (``guided.guide_features``)."""
     d = ops.where(d == d, d, DEPTH_MAX)
-    return ops.log(ops.minimum(ops.maximum(d, DEPTH_MIN), DEPTH_MAX)) * inv_sigma
+    return ops.log(ops.minimum(ops.maximum(d, DEPTH_MIN), DEPTH_MAX)) / sigma
 
 
-def guide_normal(n, inv_sigma):
+def guide_normal(n, sigma):
     """normal / sigma_normal with NaN -> 0 and +-inf -> +-F32_MAX (``guided.guide_features``)."""
     n = ops.where(n == n, n, 0.0)
-    return ops.minimum(ops.maximum(n, -F32_MAX), F32_MAX) * inv_sigma
+    return ops.minimum(ops.maximum(n, -F32_MAX), F32_MAX) / sigma
 
 
 def similarity(d2):

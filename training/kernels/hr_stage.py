@@ -40,12 +40,12 @@ IMPLS = ("torch", "compiled", "triton")
 
 @dataclass(frozen=True)
 class HRStage:
-    """What one model's HR stage does (module doc). ``inv_sigmas``: (1 / sigma_depth, 1 / sigma_normal) of the
+    """What one model's HR stage does (module doc). ``sigmas``: (sigma_depth, sigma_normal) of the
     guides, None without ``guided``; ``taps``: the 1-D pixel filter (None: no filter)."""
     scale: int
     by_class: bool
     guided: bool
-    inv_sigmas: tuple[float, float] | None
+    sigmas: tuple[float, float] | None
     head: bool
     log1p: bool
     remod: bool
@@ -83,8 +83,8 @@ def _lr_planes(spec: HRStage, t: HRInputs) -> torch.Tensor:
     """(B, K, h, w) float32: the image (3), the scaled guide (4, ``guided``) and the class (1, ``by_class``)."""
     planes = [t.lr.float()]
     if spec.guided:
-        planes += [m.guide_depth(t.lr_depth[:, :1].float(), spec.inv_sigmas[0]),
-                   m.guide_normal(t.lr_normal.float(), spec.inv_sigmas[1])]
+        planes += [m.guide_depth(t.lr_depth[:, :1].float(), spec.sigmas[0]),
+                   m.guide_normal(t.lr_normal.float(), spec.sigmas[1])]
     if spec.by_class:
         f = t.lr_fbeta.float()
         planes.append(m.demodulated(f[:, 0:1], f[:, 1:2], f[:, 2:3]))
@@ -120,8 +120,8 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
         cls = m.demodulated(f[:, 0:1], f[:, 1:2], f[:, 2:3])
     if spec.guided:
         n_hr = t.hr_normal.float()
-        g_hr = [m.guide_depth(t.hr_depth[:, :1].float(), spec.inv_sigmas[0])] + \
-            [m.guide_normal(n_hr[:, i:i + 1], spec.inv_sigmas[1]) for i in range(3)]
+        g_hr = [m.guide_depth(t.hr_depth[:, :1].float(), spec.sigmas[0])] + \
+            [m.guide_normal(n_hr[:, i:i + 1], spec.sigmas[1]) for i in range(3)]
     plain, cnum, gnum = [0.0] * 3, [0.0] * 3, [0.0] * 3
     cden = gden = 0.0
     for iy, wy in tap_axes(h, s, jit[:, 1:2]):

@@ -34,7 +34,7 @@ def _ld(ptr, b, c, y, x, s, mask):
 @triton.jit
 def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
                      hr_fb, hr_d, hr_n, hr_e, net, out, s_hfb, s_hd, s_hn, s_he, s_net, s_out,
-                     jit, s_jit, h, w, ww, scale, inv_sd, inv_sn, floor,
+                     jit, s_jit, h, w, ww, scale, sd, sn, floor,
                      BY_CLASS: tl.constexpr, GUIDED: tl.constexpr, HEAD: tl.constexpr, LOG1P: tl.constexpr,
                      REMOD: tl.constexpr, HAS_JITTER: tl.constexpr, BLOCK: tl.constexpr):
     xb = tl.program_id(0)
@@ -56,10 +56,10 @@ def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
         cls = demodulated(_ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_fb, b, 1, y, x, s_hfb, mask),
                           _ld(hr_fb, b, 2, y, x, s_hfb, mask))
     if GUIDED:
-        gh0 = guide_depth(_ld(hr_d, b, 0, y, x, s_hd, mask), inv_sd)
-        gh1 = guide_normal(_ld(hr_n, b, 0, y, x, s_hn, mask), inv_sn)
-        gh2 = guide_normal(_ld(hr_n, b, 1, y, x, s_hn, mask), inv_sn)
-        gh3 = guide_normal(_ld(hr_n, b, 2, y, x, s_hn, mask), inv_sn)
+        gh0 = guide_depth(_ld(hr_d, b, 0, y, x, s_hd, mask), sd)
+        gh1 = guide_normal(_ld(hr_n, b, 0, y, x, s_hn, mask), sn)
+        gh2 = guide_normal(_ld(hr_n, b, 1, y, x, s_hn, mask), sn)
+        gh3 = guide_normal(_ld(hr_n, b, 2, y, x, s_hn, mask), sn)
     zero = tl.zeros([BLOCK], dtype=tl.float32)
     p0, p1, p2 = zero, zero, zero
     c0, c1, c2, cden = zero, zero, zero, zero
@@ -82,10 +82,10 @@ def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
                 wc = tl.where(same, wb, 0.0)
                 c0, c1, c2, cden = c0 + wc * v0, c1 + wc * v1, c2 + wc * v2, cden + wc
             if GUIDED:
-                e0 = guide_depth(_ld(lr_d, b, 0, iy, ix, s_ld, mask), inv_sd) - gh0
-                e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), inv_sn) - gh1
-                e2 = guide_normal(_ld(lr_n, b, 1, iy, ix, s_ln, mask), inv_sn) - gh2
-                e3 = guide_normal(_ld(lr_n, b, 2, iy, ix, s_ln, mask), inv_sn) - gh3
+                e0 = guide_depth(_ld(lr_d, b, 0, iy, ix, s_ld, mask), sd) - gh0
+                e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), sn) - gh1
+                e2 = guide_normal(_ld(lr_n, b, 1, iy, ix, s_ln, mask), sn) - gh2
+                e3 = guide_normal(_ld(lr_n, b, 2, iy, ix, s_ln, mask), sn) - gh3
                 wg = wb * similarity(e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3)
                 if BY_CLASS:
                     wg = tl.where(same, wg, 0.0)
@@ -155,7 +155,7 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     dummy = t.lr
     pick = (lambda v: v if v is not None else dummy)
     jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
-    inv = spec.inv_sigmas or (1.0, 1.0)
+    sig = spec.sigmas or (1.0, 1.0)
     grid = (triton.cdiv(ww, BLOCK), hh, b)
     hr_pixels_kernel[grid](
         t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal),
@@ -163,7 +163,7 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
         pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out,
         _strides(t.hr_fbeta), _strides(t.hr_depth), _strides(t.hr_normal), _strides(t.hr_emission),
         _strides(t.net), out.stride(),
-        jit, jit.stride(), h, w, ww, float(s), float(inv[0]), float(inv[1]), float(spec.floor),
+        jit, jit.stride(), h, w, ww, float(s), float(sig[0]), float(sig[1]), float(spec.floor),
         BY_CLASS=spec.by_class, GUIDED=spec.guided, HEAD=spec.head, LOG1P=spec.log1p, REMOD=spec.remod,
         HAS_JITTER=t.jitter is not None, BLOCK=BLOCK)
     if spec.taps is None:
@@ -181,8 +181,8 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
 
 def _spec_params(spec) -> list[float]:
     """``HRStage`` as the flat float list the custom op takes (``_spec_of`` inverts it)."""
-    inv = spec.inv_sigmas or (1.0, 1.0)
-    return [float(spec.scale), float(spec.by_class), float(spec.guided), float(inv[0]), float(inv[1]),
+    sig = spec.sigmas or (1.0, 1.0)
+    return [float(spec.scale), float(spec.by_class), float(spec.guided), float(sig[0]), float(sig[1]),
             float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), *map(float, spec.taps or ())]
 
 
@@ -190,7 +190,7 @@ def _spec_of(params: list[float]):
     from training.kernels.hr_stage import HRStage
     p = list(params)
     return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
-                   inv_sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
+                   sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
                    taps=tuple(p[9:]) or None, floor=p[8])
 
 

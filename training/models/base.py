@@ -144,7 +144,7 @@ class SRModel(nn.Module):
         from training.kernels.hr_stage import HRInputs, HRStage, run
         remod = bool(demodulated)
         spec = HRStage(scale=int(self.scale), by_class=bool(demodulated and self.by_class), guided=bool(self.guided),
-                       inv_sigmas=tuple(1.0 / float(v) for v in self.guide_sigmas) if self.guided else None,
+                       sigmas=tuple(float(v) for v in self.guide_sigmas) if self.guided else None,
                        head=net is not None, log1p=net is not None and getattr(self, "transform", "") == "log1p",
                        remod=remod, taps=self.remod_taps if remod else None)
         get = (lambda k: current(batch, k) if k in batch else None)
