@@ -17,10 +17,12 @@ Per HR pixel (one definition of the math: ``hr_math``; every step reproduces a r
 then the separable pixel filter ``taps`` x ``taps`` (edges replicated) over the result.
 
 Implementations (``run``): ``triton`` on CUDA (``hr_triton``: one kernel for steps 1-5, one for the filter; LR
-guides and classes computed per tap from the raw LR buffers, so nothing else is launched), and ``torch``
-(``hr_stage_torch``: the same helpers on tensors, the taps as gathers from one stacked LR tensor). On the CPU the
-fast path runs ``compiled``: ``hr_stage_torch`` under ``torch.compile``, whose C++ backend (inductor) fuses the
-gathers and the element-wise chain into a few vectorised loops; Triton's CPU interpreter is for tests only.
+guides and classes computed per tap from the raw LR buffers, so nothing else is launched; called as the custom
+operator ``blendsr::hr_stage``, which torch.compile keeps whole inside its graphs and CUDA graphs), and ``torch``
+(``hr_stage_torch``: the same helpers on tensors: the two column taps of every HR column gathered at LR height,
+then every HR row reading whole rows of them). On the CPU the fused path runs ``compiled``: ``hr_stage_torch``
+under ``torch.compile``, whose C++ backend (inductor) turns it into two vectorised kernels (``_compiled``);
+Triton's CPU interpreter is for tests only.
 Demodulation itself (the eps rule) runs where the inputs are read (``training.inference``, ``training.cache``:
 ``gbuffer_export.demod``) and is not repeated here: the models receive L_D and F_used.
 """
