@@ -545,9 +545,8 @@ def speed_benchmark(models: list[tuple[str, str]], out, *, size=(1920, 1080), sc
         table += "\n\n" + check_table(records)
     log(table)
     result = {**meta, "rows": records, "table": table}
-    if out is None:  # nothing written where nobody asked (blendsr bench models without -o)
-        return result
-    _write_speed(Path(out), meta, records, table)
+    if out is not None:  # nothing written where nobody asked (blendsr bench models without -o)
+        _write_speed(Path(out), meta, records, table)
     _refuse_out_of_tolerance(records)
     return result
 

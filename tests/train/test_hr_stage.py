@@ -290,3 +290,30 @@ def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
     hr = torch.from_numpy(inputs["hr/radiance"][:, -1])
     psnr = [float(-10 * torch.log10(((x - hr) ** 2).mean())) for x in (want, got)]
     assert abs(psnr[0] - psnr[1]) < 1e-3, psnr
+
+
+def test_bench_models_paths_side_by_side_with_kernels_and_the_reference_check(tmp_path, monkeypatch, capsys):
+    import json
+
+    from gbuffer_export.cli import main
+    from training import fastpath
+    args = ["bench", "models", "--device", "cpu", "--size", "64x32", "--models", "demod-jbu,fusesr-l",
+            "--path", "reference,fast,fused", "--precision", "none,bf16", "--repeats", "1", "--warmup", "1",
+            "--threads", "1", "--no-progress", "-o", str(tmp_path / "b")]
+    assert main(args) == 0
+    rows = json.loads((tmp_path / "b" / "bench_speed.json").read_text())["rows"]
+    got = {(r["model"], r["variant"]): r for r in rows}
+    assert set(got) == {(m, v) for m in ("demod-jbu", "fusesr-l") for v in (
+        "fp32 eager reference", "fp32", "bf16", "fp32 fused", "bf16 fused")}
+    for r in rows:
+        assert r["kernels"] > 0 and r["max_rel_err"] <= r["tolerance"] and r["ms"] > 0
+    assert got[("demod-jbu", "fp32 eager reference")]["max_rel_err"] == 0.0
+    assert got[("demod-jbu", "fp32 fused")]["kernels"] < got[("demod-jbu", "fp32")]["kernels"] / 10
+    assert got[("fusesr-l", "bf16 fused")]["tolerance"] == fastpath.TOLERANCE["bf16"]
+    assert "max rel. error" in (tmp_path / "b" / "bench_speed.md").read_text()
+    capsys.readouterr()
+    monkeypatch.setitem(fastpath.TOLERANCE, "fp32", 0.0)  # any rounding is now out of tolerance
+    assert main(["bench", "models", "--device", "cpu", "--size", "64x32", "--models", "demod-jbu", "--path", "fused",
+                 "--repeats", "1", "--warmup", "1", "--threads", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "demod-jbu fp32 fused differs from the fp32 reference" in err[0]
