@@ -15,6 +15,7 @@ import triton
 import triton.language as tl
 
 from training.kernels import hr_math
+from training.kernels.spec import HRInputs, HRStage
 
 _h = hr_math.jit_for_triton()
 tap_position, tap_weight, tap_index = _h["tap_position"], _h["tap_weight"], _h["tap_index"]
@@ -187,7 +188,6 @@ def _spec_params(spec) -> list[float]:
 
 
 def _spec_of(params: list[float]):
-    from training.kernels.hr_stage import HRStage
     p = list(params)
     return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
                    sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
@@ -207,7 +207,6 @@ def hr_stage_op(tensors: list[torch.Tensor | None], params: list[float]) -> torc
     """The fused HR stage as one opaque operator (``hr_stage.HRInputs`` as a list, the ``HRStage`` as
     ``_spec_params``): torch.compile keeps it as an external call inside its graph (and its CUDA graphs) instead of
     tracing into the launches."""
-    from training.kernels.hr_stage import HRInputs
     return hr_stage_triton(_spec_of(params), HRInputs(*tensors))
 
 
