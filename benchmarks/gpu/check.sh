@@ -13,10 +13,10 @@
 # Needs the wheels of fetch_wheels.sh carried as .whl (about 5 MB; the image's torch brings triton).
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 #        run(command="CHECK=speed bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
-# CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 [CHECK=speed] bash benchmarks/gpu/check.sh
+# CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 [CHECK=speed COMPILE=off] bash benchmarks/gpu/check.sh
 set -u
 OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEATS:-30}; STEPS=${STEPS:-300}
-CHECK=${CHECK:-all}
+CHECK=${CHECK:-all}; COMPILE=${COMPILE:-both}  # COMPILE: the speed set's --compile (off for a quick CPU dry run)
 mkdir -p "$OUT"; export PYTHONUNBUFFERED=1; W=/tmp/blendsr_gpu; rm -rf "$W"; mkdir -p "$W"; LOG="$OUT/log.txt"
 if [ "$DEV" = cuda ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
@@ -36,7 +36,7 @@ if [ "$CHECK" = speed ]; then
   [ "$DEV" = cuda ] && step "CUDA tests of the fused path" 150 python3 -m pytest -v -p no:cacheprovider \
       --durations=0 -k cuda tests/train/test_hr_stage.py
   step "speed table, reference / fast / fused (bf16, eager and compiled)" 270 "${bench[@]}" --models "$GUIDED" \
-      --precision bf16 --compile both --path reference,fast,fused -o "$W/paths"
+      --precision bf16 --compile "$COMPILE" --path reference,fast,fused -o "$W/paths"
   cp "$W/paths/bench_speed.json" "$OUT/speed_paths.json" && cp "$W/paths/bench_speed.md" "$OUT/speed_paths.md"
   step "profile, fast and fused paths (bf16, eager)" 70 python3 benchmarks/gpu/profile.py --device "$DEV" \
       --size "$SIZE" --models "$GUIDED" --path fast,fused --repeats 10 -o "$OUT/profile_paths.txt"

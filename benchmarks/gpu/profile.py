@@ -13,7 +13,13 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 from collections import defaultdict
+from pathlib import Path
+
+# Run as a script, this file's folder comes first on sys.path and the file shadows the standard library's profile
+# module, which torch's compiler stack imports (through cProfile): take the folder off the path.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 # First match wins; the patterns name kernels as CUDA reports them (a bare "cat" would also match "scatter" and
 # "replication", which the 2026-11-26 H200 run counted as copy/layout: docs/results.md says so).
