@@ -317,3 +317,17 @@ def test_bench_models_paths_side_by_side_with_kernels_and_the_reference_check(tm
                  "--repeats", "1", "--warmup", "1", "--threads", "1", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "demod-jbu fp32 fused differs from the fp32 reference" in err[0]
+
+
+def test_a_failing_triton_falls_back_to_the_compiled_path(monkeypatch, caplog):
+    """Where the Triton kernels fail (simulated: the launch raises a compiler error),
+    the self-check says so in one warning and the fused path uses inductor."""
+    hr_stage.triton_works.cache_clear()
+
+    def boom(spec, t, impl="compiled"):
+        raise RuntimeError("PassManager::run failed\nmore")
+    monkeypatch.setattr(hr_stage, "run", boom)
+    with caplog.at_level("WARNING"):
+        assert hr_stage.triton_works(torch.device("cpu")) is False
+    assert "Triton kernels fail here (RuntimeError: PassManager::run failed)" in caplog.text
+    hr_stage.triton_works.cache_clear()

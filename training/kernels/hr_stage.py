@@ -29,12 +29,15 @@ Demodulation itself (the eps rule) runs where the inputs are read (``training.in
 from __future__ import annotations
 
 import functools
+import logging
 
 import torch
 import torch.nn.functional as F
 
 from training.kernels import hr_math as m
 from training.kernels.spec import HRInputs, HRStage
+
+log = logging.getLogger(__name__)
 
 IMPLS = ("torch", "compiled", "triton")
 
@@ -165,8 +168,35 @@ def triton_available() -> bool:
 
 
 def default_impl(device: torch.device) -> str:
-    """The fused implementation for ``device``: triton on CUDA when available, else compiled (module doc)."""
-    return "triton" if device.type == "cuda" and triton_available() else "compiled"
+    """The fused implementation for ``device``: triton on CUDA when available and its self-check passes
+    (``triton_works``), else compiled (module doc)."""
+    return "triton" if device.type == "cuda" and triton_available() and triton_works(device) else "compiled"
+
+
+@functools.lru_cache(maxsize=None)
+def triton_works(device: torch.device) -> bool:
+    """Whether the Triton kernels compile and run on ``device`` and agree with the torch path (1e-5 of the peak)
+    on a small random frame with every switch on; when not, the reason is logged (a warning) and the fused path
+    runs ``compiled`` there (inductor), so a Triton version the kernels do not support costs speed, not a run."""
+    g = torch.Generator().manual_seed(0)
+    r = (lambda *sh: torch.rand(*sh, generator=g).to(device))
+    b, h, w, s = 1, 8, 12, 4
+    t = HRInputs(r(b, 3, h, w), r(b, 2) - 0.5, r(b, 3, h, w), r(b, 3, h * s, w * s), 1 + r(b, 1, h, w),
+                 r(b, 3, h, w), 1 + r(b, 1, h * s, w * s), r(b, 3, h * s, w * s), r(b, 3, h * s, w * s),
+                 r(b, 3, h * s, w * s))
+    spec = HRStage(s, True, True, (0.1, 0.2), True, True, True, (0.1186, 0.7628, 0.1186))
+    try:
+        got, want = run(spec, t, "triton"), hr_stage_torch(spec, t)
+        err = float((got - want).abs().max() / want.abs().max())
+    except Exception as exc:  # noqa: BLE001 - any failure of the optional kernels means: use inductor
+        log.warning("fused HR stage: the Triton kernels fail here (%s: %s); using torch.compile instead",
+                    type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "")
+        return False
+    if not err <= 1e-5:
+        log.warning("fused HR stage: the Triton kernels differ from the torch path by %.2e here; using "
+                    "torch.compile instead", err)
+        return False
+    return True
 
 
 def run(spec: HRStage, t: HRInputs, impl: str = "compiled") -> torch.Tensor:

@@ -32,20 +32,36 @@ def _ld(ptr, b, c, y, x, s, mask):
     return tl.load(ptr + b * s[0] + c * s[1] + y * s[2] + x * s[3], mask=mask, other=0.0).to(tl.float32)
 
 
+#: Bits of the hr_pixels_kernel's FLAGS (the switches of ``HRStage``, and whether a jitter is given).
+F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER = 1, 2, 4, 8, 16, 32
+
+
 @triton.jit
-def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
-                     hr_fb, hr_d, hr_n, hr_e, net, out, s_hfb, s_hd, s_hn, s_he, s_net, s_out,
-                     jit, s_jit, h, w, ww, scale, sd, sn, floor,
-                     BY_CLASS: tl.constexpr, GUIDED: tl.constexpr, HEAD: tl.constexpr, LOG1P: tl.constexpr,
-                     REMOD: tl.constexpr, HAS_JITTER: tl.constexpr, BLOCK: tl.constexpr):
+def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, params, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
+    """Steps 1-5 for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
+    depth, normal), ``hrs`` = (HR F_used, depth, normal, emission, network output, out), ``s_lrs`` / ``s_hrs``
+    their strides (b, c, y, x); ``jit`` (B, 2); ``params`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
+    sigma_normal, floor); ``FLAGS``: the F_* bits above."""
+    BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
+    GUIDED: tl.constexpr = (FLAGS & 2) != 0
+    HEAD: tl.constexpr = (FLAGS & 4) != 0
+    LOG1P: tl.constexpr = (FLAGS & 8) != 0
+    REMOD: tl.constexpr = (FLAGS & 16) != 0
+    HAS_JITTER: tl.constexpr = (FLAGS & 32) != 0
+    lr, lr_fb, lr_d, lr_n = lrs[0], lrs[1], lrs[2], lrs[3]
+    s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
+    hr_fb, hr_d, hr_n, hr_e, net, out = hrs[0], hrs[1], hrs[2], hrs[3], hrs[4], hrs[5]
+    s_hfb, s_hd, s_hn, s_he, s_net, s_out = s_hrs[0], s_hrs[1], s_hrs[2], s_hrs[3], s_hrs[4], s_hrs[5]
+    h, w, ww, sj0, sj1 = params[0], params[1], params[2], params[3], params[4]
+    scale, sd, sn, floor = params[5], params[6], params[7], params[8]
     xb = tl.program_id(0)
     y = tl.program_id(1)
     b = tl.program_id(2)
     x = xb * BLOCK + tl.arange(0, BLOCK)
     mask = x < ww
     if HAS_JITTER:
-        jx = tl.load(jit + b * s_jit[0]).to(tl.float32)
-        jy = tl.load(jit + b * s_jit[0] + s_jit[1]).to(tl.float32)
+        jx = tl.load(jit + b * sj0).to(tl.float32)
+        jy = tl.load(jit + b * sj0 + sj1).to(tl.float32)
     else:
         jx = 0.0
         jy = 0.0
@@ -114,14 +130,16 @@ def hr_pixels_kernel(lr, lr_fb, lr_d, lr_n, s_lr, s_lfb, s_ld, s_ln,
     tl.store(base + 2 * s_out[1], o2, mask=mask)
 
 
-#: Longest pixel filter the kernel takes (taps as compile-time constants); longer ones run ``fast_ops.shift_filter``.
+#: Longest pixel filter the kernel takes; longer ones run ``fast_ops.shift_filter``.
 MAX_TAPS = 5
 
 
 @triton.jit
-def pixel_filter_kernel(src, dst, s_src, s_dst, hh, ww, NT: tl.constexpr, T0: tl.constexpr, T1: tl.constexpr,
-                        T2: tl.constexpr, T3: tl.constexpr, T4: tl.constexpr, BLOCK: tl.constexpr):
-    """dst[b, c, y, x] = sum_ij T_i T_j src[b, c, clamp(y + i - k), clamp(x + j - k)], k = NT // 2 (NT <= 5)."""
+def pixel_filter_kernel(src, dst, strides, dims, taps, NT: tl.constexpr, BLOCK: tl.constexpr):
+    """dst[b, c, y, x] = sum_ij taps_i taps_j src[b, c, clamp(y + i - k), clamp(x + j - k)], k = NT // 2;
+    ``strides`` = (src's, dst's), ``dims`` = (H, W), ``taps`` MAX_TAPS floats of which the first NT are used."""
+    s_src, s_dst = strides[0], strides[1]
+    hh, ww = dims[0], dims[1]
     xb = tl.program_id(0)
     y = tl.program_id(1)
     bc = tl.program_id(2)
@@ -132,10 +150,10 @@ def pixel_filter_kernel(src, dst, s_src, s_dst, hh, ww, NT: tl.constexpr, T0: tl
     acc = tl.zeros([BLOCK], dtype=tl.float32)
     for i in tl.static_range(NT):
         yy = tl.minimum(tl.maximum(y + i - NT // 2, 0), hh - 1)
-        ti = T0 if i == 0 else (T1 if i == 1 else (T2 if i == 2 else (T3 if i == 3 else T4)))
+        ti = taps[i]
         row = tl.zeros([BLOCK], dtype=tl.float32)
         for j in tl.static_range(NT):
-            tj = T0 if j == 0 else (T1 if j == 1 else (T2 if j == 2 else (T3 if j == 3 else T4)))
+            tj = taps[j]
             xx = tl.minimum(tl.maximum(x + j - NT // 2, 0), ww - 1)
             row += tj * _ld(src, b, c, yy, xx, s_src, mask)
         acc += ti * row
@@ -157,26 +175,24 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     pick = (lambda v: v if v is not None else dummy)
     jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
     sig = spec.sigmas or (1.0, 1.0)
-    grid = (triton.cdiv(ww, BLOCK), hh, b)
-    hr_pixels_kernel[grid](
-        t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal),
-        t.lr.stride(), _strides(t.lr_fbeta), _strides(t.lr_depth), _strides(t.lr_normal),
-        pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out,
-        _strides(t.hr_fbeta), _strides(t.hr_depth), _strides(t.hr_normal), _strides(t.hr_emission),
-        _strides(t.net), out.stride(),
-        jit, jit.stride(), h, w, ww, float(s), float(sig[0]), float(sig[1]), float(spec.floor),
-        BY_CLASS=spec.by_class, GUIDED=spec.guided, HEAD=spec.head, LOG1P=spec.log1p, REMOD=spec.remod,
-        HAS_JITTER=t.jitter is not None, BLOCK=BLOCK)
+    flags = (F_BY_CLASS * spec.by_class | F_GUIDED * spec.guided | F_HEAD * spec.head | F_LOG1P * spec.log1p |
+             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None))
+    lrs = (t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal))
+    hrs = (pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out)
+    params = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor))
+    hr_pixels_kernel[(triton.cdiv(ww, BLOCK), hh, b)](
+        lrs, (t.lr.stride(),) + tuple(_strides(v) for v in (t.lr_fbeta, t.lr_depth, t.lr_normal)),
+        hrs, tuple(_strides(v) for v in (t.hr_fbeta, t.hr_depth, t.hr_normal, t.hr_emission, t.net)) + (out.stride(),),
+        jit, params, FLAGS=int(flags), BLOCK=BLOCK)
     if spec.taps is None:
         return out
     if len(spec.taps) > MAX_TAPS:
         from training.models.fast_ops import shift_filter
         return shift_filter(out, spec.taps)
     dst = torch.empty_like(out)
-    t5 = tuple(float(v) for v in spec.taps) + (0.0,) * (MAX_TAPS - len(spec.taps))
-    pixel_filter_kernel[(triton.cdiv(ww, BLOCK), hh, b * 3)](out, dst, out.stride(), dst.stride(), hh, ww,
-                                                             NT=len(spec.taps), T0=t5[0], T1=t5[1], T2=t5[2],
-                                                             T3=t5[3], T4=t5[4], BLOCK=BLOCK)
+    taps = tuple(float(v) for v in spec.taps) + (0.0,) * (MAX_TAPS - len(spec.taps))
+    pixel_filter_kernel[(triton.cdiv(ww, BLOCK), hh, b * 3)](out, dst, (out.stride(), dst.stride()), (hh, ww), taps,
+                                                             NT=len(spec.taps), BLOCK=BLOCK)
     return dst
 
 
