@@ -331,3 +331,27 @@ def test_a_failing_triton_falls_back_to_the_compiled_path(monkeypatch, caplog):
         assert hr_stage.triton_works(torch.device("cpu")) is False
     assert "Triton kernels fail here (RuntimeError: PassManager::run failed)" in caplog.text
     hr_stage.triton_works.cache_clear()
+
+
+def test_triton_kernels_compile_to_a_hopper_cubin_without_a_gpu():
+    """The Triton compiler (front end, PTX, the wheel's ptxas) takes both kernels for sm_90 with every switch
+    combination the models use: what the interpreter cannot check (types, tuples, constexpr folding)."""
+    pytest.importorskip("triton", reason="triton is not installed (Linux x86-64 wheels; the dev extra has it)")
+    if os.environ.get("TRITON_INTERPRET"):
+        pytest.skip("TRITON_INTERPRET is set: the kernels are interpreted, not compiled")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+    from triton.compiler import compile as tcompile
+
+    from training.kernels import hr_triton as k
+    s4 = ("i32",) * 4
+    target = GPUTarget("cuda", 90, 32)
+    for flags in (63, k.F_BY_CLASS | k.F_REMOD | k.F_JITTER, k.F_GUIDED | k.F_HEAD):
+        sig = {"lrs": ("*fp32",) * 4, "s_lrs": (s4,) * 4, "hrs": ("*fp32",) * 4 + ("*bf16", "*fp32"),
+               "s_hrs": (s4,) * 6, "jit": "*fp32", "params": ("i32",) * 5 + ("fp32",) * 4, "FLAGS": "constexpr",
+               "BLOCK": "constexpr"}
+        assert "cubin" in tcompile(ASTSource(k.hr_pixels_kernel, sig, {"FLAGS": flags, "BLOCK": k.BLOCK}),
+                                   target=target).asm
+    sig = {"src": "*fp32", "dst": "*fp32", "strides": (s4, s4), "dims": ("i32", "i32"), "taps": ("fp32",) * 5,
+           "NT": "constexpr", "BLOCK": "constexpr"}
+    assert "cubin" in tcompile(ASTSource(k.pixel_filter_kernel, sig, {"NT": 3, "BLOCK": k.BLOCK}), target=target).asm
