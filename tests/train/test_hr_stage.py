@@ -333,12 +333,13 @@ def test_a_failing_triton_falls_back_to_the_compiled_path(monkeypatch, caplog):
     hr_stage.triton_works.cache_clear()
 
 
-def test_triton_kernels_compile_to_a_hopper_cubin_without_a_gpu():
+def test_triton_kernels_compile_to_a_hopper_cubin_without_a_gpu(tmp_path, monkeypatch):
     """The Triton compiler (front end, PTX, the wheel's ptxas) takes both kernels for sm_90 with every switch
     combination the models use: what the interpreter cannot check (types, tuples, constexpr folding)."""
     pytest.importorskip("triton", reason="triton is not installed (Linux x86-64 wheels; the dev extra has it)")
     if os.environ.get("TRITON_INTERPRET"):
         pytest.skip("TRITON_INTERPRET is set: the kernels are interpreted, not compiled")
+    monkeypatch.setenv("TRITON_CACHE_DIR", str(tmp_path / "triton"))  # the compiled kernels land there
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
     from triton.compiler import compile as tcompile
