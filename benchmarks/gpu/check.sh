@@ -59,4 +59,4 @@ for w in 0 8; do
   cp "$W/tp$w/summary.json" "$OUT/train_summary_w$w.json"
 done
 [ "$DEV" = cuda ] && step "CUDA-only tests" 200 python3 -m pytest -v -p no:cacheprovider --durations=0 -k cuda \
-    tests/train/test_fastpath.py tests/train/test_hr_stage.py tests/cli/test_interface.py
+    tests/train/test_fastpath.py tests/cli/test_interface.py  # the fused path's CUDA tests: CHECK=speed
