@@ -54,7 +54,7 @@ DEVICE_PEAKS = {
     "RTX 3090": (35.6, 71.0, 936.0),
 }
 SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
-                 "ratio")
+                 "ratio", "kernels", "max_rel_err", "tolerance")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -97,6 +97,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
                              "without)")
+    parser.add_argument("--path", default=None, metavar="PATHS",
+                        help="speed mode: comma-separated inference paths timed side by side: reference (fp32 eager, "
+                             "= --eager-reference), fast (fast ops, autocast; the default), fused (fused HR stage, "
+                             "weights held in the precision's dtype); adds kernels per frame and each output's "
+                             "error to the fp32 reference, checked against the precision's tolerance")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -119,7 +124,7 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
         out.append((checkpoint_label(name, path) if sep else name, path if sep else name))
     if not out:
         raise BlendSRError("--models: no model given")
-    return out
+    return tuple(out)
 
 
 def checkpoint_label(name: str, path: str) -> str:
@@ -161,7 +166,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
             if ck_name != name:
                 raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
         out.append((label, load_model(spec, scale, fast=fast)))
-    return out
+    return tuple(out)
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
@@ -225,7 +230,7 @@ def _line_boxes(line, px: float) -> list:
         n = max(1, int(np.hypot(x1 - x0, y1 - y0) / (3 * px)))
         out += [Bbox.from_bounds(x0 + (x1 - x0) * k / n - px, y0 + (y1 - y0) * k / n - px, 2 * px, 2 * px)
                 for k in range(n + 1)]
-    return out
+    return tuple(out)
 
 
 def _put(ann, ox: float, oy: float, dx: int, dy: int) -> None:
@@ -317,7 +322,7 @@ def plot(rows: list[dict], path: Path, device: str, data: BenchData | None = Non
            "size": tuple(int(v) for v in fig.canvas.get_width_height())}
     fig.savefig(path)
     plt.close(fig)
-    return out
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -466,7 +471,7 @@ def run(args) -> int:
         speed_benchmark([(label, m.to(device)) for label, m in models], args.output, SpeedOptions(
             size=(w, h), precisions=tuple(precisions or ["none"]), compiles=tuple(compiles), warmup=args.warmup,
             repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-            reference=args.eager_reference, progress=not args.no_progress))
+            reference=args.eager_reference, progress=not args.no_progress, paths=_paths(args.path)))
         if args.output:
             print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
         return 0
@@ -495,6 +500,18 @@ def _bar(items, desc: str, unit: str, on: bool):
     return tqdm(items, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
 
 
+def _paths(text: str | None) -> tuple[str, ...] | None:
+    """--path: None (the fast path alone) or the paths among reference, fast, fused."""
+    if not text:
+        return None
+    from training.fastpath import PATHS
+    out = [p.strip() for p in text.split(",") if p.strip()]
+    bad = [p for p in out if p not in ("reference",) + PATHS]
+    if bad or not out:
+        raise BlendSRError(f"--path {text!r}: comma-separated reference, {', '.join(PATHS)}")
+    return tuple(out)
+
+
 def _precisions(text: str | None) -> list[str] | None:
     if not text:
         return None
@@ -503,7 +520,7 @@ def _precisions(text: str | None) -> list[str] | None:
     bad = [p for p in out if p not in PRECISIONS]
     if bad or not out:
         raise BlendSRError(f"--precision {text!r}: comma-separated {', '.join(PRECISIONS)}")
-    return out
+    return tuple(out)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -612,7 +629,8 @@ def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
     ms = statistics.median(r["times"])
     rec = {"model": r["model"], "variant": r["variant"], "params": r["params"], "macs_per_px": macs / pixels,
            "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
-           "roofline_ms": roof, "ratio": ms / roof}
+           "roofline_ms": roof, "ratio": ms / roof,
+           **{k: r[k] for k in ("kernels", "max_rel_err", "tolerance") if k in r}}
     log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
         f"x{rec['ratio']:.0f})")
     return rec
@@ -639,7 +657,10 @@ def _write_speed(out: Path, meta: dict, records: list[dict], table: str) -> None
 class SpeedOptions:
     """How ``speed_benchmark`` times: HR ``size`` (W, H) of the random inputs, the ``precisions`` and ``compiles``
     settings of the fast path, ``warmup`` and ``repeats``, the roofline's ``peak_tflops`` and ``bandwidth_gbs`` (0:
-    ``device_peaks``), ``reference`` (also the fp32 eager reference path), ``progress`` and ``log``."""
+    ``device_peaks``), ``reference`` (also the fp32 eager reference path), ``progress`` and ``log``; ``paths``
+    (``--path``): the inference paths to time (reference, fast, fused; None: fast): given, every variant's kernels
+    per frame and output error to the fp32 reference are measured too, and a variant outside its precision's
+    tolerance (``fastpath.TOLERANCE``) fails the run (BlendSRError, after the files are written)."""
 
     size: tuple[int, int] = (1920, 1080)
     precisions: tuple[str, ...] = ("none",)
@@ -651,6 +672,7 @@ class SpeedOptions:
     reference: bool = False
     progress: bool = False
     log: Callable = print
+    paths: tuple[str, ...] | None = None
 
 
 def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions = SpeedOptions()) -> dict:
@@ -668,16 +690,25 @@ def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions
     w, h = o.size
     if w % scale or h % scale:
         raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {scale}")
-    variants = ([("fp32 eager reference", None)] if o.reference else []) + \
-        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}", (p, c))
-         for c in o.compiles for p in o.precisions]  # labelled by the dtype that runs ("auto" resolved)
+    checked = o.paths is not None
+    paths = o.paths or ("fast",)
+    variants = ([("fp32 eager reference", None)] if o.reference or "reference" in paths else []) + \
+        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}{' fused' if fp == 'fused' else ''}",
+          (p, c, fp)) for fp in paths if fp != "reference" for c in o.compiles for p in o.precisions]
+    # labelled by the dtype that runs ("auto" resolved)
+    if checked and device.type == "cpu":  # inductor's C++ kernels appear in the profiler (kernels per frame)
+        import torch._inductor.config as inductor_config
+        inductor_config.cpp.enable_kernel_profile = True
     peaks = {}
     for _, v in variants:
         dt = None if v is None else amp_dtype(v[0], device)
         if dtype_label(dt) not in peaks:
             peaks[dtype_label(dt)] = device_peaks(device, dt, o.peak_tflops, o.bandwidth_gbs)
-    runners = _speed_runners(models, variants, o)
+    runners = _speed_runners(models, variants, o, checked)
     _time_runners(runners, device, o)
+    if checked:
+        for r in runners:
+            r.update(_check_variant(r, device))
     records = [_speed_record(r, peaks[r["key"]], w * h, o.log) for r in runners]
     del runners
     meta = {"device": describe_device(device), "size": [w, h], "scale": scale, "batch": 1, "warmup": o.warmup,
@@ -686,22 +717,27 @@ def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions
             "threads": torch.get_num_threads() if device.type == "cpu" else None, "peaks": peaks,
             "torch": torch.__version__}
     table = speed_table(records, [vl for vl, _ in variants])
+    if checked:
+        table += "\n\n" + check_table(records)
     o.log(table)
+    result = {**meta, "rows": records, "table": table}
     if out is not None:  # nothing written where nobody asked (blendsr bench models without -o)
         _write_speed(Path(out), meta, records, table)
-    return {**meta, "rows": records, "table": table}
+    _refuse_out_of_tolerance(records)
+    return result
 
 
-def _speed_runners(models, variants, o: SpeedOptions) -> list[dict]:
+def _speed_runners(models, variants, o: SpeedOptions, checked: bool = False) -> list[dict]:
     """Every (model, variant) prepared, with its inputs on the device in the layout the variant reads (as
-    evaluate times the forward pass), before any is timed."""
+    evaluate times the forward pass), before any is timed; ``checked``: with the fp32 eager reference's output
+    (``want``) every variant's is compared with."""
     import copy
 
     import torch
 
     from training.device import dtype_label
     from training.export import example_inputs
-    from training.fastpath import channels_last_batch, prepare_inference
+    from training.fastpath import prepare_inference, prepared_batch
     w, h = o.size
     runners = []
     for label, base in _bar(models, "prepare", "model", o.progress):
@@ -711,13 +747,15 @@ def _speed_runners(models, variants, o: SpeedOptions) -> list[dict]:
         info = {"model": label, "params": base.n_params,
                 "bytes": sum(v.nbytes for v in inputs.values()) + 3 * w * h * 4,
                 "macs": macs_per_pixel(base, inputs) * w * h if base.n_params else 0.0}
+        if checked:
+            with torch.inference_mode():
+                info["want"] = base.forward(batch).float()
         for vlabel, v in variants:
             m = copy.deepcopy(base)
             if v is not None:
-                prepare_inference(m, device, v[0], compile=v[1])
-            b = channels_last_batch(batch) if m.settings.get("channels_last") else batch
-            runners.append({**info, "variant": vlabel, "module": m, "batch": b, "times": [],
-                            "key": dtype_label(m.settings.get("dtype"))})
+                prepare_inference(m, device, v[0], compile=v[1], path=v[2])
+            runners.append({**info, "variant": vlabel, "module": m, "batch": prepared_batch(m, batch), "times": [],
+                            "key": m.settings.get("precision") or dtype_label(m.settings.get("dtype"))})
     return runners
 
 
@@ -736,6 +774,82 @@ def _time_runners(runners: list[dict], device, o: SpeedOptions) -> None:
         for _ in _bar(range(o.repeats), f"time {len(runners)} variants", "round", o.progress):
             for r in runners:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
+
+
+def _check_variant(r: dict, device) -> dict:
+    """{kernels, max_rel_err, tolerance} of a prepared variant: kernels per frame (``kernels_per_frame``) and
+    max |out - reference| / max |reference| against the fp32 reference output ``r['want']``."""
+    import torch
+
+    from training.fastpath import TOLERANCE, forward
+    with torch.inference_mode():
+        got = forward(r["module"], r["batch"]).float()
+        kernels = kernels_per_frame(lambda: forward(r["module"], r["batch"]), device)
+    want = r.pop("want")
+    err = float((got - want).abs().max()) / max(float(want.abs().max()), 1e-30)
+    return {"kernels": kernels, "max_rel_err": err, "tolerance": TOLERANCE[r["key"]]}
+
+
+#: CPU operators that only make views or allocate (no loop over data): not counted as kernels.
+_NO_WORK = {"aten::" + n for n in ("view", "as_strided", "reshape", "_reshape_alias", "permute", "expand", "slice",
+                                    "select", "unsqueeze", "squeeze", "t", "transpose", "empty", "empty_strided",
+                                    "empty_like", "alias", "detach", "lift_fresh", "_unsafe_view", "unbind",
+                                    "split", "chunk", "narrow", "contiguous", "to", "resolve_conj", "resolve_neg",
+                                    "view_as", "expand_as", "unflatten", "flatten", "set_", "zeros")}
+
+
+def kernels_per_frame(fn, device, frames: int = 2) -> float:
+    """Kernels one call of ``fn`` launches, from torch.profiler over ``frames`` calls. CUDA: device-side events
+    (kernels, memcpy, memset). CPU: the operators that loop over data, counted at the top level (an operator's own
+    sub-operators are not counted again; views and allocations are not counted) plus each C++ kernel of a
+    compiled graph (inductor's kernel profiling is switched on by the speed mode)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    _sync(device)
+    with profile(activities=acts) as prof:
+        for _ in range(frames):
+            fn()
+        _sync(device)
+    if device.type == "cuda":
+        n = sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
+        return n / frames
+
+    def counted(e):
+        return e.name.startswith("aten::") or "cpp_fused" in e.name
+
+    def top(e):
+        p = e.cpu_parent
+        while p is not None:
+            if counted(p):
+                return False
+            p = p.cpu_parent
+        return True
+    n = sum(1 for e in prof.events() if counted(e) and e.name not in _NO_WORK and top(e))
+    return n / frames
+
+
+def check_table(records: list[dict]) -> str:
+    """Markdown: per model and variant, ms, kernels per frame, ratio to the roofline and the output's error to the
+    fp32 reference against the precision's tolerance."""
+    head = ["model", "variant", "ms", "kernels/frame", "roofline ms", "ms / roofline", "max rel. error", "tolerance",
+            "ok"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in records:
+        ok = r["max_rel_err"] <= r["tolerance"]
+        lines.append("| " + " | ".join([r["model"], r["variant"], _ms(r["ms"]), f"{r['kernels']:.0f}",
+                                        f"{r['roofline_ms']:.3g}", f"{r['ratio']:.1f}", f"{r['max_rel_err']:.2e}",
+                                        f"{r['tolerance']:.0e}", "yes" if ok else "NO"]) + " |")
+    return "\n".join(lines)
+
+
+def _refuse_out_of_tolerance(records: list[dict]) -> None:
+    bad = [r for r in records if "max_rel_err" in r and not r["max_rel_err"] <= r["tolerance"]]
+    if bad:
+        r = bad[0]
+        raise BlendSRError(f"bench models: {r['model']} {r['variant']} differs from the fp32 reference by "
+                           f"{r['max_rel_err']:.2e} of its peak (tolerance {r['tolerance']:.0e}); "
+                           f"{len(bad)} variant(s) out of tolerance")
 
 
 def speed_table(records: list[dict], variants: list[str]) -> str:

@@ -87,7 +87,7 @@ class InferenceModel:
         from training.device import autocast
         dtype = amp if amp is not None else self.settings.get("dtype")
         if self.settings.get("channels_last"):
-            batch = channels_last_batch(batch)
+            batch = channels_last_batch(batch, self.settings.get("channels_last_levels", ("lr", "hr")))
         fn = self.settings.get("compiled")
         fn = self.module if fn is None else fn
         with autocast(next(iter(batch.values())).device, dtype):
@@ -148,11 +148,12 @@ class InferenceModel:
         return f"InferenceModel({self.spec!r}, {type(self.module).__name__}, {self.n_params} parameters)"
 
 
-def channels_last_batch(batch: dict) -> dict:
-    """Image tensors (B, T, C, H, W) re-laid out so that every frame (B, C, H, W) is channels-last; others as is."""
+def channels_last_batch(batch: dict, levels: tuple[str, ...] = ("lr", "hr")) -> dict:
+    """Image tensors (B, T, C, H, W) of the ``levels`` ('lr/...', 'hr/...' keys) re-laid out so that every frame
+    (B, C, H, W) is channels-last; others as is."""
     out = {}
     for k, v in batch.items():
-        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1:
+        if v.dim() == 5 and v.shape[2] > 1 and v.stride(2) != 1 and k.split("/")[0] in levels:
             v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
         out[k] = v
     return out

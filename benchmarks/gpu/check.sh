@@ -1,13 +1,22 @@
 #!/usr/bin/env bash
-# One device call for the GPU items of docs/results.md ("GPU: CUDA tests, 1080p speed, profile and training throughput"): the CUDA-only tests, the 1080p 4x speed
-# table of every model (eager, then compiled), loader against step, training throughput. Step timeouts sum to 530 s (measured on an
-# H200, 2026-11-26: 52, 69, 14+17, 28+19 s, and about 160 s for the tests, which compile 13 models),
-# inside a 600 s call. Needs the wheels of fetch_wheels.sh carried as .whl. Writes six files to $OUT (default gpu_out):
-# log.txt, speed_eager.json/.md, speed_compiled.json, train_summary_w0.json, train_summary_w8.json.
+# One device call for the GPU items of docs/results.md. Two sets, chosen by CHECK (each fits one 600 s call):
+# CHECK=all (default; "GPU: CUDA tests, 1080p speed, profile and training throughput"): the CUDA-only tests, the
+#   1080p 4x speed table of every model (eager, then compiled), loader against step, training throughput. Step
+#   timeouts sum to 530 s (measured on an H200, 2026-11-26: 52, 69, 14+17, 28+19 s, and about 160 s for the tests,
+#   which compile 13 models). Writes log.txt, speed_eager.json/.md, speed_compiled.json, train_summary_w0.json,
+#   train_summary_w8.json.
+# CHECK=speed (issue 44, the fused HR stage; docs/evaluation.md "Inference paths"): the CUDA tests of the fused path
+#   (Triton kernels against the torch path, two launches, every guided model against the CPU fp32 reference), the
+#   1080p 4x table of the guided models with --path reference,fast,fused (bf16, eager and compiled; kernels per
+#   frame, ratio to the roofline, each output checked against the fp32 reference), and the profile of the fast and
+#   fused paths. Step timeouts sum to 490 s (not yet run on a GPU). Writes log.txt, speed_paths.json/.md, profile_paths.txt.
+# Needs the wheels of fetch_wheels.sh carried as .whl (about 5 MB; the image's torch brings triton).
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
-# CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 bash benchmarks/gpu/check.sh
+#        run(command="CHECK=speed bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
+# CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 [CHECK=speed COMPILE=off] bash benchmarks/gpu/check.sh
 set -u
 OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEATS:-30}; STEPS=${STEPS:-300}
+CHECK=${CHECK:-all}; COMPILE=${COMPILE:-both}  # COMPILE: the speed set's --compile (off for a quick CPU dry run)
 mkdir -p "$OUT"; export PYTHONUNBUFFERED=1; W=/tmp/blendsr_gpu; rm -rf "$W"; mkdir -p "$W"; LOG="$OUT/log.txt"
 if [ "$DEV" = cuda ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
@@ -19,10 +28,21 @@ if [ "$DEV" = cuda ]; then
   nvidia-smi -L >> "$LOG"
 fi
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name() if torch.cuda.is_available() else 'cpu')" >> "$LOG"
+python3 -c "import triton; print('triton', triton.__version__)" >> "$LOG" 2>&1
 step() { echo "== $1 ($(date +%T))" >> "$LOG"; shift; timeout "$@" >> "$LOG" 2>&1; echo "exit $?" >> "$LOG"; }
-bench=(blendsr bench models --device "$DEV" --size "$SIZE" --precision none,bf16 --repeats "$REPEATS" --warmup 5
-       --no-progress)
-step "speed table, eager" 80 "${bench[@]}" --compile off --eager-reference -o "$W/eager"
+bench=(blendsr bench models --device "$DEV" --size "$SIZE" --repeats "$REPEATS" --warmup 5 --no-progress)
+if [ "$CHECK" = speed ]; then
+  GUIDED=demod-bilinear,demod-jbu,fusesr-fast,fusesr-l,fusesr
+  [ "$DEV" = cuda ] && step "CUDA tests of the fused path" 150 python3 -m pytest -v -p no:cacheprovider \
+      --durations=0 -k cuda tests/train/test_hr_stage.py
+  step "speed table, reference / fast / fused (bf16, eager and compiled)" 270 "${bench[@]}" --models "$GUIDED" \
+      --precision bf16 --compile "$COMPILE" --path reference,fast,fused -o "$W/paths"
+  cp "$W/paths/bench_speed.json" "$OUT/speed_paths.json" && cp "$W/paths/bench_speed.md" "$OUT/speed_paths.md"
+  step "profile, fast and fused paths (bf16, eager)" 70 python3 benchmarks/gpu/profile.py --device "$DEV" \
+      --size "$SIZE" --models "$GUIDED" --path fast,fused --repeats 10 -o "$OUT/profile_paths.txt"
+  exit 0
+fi
+step "speed table, eager" 80 "${bench[@]}" --precision none,bf16 --compile off --eager-reference -o "$W/eager"
 cp "$W/eager/bench_speed.json" "$OUT/speed_eager.json" && cp "$W/eager/bench_speed.md" "$OUT/speed_eager.md"
 step "speed table, compiled (the targets' models, bf16)" 120 "${bench[@]}" --compile on -o "$W/compiled" \
     --models fusesr-fast,fusesr-l,fusesr,demod-bilinear,demod-jbu --precision bf16
@@ -39,4 +59,4 @@ for w in 0 8; do
   cp "$W/tp$w/summary.json" "$OUT/train_summary_w$w.json"
 done
 [ "$DEV" = cuda ] && step "CUDA-only tests" 200 python3 -m pytest -v -p no:cacheprovider --durations=0 -k cuda \
-    tests/train/test_fastpath.py tests/cli/test_interface.py
+    tests/train/test_fastpath.py tests/cli/test_interface.py  # the fused path's CUDA tests: CHECK=speed

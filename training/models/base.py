@@ -36,6 +36,9 @@ class SRModel(nn.Module):
     #: The inference fast path (``training.models.fast_ops``; ``training.fastpath.prepare_inference`` sets it):
     #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
     fast_ops = False
+    #: The fused HR stage (``training.kernels.hr_stage``; ``prepare_inference(..., hr_stage="fused")`` sets it): None
+    #: for the reference/fast-ops path, else the implementation (``hr_stage.IMPLS``) that ``fused_hr`` runs.
+    hr_impl: str | None = None
 
     def __init__(self, scale: float, **keys):
         """A model upscaling by ``scale``. ``keys``: the shared ``[model]`` keys (``training.config.ModelConfig``:
@@ -156,6 +159,24 @@ class SRModel(nn.Module):
         guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
                   for lv in ("lr", "hr")]
         return guided(x, *guides, scale, base, jitter, classes)
+
+    def fused_hr(self, batch: dict, lr: torch.Tensor, jitter: torch.Tensor | None, net: torch.Tensor | None = None,
+                 demodulated: bool = True) -> torch.Tensor:
+        """The HR stage in one fused pass (``training.kernels.hr_stage``, implementation ``self.hr_impl``): the
+        output ``upsample_input(lr, ...)`` (with ``net``: ReLU(net + it), inverse-transformed) followed, for a
+        ``demodulated`` model, by ``remodulate`` would give, within float rounding."""
+        from training.kernels.hr_stage import HRInputs, HRStage, run
+        remod = bool(demodulated)
+        spec = HRStage(scale=int(self.scale), by_class=bool(demodulated and self.by_class), guided=bool(self.guided),
+                       sigmas=tuple(float(v) for v in self.guide_sigmas) if self.guided else None,
+                       head=net is not None, log1p=net is not None and getattr(self, "transform", "") == "log1p",
+                       remod=remod, taps=self.remod_taps if remod else None)
+        get = (lambda k: current(batch, k) if k in batch else None)
+        t = HRInputs(lr, jitter, get("lr/fbeta_used"), get("hr/fbeta_used"), get("lr/depth"), get("lr/normal"),
+                     get("hr/depth"), get("hr/normal"), get("hr/emission") if remod else None, net)
+        if remod and t.hr_emission is None:
+            t = t._replace(hr_emission=current(batch, "hr/emission"))  # the optional key's zeros
+        return run(spec, t, self.hr_impl)
 
     def demod_base(self, batch: dict, jitter: torch.Tensor | None, scale: float | None = None) -> torch.Tensor:
         """The residual base of the option ``residual`` (``options.ResidualOptions``; not in the papers): T(L_D^LR

@@ -22,5 +22,7 @@ class DemodBilinear(SRModel):
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
 
     def forward(self, batch):
+        if self.hr_impl:  # the fused HR stage (training.kernels.hr_stage): the same math in one pass
+            return self.fused_hr(batch, current(batch, "lr/irradiance"), self.frame_jitter(batch))
         irr = self.upsample_input(current(batch, "lr/irradiance"), batch, self.frame_jitter(batch))
         return self.remodulate(irr, batch)

@@ -109,7 +109,9 @@ class FuseSRFrame(SRModel):
     def output(self, y: torch.Tensor, color: torch.Tensor, batch: dict, j_t) -> torch.Tensor:
         """SR from the refined network output ``y`` (B, 3, H, W) in the transformed space: plus the upsampled
         transformed LR colour ``color`` (B, 3, h, w) with ``residual``, ReLU, T^-1, and the remodulation with
-        ``demodulation``."""
+        ``demodulation``; with ``hr_impl`` (the fused path) all of it in one fused pass (``training.kernels``)."""
+        if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
+            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + self.upsample_input(color, batch, j_t, self.demod)
         out = inverse_transform(F.relu(y).float(), self.transform)

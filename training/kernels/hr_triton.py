@@ -1,0 +1,235 @@
+"""Triton kernels of the fused HR stage (``hr_stage``; CUDA): two launches per frame.
+
+``hr_pixels_kernel``: steps 1-5 of ``hr_stage``'s module doc for a block of HR pixels of one row, reading the raw
+LR buffers at the 4 bilinear taps (LR guides and classes computed per tap: no LR pre-pass) and the HR buffers once;
+``pixel_filter_kernel``: the separable pixel filter as its full 2-D stencil (taps x taps loads, L1-resident). Every
+tensor is addressed through its strides, so NCHW and channels-last inputs run without a layout copy. The per-pixel
+math is ``hr_math``'s helpers, jitted with ``ops`` = ``triton.language`` (``hr_math.jit_for_triton``): the same
+code the CPU path runs. Tests run both kernels under ``TRITON_INTERPRET=1`` on the CPU against the torch path
+and compile them to an sm_90 cubin (tests/train/test_hr_stage.py). Arguments are packed in tuples (Triton >= 3.3)
+and the switches in one ``FLAGS`` constexpr.
+"""
+from __future__ import annotations
+
+import torch
+import triton
+import triton.language as tl
+
+from training.kernels import hr_math
+from training.kernels.spec import HRInputs, HRStage
+
+_h = hr_math.jit_for_triton()
+tap_position, tap_weight, tap_index = _h["tap_position"], _h["tap_weight"], _h["tap_index"]
+demodulated, guide_depth, guide_normal = _h["demodulated"], _h["guide_depth"], _h["guide_normal"]
+similarity, class_or_plain, guided_or_fallback = _h["similarity"], _h["class_or_plain"], _h["guided_or_fallback"]
+head, inverse_log1p, remodulate = _h["head"], _h["inverse_log1p"], _h["remodulate"]
+
+BLOCK = 128
+
+
+@triton.jit
+def _ld(ptr, b, c, y, x, s, mask):
+    """float32 value of ptr[b, c, y, x] with strides s = (sb, sc, sy, sx)."""
+    return tl.load(ptr + b * s[0] + c * s[1] + y * s[2] + x * s[3], mask=mask, other=0.0).to(tl.float32)
+
+
+#: Bits of the hr_pixels_kernel's FLAGS (the switches of ``HRStage``, and whether a jitter is given).
+F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER = 1, 2, 4, 8, 16, 32
+
+
+@triton.jit
+def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, params, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
+    """Steps 1-5 for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
+    depth, normal), ``hrs`` = (HR F_used, depth, normal, emission, network output, out), ``s_lrs`` / ``s_hrs``
+    their strides (b, c, y, x); ``jit`` (B, 2); ``params`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
+    sigma_normal, floor); ``FLAGS``: the F_* bits above."""
+    BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
+    GUIDED: tl.constexpr = (FLAGS & 2) != 0
+    HEAD: tl.constexpr = (FLAGS & 4) != 0
+    LOG1P: tl.constexpr = (FLAGS & 8) != 0
+    REMOD: tl.constexpr = (FLAGS & 16) != 0
+    HAS_JITTER: tl.constexpr = (FLAGS & 32) != 0
+    lr, lr_fb, lr_d, lr_n = lrs[0], lrs[1], lrs[2], lrs[3]
+    s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
+    hr_fb, hr_d, hr_n, hr_e, net, out = hrs[0], hrs[1], hrs[2], hrs[3], hrs[4], hrs[5]
+    s_hfb, s_hd, s_hn, s_he, s_net, s_out = s_hrs[0], s_hrs[1], s_hrs[2], s_hrs[3], s_hrs[4], s_hrs[5]
+    h, w, ww, sj0, sj1 = params[0], params[1], params[2], params[3], params[4]
+    scale, sd, sn, floor = params[5], params[6], params[7], params[8]
+    xb = tl.program_id(0)
+    y = tl.program_id(1)
+    b = tl.program_id(2)
+    x = xb * BLOCK + tl.arange(0, BLOCK)
+    mask = x < ww
+    if HAS_JITTER:
+        jx = tl.load(jit + b * sj0).to(tl.float32)
+        jy = tl.load(jit + b * sj0 + sj1).to(tl.float32)
+    else:
+        jx = 0.0
+        jy = 0.0
+    ux = tap_position(x.to(tl.float32), scale, jx)
+    uy = tap_position(y.to(tl.float32), scale, jy)
+    fx = tl.floor(ux)
+    fy = tl.floor(uy)
+    if BY_CLASS:
+        cls = demodulated(_ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_fb, b, 1, y, x, s_hfb, mask),
+                          _ld(hr_fb, b, 2, y, x, s_hfb, mask))
+    if GUIDED:
+        gh0 = guide_depth(_ld(hr_d, b, 0, y, x, s_hd, mask), sd)
+        gh1 = guide_normal(_ld(hr_n, b, 0, y, x, s_hn, mask), sn)
+        gh2 = guide_normal(_ld(hr_n, b, 1, y, x, s_hn, mask), sn)
+        gh3 = guide_normal(_ld(hr_n, b, 2, y, x, s_hn, mask), sn)
+    zero = tl.zeros([BLOCK], dtype=tl.float32)
+    p0, p1, p2 = zero, zero, zero
+    c0, c1, c2, cden = zero, zero, zero, zero
+    g0, g1, g2, gden = zero, zero, zero, zero
+    for dy in tl.static_range(2):
+        fyd = fy + dy
+        wy = tap_weight(uy, fyd)
+        iy = tap_index(fyd, h).to(tl.int32)
+        for dx in tl.static_range(2):
+            fxd = fx + dx
+            wb = wy * tap_weight(ux, fxd)
+            ix = tap_index(fxd, w).to(tl.int32)
+            v0 = _ld(lr, b, 0, iy, ix, s_lr, mask)
+            v1 = _ld(lr, b, 1, iy, ix, s_lr, mask)
+            v2 = _ld(lr, b, 2, iy, ix, s_lr, mask)
+            p0, p1, p2 = p0 + wb * v0, p1 + wb * v1, p2 + wb * v2
+            if BY_CLASS:
+                same = demodulated(_ld(lr_fb, b, 0, iy, ix, s_lfb, mask), _ld(lr_fb, b, 1, iy, ix, s_lfb, mask),
+                                   _ld(lr_fb, b, 2, iy, ix, s_lfb, mask)) == cls
+                wc = tl.where(same, wb, 0.0)
+                c0, c1, c2, cden = c0 + wc * v0, c1 + wc * v1, c2 + wc * v2, cden + wc
+            if GUIDED:
+                e0 = guide_depth(_ld(lr_d, b, 0, iy, ix, s_ld, mask), sd) - gh0
+                e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), sn) - gh1
+                e2 = guide_normal(_ld(lr_n, b, 1, iy, ix, s_ln, mask), sn) - gh2
+                e3 = guide_normal(_ld(lr_n, b, 2, iy, ix, s_ln, mask), sn) - gh3
+                wg = wb * similarity(e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3)
+                if BY_CLASS:
+                    wg = tl.where(same, wg, 0.0)
+                g0, g1, g2, gden = g0 + wg * v0, g1 + wg * v1, g2 + wg * v2, gden + wg
+    o0, o1, o2 = p0, p1, p2
+    if BY_CLASS:
+        o0, o1, o2 = class_or_plain(c0, cden, o0), class_or_plain(c1, cden, o1), class_or_plain(c2, cden, o2)
+    if GUIDED:
+        o0 = guided_or_fallback(g0, gden, o0, floor)
+        o1 = guided_or_fallback(g1, gden, o1, floor)
+        o2 = guided_or_fallback(g2, gden, o2, floor)
+    if HEAD:
+        o0 = head(_ld(net, b, 0, y, x, s_net, mask), o0)
+        o1 = head(_ld(net, b, 1, y, x, s_net, mask), o1)
+        o2 = head(_ld(net, b, 2, y, x, s_net, mask), o2)
+        if LOG1P:
+            o0, o1, o2 = inverse_log1p(o0), inverse_log1p(o1), inverse_log1p(o2)
+    if REMOD:
+        o0 = remodulate(o0, _ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_e, b, 0, y, x, s_he, mask))
+        o1 = remodulate(o1, _ld(hr_fb, b, 1, y, x, s_hfb, mask), _ld(hr_e, b, 1, y, x, s_he, mask))
+        o2 = remodulate(o2, _ld(hr_fb, b, 2, y, x, s_hfb, mask), _ld(hr_e, b, 2, y, x, s_he, mask))
+    base = out + b * s_out[0] + y * s_out[2] + x * s_out[3]
+    tl.store(base, o0, mask=mask)
+    tl.store(base + s_out[1], o1, mask=mask)
+    tl.store(base + 2 * s_out[1], o2, mask=mask)
+
+
+#: Longest pixel filter the kernel takes; longer ones run ``fast_ops.shift_filter``.
+MAX_TAPS = 5
+
+
+@triton.jit
+def pixel_filter_kernel(src, dst, strides, dims, taps, NT: tl.constexpr, BLOCK: tl.constexpr):
+    """dst[b, c, y, x] = sum_ij taps_i taps_j src[b, c, clamp(y + i - k), clamp(x + j - k)], k = NT // 2;
+    ``strides`` = (src's, dst's), ``dims`` = (H, W), ``taps`` MAX_TAPS floats of which the first NT are used."""
+    s_src, s_dst = strides[0], strides[1]
+    hh, ww = dims[0], dims[1]
+    xb = tl.program_id(0)
+    y = tl.program_id(1)
+    bc = tl.program_id(2)
+    b = bc // 3
+    c = bc % 3
+    x = xb * BLOCK + tl.arange(0, BLOCK)
+    mask = x < ww
+    acc = tl.zeros([BLOCK], dtype=tl.float32)
+    for i in tl.static_range(NT):
+        yy = tl.minimum(tl.maximum(y + i - NT // 2, 0), hh - 1)
+        ti = taps[i]
+        row = tl.zeros([BLOCK], dtype=tl.float32)
+        for j in tl.static_range(NT):
+            tj = taps[j]
+            xx = tl.minimum(tl.maximum(x + j - NT // 2, 0), ww - 1)
+            row += tj * _ld(src, b, c, yy, xx, s_src, mask)
+        acc += ti * row
+    tl.store(dst + b * s_dst[0] + c * s_dst[1] + y * s_dst[2] + x * s_dst[3], acc, mask=mask)
+
+
+def _strides(t: torch.Tensor | None) -> tuple[int, int, int, int]:
+    return tuple(t.stride()) if t is not None else (0, 0, 0, 0)
+
+
+def hr_stage_triton(spec, t) -> torch.Tensor:
+    """``hr_stage.hr_stage_torch``'s result with the two kernels: (B, 3, H, W) float32 (channels-last when the
+    network output or the HR F_used is)."""
+    b, _, h, w = t.lr.shape
+    s = spec.scale
+    hh, ww = h * s, w * s
+    out = torch.empty(b, 3, hh, ww, device=t.lr.device, dtype=torch.float32, memory_format=_out_format(list(t)))
+    dummy = t.lr
+    pick = (lambda v: v if v is not None else dummy)
+    jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
+    sig = spec.sigmas or (1.0, 1.0)
+    flags = (F_BY_CLASS * spec.by_class | F_GUIDED * spec.guided | F_HEAD * spec.head | F_LOG1P * spec.log1p |
+             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None))
+    lrs = (t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal))
+    hrs = (pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out)
+    params = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor))
+    hr_pixels_kernel[(triton.cdiv(ww, BLOCK), hh, b)](
+        lrs, (t.lr.stride(),) + tuple(_strides(v) for v in (t.lr_fbeta, t.lr_depth, t.lr_normal)),
+        hrs, tuple(_strides(v) for v in (t.hr_fbeta, t.hr_depth, t.hr_normal, t.hr_emission, t.net)) + (out.stride(),),
+        jit, params, FLAGS=int(flags), BLOCK=BLOCK)
+    if spec.taps is None:
+        return out
+    if len(spec.taps) > MAX_TAPS:
+        from training.models.fast_ops import shift_filter
+        return shift_filter(out, spec.taps)
+    dst = torch.empty_like(out)
+    taps = tuple(float(v) for v in spec.taps) + (0.0,) * (MAX_TAPS - len(spec.taps))
+    pixel_filter_kernel[(triton.cdiv(ww, BLOCK), hh, b * 3)](out, dst, (out.stride(), dst.stride()), (hh, ww), taps,
+                                                             NT=len(spec.taps), BLOCK=BLOCK)
+    return dst
+
+
+def _spec_params(spec) -> list[float]:
+    """``HRStage`` as the flat float list the custom op takes (``_spec_of`` inverts it)."""
+    sig = spec.sigmas or (1.0, 1.0)
+    return [float(spec.scale), float(spec.by_class), float(spec.guided), float(sig[0]), float(sig[1]),
+            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), *map(float, spec.taps or ())]
+
+
+def _spec_of(params: list[float]):
+    p = list(params)
+    return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
+                   sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
+                   taps=tuple(p[9:]) or None, floor=p[8])
+
+
+def _out_format(tensors: list) -> torch.memory_format:
+    """The output's layout: channels-last when the network output (or else the HR F_used) is."""
+    net, hr_fbeta = tensors[9], tensors[3]
+    like = net if net is not None else (hr_fbeta if hr_fbeta is not None else tensors[0])
+    cl = like.dim() == 4 and like.shape[1] > 1 and like.is_contiguous(memory_format=torch.channels_last)
+    return torch.channels_last if cl else torch.contiguous_format
+
+
+@torch.library.custom_op("blendsr::hr_stage", mutates_args=())
+def hr_stage_op(tensors: list[torch.Tensor | None], params: list[float]) -> torch.Tensor:
+    """The fused HR stage as one opaque operator (``hr_stage.HRInputs`` as a list, the ``HRStage`` as
+    ``_spec_params``): torch.compile keeps it as an external call inside its graph (and its CUDA graphs) instead of
+    tracing into the launches."""
+    return hr_stage_triton(_spec_of(params), HRInputs(*tensors))
+
+
+@hr_stage_op.register_fake
+def _(tensors, params):
+    lr = tensors[0]
+    s = int(params[0])
+    return torch.empty(lr.shape[0], 3, lr.shape[2] * s, lr.shape[3] * s, device=lr.device, dtype=torch.float32,
+                       memory_format=_out_format(tensors))
