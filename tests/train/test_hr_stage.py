@@ -281,9 +281,9 @@ def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
     ref = load_model(f"pretrained:{name}", 4, fast=False)
     src = ClipFrames(clip, eps=ref.demod_eps)
     inputs = model_inputs(ref, src, src.frames[-1])
-    batch = {k: torch.from_numpy(v) for k, v in inputs.items() if k in set(ref.needs())}
+    batch = {k: torch.from_numpy(v) for k, v in inputs.items() if k in set(ref.module.needs())}
     with torch.inference_mode():
-        want = ref(batch)
+        want = ref.forward(batch)
         fused = prepare_inference(load_model(f"pretrained:{name}", 4, fast=False), path="fused")
         got = forward(fused, batch)
     assert _rel(got, want) <= TOL["none"], _rel(got, want)
