@@ -28,7 +28,7 @@ in a town looks at its streets rather than at an empty field.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -388,19 +388,31 @@ def check_level_scale(geom: LevelGeometry, kind: str, fps: float, region: Region
                         f"that keeps {rules.clearance_m:g} m from every surface (is its unit scale right?)")
 
 
-def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
-                    region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
-    """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
-    ``rules.tries`` draws. ``fov``: the camera's (horizontal, vertical) half angles in radians."""
-    hfov, vfov = fov
-    if kind not in LEVEL_KINDS:
-        raise BlendSRError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
-    if region is None:
-        lo, hi = geom.content_bounds()
-        region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
-    check_level_scale(geom, kind, fps, region, rules)
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, LEVEL_KINDS.index(kind), 7])
-    reasons: dict[str, int] = {}
+#: The lower pitch bound of a second round of candidates when none of the first frames near and far content (a
+#: small interior seen at eye height: the floor near the camera gives the near content).
+STEEP_PITCH_DEG = -30.0
+
+
+@dataclass(frozen=True)
+class _Drawing:
+    """What every candidate path of one ``plan_level_path`` call shares (the level, the path's kind, length and
+    camera, the region, the seeded generator)."""
+    geom: LevelGeometry
+    kind: str
+    n_frames: int
+    fps: float
+    seed: int
+    fov: tuple[float, float]
+    region: Region
+    rng: np.random.Generator
+
+
+def _candidates(draw: _Drawing, rules: PathRules, reasons: dict[str, int]) -> list[LevelPath]:
+    """Draw paths under ``rules`` until ``rules.candidates`` meet every rule (three times as many while none of them
+    shows near and far content) or ``rules.tries`` are spent; each refused draw's reason is counted in ``reasons``."""
+    geom, kind, n_frames, fps, seed, region = draw.geom, draw.kind, draw.n_frames, draw.fps, draw.seed, draw.region
+    hfov, vfov = draw.fov
+    rng = draw.rng
     found: list[LevelPath] = []
     for t in range(rules.tries):
         drawn, why = _draw(geom, kind, n_frames, fps, region, rng, rules)
@@ -446,6 +458,27 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
         found.append(LevelPath(kind, eyes, targets, report))
         if len(found) >= rules.candidates and (_has_depth(choose_path(found)) or len(found) >= 3 * rules.candidates):
             break  # enough candidates, or three times as many when none of them shows near and far content
+    return found
+
+
+def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                    region: Region | None = None, rules: PathRules = PathRules()) -> LevelPath:
+    """Draw seeded ``kind`` paths of ``n_frames`` eyes until one meets every rule (module doc); PathError after
+    ``rules.tries`` draws. ``fov``: the camera's (horizontal, vertical) half angles in radians."""
+    hfov, vfov = fov
+    if kind not in LEVEL_KINDS:
+        raise BlendSRError(f"level camera {kind!r}: choose one of {', '.join(LEVEL_KINDS)}")
+    if region is None:
+        lo, hi = geom.content_bounds()
+        region = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+    check_level_scale(geom, kind, fps, region, rules)
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, LEVEL_KINDS.index(kind), 7])
+    draw = _Drawing(geom, kind, n_frames, fps, seed, (hfov, vfov), region, rng)
+    reasons: dict[str, int] = {}
+    found = _candidates(draw, rules, reasons)
+    if found and not _has_depth(choose_path(found)):  # a small interior: look further down, the floor in view
+        steeper = replace(rules, pitch_deg=(min(rules.pitch_deg[0], STEEP_PITCH_DEG), rules.pitch_deg[1]))
+        found += _candidates(draw, steeper, reasons)
     if found:
         return choose_path(found)
     ranked = sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))
