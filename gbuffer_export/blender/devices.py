@@ -10,10 +10,7 @@ the result, so later renders print nothing.
 from __future__ import annotations
 
 import logging
-import os
 import re
-import sys
-import tempfile
 
 import bpy
 
@@ -37,20 +34,10 @@ def probe_devices() -> list[str]:
         prefs = bpy.context.preferences.addons["cycles"].preferences
     except (KeyError, AttributeError):
         return []
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = {fd: os.dup(fd) for fd in (1, 2)}
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        for fd in saved:
-            os.dup2(tmp.fileno(), fd)
-        try:
-            devices = prefs.get_devices() or []
-        finally:
-            for fd, keep in saved.items():
-                os.dup2(keep, fd)
-                os.close(keep)
-        tmp.seek(0)
-        text = tmp.read().decode(errors="replace")
+    from .fds import captured
+    with captured() as out:
+        devices = prefs.get_devices() or []
+    text = out.text
     kept = [ln for ln in text.splitlines() if ln.strip() and not ABSENT_GPU_LIBRARY.search(ln)]
     if kept:
         log.warning("%s", "\n".join(kept))  # what Cycles said besides the absent-GPU-library lines

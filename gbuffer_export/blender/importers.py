@@ -14,9 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
-import sys
-import tempfile
 from pathlib import Path
 
 import bpy
@@ -66,27 +63,11 @@ def _operator(fmt: SceneFormat, path: Path):
 def _importer_output(what: str):
     """Capture descriptors 1 and 2 while an importer runs (it prints a line per missing image, per object, per
     timing): kept as one debug record (``blendsr -v``); ``BLENDSR_VERBOSE=1`` lets it through as it is."""
-    if os.environ.get("BLENDSR_VERBOSE"):
+    from .fds import captured
+    with captured() as out:
         yield
-        return
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = {fd: os.dup(fd) for fd in (1, 2)}
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        for fd in saved:
-            os.dup2(tmp.fileno(), fd)
-        try:
-            yield
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            for fd, keep in saved.items():
-                os.dup2(keep, fd)
-                os.close(keep)
-            tmp.seek(0)
-            text = tmp.read().decode(errors="replace").strip()
-            if text:
-                log.debug("%s importer said:\n%s", what, text)
+    if out.text.strip():
+        log.debug("%s importer said:\n%s", what, out.text.strip())
 
 
 def load_level(path: Path):

@@ -92,7 +92,6 @@ class LevelGeometry:
         ids = np.unique(self.owner)
         if len(ids) < 2:
             return np.ones(len(c), dtype=bool)
-        boxes = {i: (c[self.owner == i].min(axis=0), c[self.owner == i].max(axis=0)) for i in ids}
         tri = self.mesh.triangles
         full = {i: (tri[self.owner == i].reshape(-1, 3).min(axis=0), tri[self.owner == i].reshape(-1, 3).max(axis=0))
                 for i in ids}

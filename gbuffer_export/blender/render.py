@@ -264,19 +264,9 @@ LIGHT_PATH_KEYS = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmis
 @contextlib.contextmanager
 def quiet_stdout():
     """Silence Blender's per-render log lines on file descriptor 1 (set BLENDSR_VERBOSE=1 to keep them)."""
-    if os.environ.get("BLENDSR_VERBOSE"):
+    from .fds import captured
+    with captured((1,)):
         yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
 
 
 def _check_disk_after_write(path: Path, scene) -> None:

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
-import sys
 from pathlib import Path
 
 import bpy
@@ -320,22 +318,9 @@ def apply_variation(scene, variation: dict | None) -> dict:
 def _quiet_fds():
     """Silence file descriptors 1 and 2: probing a GPU backend that is absent makes Cycles print a warning
     ("CUEW initialization failed") into the terminal and its progress bars (BLENDSR_VERBOSE=1 keeps it)."""
-    if os.environ.get("BLENDSR_VERBOSE"):
+    from .fds import captured
+    with captured():
         yield
-        return
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            os.dup2(devnull.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
-        for fd in saved:
-            os.close(fd)
 
 
 def _gpu_devices(kind: str) -> list:
