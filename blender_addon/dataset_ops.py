@@ -14,7 +14,7 @@ from pathlib import Path
 import bpy
 
 from . import jobs, library, mapping
-from .operators import _JobOperator, save_scene_copy, scene_fingerprint
+from .operators import _JobOperator, publish_scene_copy, scene_fingerprint
 
 #: What may lie in a dataset folder before its first index is written (a start that stopped early).
 OWN_ENTRIES = {mapping.SPEC_FILE, mapping.SCENE_DIR, "dataset.json", "clips", "jobs", "logs", ".lock"}
@@ -37,7 +37,6 @@ def place_scene_copy(root: Path, stem: str, job_dir: Path, fingerprint: str) -> 
     have the same fingerprint (DatasetError otherwise); before, it is replaced by the current state."""
     import json
 
-    from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import DatasetError
     dest = root / mapping.SCENE_DIR / f"{stem}.blend"
     meta = dest.with_suffix(".json")
@@ -50,14 +49,7 @@ def place_scene_copy(root: Path, stem: str, job_dir: Path, fingerprint: str) -> 
             raise DatasetError(f"{dest}: the open scene differs from the copy this dataset's clips were rendered "
                                "from; render into another folder (or delete the dataset to start again)")
         return dest
-    tmp = Path(job_dir) / f"{stem}.blend"
-    save_scene_copy(tmp)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    part = dest.with_name(f".{dest.name}.part{os.getpid()}")
-    shutil.copyfile(tmp, part)
-    os.replace(part, dest)
-    write_json_atomic(meta, {"fingerprint": fingerprint, "source": bpy.data.filepath or None})
-    return dest
+    return publish_scene_copy(dest, Path(job_dir), fingerprint)
 
 
 def write_spec(spec, path: Path) -> None:

@@ -57,7 +57,7 @@ def scene_file_for_clip(scene, output: Path, job_dir: Path) -> Path:
     folder, the copy kept) once it has one."""
     import json
 
-    from gbuffer_export.clip import MANIFEST, ClipError, write_json_atomic
+    from gbuffer_export.clip import MANIFEST, ClipError
     name = Path(bpy.data.filepath).name if bpy.data.filepath else "untitled.blend"
     dest = Path(output) / CLIP_SCENE_DIR / name
     meta = dest.with_suffix(".json")
@@ -72,13 +72,20 @@ def scene_file_for_clip(scene, output: Path, job_dir: Path) -> Path:
         raise ClipError(f"{output}: the open scene differs from the copy this clip was rendered from "
                         f"({CLIP_SCENE_DIR}/{name}: moved, added or edited objects, materials, lights or camera); "
                         "choose another output folder, or delete the clip to start again")
-    tmp = Path(job_dir) / name
+    return publish_scene_copy(dest, Path(job_dir), fingerprint)
+
+
+def publish_scene_copy(dest: Path, job_dir: Path, fingerprint: str) -> Path:
+    """Save the open scene to ``job_dir``, then move it to ``dest`` atomically (a sibling ``.part`` file renamed),
+    with ``dest``'s ``.json`` holding its fingerprint and the file it came from; returns ``dest``."""
+    from gbuffer_export.clip import write_json_atomic
+    tmp = job_dir / dest.name
     save_scene_copy(tmp)
     dest.parent.mkdir(parents=True, exist_ok=True)
     part = dest.with_name(f".{dest.name}.part{os.getpid()}")
     shutil.copyfile(tmp, part)
     os.replace(part, dest)
-    write_json_atomic(meta, {"fingerprint": fingerprint, "source": bpy.data.filepath or None})
+    write_json_atomic(dest.with_suffix(".json"), {"fingerprint": fingerprint, "source": bpy.data.filepath or None})
     return dest
 
 
