@@ -124,7 +124,7 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
         out.append((checkpoint_label(name, path) if sep else name, path if sep else name))
     if not out:
         raise BlendSRError("--models: no model given")
-    return tuple(out)
+    return out
 
 
 def checkpoint_label(name: str, path: str) -> str:
