@@ -166,7 +166,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
             if ck_name != name:
                 raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
         out.append((label, load_model(spec, scale, fast=fast)))
-    return tuple(out)
+    return out
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
@@ -230,7 +230,7 @@ def _line_boxes(line, px: float) -> list:
         n = max(1, int(np.hypot(x1 - x0, y1 - y0) / (3 * px)))
         out += [Bbox.from_bounds(x0 + (x1 - x0) * k / n - px, y0 + (y1 - y0) * k / n - px, 2 * px, 2 * px)
                 for k in range(n + 1)]
-    return tuple(out)
+    return out
 
 
 def _put(ann, ox: float, oy: float, dx: int, dy: int) -> None:
@@ -322,7 +322,7 @@ def plot(rows: list[dict], path: Path, device: str, data: BenchData | None = Non
            "size": tuple(int(v) for v in fig.canvas.get_width_height())}
     fig.savefig(path)
     plt.close(fig)
-    return tuple(out)
+    return out
 
 
 @dataclass(frozen=True)
@@ -520,7 +520,7 @@ def _precisions(text: str | None) -> list[str] | None:
     bad = [p for p in out if p not in PRECISIONS]
     if bad or not out:
         raise BlendSRError(f"--precision {text!r}: comma-separated {', '.join(PRECISIONS)}")
-    return tuple(out)
+    return out
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -696,19 +696,22 @@ def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions
         [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}{' fused' if fp == 'fused' else ''}",
           (p, c, fp)) for fp in paths if fp != "reference" for c in o.compiles for p in o.precisions]
     # labelled by the dtype that runs ("auto" resolved)
-    if checked and device.type == "cpu":  # inductor's C++ kernels appear in the profiler (kernels per frame)
-        import torch._inductor.config as inductor_config
-        inductor_config.cpp.enable_kernel_profile = True
     peaks = {}
     for _, v in variants:
         dt = None if v is None else amp_dtype(v[0], device)
         if dtype_label(dt) not in peaks:
             peaks[dtype_label(dt)] = device_peaks(device, dt, o.peak_tflops, o.bandwidth_gbs)
-    runners = _speed_runners(models, variants, o, checked)
-    _time_runners(runners, device, o)
-    if checked:
-        for r in runners:
-            r.update(_check_variant(r, device))
+    import contextlib
+    profiled = contextlib.nullcontext()
+    if checked and device.type == "cpu":  # inductor's C++ kernels appear in the profiler (kernels per frame), for
+        import torch._inductor.config as inductor_config  # this run only: the setting is process-wide
+        profiled = inductor_config.patch({"cpp.enable_kernel_profile": True})
+    with profiled:
+        runners = _speed_runners(models, variants, o, checked)
+        _time_runners(runners, device, o)
+        if checked:
+            for r in runners:
+                r.update(_check_variant(r, device))
     records = [_speed_record(r, peaks[r["key"]], w * h, o.log) for r in runners]
     del runners
     meta = {"device": describe_device(device), "size": [w, h], "scale": scale, "batch": 1, "warmup": o.warmup,

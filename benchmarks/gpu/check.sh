@@ -34,7 +34,7 @@ bench=(blendsr bench models --device "$DEV" --size "$SIZE" --repeats "$REPEATS" 
 if [ "$CHECK" = speed ]; then
   GUIDED=demod-bilinear,demod-jbu,fusesr-fast,fusesr-l,fusesr
   [ "$DEV" = cuda ] && step "CUDA tests of the fused path" 150 python3 -m pytest -v -p no:cacheprovider \
-      --durations=0 -k cuda tests/train/test_hr_stage.py
+      --durations=0 -k cuda tests/train/hr_stage_cases.py
   step "speed table, reference / fast / fused (bf16, eager and compiled)" 270 "${bench[@]}" --models "$GUIDED" \
       --precision bf16 --compile "$COMPILE" --path reference,fast,fused -o "$W/paths"
   cp "$W/paths/bench_speed.json" "$OUT/speed_paths.json" && cp "$W/paths/bench_speed.md" "$OUT/speed_paths.md"

@@ -5,7 +5,7 @@ tensors; ``hr_stage.hr_stage_torch``, the CPU path that inductor compiles) by de
 copies ``jit_for_triton`` makes for the Triton kernels (``hr_triton``). The primitives used are those both offer
 with the same meaning: exp, log, abs, floor, where, maximum, minimum. No Python control flow on values, no lists.
 
-The references these reproduce (tests/train/test_hr_stage.py compares): ``resample.upsample`` (pixel-centre
+The references these reproduce (tests/train/hr_stage_cases.py compares): ``resample.upsample`` (pixel-centre
 bilinear with jitter, borders clamped), ``base.upsample_by_class`` / ``base.demodulated_mask``,
 ``guided.guide_features`` / ``guided.upsample_guided``, ``transforms.inverse_transform`` (log1p), and
 ``SRModel.remodulate`` (L_D F_used + E).

@@ -6,7 +6,7 @@ LR buffers at the 4 bilinear taps (LR guides and classes computed per tap: no LR
 tensor is addressed through its strides, so NCHW and channels-last inputs run without a layout copy. The per-pixel
 math is ``hr_math``'s helpers, jitted with ``ops`` = ``triton.language`` (``hr_math.jit_for_triton``): the same
 code the CPU path runs. Tests run both kernels under ``TRITON_INTERPRET=1`` on the CPU against the torch path
-and compile them to an sm_90 cubin (tests/train/test_hr_stage.py). Arguments are packed in tuples (Triton >= 3.3)
+and compile them to an sm_90 cubin (tests/train/hr_stage_cases.py). Arguments are packed in tuples (Triton >= 3.3)
 and the switches in one ``FLAGS`` constexpr.
 """
 from __future__ import annotations
