@@ -120,7 +120,7 @@ class Fixtures:
     """Files the bad inputs refer to, built once under ``root``."""
 
     def __init__(self, root: Path):
-        from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
+        from gbuffer_export.synthetic import make_synthetic_clip
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         self.clip = make_synthetic_clip(root / "clip", frames=range(1, 5), hr_size=(64, 36), scale=4)
@@ -1347,15 +1347,12 @@ cameras = ["scene"]
 
 
 def _children_of(pid: int) -> list[int]:
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
-                    out.append(int(d.name))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
+    """The processes whose parent is ``pid`` (psutil; [] once it has exited)."""
+    import psutil
+    try:
+        return [c.pid for c in psutil.Process(pid).children()]
+    except psutil.NoSuchProcess:
+        return []
 
 
 def signal_dataset(root: Path, tally: Tally, rng: random.Random, rounds: int = 2, log=print) -> None:

@@ -41,16 +41,12 @@ hdri = ["builtin:courtyard"]
 
 
 def _coordinators_children(pid: int) -> list[int]:
-    """The processes whose parent is ``pid`` (Linux /proc)."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
-                    out.append(int(d.name))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
+    """The processes whose parent is ``pid`` (psutil; [] once it has exited)."""
+    import psutil
+    try:
+        return [c.pid for c in psutil.Process(pid).children()]
+    except psutil.NoSuchProcess:
+        return []
 
 
 def _interrupt(spec: Path, out: Path, to_group: bool, extra=("--workers", "1"), env=None
