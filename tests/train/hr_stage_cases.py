@@ -357,10 +357,23 @@ def test_triton_kernels_compile_to_a_hopper_cubin_without_a_gpu(tmp_path, monkey
     target = GPUTarget("cuda", 90, 32)
     for flags in (63, k.F_GUIDED | k.F_HEAD):  # every switch; guided without classes or remodulation
         sig = {"lrs": ("*fp32",) * 4, "s_lrs": (s4,) * 4, "hrs": ("*fp32",) * 4 + ("*bf16", "*fp32"),
-               "s_hrs": (s4,) * 6, "jit": "*fp32", "params": ("i32",) * 5 + ("fp32",) * 4, "FLAGS": "constexpr",
+               "s_hrs": (s4,) * 6, "jit": "*fp32", "scalars": ("i32",) * 5 + ("fp32",) * 4, "FLAGS": "constexpr",
                "BLOCK": "constexpr"}
         assert "cubin" in tcompile(ASTSource(k.hr_pixels_kernel, sig, {"FLAGS": flags, "BLOCK": k.BLOCK}),
                                    target=target).asm
     sig = {"src": "*fp32", "dst": "*fp32", "strides": (s4, s4), "dims": ("i32", "i32"), "taps": ("fp32",) * 5,
            "NT": "constexpr", "BLOCK": "constexpr"}
     assert "cubin" in tcompile(ASTSource(k.pixel_filter_kernel, sig, {"NT": 3, "BLOCK": k.BLOCK}), target=target).asm
+
+
+def test_triton_kernel_arguments_do_not_shadow_the_launch_binder_names():
+    """Triton's launcher binds a kernel's arguments in a generated function whose own locals are ``params``,
+    ``specialization`` and ``options`` (triton/runtime/jit.py, create_function_from_signature): an argument of that
+    name is overwritten before it is specialised ("failed to specialize argument of type: dict", seen on an H200
+    on 2026-11-27). Compiling without a GPU does not reach the binder, so the names are checked here."""
+    import inspect
+    pytest.importorskip("triton")
+    from training.kernels import hr_triton as k
+    for kernel in (k.hr_pixels_kernel, k.pixel_filter_kernel):
+        names = set(inspect.signature(kernel.fn).parameters)
+        assert not names & {"params", "specialization", "options", "backend", "specialize_impl", "JITCallable"}

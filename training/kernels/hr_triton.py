@@ -38,10 +38,10 @@ F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER = 1, 2, 4, 8, 16, 32
 
 
 @triton.jit
-def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, params, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
+def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
     """Steps 1-5 for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
     depth, normal), ``hrs`` = (HR F_used, depth, normal, emission, network output, out), ``s_lrs`` / ``s_hrs``
-    their strides (b, c, y, x); ``jit`` (B, 2); ``params`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
+    their strides (b, c, y, x); ``jit`` (B, 2); ``scalars`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
     sigma_normal, floor); ``FLAGS``: the F_* bits above."""
     BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
     GUIDED: tl.constexpr = (FLAGS & 2) != 0
@@ -53,8 +53,8 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, params, FLAGS: tl.constexpr, B
     s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
     hr_fb, hr_d, hr_n, hr_e, net, out = hrs[0], hrs[1], hrs[2], hrs[3], hrs[4], hrs[5]
     s_hfb, s_hd, s_hn, s_he, s_net, s_out = s_hrs[0], s_hrs[1], s_hrs[2], s_hrs[3], s_hrs[4], s_hrs[5]
-    h, w, ww, sj0, sj1 = params[0], params[1], params[2], params[3], params[4]
-    scale, sd, sn, floor = params[5], params[6], params[7], params[8]
+    h, w, ww, sj0, sj1 = scalars[0], scalars[1], scalars[2], scalars[3], scalars[4]
+    scale, sd, sn, floor = scalars[5], scalars[6], scalars[7], scalars[8]
     xb = tl.program_id(0)
     y = tl.program_id(1)
     b = tl.program_id(2)
@@ -180,11 +180,11 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
              F_REMOD * spec.remod | F_JITTER * (t.jitter is not None))
     lrs = (t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal))
     hrs = (pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out)
-    params = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor))
+    scalars = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor))
     hr_pixels_kernel[(triton.cdiv(ww, BLOCK), hh, b)](
         lrs, (t.lr.stride(),) + tuple(_strides(v) for v in (t.lr_fbeta, t.lr_depth, t.lr_normal)),
         hrs, tuple(_strides(v) for v in (t.hr_fbeta, t.hr_depth, t.hr_normal, t.hr_emission, t.net)) + (out.stride(),),
-        jit, params, FLAGS=int(flags), BLOCK=BLOCK)
+        jit, scalars, FLAGS=int(flags), BLOCK=BLOCK)
     if spec.taps is None:
         return out
     if len(spec.taps) > MAX_TAPS:
