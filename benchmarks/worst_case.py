@@ -1,0 +1,94 @@
+"""Issue 40's table: every model against ``demod-jbu`` on one split of one or more datasets, objects and levels apart,
+with the mean, the smallest per-clip margin and the artifact pixels (docs/evaluation.md, "The worst case").
+
+    .venv/bin/python benchmarks/worst_case.py DATASET [DATASET ...] [--split test]
+        [--models demod-bilinear,demod-jbu,pretrained:fusesr,pretrained:fusesr-l] [-o OUT.json]
+
+A clip is a level when its source is of kind ``scene`` (a level kept as it is, cameras inside it), an object
+otherwise (assets in generated environments, built-in scenes). A model whose buffers a clip lacks is left out of
+that group with a note (as ``bench models`` does). Writes OUT.json (every model's per-clip rows) and OUT.md (the
+table) when ``-o`` is given; prints the table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+GROUPS = ("objects", "levels")
+
+
+def clip_groups(datasets: list[Path], split: str) -> dict[str, list[str]]:
+    """The split's finished clips of every dataset, as paths, by group (``GROUPS``)."""
+    from gbuffer_export.dataset.build import read_index, split_clips
+    out: dict[str, list[str]] = {g: [] for g in GROUPS}
+    for ds in datasets:
+        kind = {Path(c["path"]).name: c.get("kind") for c in read_index(ds)["clips"]}
+        for clip in split_clips(ds, split):
+            out["levels" if kind.get(Path(clip).name) == "scene" else "objects"].append(str(clip))
+    return out
+
+
+def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
+    """``evaluate_model`` of every model on every group (the baseline scored once per group)."""
+    from training.bench_models import _lacking
+    from training.evaluate import Baseline, EvalOptions, evaluate_model
+    from training.inference import load_model
+    result: dict = {}
+    for group, clips in groups.items():
+        if not clips:
+            continue
+        base = Baseline("demod-jbu")
+        result[group] = {"clips": [Path(c).name for c in clips], "models": {}, "notes": []}
+        for label, spec in models:
+            model = load_model(spec, 4)
+            lack = _lacking(label, model, clips)
+            if lack:
+                result[group]["notes"].append(lack)
+                continue
+            r = evaluate_model(model, clips, EvalOptions(flip=False, scale=4, baseline=base, label=label))
+            result[group]["models"][label] = {"mean": r["mean"], "per_clip": r["per_clip"]}
+            print(f"{group} {label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
+    return result
+
+
+def table(result: dict) -> str:
+    lines = ["| data | model | PSNR (dB) | margin over demod-jbu | smallest per-clip margin (clip) | SSIM | tPSNR | "
+             "artifact pixels | worst-1 % share |", "|---|---|---|---|---|---|---|---|---|"]
+    for group, g in result.items():
+        n = len(g["clips"])
+        for label, r in g["models"].items():
+            m = r["mean"]
+            clip = Path(m["margin_min_clip"]).name if m.get("margin_min_clip") else ""
+            lines.append(f"| {group} ({n} clips) | `{label}` | {m['psnr']:.2f} | {m['margin']:+.2f} | "
+                         f"{m['margin_min']:+.2f} ({clip}) | {m['ssim']:.4f} | {m['tpsnr']:.2f} | "
+                         f"{m['artifact_fraction']:.3%} | {m['worst_share']:.0%} |")
+        for note in g["notes"]:
+            lines.append(f"| {group} | {note} | | | | | | | |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("datasets", type=Path, nargs="+")
+    p.add_argument("--split", default="test")
+    p.add_argument("--models", default="demod-bilinear,demod-jbu,pretrained:fusesr,pretrained:fusesr-l")
+    p.add_argument("-o", dest="out", type=Path, help="OUT.json and OUT.md")
+    a = p.parse_args(argv)
+    from training.bench_models import parse_models
+    result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
+    text = table(result)
+    print(text)
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
+        a.out.with_suffix(".md").write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
