@@ -48,8 +48,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
-                                  frame, history_offsets)
+from training.kernels import hr_math
+from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
+                                  depth_features, frame, history_offsets)
+from training.models.guided import tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -100,6 +102,9 @@ class FuseSRFrame(SRModel):
         # the guided upsampling is the residual base: it needs the HR G-buffers and the residual head
         self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
         self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+        # the bounded correction (module doc, "residual_clamp"): the margin, None when off
+        self.clamp = float(opt.residual_clamp_margin) if opt.residual_clamp == "lr-range" and self.residual \
+            else None
 
     @property
     def color_key(self) -> str:
@@ -111,11 +116,28 @@ class FuseSRFrame(SRModel):
         transformed LR colour ``color`` (B, 3, h, w) with ``residual``, ReLU, T^-1, and the remodulation with
         ``demodulation``; with ``hr_impl`` (the fused path) all of it in one fused pass (``training.kernels``)."""
         if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
-            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod)
+            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod, clamp=self.clamp)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + self.upsample_input(color, batch, j_t, self.demod)
         out = inverse_transform(F.relu(y).float(), self.transform)
+        if self.clamp is not None:
+            out = self.clamp_to_lr_range(out, color, batch, j_t)
         return self.remodulate(out, batch) if self.demod else out
+
+    def clamp_to_lr_range(self, out: torch.Tensor, color: torch.Tensor, batch: dict, j_t) -> torch.Tensor:
+        """``residual_clamp = "lr-range"`` (module doc): ``out`` (B, 3, H, W, linear L_D) clamped per channel to
+        the range of the LR input over the taps its residual base reads (``guided.tap_range``; ``color`` is the
+        transformed LR input), inverse transformed, widened by ``residual_clamp_margin`` of its width
+        (``hr_math.clamp_to_range``: the fused HR stage's step 4b). Piecewise the identity: the gradient reaches
+        the network wherever the clamp does not bind."""
+        classes = None
+        if self.demod and self.by_class:
+            classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
+                       demodulated_mask(current(batch, "hr/fbeta_used")))
+        lo, hi = tap_range(color.float(), int(self.scale), j_t, classes)
+        if self.transform == "log1p":
+            lo, hi = hr_math.inverse_log1p(lo), hr_math.inverse_log1p(hi)
+        return hr_math.clamp_to_range(out, lo, hi, self.clamp)
 
 
 class FuseSR(FuseSRFrame):
