@@ -38,6 +38,18 @@ Option (``zero_init_refine``, default off; not in the paper): the last 3x3 conv 
 network outputs exactly its residual base (the guided or bilinear upsampling) and training moves away from it only
 where the loss says so (docs/results.md, "FuseSR Table 3 on the clean clips", has the measurement).
 
+Bounded correction (``residual_clamp``, default ``"none"``: the paper's network; not in the paper): with
+``"lr-range"`` the network's demodulated HR output (after T^-1, before the remodulation) is clamped per channel to
+the range [min, max] of the demodulated LR input over the 4 bilinear LR taps its residual base reads (at the
+jittered LR position, borders clamped; only the taps of the pixel's demodulation class where the class-aware base
+uses them: ``guided.tap_range``), widened by ``residual_clamp_margin`` (default 0) times the range's width. It is the
+neighbourhood clamp of temporal anti-aliasing, applied in demodulated space, where the HR texture detail has been
+divided out, so the LR range is a tight but honest bound on the irradiance; the guided base is a convex combination
+of those taps and always lies inside it, so a network that outputs its base is unchanged. The clamp is piecewise
+the identity (training passes the gradient where it does not bind). The fused HR stage runs it as its step 4b
+(``kernels.hr_math.clamp_to_range``). A trained network can be run with it: ``pretrained:fusesr?residual_clamp=
+lr-range`` (``inference.load_model``; docs/training.md, "FuseSR", has the measurement that chose the margin).
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
