@@ -73,7 +73,8 @@ def register(subparsers) -> None:
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
                    help="configuration of a non-learned --model (TOML value), e.g. "
-                        "model.demod-jbu.guide_sigma_depth=0.05")
+                        "model.demod-jbu.guide_sigma_depth=0.05; of a --checkpoint only its inference options, "
+                        "e.g. model.fusesr.residual_clamp=lr-range (also written CK?residual_clamp=lr-range)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (one per clip)")
     p.set_defaults(func=cmd_evaluate)
 

@@ -103,49 +103,105 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     """A model in eval mode on the CPU, as an ``InferenceModel``: ``spec`` is a non-learned model name from ``MODELS`` or a checkpoint path.
     ``scale`` must match the checkpoint's, unless the model takes any scale (``SCALES is None``).
     ``overrides`` ('model.KEY=VALUE', TOML values) set the configuration of
-    a non-learned model (a checkpoint's is fixed). The model holds ``module``, ``spec``, ``demod_eps``,
-    ``config`` and ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
+    a non-learned model; a checkpoint's is fixed but for its inference options (``_load_checkpoint_model``).
+    ``spec`` may end in '?KEY=VALUE&...', the model's own options (``split_spec``), e.g.
+    ``pretrained:fusesr?residual_clamp=lr-range``; the model keeps the whole text as its label. The model holds
+    ``module``, ``spec``, ``demod_eps``, ``config`` and ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
     (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
     scale = scale_value(scale)
-    if overrides and spec not in MODELS:
-        raise BlendSRError(f"{spec}: --set applies to non-learned models; a checkpoint's configuration is fixed")
-    if spec in MODELS:
-        if MODELS[spec].learned:
-            raise BlendSRError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
-                             "'blendsr train', not its name")
-        bad = [o for o in overrides if not o.strip().startswith("model.")]
-        if bad:
-            raise BlendSRError(f"--set {bad[0]!r}: only model.KEY=VALUE applies to a non-learned model")
-        if overrides:
-            from training.config import load_config
-            cfg = load_config(None, [*overrides, f'model.name="{spec}"']).model
-            cfg.scale = scale
-        else:
-            cfg = ModelConfig(name=spec, scale=scale)
-        model = InferenceModel(build_model(cfg, scale), spec)
+    label = str(spec)
+    spec, query = split_spec(spec)
+    if spec not in MODELS:
+        return _load_checkpoint_model(spec, label, scale, [*overrides, *query], fast)
+    overrides = [*overrides, *(f"model.{spec}.{q}" for q in query)]
+    if MODELS[spec].learned:
+        raise BlendSRError(f"model {spec!r} is learned: pass the path of a checkpoint trained with "
+                           "'blendsr train', not its name")
+    bad = [o for o in overrides if not o.strip().startswith("model.")]
+    if bad:
+        raise BlendSRError(f"--set {bad[0]!r}: only model.KEY=VALUE applies to a non-learned model")
+    if overrides:
+        from training.config import load_config
+        cfg = load_config(None, [*overrides, f'model.name="{spec}"']).model
+        cfg.scale = scale
     else:
-        from training.checkpoint import check_weights_fit, inference_weights, load_checkpoint
-        from training.config import config_from_checkpoint
-        from training.pretrained import resolve
-        path = Path(resolve(spec))
-        if not path.exists():
-            raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
-        ck = load_checkpoint(path)
-        from training.models import model_class
-        cfg = config_from_checkpoint(ck["config"], source=str(path))
-        if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
-            raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
-        module = build_model(cfg.model, scale)
-        weights = inference_weights(ck)
-        check_weights_fit(path, module, weights, cfg.model.name)  # strict: one line naming the file
-        module.load_state_dict(weights)
-        model = InferenceModel(module, spec, demod_eps=cfg.data.demod_eps, config=cfg)
+        cfg = ModelConfig(name=spec, scale=scale)
+    model = InferenceModel(build_model(cfg, scale), label)
     model.eval()
+    return _prepared(model, fast)
+
+
+def _prepared(model: InferenceModel, fast: bool) -> InferenceModel:
     if fast:
         from training.fastpath import prepare_inference
         prepare_inference(model)
     return model
+
+
+def split_spec(spec) -> tuple[str, list[str]]:
+    """'pretrained:fusesr?residual_clamp=lr-range&residual_clamp_margin=0.5' -> ('pretrained:fusesr',
+    ['residual_clamp=lr-range', 'residual_clamp_margin=0.5']): the model's own options (its ``[model.NAME]`` table)
+    after a '?', '&'-separated; a spec without '?' is returned with no options."""
+    spec = str(spec)
+    base, sep, query = spec.partition("?")
+    items = [q.strip() for q in query.split("&")] if sep else []
+    bad = [q for q in items if not q.partition("=")[1] or not q.partition("=")[0].strip()]
+    if bad or (sep and not items):
+        raise BlendSRError(f"{spec}: expected MODEL?KEY=VALUE[&KEY=VALUE...] after '?', got {query!r}")
+    return base, items
+
+
+def _load_checkpoint_model(spec: str, label: str, scale, overrides: list[str], fast: bool) -> InferenceModel:
+    """``load_model`` for a checkpoint (a path or ``pretrained:NAME``). ``overrides`` ('model.NAME.KEY=VALUE' or
+    'KEY=VALUE') may set only the options that leave the weights' meaning alone
+    (``training.models.options.INFERENCE_OPTIONS``, e.g. ``residual_clamp``); the rest of its configuration is
+    fixed."""
+    from training.checkpoint import check_weights_fit, inference_weights, load_checkpoint
+    from training.config import config_from_checkpoint
+    from training.pretrained import resolve
+    path = Path(resolve(spec))
+    if not path.exists():
+        raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
+    ck = load_checkpoint(path)
+    from training.models import model_class
+    data = _with_inference_options(ck["config"], overrides, label)
+    cfg = config_from_checkpoint(data, source=f"{path} with {', '.join(overrides)}" if overrides else str(path))
+    if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
+        raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
+    module = build_model(cfg.model, scale)
+    weights = inference_weights(ck)
+    check_weights_fit(path, module, weights, cfg.model.name)  # strict: one line naming the file
+    module.load_state_dict(weights)
+    model = InferenceModel(module, label, demod_eps=cfg.data.demod_eps, config=cfg)
+    model.eval()
+    return _prepared(model, fast)
+
+
+def _with_inference_options(config: dict, overrides: list[str], label: str) -> dict:
+    """A copy of a checkpoint's saved configuration with ``overrides`` (``_load_checkpoint_model``) set in its
+    ``[model.NAME]`` table; BlendSRError (one line) for any other key."""
+    import copy
+    from training.config import parse_value
+    from training.models.options import INFERENCE_OPTIONS
+    if not overrides:
+        return config
+    data = copy.deepcopy(config)
+    model = data.setdefault("model", {})
+    name = model.get("name", "")
+    for item in overrides:
+        key, _, text = item.partition("=")
+        parts = [k.strip() for k in key.split(".")]
+        if parts[0] == "model" and len(parts) == 3 and parts[1] == name:
+            parts = parts[2:]
+        if len(parts) != 1 or parts[0] not in INFERENCE_OPTIONS:
+            raise BlendSRError(f"{label}: {item.strip()!r}: a checkpoint's configuration is fixed except its "
+                               f"inference options model.{name}.{{{', '.join(INFERENCE_OPTIONS)}}}")
+        table = model.setdefault(name, {})
+        if not isinstance(table, dict):
+            raise BlendSRError(f"{label}: the checkpoint's [model.{name}] is not a table")
+        table[parts[0]] = parse_value(text.strip())
+    return data
 
 
 def missing_keys(model: InferenceModel, source) -> list[str]:

@@ -32,7 +32,9 @@ TOL = {"none": 2e-5, "bf16": 2e-2}
 CASES = [("demod-bilinear", {}), ("demod-bilinear", {"upsample_by_class": False, "jitter": False}),
          ("demod-jbu", {}), ("demod-jbu", {"upsample_by_class": False}), ("demod-jbu", {"remod_filter": "NONE"}),
          ("fusesr-fast", {}), ("fusesr-fast", {"guided_upsample": False, "input_transform": "none"}),
-         ("fusesr-l", {}), ("fusesr", {"history": 1}), ("fusesr", {"history": 0, "demodulation": False})]
+         ("fusesr-l", {}), ("fusesr", {"history": 1}), ("fusesr", {"history": 0, "demodulation": False}),
+         ("fusesr-fast", {"residual_clamp": "lr-range"}),
+         ("fusesr-l", {"residual_clamp": "lr-range", "residual_clamp_margin": 0.25, "jitter": False})]
 
 
 def _batch(model, size=(48, 32), seed=3):
@@ -157,7 +159,9 @@ SPECS = [HRStage(4, True, True, (0.1, 0.2), False, False, True, BH),            
          HRStage(4, True, True, (0.1, 0.2), True, True, True, BH),                         # fusesr family
          HRStage(2, False, True, (0.1, 0.2), True, False, False, None),                     # no demodulation
          HRStage(4, False, False, None, False, False, True, (0.05, 0.2, 0.5, 0.2, 0.05)),   # 5 taps
-         HRStage(4, True, False, None, False, False, True, (0.1,) * 7)]                     # 7 taps: torch filter
+         HRStage(4, True, False, None, False, False, True, (0.1,) * 7),                     # 7 taps: torch filter
+         HRStage(4, True, True, (0.1, 0.2), True, True, True, BH, clamp=0.0),              # residual_clamp
+         HRStage(2, False, True, (0.1, 0.2), True, False, False, None, clamp=0.5)]         # clamp, no classes
 
 
 def interpreter_errors() -> list:
@@ -355,9 +359,9 @@ def test_triton_kernels_compile_to_a_hopper_cubin_without_a_gpu(tmp_path, monkey
     from training.kernels import hr_triton as k
     s4 = ("i32",) * 4
     target = GPUTarget("cuda", 90, 32)
-    for flags in (63, k.F_GUIDED | k.F_HEAD):  # every switch; guided without classes or remodulation
+    for flags in (127, k.F_GUIDED | k.F_HEAD):  # every switch; guided without classes or remodulation
         sig = {"lrs": ("*fp32",) * 4, "s_lrs": (s4,) * 4, "hrs": ("*fp32",) * 4 + ("*bf16", "*fp32"),
-               "s_hrs": (s4,) * 6, "jit": "*fp32", "scalars": ("i32",) * 5 + ("fp32",) * 4, "FLAGS": "constexpr",
+               "s_hrs": (s4,) * 6, "jit": "*fp32", "scalars": ("i32",) * 5 + ("fp32",) * 5, "FLAGS": "constexpr",
                "BLOCK": "constexpr"}
         assert "cubin" in tcompile(ASTSource(k.hr_pixels_kernel, sig, {"FLAGS": flags, "BLOCK": k.BLOCK}),
                                    target=target).asm

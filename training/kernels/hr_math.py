@@ -8,7 +8,8 @@ with the same meaning: exp, log, abs, floor, where, maximum, minimum. No Python 
 The references these reproduce (tests/train/hr_stage_cases.py compares): ``resample.upsample`` (pixel-centre
 bilinear with jitter, borders clamped), ``base.upsample_by_class`` / ``base.demodulated_mask``,
 ``guided.guide_features`` / ``guided.upsample_guided``, ``transforms.inverse_transform`` (log1p), and
-``SRModel.remodulate`` (L_D F_used + E).
+``SRModel.remodulate`` (L_D F_used + E), and the FuseSR family's ``residual_clamp`` (``range_add``,
+``range_pick``, ``clamp_to_range``; ``guided.tap_range`` is its reference).
 """
 from __future__ import annotations
 
@@ -105,13 +106,32 @@ def inverse_log1p(y):
     return ops.exp(ops.minimum(y, EXP_CLAMP)) - 1.0
 
 
+def range_add(lo, hi, v, use):
+    """The running range (lo, hi) of LR tap values widened by ``v`` where ``use`` (a boolean)."""
+    return ops.where(use, ops.minimum(lo, v), lo), ops.where(use, ops.maximum(hi, v), hi)
+
+
+def range_pick(cden, class_bound, plain_bound):
+    """A bound of the taps the base reads: over the taps of the HR pixel's class where their bilinear weights sum
+    above CLASS_EPS (``class_or_plain`` takes the class-restricted value there), else over all 4 taps."""
+    return ops.where(cden > CLASS_EPS, class_bound, plain_bound)
+
+
+def clamp_to_range(v, lo, hi, margin):
+    """``residual_clamp = "lr-range"``: ``v`` clamped to [lo - margin (hi - lo), hi + margin (hi - lo)], the LR
+    range of the taps its base reads widened by ``margin`` of its width."""
+    pad = margin * (hi - lo)
+    return ops.minimum(ops.maximum(v, lo - pad), hi + pad)
+
+
 def remodulate(irr, fbeta, emission):
     """The point sample L_D F_used + E (``SRModel.remodulate`` before its pixel filter)."""
     return irr * fbeta + emission
 
 
 HELPERS = ("tap_position", "tap_weight", "tap_index", "demodulated", "guide_depth", "guide_normal", "similarity",
-           "class_or_plain", "guided_or_fallback", "head", "inverse_log1p", "remodulate")
+           "class_or_plain", "guided_or_fallback", "head", "inverse_log1p", "range_add", "range_pick", "clamp_to_range",
+           "remodulate")
 
 
 def jit_for_triton() -> dict:

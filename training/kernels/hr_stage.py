@@ -12,6 +12,9 @@ Per HR pixel (one definition of the math: ``hr_math``; every step reproduces a r
    weights sum below ``floor`` (``guided.upsample_guided``);
 4. with ``head`` (FuseSR family), ReLU(network output + that base), then the inverse log1p transform with
    ``log1p``;
+4b. with ``clamp`` (the FuseSR option ``residual_clamp = "lr-range"``), that value clamped per channel to the range
+   of the LR image over the 4 taps of step 1 (only those of the pixel's class where step 2 uses them), inverse
+   transformed with ``log1p``, widened by ``clamp`` times its width (``guided.tap_range``);
 5. with ``remod``, the point sample L_D F_used + E (``SRModel.remodulate``);
 
 then the separable pixel filter ``taps`` x ``taps`` (edges replicated) over the result.
@@ -77,6 +80,38 @@ def _jitter(t: HRInputs) -> torch.Tensor:
     return torch.zeros(b, 2, device=t.lr.device) if t.jitter is None else t.jitter.float()
 
 
+class TapRange:
+    """The per-channel range of the LR taps an HR pixel's base reads (``hr_math.range_add``, ``range_pick``): over
+    all taps and, with ``by_class``, over those of the pixel's class. Off (``on`` false): does nothing."""
+
+    def __init__(self, on: bool, by_class: bool):
+        self.on, self.by_class = on, by_class
+        self.plain = self.cls = None
+
+    def add(self, v: list[torch.Tensor], same: torch.Tensor | None) -> None:
+        """Widen by the tap values ``v`` (per channel); ``same``: where the tap has the pixel's class."""
+        if not self.on:
+            return
+        if self.plain is None:
+            self.plain = [(x, x) for x in v]
+            if self.by_class:
+                self.cls = [(torch.where(same, x, m.F32_MAX), torch.where(same, x, -m.F32_MAX)) for x in v]
+            return
+        self.plain = [(torch.minimum(lo, x), torch.maximum(hi, x)) for (lo, hi), x in zip(self.plain, v)]
+        if self.by_class:
+            self.cls = [m.range_add(lo, hi, x, same) for (lo, hi), x in zip(self.cls, v)]
+
+    def bounds(self, cden, log1p: bool) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """([lo] * 3, [hi] * 3) of the taps the base read (class taps where ``cden`` > CLASS_EPS), inverse
+        transformed with ``log1p``."""
+        pairs = self.plain if not self.by_class else \
+            [(m.range_pick(cden, cl, pl), m.range_pick(cden, ch, ph)) for (cl, ch), (pl, ph) in zip(self.cls,
+                                                                                                  self.plain)]
+        if log1p:
+            pairs = [(m.inverse_log1p(lo), m.inverse_log1p(hi)) for lo, hi in pairs]
+        return [p[0] for p in pairs], [p[1] for p in pairs]
+
+
 def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Tensor:
     """Steps 1-5 of the module doc from the column taps ``cols`` (``lr_columns``): each HR row reads whole rows of
     them (an index per row, contiguous along x): (B, 3, H, W) float32. Written per channel ((B, 1, H, W) tensors,
@@ -96,14 +131,16 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
             [m.guide_normal(n_hr[:, i:i + 1], spec.sigmas[1]) for i in range(3)]
     plain, cnum, gnum = [0.0] * 3, [0.0] * 3, [0.0] * 3
     cden = gden = 0.0
+    rng = TapRange(spec.clamp is not None, spec.by_class)
     for iy, wy in tap_axes(h, s, jit[:, 1:2]):
         wy = wy.view(b, 1, hh, 1)
         for col, wx in zip(cols, wxs):
             v = [torch.gather(col[:, i:i + 1], 2, iy.view(b, 1, hh, 1).expand(b, 1, hh, ww)) for i in range(k)]
             wb = wy * wx
             plain = [p + wb * v[i] for i, p in enumerate(plain)]
+            same = v[k - 1] == cls if spec.by_class else None
+            rng.add(v[:3], same)
             if spec.by_class:
-                same = v[k - 1] == cls
                 wc = torch.where(same, wb, 0.0)
                 cnum, cden = [c + wc * v[i] for i, c in enumerate(cnum)], cden + wc
             if spec.guided:
@@ -120,6 +157,9 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
         out = [m.head(net[:, i:i + 1], o) for i, o in enumerate(out)]
         if spec.log1p:
             out = [m.inverse_log1p(o) for o in out]
+        if spec.clamp is not None:
+            lo, hi = rng.bounds(cden, spec.log1p)
+            out = [m.clamp_to_range(o, lo[i], hi[i], spec.clamp) for i, o in enumerate(out)]
     if spec.remod:
         fb, em = t.hr_fbeta.float(), t.hr_emission.float()
         out = [m.remodulate(o, fb[:, i:i + 1], em[:, i:i + 1]) for i, o in enumerate(out)]
@@ -184,7 +224,7 @@ def triton_works(device: torch.device) -> bool:
     t = HRInputs(r(b, 3, h, w), r(b, 2) - 0.5, r(b, 3, h, w), r(b, 3, h * s, w * s), 1 + r(b, 1, h, w),
                  r(b, 3, h, w), 1 + r(b, 1, h * s, w * s), r(b, 3, h * s, w * s), r(b, 3, h * s, w * s),
                  r(b, 3, h * s, w * s))
-    spec = HRStage(s, True, True, (0.1, 0.2), True, True, True, (0.1186, 0.7628, 0.1186))
+    spec = HRStage(s, True, True, (0.1, 0.2), True, True, True, (0.1186, 0.7628, 0.1186), clamp=0.25)
     try:
         got, want = run(spec, t, "triton"), hr_stage_torch(spec, t)
         err = float((got - want).abs().max() / want.abs().max())

@@ -23,8 +23,11 @@ tap_position, tap_weight, tap_index = _h["tap_position"], _h["tap_weight"], _h["
 demodulated, guide_depth, guide_normal = _h["demodulated"], _h["guide_depth"], _h["guide_normal"]
 similarity, class_or_plain, guided_or_fallback = _h["similarity"], _h["class_or_plain"], _h["guided_or_fallback"]
 head, inverse_log1p, remodulate = _h["head"], _h["inverse_log1p"], _h["remodulate"]
+range_add, range_pick, clamp_to_range = _h["range_add"], _h["range_pick"], _h["clamp_to_range"]
 
 BLOCK = 128
+#: The empty tap range's bound (step 4b), a constexpr for the kernel.
+BIG = tl.constexpr(hr_math.F32_MAX)
 
 
 @triton.jit
@@ -34,27 +37,28 @@ def _ld(ptr, b, c, y, x, s, mask):
 
 
 #: Bits of the hr_pixels_kernel's FLAGS (the switches of ``HRStage``, and whether a jitter is given).
-F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER = 1, 2, 4, 8, 16, 32
+F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER, F_CLAMP = 1, 2, 4, 8, 16, 32, 64
 
 
 @triton.jit
 def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
-    """Steps 1-5 for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
+    """Steps 1-5 (and 4b) for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
     depth, normal), ``hrs`` = (HR F_used, depth, normal, emission, network output, out), ``s_lrs`` / ``s_hrs``
     their strides (b, c, y, x); ``jit`` (B, 2); ``scalars`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
-    sigma_normal, floor); ``FLAGS``: the F_* bits above."""
+    sigma_normal, floor, clamp margin); ``FLAGS``: the F_* bits above."""
     BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
     GUIDED: tl.constexpr = (FLAGS & 2) != 0
     HEAD: tl.constexpr = (FLAGS & 4) != 0
     LOG1P: tl.constexpr = (FLAGS & 8) != 0
     REMOD: tl.constexpr = (FLAGS & 16) != 0
     HAS_JITTER: tl.constexpr = (FLAGS & 32) != 0
+    CLAMP: tl.constexpr = (FLAGS & 64) != 0
     lr, lr_fb, lr_d, lr_n = lrs[0], lrs[1], lrs[2], lrs[3]
     s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
     hr_fb, hr_d, hr_n, hr_e, net, out = hrs[0], hrs[1], hrs[2], hrs[3], hrs[4], hrs[5]
     s_hfb, s_hd, s_hn, s_he, s_net, s_out = s_hrs[0], s_hrs[1], s_hrs[2], s_hrs[3], s_hrs[4], s_hrs[5]
     h, w, ww, sj0, sj1 = scalars[0], scalars[1], scalars[2], scalars[3], scalars[4]
-    scale, sd, sn, floor = scalars[5], scalars[6], scalars[7], scalars[8]
+    scale, sd, sn, floor, margin = scalars[5], scalars[6], scalars[7], scalars[8], scalars[9]
     xb = tl.program_id(0)
     y = tl.program_id(1)
     b = tl.program_id(2)
@@ -82,6 +86,9 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
     p0, p1, p2 = zero, zero, zero
     c0, c1, c2, cden = zero, zero, zero, zero
     g0, g1, g2, gden = zero, zero, zero, zero
+    big = zero + BIG  # the tap ranges of step 4b: all taps (p) and the pixel's class (c)
+    plo0, plo1, plo2, phi0, phi1, phi2 = big, big, big, -big, -big, -big
+    clo0, clo1, clo2, chi0, chi1, chi2 = big, big, big, -big, -big, -big
     for dy in tl.static_range(2):
         fyd = fy + dy
         wy = tap_weight(uy, fyd)
@@ -94,11 +101,18 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
             v1 = _ld(lr, b, 1, iy, ix, s_lr, mask)
             v2 = _ld(lr, b, 2, iy, ix, s_lr, mask)
             p0, p1, p2 = p0 + wb * v0, p1 + wb * v1, p2 + wb * v2
+            if CLAMP:
+                plo0, plo1, plo2 = tl.minimum(plo0, v0), tl.minimum(plo1, v1), tl.minimum(plo2, v2)
+                phi0, phi1, phi2 = tl.maximum(phi0, v0), tl.maximum(phi1, v1), tl.maximum(phi2, v2)
             if BY_CLASS:
                 same = demodulated(_ld(lr_fb, b, 0, iy, ix, s_lfb, mask), _ld(lr_fb, b, 1, iy, ix, s_lfb, mask),
                                    _ld(lr_fb, b, 2, iy, ix, s_lfb, mask)) == cls
                 wc = tl.where(same, wb, 0.0)
                 c0, c1, c2, cden = c0 + wc * v0, c1 + wc * v1, c2 + wc * v2, cden + wc
+                if CLAMP:
+                    clo0, chi0 = range_add(clo0, chi0, v0, same)
+                    clo1, chi1 = range_add(clo1, chi1, v1, same)
+                    clo2, chi2 = range_add(clo2, chi2, v2, same)
             if GUIDED:
                 e0 = guide_depth(_ld(lr_d, b, 0, iy, ix, s_ld, mask), sd) - gh0
                 e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), sn) - gh1
@@ -121,6 +135,18 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
         o2 = head(_ld(net, b, 2, y, x, s_net, mask), o2)
         if LOG1P:
             o0, o1, o2 = inverse_log1p(o0), inverse_log1p(o1), inverse_log1p(o2)
+        if CLAMP:
+            if BY_CLASS:
+                plo0, plo1, plo2 = range_pick(cden, clo0, plo0), range_pick(cden, clo1, plo1), \
+                    range_pick(cden, clo2, plo2)
+                phi0, phi1, phi2 = range_pick(cden, chi0, phi0), range_pick(cden, chi1, phi1), \
+                    range_pick(cden, chi2, phi2)
+            if LOG1P:
+                plo0, plo1, plo2 = inverse_log1p(plo0), inverse_log1p(plo1), inverse_log1p(plo2)
+                phi0, phi1, phi2 = inverse_log1p(phi0), inverse_log1p(phi1), inverse_log1p(phi2)
+            o0 = clamp_to_range(o0, plo0, phi0, margin)
+            o1 = clamp_to_range(o1, plo1, phi1, margin)
+            o2 = clamp_to_range(o2, plo2, phi2, margin)
     if REMOD:
         o0 = remodulate(o0, _ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_e, b, 0, y, x, s_he, mask))
         o1 = remodulate(o1, _ld(hr_fb, b, 1, y, x, s_hfb, mask), _ld(hr_e, b, 1, y, x, s_he, mask))
@@ -177,10 +203,11 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
     sig = spec.sigmas or (1.0, 1.0)
     flags = (F_BY_CLASS * spec.by_class | F_GUIDED * spec.guided | F_HEAD * spec.head | F_LOG1P * spec.log1p |
-             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None))
+             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None) | F_CLAMP * (spec.clamp is not None))
     lrs = (t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal))
     hrs = (pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out)
-    scalars = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor))
+    scalars = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor),
+               float(spec.clamp or 0.0))
     hr_pixels_kernel[(triton.cdiv(ww, BLOCK), hh, b)](
         lrs, (t.lr.stride(),) + tuple(_strides(v) for v in (t.lr_fbeta, t.lr_depth, t.lr_normal)),
         hrs, tuple(_strides(v) for v in (t.hr_fbeta, t.hr_depth, t.hr_normal, t.hr_emission, t.net)) + (out.stride(),),
@@ -201,14 +228,15 @@ def _spec_params(spec) -> list[float]:
     """``HRStage`` as the flat float list the custom op takes (``_spec_of`` inverts it)."""
     sig = spec.sigmas or (1.0, 1.0)
     return [float(spec.scale), float(spec.by_class), float(spec.guided), float(sig[0]), float(sig[1]),
-            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), *map(float, spec.taps or ())]
+            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), float(spec.clamp is not None),
+            float(spec.clamp or 0.0), *map(float, spec.taps or ())]
 
 
 def _spec_of(params: list[float]):
     p = list(params)
     return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
                    sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
-                   taps=tuple(p[9:]) or None, floor=p[8])
+                   taps=tuple(p[11:]) or None, floor=p[8], clamp=p[10] if p[9] else None)
 
 
 def _out_format(tensors: list) -> torch.memory_format:

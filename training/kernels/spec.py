@@ -11,7 +11,8 @@ import torch
 @dataclass(frozen=True)
 class HRStage:
     """What one model's HR stage does (``hr_stage``'s module doc). ``sigmas``: (sigma_depth, sigma_normal) of the
-    guides, None without ``guided``; ``taps``: the 1-D pixel filter (None: no filter)."""
+    guides, None without ``guided``; ``taps``: the 1-D pixel filter (None: no filter); ``clamp``: with ``head``, the
+    margin of the FuseSR family's ``residual_clamp = "lr-range"`` (step 4b of ``hr_stage``), None: off."""
     scale: int
     by_class: bool
     guided: bool
@@ -21,6 +22,7 @@ class HRStage:
     remod: bool
     taps: tuple[float, ...] | None
     floor: float = 1e-4
+    clamp: float | None = None
 
 
 class HRInputs(NamedTuple):

@@ -38,6 +38,18 @@ Option (``zero_init_refine``, default off; not in the paper): the last 3x3 conv 
 network outputs exactly its residual base (the guided or bilinear upsampling) and training moves away from it only
 where the loss says so (docs/results.md, "FuseSR Table 3 on the clean clips", has the measurement).
 
+Bounded correction (``residual_clamp``, default ``"none"``: the paper's network; not in the paper): with
+``"lr-range"`` the network's demodulated HR output (after T^-1, before the remodulation) is clamped per channel to
+the range [min, max] of the demodulated LR input over the 4 bilinear LR taps its residual base reads (at the
+jittered LR position, borders clamped; only the taps of the pixel's demodulation class where the class-aware base
+uses them: ``guided.tap_range``), widened by ``residual_clamp_margin`` (default 0) times the range's width. It is the
+neighbourhood clamp of temporal anti-aliasing, applied in demodulated space, where the HR texture detail has been
+divided out, so the LR range is a tight but honest bound on the irradiance; the guided base is a convex combination
+of those taps and always lies inside it, so a network that outputs its base is unchanged. The clamp is piecewise
+the identity (training passes the gradient where it does not bind). The fused HR stage runs it as its step 4b
+(``kernels.hr_math.clamp_to_range``). A trained network can be run with it: ``pretrained:fusesr?residual_clamp=
+lr-range`` (``inference.load_model``; docs/training.md, "FuseSR", has the measurement that chose the margin).
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -48,8 +60,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, depth_features,
-                                  frame, history_offsets)
+from training.kernels import hr_math
+from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
+                                  depth_features, frame, history_offsets)
+from training.models.guided import tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -100,6 +114,9 @@ class FuseSRFrame(SRModel):
         # the guided upsampling is the residual base: it needs the HR G-buffers and the residual head
         self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
         self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
+        # the bounded correction (module doc, "residual_clamp"): the margin, None when off
+        self.clamp = float(opt.residual_clamp_margin) if opt.residual_clamp == "lr-range" and self.residual \
+            else None
 
     @property
     def color_key(self) -> str:
@@ -111,11 +128,28 @@ class FuseSRFrame(SRModel):
         transformed LR colour ``color`` (B, 3, h, w) with ``residual``, ReLU, T^-1, and the remodulation with
         ``demodulation``; with ``hr_impl`` (the fused path) all of it in one fused pass (``training.kernels``)."""
         if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
-            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod)
+            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod, clamp=self.clamp)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + self.upsample_input(color, batch, j_t, self.demod)
         out = inverse_transform(F.relu(y).float(), self.transform)
+        if self.clamp is not None:
+            out = self.clamp_to_lr_range(out, color, batch, j_t)
         return self.remodulate(out, batch) if self.demod else out
+
+    def clamp_to_lr_range(self, out: torch.Tensor, color: torch.Tensor, batch: dict, j_t) -> torch.Tensor:
+        """``residual_clamp = "lr-range"`` (module doc): ``out`` (B, 3, H, W, linear L_D) clamped per channel to
+        the range of the LR input over the taps its residual base reads (``guided.tap_range``; ``color`` is the
+        transformed LR input), inverse transformed, widened by ``residual_clamp_margin`` of its width
+        (``hr_math.clamp_to_range``: the fused HR stage's step 4b). Piecewise the identity: the gradient reaches
+        the network wherever the clamp does not bind."""
+        classes = None
+        if self.demod and self.by_class:
+            classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
+                       demodulated_mask(current(batch, "hr/fbeta_used")))
+        lo, hi = tap_range(color.float(), int(self.scale), j_t, classes)
+        if self.transform == "log1p":
+            lo, hi = hr_math.inverse_log1p(lo), hr_math.inverse_log1p(hi)
+        return hr_math.clamp_to_range(out, lo, hi, self.clamp)
 
 
 class FuseSR(FuseSRFrame):

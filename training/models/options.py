@@ -21,6 +21,11 @@ from gbuffer_export.typed_table import ConfigError, option, set_checked
 
 NORMS = ("none", "batch")
 RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
+#: ``residual_clamp`` of the FuseSR family: none (the paper's network) or lr-range (``FuseSRFastOptions``).
+RESIDUAL_CLAMPS = ("none", "lr-range")
+#: Options that change what a trained network's output goes through, not its weights: ``load_model`` lets them be
+#: set on a checkpoint (``--set model.NAME.KEY=VALUE``, or ``CHECKPOINT?KEY=VALUE``).
+INFERENCE_OPTIONS = ("residual_clamp", "residual_clamp_margin")
 
 
 def _sigma(default: float):
@@ -65,9 +70,15 @@ class FuseSRFastOptions:
     guide_sigma_normal: float = _sigma(0.3)  # and camera-space normals
     zero_init_refine: bool = False   # the last conv starts at 0: training starts exactly at the residual base
     norm: str = option("none", choices=NORMS)  # encoder/backbone normalisation (batch: the authors' BatchNorm)
+    residual_clamp: str = option("none", choices=RESIDUAL_CLAMPS)  # lr-range: the output L_D clamped per channel
+    residual_clamp_margin: float = option(0.0, lo=0, hi=100)  # to the LR range of its base's taps, widened by this
+    # fraction of the range's width (not in the paper; docs/models.md, "Bounded correction")
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
+        if self.residual_clamp != "none" and not self.residual:
+            raise ConfigError(f"{where}.residual_clamp needs {where}.residual = true (it bounds the correction of "
+                              "the residual base)")
 
 
 @dataclass
