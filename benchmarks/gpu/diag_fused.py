@@ -14,8 +14,10 @@ from training.fastpath import forward, prepare_inference  # noqa: E402
 from training.models import build_model  # noqa: E402
 
 dev = torch.device("cuda")
-for name in ("demod-jbu", "fusesr-fast", "fusesr-l"):
-    ref = build_model(ModelConfig.of(name), 4).eval()
+for name, opts in (("demod-jbu", {}), ("fusesr-fast", {}), ("fusesr-l", {}),
+                   ("fusesr-l", {"residual_clamp": "lr-range"})):
+    ref = build_model(ModelConfig.of(name, **opts), 4).eval()
+    name = name + ("+clamp" if opts else "")
     cpu_batch = _batch(ref, size=(128, 64))
     with torch.inference_mode():
         want = ref(cpu_batch)
