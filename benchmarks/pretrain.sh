@@ -9,7 +9,9 @@
 #        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500; THREADS: torch threads;
 #        INIT=SPEC: start each model from SPEC's weights with <SPEC> replaced by the model name, e.g.
 #        INIT='pretrained:<M>' fine-tunes the shipped weights; LR: optim.lr; MINUTES: each training also stops after
-#        M minutes of this invocation, resumable; MODELS: default "fusesr fusesr-l"; RELEASE=0: no weights written)
+#        M minutes of this invocation, resumable; MODELS: default "fusesr fusesr-l"; RELEASE=0: no weights written;
+#        SET: whitespace-separated KEY=VALUE overrides, each passed as --set with <M> replaced by the model name, e.g.
+#        SET='model.<M>.residual_clamp="lr-range"')
 # The weights shipped on 2026-11-26 (trained on examples/dataset_large.toml, fine-tuned from those of the medium
 # dataset): see training/weights/fusesr_x4.json, "commands".
 set -euo pipefail
@@ -32,13 +34,14 @@ for M in $MODELS; do
        --set run.threads="$THREADS")
   [ -n "${INIT:-}" ] && CMD+=(--set "run.init_from=\"${INIT//<M>/$M}\"")
   [ -n "${LR:-}" ] && CMD+=(--set "optim.lr=$LR")
+  for KV in ${SET:-}; do CMD+=(--set "${KV//<M>/$M}"); done
   mkdir -p "$R"
   { printf 'blendsr'; printf ' %q' "${CMD[@]}"; echo; } > "$R/command.txt"
   EXTRA=(); [ -f "$R/checkpoints/last.pt" ] && EXTRA+=(--resume)
   [ -n "${MINUTES:-}" ] && EXTRA+=(--minutes "$MINUTES")
   $PY -m gbuffer_export.cli "${CMD[@]}" "${EXTRA[@]}"
 done
-ENV="FUSESR_STEPS=$FUSESR_STEPS FUSESR_L_STEPS=$FUSESR_L_STEPS${INIT:+ INIT='$INIT'}${LR:+ LR=$LR}"
+ENV="FUSESR_STEPS=$FUSESR_STEPS FUSESR_L_STEPS=$FUSESR_L_STEPS${INIT:+ INIT='$INIT'}${LR:+ LR=$LR}${SET:+ SET='$SET'}"
 if [ "${RELEASE:-1}" = 1 ]; then  # RELEASE=0: train only (the script still exits 0)
   $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$(echo $MODELS | tr ' ' ,)" --env "$ENV"
 fi
