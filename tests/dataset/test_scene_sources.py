@@ -165,3 +165,35 @@ def test_materials_is_a_render_key_a_source_overrides(level, tmp_path):
     with pytest.raises(SpecError, match=re.escape("materials 'grey'")) as e:
         _spec(level, materials="grey")
     assert "\n" not in str(e.value)
+
+
+def _level_clip(root, cid: str, asset: str, split: str, cell, lo, hi) -> dict:
+    """An index entry of a level clip with split regions and its manifest (only what the region check reads)."""
+    import json
+
+    from gbuffer_export.clip import SCHEMA, SCHEMA_VERSION
+    cells = {"test": [[0, 0]], "train": [[1, 0]]}
+    (root / "clips" / cid).mkdir(parents=True)
+    (root / "clips" / cid / "manifest.json").write_text(json.dumps({
+        "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "scale": 4, "levels": {}, "buffers": [], "frames": [],
+        "frame_data": {},
+        "camera": {"region": {"lo": lo, "hi": hi, "grid": [2, 1], "cells": [cell]}}}))
+    stem = asset.rsplit("/", 1)[-1].split(".")[0]
+    return {"id": cid, "kind": "scene", "asset": asset, "split": split, "path": f"clips/{cid}",
+            "scene_id": f"{stem}@cell{cell[0]}-{cell[1]}",
+            "region": {"grid": [2, 1], "cell": cell, "split": split, "cells": cells}}
+
+
+def test_a_level_file_in_other_coordinates_is_a_split_leak(tmp_path):
+    """The dive arena's level.glb lies turned by 180 degrees against its level.blend (measured: box
+    (-59.1, -49.3)..(44.8, 35.5) against (-44.8, -35.5)..(59.1, 49.3)): one layout, other places. The index check
+    names the clip; files of a level in the same coordinates (garage.blend and garage.gltf) pass."""
+    from gbuffer_export.dataset.check import region_errors
+    blend = _level_clip(tmp_path, "a", "/l/level.blend", "test", [0, 0], [-44.8, -35.5], [59.1, 49.3])
+    same = _level_clip(tmp_path, "b", "/l/level.gltf", "train", [1, 0], [-44.8, -35.5], [59.1, 49.3])
+    turned = _level_clip(tmp_path, "c", "/l/level.glb", "train", [1, 0], [-59.1, -49.3], [44.8, 35.5])
+    assert region_errors({"clips": [blend, same]}, tmp_path) == []
+    errs = region_errors({"clips": [blend, same, turned]}, tmp_path)
+    assert len(errs) == 1 and errs[0].startswith("clip c: the regions of level 'level' lie over the box "
+                                                 "(-59.1, -49.3)..(44.8, 35.5), clip a's over (-44.8, -35.5)..")
+    assert "other coordinates" in errs[0] and "\n" not in errs[0]
