@@ -18,6 +18,9 @@ CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* 
 #: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
 LEVEL_CAMERA_PATHS = ("walk", "fly")
 LIGHTS = ("auto", "scene", "sky")
+#: ``materials``: keep the scene's materials, or replace every image texture by its image's mean (a grey-box look:
+#: ``gbuffer_export.blender.materials.make_untextured``).
+MATERIAL_MODES = ("keep", "untextured")
 DEVICES = ("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi")
 #: ``unit_scale``'s names for common units (metres per unit); "auto" detects the unit from the level's geometry
 #: (``gbuffer_export.blender.level_scale``, docs/rendering.md "A level's unit").
@@ -166,6 +169,11 @@ class RenderConfig:
         "and sky where the cameras see the sky and lamps under the ceilings where they do not; scene: the file's own "
         "lights (an unlit scene is refused); sky: add a sun lamp and a physical sky, sun direction drawn from seed "
         "(all recorded in the manifest; docs/rendering.md)"))
+    materials: str = option("keep", choices=MATERIAL_MODES, label="Materials", help=(
+        "keep: the scene's materials as they are; untextured: every image texture of every material replaced by its "
+        "image's mean (colour images averaged in linear light, weighted by alpha; normal maps flat; alpha kept), so "
+        "geometry, light and constant material values stay and texture detail goes (a grey-box level; recorded in "
+        "the manifest's material_mode)"))
     exposure: float | str = option("auto", unit="'auto' or a multiplier of the radiance (1: as rendered)",
                                    metavar="auto|X", help=(
         "the clip's exposure, as a game camera's: auto (the log-average luminance of the clip's HR frames brought to "

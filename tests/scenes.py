@@ -12,6 +12,8 @@ Kinds:
   colours   basic plus an emissive cube of coloured base and emission colour (Linear Rec.709 working space)
   acescg    colours with the blend file's working colour space changed to ACEScg (its colours converted)
   dimlamp   basic lit by a point lamp of 0.01 W under a sky of strength 1e-4 (a level lit in other units)
+  imagetex  two planes filling the view side by side, each with a packed image texture (red/blue stripes; a green
+            and white checker also driving a Bump node through a Non-Color copy), under a uniform grey world
 """
 from __future__ import annotations
 
@@ -141,6 +143,46 @@ def occluder():
                 kp.interpolation = "LINEAR"
 
 
+def _packed_image(name, size, colours, checker=False, non_color=False):
+    """A ``size`` x ``size`` image alternating between two ``colours`` (RGB as stored) every 2 pixels: stripes
+    along x, or a checker; packed into the .blend."""
+    import bpy
+    img = bpy.data.images.new(name, size, size)
+    if non_color:  # before the pixels: a generated image's colour space change regenerates it
+        img.colorspace_settings.name = "Non-Color"
+    px = []
+    for y in range(size):
+        for x in range(size):
+            px += [*colours[(x // 2 + (y // 2 if checker else 0)) % 2], 1.0]
+    img.pixels[:] = px
+    img.pack()
+    return img
+
+
+def imagetex():
+    import bpy
+    for i, (name, colours) in enumerate((("stripes", [(1.0, 0.0, 0.0), (0.0, 0.0, 1.0)]),
+                                         ("checker", [(0.2, 0.8, 0.2), (0.9, 0.9, 0.9)]))):
+        bpy.ops.mesh.primitive_plane_add(size=4, location=((i - 0.5) * 4.0, 0, 0), rotation=(1.5708, 0, 0))
+        mat = _principled(name, Roughness=0.35)
+        nt = mat.node_tree
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = _packed_image(name, 16, colours, checker=name == "checker")
+        tex.interpolation = "Closest"
+        nt.links.new(tex.outputs["Color"], nt.nodes["Principled BSDF"].inputs["Base Color"])
+        if name == "checker":
+            data = nt.nodes.new("ShaderNodeTexImage")
+            data.image = _packed_image("checker_height", 16, [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0)], checker=True,
+                                       non_color=True)
+            bump = nt.nodes.new("ShaderNodeBump")
+            nt.links.new(data.outputs["Color"], bump.inputs["Height"])
+            nt.links.new(bump.outputs["Normal"], nt.nodes["Principled BSDF"].inputs["Normal"])
+        bpy.context.object.data.materials.append(mat)
+    _world((0.5, 0.5, 0.5))
+    cam = _camera(animated=False)
+    cam.location, cam.rotation_euler = (0, -3.2, 0), (1.5708, 0, 0)
+
+
 def main(kind: str, out: str) -> None:
     import bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -160,6 +202,8 @@ def main(kind: str, out: str) -> None:
         basic(ortho=True)
     elif kind == "occluder":
         occluder()
+    elif kind == "imagetex":
+        imagetex()
     elif kind == "dimlamp":
         basic()
         sc.world.node_tree.nodes["Background"].inputs[1].default_value = 1e-4

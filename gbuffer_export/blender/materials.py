@@ -262,3 +262,85 @@ def object_is_moving(ob, scene, frame: int) -> bool:
     if keys is not None and keys.animation_data and keys.animation_data.action:
         return True
     return False
+
+
+# ----------------------------------------------------------------------------------------------
+# Untextured materials (RenderConfig.materials = "untextured")
+# ----------------------------------------------------------------------------------------------
+
+def _is_data(image) -> bool:
+    cs = image.colorspace_settings
+    return bool(cs.is_data) or cs.name in ("Non-Color", "Raw")
+
+
+def image_mean(image) -> tuple[float, ...] | None:
+    """The mean RGBA of ``image`` as its Image Texture node outputs it: a colour image's pixels decoded from sRGB to
+    linear first, RGB weighted by alpha (cut-out texels' colours are not seen), alpha its plain mean. None when the
+    image has no pixels Blender can read (missing file, a movie, tiles)."""
+    import numpy as np
+
+    from ..colour_spaces import srgb_decode
+    if image is None or image.source not in ("FILE", "GENERATED") or image.size[0] == 0 or image.size[1] == 0:
+        return None
+    n = image.size[0] * image.size[1] * image.channels
+    if n == 0 or len(image.pixels) != n:
+        return None
+    px = np.empty(n, np.float32)
+    image.pixels.foreach_get(px)
+    px = px.reshape(-1, image.channels).astype(np.float64)
+    rgb = px[:, :3] if image.channels >= 3 else np.repeat(px[:, :1], 3, axis=1)
+    alpha = px[:, 3] if image.channels == 4 else np.ones(len(px))
+    if not _is_data(image) and image.colorspace_settings.name.lower().startswith("srgb") and not image.is_float:
+        rgb = srgb_decode(np.clip(rgb, 0.0, 1.0))
+    w = alpha if alpha.sum() > 1e-6 else np.ones(len(px))
+    mean = (rgb * w[:, None]).sum(axis=0) / w.sum()
+    return (*(round(float(v), 5) for v in mean), round(float(alpha.mean()), 5))
+
+
+def _material_trees(scene):
+    """The node trees of the scene's materials and every shader node group (a group may hold textures)."""
+    seen = {}
+    for mat in scene_materials(scene):
+        if mat.node_tree is not None:
+            seen[mat.node_tree.as_pointer()] = mat.node_tree
+    for g in bpy.data.node_groups:
+        if g.bl_idname == "ShaderNodeTree":
+            seen[g.as_pointer()] = g
+    return list(seen.values())
+
+
+def make_untextured(scene) -> dict:
+    """Replace every image texture of the scene's materials by a constant: each link from an Image Texture node's
+    Color output becomes its image's mean (``image_mean``; a missing image: neutral grey, as the importers render
+    it), a normal map fed by a texture becomes flat (the Normal Map node is left unlinked), and alpha links stay
+    (a cut-out is shape, not texture). Roughness, metallic and every other unlinked value are kept. Returns the
+    manifest's ``material_mode`` record: the mode, how many texture links were replaced and each image's mean."""
+    from .importers import FLAT_NORMAL, NEUTRAL_ALBEDO, NEUTRAL_DATA, _set_default
+    means: dict[str, list | None] = {}
+    replaced = 0
+    for tree in _material_trees(scene):
+        for node in list(tree.nodes):
+            if node.type != "TEX_IMAGE":
+                continue
+            image = node.image
+            key = image.name if image is not None else "(none)"
+            if key not in means:
+                m = image_mean(image)
+                means[key] = list(m) if m is not None else None
+            mean = means[key]
+            data = image is not None and _is_data(image)
+            for link in [ln for out in node.outputs if out.name != "Alpha" for ln in out.links]:
+                to_node, sock = link.to_node, link.to_socket
+                if to_node.type == "NORMAL_MAP":
+                    value = FLAT_NORMAL
+                elif mean is None:
+                    v = NEUTRAL_DATA if data else NEUTRAL_ALBEDO
+                    value = (v, v, v, 1.0)
+                else:
+                    value = (*mean[:3], 1.0)
+                tree.links.remove(link)
+                if sock.type == "VALUE":  # a texture's colour into a number (a bump height, a factor): its luminance
+                    value = float(0.2126 * value[0] + 0.7152 * value[1] + 0.0722 * value[2])
+                _set_default(sock, value)
+                replaced += 1
+    return {"mode": "untextured", "links_replaced": replaced, "image_means": dict(sorted(means.items()))}

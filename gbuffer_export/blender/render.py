@@ -386,7 +386,8 @@ class ResolvedRender:
     ``my_frames``, those this process renders (shard, only_frames); ``hr_size`` and ``levels`` (the manifest's
     {name: {"width", "height", ...}}); ``light``, the manifest's light record; the camera and its report; the view
     layer; the materials, their flags (``flag_lut``: material pass index -> flag bits, uint32) and the pass plan;
-    ``moving``, the names of the objects that move (pass index 1)."""
+    ``moving``, the names of the objects that move (pass index 1); ``material_mode``, the manifest's record of
+    ``materials = "untextured"`` (None for "keep")."""
 
     frames: tuple[int, ...]
     my_frames: tuple[int, ...]
@@ -400,6 +401,7 @@ class ResolvedRender:
     plan: PassPlan
     flag_lut: np.ndarray
     moving: tuple[str, ...]
+    material_mode: dict | None = None
 
 
 def built_by_blendsr(scene_info: dict) -> bool:
@@ -431,6 +433,8 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
     if not renderable_meshes(scene):
         raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
     frames = resolve_frames(cfg, scene)
+    # before the light is probed and the materials inspected: both see the materials that render
+    material_mode = mats.make_untextured(scene) if cfg.materials == "untextured" else None
     if cfg.light == "scene":
         from .scene_setup import check_lit
         check_lit(scene, cfg.scene or "scene", "scene")  # an unlit scene is refused before its camera is planned
@@ -458,7 +462,8 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
     return ResolvedRender(frames=tuple(frames), my_frames=my_frames, hr_size=hr_size,
                           levels=levels_header(hr_size, cfg.scales), light=light, cam=cam, camera_report=camera_report,
                           view_layer=view_layer, materials=infos, plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names),
-                          flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)))
+                          flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)),
+                          material_mode=material_mode)
 
 
 def _render_view_layer(scene):
@@ -519,6 +524,8 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         },
         "materials": {n: i.to_json() for n, i in r.materials.items()},
         "material_summary": mats.material_summary(r.materials),
+        # only when untextured: a clip of the scene's own materials keeps the identity it had before the key
+        **({"material_mode": r.material_mode} if r.material_mode else {}),
         "moving_objects": list(r.moving),
         "shard": list(cfg.shard),
         "command": " ".join(sys.argv),

@@ -3,7 +3,10 @@
 Index checks: every clip listed exists and is finished; no scene or asset id lies in two splits; no clip's clutter
 comes from an asset of another split (a test asset never appears in a training clip); every clip records a licence;
 a level split into regions gives each split its own cells and every clip a cell of its split (each clip's own
-validation then checks that its camera stays in that cell).
+validation then checks that its camera stays in that cell), and every clip of one level (a scene file's stem: the
+spec gives all of them one layout) lays its grid over the same box, so a cell is one place in every file of the level
+(a level exported in other coordinates, such as a GLB turned against its .blend, would put a test cell of one file on
+a training place of the other).
 """
 from __future__ import annotations
 
@@ -48,6 +51,7 @@ def region_errors(index: dict, root: Path | None = None) -> list[str]:
     manifest's ``camera.region``) are its split's."""
     errs = []
     layout: dict[str, dict] = {}
+    boxes: dict[str, tuple] = {}
     for c in index["clips"]:
         reg = c.get("region")
         if c.get("kind") != "scene" or not reg:
@@ -64,19 +68,48 @@ def region_errors(index: dict, root: Path | None = None) -> list[str]:
                     errs.append(f"clip {c['id']}: regions {sorted(cells[a] & cells[b])} are in both {a} and {b}")
         if tuple(reg.get("cell") or ()) not in cells.get(c["split"], set()):
             errs.append(f"clip {c['id']} ({c['split']}) stands in cell {reg.get('cell')}, not a {c['split']} region")
-        used = _manifest_cells(root, c) if root is not None else None
-        if used is not None and not used <= cells.get(c["split"], set()):
+        region = _manifest_region(root, c) if root is not None else None
+        if region is None:
+            continue
+        used = {tuple(x) for x in region["cells"]}
+        if not used <= cells.get(c["split"], set()):
             errs.append(f"clip {c['id']} ({c['split']}): its camera used cells {sorted(used)} outside its split's")
+        err = _box_error(c, region, boxes)
+        if err:
+            errs.append(err)
     return sorted(set(errs))
 
 
-def _manifest_cells(root: Path, entry: dict) -> set | None:
-    """The cells the clip's manifest allowed its camera; None when the clip's path breaks the index path rule
-    (``clip_dir``: reported by ``index_errors``, its manifest never opened) or its manifest has none."""
+#: Two clips of one level lay their grid over the same box when its corners agree within this share of its size.
+BOX_TOLERANCE = 1e-3
+
+
+def _box_error(entry: dict, region: dict, boxes: dict) -> str | None:
+    """An error when ``entry``'s grid box (its manifest's ``camera.region`` lo/hi) differs from the first box seen
+    for its level (the stem of its scene id); None otherwise or when the manifest has no box."""
+    import numpy as np
+    if region.get("lo") is None or region.get("hi") is None:
+        return None
+    stem = str(entry.get("scene_id") or Path(str(entry.get("asset"))).stem).split("@")[0]
+    lo, hi = np.asarray(region["lo"], float), np.asarray(region["hi"], float)
+    first_id, lo0, hi0 = boxes.setdefault(stem, (entry["id"], lo, hi))
+    tol = BOX_TOLERANCE * max(float(np.max(hi0 - lo0)), 1e-9)
+    if lo.shape == lo0.shape and np.all(np.abs(lo - lo0) <= tol) and np.all(np.abs(hi - hi0) <= tol):
+        return None
+    fmt = lambda v: "(" + ", ".join(f"{x:.3g}" for x in v) + ")"  # noqa: E731
+    return (f"clip {entry['id']}: the regions of level {stem!r} lie over the box {fmt(lo)}..{fmt(hi)}, clip {first_id}'s "
+            f"over {fmt(lo0)}..{fmt(hi0)}: its file is in other coordinates, so a cell is another place in it (leave "
+            "the file out of the spec, or export it in the coordinates of the level's other files)")
+
+
+def _manifest_region(root: Path, entry: dict) -> dict | None:
+    """The clip manifest's ``camera.region`` (the cells its camera was allowed, the grid's box); None when the
+    clip's path breaks the index path rule (``clip_dir``: reported by ``index_errors``, its manifest never opened)
+    or its manifest has none."""
     from ..clip import load_manifest
     try:
         reg = load_manifest(clip_dir(root, entry))["camera"]["region"]
-        return {tuple(x) for x in reg["cells"]}
+        return reg if isinstance(reg, dict) and isinstance(reg.get("cells"), list) else None
     except (OSError, ValueError, KeyError, TypeError):  # ClipError and DatasetError are ValueErrors
         return None
 

@@ -606,9 +606,10 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
     base = spec.path.parent.resolve() if spec.path else None
     count_clips(spec, base)
     jobs: list[ClipJob] = []
+    levels = {stem: [owner, 0] for stem, owner in level_layouts(spec, base).items()}
     for src in spec.sources:
         if src.kind == "scene":
-            jobs += _expand_scene(src, spec, base)
+            jobs += _expand_scene(src, spec, base, levels)
             continue
         hdris = find_hdris(src.environment, base, spec.path, src.name)
         if src.kind == "builtin":
@@ -655,21 +656,46 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
     return jobs
 
 
-def region_cells(src: Source, spec_seed: int, stem: str) -> dict[str, list[list[int]]]:
+def region_cells(src: Source, spec_seed: int, stem: str, owner: str | None = None) -> dict[str, list[list[int]]]:
     """The grid cells of each split of one scene: a seeded shuffle of the ``regions`` grid gives its first
-    ``region_test`` cells to test, the next ``region_val`` to val, the rest to train."""
+    ``region_test`` cells to test, the next ``region_val`` to val, the rest to train. ``owner``: the name of the
+    source that draws the level's layout (the first source listing the level: ``level_layouts``; default ``src``)."""
     import random
     nx, ny = src.regions
     cells = [[i, j] for j in range(ny) for i in range(nx)]
-    random.Random(stable_hash("regions", spec_seed, src.name, stem)).shuffle(cells)
+    random.Random(stable_hash("regions", spec_seed, owner or src.name, stem)).shuffle(cells)
     t, v = src.region_test, src.region_val
     return {"test": cells[:t], "val": cells[t:t + v], "train": cells[t + v:]}
 
 
-def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[ClipJob]:
+def level_layouts(spec: DatasetSpec, base: Path | None) -> dict[str, str]:
+    """For every level (a scene file's stem: ``garage.blend`` and ``garage.gltf`` are one level) of the spec's
+    ``kind = "scene"`` sources, the name of the first source that lists it: that source draws the level's region
+    layout and every other source of the level reuses it, so a cell is in one split in the whole spec. SpecError
+    (one line) when two sources of one level split it differently (another grid, other test/val counts, or regions
+    in one and none in the other): a test region of one would be training data of the other."""
+    owners: dict[str, Source] = {}
+    key = lambda s: (s.regions, s.region_test, s.region_val, s.split)  # noqa: E731
+    for src in spec.sources:
+        if src.kind != "scene":
+            continue
+        for a in find_assets(src, base, spec.path):
+            first = owners.setdefault(a.stem, src)
+            if key(first) != key(src):
+                forced = f", split = \"{first.split}\"" if first.split else ", no split key"
+                raise SpecError(f"{spec.path}: source {src.name!r}: level {a.stem!r} is split otherwise than in "
+                                f"source {first.name!r}: use its regions = \"{first.regions[0]}x{first.regions[1]}\", "
+                                f"region_test = {first.region_test}, region_val = {first.region_val}{forced} (one "
+                                "layout per level)")
+    return {stem: src.name for stem, src in owners.items()}
+
+
+def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None, levels: dict) -> list[ClipJob]:
     """The clips of a ``kind = "scene"`` source: ``clips_per_scene`` per file, clip k with camera kind k of
-    ``cameras`` (cycling). With split regions, clip k starts in cell k of the order test cells, val cells, train
-    cells (cycling), so the first clips cover every split; its path stays in that cell, or, when no path fits there,
+    ``cameras`` (cycling). With split regions, the level's n-th clip in the spec (counted over every source of the
+    level, in spec order: ``levels`` maps a stem to [layout owner, clips so far]) starts in cell n of the order test
+    cells, val cells, train cells (cycling), so the level's first clips cover every split and a source appended to
+    a spec leaves the clips before it unchanged; its path stays in that cell, or, when no path fits there,
     in the cells of its split (the renderer decides: the index does not know the geometry)."""
     jobs = []
     var = src.variation or Variation()
@@ -679,7 +705,7 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
         if a.stem in src.licence:
             lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
         split_regions = bool(src.region_val or src.region_test)
-        cells = region_cells(src, spec.seed, a.stem) if split_regions else None
+        cells = region_cells(src, spec.seed, a.stem, levels[a.stem][0]) if split_regions else None
         order = [(sp, c) for sp in ("test", "val", "train") for c in (cells or {}).get(sp, [])]
         for k in range(src.clips_per_scene):
             cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
@@ -687,7 +713,8 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None) -> list[Cli
             rng = _draw(seed)
             camera = src.cameras[k % len(src.cameras)]  # cycling: every kind appears once clips >= kinds
             if split_regions:
-                split, cell = order[k % len(order)]
+                split, cell = order[levels[a.stem][1] % len(order)]
+                levels[a.stem][1] += 1
                 region = {"grid": list(src.regions), "cell": cell, "split": split, "cells": cells}
                 scene_id = f"{a.stem}@cell{cell[0]}-{cell[1]}"
             else:
