@@ -97,8 +97,8 @@ def _box_error(entry: dict, region: dict, boxes: dict) -> str | None:
     if lo.shape == lo0.shape and np.all(np.abs(lo - lo0) <= tol) and np.all(np.abs(hi - hi0) <= tol):
         return None
     fmt = lambda v: "(" + ", ".join(f"{x:.3g}" for x in v) + ")"  # noqa: E731
-    return (f"clip {entry['id']}: the regions of level {stem!r} lie over the box {fmt(lo)}..{fmt(hi)}, clip {first_id}'s "
-            f"over {fmt(lo0)}..{fmt(hi0)}: its file is in other coordinates, so a cell is another place in it (leave "
+    return (f"clip {entry['id']}: the regions of level {stem!r} lie over the box {fmt(lo)}..{fmt(hi)}, "
+            f"clip {first_id}'s over {fmt(lo0)}..{fmt(hi0)}: its file is in other coordinates, so a cell is another place in it (leave "
             "the file out of the spec, or export it in the coordinates of the level's other files)")
 
 
