@@ -7,12 +7,18 @@ with the mean, the smallest per-clip margin and the artifact pixels (docs/evalua
 A clip is a level when its source is of kind ``scene`` (a level kept as it is, cameras inside it), an object
 otherwise (assets in generated environments, built-in scenes). A model whose buffers a clip lacks is left out of
 that group with a note (as ``bench models`` does). Writes OUT.json (every model's per-clip rows) and OUT.md (the
-table) when ``-o`` is given; prints the table.
+table) when ``-o`` is given; prints the table. With ``--record`` (val split only) each shipped network's row
+(``pretrained:NAME``, no options) is written into the JSON beside its weights as ``worst_case_val``
+(``training.pretrained.WORST_CASE_VAL``: the frame-weighted margin over ``demod-jbu`` on every group it was scored
+on, per group too, with the weights' sha256, the datasets and this command), which ``pretrained.below_baseline``
+reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there.
 """
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -72,21 +78,71 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def overall(result: dict, label: str) -> dict | None:
+    """A model's margin over ``demod-jbu`` over every group it was scored on (frame-weighted), with each group's."""
+    rows = [c for g in result.values() for c in g["models"].get(label, {}).get("per_clip", [])
+            if c.get("baseline_psnr") is not None]
+    if not rows:
+        return None
+    frames = sum(c["frames"] for c in rows)
+    mean = (lambda k: sum(c[k] * c["frames"] for c in rows) / frames)
+    return {"psnr": round(mean("psnr"), 3), "baseline_psnr": round(mean("baseline_psnr"), 3),
+            "margin": round(mean("psnr") - mean("baseline_psnr"), 3),
+            "margin_min": round(min(c["margin"] for c in rows), 3), "frames": frames,
+            "per_group": {g: round(r["models"][label]["mean"]["margin"], 3) for g, r in result.items()
+                          if label in r["models"]},
+            "left_out": [n for r in result.values() for n in r["notes"] if f" {label}:" in n]}
+
+
+def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
+    """Write each ``pretrained:NAME`` row's ``overall`` into the JSON beside its weights (``WORST_CASE_VAL``)."""
+    from gbuffer_export.dataset.build import read_index
+    from training import pretrained
+    for label in {m for g in result.values() for m in g["models"]}:
+        name = label[len(pretrained.PREFIX):] if label.startswith(pretrained.PREFIX) else None
+        got = overall(result, label)
+        if name not in pretrained.PRETRAINED or got is None:
+            continue
+        path = (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).with_suffix(".json")
+        doc = json.loads(path.read_text())
+        specs = [read_index(d)["spec"]["file"] for d in datasets]
+        doc[pretrained.WORST_CASE_VAL] = {
+            "dataset": " + ".join(f"{s} val" for s in specs), "sha256": doc.get("sha256"),
+            "date": datetime.date.today().isoformat(),
+            "command": "benchmarks/worst_case.py " + " ".join(shlex.quote(a) for a in argv), **got}
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")
+        tmp.replace(path)
+        print(f"{path.name}: {pretrained.WORST_CASE_VAL} margin {got['margin']:+.2f} dB", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("datasets", type=Path, nargs="+")
     p.add_argument("--split", default="test")
     p.add_argument("--models", default="demod-bilinear,demod-jbu,pretrained:fusesr,pretrained:fusesr-l")
     p.add_argument("-o", dest="out", type=Path, help="OUT.json and OUT.md")
+    p.add_argument("--scores", type=Path, help="an OUT.json of an earlier run of the same arguments: its scores are "
+                   "tabled (and recorded) instead of scoring again")
+    p.add_argument("--record", action="store_true",
+                   help="write each shipped network's val margin beside its weights (val split only)")
+    argv = sys.argv[1:] if argv is None else list(argv)
     a = p.parse_args(argv)
+    if a.record and a.split != "val":
+        p.error("--record takes the val split only (the test split never chooses or marks)")
     from training.bench_models import parse_models
-    result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
+    if a.scores:
+        result = json.loads(a.scores.read_text())
+    else:
+        result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
     text = table(result)
     print(text)
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
         a.out.with_suffix(".md").write_text(text + "\n")
+    if a.record:
+        record(result, a.datasets, argv)
     return 0
 
 
