@@ -128,10 +128,12 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
 
 
 def checkpoint_label(name: str, path: str) -> str:
-    """'fusesr' + 'runs/a/checkpoints/last.pt' -> 'fusesr (a)'; other files -> 'fusesr (file stem)'."""
+    """'fusesr' + 'runs/a/checkpoints/last.pt' -> 'fusesr (a)'; other files -> 'fusesr (file stem)'; inference
+    options after '?' stay in the label ('fusesr (a?residual_clamp=none)'), so two rows of one file differ."""
+    path, q, options = str(path).partition("?")
     p = Path(path)
     tag = p.parent.parent.name if p.parent.name == "checkpoints" and p.parent.parent.name else p.stem
-    return f"{name} ({tag})"
+    return f"{name} ({tag}{q}{options})"
 
 
 def macs_per_pixel(model, inputs: dict) -> float:
