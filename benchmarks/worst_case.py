@@ -142,7 +142,8 @@ def main(argv=None) -> int:
         a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
         a.out.with_suffix(".md").write_text(text + "\n")
     if a.record:
-        record(result, a.datasets, argv)
+        kept = [x for i, x in enumerate(argv) if x != "--scores" and (i == 0 or argv[i - 1] != "--scores")]
+        record(result, a.datasets, [x for x in kept if not x.startswith("--scores=")])
     return 0
 
 

@@ -69,7 +69,8 @@ WORST_CASE_VAL = "worst_case_val"
 def val_margins(name: str) -> dict[str, float]:
     """The shipped network's PSNR minus ``demod-jbu``'s on each val set on record, in dB, from the JSON beside its
     weights: ``scores_on_val_split`` (the split its training was chosen on; both scored on the same frames) and
-    ``worst_case_val`` (a wider val set, for the weights of the same sha256); empty when the JSON holds neither."""
+    ``worst_case_val`` (a wider val set, for the weights of the same sha256: over all of it and over each of its
+    groups, objects and levels); empty when the JSON holds neither."""
     try:
         doc = info(name)
     except (OSError, ValueError, KeyError):
@@ -82,7 +83,10 @@ def val_margins(name: str) -> dict[str, float]:
         pass
     wide = doc.get(WORST_CASE_VAL) or {}
     if wide.get("sha256") == doc.get("sha256") and isinstance(wide.get("margin"), (int, float)):
-        out[wide.get("dataset", "wide val")] = float(wide["margin"])
+        where = wide.get("dataset", "wide val")
+        out[where] = float(wide["margin"])
+        for group, margin in (wide.get("per_group") or {}).items():  # objects and levels: each a val set of its own
+            out[f"{where}, {group}"] = float(margin)
     return out
 
 
