@@ -167,7 +167,8 @@ def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(
                  *set_args(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
     model = ck["config"]["model"]
-    model.update(model.pop("fusesr"))  # the flat [model] table of checkpoints before per-model tables
+    from training.config import LEGACY_FLAT_KEYS  # the flat [model] table of checkpoints before per-model tables,
+    model.update({k: v for k, v in model.pop("fusesr").items() if k in LEGACY_FLAT_KEYS})  # which predate later keys
     for key in ("jitter", "norm", "remod_filter", "remod_filter_px", "upsample_by_class", "guided_upsample"):
         del model[key]
     del ck["config"]["data"]["reflectance_range"]
