@@ -155,7 +155,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
     ``fast``: prepared for the fast path (``load_model``)."""
     from training.checkpoint import load_checkpoint
     from training.config import ModelConfig
-    from training.inference import InferenceModel, load_model
+    from training.inference import InferenceModel, load_model, split_spec
     from training.models import MODELS, build_model
     out = []
     for label, spec in models:
@@ -164,7 +164,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
             out.append((label, InferenceModel(build_model(ModelConfig(name=name, scale=scale), scale).eval(), name)))
             continue
         if spec != name:
-            ck_name = load_checkpoint(spec)["model_name"]
+            ck_name = load_checkpoint(split_spec(spec)[0])["model_name"]  # the file, without its '?' options
             if ck_name != name:
                 raise BlendSRError(f"{spec}: checkpoint holds model {ck_name!r}, not {name!r}")
         out.append((label, load_model(spec, scale, fast=fast)))
