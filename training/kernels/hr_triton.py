@@ -42,21 +42,19 @@ F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER, F_CLAMP = 1, 2, 4, 8, 
 
 @triton.jit
 def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, BLOCK: tl.constexpr):
-    """Steps 1-5 (and 4b) for BLOCK pixels of HR row program_id(1) of image program_id(2). ``lrs`` = (LR image, F_used,
+    """Steps 1-2 (the taps' sums and ranges) for BLOCK pixels of HR row program_id(1) of image program_id(2), then
+    ``_finish`` (steps 3-5 and 4b). ``lrs`` = (LR image, F_used,
     depth, normal), ``hrs`` = (HR F_used, depth, normal, emission, network output, out), ``s_lrs`` / ``s_hrs``
     their strides (b, c, y, x); ``jit`` (B, 2); ``scalars`` = (h, w, W, jitter's 2 strides, scale, sigma_depth,
     sigma_normal, floor, clamp margin); ``FLAGS``: the F_* bits above."""
     BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
     GUIDED: tl.constexpr = (FLAGS & 2) != 0
-    HEAD: tl.constexpr = (FLAGS & 4) != 0
-    LOG1P: tl.constexpr = (FLAGS & 8) != 0
-    REMOD: tl.constexpr = (FLAGS & 16) != 0
     HAS_JITTER: tl.constexpr = (FLAGS & 32) != 0
     CLAMP: tl.constexpr = (FLAGS & 64) != 0
     lr, lr_fb, lr_d, lr_n = lrs[0], lrs[1], lrs[2], lrs[3]
     s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
-    hr_fb, hr_d, hr_n, hr_e, net, out = hrs[0], hrs[1], hrs[2], hrs[3], hrs[4], hrs[5]
-    s_hfb, s_hd, s_hn, s_he, s_net, s_out = s_hrs[0], s_hrs[1], s_hrs[2], s_hrs[3], s_hrs[4], s_hrs[5]
+    hr_fb, hr_d, hr_n = hrs[0], hrs[1], hrs[2]
+    s_hfb, s_hd, s_hn = s_hrs[0], s_hrs[1], s_hrs[2]
     h, w, ww, sj0, sj1 = scalars[0], scalars[1], scalars[2], scalars[3], scalars[4]
     scale, sd, sn, floor, margin = scalars[5], scalars[6], scalars[7], scalars[8], scalars[9]
     xb = tl.program_id(0)
@@ -122,39 +120,45 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
                 if BY_CLASS:
                     wg = tl.where(same, wg, 0.0)
                 g0, g1, g2, gden = g0 + wg * v0, g1 + wg * v1, g2 + wg * v2, gden + wg
-    o0, o1, o2 = p0, p1, p2
-    if BY_CLASS:
-        o0, o1, o2 = class_or_plain(c0, cden, o0), class_or_plain(c1, cden, o1), class_or_plain(c2, cden, o2)
-    if GUIDED:
-        o0 = guided_or_fallback(g0, gden, o0, floor)
-        o1 = guided_or_fallback(g1, gden, o1, floor)
-        o2 = guided_or_fallback(g2, gden, o2, floor)
-    if HEAD:
-        o0 = head(_ld(net, b, 0, y, x, s_net, mask), o0)
-        o1 = head(_ld(net, b, 1, y, x, s_net, mask), o1)
-        o2 = head(_ld(net, b, 2, y, x, s_net, mask), o2)
-        if LOG1P:
-            o0, o1, o2 = inverse_log1p(o0), inverse_log1p(o1), inverse_log1p(o2)
-        if CLAMP:
-            if BY_CLASS:
-                plo0, plo1, plo2 = range_pick(cden, clo0, plo0), range_pick(cden, clo1, plo1), \
-                    range_pick(cden, clo2, plo2)
-                phi0, phi1, phi2 = range_pick(cden, chi0, phi0), range_pick(cden, chi1, phi1), \
-                    range_pick(cden, chi2, phi2)
-            if LOG1P:
-                plo0, plo1, plo2 = inverse_log1p(plo0), inverse_log1p(plo1), inverse_log1p(plo2)
-                phi0, phi1, phi2 = inverse_log1p(phi0), inverse_log1p(phi1), inverse_log1p(phi2)
-            o0 = clamp_to_range(o0, plo0, phi0, margin)
-            o1 = clamp_to_range(o1, plo1, phi1, margin)
-            o2 = clamp_to_range(o2, plo2, phi2, margin)
-    if REMOD:
-        o0 = remodulate(o0, _ld(hr_fb, b, 0, y, x, s_hfb, mask), _ld(hr_e, b, 0, y, x, s_he, mask))
-        o1 = remodulate(o1, _ld(hr_fb, b, 1, y, x, s_hfb, mask), _ld(hr_e, b, 1, y, x, s_he, mask))
-        o2 = remodulate(o2, _ld(hr_fb, b, 2, y, x, s_hfb, mask), _ld(hr_e, b, 2, y, x, s_he, mask))
+    _finish(hrs, s_hrs, (b, y, x, mask), (p0, p1, p2), (c0, c1, c2, cden), (g0, g1, g2, gden),
+            (plo0, plo1, plo2, phi0, phi1, phi2), (clo0, clo1, clo2, chi0, chi1, chi2), floor, margin, FLAGS)
+
+
+@triton.jit
+def _finish(hrs, s_hrs, at, p, c, g, prange, crange, floor, margin, FLAGS: tl.constexpr):
+    """Steps 3-5 (and 4b) of one block from the tap sums of ``hr_pixels_kernel``, per channel k, and the store:
+    ``at`` = (b, y, x, mask); ``p`` the bilinear sums, ``c`` / ``g`` the class and guided sums with their weight
+    totals last; ``prange`` / ``crange`` the tap ranges (3 minima, then 3 maxima) of all taps and of the class."""
+    BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
+    GUIDED: tl.constexpr = (FLAGS & 2) != 0
+    HEAD: tl.constexpr = (FLAGS & 4) != 0
+    LOG1P: tl.constexpr = (FLAGS & 8) != 0
+    REMOD: tl.constexpr = (FLAGS & 16) != 0
+    CLAMP: tl.constexpr = (FLAGS & 64) != 0
+    hr_fb, hr_e, net, out = hrs[0], hrs[3], hrs[4], hrs[5]
+    s_hfb, s_he, s_net, s_out = s_hrs[0], s_hrs[3], s_hrs[4], s_hrs[5]
+    b, y, x, mask = at[0], at[1], at[2], at[3]
     base = out + b * s_out[0] + y * s_out[2] + x * s_out[3]
-    tl.store(base, o0, mask=mask)
-    tl.store(base + s_out[1], o1, mask=mask)
-    tl.store(base + 2 * s_out[1], o2, mask=mask)
+    for k in tl.static_range(3):
+        o = p[k]
+        if BY_CLASS:
+            o = class_or_plain(c[k], c[3], o)
+        if GUIDED:
+            o = guided_or_fallback(g[k], g[3], o, floor)
+        if HEAD:
+            o = head(_ld(net, b, k, y, x, s_net, mask), o)
+            if LOG1P:
+                o = inverse_log1p(o)
+            if CLAMP:
+                lo, hi = prange[k], prange[k + 3]
+                if BY_CLASS:
+                    lo, hi = range_pick(c[3], crange[k], lo), range_pick(c[3], crange[k + 3], hi)
+                if LOG1P:
+                    lo, hi = inverse_log1p(lo), inverse_log1p(hi)
+                o = clamp_to_range(o, lo, hi, margin)
+        if REMOD:
+            o = remodulate(o, _ld(hr_fb, b, k, y, x, s_hfb, mask), _ld(hr_e, b, k, y, x, s_he, mask))
+        tl.store(base + k * s_out[1], o, mask=mask)
 
 
 #: Longest pixel filter the kernel takes; longer ones run ``fast_ops.shift_filter``.
