@@ -98,6 +98,7 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
     """Write each ``pretrained:NAME`` row's ``overall`` into the JSON beside its weights (``WORST_CASE_VAL``)."""
     from gbuffer_export.dataset.build import read_index
     from training import pretrained
+    where = " + ".join(f"{read_index(d)['spec']['file']} val" for d in datasets)
     for label in {m for g in result.values() for m in g["models"]}:
         name = label[len(pretrained.PREFIX):] if label.startswith(pretrained.PREFIX) else None
         got = overall(result, label)
@@ -105,9 +106,8 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
             continue
         path = (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).with_suffix(".json")
         doc = json.loads(path.read_text())
-        specs = [read_index(d)["spec"]["file"] for d in datasets]
         doc[pretrained.WORST_CASE_VAL] = {
-            "dataset": " + ".join(f"{s} val" for s in specs), "sha256": doc.get("sha256"),
+            "dataset": where, "sha256": doc.get("sha256"),
             "date": datetime.date.today().isoformat(),
             "command": "benchmarks/worst_case.py " + " ".join(shlex.quote(a) for a in argv), **got}
         tmp = path.with_suffix(".json.tmp")
