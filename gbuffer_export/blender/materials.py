@@ -315,6 +315,7 @@ def make_untextured(scene) -> dict:
     it), a normal map fed by a texture becomes flat (the Normal Map node is left unlinked), and alpha links stay
     (a cut-out is shape, not texture). Roughness, metallic and every other unlinked value are kept. Returns the
     manifest's ``material_mode`` record: the mode, how many texture links were replaced and each image's mean."""
+    from ..colour_spaces import BT709_LUMA
     from .importers import FLAT_NORMAL, NEUTRAL_ALBEDO, NEUTRAL_DATA, _set_default
     means: dict[str, list | None] = {}
     replaced = 0
@@ -340,7 +341,7 @@ def make_untextured(scene) -> dict:
                     value = (*mean[:3], 1.0)
                 tree.links.remove(link)
                 if sock.type == "VALUE":  # a texture's colour into a number (a bump height, a factor): its luminance
-                    value = float(0.2126 * value[0] + 0.7152 * value[1] + 0.0722 * value[2])
+                    value = float(sum(w * c for w, c in zip(BT709_LUMA, value)))
                 _set_default(sock, value)
                 replaced += 1
     return {"mode": "untextured", "links_replaced": replaced, "image_means": dict(sorted(means.items()))}
