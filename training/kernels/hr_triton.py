@@ -120,15 +120,16 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
                 if BY_CLASS:
                     wg = tl.where(same, wg, 0.0)
                 g0, g1, g2, gden = g0 + wg * v0, g1 + wg * v1, g2 + wg * v2, gden + wg
-    _finish(hrs, s_hrs, (b, y, x, mask), (p0, p1, p2), (c0, c1, c2, cden), (g0, g1, g2, gden),
-            (plo0, plo1, plo2, phi0, phi1, phi2), (clo0, clo1, clo2, chi0, chi1, chi2), floor, margin, FLAGS)
+    _finish(hrs, s_hrs, (b, y, x, mask), ((p0, p1, p2), (c0, c1, c2, cden), (g0, g1, g2, gden)),
+            ((plo0, plo1, plo2, phi0, phi1, phi2), (clo0, clo1, clo2, chi0, chi1, chi2)), (floor, margin), FLAGS)
 
 
 @triton.jit
-def _finish(hrs, s_hrs, at, p, c, g, prange, crange, floor, margin, FLAGS: tl.constexpr):
+def _finish(hrs, s_hrs, at, sums, ranges, consts, FLAGS: tl.constexpr):
     """Steps 3-5 (and 4b) of one block from the tap sums of ``hr_pixels_kernel``, per channel k, and the store:
-    ``at`` = (b, y, x, mask); ``p`` the bilinear sums, ``c`` / ``g`` the class and guided sums with their weight
-    totals last; ``prange`` / ``crange`` the tap ranges (3 minima, then 3 maxima) of all taps and of the class."""
+    ``at`` = (b, y, x, mask); ``sums`` = (p, c, g): the bilinear sums, the class and guided sums with their weight
+    totals last; ``ranges`` = (all taps', the class's) tap ranges, 3 minima then 3 maxima; ``consts`` = (floor,
+    clamp margin)."""
     BY_CLASS: tl.constexpr = (FLAGS & 1) != 0
     GUIDED: tl.constexpr = (FLAGS & 2) != 0
     HEAD: tl.constexpr = (FLAGS & 4) != 0
@@ -138,6 +139,8 @@ def _finish(hrs, s_hrs, at, p, c, g, prange, crange, floor, margin, FLAGS: tl.co
     hr_fb, hr_e, net, out = hrs[0], hrs[3], hrs[4], hrs[5]
     s_hfb, s_he, s_net, s_out = s_hrs[0], s_hrs[3], s_hrs[4], s_hrs[5]
     b, y, x, mask = at[0], at[1], at[2], at[3]
+    p, c, g, prange, crange = sums[0], sums[1], sums[2], ranges[0], ranges[1]
+    floor, margin = consts[0], consts[1]
     base = out + b * s_out[0] + y * s_out[2] + x * s_out[3]
     for k in tl.static_range(3):
         o = p[k]
