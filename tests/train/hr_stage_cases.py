@@ -34,7 +34,10 @@ CASES = [("demod-bilinear", {}), ("demod-bilinear", {"upsample_by_class": False,
          ("fusesr-fast", {}), ("fusesr-fast", {"guided_upsample": False, "input_transform": "none"}),
          ("fusesr-l", {}), ("fusesr", {"history": 1}), ("fusesr", {"history": 0, "demodulation": False}),
          ("fusesr-fast", {"residual_clamp": "lr-range"}),
-         ("fusesr-l", {"residual_clamp": "lr-range", "residual_clamp_margin": 0.25, "jitter": False})]
+         ("fusesr-l", {"residual_clamp": "lr-range", "residual_clamp_margin": 0.25, "jitter": False}),
+         ("fusesr-fast", {"residual_clamp": "lr-guided"}),
+         ("fusesr-l", {"residual_clamp": "lr-guided", "upsample_by_class": False, "guide_sigma_depth": 2.0,
+                       "guide_sigma_normal": 1.0})]
 
 
 def _batch(model, size=(48, 32), seed=3):
@@ -161,7 +164,10 @@ SPECS = [HRStage(4, True, True, (0.1, 0.2), False, False, True, BH),            
          HRStage(4, False, False, None, False, False, True, (0.05, 0.2, 0.5, 0.2, 0.05)),   # 5 taps
          HRStage(4, True, False, None, False, False, True, (0.1,) * 7),                     # 7 taps: torch filter
          HRStage(4, True, True, (0.1, 0.2), True, True, True, BH, clamp=0.0),              # residual_clamp
-         HRStage(2, False, True, (0.1, 0.2), True, False, False, None, clamp=0.5)]         # clamp, no classes
+         HRStage(2, False, True, (0.1, 0.2), True, False, False, None, clamp=0.5),         # clamp, no classes
+         # "lr-guided" (wide sigmas: the random guides give similar and dissimilar taps, both)
+         HRStage(4, True, True, (2.0, 1.0), True, True, True, BH, clamp=0.0, clamp_guided=True),
+         HRStage(2, False, True, (2.0, 1.0), True, False, False, None, clamp=0.25, clamp_guided=True)]
 
 
 def interpreter_errors() -> list:

@@ -1,6 +1,7 @@
-"""The FuseSR family's ``residual_clamp = "lr-range"`` (training/models/fusesr.py, "Bounded correction"): the clamp
-binds where the network leaves the LR range of its base's taps and nowhere else, the fused torch stage does the
-same, the gradient passes where it does not bind, and a trained model keeps the option through its checkpoint.
+"""The FuseSR family's ``residual_clamp = "lr-range"`` and ``"lr-guided"`` (training/models/fusesr.py, "Bounded
+correction"): the clamp binds where the network leaves the LR range of its base's taps (lr-guided: of the taps of
+the pixel's surface, none where there are none) and nowhere else, the fused torch stage does the same, the gradient
+passes where it does not bind, and a trained model keeps the option through its checkpoint.
 The fused path and the Triton kernels against the reference with the clamp on: tests/train/hr_stage_cases.py."""
 import numpy as np
 import pytest
@@ -91,6 +92,48 @@ def test_clamp_bounds_by_the_lr_taps_and_leaves_the_base_alone(margin):
     assert float((hi - lo).min()) >= 0 and float((hi - lo).max()) > 0.1  # the ranges are not trivial
 
 
+def _guided_range_numpy(lr, g_lr, g_hr, s):
+    """Per HR pixel, min and max of the LR image (C, h, w) over those of its 4 bilinear taps (no jitter, borders
+    clamped) whose guide (G, h, w) lies within exp(-d^2 / 2) >= 0.5 of the pixel's (G, H, W); NaN where none does.
+    By loops."""
+    c, h, w = lr.shape
+    lo, hi = np.full((2, c, h * s, w * s), np.nan, np.float32)
+    for y in range(h * s):
+        fy = int(np.floor((y + 0.5) / s - 0.5))
+        for x in range(w * s):
+            fx = int(np.floor((x + 0.5) / s - 0.5))
+            taps = [(min(max(fy + a, 0), h - 1), min(max(fx + b, 0), w - 1)) for a in (0, 1) for b in (0, 1)]
+            near = [lr[:, i, j] for i, j in taps if np.exp(-0.5 * ((g_lr[:, i, j] - g_hr[:, y, x]) ** 2).sum()) >= 0.5]
+            if near:
+                lo[:, y, x], hi[:, y, x] = np.min(near, axis=0), np.max(near, axis=0)
+    return lo, hi
+
+
+def test_guided_clamp_bounds_by_the_taps_of_the_pixels_surface_and_leaves_other_pixels_free():
+    """``lr-guided``, radiance model, no jitter or classes: +-50 come out at the max / min of the similar taps
+    (numpy loops over the guides), and unchanged, as without the clamp, where no tap is similar; both kinds occur."""
+    from training.models.guided import guide_features
+    torch.manual_seed(0)
+    opts = dict(demodulation=False, jitter=False, upsample_by_class=False, guide_sigma_depth=2.0,
+                guide_sigma_normal=1.0)
+    on = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided", **opts), 4).eval()
+    off = build_model(ModelConfig.of("fusesr-fast", **opts), 4).eval()
+    batch = _batch(on, size=(24, 16))
+    zero = torch.zeros(1, 3, 16, 24)
+    with torch.no_grad():
+        up, down = _output(on, batch, zero + 50.0), _output(on, batch, zero - 50.0)
+        free_up, free_down = _output(off, batch, zero + 50.0), _output(off, batch, zero - 50.0)
+    g_lr, g_hr = (guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), 2.0, 1.0)[0].numpy()
+                  for lv in ("lr", "hr"))
+    lo, hi = _guided_range_numpy(batch["lr/radiance"][0, -1].numpy(), g_lr, g_hr, 4)
+    open_ = np.isnan(lo)
+    assert 0.05 < open_[0].mean() < 0.95, open_[0].mean()
+    np.testing.assert_allclose(up[0].numpy()[~open_], hi[~open_], rtol=2e-5, atol=1e-6)  # log1p's round trip
+    np.testing.assert_allclose(down[0].numpy()[~open_], np.maximum(lo[~open_], 0.0), rtol=2e-5, atol=1e-6)
+    np.testing.assert_allclose(up[0].numpy()[open_], free_up[0].numpy()[open_], rtol=1e-6)
+    np.testing.assert_allclose(down[0].numpy()[open_], free_down[0].numpy()[open_], rtol=1e-6, atol=1e-7)
+
+
 def test_fused_torch_stage_clamp_binds_and_the_triton_spec_round_trips():
     """The fused stage with ``clamp`` differs from it without on inputs whose network output leaves the range (so
     the interpreter comparisons of hr_stage_cases.py compare a clamp that binds); the kernel's flat parameter list
@@ -129,8 +172,10 @@ def test_gradient_passes_where_the_clamp_does_not_bind():
 def test_the_option_needs_the_residual_head():
     with pytest.raises(ConfigError, match=r"model.fusesr.residual_clamp needs model.fusesr.residual = true"):
         ModelConfig.of("fusesr", residual_clamp="lr-range", residual=False)
-    with pytest.raises(ConfigError, match="choose one of none, lr-range"):
+    with pytest.raises(ConfigError, match="choose one of none, lr-range, lr-guided"):
         ModelConfig.of("fusesr-l", residual_clamp="taa")
+    with pytest.raises(ConfigError, match=r"lr-guided\" needs model.fusesr-fast.guided_upsample = true"):
+        ModelConfig.of("fusesr-fast", residual_clamp="lr-guided", guided_upsample=False)
 
 
 def test_trained_with_the_clamp_it_loads_with_it_and_a_checkpoint_takes_only_inference_options(tmp_path):

@@ -9,7 +9,7 @@ The references these reproduce (tests/train/hr_stage_cases.py compares): ``resam
 bilinear with jitter, borders clamped), ``base.upsample_by_class`` / ``base.demodulated_mask``,
 ``guided.guide_features`` / ``guided.upsample_guided``, ``transforms.inverse_transform`` (log1p), and
 ``SRModel.remodulate`` (L_D F_used + E), and the FuseSR family's ``residual_clamp`` (``range_add``,
-``range_pick``, ``clamp_to_range``; ``guided.tap_range`` is its reference).
+``range_pick``, ``similar``, ``open_if_empty``, ``clamp_to_range``; ``guided.tap_range`` is its reference).
 """
 from __future__ import annotations
 
@@ -43,6 +43,12 @@ DEPTH_MIN, DEPTH_MAX = 1e-4, 1e6
 F32_MAX = 3.4028234663852886e38
 #: ``base.upsample_by_class``: a class-restricted bilinear sum below this falls back to the plain bilinear value.
 CLASS_EPS = 1e-6
+#: ``residual_clamp = "lr-guided"``: a tap bounds an HR pixel only where its joint bilateral range weight
+#: (``similarity``) is at least this, i.e. it lies within about 1.2 guide sigmas of the pixel's depth and normal (the
+#: same surface). Chosen on the wide val split against 0.1 (docs/training.md, "FuseSR").
+CLAMP_SIMILARITY = 0.5
+#: ``open_if_empty``'s bound: finite, so that margin * (hi - lo) and the inverse log1p of it stay finite.
+OPEN_BOUND = 1e30
 #: ``transforms.inverse_transform``: the exponent is clamped here.
 EXP_CLAMP = 80.0
 
@@ -117,6 +123,18 @@ def range_pick(cden, class_bound, plain_bound):
     return ops.where(cden > CLASS_EPS, class_bound, plain_bound)
 
 
+def similar(sim):
+    """``residual_clamp = "lr-guided"``: True where a tap of range weight ``sim`` is the HR pixel's surface."""
+    return sim >= CLAMP_SIMILARITY
+
+
+def open_if_empty(lo, hi):
+    """A tap range (lo, hi) left empty (lo > hi: no tap was added) opened to (-OPEN_BOUND, OPEN_BOUND): no bound
+    (``residual_clamp = "lr-guided"`` where no tap is the pixel's surface)."""
+    empty = lo > hi
+    return ops.where(empty, -OPEN_BOUND, lo), ops.where(empty, OPEN_BOUND, hi)
+
+
 def clamp_to_range(v, lo, hi, margin):
     """``residual_clamp = "lr-range"``: ``v`` clamped to [lo - margin (hi - lo), hi + margin (hi - lo)], the LR
     range of the taps its base reads widened by ``margin`` of its width."""
@@ -130,7 +148,8 @@ def remodulate(irr, fbeta, emission):
 
 
 HELPERS = ("tap_position", "tap_weight", "tap_index", "demodulated", "guide_depth", "guide_normal", "similarity",
-           "class_or_plain", "guided_or_fallback", "head", "inverse_log1p", "range_add", "range_pick", "clamp_to_range",
+           "class_or_plain", "guided_or_fallback", "head", "inverse_log1p", "range_add", "range_pick", "similar",
+           "open_if_empty", "clamp_to_range",
            "remodulate")
 
 

@@ -14,7 +14,9 @@ Per HR pixel (one definition of the math: ``hr_math``; every step reproduces a r
    ``log1p``;
 4b. with ``clamp`` (the FuseSR option ``residual_clamp = "lr-range"``), that value clamped per channel to the range
    of the LR image over the 4 taps of step 1 (only those of the pixel's class where step 2 uses them), inverse
-   transformed with ``log1p``, widened by ``clamp`` times its width (``guided.tap_range``);
+   transformed with ``log1p``, widened by ``clamp`` times its width (``guided.tap_range``); with ``clamp_guided``
+   (``"lr-guided"``) over the taps of the pixel's class whose step-3 range weight passes ``hr_math.similar``, and
+   no clamp where none does;
 5. with ``remod``, the point sample L_D F_used + E (``SRModel.remodulate``);
 
 then the separable pixel filter ``taps`` x ``taps`` (edges replicated) over the result.
@@ -82,34 +84,50 @@ def _jitter(t: HRInputs) -> torch.Tensor:
 
 class TapRange:
     """The per-channel range of the LR taps an HR pixel's base reads (``hr_math.range_add``, ``range_pick``): over
-    all taps and, with ``by_class``, over those of the pixel's class. Off (``on`` false): does nothing."""
+    all taps and, with ``by_class``, over those of the pixel's class; with ``guided`` (``residual_clamp =
+    "lr-guided"``) over the taps of the pixel's class that ``hr_math.similar`` passes only, open where there are none
+    (``hr_math.open_if_empty``). Off (``on`` false): does nothing."""
 
-    def __init__(self, on: bool, by_class: bool):
-        self.on, self.by_class = on, by_class
+    def __init__(self, on: bool, by_class: bool, guided: bool = False):
+        self.on, self.by_class, self.guided = on, by_class, guided
         self.plain = self.cls = None
 
-    def add(self, v: list[torch.Tensor], same: torch.Tensor | None) -> None:
-        """Widen by the tap values ``v`` (per channel); ``same``: where the tap has the pixel's class."""
+    def add(self, v: list[torch.Tensor], use: torch.Tensor | None) -> None:
+        """Widen by the tap values ``v`` (per channel); ``use``: where the tap counts for the class (or guided)
+        range, None without one."""
         if not self.on:
             return
         if self.plain is None:
             self.plain = [(x, x) for x in v]
-            if self.by_class:
-                self.cls = [(torch.where(same, x, m.F32_MAX), torch.where(same, x, -m.F32_MAX)) for x in v]
+            if use is not None:
+                self.cls = [(torch.where(use, x, m.F32_MAX), torch.where(use, x, -m.F32_MAX)) for x in v]
             return
         self.plain = [(torch.minimum(lo, x), torch.maximum(hi, x)) for (lo, hi), x in zip(self.plain, v)]
-        if self.by_class:
-            self.cls = [m.range_add(lo, hi, x, same) for (lo, hi), x in zip(self.cls, v)]
+        if use is not None:
+            self.cls = [m.range_add(lo, hi, x, use) for (lo, hi), x in zip(self.cls, v)]
 
     def bounds(self, cden, log1p: bool) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """([lo] * 3, [hi] * 3) of the taps the base read (class taps where ``cden`` > CLASS_EPS), inverse
-        transformed with ``log1p``."""
-        pairs = self.plain if not self.by_class else \
-            [(m.range_pick(cden, cl, pl), m.range_pick(cden, ch, ph)) for (cl, ch), (pl, ph) in zip(self.cls,
-                                                                                                  self.plain)]
+        """([lo] * 3, [hi] * 3) of the taps the base read (class taps where ``cden`` > CLASS_EPS; with ``guided``
+        the similar taps'), inverse transformed with ``log1p``."""
+        if self.guided:
+            pairs = [m.open_if_empty(lo, hi) for lo, hi in self.cls]
+        elif self.by_class:
+            pairs = [(m.range_pick(cden, cl, pl), m.range_pick(cden, ch, ph))
+                     for (cl, ch), (pl, ph) in zip(self.cls, self.plain)]
+        else:
+            pairs = self.plain
         if log1p:
             pairs = [(m.inverse_log1p(lo), m.inverse_log1p(hi)) for lo, hi in pairs]
         return [p[0] for p in pairs], [p[1] for p in pairs]
+
+
+def _range_use(spec: HRStage, same: torch.Tensor | None, sim: torch.Tensor | None) -> torch.Tensor | None:
+    """Where a tap counts for ``TapRange``'s class range: its class matches (``by_class``), and with
+    ``clamp_guided`` its range weight ``sim`` passes ``hr_math.similar``; None where there is no such range."""
+    if not spec.clamp_guided:
+        return same
+    near = m.similar(sim)
+    return near if same is None else same & near
 
 
 def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Tensor:
@@ -131,7 +149,7 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
             [m.guide_normal(n_hr[:, i:i + 1], spec.sigmas[1]) for i in range(3)]
     plain, cnum, gnum = [0.0] * 3, [0.0] * 3, [0.0] * 3
     cden = gden = 0.0
-    rng = TapRange(spec.clamp is not None, spec.by_class)
+    rng = TapRange(spec.clamp is not None, spec.by_class, spec.clamp_guided)
     for iy, wy in tap_axes(h, s, jit[:, 1:2]):
         wy = wy.view(b, 1, hh, 1)
         for col, wx in zip(cols, wxs):
@@ -139,16 +157,16 @@ def hr_pixels(spec: HRStage, t: HRInputs, cols: list[torch.Tensor]) -> torch.Ten
             wb = wy * wx
             plain = [p + wb * v[i] for i, p in enumerate(plain)]
             same = v[k - 1] == cls if spec.by_class else None
-            rng.add(v[:3], same)
             if spec.by_class:
                 wc = torch.where(same, wb, 0.0)
                 cnum, cden = [c + wc * v[i] for i, c in enumerate(cnum)], cden + wc
             if spec.guided:
-                d2 = sum((v[3 + i] - g).square() for i, g in enumerate(g_hr))
-                wg = wb * m.similarity(d2)
+                sim = m.similarity(sum((v[3 + i] - g).square() for i, g in enumerate(g_hr)))
+                wg = wb * sim
                 if spec.by_class:
                     wg = torch.where(same, wg, 0.0)
                 gnum, gden = [g + wg * v[i] for i, g in enumerate(gnum)], gden + wg
+            rng.add(v[:3], _range_use(spec, same, sim if spec.guided else None))
     out = [m.class_or_plain(cnum[i], cden, plain[i]) for i in range(3)] if spec.by_class else plain
     if spec.guided:
         out = [m.guided_or_fallback(gnum[i], gden, out[i], spec.floor) for i in range(3)]

@@ -24,6 +24,7 @@ demodulated, guide_depth, guide_normal = _h["demodulated"], _h["guide_depth"], _
 similarity, class_or_plain, guided_or_fallback = _h["similarity"], _h["class_or_plain"], _h["guided_or_fallback"]
 head, inverse_log1p, remodulate = _h["head"], _h["inverse_log1p"], _h["remodulate"]
 range_add, range_pick, clamp_to_range = _h["range_add"], _h["range_pick"], _h["clamp_to_range"]
+similar, open_if_empty = _h["similar"], _h["open_if_empty"]
 
 BLOCK = 128
 #: The empty tap range's bound (step 4b), a constexpr for the kernel.
@@ -37,7 +38,7 @@ def _ld(ptr, b, c, y, x, s, mask):
 
 
 #: Bits of the hr_pixels_kernel's FLAGS (the switches of ``HRStage``, and whether a jitter is given).
-F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER, F_CLAMP = 1, 2, 4, 8, 16, 32, 64
+F_BY_CLASS, F_GUIDED, F_HEAD, F_LOG1P, F_REMOD, F_JITTER, F_CLAMP, F_CLAMP_GUIDED = 1, 2, 4, 8, 16, 32, 64, 128
 
 
 @triton.jit
@@ -51,6 +52,8 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
     GUIDED: tl.constexpr = (FLAGS & 2) != 0
     HAS_JITTER: tl.constexpr = (FLAGS & 32) != 0
     CLAMP: tl.constexpr = (FLAGS & 64) != 0
+    CLAMP_GUIDED: tl.constexpr = (FLAGS & 128) != 0
+    CLASS_RANGE: tl.constexpr = (FLAGS & (1 | 64 | 128)) == (1 | 64)  # the class's range of "lr-range"
     lr, lr_fb, lr_d, lr_n = lrs[0], lrs[1], lrs[2], lrs[3]
     s_lr, s_lfb, s_ld, s_ln = s_lrs[0], s_lrs[1], s_lrs[2], s_lrs[3]
     hr_fb, hr_d, hr_n = hrs[0], hrs[1], hrs[2]
@@ -84,7 +87,7 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
     p0, p1, p2 = zero, zero, zero
     c0, c1, c2, cden = zero, zero, zero, zero
     g0, g1, g2, gden = zero, zero, zero, zero
-    big = zero + BIG  # the tap ranges of step 4b: all taps (p) and the pixel's class (c)
+    big = zero + BIG  # the tap ranges of step 4b: all taps (p) and the pixel's class (c; "lr-guided": its surface)
     plo0, plo1, plo2, phi0, phi1, phi2 = big, big, big, -big, -big, -big
     clo0, clo1, clo2, chi0, chi1, chi2 = big, big, big, -big, -big, -big
     for dy in tl.static_range(2):
@@ -107,7 +110,7 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
                                    _ld(lr_fb, b, 2, iy, ix, s_lfb, mask)) == cls
                 wc = tl.where(same, wb, 0.0)
                 c0, c1, c2, cden = c0 + wc * v0, c1 + wc * v1, c2 + wc * v2, cden + wc
-                if CLAMP:
+                if CLASS_RANGE:
                     clo0, chi0 = range_add(clo0, chi0, v0, same)
                     clo1, chi1 = range_add(clo1, chi1, v1, same)
                     clo2, chi2 = range_add(clo2, chi2, v2, same)
@@ -116,10 +119,18 @@ def hr_pixels_kernel(lrs, s_lrs, hrs, s_hrs, jit, scalars, FLAGS: tl.constexpr, 
                 e1 = guide_normal(_ld(lr_n, b, 0, iy, ix, s_ln, mask), sn) - gh1
                 e2 = guide_normal(_ld(lr_n, b, 1, iy, ix, s_ln, mask), sn) - gh2
                 e3 = guide_normal(_ld(lr_n, b, 2, iy, ix, s_ln, mask), sn) - gh3
-                wg = wb * similarity(e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3)
+                sim = similarity(e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3)
+                wg = wb * sim
                 if BY_CLASS:
                     wg = tl.where(same, wg, 0.0)
                 g0, g1, g2, gden = g0 + wg * v0, g1 + wg * v1, g2 + wg * v2, gden + wg
+                if CLAMP_GUIDED:  # "lr-guided": the range of the taps of the pixel's surface (and class)
+                    use = similar(sim)
+                    if BY_CLASS:
+                        use = use & same
+                    clo0, chi0 = range_add(clo0, chi0, v0, use)
+                    clo1, chi1 = range_add(clo1, chi1, v1, use)
+                    clo2, chi2 = range_add(clo2, chi2, v2, use)
     _finish(hrs, s_hrs, (b, y, x, mask), ((p0, p1, p2), (c0, c1, c2, cden), (g0, g1, g2, gden)),
             ((plo0, plo1, plo2, phi0, phi1, phi2), (clo0, clo1, clo2, chi0, chi1, chi2)), (floor, margin), FLAGS)
 
@@ -136,6 +147,8 @@ def _finish(hrs, s_hrs, at, sums, ranges, consts, FLAGS: tl.constexpr):
     LOG1P: tl.constexpr = (FLAGS & 8) != 0
     REMOD: tl.constexpr = (FLAGS & 16) != 0
     CLAMP: tl.constexpr = (FLAGS & 64) != 0
+    CLAMP_GUIDED: tl.constexpr = (FLAGS & 128) != 0
+    CLASS_PICK: tl.constexpr = (FLAGS & (1 | 128)) == 1  # "lr-range" by class
     hr_fb, hr_e, net, out = hrs[0], hrs[3], hrs[4], hrs[5]
     s_hfb, s_he, s_net, s_out = s_hrs[0], s_hrs[3], s_hrs[4], s_hrs[5]
     b, y, x, mask = at[0], at[1], at[2], at[3]
@@ -154,8 +167,10 @@ def _finish(hrs, s_hrs, at, sums, ranges, consts, FLAGS: tl.constexpr):
                 o = inverse_log1p(o)
             if CLAMP:
                 lo, hi = prange[k], prange[k + 3]
-                if BY_CLASS:
+                if CLASS_PICK:
                     lo, hi = range_pick(c[3], crange[k], lo), range_pick(c[3], crange[k + 3], hi)
+                if CLAMP_GUIDED:
+                    lo, hi = open_if_empty(crange[k], crange[k + 3])
                 if LOG1P:
                     lo, hi = inverse_log1p(lo), inverse_log1p(hi)
                 o = clamp_to_range(o, lo, hi, margin)
@@ -210,7 +225,8 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     jit = t.jitter if t.jitter is not None else torch.zeros(b, 2, device=t.lr.device)
     sig = spec.sigmas or (1.0, 1.0)
     flags = (F_BY_CLASS * spec.by_class | F_GUIDED * spec.guided | F_HEAD * spec.head | F_LOG1P * spec.log1p |
-             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None) | F_CLAMP * (spec.clamp is not None))
+             F_REMOD * spec.remod | F_JITTER * (t.jitter is not None) | F_CLAMP * (spec.clamp is not None) |
+             F_CLAMP_GUIDED * (spec.clamp is not None and spec.clamp_guided))
     lrs = (t.lr, pick(t.lr_fbeta), pick(t.lr_depth), pick(t.lr_normal))
     hrs = (pick(t.hr_fbeta), pick(t.hr_depth), pick(t.hr_normal), pick(t.hr_emission), pick(t.net), out)
     scalars = (h, w, ww, jit.stride(0), jit.stride(1), float(s), float(sig[0]), float(sig[1]), float(spec.floor),
@@ -235,7 +251,8 @@ def _spec_params(spec) -> list[float]:
     """``HRStage`` as the flat float list the custom op takes (``_spec_of`` inverts it)."""
     sig = spec.sigmas or (1.0, 1.0)
     return [float(spec.scale), float(spec.by_class), float(spec.guided), float(sig[0]), float(sig[1]),
-            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor), float(spec.clamp is not None),
+            float(spec.head), float(spec.log1p), float(spec.remod), float(spec.floor),
+            float(0 if spec.clamp is None else 1 + spec.clamp_guided),
             float(spec.clamp or 0.0), *map(float, spec.taps or ())]
 
 
@@ -243,7 +260,8 @@ def _spec_of(params: list[float]):
     p = list(params)
     return HRStage(scale=int(p[0]), by_class=bool(p[1]), guided=bool(p[2]),
                    sigmas=(p[3], p[4]) if p[2] else None, head=bool(p[5]), log1p=bool(p[6]), remod=bool(p[7]),
-                   taps=tuple(p[11:]) or None, floor=p[8], clamp=p[10] if p[9] else None)
+                   taps=tuple(p[11:]) or None, floor=p[8], clamp=p[10] if p[9] else None,
+                   clamp_guided=p[9] == 2)
 
 
 def _out_format(tensors: list) -> torch.memory_format:

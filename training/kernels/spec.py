@@ -12,7 +12,8 @@ import torch
 class HRStage:
     """What one model's HR stage does (``hr_stage``'s module doc). ``sigmas``: (sigma_depth, sigma_normal) of the
     guides, None without ``guided``; ``taps``: the 1-D pixel filter (None: no filter); ``clamp``: with ``head``, the
-    margin of the FuseSR family's ``residual_clamp = "lr-range"`` (step 4b of ``hr_stage``), None: off."""
+    margin of the FuseSR family's ``residual_clamp`` (step 4b of ``hr_stage``), None: off; ``clamp_guided``: its
+    ``"lr-guided"`` range (the taps of the pixel's surface only; needs ``guided``)."""
     scale: int
     by_class: bool
     guided: bool
@@ -23,6 +24,11 @@ class HRStage:
     taps: tuple[float, ...] | None
     floor: float = 1e-4
     clamp: float | None = None
+    clamp_guided: bool = False
+
+    def __post_init__(self):
+        if self.clamp_guided and not self.guided:
+            raise ValueError("HRStage: clamp_guided needs guided (it weighs the taps by the guides)")
 
 
 class HRInputs(NamedTuple):

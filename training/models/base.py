@@ -161,10 +161,11 @@ class SRModel(nn.Module):
         return guided(x, *guides, scale, base, jitter, classes)
 
     def fused_hr(self, batch: dict, lr: torch.Tensor, jitter: torch.Tensor | None, net: torch.Tensor | None = None,
-                 demodulated: bool = True, clamp: float | None = None) -> torch.Tensor:
+                 demodulated: bool = True, clamp: float | None = None, clamp_guided: bool = False) -> torch.Tensor:
         """The HR stage in one fused pass (``training.kernels.hr_stage``, implementation ``self.hr_impl``): the
         output ``upsample_input(lr, ...)`` (with ``net``: ReLU(net + it), inverse-transformed, and with ``clamp``
-        clamped to the taps' LR range widened by that margin: the FuseSR family's ``residual_clamp``) followed, for
+        clamped to the taps' LR range widened by that margin, with ``clamp_guided`` the range of the pixel's surface's
+        taps: the FuseSR family's ``residual_clamp``) followed, for
         a ``demodulated`` model, by ``remodulate`` would give, within float rounding."""
         from training.kernels.hr_stage import HRInputs, HRStage, run
         remod = bool(demodulated)
@@ -172,7 +173,7 @@ class SRModel(nn.Module):
                        sigmas=tuple(float(v) for v in self.guide_sigmas) if self.guided else None,
                        head=net is not None, log1p=net is not None and getattr(self, "transform", "") == "log1p",
                        remod=remod, taps=self.remod_taps if remod else None,
-                       clamp=clamp if net is not None else None)
+                       clamp=clamp if net is not None else None, clamp_guided=bool(clamp_guided))
         get = (lambda k: current(batch, k) if k in batch else None)
         t = HRInputs(lr, jitter, get("lr/fbeta_used"), get("hr/fbeta_used"), get("lr/depth"), get("lr/normal"),
                      get("hr/depth"), get("hr/normal"), get("hr/emission") if remod else None, net)

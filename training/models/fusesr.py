@@ -49,6 +49,11 @@ of those taps and always lies inside it, so a network that outputs its base is u
 the identity (training passes the gradient where it does not bind). The fused HR stage runs it as its step 4b
 (``kernels.hr_math.clamp_to_range``). A trained network can be run with it: ``pretrained:fusesr?residual_clamp=
 lr-range`` (``inference.load_model``; docs/training.md, "FuseSR", has the measurement that chose the margin).
+With ``"lr-guided"`` (needs the guided base) the range is over those of the taps that lie on the pixel's surface
+only: whose joint bilateral range weight on the HR depth and normal guides is at least
+``hr_math.CLAMP_SIMILARITY`` (0.5); where none does the output is not clamped. Where the 4 taps hold none of the
+pixel's surface (a thin bright ledge, a silhouette narrower than an LR pixel) their range is no bound on its
+irradiance, and "lr-range" darkened exactly those pixels (docs/training.md, "FuseSR").
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
@@ -63,7 +68,7 @@ import torch.nn.functional as F
 from training.kernels import hr_math
 from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
                                   depth_features, frame, history_offsets)
-from training.models.guided import tap_range
+from training.models.guided import guide_features, tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -115,8 +120,8 @@ class FuseSRFrame(SRModel):
         self.guided = bool(opt.guided_upsample) and self.use_hr and self.residual
         self.guide_sigmas = (opt.guide_sigma_depth, opt.guide_sigma_normal)
         # the bounded correction (module doc, "residual_clamp"): the margin, None when off
-        self.clamp = float(opt.residual_clamp_margin) if opt.residual_clamp == "lr-range" and self.residual \
-            else None
+        self.clamp = float(opt.residual_clamp_margin) if opt.residual_clamp != "none" and self.residual else None
+        self.clamp_guided = opt.residual_clamp == "lr-guided"  # over the taps of the pixel's surface only
 
     @property
     def color_key(self) -> str:
@@ -128,7 +133,8 @@ class FuseSRFrame(SRModel):
         transformed LR colour ``color`` (B, 3, h, w) with ``residual``, ReLU, T^-1, and the remodulation with
         ``demodulation``; with ``hr_impl`` (the fused path) all of it in one fused pass (``training.kernels``)."""
         if self.residual and self.hr_impl:  # the fused HR stage (training.kernels.hr_stage)
-            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod, clamp=self.clamp)
+            return self.fused_hr(batch, color, j_t, net=y, demodulated=self.demod, clamp=self.clamp,
+                                 clamp_guided=self.clamp_guided)
         if self.residual:  # start from the upsampled (transformed) LR input; see the module doc
             y = y + self.upsample_input(color, batch, j_t, self.demod)
         out = inverse_transform(F.relu(y).float(), self.transform)
@@ -146,7 +152,11 @@ class FuseSRFrame(SRModel):
         if self.demod and self.by_class:
             classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
                        demodulated_mask(current(batch, "hr/fbeta_used")))
-        lo, hi = tap_range(color.float(), int(self.scale), j_t, classes)
+        guides = None
+        if self.clamp_guided:
+            guides = tuple(guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"),
+                                          *self.guide_sigmas) for lv in ("lr", "hr"))
+        lo, hi = tap_range(color.float(), int(self.scale), j_t, classes, guides)
         if self.transform == "log1p":
             lo, hi = hr_math.inverse_log1p(lo), hr_math.inverse_log1p(hi)
         return hr_math.clamp_to_range(out, lo, hi, self.clamp)

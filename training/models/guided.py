@@ -76,27 +76,30 @@ def upsample_guided(x: torch.Tensor, lr_guide: torch.Tensor, hr_guide: torch.Ten
 
 
 def tap_range(x: torch.Tensor, scale: int, jitter: torch.Tensor | None = None,
-              classes: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+              classes: tuple[torch.Tensor, torch.Tensor] | None = None,
+              guides: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(lo, hi) (B, C, H, W) float32: per channel, the range of ``x`` (B, C, h, w) over the 4 bilinear LR taps of
     each HR pixel (``upsample_guided``'s footprint, borders clamped) and, with ``classes``, over those of the HR
     pixel's class where their bilinear weights sum above ``hr_math.CLASS_EPS`` (there the base is a convex
     combination of them; else over all 4): every value ``upsample_guided`` and its fallbacks can return lies in it.
-    The reference of the fused HR stage's step 4b (``kernels.hr_stage``; the bounds of ``residual_clamp``)."""
+    With ``guides`` (LR, HR scaled guides as in ``upsample_guided``; ``residual_clamp = "lr-guided"``): over the taps
+    of the pixel's class whose range weight passes ``hr_math.similar`` only, open (``hr_math.open_if_empty``) where
+    none does. The reference of the fused HR stage's step 4b (``kernels.hr_stage``; the bounds of ``residual_clamp``)."""
     from training.kernels import hr_math as m
     b, c, h, w = x.shape
     hh, ww = h * scale, w * scale
-    dev = x.device
-    zero = torch.zeros(b, 1, device=dev, dtype=torch.float32)
+    zero = torch.zeros(b, 1, device=x.device, dtype=torch.float32)
     jx, jy = (zero, zero) if jitter is None else (jitter[:, :1].float(), jitter[:, 1:2].float())
-    ux = m.tap_position(torch.arange(ww, device=dev, dtype=torch.float32), float(scale), jx)   # (B, W)
-    uy = m.tap_position(torch.arange(hh, device=dev, dtype=torch.float32), float(scale), jy)   # (B, H)
+    ux = m.tap_position(torch.arange(ww, device=x.device, dtype=torch.float32), float(scale), jx)   # (B, W)
+    uy = m.tap_position(torch.arange(hh, device=x.device, dtype=torch.float32), float(scale), jy)   # (B, H)
     x0, y0 = torch.floor(ux), torch.floor(uy)
     lr_class, hr_class = classes if classes is not None else (None, None)
-    parts = [x.float()] + ([lr_class.float()] if lr_class is not None else [])
-    lr_all = torch.cat(parts, dim=1).flatten(2)
-    big = torch.full((b, c, hh, ww), m.F32_MAX, device=dev)
+    lr_all = torch.cat([x.float()] + ([lr_class.float()] if lr_class is not None else []) +
+                       ([guides[0].float()] if guides is not None else []), dim=1).flatten(2)
+    k = c + (lr_class is not None)  # where the guides start
+    big = torch.full((b, c, hh, ww), m.F32_MAX, device=x.device)
     plo, phi, clo, chi = big, -big, big, -big
-    cden = torch.zeros(b, 1, hh, ww, device=dev)
+    cden = torch.zeros(b, 1, hh, ww, device=x.device)
     for dy in (0.0, 1.0):
         iy = m.tap_index(y0 + dy, h).long()
         wy = m.tap_weight(uy, y0 + dy)
@@ -106,10 +109,13 @@ def tap_range(x: torch.Tensor, scale: int, jitter: torch.Tensor | None = None,
             idx = (iy.view(b, hh, 1) * w + ix.view(b, 1, ww)).view(b, 1, hh * ww)
             v = torch.gather(lr_all, 2, idx.expand(-1, lr_all.shape[1], -1)).view(b, -1, hh, ww)
             plo, phi = torch.minimum(plo, v[:, :c]), torch.maximum(phi, v[:, :c])
-            if lr_class is not None:
-                same = v[:, c:] == hr_class.float()
-                clo, chi = m.range_add(clo, chi, v[:, :c], same)
-                cden = cden + torch.where(same, wb, 0.0)
+            same = v[:, c:k] == hr_class.float() if lr_class is not None else torch.ones_like(cden, dtype=torch.bool)
+            if guides is not None:
+                same = same & m.similar(m.similarity((v[:, k:] - guides[1].float()).square().sum(1, keepdim=True)))
+            clo, chi = m.range_add(clo, chi, v[:, :c], same)
+            cden = cden + torch.where(same, wb, 0.0)
+    if guides is not None:
+        return m.open_if_empty(clo, chi)
     if lr_class is None:
         return plo, phi
     return m.range_pick(cden, clo, plo), m.range_pick(cden, chi, phi)

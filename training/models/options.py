@@ -21,8 +21,9 @@ from gbuffer_export.typed_table import ConfigError, option, set_checked
 
 NORMS = ("none", "batch")
 RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
-#: ``residual_clamp`` of the FuseSR family: none (the paper's network) or lr-range (``FuseSRFastOptions``).
-RESIDUAL_CLAMPS = ("none", "lr-range")
+#: ``residual_clamp`` of the FuseSR family: none (the paper's network), lr-range or lr-guided
+#: (``FuseSRFastOptions``; training/models/fusesr.py, "Bounded correction").
+RESIDUAL_CLAMPS = ("none", "lr-range", "lr-guided")
 #: Options that change what a trained network's output goes through, not its weights: ``load_model`` lets them be
 #: set on a checkpoint (``--set model.NAME.KEY=VALUE``, or ``CHECKPOINT?KEY=VALUE``).
 INFERENCE_OPTIONS = ("residual_clamp", "residual_clamp_margin")
@@ -72,13 +73,17 @@ class FuseSRFastOptions:
     norm: str = option("none", choices=NORMS)  # encoder/backbone normalisation (batch: the authors' BatchNorm)
     residual_clamp: str = option("none", choices=RESIDUAL_CLAMPS)  # lr-range: the output L_D clamped per channel
     residual_clamp_margin: float = option(0.0, lo=0, hi=100)  # to the LR range of its base's taps, widened by this
-    # fraction of the range's width (not in the paper; docs/models.md, "Bounded correction")
+    # fraction of the range's width; lr-guided: over the taps of the pixel's surface only, unclamped where none is
+    # (not in the paper; training/models/fusesr.py, "Bounded correction")
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
         if self.residual_clamp != "none" and not self.residual:
             raise ConfigError(f"{where}.residual_clamp needs {where}.residual = true (it bounds the correction of "
                               "the residual base)")
+        if self.residual_clamp == "lr-guided" and not (self.guided_upsample and self.hr_gbuffer):
+            raise ConfigError(f"{where}.residual_clamp = \"lr-guided\" needs {where}.guided_upsample = true and "
+                              f"{where}.hr_gbuffer = true (it weighs the taps by the HR guides)")
 
 
 @dataclass
