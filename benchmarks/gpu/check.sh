@@ -10,6 +10,9 @@
 #   1080p 4x table of the guided models with --path reference,fast,fused (bf16, eager and compiled; kernels per
 #   frame, ratio to the roofline, each output checked against the fp32 reference), and the profile of the fast and
 #   fused paths. Step timeouts sum to 490 s (not yet run on a GPU). Writes log.txt, speed_paths.json/.md, profile_paths.txt.
+# CHECK=clamp: the CUDA tests of the fused path (the residual clamps' kernel included) and the 1080p frame time of
+#   fusesr-l and fusesr-fast with residual_clamp none, lr-range and lr-guided (bf16, fused path). Writes log.txt,
+#   speed_clamp.json/.md.
 # Needs the wheels of fetch_wheels.sh carried as .whl (about 5 MB; the image's torch brings triton).
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 #        run(command="CHECK=speed bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
@@ -31,6 +34,16 @@ python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_devic
 python3 -c "import triton; print('triton', triton.__version__)" >> "$LOG" 2>&1
 step() { echo "== $1 ($(date +%T))" >> "$LOG"; shift; timeout "$@" >> "$LOG" 2>&1; echo "exit $?" >> "$LOG"; }
 bench=(blendsr bench models --device "$DEV" --size "$SIZE" --repeats "$REPEATS" --warmup 5 --no-progress)
+if [ "$CHECK" = clamp ]; then  # the residual clamps' CUDA tests and their cost on the fused path (about 150 s)
+  [ "$DEV" = cuda ] && step "CUDA tests of the fused path" 150 python3 -m pytest -v -p no:cacheprovider \
+      --durations=0 -k cuda tests/train/hr_stage_cases.py
+  step "speed, fusesr-l and fusesr-fast with each residual_clamp (bf16, fused, eager and compiled)" 150 \
+      "${bench[@]}" --precision bf16 --compile "$COMPILE" --path fused --models \
+      'pretrained:fusesr-l?residual_clamp=none,pretrained:fusesr-l?residual_clamp=lr-range,pretrained:fusesr-l?residual_clamp=lr-guided,pretrained:fusesr-fast?residual_clamp=none,pretrained:fusesr-fast?residual_clamp=lr-range,pretrained:fusesr-fast?residual_clamp=lr-guided' \
+      -o "$W/clamp"
+  cp "$W/clamp/bench_speed.json" "$OUT/speed_clamp.json" && cp "$W/clamp/bench_speed.md" "$OUT/speed_clamp.md"
+  exit 0
+fi
 if [ "$CHECK" = speed ]; then
   GUIDED=demod-bilinear,demod-jbu,fusesr-fast,fusesr-l,fusesr
   [ "$DEV" = cuda ] && step "CUDA tests of the fused path" 150 python3 -m pytest -v -p no:cacheprovider \
