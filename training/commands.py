@@ -265,11 +265,11 @@ def cmd_upscale(args) -> int:
 def cmd_export(args) -> int:
     require("blendsr export", "train", "export")
     from training.export import export_onnx
-    from training.inference import load_model
+    from training.inference import load_model, split_spec
     from gbuffer_export.config import parse_size
-    if args.checkpoint:
+    if args.checkpoint:  # CK or CK?KEY=VALUE (the inference options, e.g. residual_clamp)
         from training.checkpoint import load_checkpoint
-        scale = int(load_checkpoint(args.checkpoint)["scale"])
+        scale = int(load_checkpoint(split_spec(args.checkpoint)[0])["scale"])
     else:
         scale = args.scale
     model = load_model(args.checkpoint or args.model, scale)

@@ -207,3 +207,22 @@ def test_trained_with_the_clamp_it_loads_with_it_and_a_checkpoint_takes_only_inf
     rows = load_models(parse_models(f"fusesr-l:{ck_path},fusesr-l:{ck_path}?residual_clamp=none"), 4, fast=False)
     assert [r[0] for r in rows] == ["fusesr-l (run)", "fusesr-l (run?residual_clamp=none)"]
     assert rows[0][1].module.clamp == 0.25 and rows[1][1].module.clamp is None
+
+
+def test_guided_clamp_exports_to_onnx_and_matches_torch(tmp_path):
+    """A shipped network run with ``lr-guided`` (``CK?KEY=VALUE`` on the command line) exports (the ONNX trace reads
+    the shapes as tensors) and
+    onnxruntime matches torch on a jittered synthetic clip."""
+    import json
+
+    from gbuffer_export.cli import main
+    from gbuffer_export.synthetic import make_synthetic_clip
+    from training import pretrained
+    pytest.importorskip("onnxruntime")
+    if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED["fusesr-fast"]).is_file():
+        pytest.skip("fusesr-fast not shipped")
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 36), scale=4, jitter=True)
+    onnx = tmp_path / "m.onnx"
+    assert main(["export", "--checkpoint", "pretrained:fusesr-fast?residual_clamp=lr-guided", "--onnx", str(onnx),
+                 "--clip", str(clip)]) == 0
+    assert json.loads((tmp_path / "m.onnx.json").read_text())["match"]

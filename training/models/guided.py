@@ -96,7 +96,7 @@ def tap_range(x: torch.Tensor, scale: int, jitter: torch.Tensor | None = None,
     lr_class, hr_class = classes if classes is not None else (None, None)
     lr_all = torch.cat([x.float()] + ([lr_class.float()] if lr_class is not None else []) +
                        ([guides[0].float()] if guides is not None else []), dim=1).flatten(2)
-    k = c + (lr_class is not None)  # where the guides start
+    k = c + (1 if lr_class is not None else 0)  # where the guides start (an int: the ONNX trace adds to c)
     big = torch.full((b, c, hh, ww), m.F32_MAX, device=x.device)
     plo, phi, clo, chi = big, -big, big, -big
     cden = torch.zeros(b, 1, hh, ww, device=x.device)
