@@ -97,12 +97,14 @@ class TapRange:
         range, None without one."""
         if not self.on:
             return
-        if self.plain is None:
-            self.plain = [(x, x) for x in v]
+        if self.cls is None and self.plain is None:
+            if not self.guided:  # "lr-guided" reads its own range only
+                self.plain = [(x, x) for x in v]
             if use is not None:
                 self.cls = [(torch.where(use, x, m.F32_MAX), torch.where(use, x, -m.F32_MAX)) for x in v]
             return
-        self.plain = [(torch.minimum(lo, x), torch.maximum(hi, x)) for (lo, hi), x in zip(self.plain, v)]
+        if not self.guided:
+            self.plain = [(torch.minimum(lo, x), torch.maximum(hi, x)) for (lo, hi), x in zip(self.plain, v)]
         if use is not None:
             self.cls = [m.range_add(lo, hi, x, use) for (lo, hi), x in zip(self.cls, v)]
 

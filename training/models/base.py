@@ -156,9 +156,13 @@ class SRModel(nn.Module):
             base = bilinear(x, scale, jitter)
         if not self.guided:
             return base
-        guides = [guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
-                  for lv in ("lr", "hr")]
-        return guided(x, *guides, scale, base, jitter, classes)
+        return guided(x, *self.guides(batch), scale, base, jitter, classes)
+
+    def guides(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(LR, HR) scaled guides of the current frame (``guided.guide_features`` with ``guide_sigmas``): what the
+        guided upsampling and the FuseSR family's ``"lr-guided"`` clamp weigh the taps by."""
+        return tuple(guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"), *self.guide_sigmas)
+                     for lv in ("lr", "hr"))
 
     def fused_hr(self, batch: dict, lr: torch.Tensor, jitter: torch.Tensor | None, net: torch.Tensor | None = None,
                  demodulated: bool = True, clamp: float | None = None, clamp_guided: bool = False) -> torch.Tensor:

@@ -68,7 +68,7 @@ import torch.nn.functional as F
 from training.kernels import hr_math
 from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
                                   depth_features, frame, history_offsets)
-from training.models.guided import guide_features, tap_range
+from training.models.guided import tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
@@ -152,10 +152,7 @@ class FuseSRFrame(SRModel):
         if self.demod and self.by_class:
             classes = (demodulated_mask(current(batch, "lr/fbeta_used")),
                        demodulated_mask(current(batch, "hr/fbeta_used")))
-        guides = None
-        if self.clamp_guided:
-            guides = tuple(guide_features(current(batch, f"{lv}/depth"), current(batch, f"{lv}/normal"),
-                                          *self.guide_sigmas) for lv in ("lr", "hr"))
+        guides = self.guides(batch) if self.clamp_guided else None
         lo, hi = tap_range(color.float(), int(self.scale), j_t, classes, guides)
         if self.transform == "log1p":
             lo, hi = hr_math.inverse_log1p(lo), hr_math.inverse_log1p(hi)

@@ -109,6 +109,8 @@ def tap_range(x: torch.Tensor, scale: int, jitter: torch.Tensor | None = None,
             idx = (iy.view(b, hh, 1) * w + ix.view(b, 1, ww)).view(b, 1, hh * ww)
             v = torch.gather(lr_all, 2, idx.expand(-1, lr_all.shape[1], -1)).view(b, -1, hh, ww)
             plo, phi = torch.minimum(plo, v[:, :c]), torch.maximum(phi, v[:, :c])
+            if lr_class is None and guides is None:
+                continue
             same = v[:, c:k] == hr_class.float() if lr_class is not None else torch.ones_like(cden, dtype=torch.bool)
             if guides is not None:
                 same = same & m.similar(m.similarity((v[:, k:] - guides[1].float()).square().sum(1, keepdim=True)))
