@@ -27,11 +27,10 @@ export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
 B="$PY -m gbuffer_export.cli"
 $B dataset benchmarks/zoo_dataset.toml -o "$DS" --workers 1 --threads 2 --no-progress
 $B validate "$DS" --quick --no-progress
-COMMON=(--set data.crop=16 --set data.batch_size=4 --set data.val_frames=0 --set run.progress=false
-        --set run.threads="$THREADS" --set run.checkpoint_every=100 --set run.keep_checkpoints=3)
-base() {  # the residual base with a zero-initialised head, as --set arguments for model $1
-  echo --set "model.$1.residual=true" --set "model.$1.zero_init_head=true"
-}
+# shellcheck source=benchmarks/seed_recipes.sh
+. benchmarks/seed_recipes.sh
+# shellcheck disable=SC2207
+COMMON=($(common "$THREADS"))
 steps() {  # the step count shipped for model $1 (the *_STEPS variables override)
   case $1 in
     rdg-s) echo "${RDG_S_STEPS:-2718}" ;;
@@ -52,16 +51,11 @@ train() {  # MODEL CONFIG [--set ...]: trains RUNS/<model with _>, writes the co
   "${cmd[@]}" "${extra[@]}"
 }
 for M in $MODELS; do
+  # shellcheck disable=SC2046
   case $M in
-    rdg-s) train rdg-s examples/rdg_config.toml --set data.window=8 --set model.rdg-s.demod=true $(base rdg-s) \
-             --set optim.decay_steps=3000 ;;
-    nsrd) train nsrd examples/nsrd_config.toml $(base nsrd) ;;
-    nsrr-fec) train nsrr-fec examples/nsrr_fec_config.toml --set loss.pixel_weight=1.0 $(base nsrr-fec) ;;
-    # ^ the paper's 1 - SSIM plus an L1 term (a deviation): with 1 - SSIM alone the output's brightness drifted
-    #   (val PSNR 13.6 dB after 991 steps, median SR 7-10x the reference; docs/results.md, "Shipped networks")
-    fourier-sr) train fourier-sr examples/fourier_sr_config.toml --set optim.lr=5e-4 $(base fourier-sr) ;;
-    fusesr-fast) train fusesr-fast examples/train_config.toml --set optim.warmup_steps=0 \
-                   --set model.fusesr-fast.zero_init_refine=true --set optim.decay_steps=20000 ;;
+    rdg-s) train rdg-s $(recipe rdg-s 3000) ;;
+    fusesr-fast) train fusesr-fast $(recipe fusesr-fast 20000) ;;
+    nsrd|nsrr-fec|fourier-sr) train "$M" $(recipe "$M" 0) ;;
     *) echo "unknown model $M" >&2; exit 2 ;;
   esac
 done
