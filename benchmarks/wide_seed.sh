@@ -44,7 +44,8 @@ for M in $MODELS; do
   [ -n "${MINUTES:-}" ] && extra+=(--minutes "$MINUTES")
   "${cmd[@]}" "${extra[@]}"
 done
-if [ "${RELEASE:-1}" = 1 ]; then
-  $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "${MODELS// /,}" --script benchmarks/wide_seed.sh \
-      --env "STEPS=$STEPS LR=$LR"
-fi
+[ "${RELEASE:-1}" = 1 ] || exit 0
+for M in $MODELS; do  # one call per model, so that each JSON names the command that remakes that model alone
+  $PY benchmarks/release_weights.py "$DS" "$RUNS" --models "$M" --script benchmarks/wide_seed.sh \
+      --env "MODELS=$M STEPS=$STEPS LR=$LR${MINUTES:+ MINUTES=$MINUTES}"
+done
