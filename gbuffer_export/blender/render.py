@@ -16,6 +16,7 @@ atomically. What the configuration and the scene settle is resolved once (``reso
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import os
@@ -387,7 +388,8 @@ class ResolvedRender:
     {name: {"width", "height", ...}}); ``light``, the manifest's light record; the camera and its report; the view
     layer; the materials, their flags (``flag_lut``: material pass index -> flag bits, uint32) and the pass plan;
     ``moving``, the names of the objects that move (pass index 1); ``material_mode``, the manifest's record of
-    ``materials = "untextured"`` (None for "keep")."""
+    ``materials = "untextured"`` (None for "keep"); ``behind``, the transmissive materials the G-buffer renders see
+    through (``gbuffer_transmission = "behind"``; empty otherwise, and for a scene without any)."""
 
     frames: tuple[int, ...]
     my_frames: tuple[int, ...]
@@ -402,6 +404,7 @@ class ResolvedRender:
     flag_lut: np.ndarray
     moving: tuple[str, ...]
     material_mode: dict | None = None
+    behind: tuple[str, ...] = ()
 
 
 def built_by_blendsr(scene_info: dict) -> bool:
@@ -452,6 +455,10 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
     view_layer = _render_view_layer(scene)
     infos = mats.inspect_materials(scene)
     aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
+    plan = plan_passes(cfg.buffers, cfg.fbeta, aov_names)
+    behind = _resolve_behind(cfg, scene, view_layer, infos) if plan.any else ()
+    if behind:
+        plan = dataclasses.replace(plan, aovs=(*plan.aovs, mats.AOV_REACTIVE))
     flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
     flag_lut[0] = int(Flag.NO_MATERIAL)
     for info in infos.values():
@@ -461,9 +468,26 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
         ob.pass_index = 1 if ob in moving else 0
     return ResolvedRender(frames=tuple(frames), my_frames=my_frames, hr_size=hr_size,
                           levels=levels_header(hr_size, cfg.scales), light=light, cam=cam, camera_report=camera_report,
-                          view_layer=view_layer, materials=infos, plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names),
+                          view_layer=view_layer, materials=infos, plan=plan,
                           flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)),
-                          material_mode=material_mode)
+                          material_mode=material_mode, behind=behind)
+
+
+def _resolve_behind(cfg: RenderConfig, scene, view_layer, infos: dict) -> tuple[str, ...]:
+    """``gbuffer_transmission``: the transmissive materials the G-buffer renders see through ("behind"), prepared
+    (``materials.install_behind``); () for "surface", and for a scene without transmissive materials (logged: it
+    renders as "surface", with no extra render)."""
+    if cfg.gbuffer_transmission != "behind":
+        return ()
+    behind = mats.transmissive_materials(scene, infos)
+    if not behind:
+        log.info("blendsr: %s: no transmissive material: gbuffer_transmission behind renders as surface (no extra "
+                 "render)", cfg.scene or "scene")
+        return ()
+    mats.install_behind(scene, view_layer, behind)
+    log.info("blendsr: %s: the G-buffers see through %d transmissive material(s): %s", cfg.scene or "scene",
+             len(behind), ", ".join(behind))
+    return behind
 
 
 def _render_view_layer(scene):
@@ -517,6 +541,8 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
             "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
                         "emission_background": "environment" if plan.emit else None,
+                        # only when "behind": a clip of the default "surface" keeps the identity it had before the key
+                        **_transmission_header(cfg, r),
                         # only when footprint: a point-sampled clip keeps the identity it had before the key
                         **({"hr_fbeta": "footprint"} if _footprint(cfg, plan) else {})},
             "light_paths": light_paths,
@@ -530,6 +556,17 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         "shard": list(cfg.shard),
         "command": " ".join(sys.argv),
     }
+
+
+def _transmission_header(cfg: RenderConfig, r: ResolvedRender) -> dict:
+    """The manifest's ``render.gbuffer`` entries of ``gbuffer_transmission = "behind"`` (none for "surface")."""
+    if cfg.gbuffer_transmission != "behind":
+        return {}
+    if not r.behind:
+        return {"transmission": "behind", "transmissive_materials": [],
+                "transmission_note": "no transmissive material: rendered as surface, no extra render"}
+    return {"transmission": "behind", "transmissive_materials": list(r.behind),
+            "lr_source": "a G-buffer render of its own per LR level (the LR render's camera and jitter)"}
 
 
 def _footprint(cfg: RenderConfig, plan: PassPlan) -> bool:
@@ -654,6 +691,18 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
     return record
 
 
+def render_gbuffer(ctx: RenderContext, path: Path, seed: int) -> dict[str, np.ndarray]:
+    """A G-buffer render at the scene's current size and camera: ``gbuffer_spp`` point samples, no bounces; with
+    ``gbuffer_transmission = "behind"`` its transmissive materials are transparent (``materials.see_through``) and
+    the rays pass them (the scene's own transparent bounce limit). Returns its passes."""
+    set_sampling(ctx.scene, spp=ctx.cfg.gbuffer_spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False,
+                 cfg=ctx.cfg, seed=seed, light_paths=None)
+    if ctx.resolved.behind:
+        ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
+    with mats.see_through(ctx.resolved.behind):
+        return render_to(ctx.scene, path)
+
+
 def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     """The HR level of a frame: the G-buffer pass (when any G-buffer is asked for), then the ground truth; writes
     its buffers and returns its record."""
@@ -661,12 +710,12 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     scene.render.resolution_x, scene.render.resolution_y = ctx.resolved.hr_size
     seconds, hr_out = {}, {}
     if plan.any:
-        set_sampling(scene, spp=cfg.gbuffer_spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False, cfg=cfg,
-                     seed=pass_seed(cfg.seed, frame, 0), light_paths=None)
         t = time.perf_counter()
-        passes = render_to(scene, ctx.tmpdir / "hr_gbuffer.exr")
+        passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0))
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
+        if ctx.resolved.behind:  # the footprint F_beta is the glass's there: keep the point-sampled one behind it
+            bg = bg | (passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN)
         t = time.perf_counter()
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.resolved.flag_lut,
                          fbeta_source=cfg.fbeta)
@@ -707,16 +756,21 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     settings_lr = set_sampling(scene, spp=cfg.lr_spp, pixel_filter=POINT_FILTER, denoise=cfg.lr_denoise,
                                adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 2 + i),
                                light_paths=ctx.light_paths)
-    seconds = {}
+    seconds, extra = {}, {}
+    plan = ctx.resolved.plan
     try:
         t = time.perf_counter()
-        passes = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
+        passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
+        if plan.any and ctx.resolved.behind:  # its own G-buffer render: same size, camera and jitter
+            t = time.perf_counter()
+            gpasses = render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"])
+            seconds["gbuffer"] = time.perf_counter() - t
+            extra["gbuffer_seed"] = settings_lr["seed"]
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
-    plan = ctx.resolved.plan
-    lr_out = convert(passes, plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.resolved.flag_lut,
+    lr_out = convert(gpasses, plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.resolved.flag_lut,
                      fbeta_source=cfg.fbeta) if plan.any else {}
     lr_out["radiance"] = passes["Combined"][..., :3]
     seconds["convert"] = time.perf_counter() - t
@@ -724,4 +778,4 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     for b in cfg.buffers:
         ctx.writer.write_buffer(frame, lvl, b, lr_out[b])
     seconds["write"] = time.perf_counter() - t
-    return cams.record(jitter=list(jit), spp=cfg.lr_spp, seed=settings_lr["seed"], seconds=seconds)
+    return cams.record(jitter=list(jit), spp=cfg.lr_spp, seed=settings_lr["seed"], **extra, seconds=seconds)
