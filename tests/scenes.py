@@ -12,7 +12,7 @@ Kinds:
   colours   basic plus an emissive cube of coloured base and emission colour (Linear Rec.709 working space)
   acescg    colours with the blend file's working colour space changed to ACEScg (its colours converted)
   dimlamp   basic lit by a point lamp of 0.01 W under a sky of strength 1e-4 (a level lit in other units)
-  glasspane a checkered wall filling the view behind two thin panes: Principled glass (transmission 1) on the left
+  glasspane a checkered wall under the sky behind two thin panes: Principled glass (transmission 1) on the left
             half, a Glass BSDF on the right; sun and grey world, the camera moving slightly
   nopane    glasspane with both panes deleted (what "behind" G-buffers must describe)
   imagetex  two planes filling the view side by side, each with a packed image texture (red/blue stripes; a green
@@ -187,10 +187,11 @@ def imagetex():
 
 
 def glasspane(panes=True):
-    """Wall (checker, tilted) 8 m away; 4 mm panes 3 m from the camera: Principled glass covering x < 0, a Glass BSDF
-    in x 0.6..1.6, which leaves the wall visible in between and above them."""
+    """Wall (checker, tilted) 8 m away, the sky above it; 4 mm panes 3 m from the camera: Principled glass covering
+    x < 0, a Glass BSDF in x 0.6..1.6; the wall and the sky are also seen beside them."""
     import bpy
-    bpy.ops.mesh.primitive_plane_add(size=30, location=(0, 2, 0), rotation=(1.5708 + 0.35, 0, 0.25))
+    bpy.ops.mesh.primitive_plane_add(size=6, location=(0, 2, -2.2), rotation=(1.5708 + 0.35, 0, 0.25),
+                                     scale=(3, 1, 1))
     wall = _principled("wall", Roughness=0.6)
     chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
     chk.inputs["Scale"].default_value = 12

@@ -691,11 +691,11 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
     return record
 
 
-def render_gbuffer(ctx: RenderContext, path: Path, seed: int) -> dict[str, np.ndarray]:
-    """A G-buffer render at the scene's current size and camera: ``gbuffer_spp`` point samples, no bounces; with
+def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int) -> dict[str, np.ndarray]:
+    """A G-buffer render at the scene's current size and camera: ``spp`` point samples, no bounces; with
     ``gbuffer_transmission = "behind"`` its transmissive materials are transparent (``materials.see_through``) and
     the rays pass them (the scene's own transparent bounce limit). Returns its passes."""
-    set_sampling(ctx.scene, spp=ctx.cfg.gbuffer_spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False,
+    set_sampling(ctx.scene, spp=spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False,
                  cfg=ctx.cfg, seed=seed, light_paths=None)
     if ctx.resolved.behind:
         ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
@@ -711,7 +711,7 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     seconds, hr_out = {}, {}
     if plan.any:
         t = time.perf_counter()
-        passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0))
+        passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0), cfg.gbuffer_spp)
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
         if ctx.resolved.behind:  # the footprint F_beta is the glass's there: keep the point-sampled one behind it
@@ -762,9 +762,9 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
         t = time.perf_counter()
         passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
-        if plan.any and ctx.resolved.behind:  # its own G-buffer render: same size, camera and jitter
-            t = time.perf_counter()
-            gpasses = render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"])
+        if plan.any and ctx.resolved.behind:  # its own G-buffer render: the same camera, jitter, seed and samples
+            t = time.perf_counter()  # (the same sample positions: unchanged wherever no glass is in front)
+            gpasses = render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"], cfg.lr_spp)
             seconds["gbuffer"] = time.perf_counter() - t
             extra["gbuffer_seed"] = settings_lr["seed"]
     finally:
