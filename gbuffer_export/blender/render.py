@@ -37,6 +37,7 @@ from ..conventions import (Flag, computed_buffers, exposure_header, halton_jitte
                            level_name, material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
+from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
 from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, convert, plan_passes, read_passes
@@ -691,11 +692,13 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
     return record
 
 
-def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int) -> dict[str, np.ndarray]:
-    """A G-buffer render at the scene's current size and camera: ``spp`` point samples, no bounces; with
-    ``gbuffer_transmission = "behind"`` its transmissive materials are transparent (``materials.see_through``) and
-    the rays pass them (the scene's own transparent bounce limit). Returns its passes."""
-    set_sampling(ctx.scene, spp=spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False,
+def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
+                   pixel_filter: tuple[str, float] = POINT_FILTER) -> dict[str, np.ndarray]:
+    """A G-buffer render at the scene's current size and camera: ``spp`` samples (point-sampled unless
+    ``pixel_filter`` says otherwise), no bounces; with ``gbuffer_transmission = "behind"`` its transmissive materials
+    are transparent (``materials.see_through``) and the rays pass them (the scene's own transparent bounce limit).
+    Returns its passes."""
+    set_sampling(ctx.scene, spp=spp, pixel_filter=pixel_filter, denoise=False, adaptive=False,
                  cfg=ctx.cfg, seed=seed, light_paths=None)
     if ctx.resolved.behind:
         ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
@@ -714,13 +717,20 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
         passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0), cfg.gbuffer_spp)
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
-        if ctx.resolved.behind:  # the footprint F_beta is the glass's there: keep the point-sampled one behind it
-            bg = bg | (passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN)
+        if ctx.resolved.behind:
+            reactive = passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
         t = time.perf_counter()
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.resolved.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = _footprint(cfg, plan)
+    if footprint and ctx.resolved.behind:  # the ground truth's colour passes see the glass: the surface behind it,
+        t = time.perf_counter()            # filtered alike (the ground truth's filter, seed and samples), instead
+        behind = render_gbuffer(ctx, ctx.tmpdir / "hr_footprint.exr", pass_seed(cfg.seed, frame, 1), cfg.hr_spp,
+                                HR_REFERENCE_FILTER)
+        seconds["footprint"] = time.perf_counter() - t
+        near_glass = dilate(reactive, 1)[..., None]  # wherever its footprint may reach a transmissive pixel
+        behind_colors = sum(behind[k][..., :3] for k in PASSES["colors"].names)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, pixel_filter=HR_REFERENCE_FILTER, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
                                light_paths=ctx.light_paths)
@@ -730,6 +740,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     hr_out["radiance"] = passes["Combined"][..., :3]
     if footprint:
         filtered = sum(passes[k][..., :3] for k in PASSES["colors"].names)
+        if ctx.resolved.behind:
+            filtered = np.where(near_glass, behind_colors, filtered)
         hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
     for b in cfg.buffers:
