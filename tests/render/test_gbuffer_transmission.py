@@ -2,13 +2,13 @@
 and at every LR level, as the same scene with the panes deleted; ``flags`` keep TRANSMISSION there (the reactive
 mask) and the radiance is the "surface" render's. A tiny scene (tests/scenes.py ``glasspane``: a checkered wall
 under the sky behind a Principled glass pane and a Glass BSDF pane; ``nopane``: the same without them), 64x32 HR,
-4x and 2x, two frames of a moving camera, rendered five times through ``blendsr render`` (about 25 s on 2 cores).
+4x and 2x, two frames of a moving camera, rendered four times through ``blendsr render`` (25 s on 2 idle cores,
+50 s beside a dataset render).
 
-Tolerances (measured, 2026-11-27): depth, albedo, roughness, metallic, specular and emission behind the panes are
-bit-identical to the scene without them (the footprint HR F_beta too); normals differ by at most 6e-8, motion by 2e-6 px
-and LR F_beta by 1.5e-6:
-a ray that passes a transparent surface is relaunched from the hit point, so the surface behind is found from
-another origin (float32 rounding). The bounds below are about 10x those."""
+Tolerances (measured, 2026-11-27): depth, albedo, roughness, metallic, specular, emission and the footprint HR
+F_beta behind the panes are bit-identical to the scene without them; normals differ by at most 6e-8, motion by
+2e-6 px and LR F_beta by 1.5e-6: a ray that passes a transparent surface is relaunched from the hit point, so the
+surface behind is found from another origin (float32 rounding). The bounds below are about 10x those."""
 from __future__ import annotations
 
 import filecmp
