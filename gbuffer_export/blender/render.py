@@ -706,6 +706,24 @@ def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
         return render_to(ctx.scene, path)
 
 
+@contextlib.contextmanager
+def render_border(scene, mask: np.ndarray):
+    """While inside, Cycles renders only the bounding box of ``mask`` (H x W bool, rows from the top) with a pixel
+    to spare, into a full-size image (the rest is not rendered: read only what ``mask`` covers)."""
+    r = scene.render
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    saved = (r.use_border, r.use_crop_to_border, r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y)
+    r.use_border, r.use_crop_to_border = True, False
+    r.border_min_x, r.border_max_x = max(xs.min() - 1, 0) / w, min(xs.max() + 2, w) / w
+    r.border_min_y, r.border_max_y = 1.0 - min(ys.max() + 2, h) / h, 1.0 - max(ys.min() - 1, 0) / h  # y up
+    try:
+        yield
+    finally:
+        (r.use_border, r.use_crop_to_border, r.border_min_x, r.border_max_x, r.border_min_y,
+         r.border_max_y) = saved
+
+
 def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     """The HR level of a frame: the G-buffer pass (when any G-buffer is asked for), then the ground truth; writes
     its buffers and returns its record."""
@@ -724,12 +742,13 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = _footprint(cfg, plan)
-    if footprint and ctx.resolved.behind:  # the ground truth's colour passes see the glass: the surface behind it,
-        t = time.perf_counter()            # filtered alike (the ground truth's filter, seed and samples), instead
-        behind = render_gbuffer(ctx, ctx.tmpdir / "hr_footprint.exr", pass_seed(cfg.seed, frame, 1), cfg.hr_spp,
-                                HR_REFERENCE_FILTER)
+    near_glass = dilate(reactive, 1) if footprint and ctx.resolved.behind else None  # footprints reaching glass
+    if near_glass is not None and near_glass.any():  # the ground truth's colour passes see the glass there: the
+        t = time.perf_counter()  # surface behind, filtered alike (the ground truth's filter, seed and samples)
+        with render_border(scene, near_glass):
+            behind = render_gbuffer(ctx, ctx.tmpdir / "hr_footprint.exr", pass_seed(cfg.seed, frame, 1),
+                                    cfg.hr_spp, HR_REFERENCE_FILTER)
         seconds["footprint"] = time.perf_counter() - t
-        near_glass = dilate(reactive, 1)[..., None]  # wherever its footprint may reach a transmissive pixel
         behind_colors = sum(behind[k][..., :3] for k in PASSES["colors"].names)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, pixel_filter=HR_REFERENCE_FILTER, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
@@ -740,8 +759,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     hr_out["radiance"] = passes["Combined"][..., :3]
     if footprint:
         filtered = sum(passes[k][..., :3] for k in PASSES["colors"].names)
-        if ctx.resolved.behind:
-            filtered = np.where(near_glass, behind_colors, filtered)
+        if near_glass is not None and near_glass.any():
+            filtered = np.where(near_glass[..., None], behind_colors, filtered)
         hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
     for b in cfg.buffers:
