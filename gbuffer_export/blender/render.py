@@ -770,6 +770,22 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
                        gbuffer_seed=pass_seed(cfg.seed, frame, 0) if plan.any else None, seconds=seconds)
 
 
+def lr_gbuffer_behind(ctx: RenderContext, path: Path, passes: dict, seed: int) -> dict:
+    """``gbuffer_transmission = "behind"`` at an LR level: ``passes`` (the LR render's) with those of a G-buffer
+    render over the bounding box of the pixels whose first surface is transmissive (the LR render's
+    ``AOV_REACTIVE``, grown by a pixel): the same camera, jitter, seed and samples, so every other pixel of the box
+    gets the values it has in ``passes``. ``passes`` itself when no glass is in view (no render)."""
+    near = dilate(passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN, 1)
+    if not near.any():
+        return passes
+    with render_border(ctx.scene, near):
+        behind = render_gbuffer(ctx, path, seed, ctx.cfg.lr_spp)
+    ys, xs = np.nonzero(near)
+    box = np.zeros((*near.shape, 1), bool)
+    box[ys.min():ys.max() + 1, xs.min():xs.max() + 1] = True
+    return {k: np.where(box, behind[k], v) if k in behind and k != "Combined" else v for k, v in passes.items()}
+
+
 def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: int, scale: float, jit) -> dict:
     """Render LR level ``i`` of ``cfg.scales`` (size HR / ``scale``) of a frame, jittered by ``jit`` pixels of the
     level, with its G-buffer passes in the same render; write its buffers and return its record. Cycles seed:
@@ -793,11 +809,12 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
         t = time.perf_counter()
         passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
-        if plan.any and ctx.resolved.behind:  # its own G-buffer render: the same camera, jitter, seed and samples
-            t = time.perf_counter()  # (the same sample positions: unchanged wherever no glass is in front)
-            gpasses = render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"], cfg.lr_spp)
-            seconds["gbuffer"] = time.perf_counter() - t
-            extra["gbuffer_seed"] = settings_lr["seed"]
+        if plan.any and ctx.resolved.behind:
+            t = time.perf_counter()
+            gpasses = lr_gbuffer_behind(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", passes, settings_lr["seed"])
+            if gpasses is not passes:
+                seconds["gbuffer"] = time.perf_counter() - t
+                extra["gbuffer_seed"] = settings_lr["seed"]
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
