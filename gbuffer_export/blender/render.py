@@ -567,7 +567,8 @@ def _transmission_header(cfg: RenderConfig, r: ResolvedRender) -> dict:
         return {"transmission": "behind", "transmissive_materials": [],
                 "transmission_note": "no transmissive material: rendered as surface, no extra render"}
     return {"transmission": "behind", "transmissive_materials": list(r.behind),
-            "lr_source": "a G-buffer render of its own per LR level (the LR render's camera and jitter)"}
+            "lr_source": "the LR render's own passes, and where glass is in view a G-buffer render over its "
+                         "bounding box (the LR render's camera, jitter, seed and samples)"}
 
 
 def _footprint(cfg: RenderConfig, plan: PassPlan) -> bool:

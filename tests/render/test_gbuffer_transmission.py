@@ -89,7 +89,7 @@ def test_the_manifest_records_behind_and_surface_keeps_its_identity(clips):
     assert "transmission" not in s.manifest["render"]["gbuffer"]  # "surface": the manifest as before the key
     g = b.manifest["render"]["gbuffer"]
     assert g["transmission"] == "behind" and g["transmissive_materials"] == ["glass", "glass_bsdf"]
-    assert "own" in g["lr_source"]
+    assert "G-buffer render over its bounding box" in g["lr_source"]
     for level in ("lr", "lr_x2"):  # one G-buffer render per LR level, with the LR render's seed
         rec = b.record(1)[level]
         assert rec["gbuffer_seed"] == rec["seed"] and rec["seconds"]["gbuffer"] > 0
