@@ -37,6 +37,11 @@ FBETA_SOURCES = ("cycles", "lut", "lut-paper", "model")
 #: filtered like the ground truth, away from background: no sub-pixel texture aliases into L_D; docs/brdf.md,
 #: "Sub-pixel texture").
 HR_FBETA = ("point", "footprint")
+#: What the G-buffers describe where a transmissive surface (glass, water: ``materials.is_transmissive``) is the first
+#: hit: 'surface' (the default: the first surface, glass included) or 'behind' (the first surface that is not
+#: transmissive, as a game's deferred G-buffer holds only opaque geometry; the ``flags`` buffer keeps TRANSMISSION
+#: there as the reactive mask; docs/rendering.md, "Transmissive surfaces").
+GBUFFER_TRANSMISSION = ("surface", "behind")
 
 
 #: Cycles' cap on samples per pixel (2^24): a larger request would be rendered at the cap and recorded wrongly.
@@ -194,6 +199,11 @@ class RenderConfig:
         "HR F_beta of fbeta cycles: the colour passes filtered like the ground truth (footprint: no sub-pixel texture "
         "in L_D; the shipped weights' data) or point-sampled like the other G-buffers (point: every clip before "
         "2026-11-26)"))
+    gbuffer_transmission: str = option("surface", choices=GBUFFER_TRANSMISSION, label="G-buffer at glass", help=(
+        "what every G-buffer describes where a transmissive surface (Principled transmission > 0, Glass or Refraction "
+        "BSDF) is seen first: surface (the glass itself) or behind (the first non-transmissive surface behind it, as "
+        "a deferred renderer's G-buffer; flags keep TRANSMISSION there as the reactive mask; radiance unchanged; "
+        "docs/rendering.md)"))
     shard: tuple[int, int] = option((1, 1), shells=(), metavar="K/N",
                                     help="render every N-th frame starting with the K-th")
     only_frames: tuple[int, ...] | None = option(None, shells=(), help=(

@@ -12,6 +12,9 @@ Kinds:
   colours   basic plus an emissive cube of coloured base and emission colour (Linear Rec.709 working space)
   acescg    colours with the blend file's working colour space changed to ACEScg (its colours converted)
   dimlamp   basic lit by a point lamp of 0.01 W under a sky of strength 1e-4 (a level lit in other units)
+  glasspane a checkered wall under the sky behind two thin panes: Principled glass (transmission 1) on the left
+            half, a Glass BSDF on the right; sun and grey world, the camera moving slightly
+  nopane    glasspane with both panes deleted (what "behind" G-buffers must describe)
   imagetex  two planes filling the view side by side, each with a packed image texture (red/blue stripes; a green
             and white checker also driving a Bump node through a Non-Color copy), under a uniform grey world
 """
@@ -183,6 +186,40 @@ def imagetex():
     cam.location, cam.rotation_euler = (0, -3.2, 0), (1.5708, 0, 0)
 
 
+def glasspane(panes=True):
+    """Wall (checker, tilted) 8 m away, the sky above it; 4 mm panes 3 m from the camera: Principled glass covering
+    x < 0, a Glass BSDF in x 0.6..1.6; the wall and the sky are also seen beside them."""
+    import bpy
+    bpy.ops.mesh.primitive_plane_add(size=6, location=(0, 2, -2.2), rotation=(1.5708 + 0.35, 0, 0.25),
+                                     scale=(3, 1, 1))
+    wall = _principled("wall", Roughness=0.6)
+    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 12
+    chk.inputs["Color1"].default_value = (0.8, 0.3, 0.1, 1)
+    chk.inputs["Color2"].default_value = (0.1, 0.4, 0.8, 1)
+    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    bpy.context.object.data.materials.append(wall)
+    if panes:
+        bpy.ops.mesh.primitive_cube_add(location=(-1.5, -3, -0.3), scale=(1.5, 0.002, 1.2))
+        bpy.context.object.data.materials.append(_principled(
+            "glass", **{"Base Color": (0.8, 0.95, 1.0, 1)}, Roughness=0.05, **{"Transmission Weight": 1.0}))
+        bpy.ops.mesh.primitive_cube_add(location=(1.1, -3, 0.0), scale=(0.5, 0.002, 0.5))
+        mat = bpy.data.materials.new("glass_bsdf")
+        nt = mat.node_tree
+        nt.nodes.remove(nt.nodes["Principled BSDF"])
+        glass = nt.nodes.new("ShaderNodeBsdfGlass")
+        nt.links.new(glass.outputs["BSDF"], nt.nodes["Material Output"].inputs["Surface"])
+        bpy.context.object.data.materials.append(mat)
+    bpy.ops.object.light_add(type="SUN", rotation=(0.6, 0.2, 0.3))
+    bpy.context.object.data.energy = 3.0
+    _world((0.5, 0.5, 0.5))
+    cam = _camera(animated=False)
+    cam.location, cam.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
+    cam.keyframe_insert("location", frame=0)
+    cam.location = (0.05, -6, 0.03)
+    cam.keyframe_insert("location", frame=10)
+
+
 def main(kind: str, out: str) -> None:
     import bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -204,6 +241,8 @@ def main(kind: str, out: str) -> None:
         occluder()
     elif kind == "imagetex":
         imagetex()
+    elif kind in ("glasspane", "nopane"):
+        glasspane(panes=kind == "glasspane")
     elif kind == "dimlamp":
         basic()
         sc.world.node_tree.nodes["Background"].inputs[1].default_value = 1e-4

@@ -145,7 +145,18 @@ class LevelPasses:
         obj_index = np.rint(self.passes["Object Index"][..., 0]).astype(np.int64)
         flags = lut[mat_index].astype(np.uint32)
         flags |= np.where(obj_index > 0, int(Flag.MOVING), 0).astype(np.uint32)
-        return np.where(self.bg, int(Flag.BACKGROUND), flags).astype(np.uint32)
+        flags = np.where(self.bg, int(Flag.BACKGROUND), flags).astype(np.uint32)
+        if mats.AOV_REACTIVE in self.plan.aovs:  # gbuffer_transmission "behind": a transmissive surface in front
+            flags |= np.where(self.reactive, int(Flag.TRANSMISSION), 0).astype(np.uint32)
+        return flags
+
+    @functools.cached_property
+    def reactive(self) -> np.ndarray:
+        """Where a transmissive surface lies in front of the surface the passes describe (``gbuffer_transmission``
+        "behind"; ``materials.AOV_REACTIVE``); all False without that AOV."""
+        if mats.AOV_REACTIVE not in self.plan.aovs:
+            return np.zeros(self.bg.shape, bool)
+        return self.passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
 
 
 def _depth(src: LevelPasses, out: dict) -> np.ndarray:

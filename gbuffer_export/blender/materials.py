@@ -3,9 +3,15 @@
 ``inspect_materials`` records which features each material uses and which flag bits (``conventions.Flag``) its
 pixels get. ``install_aovs`` adds Shader AOV Output nodes so that Cycles writes base colour, roughness, metallic
 and dielectric F0 per pixel, fed from the same sockets as the Principled BSDF (textures included).
+
+``gbuffer_transmission = "behind"``: ``transmissive_materials`` names the materials a deferred renderer would
+forward-render (glass, water), ``install_behind`` prepares them and ``see_through`` makes them a Transparent BSDF
+for the G-buffer renders (restored afterwards), so that Cycles' data passes, colour passes and AOVs describe the
+first surface behind them.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass, field
 
 import bpy
@@ -28,6 +34,15 @@ class MaterialInfo:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+
+#: ``gbuffer_transmission = "behind"``: the AOV that marks a sample whose first hit is a transmissive surface (its
+#: alpha: 0 on a cut-out hole, 1 on glass), written in the G-buffer renders; ``convert`` sets Flag.TRANSMISSION where
+#: it is above ``REACTIVE_MIN`` (the reactive mask). The shader node types that transmit the scene behind them.
+AOV_REACTIVE = "bsr_transmissive"
+REACTIVE_MIN = 1e-3
+TRANSMISSIVE_NODES = ("BSDF_GLASS", "BSDF_REFRACTION")
+BEHIND_LABEL = "BlendSR behind"
 
 
 def _input(node, *names):
@@ -245,6 +260,97 @@ def _install_simple_aovs(tree, node, wanted) -> None:
             _feed(tree, node.inputs["Roughness"], out.inputs["Value"])
         else:
             out.inputs["Value"].default_value = values[b]
+
+
+def _shader_nodes(node, seen=None):
+    """``node`` and the shader nodes feeding it through Mix/Add Shader nodes (the closures a surface mixes)."""
+    seen = set() if seen is None else seen
+    if node is None or node.name in seen:
+        return []
+    seen.add(node.name)
+    out = [node]
+    if node.type in ("MIX_SHADER", "ADD_SHADER"):
+        for sock in node.inputs:
+            if sock.type == "SHADER" and sock.is_linked:
+                out += _shader_nodes(sock.links[0].from_node, seen)
+    return out
+
+
+def is_transmissive(mat, info: MaterialInfo) -> bool:
+    """Whether the material shows the scene behind it by refraction: a Principled BSDF with transmission
+    (``Flag.TRANSMISSION``), or a Glass or Refraction BSDF anywhere in the shaders its surface mixes."""
+    if info.flags & Flag.TRANSMISSION:
+        return True
+    node, _ = _surface_node(mat)
+    for n in _shader_nodes(node):
+        if n.type in TRANSMISSIVE_NODES or (n.type == "BSDF_PRINCIPLED"
+                                            and _nonzero(_input(n, "Transmission Weight"))):
+            return True
+    return False
+
+
+def transmissive_materials(scene, infos: dict[str, MaterialInfo]) -> tuple[str, ...]:
+    """Names of the scene's transmissive materials (``is_transmissive``), sorted."""
+    return tuple(m.name for m in scene_materials(scene) if m.name in infos and is_transmissive(m, infos[m.name]))
+
+
+def install_behind(scene, view_layer, names) -> None:
+    """Prepare the materials ``names`` for ``see_through``: an unlinked Transparent BSDF (labelled ``BEHIND_LABEL``)
+    and an AOV output ``AOV_REACTIVE`` fed from the Principled Alpha (1 for other shaders) in each; the view layer's
+    AOV, and a pass alpha threshold above 0 (Cycles writes data passes on transparent surfaces at 0)."""
+    if not names:
+        return
+    if AOV_REACTIVE not in {a.name for a in view_layer.aovs}:
+        aov = view_layer.aovs.add()
+        aov.name, aov.type = AOV_REACTIVE, "VALUE"
+    if view_layer.pass_alpha_threshold <= 0.0:
+        view_layer.pass_alpha_threshold = 1e-6
+    for name in names:
+        tree = bpy.data.materials[name].node_tree
+        node, _ = _surface_node(bpy.data.materials[name])
+        transparent = tree.nodes.new("ShaderNodeBsdfTransparent")
+        transparent.label = BEHIND_LABEL
+        transparent.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        out = tree.nodes.new("ShaderNodeOutputAOV")
+        out.aov_name = AOV_REACTIVE
+        alpha = _input(node, "Alpha") if node is not None and node.type == "BSDF_PRINCIPLED" else None
+        if alpha is not None:
+            _feed(tree, alpha, out.inputs["Value"])
+        else:
+            out.inputs["Value"].default_value = 1.0
+
+
+@contextlib.contextmanager
+def see_through(names):
+    """While inside, each material of ``names`` (prepared by ``install_behind``) is a white Transparent BSDF: its
+    surface output fed by it, its volume unlinked, its AOV outputs but ``AOV_REACTIVE`` writing to no AOV (Cycles
+    evaluates a muted AOV output all the same, measured: the glass's albedo added to the one behind). Every link and
+    AOV name is restored on leaving, also on an error."""
+    saved = []
+    try:
+        for name in names:
+            tree = bpy.data.materials[name].node_tree
+            out = tree.get_output_node("CYCLES")
+            transparent = next(n for n in tree.nodes if n.label == BEHIND_LABEL)
+            links = {k: (out.inputs[k].links[0].from_socket if out.inputs[k].is_linked else None)
+                     for k in ("Surface", "Volume") if k in out.inputs}
+            aovs = [(n, n.aov_name) for n in tree.nodes if n.type == "OUTPUT_AOV" and n.aov_name != AOV_REACTIVE]
+            saved.append((tree, out, links, aovs))
+            tree.links.new(transparent.outputs["BSDF"], out.inputs["Surface"])
+            for ln in list(out.inputs["Volume"].links) if "Volume" in out.inputs else ():
+                tree.links.remove(ln)
+            for n, _ in aovs:
+                n.aov_name = ""
+        yield
+    finally:
+        for tree, out, links, aovs in saved:
+            for k, src in links.items():
+                for ln in list(out.inputs[k].links):
+                    tree.links.remove(ln)
+                if src is not None:
+                    tree.links.new(src, out.inputs[k])
+            for n, name in aovs:
+                n.aov_name = name
 
 
 def object_is_moving(ob, scene, frame: int) -> bool:

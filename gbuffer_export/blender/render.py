@@ -16,6 +16,7 @@ atomically. What the configuration and the scene settle is resolved once (``reso
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import os
@@ -36,6 +37,7 @@ from ..conventions import (Flag, computed_buffers, exposure_header, halton_jitte
                            level_name, material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
+from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
 from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, convert, plan_passes, read_passes
@@ -387,7 +389,8 @@ class ResolvedRender:
     {name: {"width", "height", ...}}); ``light``, the manifest's light record; the camera and its report; the view
     layer; the materials, their flags (``flag_lut``: material pass index -> flag bits, uint32) and the pass plan;
     ``moving``, the names of the objects that move (pass index 1); ``material_mode``, the manifest's record of
-    ``materials = "untextured"`` (None for "keep")."""
+    ``materials = "untextured"`` (None for "keep"); ``behind``, the transmissive materials the G-buffer renders see
+    through (``gbuffer_transmission = "behind"``; empty otherwise, and for a scene without any)."""
 
     frames: tuple[int, ...]
     my_frames: tuple[int, ...]
@@ -402,6 +405,7 @@ class ResolvedRender:
     flag_lut: np.ndarray
     moving: tuple[str, ...]
     material_mode: dict | None = None
+    behind: tuple[str, ...] = ()
 
 
 def built_by_blendsr(scene_info: dict) -> bool:
@@ -452,6 +456,10 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
     view_layer = _render_view_layer(scene)
     infos = mats.inspect_materials(scene)
     aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
+    plan = plan_passes(cfg.buffers, cfg.fbeta, aov_names)
+    behind = _resolve_behind(cfg, scene, view_layer, infos) if plan.any else ()
+    if behind:
+        plan = dataclasses.replace(plan, aovs=(*plan.aovs, mats.AOV_REACTIVE))
     flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
     flag_lut[0] = int(Flag.NO_MATERIAL)
     for info in infos.values():
@@ -461,9 +469,26 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
         ob.pass_index = 1 if ob in moving else 0
     return ResolvedRender(frames=tuple(frames), my_frames=my_frames, hr_size=hr_size,
                           levels=levels_header(hr_size, cfg.scales), light=light, cam=cam, camera_report=camera_report,
-                          view_layer=view_layer, materials=infos, plan=plan_passes(cfg.buffers, cfg.fbeta, aov_names),
+                          view_layer=view_layer, materials=infos, plan=plan,
                           flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)),
-                          material_mode=material_mode)
+                          material_mode=material_mode, behind=behind)
+
+
+def _resolve_behind(cfg: RenderConfig, scene, view_layer, infos: dict) -> tuple[str, ...]:
+    """``gbuffer_transmission``: the transmissive materials the G-buffer renders see through ("behind"), prepared
+    (``materials.install_behind``); () for "surface", and for a scene without transmissive materials (logged: it
+    renders as "surface", with no extra render)."""
+    if cfg.gbuffer_transmission != "behind":
+        return ()
+    behind = mats.transmissive_materials(scene, infos)
+    if not behind:
+        log.info("blendsr: %s: no transmissive material: gbuffer_transmission behind renders as surface (no extra "
+                 "render)", cfg.scene or "scene")
+        return ()
+    mats.install_behind(scene, view_layer, behind)
+    log.info("blendsr: %s: the G-buffers see through %d transmissive material(s): %s", cfg.scene or "scene",
+             len(behind), ", ".join(behind))
+    return behind
 
 
 def _render_view_layer(scene):
@@ -517,6 +542,8 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
             "gbuffer": {"spp": cfg.gbuffer_spp, "pixel_filter": POINT_FILTER[0], "filter_width_px": POINT_FILTER[1],
                         "max_bounces": 0, "hr_pass": plan.any, "lr_source": "the LR render's own passes",
                         "emission_background": "environment" if plan.emit else None,
+                        # only when "behind": a clip of the default "surface" keeps the identity it had before the key
+                        **_transmission_header(cfg, r),
                         # only when footprint: a point-sampled clip keeps the identity it had before the key
                         **({"hr_fbeta": "footprint"} if _footprint(cfg, plan) else {})},
             "light_paths": light_paths,
@@ -530,6 +557,18 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         "shard": list(cfg.shard),
         "command": " ".join(sys.argv),
     }
+
+
+def _transmission_header(cfg: RenderConfig, r: ResolvedRender) -> dict:
+    """The manifest's ``render.gbuffer`` entries of ``gbuffer_transmission = "behind"`` (none for "surface")."""
+    if cfg.gbuffer_transmission != "behind":
+        return {}
+    if not r.behind:
+        return {"transmission": "behind", "transmissive_materials": [],
+                "transmission_note": "no transmissive material: rendered as surface, no extra render"}
+    return {"transmission": "behind", "transmissive_materials": list(r.behind),
+            "lr_source": "the LR render's own passes, and where glass is in view a G-buffer render over its "
+                         "bounding box (the LR render's camera, jitter, seed and samples)"}
 
 
 def _footprint(cfg: RenderConfig, plan: PassPlan) -> bool:
@@ -654,6 +693,38 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
     return record
 
 
+def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
+                   pixel_filter: tuple[str, float] = POINT_FILTER) -> dict[str, np.ndarray]:
+    """A G-buffer render at the scene's current size and camera: ``spp`` samples (point-sampled unless
+    ``pixel_filter`` says otherwise), no bounces; with ``gbuffer_transmission = "behind"`` its transmissive materials
+    are transparent (``materials.see_through``) and the rays pass them (the scene's own transparent bounce limit).
+    Returns its passes."""
+    set_sampling(ctx.scene, spp=spp, pixel_filter=pixel_filter, denoise=False, adaptive=False,
+                 cfg=ctx.cfg, seed=seed, light_paths=None)
+    if ctx.resolved.behind:
+        ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
+    with mats.see_through(ctx.resolved.behind):
+        return render_to(ctx.scene, path)
+
+
+@contextlib.contextmanager
+def render_border(scene, mask: np.ndarray):
+    """While inside, Cycles renders only the bounding box of ``mask`` (H x W bool, rows from the top) with a pixel
+    to spare, into a full-size image (the rest is not rendered: read only what ``mask`` covers)."""
+    r = scene.render
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    saved = (r.use_border, r.use_crop_to_border, r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y)
+    r.use_border, r.use_crop_to_border = True, False
+    r.border_min_x, r.border_max_x = max(xs.min() - 1, 0) / w, min(xs.max() + 2, w) / w
+    r.border_min_y, r.border_max_y = 1.0 - min(ys.max() + 2, h) / h, 1.0 - max(ys.min() - 1, 0) / h  # y up
+    try:
+        yield
+    finally:
+        (r.use_border, r.use_crop_to_border, r.border_min_x, r.border_max_x, r.border_min_y,
+         r.border_max_y) = saved
+
+
 def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     """The HR level of a frame: the G-buffer pass (when any G-buffer is asked for), then the ground truth; writes
     its buffers and returns its record."""
@@ -661,17 +732,25 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     scene.render.resolution_x, scene.render.resolution_y = ctx.resolved.hr_size
     seconds, hr_out = {}, {}
     if plan.any:
-        set_sampling(scene, spp=cfg.gbuffer_spp, pixel_filter=POINT_FILTER, denoise=False, adaptive=False, cfg=cfg,
-                     seed=pass_seed(cfg.seed, frame, 0), light_paths=None)
         t = time.perf_counter()
-        passes = render_to(scene, ctx.tmpdir / "hr_gbuffer.exr")
+        passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0), cfg.gbuffer_spp)
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
+        if ctx.resolved.behind:
+            reactive = passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
         t = time.perf_counter()
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.resolved.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = _footprint(cfg, plan)
+    near_glass = dilate(reactive, 1) if footprint and ctx.resolved.behind else None  # footprints reaching glass
+    if near_glass is not None and near_glass.any():  # the ground truth's colour passes see the glass there: the
+        t = time.perf_counter()  # surface behind, filtered alike (the ground truth's filter, seed and samples)
+        with render_border(scene, near_glass):
+            behind = render_gbuffer(ctx, ctx.tmpdir / "hr_footprint.exr", pass_seed(cfg.seed, frame, 1),
+                                    cfg.hr_spp, HR_REFERENCE_FILTER)
+        seconds["footprint"] = time.perf_counter() - t
+        behind_colors = sum(behind[k][..., :3] for k in PASSES["colors"].names)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, pixel_filter=HR_REFERENCE_FILTER, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
                                light_paths=ctx.light_paths)
@@ -681,6 +760,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     hr_out["radiance"] = passes["Combined"][..., :3]
     if footprint:
         filtered = sum(passes[k][..., :3] for k in PASSES["colors"].names)
+        if near_glass is not None and near_glass.any():
+            filtered = np.where(near_glass[..., None], behind_colors, filtered)
         hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
     for b in cfg.buffers:
@@ -688,6 +769,22 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     seconds["write"] = time.perf_counter() - t
     return cams.record(jitter=[0.0, 0.0], spp=cfg.hr_spp, seed=settings_hr["seed"],
                        gbuffer_seed=pass_seed(cfg.seed, frame, 0) if plan.any else None, seconds=seconds)
+
+
+def lr_gbuffer_behind(ctx: RenderContext, path: Path, passes: dict, seed: int) -> dict:
+    """``gbuffer_transmission = "behind"`` at an LR level: ``passes`` (the LR render's) with those of a G-buffer
+    render over the bounding box of the pixels whose first surface is transmissive (the LR render's
+    ``AOV_REACTIVE``, grown by a pixel): the same camera, jitter, seed and samples, so every other pixel of the box
+    gets the values it has in ``passes``. ``passes`` itself when no glass is in view (no render)."""
+    near = dilate(passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN, 1)
+    if not near.any():
+        return passes
+    with render_border(ctx.scene, near):
+        behind = render_gbuffer(ctx, path, seed, ctx.cfg.lr_spp)
+    ys, xs = np.nonzero(near)
+    box = np.zeros((*near.shape, 1), bool)
+    box[ys.min():ys.max() + 1, xs.min():xs.max() + 1] = True
+    return {k: np.where(box, behind[k], v) if k in behind and k != "Combined" else v for k, v in passes.items()}
 
 
 def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: int, scale: float, jit) -> dict:
@@ -707,16 +804,22 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     settings_lr = set_sampling(scene, spp=cfg.lr_spp, pixel_filter=POINT_FILTER, denoise=cfg.lr_denoise,
                                adaptive=False, cfg=cfg, seed=pass_seed(cfg.seed, frame, 2 + i),
                                light_paths=ctx.light_paths)
-    seconds = {}
+    seconds, extra = {}, {}
+    plan = ctx.resolved.plan
     try:
         t = time.perf_counter()
-        passes = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
+        passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
+        if plan.any and ctx.resolved.behind:
+            t = time.perf_counter()
+            gpasses = lr_gbuffer_behind(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", passes, settings_lr["seed"])
+            if gpasses is not passes:
+                seconds["gbuffer"] = time.perf_counter() - t
+                extra["gbuffer_seed"] = settings_lr["seed"]
     finally:
         cam.data.shift_x, cam.data.shift_y = base_shift
     t = time.perf_counter()
-    plan = ctx.resolved.plan
-    lr_out = convert(passes, plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.resolved.flag_lut,
+    lr_out = convert(gpasses, plan, cfg.buffers, cams, jitter=jit, flag_lut=ctx.resolved.flag_lut,
                      fbeta_source=cfg.fbeta) if plan.any else {}
     lr_out["radiance"] = passes["Combined"][..., :3]
     seconds["convert"] = time.perf_counter() - t
@@ -724,4 +827,4 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
     for b in cfg.buffers:
         ctx.writer.write_buffer(frame, lvl, b, lr_out[b])
     seconds["write"] = time.perf_counter() - t
-    return cams.record(jitter=list(jit), spp=cfg.lr_spp, seed=settings_lr["seed"], seconds=seconds)
+    return cams.record(jitter=list(jit), spp=cfg.lr_spp, seed=settings_lr["seed"], **extra, seconds=seconds)
