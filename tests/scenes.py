@@ -15,6 +15,8 @@ Kinds:
   glasspane a checkered wall under the sky behind two thin panes: Principled glass (transmission 1) on the left
             half, a Glass BSDF on the right; sun and grey world, the camera moving slightly
   nopane    glasspane with both panes deleted (what "behind" G-buffers must describe)
+  cutout    a wall behind a pane whose alpha is a cut-out mask (0 or 1) on its left half and 0.25 on its right
+  nocutout  cutout without the pane (what the G-buffers must describe at its holes)
   imagetex  two planes filling the view side by side, each with a packed image texture (red/blue stripes; a green
             and white checker also driving a Bump node through a Non-Color copy), under a uniform grey world
 """
@@ -220,6 +222,51 @@ def glasspane(panes=True):
     cam.keyframe_insert("location", frame=10)
 
 
+def cutout(pane=True):
+    """A wall 8 m away filling the view (checker albedo, roughness 0.6) behind a 4 mm pane 3 m from the camera
+    (green, roughness 0.9, metallic 1, two faces): its Principled Alpha is a thresholded checker (0 or 1, as the
+    glTF importer cuts a MASK material) left of x = 0 and 0.25 right of it. ``pane=False``: the wall alone."""
+    import bpy
+    bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 2, 0), rotation=(1.5708, 0, 0))
+    wall = _principled("wall", Roughness=0.6)
+    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 10
+    chk.inputs["Color1"].default_value = (0.8, 0.3, 0.1, 1)
+    chk.inputs["Color2"].default_value = (0.1, 0.4, 0.8, 1)
+    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    bpy.context.object.data.materials.append(wall)
+    if pane:
+        bpy.ops.mesh.primitive_cube_add(location=(0, -3, 0), scale=(0.6, 0.002, 0.3))
+        mat = _principled("cutout", **{"Base Color": (0.2, 0.8, 0.3, 1)}, Roughness=0.9, Metallic=1.0)
+        nt = mat.node_tree
+        coords, sep = nt.nodes.new("ShaderNodeTexCoord"), nt.nodes.new("ShaderNodeSeparateXYZ")
+        nt.links.new(coords.outputs["Object"], sep.inputs[0])
+        flat = nt.nodes.new("ShaderNodeCombineXYZ")  # the same cells on both faces
+        nt.links.new(sep.outputs["X"], flat.inputs["X"])
+        nt.links.new(sep.outputs["Z"], flat.inputs["Z"])
+        cells = nt.nodes.new("ShaderNodeTexChecker")
+        cells.inputs["Scale"].default_value = 3.0
+        nt.links.new(flat.outputs[0], cells.inputs["Vector"])
+        mask = nt.nodes.new("ShaderNodeMath")
+        mask.operation = "GREATER_THAN"
+        mask.inputs[1].default_value = 0.5
+        nt.links.new(cells.outputs["Fac"], mask.inputs[0])
+        right = nt.nodes.new("ShaderNodeMath")
+        right.operation = "GREATER_THAN"
+        right.inputs[1].default_value = 0.0
+        nt.links.new(sep.outputs["X"], right.inputs[0])
+        mix = nt.nodes.new("ShaderNodeMix")
+        mix.data_type = "FLOAT"
+        nt.links.new(right.outputs[0], mix.inputs["Factor"])
+        nt.links.new(mask.outputs[0], mix.inputs["A"])
+        mix.inputs["B"].default_value = 0.25
+        nt.links.new(mix.outputs["Result"], nt.nodes["Principled BSDF"].inputs["Alpha"])
+        bpy.context.object.data.materials.append(mat)
+    _world((0.5, 0.5, 0.5))
+    cam = _camera(animated=False)
+    cam.location, cam.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
+
+
 def main(kind: str, out: str) -> None:
     import bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -243,6 +290,8 @@ def main(kind: str, out: str) -> None:
         imagetex()
     elif kind in ("glasspane", "nopane"):
         glasspane(panes=kind == "glasspane")
+    elif kind in ("cutout", "nocutout"):
+        cutout(pane=kind == "cutout")
     elif kind == "dimlamp":
         basic()
         sc.world.node_tree.nodes["Background"].inputs[1].default_value = 1e-4

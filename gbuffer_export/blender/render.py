@@ -2,7 +2,8 @@
 
 Per frame and in this order:
   1. HR G-buffer pass: ``gbuffer_spp`` samples, Gaussian pixel filter of width 0.01 px (point-sampled at the pixel
-     centre, nothing mixes at edges), no bounces; writes only the passes the requested buffers need.
+     centre, nothing mixes at edges), no bounces but transparent ones (rays pass alpha cut-outs, as in the LR
+     render); writes only the passes the requested buffers need.
   2. HR ground truth: ``hr_spp`` samples, Blackman-Harris 1.5 px filter (anti-aliased), the scene's light paths,
      optional adaptive sampling and denoising; Combined pass only.
   3. LR render, once per LR level (``cfg.scales``: 'lr' at the first scale, 'lr_x<s>' at the others): ``lr_spp``
@@ -455,6 +456,7 @@ def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> 
                            scene_bytes=scene_memory_bytes(scene), scene=str(cfg.scene or "scene"))
     view_layer = _render_view_layer(scene)
     infos = mats.inspect_materials(scene)
+    mats.raise_alpha_threshold(view_layer)  # a cut-out hole is never a G-buffer surface (the AOVs rely on it)
     aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
     plan = plan_passes(cfg.buffers, cfg.fbeta, aov_names)
     behind = _resolve_behind(cfg, scene, view_layer, infos) if plan.any else ()
@@ -696,13 +698,14 @@ def render_frame(ctx: RenderContext, frame: int) -> dict:
 def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
                    pixel_filter: tuple[str, float] = POINT_FILTER) -> dict[str, np.ndarray]:
     """A G-buffer render at the scene's current size and camera: ``spp`` samples (point-sampled unless
-    ``pixel_filter`` says otherwise), no bounces; with ``gbuffer_transmission = "behind"`` its transmissive materials
-    are transparent (``materials.see_through``) and the rays pass them (the scene's own transparent bounce limit).
+    ``pixel_filter`` says otherwise), no bounces but the scene's transparent ones (the rays pass alpha cut-outs, as
+    in the LR render); with ``gbuffer_transmission = "behind"`` its transmissive materials are transparent too
+    (``materials.see_through``).
     Returns its passes."""
     set_sampling(ctx.scene, spp=spp, pixel_filter=pixel_filter, denoise=False, adaptive=False,
                  cfg=ctx.cfg, seed=seed, light_paths=None)
-    if ctx.resolved.behind:
-        ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
+    # camera rays pass alpha cut-outs as in the LR render, whose passes are the LR G-buffers (docs/rendering.md)
+    ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
     with mats.see_through(ctx.resolved.behind):
         return render_to(ctx.scene, path)
 
