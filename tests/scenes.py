@@ -188,19 +188,24 @@ def imagetex():
     cam.location, cam.rotation_euler = (0, -3.2, 0), (1.5708, 0, 0)
 
 
+def _checker_wall(scale):
+    """The 'wall' material of glasspane and cutout: roughness 0.6, a checker of orange and blue base colour."""
+    wall = _principled("wall", Roughness=0.6)
+    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = scale
+    chk.inputs["Color1"].default_value = (0.8, 0.3, 0.1, 1)
+    chk.inputs["Color2"].default_value = (0.1, 0.4, 0.8, 1)
+    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    return wall
+
+
 def glasspane(panes=True):
     """Wall (checker, tilted) 8 m away, the sky above it; 4 mm panes 3 m from the camera: Principled glass covering
     x < 0, a Glass BSDF in x 0.6..1.6; the wall and the sky are also seen beside them."""
     import bpy
     bpy.ops.mesh.primitive_plane_add(size=6, location=(0, 2, -2.2), rotation=(1.5708 + 0.35, 0, 0.25),
                                      scale=(3, 1, 1))
-    wall = _principled("wall", Roughness=0.6)
-    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
-    chk.inputs["Scale"].default_value = 12
-    chk.inputs["Color1"].default_value = (0.8, 0.3, 0.1, 1)
-    chk.inputs["Color2"].default_value = (0.1, 0.4, 0.8, 1)
-    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
-    bpy.context.object.data.materials.append(wall)
+    bpy.context.object.data.materials.append(_checker_wall(12))
     if panes:
         bpy.ops.mesh.primitive_cube_add(location=(-1.5, -3, -0.3), scale=(1.5, 0.002, 1.2))
         bpy.context.object.data.materials.append(_principled(
@@ -228,13 +233,7 @@ def cutout(pane=True):
     glTF importer cuts a MASK material) left of x = 0 and 0.25 right of it. ``pane=False``: the wall alone."""
     import bpy
     bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 2, 0), rotation=(1.5708, 0, 0))
-    wall = _principled("wall", Roughness=0.6)
-    chk = wall.node_tree.nodes.new("ShaderNodeTexChecker")
-    chk.inputs["Scale"].default_value = 10
-    chk.inputs["Color1"].default_value = (0.8, 0.3, 0.1, 1)
-    chk.inputs["Color2"].default_value = (0.1, 0.4, 0.8, 1)
-    wall.node_tree.links.new(chk.outputs["Color"], wall.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
-    bpy.context.object.data.materials.append(wall)
+    bpy.context.object.data.materials.append(_checker_wall(10))
     if pane:
         bpy.ops.mesh.primitive_cube_add(location=(0, -3, 0), scale=(0.6, 0.002, 0.3))
         mat = _principled("cutout", **{"Base Color": (0.2, 0.8, 0.3, 1)}, Roughness=0.9, Metallic=1.0)

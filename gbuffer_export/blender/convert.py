@@ -22,6 +22,18 @@ from . import materials as mats
 BACKGROUND_DEPTH = 1e9  # Cycles writes 1e10 for background in the Depth pass
 
 
+def colour_sum(passes: dict) -> np.ndarray:
+    """H x W x 3: the sum of a render's colour passes (``PASSES["colors"]``), the directional albedo F_beta
+    (docs/brdf.md)."""
+    return sum(passes[k][..., :3] for k in PASSES["colors"].names)
+
+
+def reactive_mask(passes: dict) -> np.ndarray:
+    """H x W bool: where a transmissive surface is the first hit, from the ``materials.AOV_REACTIVE`` pass of a render
+    with ``gbuffer_transmission = "behind"`` (above ``materials.REACTIVE_MIN``): the reactive mask."""
+    return passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
+
+
 @dataclass(frozen=True)
 class PassRow:
     """One kind of Cycles pass: the view-layer switches that enable it (``use_pass_*``), the EXR passes it writes
@@ -147,16 +159,8 @@ class LevelPasses:
         flags |= np.where(obj_index > 0, int(Flag.MOVING), 0).astype(np.uint32)
         flags = np.where(self.bg, int(Flag.BACKGROUND), flags).astype(np.uint32)
         if mats.AOV_REACTIVE in self.plan.aovs:  # gbuffer_transmission "behind": a transmissive surface in front
-            flags |= np.where(self.reactive, int(Flag.TRANSMISSION), 0).astype(np.uint32)
+            flags |= np.where(reactive_mask(self.passes), int(Flag.TRANSMISSION), 0).astype(np.uint32)
         return flags
-
-    @functools.cached_property
-    def reactive(self) -> np.ndarray:
-        """Where a transmissive surface lies in front of the surface the passes describe (``gbuffer_transmission``
-        "behind"; ``materials.AOV_REACTIVE``); all False without that AOV."""
-        if mats.AOV_REACTIVE not in self.plan.aovs:
-            return np.zeros(self.bg.shape, bool)
-        return self.passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
 
 
 def _depth(src: LevelPasses, out: dict) -> np.ndarray:
@@ -207,7 +211,7 @@ def _fbeta(src: LevelPasses, out: dict) -> np.ndarray:
     """'cycles': the sum of the colour passes; a table source: ``brdf.compute_fbeta`` of the G-buffers in ``out``."""
     p = src.passes
     if src.fbeta_source == "cycles":
-        fb = p["Diffuse Color"][..., :3] + p["Glossy Color"][..., :3] + p["Transmission Color"][..., :3]
+        fb = colour_sum(p)
     else:
         from ..brdf import compute_fbeta
         gbuf = {key: out[key] for key in ("albedo", "normal", "roughness", "metallic", "specular") if key in out}

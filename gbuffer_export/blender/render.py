@@ -41,7 +41,8 @@ from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
-from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, convert, plan_passes, read_passes
+from .convert import (BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, colour_sum, convert, plan_passes,
+                      reactive_mask, read_passes)
 
 log = logging.getLogger(__name__)
 
@@ -710,17 +711,23 @@ def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
         return render_to(ctx.scene, path)
 
 
+def bounding_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1), end-exclusive, of the True pixels of a non-empty H x W ``mask`` (rows from the top)."""
+    ys, xs = np.nonzero(mask)
+    return int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+
+
 @contextlib.contextmanager
 def render_border(scene, mask: np.ndarray):
     """While inside, Cycles renders only the bounding box of ``mask`` (H x W bool, rows from the top) with a pixel
     to spare, into a full-size image (the rest is not rendered: read only what ``mask`` covers)."""
     r = scene.render
     h, w = mask.shape
-    ys, xs = np.nonzero(mask)
+    y0, y1, x0, x1 = bounding_box(mask)
     saved = (r.use_border, r.use_crop_to_border, r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y)
     r.use_border, r.use_crop_to_border = True, False
-    r.border_min_x, r.border_max_x = max(xs.min() - 1, 0) / w, min(xs.max() + 2, w) / w
-    r.border_min_y, r.border_max_y = 1.0 - min(ys.max() + 2, h) / h, 1.0 - max(ys.min() - 1, 0) / h  # y up
+    r.border_min_x, r.border_max_x = max(x0 - 1, 0) / w, min(x1 + 1, w) / w
+    r.border_min_y, r.border_max_y = 1.0 - min(y1 + 1, h) / h, 1.0 - max(y0 - 1, 0) / h  # y up
     try:
         yield
     finally:
@@ -733,27 +740,28 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     its buffers and returns its record."""
     cfg, scene, plan = ctx.cfg, ctx.scene, ctx.resolved.plan
     scene.render.resolution_x, scene.render.resolution_y = ctx.resolved.hr_size
-    seconds, hr_out = {}, {}
+    seconds, hr_out, near_glass = {}, {}, None
     if plan.any:
         t = time.perf_counter()
         passes = render_gbuffer(ctx, ctx.tmpdir / "hr_gbuffer.exr", pass_seed(cfg.seed, frame, 0), cfg.gbuffer_spp)
         seconds["gbuffer"] = time.perf_counter() - t
         bg = passes["Depth"][..., 0] >= BACKGROUND_DEPTH
-        if ctx.resolved.behind:
-            reactive = passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN
+        # footprints reaching glass: the ground truth's colour passes see the glass there ("behind")
+        near_glass = dilate(reactive_mask(passes), 1) if ctx.resolved.behind else None
         t = time.perf_counter()
         hr_out = convert(passes, plan, cfg.buffers, cams, jitter=(0.0, 0.0), flag_lut=ctx.resolved.flag_lut,
                          fbeta_source=cfg.fbeta)
         seconds["convert"] = time.perf_counter() - t
     footprint = _footprint(cfg, plan)
-    near_glass = dilate(reactive, 1) if footprint and ctx.resolved.behind else None  # footprints reaching glass
-    if near_glass is not None and near_glass.any():  # the ground truth's colour passes see the glass there: the
-        t = time.perf_counter()  # surface behind, filtered alike (the ground truth's filter, seed and samples)
+    if not (footprint and near_glass is not None and near_glass.any()):
+        near_glass = None
+    if near_glass is not None:  # the surface behind, filtered alike (the ground truth's filter, seed and samples)
+        t = time.perf_counter()
         with render_border(scene, near_glass):
             behind = render_gbuffer(ctx, ctx.tmpdir / "hr_footprint.exr", pass_seed(cfg.seed, frame, 1),
                                     cfg.hr_spp, HR_REFERENCE_FILTER)
         seconds["footprint"] = time.perf_counter() - t
-        behind_colors = sum(behind[k][..., :3] for k in PASSES["colors"].names)
+        behind_colors = colour_sum(behind)
     settings_hr = set_sampling(scene, spp=cfg.hr_spp, pixel_filter=HR_REFERENCE_FILTER, denoise=cfg.hr_denoise,
                                adaptive=cfg.adaptive, cfg=cfg, seed=pass_seed(cfg.seed, frame, 1),
                                light_paths=ctx.light_paths)
@@ -762,8 +770,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     seconds["radiance"] = time.perf_counter() - t
     hr_out["radiance"] = passes["Combined"][..., :3]
     if footprint:
-        filtered = sum(passes[k][..., :3] for k in PASSES["colors"].names)
-        if near_glass is not None and near_glass.any():
+        filtered = colour_sum(passes)
+        if near_glass is not None:
             filtered = np.where(near_glass[..., None], behind_colors, filtered)
         hr_out["fbeta"] = footprint_fbeta(hr_out["fbeta"], filtered, bg)
     t = time.perf_counter()
@@ -779,14 +787,14 @@ def lr_gbuffer_behind(ctx: RenderContext, path: Path, passes: dict, seed: int) -
     render over the bounding box of the pixels whose first surface is transmissive (the LR render's
     ``AOV_REACTIVE``, grown by a pixel): the same camera, jitter, seed and samples, so every other pixel of the box
     gets the values it has in ``passes``. ``passes`` itself when no glass is in view (no render)."""
-    near = dilate(passes[mats.AOV_REACTIVE][..., 0] > mats.REACTIVE_MIN, 1)
+    near = dilate(reactive_mask(passes), 1)
     if not near.any():
         return passes
     with render_border(ctx.scene, near):
         behind = render_gbuffer(ctx, path, seed, ctx.cfg.lr_spp)
-    ys, xs = np.nonzero(near)
+    y0, y1, x0, x1 = bounding_box(near)
     box = np.zeros((*near.shape, 1), bool)
-    box[ys.min():ys.max() + 1, xs.min():xs.max() + 1] = True
+    box[y0:y1, x0:x1] = True
     return {k: np.where(box, behind[k], v) if k in behind and k != "Combined" else v for k, v in passes.items()}
 
 

@@ -226,12 +226,13 @@ def check_background_emission(c: Collector, frame: int, lvl: str, b: dict[str, n
     bg = ~surface
     flags = b.get("flags")
     if flags is not None:
-        alpha = (flags[..., 0].astype(np.uint32) & np.uint32(Flag.ALPHA)) != 0
+        bits = flags[..., 0].astype(np.uint32)
+        alpha = (bits & np.uint32(Flag.ALPHA)) != 0
         if alpha.any():
             bg = bg & ~dilate(alpha, BG_ALPHA_HALO_PX)
         # the sky seen through glass (gbuffer_transmission "behind": BACKGROUND with TRANSMISSION, the reactive
         # mask): its radiance passed the glass, its emission is the environment itself
-        bg = bg & ((flags[..., 0].astype(np.uint32) & np.uint32(Flag.TRANSMISSION)) == 0)
+        bg = bg & ((bits & np.uint32(Flag.TRANSMISSION)) == 0)
     if not bg.any():
         return
     r, e = rad[bg].astype(np.float64), em[bg].astype(np.float64)
