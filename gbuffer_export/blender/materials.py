@@ -346,16 +346,15 @@ def transmissive_materials(scene, infos: dict[str, MaterialInfo]) -> tuple[str, 
     return tuple(m.name for m in scene_materials(scene) if m.name in infos and is_transmissive(m, infos[m.name]))
 
 
-def install_behind(scene, view_layer, names) -> None:
+def install_behind(view_layer, names) -> None:
     """Prepare the materials ``names`` for ``see_through``: an unlinked Transparent BSDF (labelled ``BEHIND_LABEL``)
     and an AOV output ``AOV_REACTIVE`` fed from the Principled Alpha (1 for other shaders) in each; the view layer's
-    AOV, and a pass alpha threshold above 0 (Cycles writes data passes on transparent surfaces at 0)."""
+    AOV. Call ``raise_alpha_threshold`` first (Cycles writes data passes on transparent surfaces at 0)."""
     if not names:
         return
     if AOV_REACTIVE not in {a.name for a in view_layer.aovs}:
         aov = view_layer.aovs.add()
         aov.name, aov.type = AOV_REACTIVE, "VALUE"
-    raise_alpha_threshold(view_layer)
     for name in names:
         tree = bpy.data.materials[name].node_tree
         node, _ = _surface_node(bpy.data.materials[name])

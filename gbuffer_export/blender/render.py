@@ -488,7 +488,7 @@ def _resolve_behind(cfg: RenderConfig, scene, view_layer, infos: dict) -> tuple[
         log.info("blendsr: %s: no transmissive material: gbuffer_transmission behind renders as surface (no extra "
                  "render)", cfg.scene or "scene")
         return ()
-    mats.install_behind(scene, view_layer, behind)
+    mats.install_behind(view_layer, behind)
     log.info("blendsr: %s: the G-buffers see through %d transmissive material(s): %s", cfg.scene or "scene",
              len(behind), ", ".join(behind))
     return behind
