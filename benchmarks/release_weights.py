@@ -31,15 +31,28 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     command.txt, written by benchmarks/zoo.sh, else benchmarks/pretrain.sh's form)."""
     cmd = run / "command.txt"
     if a.script == "benchmarks/pretrain.sh":
-        script = f"SPEC={index['spec']['file']} {a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
+        spec = "" if "SPEC=" in (a.env or "") else f"SPEC={index['spec']['file']} "  # --env may name it already
+        script = f"{spec}{a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
     elif a.script == "benchmarks/zoo.sh":
         script = f"MODELS={name} {a.script} {a.dataset} {a.runs}"
     else:
         script = f"{a.env + ' ' if a.env else ''}{a.script} {a.dataset} {a.runs}"
     if cmd.is_file():
-        return [script, cmd.read_text().strip()]
+        return [script, *earlier_stages(run), cmd.read_text().strip()]
     return [script, f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
                     f"--max-steps {steps} --set run.threads=1"]
+
+
+def earlier_stages(run: Path) -> list[str]:
+    """The training commands of the runs this one started from, first stage first: a run whose ``run.init_from`` is
+    ``OTHER/checkpoints/*.pt`` of a run directory with a command.txt (a fine-tune in stages); [] otherwise."""
+    cmd = run / "command.txt"
+    words = shlex.split(cmd.read_text()) if cmd.is_file() else []
+    init = next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
+    prev = Path(init).parent.parent
+    if not init.endswith(".pt") or not (prev / "command.txt").is_file() or prev.resolve() == run.resolve():
+        return []
+    return [*earlier_stages(prev), (prev / "command.txt").read_text().strip()]
 
 
 def config_of(run: Path) -> str:

@@ -1,0 +1,42 @@
+"""benchmarks/release_weights.py: the JSON beside released weights names every training stage that made them, first
+stage first, so a fine-tune in stages (one run started from another run's checkpoint) can be replayed."""
+import importlib.util
+import shlex
+from types import SimpleNamespace
+
+from tests.conftest import REPO
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("release_weights", REPO / "benchmarks" / "release_weights.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _run(root, name, init):
+    run = root / name
+    (run / "checkpoints").mkdir(parents=True)
+    cmd = ["train", "--model", "fusesr-l", "-o", str(run), "--set", f'run.init_from="{init}"', "--max-steps", "10"]
+    (run / "command.txt").write_text("blendsr " + " ".join(shlex.quote(w) for w in cmd) + "\n")
+    return run
+
+
+def test_commands_list_the_stages_a_run_started_from(tmp_path):
+    rw = _module()
+    first = _run(tmp_path, "a", "pretrained:fusesr-l")
+    second = _run(tmp_path, "b", str(first / "checkpoints" / "last.pt"))
+    third = _run(tmp_path, "c", str(second / "checkpoints" / "last.pt"))
+    args = SimpleNamespace(script="benchmarks/pretrain.sh", env="LR=1e-4", dataset="ds", runs=tmp_path)
+    cmds = rw.commands(args, {"spec": {"file": "spec.toml"}}, "fusesr-l", third, 10)
+    assert cmds[0].startswith("SPEC=spec.toml LR=1e-4 benchmarks/pretrain.sh")
+    assert len(cmds) == 4
+    assert [f"-o {r}" in c for r, c in zip((first, second, third), cmds[1:])] == [True] * 3
+    assert rw.earlier_stages(first) == []  # a run from the shipped weights has no earlier stage here
+
+
+def test_a_run_that_names_itself_does_not_loop(tmp_path):
+    rw = _module()
+    run = tmp_path / "a"
+    run = _run(tmp_path, "a", str(run / "checkpoints" / "last.pt"))
+    assert rw.earlier_stages(run) == []
