@@ -43,16 +43,40 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
                     f"--max-steps {steps} --set run.threads=1"]
 
 
-def earlier_stages(run: Path) -> list[str]:
-    """The training commands of the runs this one started from, first stage first: a run whose ``run.init_from`` is
-    ``OTHER/checkpoints/*.pt`` of a run directory with a command.txt (a fine-tune in stages); [] otherwise."""
+def init_of(run: Path) -> str:
+    """The ``run.init_from`` of the run's training command (command.txt), else ""."""
     cmd = run / "command.txt"
     words = shlex.split(cmd.read_text()) if cmd.is_file() else []
-    init = next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
+    return next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
+
+
+def earlier_stages(run: Path) -> list[str]:
+    """The training commands of the runs this one started from, first stage first (``stage_runs``)."""
+    return [(r / "command.txt").read_text().strip() for r in stage_runs(run)[:-1]]
+
+
+def shipped_origin(runs: list[Path], weights_dir: Path) -> dict | None:
+    """What the first stage of ``runs`` (first stage first) started from when that is shipped weights
+    (``pretrained:NAME``): their sha256, step and commands, read from the JSON beside them before they are replaced,
+    so the chain of fine-tunes stays on record; None otherwise."""
+    from training.pretrained import PRETRAINED
+    init = init_of(runs[0])
+    name = init.partition(":")[2].partition("?")[0]
+    js = (weights_dir / PRETRAINED.get(name, "-")).with_suffix(".json")
+    if not init.startswith("pretrained:") or not js.is_file():
+        return None
+    old = json.loads(js.read_text())
+    return {"weights": f"{init} as shipped before this release (sha256 below; git history of {js.name})",
+            "sha256": old.get("sha256"), "step": old.get("step"), "commands": old.get("commands")}
+
+
+def stage_runs(run: Path) -> list[Path]:
+    """The run directories of a fine-tune in stages, first stage first, ending with ``run``."""
+    init = init_of(run)
     prev = Path(init).parent.parent
     if not init.endswith(".pt") or not (prev / "command.txt").is_file() or prev.resolve() == run.resolve():
-        return []
-    return [*earlier_stages(prev), (prev / "command.txt").read_text().strip()]
+        return [run]
+    return [*stage_runs(prev), run]
 
 
 def config_of(run: Path) -> str:
@@ -138,6 +162,9 @@ def main(argv=None) -> int:
                                            name: score(str(ck), val), **val_baselines}
         if verdict is not None:
             meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
+        origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)
+        if origin is not None:
+            meta["init_from"] = origin
         for item in a.attach:
             key, _, path = item.partition("=")
             meta[key] = json.loads(Path(path).read_text())

@@ -40,3 +40,20 @@ def test_a_run_that_names_itself_does_not_loop(tmp_path):
     run = tmp_path / "a"
     run = _run(tmp_path, "a", str(run / "checkpoints" / "last.pt"))
     assert rw.earlier_stages(run) == []
+
+
+def test_weights_fine_tuned_in_stages_name_the_shipped_weights_they_started_from(tmp_path):
+    from training.pretrained import PRETRAINED
+    rw = _module()
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    (weights / PRETRAINED["fusesr-l"]).with_suffix(".json").write_text(
+        '{"sha256": "abc", "step": 7, "commands": ["blendsr train --model fusesr-l"]}')
+    first = _run(tmp_path, "a", "pretrained:fusesr-l?residual_clamp=lr-range")
+    second = _run(tmp_path, "b", str(first / "checkpoints" / "last.pt"))
+    assert rw.stage_runs(second) == [first, second]
+    origin = rw.shipped_origin(rw.stage_runs(second), weights)
+    assert (origin["sha256"], origin["step"], origin["commands"]) == ("abc", 7, ["blendsr train --model fusesr-l"])
+    assert origin["weights"].startswith("pretrained:fusesr-l?residual_clamp=lr-range as shipped before")
+    other = _run(tmp_path, "c", "runs/elsewhere/checkpoints/last.pt")  # not shipped weights, no run directory
+    assert rw.shipped_origin(rw.stage_runs(other), weights) is None
