@@ -86,6 +86,23 @@ def config_of(run: Path) -> str:
     return words[words.index("--config") + 1] if "--config" in words else "benchmarks/pretrain.toml"
 
 
+def evaluate(spec: str, clips: list[str]) -> dict:
+    """``evaluate_model`` of ``spec`` (at 4x, no FLIP) on ``clips``, with the demod-jbu baseline the rule reads."""
+    from training.evaluate import EvalOptions, evaluate_model
+    from training.inference import load_model
+    return evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
+
+
+def summary(r: dict) -> dict:
+    """The scores of an ``evaluate`` result kept in a weights JSON: means, per-clip PSNR, worst case."""
+    from training.evaluate import group_means
+    per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
+    m = r["mean"]
+    return {"psnr": round(m["psnr"], 3), "ssim": round(m["ssim"], 4), "psnr_hdr": round(m["psnr_hdr"], 3),
+            "tpsnr": m.get("tpsnr"), "per_clip": per, "frames": m["frames"], "margin_min": m.get("margin_min"),
+            "artifact_pixels": m.get("artifact_pixels")}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
@@ -102,8 +119,6 @@ def main(argv=None) -> int:
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index, split_clips
     from training.checkpoint import load_checkpoint
-    from training.evaluate import EvalOptions, evaluate_model, group_means
-    from training.inference import load_model
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     from training.release import release
 
@@ -113,14 +128,8 @@ def main(argv=None) -> int:
     index = read_index(a.dataset)
 
     def score(spec: str, clips: list[str] = test, full: bool = False) -> dict:
-        r = evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
-        if full:
-            return r
-        per = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
-        m = r["mean"]
-        return {"psnr": round(m["psnr"], 3), "ssim": round(m["ssim"], 4),
-                "psnr_hdr": round(m["psnr_hdr"], 3), "tpsnr": m.get("tpsnr"), "per_clip": per, "frames": m["frames"],
-                "margin_min": m.get("margin_min"), "artifact_pixels": m.get("artifact_pixels")}
+        r = evaluate(spec, clips)
+        return r if full else summary(r)
 
     baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
     val_baselines = {m: score(m, val) for m in ("demod-bilinear", "demod-jbu")} if val else {}

@@ -165,7 +165,7 @@ def _load_checkpoint_model(spec: str, label: str, scale, overrides: list[str], f
         raise FileNotFoundError(f"{spec}: neither a model name ({', '.join(MODELS)}) nor a checkpoint file")
     ck = load_checkpoint(path)
     from training.models import model_class
-    data = _with_inference_options(ck["config"], overrides, label)
+    data = with_inference_options(ck["config"], overrides, label)
     cfg = config_from_checkpoint(data, source=f"{path} with {', '.join(overrides)}" if overrides else str(path))
     if model_class(cfg.model.name).SCALES is not None and float(ck["scale"]) != float(scale):
         raise BlendSRError(f"{spec}: checkpoint was trained for scale {ck['scale']}, not {scale}")
@@ -178,7 +178,7 @@ def _load_checkpoint_model(spec: str, label: str, scale, overrides: list[str], f
     return _prepared(model, fast)
 
 
-def _with_inference_options(config: dict, overrides: list[str], label: str) -> dict:
+def with_inference_options(config: dict, overrides: list[str], label: str) -> dict:
     """A copy of a checkpoint's saved configuration with ``overrides`` (``_load_checkpoint_model``) set in its
     ``[model.NAME]`` table; BlendSRError (one line) for any other key."""
     import copy

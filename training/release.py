@@ -32,8 +32,9 @@ def write_weights_file(out: Path, ck: dict) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
-    """Write the float16 weights of ``checkpoint`` (a checkpoint of ``blendsr train``, or earlier shipped weights)
+def release(checkpoint: str | Path | dict, out: str | Path, meta: dict) -> dict:
+    """Write the float16 weights of ``checkpoint`` (a checkpoint of ``blendsr train``, or earlier shipped weights, or
+    such a checkpoint already loaded by ``load_checkpoint``)
     to ``out`` (a .safetensors file) and ``meta`` plus its size, sha256, step, parameter count and parameter digest
     to ``out`` with suffix .json; returns that metadata. BlendSRError for another suffix or a file over 10 MB."""
     from gbuffer_export.clip import write_json_atomic
@@ -43,7 +44,7 @@ def release(checkpoint: str | Path, out: str | Path, meta: dict) -> dict:
     out = Path(out)
     if out.suffix != ".safetensors":
         raise BlendSRError(f"{out}: shipped weights are written as .safetensors (a file that cannot run code)")
-    ck = load_checkpoint(checkpoint)
+    ck = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_weights_file(out, ck)
     meta = {**meta, "file": out.name, "bytes": out.stat().st_size, "sha256": file_sha256(out),

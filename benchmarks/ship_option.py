@@ -1,0 +1,86 @@
+"""Store an inference option with shipped weights (e.g. ``residual_clamp = "lr-guided"`` for fusesr-fast) when the
+val rule (``training/selection.py``) chooses the weights run with it over the same weights as shipped.
+
+    .venv/bin/python benchmarks/ship_option.py DATASET NAME KEY=VALUE [KEY=VALUE ...] [--force]
+
+Only inference options (``training.models.options.INFERENCE_OPTIONS``: they leave the weights' meaning alone) can be
+set; the float16 tensors are copied bit for bit, so the parameter digest does not change. The JSON beside the weights
+keeps its training commands and gains this command, the verdict (``val_rule``), the options set
+(``inference_options``) and the model's scores on the dataset's val and test splits with them. The test split is
+scored for the record only; it never enters the choice."""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import shlex
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def _release_weights():
+    spec = importlib.util.spec_from_file_location("release_weights", REPO / "benchmarks" / "release_weights.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dataset", type=Path, help="a dataset with val and test splits (blendsr dataset)")
+    p.add_argument("name", help="a shipped network (training.pretrained.PRETRAINED)")
+    p.add_argument("options", nargs="+", metavar="KEY=VALUE", help="inference options, TOML values")
+    p.add_argument("--force", action="store_true", help="store the options even when the val rule keeps the weights")
+    a = p.parse_args(argv)
+
+    from gbuffer_export.dataset.build import split_clips
+    from training.checkpoint import load_checkpoint
+    from training.inference import with_inference_options
+    from training.pretrained import PRETRAINED, WEIGHTS_DIR
+    from training.release import release
+    from training.selection import choose
+    rw = _release_weights()
+    if a.name not in PRETRAINED:
+        print(f"blendsr: error: {a.name!r} is not a shipped network ({', '.join(PRETRAINED)})", file=sys.stderr)
+        return 2
+    file = WEIGHTS_DIR / PRETRAINED[a.name]
+    ck = load_checkpoint(file)
+    ck = {**ck, "config": with_inference_options(ck["config"], a.options, str(file))}  # refuses other keys
+    val = [str(c) for c in split_clips(a.dataset, "val")]
+    test = [str(c) for c in split_clips(a.dataset, "test")]
+    spec = f"pretrained:{a.name}?{'&'.join(a.options)}"
+    cand, inc = rw.evaluate(spec, val), rw.evaluate(f"pretrained:{a.name}", val)
+    verdict = choose(cand, inc)
+    print(f"{spec}: val rule {'replaces' if verdict.replace else 'keeps'} the shipped weights"
+          + ("" if verdict.replace else ": " + "; ".join(verdict.reasons)), file=sys.stderr)
+    if not verdict.replace and not a.force:
+        return 0
+    meta = json.loads(file.with_suffix(".json").read_text())
+    for key in ("file", "bytes", "sha256", "step", "params", "param_digest"):
+        meta.pop(key, None)  # release() writes them again
+    command = " ".join(shlex.quote(w) for w in ["benchmarks/ship_option.py", str(a.dataset), a.name, *a.options])
+    meta["commands"] = [*meta.get("commands", []), command]
+    meta["inference_options"] = {"set": list(a.options), "command": command,
+                                 "before": rw.summary(inc), "after": rw.summary(cand)}
+    meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
+    meta["dataset"] = {**meta.get("dataset", {}), "val_clips": [Path(c).name for c in val],
+                       "test_clips": [Path(c).name for c in test]}  # the splits as scored now
+    metric = "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP"
+    meta["scores_on_val_split"] = {"metric": metric, a.name: rw.summary(cand),
+                                   **{m: rw.summary(rw.evaluate(m, val)) for m in ("demod-bilinear", "demod-jbu")}}
+    meta["scores_on_test_split"] = {"metric": metric, **{m: rw.summary(rw.evaluate(m, test)) for m in
+                                                         (spec, "bicubic", "demod-bilinear", "demod-jbu")}}
+    meta["scores_on_test_split"][a.name] = meta["scores_on_test_split"].pop(spec)
+    test_scores = meta["scores_on_test_split"][a.name]
+    meta["gain_over_demod_jbu_db"] = round(test_scores["psnr"] - meta["scores_on_test_split"]["demod-jbu"]["psnr"], 3)
+    meta = release(ck, file, meta)
+    print(f"{a.name}: {', '.join(a.options)} stored with {file.name} (test PSNR {test_scores['psnr']:.2f} dB)",
+          file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
