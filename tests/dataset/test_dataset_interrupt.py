@@ -144,7 +144,8 @@ def test_ctrl_c_stops_a_ray_dataset_within_seconds(tmp_path):
     env = {**{k: v for k, v in ENV.items() if not k.startswith("RAY_")}, "HOME": str(tmp_path / "home"),
            "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
     code, took, err, _ = _interrupt(spec, out, False, extra=("--executor", "ray"), env=env)
-    assert code == 130 and "Traceback" not in err, err[-2000:]
+    # the head of stderr too: a crash of Ray's own threads ends it with a long C++ stack that hides the cause
+    assert code == 130 and "Traceback" not in err, f"exit {code}: {err[:3000]}\n...\n{err[-1000:]}"
     assert took < 10, f"stopped after {took:.1f} s"
     deadline = time.time() + 5
     while _dataset_jobs_under(out) and time.time() < deadline:
