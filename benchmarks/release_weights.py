@@ -86,6 +86,10 @@ def config_of(run: Path) -> str:
     return words[words.index("--config") + 1] if "--config" in words else "benchmarks/pretrain.toml"
 
 
+#: What the scores in a weights JSON measure (``evaluate``, ``summary``).
+METRIC = "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP"
+
+
 def evaluate(spec: str, clips: list[str]) -> dict:
     """``evaluate_model`` of ``spec`` (at 4x, no FLIP) on ``clips``, with the demod-jbu baseline the rule reads."""
     from training.evaluate import EvalOptions, evaluate_model
@@ -146,10 +150,10 @@ def main(argv=None) -> int:
         if not ck.is_file():
             print(f"skip {name}: {ck} not found", file=sys.stderr)
             continue
-        verdict = None
+        verdict, cand_val = None, score(str(ck), val, full=True) if val else None  # scored once, used twice
         if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose
-            verdict = choose(score(str(ck), val, full=True), score(f"pretrained:{name}", val, full=True))
+            verdict = choose(cand_val, score(f"pretrained:{name}", val, full=True))
             print(f"{name}: val rule {'replaces' if verdict.replace else 'keeps'} the shipped weights"
                   + ("" if verdict.replace else ": " + "; ".join(verdict.reasons)), file=sys.stderr)
             if not verdict.replace and not a.force:
@@ -162,13 +166,11 @@ def main(argv=None) -> int:
                         "test_clips": out["test_clips"]},
             "commands": commands(a, index, name, run, s["steps"]),
             "config": config_of(run),
-            "scores_on_test_split": {"metric": "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP",
-                                     name: s, **baselines},
+            "scores_on_test_split": {"metric": METRIC, name: s, **baselines},
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
         }
         if val:
-            meta["scores_on_val_split"] = {"metric": meta["scores_on_test_split"]["metric"],
-                                           name: score(str(ck), val), **val_baselines}
+            meta["scores_on_val_split"] = {"metric": METRIC, name: summary(cand_val), **val_baselines}
         if verdict is not None:
             meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
         origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)

@@ -5,8 +5,9 @@ val rule (``training/selection.py``) chooses the weights run with it over the sa
 
 Only inference options (``training.models.options.INFERENCE_OPTIONS``: they leave the weights' meaning alone) can be
 set; the float16 tensors are copied bit for bit, so the parameter digest does not change. The JSON beside the weights
-keeps its training commands and gains this command, the verdict (``val_rule``), the options set
-(``inference_options``) and the model's scores on the dataset's val and test splits with them. The test split is
+keeps its training commands and training verdict (``val_rule``) and gains this command, the options set with this
+verdict and the val scores before them (``inference_options``), and the model's scores on the dataset's val and test
+splits with them. The test split is
 scored for the record only; it never enters the choice."""
 from __future__ import annotations
 
@@ -64,14 +65,14 @@ def main(argv=None) -> int:
     command = " ".join(shlex.quote(w) for w in ["benchmarks/ship_option.py", str(a.dataset), a.name, *a.options])
     meta["commands"] = [*meta.get("commands", []), command]
     meta["inference_options"] = {"set": list(a.options), "command": command,
-                                 "before": rw.summary(inc), "after": rw.summary(cand)}
-    meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
+                                 "scores_on_val_split_before": rw.summary(inc),
+                                 "val_rule": {"replace": verdict.replace, "reasons": list(verdict.reasons),
+                                              "forced": a.force}}
     meta["dataset"] = {**meta.get("dataset", {}), "val_clips": [Path(c).name for c in val],
                        "test_clips": [Path(c).name for c in test]}  # the splits as scored now
-    metric = "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP"
-    meta["scores_on_val_split"] = {"metric": metric, a.name: rw.summary(cand),
+    meta["scores_on_val_split"] = {"metric": rw.METRIC, a.name: rw.summary(cand),
                                    **{m: rw.summary(rw.evaluate(m, val)) for m in ("demod-bilinear", "demod-jbu")}}
-    meta["scores_on_test_split"] = {"metric": metric, **{m: rw.summary(rw.evaluate(m, test)) for m in
+    meta["scores_on_test_split"] = {"metric": rw.METRIC, **{m: rw.summary(rw.evaluate(m, test)) for m in
                                                          (spec, "bicubic", "demod-bilinear", "demod-jbu")}}
     meta["scores_on_test_split"][a.name] = meta["scores_on_test_split"].pop(spec)
     test_scores = meta["scores_on_test_split"][a.name]
