@@ -165,6 +165,10 @@ class LossConfig:
         "\"ortho\": mean modulus of the orthonormal 2-D FFT difference; \"rfft\": mean of abs(Re) and abs(Im) of "
         "the unnormalised real FFT difference (RDG's code)"))
     temporal_weight: float = option(0.0, lo=0, help="temporal consistency (`temporal`)")
+    baseline_weight: float = option(0.0, lo=0, help=(
+        "hinge over the guided baseline `demod-jbu` (`baseline`): the mean of max(0, |SR - GT| - |JBU - GT|) in "
+        "`space`, paid only where the network is further from the ground truth than the non-learned baseline (not "
+        "in the papers)"))
     temporal: str = option("warped", choices=TEMPORAL_LOSSES, help=(
         "\"warped\": L1 of (SR_t - W(SR_t-1)) - (GT_t - W(GT_t-1)), W the HR backward warp; \"difference\": MSE of "
         "(SR_t - SR_t-1) - (GT_t - GT_t-1) (RDG's code)"))

@@ -60,10 +60,13 @@ class BatchSpec:
     jitter: bool = False
 
     @staticmethod
-    def for_model(model, targets=("hr/radiance",), temporal: bool = False, window: int = 0, **kw) -> "BatchSpec":
+    def for_model(model, targets=("hr/radiance",), temporal: bool = False, window: int = 0, also=None,
+                  **kw) -> "BatchSpec":
         """``window`` > 0 (recurrent models): every key, LR and HR, holds ``window`` consecutive frames (a target
-        for every frame); ``temporal`` then only adds HR motion."""
-        keys = [k for k in model.needs() if k not in FRAME_KEYS + BATCH_KEYS] + list(targets)
+        for every frame); ``temporal`` then only adds HR motion. ``also``: a second model whose inputs the batches
+        hold too (the baseline of ``loss.baseline_weight``), read on the current frame."""
+        needs = tuple(model.needs()) + (tuple(also.needs()) if also is not None else ())
+        keys = [k for k in needs if k not in FRAME_KEYS + BATCH_KEYS] + list(targets)
         if temporal:
             keys.append("hr/motion")
         extra = 1 if temporal and not window else 0
@@ -71,7 +74,7 @@ class BatchSpec:
         hr = [k for k in keys if k.startswith("hr/")]
         return BatchSpec(lr_keys=tuple(dict.fromkeys(lr)), hr_keys=tuple(dict.fromkeys(hr)),
                          lr_window=window or model.window + extra, hr_window=window or 1 + extra,
-                         depth_ref="depth_ref" in model.needs(), jitter="lr_jitter" in model.needs(), **kw)
+                         depth_ref="depth_ref" in needs, jitter="lr_jitter" in needs, **kw)
 
     @property
     def cache_keys(self) -> list[str]:

@@ -14,8 +14,8 @@ import torch
 from gbuffer_export.clip import write_json_atomic
 from training.checkpoint import save_checkpoint
 
-LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "lr", "step_ms", "data_ms",
-               "samples_per_s", "elapsed_s", "mem_mb")
+LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "baseline", "lr", "step_ms",
+               "data_ms", "samples_per_s", "elapsed_s", "mem_mb")
 
 
 @dataclass
@@ -60,12 +60,16 @@ class RunLog:
         cfg, main = trainer.cfg, trainer.dist.main
         self.mem_peak = 0.0
         self.logf = self.writer = self.tb = self.bar = None
+        self.columns = LOG_COLUMNS
         if main:
-            new = not (run_dir / "log.csv").exists()
-            self.logf = open(run_dir / "log.csv", "a", newline="")
+            path = run_dir / "log.csv"
+            header = path.read_text().splitlines()[:1] if path.exists() else []
+            if header:  # a resumed run keeps the columns its log started with (an older version's, too)
+                self.columns = tuple(next(csv.reader(header)))
+            self.logf = open(path, "a", newline="")
             self.writer = csv.writer(self.logf)
-            if new:
-                self.writer.writerow(LOG_COLUMNS)
+            if not header:
+                self.writer.writerow(self.columns)
             try:
                 from torch.utils.tensorboard import SummaryWriter
                 self.tb = SummaryWriter(str(run_dir / "tensorboard"))
@@ -88,7 +92,7 @@ class RunLog:
                    "mem_mb": peak_memory_mb(trainer.device)}
             self.mem_peak = max(self.mem_peak, row["mem_mb"])
             if self.writer is not None:
-                self.writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in LOG_COLUMNS])
+                self.writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in self.columns])
                 self.logf.flush()
             if self.tb is not None:
                 for k, v in row.items():

@@ -9,6 +9,10 @@
 - temporal (``loss.temporal``): 'warped', the mean over valid pixels of |(a_t - W(a_t-1)) - (b_t - W(b_t-1))|,
   W = backward warp with HR motion; 'difference', the mean of ((a_t - a_t-1) - (b_t - b_t-1))^2 without warping
   (the consistency loss of RDG's code)
+- baseline (``loss.baseline_weight``): the mean of max(0, |a - b| - |j - b|), j the guided baseline ``demod-jbu``
+  on the same batch in the same space: zero wherever the network is at least as close to the ground truth as the
+  non-learned baseline, so it weighs only the pixels where the network loses to it (not in the papers; the worst
+  case of docs/results.md is the per-clip margin over that baseline)
 - perceptual: VGG-16 features from a user-supplied weights file (``training.perceptual``)
 """
 from __future__ import annotations
@@ -43,6 +47,11 @@ def fft_loss(a: torch.Tensor, b: torch.Tensor, kind: str = "ortho") -> torch.Ten
     return (fa - fb).abs().mean()
 
 
+def baseline_loss(a: torch.Tensor, b: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+    """The hinge over the baseline (module doc): mean of max(0, |a - b| - |j - b|), all three in the loss space."""
+    return torch.relu((a - b).abs() - (j - b).abs()).mean()
+
+
 def temporal_loss(a_t, a_prev, b_t, b_prev, motion) -> torch.Tensor:
     """Temporal consistency: SR frame differences after warping should match the ground truth's."""
     wa, valid = backward_warp(a_prev, motion)
@@ -68,7 +77,8 @@ class Criterion(torch.nn.Module):
             from training.perceptual import VGGFeatures
             self.vgg = VGGFeatures.from_file(cfg.vgg_weights)
 
-    def forward(self, sr, gt, sr_prev=None, gt_prev=None, motion=None):
+    def forward(self, sr, gt, sr_prev=None, gt_prev=None, motion=None, base=None):
+        """``base``: the baseline's SR of the same frame (the ``baseline`` term; skipped when None)."""
         c = self.cfg
         terms: dict[str, torch.Tensor] = {}
         a, b = loss_space(sr, c.space), loss_space(gt, c.space)
@@ -88,7 +98,10 @@ class Criterion(torch.nn.Module):
             else:
                 terms["temporal"] = temporal_loss(a, loss_space(sr_prev, c.space), b, loss_space(gt_prev, c.space),
                                                   motion)
+        if getattr(c, "baseline_weight", 0) > 0 and base is not None:
+            terms["baseline"] = baseline_loss(a, b, loss_space(base, c.space))
         weights = {"pixel": c.pixel_weight, "ssim": c.ssim_weight, "fft": c.fft_weight,
-                   "temporal": c.temporal_weight, "perceptual": c.perceptual_weight}
+                   "temporal": c.temporal_weight, "perceptual": c.perceptual_weight,
+                   "baseline": getattr(c, "baseline_weight", 0.0)}
         total = sum(weights[k] * v for k, v in terms.items())
         return total, terms

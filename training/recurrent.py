@@ -42,9 +42,10 @@ def window_length(batch: dict) -> int:
 
 
 def window_losses(net, criterion, batch: dict, detach_every: int, backward, temporal: bool,
-                  autocast_ctx) -> tuple[torch.Tensor, dict, torch.Tensor]:
+                  autocast_ctx, baseline=None) -> tuple[torch.Tensor, dict, torch.Tensor]:
     """Run ``net`` (``net(batch, state) -> (SR, state)``, a ``StepWrapper``) over the T frames of a window batch,
-    the loss averaged over frames. Every ``detach_every`` frames the summed loss of the chunk (divided by T) is
+    the loss averaged over frames (``baseline(frame batch)``: the baseline's SR of that frame, or None). Every
+    ``detach_every`` frames the summed loss of the chunk (divided by T) is
     back-propagated by ``backward(loss)`` and the state detached. Returns (total loss, {term: mean over frames}, SR of the last frame) with the loss detached. The
     temporal term is averaged over the T - 1 consecutive pairs, the others over the T frames."""
     t_len = window_length(batch)
@@ -63,7 +64,8 @@ def window_losses(net, criterion, batch: dict, detach_every: int, backward, temp
         use_temporal = temporal and t > 0
         loss, terms = criterion(sr, gt, sr_prev if use_temporal else None,
                                 batch["hr/radiance"][:, t - 1] if use_temporal else None,
-                                batch["hr/motion"][:, t] if use_temporal and "hr/motion" in batch else None)
+                                batch["hr/motion"][:, t] if use_temporal and "hr/motion" in batch else None,
+                                baseline(sub) if baseline is not None else None)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + float(v.detach())
         if "temporal" in terms:  # the mean over the T - 1 frame pairs, so that loss = sum of weight x term

@@ -21,6 +21,7 @@ Distributed data parallel runs under torchrun (gloo on CPU, NCCL on GPU); only r
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import random
@@ -101,6 +102,17 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
 
 
+def baseline_model(cfg: TrainConfig, scale):
+    """The guided baseline ``demod-jbu`` of the ``baseline`` loss term (None when ``loss.baseline_weight`` is 0):
+    the model's shared keys (scale, jitter, remodulation filter, ...) with demod-jbu's default options, the
+    baseline every margin in docs/results.md is measured against."""
+    if cfg.loss.baseline_weight <= 0:
+        return None
+    base = build_model(dataclasses.replace(cfg.model, name="demod-jbu", options=None), scale)
+    base.fast_ops = True
+    return base.eval().requires_grad_(False)
+
+
 def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, ck: dict | None):
     """Seeds, model, caches, sampler and Trainer (restored from ``ck`` when resuming); returns (trainer, caches).
     ``cfg`` is the effective configuration."""
@@ -118,7 +130,9 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
         if mismatch:
             raise ConfigError(mismatch + "; set them to the clip's filter, or model.remod_filter = \"NONE\"")
     temporal = cfg.loss.temporal_weight > 0
+    baseline = baseline_model(cfg, run.scale)
     spec = BatchSpec.for_model(model, temporal=temporal and (not run.recurrent or cfg.loss.temporal == "warped"),
+                               also=baseline,
                                window=run.window, crop=run.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
@@ -132,7 +146,7 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
                         f"with 'blendsr render --for-models {cfg.model.name}' (or 'blendsr dataset ... "
                         f"--for-models {cfg.model.name}')") from None
     sampler = TrainSampler(caches, spec, cfg.data.batch_size, cfg.run.seed, dist.rank, cfg.data.val_frames)
-    trainer = Trainer(cfg, run, model, sampler, dist)
+    trainer = Trainer(cfg, run, model, sampler, dist, baseline=baseline)
     if ck is not None:
         trainer.load_state_dict(ck)
     trainer.wrap()

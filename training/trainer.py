@@ -124,8 +124,10 @@ class Trainer:
     run needs to continue bit-identically. ``cfg`` is the effective configuration (``ResolvedRun.apply``), ``run``
     the ResolvedRun, ``model`` the unwrapped module (on the CPU; moved to ``dist.device`` here)."""
 
-    def __init__(self, cfg: TrainConfig, run, model: torch.nn.Module, sampler, dist: Dist):
+    def __init__(self, cfg: TrainConfig, run, model: torch.nn.Module, sampler, dist: Dist, baseline=None):
         self.cfg, self.run, self.model, self.sampler, self.dist = cfg, run, model, sampler, dist
+        # the guided baseline of the ``baseline`` loss term (training.train.baseline_model; no parameters)
+        self.baseline = baseline.to(dist.device) if baseline is not None else None
         self.device = device = dist.device
         self.step_no = 0
         self.elapsed_before = 0.0  # seconds trained before this process (resumed runs)
@@ -224,14 +226,22 @@ class Trainer:
         if self.run.recurrent:  # back-propagates chunk by chunk (training.recurrent)
             self.optimizer.zero_grad(set_to_none=True)
             return window_losses(net, self.criterion, batch, cfg.data.detach_every or self.run.window,
-                                 self._backward, temporal, lambda: autocast(self.device, self.dtype))
+                                 self._backward, temporal, lambda: autocast(self.device, self.dtype),
+                                 self.baseline_sr)
         with autocast(self.device, self.dtype):
             sr = net(batch).float()
             sr_prev = net(drop_last(batch)).float() if temporal else None
         hr = batch["hr/radiance"]
         loss, terms = self.criterion(sr, hr[:, -1], sr_prev, hr[:, -2] if temporal else None,
-                                     batch["hr/motion"][:, -1] if temporal else None)
+                                     batch["hr/motion"][:, -1] if temporal else None, self.baseline_sr(batch))
         return loss, terms, sr
+
+    def baseline_sr(self, batch: dict):
+        """The baseline's SR of the batch's current frame (float32, no gradient); None without the term."""
+        if self.baseline is None:
+            return None
+        with torch.no_grad():
+            return self.baseline(batch).float()
 
     def _check_finite(self, loss, sr, samples) -> None:
         if not self.dist.any(not bool(torch.isfinite(loss))):

@@ -64,6 +64,10 @@ def test_resume_is_bit_identical(clip, tmp_path):
     cfg2.data.clips = [str(clip)]
     s1 = train(cfg2, split, stop_at=2)
     assert s1["step"] == 2 and s1["stopped_by"] == "stop_at"
+    # a log begun by an older version (no 'baseline' column) keeps its columns when the run resumes
+    old = list(csv.reader(open(split / "log.csv")))
+    drop = old[0].index("baseline")
+    (split / "log.csv").write_text("".join(",".join(r[:drop] + r[drop + 1:]) + "\n" for r in old))
     half = load_checkpoint(split / "checkpoints" / "last.pt")
     assert half["step"] == 2
     assert main(["train", "-o", str(split), "--resume"]) == 0
@@ -78,6 +82,7 @@ def test_resume_is_bit_identical(clip, tmp_path):
         assert torch.equal(sa[i]["exp_avg_sq"], sb[i]["exp_avg_sq"])
     rows = list(csv.DictReader(open(split / "log.csv")))
     assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
+    assert "baseline" not in rows[0] and all(None not in r and float(r["lr"]) > 0 for r in rows)
     # a changed configuration is refused on resume
     assert main(["train", "-o", str(split), "--resume", "--max-steps", "5", "--set", "data.crop=12"]) == 2
 
