@@ -114,17 +114,24 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
         if not item:
             continue
         if item.startswith("pretrained:"):  # a shipped model (training/pretrained.py)
-            out.append((item, item))
+            out.append((item, item, item))
             continue
         name, sep, path = item.partition(":")
         if name not in MODELS:
             raise BlendSRError(f"--models: unknown model {name!r}; choose among {', '.join(MODELS)}")
         if MODELS[name].learned and not sep and need_checkpoints:
             raise BlendSRError(f"--models: {name!r} is learned; write {name}:CHECKPOINT")
-        out.append((checkpoint_label(name, path) if sep else name, path if sep else name))
+        out.append((checkpoint_label(name, path) if sep else name, path if sep else name, item))
     if not out:
         raise BlendSRError("--models: no model given")
-    return out
+    labels = [label for label, _, _ in out]
+    out = [(f"{item.partition(':')[0]} ({spec})" if labels.count(label) > 1 and spec != item else label, spec, item)
+           for label, spec, item in out]  # checkpoints of runs with one name (runs/a/fusesr, runs/b/fusesr): paths
+    seen = [label for label, _, _ in out]
+    twice = sorted({label for label in seen if seen.count(label) > 1})
+    if twice:
+        raise BlendSRError(f"--models: {twice[0]!r} is given twice")
+    return [(label, spec) for label, spec, _ in out]
 
 
 def checkpoint_label(name: str, path: str) -> str:

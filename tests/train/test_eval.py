@@ -285,6 +285,12 @@ def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
     assert bench_models.pareto_front([(1, 10), (2, 9), (3, 12), (0.5, 8)]) == [3, 0, 2]
     with pytest.raises(ValueError, match="learned"):
         bench_models.parse_models("fusesr")
+    # two runs whose model folders share a name keep two rows (labelled by path); one model twice is an error
+    a, b = "runs/a/fusesr/checkpoints/last.pt", "runs/b/fusesr/checkpoints/last.pt"
+    assert bench_models.parse_models(f"fusesr:{a},fusesr:{b},fusesr:{a}?residual_clamp=none") == [
+        (f"fusesr ({a})", a), (f"fusesr ({b})", b), ("fusesr (fusesr?residual_clamp=none)", f"{a}?residual_clamp=none")]
+    with pytest.raises(ValueError, match="given twice"):
+        bench_models.parse_models(f"demod-jbu,fusesr:{a},demod-jbu")
 
 
 def test_models_table_is_listed(capsys):
