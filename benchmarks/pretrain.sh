@@ -7,8 +7,9 @@
 #   4. write the float16 weights with the spec, the commands and the scores beside them.
 # Usage: [SPEC=spec.toml] benchmarks/pretrain.sh [DATASET] [RUNS]
 #        (FUSESR_STEPS, FUSESR_L_STEPS: optimiser steps, default 8000 and 2500; THREADS: torch threads;
-#        INIT=SPEC: start each model from SPEC's weights with <SPEC> replaced by the model name, e.g.
-#        INIT='pretrained:<M>' fine-tunes the shipped weights; LR: optim.lr; MINUTES: each training also stops after
+#        INIT=SPEC: start each model from the weights SPEC names, <M> replaced by the model name, e.g.
+#        INIT='pretrained:<M>' fine-tunes the shipped weights, INIT='runs/a/<D>/checkpoints/last.pt' continues the
+#        runs of RUNS=runs/a (<D>: the model's run folder, fusesr_l for fusesr-l); LR: optim.lr; MINUTES: each training also stops after
 #        M minutes of this invocation, resumable; MODELS: default "fusesr fusesr-l"; RELEASE=0: no weights written;
 #        SET: whitespace-separated KEY=VALUE overrides, each passed as --set with <M> replaced by the model name, e.g.
 #        SET='model.<M>.residual_clamp="lr-range"')
@@ -32,7 +33,7 @@ for M in $MODELS; do
   if [ "$M" = fusesr ]; then STEPS=$FUSESR_STEPS; else STEPS=$FUSESR_L_STEPS; fi
   CMD=(train --model "$M" --data "$DS" -o "$R" --config benchmarks/pretrain.toml --max-steps "$STEPS"
        --set run.threads="$THREADS")
-  [ -n "${INIT:-}" ] && CMD+=(--set "run.init_from=\"${INIT//<M>/$M}\"")
+  if [ -n "${INIT:-}" ]; then I=${INIT//<M>/$M}; CMD+=(--set "run.init_from=\"${I//<D>/${M//-/_}}\""); fi
   [ -n "${LR:-}" ] && CMD+=(--set "optim.lr=$LR")
   for KV in ${SET:-}; do CMD+=(--set "${KV//<M>/$M}"); done
   mkdir -p "$R"
