@@ -113,6 +113,22 @@ def baseline_model(cfg: TrainConfig, scale):
     return base.eval().requires_grad_(False)
 
 
+def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dist: Dist, baseline) -> dict:
+    """The clips' caches of ``spec``'s buffers; a clip without one the model (or the baseline of
+    ``loss.baseline_weight``) reads is a ClipError that says how to render it."""
+    scales_of = {c: list(dict(run.scales_by_clip)[str(Path(c).resolve())]) for c in clips}
+    try:
+        return open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist, scales_of)
+    except ClipError as exc:
+        if "has no buffer" not in str(exc):
+            raise
+        names = cfg.model.name + (",demod-jbu" if baseline is not None else "")
+        reads = " (and demod-jbu's, for loss.baseline_weight)" if baseline is not None else ""
+        raise ClipError(f"{exc}; model {cfg.model.name!r} reads more buffers{reads} than these clips have: render "
+                        f"them with 'blendsr render --for-models {names}' (or 'blendsr dataset ... "
+                        f"--for-models {names}')") from None
+
+
 def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, ck: dict | None):
     """Seeds, model, caches, sampler and Trainer (restored from ``ck`` when resuming); returns (trainer, caches).
     ``cfg`` is the effective configuration."""
@@ -132,19 +148,10 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
     temporal = cfg.loss.temporal_weight > 0
     baseline = baseline_model(cfg, run.scale)
     spec = BatchSpec.for_model(model, temporal=temporal and (not run.recurrent or cfg.loss.temporal == "warped"),
-                               also=baseline,
-                               window=run.window, crop=run.crop, flip=cfg.data.augment_flip,
+                               also=baseline, window=run.window, crop=run.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
-    scales_of = {c: list(dict(run.scales_by_clip)[str(Path(c).resolve())]) for c in clips}
-    try:
-        caches = open_caches(cfg.data.clips, cfg.data, spec.cache_keys, dist, scales_of)
-    except ClipError as exc:
-        if "has no buffer" not in str(exc):
-            raise
-        raise ClipError(f"{exc}; model {cfg.model.name!r} reads more buffers than these clips have: render them "
-                        f"with 'blendsr render --for-models {cfg.model.name}' (or 'blendsr dataset ... "
-                        f"--for-models {cfg.model.name}')") from None
+    caches = open_model_caches(cfg, run, clips, spec, dist, baseline)
     sampler = TrainSampler(caches, spec, cfg.data.batch_size, cfg.run.seed, dist.rank, cfg.data.val_frames)
     trainer = Trainer(cfg, run, model, sampler, dist, baseline=baseline)
     if ck is not None:
