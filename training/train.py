@@ -21,7 +21,6 @@ Distributed data parallel runs under torchrun (gloo on CPU, NCCL on GPU); only r
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import random
@@ -46,7 +45,7 @@ from training.hooks import Checkpoints, Evaluations, RunLog, StepInfo
 from training.models import OPTIONAL_KEYS, build_model
 from training.run import (ResolvedRun, manifest_record, refuse_existing, resume_run, run_config_toml, start_run,
                           write_text_atomic)
-from training.trainer import Dist, Trainer, TrainingError, param_digest, to_device, unwrap
+from training.trainer import Dist, Trainer, TrainingError, baseline_models, param_digest, to_device, unwrap
 
 __all__ = ["train", "TrainingError", "param_digest", "open_caches", "make_loader"]
 logger = logging.getLogger(__name__)
@@ -102,17 +101,6 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
 
 
-def baseline_model(cfg: TrainConfig, scale):
-    """The guided baseline ``demod-jbu`` of the ``baseline`` loss term (None when ``loss.baseline_weight`` is 0):
-    the model's shared keys (scale, jitter, remodulation filter, ...) with demod-jbu's default options, the
-    baseline every margin in docs/results.md is measured against."""
-    if cfg.loss.baseline_weight <= 0:
-        return None
-    base = build_model(dataclasses.replace(cfg.model, name="demod-jbu", options=None), scale)
-    base.fast_ops = True
-    return base.eval().requires_grad_(False)
-
-
 def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dist: Dist, baseline) -> dict:
     """The clips' caches of ``spec``'s buffers; a clip without one the model (or the baseline of
     ``loss.baseline_weight``) reads is a ClipError that says how to render it."""
@@ -146,14 +134,15 @@ def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, c
         if mismatch:
             raise ConfigError(mismatch + "; set them to the clip's filter, or model.remod_filter = \"NONE\"")
     temporal = cfg.loss.temporal_weight > 0
-    baseline = baseline_model(cfg, run.scale)
+    baselines = baseline_models(cfg, run.scales)
+    baseline = next(iter(baselines.values()), None)  # its inputs are those of every scale
     spec = BatchSpec.for_model(model, temporal=temporal and (not run.recurrent or cfg.loss.temporal == "warped"),
                                also=baseline, window=run.window, crop=run.crop, flip=cfg.data.augment_flip,
                                rotate=cfg.data.augment_rotate, exposure_range=tuple(cfg.data.exposure_range),
                                reflectance_range=tuple(cfg.data.reflectance_range))
     caches = open_model_caches(cfg, run, clips, spec, dist, baseline)
     sampler = TrainSampler(caches, spec, cfg.data.batch_size, cfg.run.seed, dist.rank, cfg.data.val_frames)
-    trainer = Trainer(cfg, run, model, sampler, dist, baseline=baseline)
+    trainer = Trainer(cfg, run, model, sampler, dist, baselines=baselines)
     if ck is not None:
         trainer.load_state_dict(ck)
     trainer.wrap()

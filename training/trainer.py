@@ -4,6 +4,7 @@ evaluation are hooks (``training.hooks``) that ``training.train.train`` calls af
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import hashlib
 import math
@@ -51,6 +52,28 @@ def lr_lambda(cfg: TrainConfig):
         t = min(max(step - o.warmup_steps, 0) / max(total - o.warmup_steps, 1), 1.0)
         return o.min_lr_ratio + (1 - o.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t))
     return f
+
+
+def baseline_models(cfg: TrainConfig, scales) -> dict:
+    """{scale: the guided baseline ``demod-jbu``} of the ``baseline`` loss term, one per scale the run trains at
+    ({} when ``loss.baseline_weight`` is 0): the model's shared keys (jitter, remodulation filter, ...) with
+    demod-jbu's default options, the baseline every margin in docs/results.md is measured against. ConfigError
+    for a scale demod-jbu does not take."""
+    if cfg.loss.baseline_weight <= 0:
+        return {}
+    from gbuffer_export.config import ConfigError
+    from training.models import build_model, model_class
+    jbu = model_class("demod-jbu")
+    bad = [f"{s:g}" for s in scales if not jbu.supports_scale(s)]
+    if bad:
+        raise ConfigError(f"loss.baseline_weight: the run trains at scale {', '.join(bad)} and its baseline "
+                          f"demod-jbu takes {jbu.scales_text()}; set loss.baseline_weight = 0 or train at those")
+    out = {}
+    for s in scales:
+        base = build_model(dataclasses.replace(cfg.model, name="demod-jbu", options=None), s)
+        base.fast_ops = True
+        out[float(s)] = base.eval().requires_grad_(False)
+    return out
 
 
 def param_digest(model: torch.nn.Module, params_only: bool = False) -> str:
@@ -124,10 +147,10 @@ class Trainer:
     run needs to continue bit-identically. ``cfg`` is the effective configuration (``ResolvedRun.apply``), ``run``
     the ResolvedRun, ``model`` the unwrapped module (on the CPU; moved to ``dist.device`` here)."""
 
-    def __init__(self, cfg: TrainConfig, run, model: torch.nn.Module, sampler, dist: Dist, baseline=None):
+    def __init__(self, cfg: TrainConfig, run, model: torch.nn.Module, sampler, dist: Dist, baselines=None):
         self.cfg, self.run, self.model, self.sampler, self.dist = cfg, run, model, sampler, dist
-        # the guided baseline of the ``baseline`` loss term (training.train.baseline_model; no parameters)
-        self.baseline = baseline.to(dist.device) if baseline is not None else None
+        # the guided baselines of the ``baseline`` loss term (``baseline_models``; no parameters), by scale
+        self.baselines = {s: b.to(dist.device) for s, b in (baselines or {}).items()}
         self.device = device = dist.device
         self.step_no = 0
         self.elapsed_before = 0.0  # seconds trained before this process (resumed runs)
@@ -237,11 +260,13 @@ class Trainer:
         return loss, terms, sr
 
     def baseline_sr(self, batch: dict):
-        """The baseline's SR of the batch's current frame (float32, no gradient); None without the term."""
-        if self.baseline is None:
+        """The baseline's SR of the batch's current frame at the batch's scale (float32, no gradient); None
+        without the term."""
+        if not self.baselines:
             return None
+        scale = next(iter(self.baselines.values())).batch_scale(batch)
         with torch.no_grad():
-            return self.baseline(batch).float()
+            return self.baselines[float(scale)](batch).float()
 
     def _check_finite(self, loss, sr, samples) -> None:
         if not self.dist.any(not bool(torch.isfinite(loss))):

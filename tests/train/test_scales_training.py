@@ -1,5 +1,6 @@
 """Scale-aware training on clips with several LR levels: SCALES declarations, aligned crops for non-integer scales,
 mixed-scale batches, refusals, evaluation per scale."""
+import csv
 import json
 
 import numpy as np
@@ -150,6 +151,27 @@ def test_any_scale_model_trains_on_a_mix_of_scales(multi, tmp_path, tiny_model):
     model = load_model(str(tmp_path / "run" / "checkpoints" / "last.pt"), 2)
     res = evaluate_model(model, [str(multi)], EvalOptions(flip=False, warmup=0))
     assert set(res["per_scale"]) == {"2", "2.5", "4"} and res["mean"]["frames"] == 15
+
+
+def test_the_baseline_loss_follows_each_batchs_scale(tmp_path, tiny_model):
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(80, 40), scales=(2, 4), jitter=True)
+    cfg = load_config(None, SMALL + ["model.name=\"tiny-any\"", "data.crop=6", "run.max_steps=8",
+                                     "loss.baseline_weight=1.0"])
+    cfg.data.clips = [str(clip)]
+    assert train(cfg, tmp_path / "run")["scales"] == [2.0, 4.0]
+    assert set(tiny_model.seen) >= {2.0, 4.0}  # batches of both scales, each against demod-jbu at its scale
+    rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
+    assert len(rows) == 8 and all(float(r["baseline"]) >= 0 for r in rows)
+    assert any(float(r["baseline"]) > 0 for r in rows)
+
+
+def test_the_baseline_loss_refuses_a_scale_its_baseline_cannot_take(multi, tmp_path, tiny_model):
+    cfg = load_config(None, SMALL + ["model.name=\"tiny-any\"", "data.crop=6", "run.max_steps=1",
+                                     "loss.baseline_weight=1.0"])
+    cfg.data.clips = [str(multi)]
+    with pytest.raises(ConfigError, match="trains at scale 2.5 and its baseline demod-jbu takes 2, 4 and 8"):
+        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints" / "last.pt").exists()
 
 
 def test_integer_model_trains_on_one_level_of_a_multi_level_clip(multi, tmp_path):
