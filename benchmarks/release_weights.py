@@ -154,8 +154,7 @@ def main(argv=None) -> int:
         if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose
             verdict = choose(cand_val, score(f"pretrained:{name}", val, full=True))
-            print(f"{name}: val rule {'replaces' if verdict.replace else 'keeps'} the shipped weights"
-                  + ("" if verdict.replace else ": " + "; ".join(verdict.reasons)), file=sys.stderr)
+            print(verdict.line(name), file=sys.stderr)
             if not verdict.replace and not a.force:
                 continue
         s = {**score(str(ck)), "steps": int(load_checkpoint(ck)["step"])}
@@ -172,7 +171,7 @@ def main(argv=None) -> int:
         if val:
             meta["scores_on_val_split"] = {"metric": METRIC, name: summary(cand_val), **val_baselines}
         if verdict is not None:
-            meta["val_rule"] = {"replace": verdict.replace, "reasons": list(verdict.reasons), "forced": a.force}
+            meta["val_rule"] = verdict.record(a.force)
         origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)
         if origin is not None:
             meta["init_from"] = origin

@@ -55,8 +55,7 @@ def main(argv=None) -> int:
     spec = f"pretrained:{a.name}?{'&'.join(a.options)}"
     cand, inc = rw.evaluate(spec, val), rw.evaluate(f"pretrained:{a.name}", val)
     verdict = choose(cand, inc)
-    print(f"{spec}: val rule {'replaces' if verdict.replace else 'keeps'} the shipped weights"
-          + ("" if verdict.replace else ": " + "; ".join(verdict.reasons)), file=sys.stderr)
+    print(verdict.line(spec), file=sys.stderr)
     if not verdict.replace and not a.force:
         return 0
     meta = json.loads(file.with_suffix(".json").read_text())
@@ -66,8 +65,7 @@ def main(argv=None) -> int:
     meta["commands"] = [*meta.get("commands", []), command]
     meta["inference_options"] = {"set": list(a.options), "command": command,
                                  "scores_on_val_split_before": rw.summary(inc),
-                                 "val_rule": {"replace": verdict.replace, "reasons": list(verdict.reasons),
-                                              "forced": a.force}}
+                                 "val_rule": verdict.record(a.force)}
     meta["dataset"] = {**meta.get("dataset", {}), "val_clips": [Path(c).name for c in val],
                        "test_clips": [Path(c).name for c in test]}  # the splits as scored now
     meta["scores_on_val_split"] = {"metric": rw.METRIC, a.name: rw.summary(cand),

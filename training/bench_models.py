@@ -109,29 +109,29 @@ def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, st
     ('fusesr (a)', 'runs/a/...'), ('pretrained:fusesr', 'pretrained:fusesr')]. Without ``need_checkpoints`` a
     learned model may be named alone (initial weights: speed only)."""
     from training.models import MODELS
-    out = []
+    out = []  # (label, spec, the model's name when spec is a checkpoint path)
     for item in (t.strip() for t in text.split(",")):
         if not item:
             continue
         if item.startswith("pretrained:"):  # a shipped model (training/pretrained.py)
-            out.append((item, item, item))
+            out.append((item, item, None))
             continue
         name, sep, path = item.partition(":")
         if name not in MODELS:
             raise BlendSRError(f"--models: unknown model {name!r}; choose among {', '.join(MODELS)}")
         if MODELS[name].learned and not sep and need_checkpoints:
             raise BlendSRError(f"--models: {name!r} is learned; write {name}:CHECKPOINT")
-        out.append((checkpoint_label(name, path) if sep else name, path if sep else name, item))
+        out.append((checkpoint_label(name, path), path, name) if sep else (name, name, None))
     if not out:
         raise BlendSRError("--models: no model given")
-    labels = [label for label, _, _ in out]
-    out = [(f"{item.partition(':')[0]} ({spec})" if labels.count(label) > 1 and spec != item else label, spec, item)
-           for label, spec, item in out]  # checkpoints of runs with one name (runs/a/fusesr, runs/b/fusesr): paths
-    seen = [label for label, _, _ in out]
-    twice = sorted({label for label in seen if seen.count(label) > 1})
+    # checkpoints of runs whose model folders share a name (runs/a/fusesr, runs/b/fusesr) are labelled by path
+    short = [label for label, _, _ in out]
+    rows = [(f"{name} ({spec})" if name and short.count(label) > 1 else label, spec) for label, spec, name in out]
+    labels = [label for label, _ in rows]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
     if twice:
         raise BlendSRError(f"--models: {twice[0]!r} is given twice")
-    return [(label, spec) for label, spec, _ in out]
+    return rows
 
 
 def checkpoint_label(name: str, path: str) -> str:

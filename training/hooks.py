@@ -63,9 +63,12 @@ class RunLog:
         self.columns = LOG_COLUMNS
         if main:
             path = run_dir / "log.csv"
-            header = path.read_text().splitlines()[:1] if path.exists() else []
-            if header:  # a resumed run keeps the columns its log started with (an older version's, too)
-                self.columns = tuple(next(csv.reader(header)))
+            header = []
+            if path.exists():  # a resumed run keeps the columns its log started with (an older version's, too)
+                with open(path, newline="") as f:
+                    header = next(csv.reader(f), [])
+            if header:
+                self.columns = tuple(header)
             self.logf = open(path, "a", newline="")
             self.writer = csv.writer(self.logf)
             if not header:

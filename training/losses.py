@@ -98,10 +98,10 @@ class Criterion(torch.nn.Module):
             else:
                 terms["temporal"] = temporal_loss(a, loss_space(sr_prev, c.space), b, loss_space(gt_prev, c.space),
                                                   motion)
-        if getattr(c, "baseline_weight", 0) > 0 and base is not None:
+        if c.baseline_weight > 0 and base is not None:
             terms["baseline"] = baseline_loss(a, b, loss_space(base, c.space))
         weights = {"pixel": c.pixel_weight, "ssim": c.ssim_weight, "fft": c.fft_weight,
                    "temporal": c.temporal_weight, "perceptual": c.perceptual_weight,
-                   "baseline": getattr(c, "baseline_weight", 0.0)}
+                   "baseline": c.baseline_weight}
         total = sum(weights[k] * v for k, v in terms.items())
         return total, terms

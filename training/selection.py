@@ -25,6 +25,15 @@ class Choice:
     replace: bool
     reasons: tuple[str, ...]
 
+    def line(self, label: str) -> str:
+        """'LABEL: val rule replaces the shipped weights' or '... keeps the shipped weights: REASON; REASON'."""
+        return (f"{label}: val rule {'replaces' if self.replace else 'keeps'} the shipped weights"
+                + ("" if self.replace else ": " + "; ".join(self.reasons)))
+
+    def record(self, forced: bool) -> dict:
+        """The verdict as a weights JSON keeps it."""
+        return {"replace": self.replace, "reasons": list(self.reasons), "forced": forced}
+
 
 def choose(candidate: dict, incumbent: dict) -> Choice:
     """Apply the rule to two ``evaluate_model`` results (their ``mean``) on the same val clips."""

@@ -22,6 +22,12 @@ def test_each_line_of_the_rule():
         assert not c.replace and any(words in r for r in c.reasons), (worse, c.reasons)
     missing = choose(_result(artifact_pixels=None), inc)
     assert not missing.replace and "missing" in missing.reasons[0]
+    # how the scripts print and record a verdict
+    two = choose(_result(psnr=29.0, artifact_pixels=12), inc)
+    assert two.line("fusesr") == ("fusesr: val rule keeps the shipped weights: mean PSNR falls: 29 against 30; "
+                                  "artifact pixels rise: 12 against 10")
+    assert choose(_result(), inc).line("x") == "x: val rule replaces the shipped weights"
+    assert two.record(True) == {"replace": False, "reasons": list(two.reasons), "forced": True}
 
 
 def test_the_rule_on_evaluated_models(tmp_path):
