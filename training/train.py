@@ -92,13 +92,15 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     init = load_checkpoint(cfg.run.init_from)
     if model.SCALES is not None and float(init["scale"]) != float(scale):
         raise ConfigError(f"run.init_from {cfg.run.init_from}: trained for scale {init['scale']}, not {scale}")
+    weights = {k: v.float() if v.is_floating_point() else v for k, v in inference_weights(init).items()}
+    fresh = [k for k in getattr(model, "FRESH_PARAMETERS", ()) if k in model.state_dict() and k not in weights]
     try:
-        model.load_state_dict({k: v.float() if v.is_floating_point() else v
-                               for k, v in inference_weights(init).items()})
+        model.load_state_dict(weights | {k: model.state_dict()[k] for k in fresh})
     except RuntimeError as exc:
         raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                           f"with this configuration ({str(exc).splitlines()[0]})") from None
-    logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')})")
+    started = f"; {', '.join(fresh)} start fresh (an option its run did not have)" if fresh else ""
+    logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')}){started}")
 
 
 def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dist: Dist, baseline) -> dict:

@@ -91,6 +91,7 @@ class FuseSRFast(FuseSRFrame):
         self.blocks = nn.Sequential(*[InvertedResidual(width, norm) for _ in range(blocks)])
         self.head = conv(width + PRIMARY, 3 * s * s)
         self.refine = conv(3, 3)
+        self.confidence = self.confidence_head(width + PRIMARY)
         if opt.zero_init_refine and self.residual:
             nn.init.zeros_(self.refine.weight)
             nn.init.zeros_(self.refine.bias)
@@ -116,5 +117,6 @@ class FuseSRFast(FuseSRFrame):
         if j_t is not None:
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
-        y = self.refine(F.pixel_shuffle(self.head(torch.cat([y, f_s], dim=1)), self.scale))
-        return self.output(y, x[:, :3], batch, j_t)
+        head_in = torch.cat([y, f_s], dim=1)
+        y = self.refine(F.pixel_shuffle(self.head(head_in), self.scale))
+        return self.output(self.gated(y, head_in), x[:, :3], batch, j_t)

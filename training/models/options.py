@@ -75,11 +75,16 @@ class FuseSRFastOptions:
     residual_clamp_margin: float = option(0.0, lo=0, hi=100)  # to the LR range of its base's taps, widened by this
     # fraction of the range's width; lr-guided: over the taps of the pixel's surface only, unclamped where none is
     # (not in the paper; training/models/fusesr.py, "Bounded correction")
+    confidence_gate: bool = False    # with residual: the correction times a learned per-HR-pixel confidence in
+    # [0, 1]; 0 is the residual base (not in the paper; training/models/fusesr.py, "Confidence gate")
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
         if self.residual_clamp != "none" and not self.residual:
             raise ConfigError(f"{where}.residual_clamp needs {where}.residual = true (it bounds the correction of "
+                              "the residual base)")
+        if self.confidence_gate and not self.residual:
+            raise ConfigError(f"{where}.confidence_gate needs {where}.residual = true (it gates the correction of "
                               "the residual base)")
         if self.residual_clamp == "lr-guided" and not (self.guided_upsample and self.hr_gbuffer):
             raise ConfigError(f"{where}.residual_clamp = \"lr-guided\" needs {where}.guided_upsample = true and "

@@ -1,0 +1,101 @@
+"""The FuseSR family's ``confidence_gate`` (training/models/fusesr.py, "Confidence gate"): closed, the output is the
+residual base; open, it is the ungated network with the same weights; the gradient reaches the gate; ``run.init_from``
+starts the gate fresh from a checkpoint made without it, and nothing else."""
+import types
+
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from gbuffer_export.typed_table import ConfigError  # noqa: E402
+from training.config import ModelConfig  # noqa: E402
+from training.export import example_inputs  # noqa: E402
+from training.models import build_model  # noqa: E402
+from training.models.base import current  # noqa: E402
+from training.models.fusesr import GATE_OPEN  # noqa: E402
+from training.train import init_from  # noqa: E402
+from training.transforms import forward_transform  # noqa: E402
+
+NAMES = ["fusesr-fast", "fusesr-l", "fusesr"]
+
+
+def _batch(model, size=(48, 32), seed=3):
+    return {k: torch.from_numpy(v) for k, v in example_inputs(model, None, size, seed=seed).items()}
+
+
+def _gated(name, **opts):
+    torch.manual_seed(0)
+    return build_model(ModelConfig.of(name, confidence_gate=True, **opts), 4).eval()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_closed_gate_outputs_the_residual_base_and_open_the_ungated_network(name):
+    gated = _gated(name, residual_clamp="lr-guided")
+    plain = build_model(ModelConfig.of(name, residual_clamp="lr-guided"), 4).eval()
+    plain.load_state_dict({k: v for k, v in gated.state_dict().items() if not k.startswith("confidence.")})
+    batch = _batch(gated)
+    color = forward_transform(current(batch, gated.color_key), gated.transform)
+    with torch.no_grad():
+        base = gated.output(torch.zeros(1, 3, 32, 48), color, batch, gated.frame_jitter(batch))
+        gated.confidence.bias.fill_(-60.0)
+        closed = gated(batch)
+        gated.confidence.bias.fill_(60.0)
+        opened, ungated = gated(batch), plain(batch)
+    assert torch.equal(closed, base)
+    assert torch.allclose(opened, ungated, rtol=1e-6, atol=1e-7)
+    assert float((opened - base).abs().max()) > 1e-3  # the network's correction is not 0: the test can tell
+
+
+def test_gate_starts_nearly_open_reads_the_features_and_takes_the_gradient():
+    model = _gated("fusesr-fast").train()
+    assert float(model.confidence.weight.detach().abs().max()) == 0.0
+    assert torch.allclose(model.confidence.bias, torch.full_like(model.confidence.bias, GATE_OPEN))
+    model(_batch(model)).mean().backward()
+    assert float(model.confidence.weight.grad.abs().max()) > 0.0
+    assert float(model.confidence.bias.grad.abs().max()) > 0.0
+
+
+def test_gate_needs_the_residual_base():
+    with pytest.raises(ConfigError, match="confidence_gate needs model.fusesr-fast.residual"):
+        ModelConfig.of("fusesr-fast", confidence_gate=True, residual=False)
+    assert build_model(ModelConfig.of("fusesr-fast"), 4).confidence is None  # off by default: the paper's head
+
+
+def _cfg(name):
+    return types.SimpleNamespace(run=types.SimpleNamespace(init_from=f"pretrained:{name}"),
+                                 model=types.SimpleNamespace(name=name))
+
+
+def test_init_from_ungated_weights_starts_only_the_gate_fresh(caplog):
+    model = _gated("fusesr-fast", residual_clamp="lr-guided")
+    with caplog.at_level("INFO", logger="training.train"):
+        init_from(model, _cfg("fusesr-fast"), 4)
+    assert "confidence.weight, confidence.bias start fresh" in caplog.text
+    shipped = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided"), 4).eval()
+    init_from(shipped, _cfg("fusesr-fast"), 4)
+    for k, v in shipped.state_dict().items():
+        assert torch.equal(model.state_dict()[k], v), k
+    narrow = build_model(ModelConfig.of("fusesr-fast", confidence_gate=True, width=16), 4)
+    with pytest.raises(ConfigError, match="do not fit model fusesr-fast"):
+        init_from(narrow, _cfg("fusesr-fast"), 4)
+
+
+def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
+    """The gate acts before the fused HR stage (unchanged): the fused torch stage equals the eager output, and the
+    ONNX export matches torch (a gate that reads its features: random 1x1 weights)."""
+    pytest.importorskip("onnxruntime")
+    from training.export import export_onnx
+    from training.inference_model import InferenceModel
+    model = _gated("fusesr-fast", residual_clamp="lr-guided")
+    with torch.no_grad():
+        model.confidence.weight.normal_(0.0, 0.3)
+    batch = _batch(model)
+    with torch.no_grad():
+        eager = model(batch)
+        model.hr_impl = "torch"
+        fused = model(batch)
+    model.hr_impl = None
+    assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
+    report = export_onnx(InferenceModel(model, "gated"), tmp_path / "m.onnx", hr_size=(64, 48))
+    assert report["match"], report
