@@ -1,6 +1,7 @@
 """Scale-aware training on clips with several LR levels: SCALES declarations, aligned crops for non-integer scales,
 mixed-scale batches, refusals, evaluation per scale."""
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ torch.set_num_threads(1)
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.cache import ClipCache  # noqa: E402
-from training.config import ConfigError, ModelConfig, load_config  # noqa: E402
+from training.config import ConfigError, ModelConfig, config_from_checkpoint, load_config  # noqa: E402
 from training.data import BatchSpec, TrainSampler, crop_grid  # noqa: E402
 from training.evaluate import EvalOptions, evaluate_model  # noqa: E402
 from training.inference import load_model  # noqa: E402
@@ -153,13 +154,33 @@ def test_any_scale_model_trains_on_a_mix_of_scales(multi, tmp_path, tiny_model):
     assert set(res["per_scale"]) == {"2", "2.5", "4"} and res["mean"]["frames"] == 15
 
 
-def test_the_baseline_loss_follows_each_batchs_scale(tmp_path, tiny_model):
+def test_the_baseline_loss_follows_each_batchs_scale(tmp_path, tiny_model, monkeypatch):
+    """Each batch's baseline is demod-jbu at that batch's scale: its SR equals a fresh demod-jbu's at that scale
+    (with the run's effective shared model keys)."""
+    from training.trainer import Trainer
+    seen, baseline_sr = [], Trainer.baseline_sr
+
+    def recorded(self, batch):
+        out = baseline_sr(self, batch)
+        seen.append((float(batch["scale"].reshape(-1)[0]), out.clone(), {k: v.clone() for k, v in batch.items()
+                                                                  if torch.is_tensor(v)}))
+        return out
+
+    monkeypatch.setattr(Trainer, "baseline_sr", recorded)
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(80, 40), scales=(2, 4), jitter=True)
     cfg = load_config(None, SMALL + ["model.name=\"tiny-any\"", "data.crop=6", "run.max_steps=8",
                                      "loss.baseline_weight=1.0"])
     cfg.data.clips = [str(clip)]
     assert train(cfg, tmp_path / "run")["scales"] == [2.0, 4.0]
     assert set(tiny_model.seen) >= {2.0, 4.0}  # batches of both scales, each against demod-jbu at its scale
+    assert {s for s, _, _ in seen} == {2.0, 4.0}
+    # the run's effective shared model keys (model.remod_filter resolved from the clip's ground truth)
+    effective = config_from_checkpoint(load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["config"])
+    for scale, out, batch in seen:
+        with torch.no_grad():
+            jbu = build_model(dataclasses.replace(effective.model, name="demod-jbu", options=None), scale).eval()
+            want = jbu(batch).float()
+        assert out.shape == want.shape and torch.allclose(out, want, rtol=1e-5, atol=1e-6), scale
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert len(rows) == 8 and all(float(r["baseline"]) >= 0 for r in rows)
     assert any(float(r["baseline"]) > 0 for r in rows)
