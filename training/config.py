@@ -202,6 +202,10 @@ class OptimConfig:
     step_every: int = option(10000, lo=1, help="\"step\" scheduler period, steps")
     step_gamma: float = option(0.5, lo=0, help="\"step\" scheduler factor")
     grad_clip: float = option(0.0, lo=0, help="maximum gradient norm (0: off)")
+    gate_lr_scale: float = option(1.0, lo=0, lo_open=True, hi=1000, help=(
+        "the learning rate of the model's confidence gate (`model.<M>.confidence_gate`) relative to `lr`, with the "
+        "same schedule: a gate that starts nearly open moves by about `lr` per Adam step, too slowly to close "
+        "where the network does harm; 1: the network's rate"))
     ema_decay: float = option(0.0, lo=0, hi=1, hi_open=True, help=(
         "exponential moving average of the weights and buffers (0: off; e.g. 0.999, a horizon of about 1000 "
         "steps); when on, evaluation, inference, `run.init_from` and shipped weights use the average"))

@@ -76,6 +76,23 @@ def baseline_models(cfg: TrainConfig, scales) -> dict:
     return out
 
 
+def param_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
+    """The optimiser's parameter groups: the model's parameters, and its confidence gate's (``GATE_PARAMETERS``)
+    at ``optim.lr * optim.gate_lr_scale`` in a group of their own when the scale is not 1 (the schedule multiplies
+    both). ConfigError for a scale without a gate."""
+    named = list(model.named_parameters())
+    scale = cfg.optim.gate_lr_scale
+    if scale == 1.0:
+        return [{"params": [p for _, p in named]}]
+    gate = set(getattr(model, "GATE_PARAMETERS", ())) & {n for n, _ in named}
+    if not gate:
+        from gbuffer_export.config import ConfigError
+        raise ConfigError(f"optim.gate_lr_scale = {scale:g} but model {cfg.model.name} has no confidence gate (set "
+                          f"model.{cfg.model.name}.confidence_gate = true, or optim.gate_lr_scale = 1)")
+    return [{"params": [p for n, p in named if n not in gate]},
+            {"params": [p for n, p in named if n in gate], "lr": cfg.optim.lr * scale}]
+
+
 def param_digest(model: torch.nn.Module, params_only: bool = False) -> str:
     """Short hash of the state dict (or of the parameters only: BatchNorm running statistics are per rank under
     DDP until the next forward pass broadcasts rank 0's)."""
@@ -159,7 +176,7 @@ class Trainer:
         model.to(device)
         self.criterion = Criterion(cfg.loss).to(device)
         opt_cls = torch.optim.AdamW if cfg.optim.weight_decay > 0 else torch.optim.Adam
-        self.optimizer = opt_cls(model.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
+        self.optimizer = opt_cls(param_groups(model, cfg), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
                                  weight_decay=cfg.optim.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lr_lambda(cfg))
         self.ema = make_ema(model, cfg.optim.ema_decay)

@@ -62,23 +62,34 @@ def test_gate_needs_the_residual_base():
     assert build_model(ModelConfig.of("fusesr-fast"), 4).confidence is None  # off by default: the paper's head
 
 
-def _cfg(name):
-    return types.SimpleNamespace(run=types.SimpleNamespace(init_from=f"pretrained:{name}"),
-                                 model=types.SimpleNamespace(name=name))
+def _cfg(init):
+    return types.SimpleNamespace(run=types.SimpleNamespace(init_from=str(init)),
+                                 model=types.SimpleNamespace(name="fusesr-fast"))
 
 
-def test_init_from_ungated_weights_starts_only_the_gate_fresh(caplog):
+def _ungated_weights(tmp_path):
+    """fusesr-fast weights made without the gate: an ungated network's, saved by ``save_checkpoint``."""
+    from training.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, save_checkpoint
+    torch.manual_seed(1)
+    plain = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided"), 4)
+    path = tmp_path / "plain.pt"
+    save_checkpoint(path, {"model": plain.state_dict(), "scale": 4, "step": 7, "format": CHECKPOINT_FORMAT,
+                           "version": CHECKPOINT_VERSION})
+    return path, plain
+
+
+def test_init_from_ungated_weights_starts_only_the_gate_fresh(tmp_path, caplog):
+    path, plain = _ungated_weights(tmp_path)
     model = _gated("fusesr-fast", residual_clamp="lr-guided")
     with caplog.at_level("INFO", logger="training.train"):
-        init_from(model, _cfg("fusesr-fast"), 4)
+        init_from(model, _cfg(path), 4)
     assert "confidence.weight, confidence.bias start fresh" in caplog.text
-    shipped = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided"), 4).eval()
-    init_from(shipped, _cfg("fusesr-fast"), 4)
-    for k, v in shipped.state_dict().items():
+    for k, v in plain.state_dict().items():
         assert torch.equal(model.state_dict()[k], v), k
+    assert float(model.confidence.weight.detach().abs().max()) == 0.0
     narrow = build_model(ModelConfig.of("fusesr-fast", confidence_gate=True, width=16), 4)
     with pytest.raises(ConfigError, match="do not fit model fusesr-fast"):
-        init_from(narrow, _cfg("fusesr-fast"), 4)
+        init_from(narrow, _cfg(path), 4)
 
 
 def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
@@ -99,3 +110,29 @@ def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
     assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
     report = export_onnx(InferenceModel(model, "gated"), tmp_path / "m.onnx", hr_size=(64, 48))
     assert report["match"], report
+
+
+def test_gate_learns_at_its_own_rate_through_the_schedule():
+    """``optim.gate_lr_scale``: the gate's parameters in a group of their own at lr x scale, kept in that ratio by
+    the schedule; 1 is one group; a scale for a model without a gate is refused."""
+    from training.config import load_config
+    from training.trainer import lr_lambda, param_groups
+    cfg = load_config(None, ['model.name="fusesr-fast"', "optim.gate_lr_scale=30", "optim.lr=1e-4",
+                             "run.max_steps=10"])
+    model = _gated("fusesr-fast")
+    groups = param_groups(model, cfg)
+    assert len(groups) == 2 and groups[1]["lr"] == pytest.approx(3e-3)
+    assert {id(p) for p in groups[1]["params"]} == {id(model.confidence.weight), id(model.confidence.bias)}
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
+    opt = torch.optim.Adam(groups, lr=cfg.optim.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(cfg))
+    for _ in range(5):
+        opt.step()
+        sched.step()
+        net, gate = (g["lr"] for g in opt.param_groups)
+        assert net < 1e-4 and gate == pytest.approx(30 * net)
+    cfg.optim.gate_lr_scale = 1.0
+    assert len(param_groups(model, cfg)) == 1
+    cfg.optim.gate_lr_scale = 30.0
+    with pytest.raises(ConfigError, match="has no confidence gate"):
+        param_groups(build_model(ModelConfig.of("fusesr-fast"), 4), cfg)

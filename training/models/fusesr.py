@@ -123,8 +123,10 @@ class FuseSRFrame(SRModel):
     ReLU, T^-1 and the remodulation)."""
 
     learned = True
+    #: the confidence gate's parameters: they learn at ``optim.gate_lr_scale`` times the rate (``Trainer``)
+    GATE_PARAMETERS = ("confidence.weight", "confidence.bias")
     #: parameters a checkpoint made before an option existed may lack: ``run.init_from`` starts them fresh
-    FRESH_PARAMETERS = ("confidence.weight", "confidence.bias")
+    FRESH_PARAMETERS = GATE_PARAMETERS
 
     def __init__(self, scale: int, **keys):
         super().__init__(scale, **keys)
