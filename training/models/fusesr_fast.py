@@ -20,8 +20,9 @@ normal and HR F_beta) plus the jitter.
 
 Size at 4x with the defaults (``norm = "none"``): 68 188 parameters (68 108 with BatchNorm and without the two
 jitter channels, the authors' count); about 4.3 K multiply-accumulates per HR pixel (66 872 per LR pixel / 16 plus
-the 81 of the HR refinement); ``confidence_gate`` adds 1 040 parameters (a 1x1 conv 64 -> 16) and 64 per HR pixel. Options: the ``[model.fusesr-fast]`` table (``training.models.options.FuseSRFastOptions``;
-``width`` and ``blocks`` change the backbone, defaults 32 and 6).
+the 81 of the HR refinement); ``confidence_gate`` adds 1 040 parameters (a 1x1 conv 64 -> 16) and 64
+multiply-accumulates per HR pixel. Options: the ``[model.fusesr-fast]`` table
+(``training.models.options.FuseSRFastOptions``; ``width`` and ``blocks`` change the backbone, defaults 32 and 6).
 """
 from __future__ import annotations
 
