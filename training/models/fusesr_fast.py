@@ -23,6 +23,12 @@ jitter channels, the authors' count); about 4.3 K multiply-accumulates per HR pi
 the 81 of the HR refinement); ``confidence_gate`` adds 1 040 parameters (a 1x1 conv 64 -> 16) and 64
 multiply-accumulates per HR pixel. Options: the ``[model.fusesr-fast]`` table
 (``training.models.options.FuseSRFastOptions``; ``width`` and ``blocks`` change the backbone, defaults 32 and 6).
+
+HR geometry (``hr_geometry``, default off; not in the authors' network): the fusion convolution's pre-activation
+gains a 1x1 convolution of the pixel-unshuffled HR normalised depth, normals and albedo (7 s^2 channels -> ``width``),
+the HR G-buffers FuseSR's HR branch reads and the authors' fast network leaves out (it reads only the HR F_beta,
+which is 1 wherever demodulation is off). At 4x: 3 616 parameters and 224 multiply-accumulates per HR pixel. It
+starts at zero, so ``run.init_from`` weights trained without it (which start it fresh) give the same output.
 """
 from __future__ import annotations
 
@@ -37,6 +43,7 @@ from training.transforms import forward_transform
 
 PRIMARY = 32
 ENCODER_CHANNELS = (16, 12, 12, 16)
+HR_GEOMETRY_CHANNELS = 7  # hr_geometry: normalised HR depth (1), normal (3), albedo (3), as FuseSR's HR branch
 
 
 class FastEncoder(nn.Module):
@@ -76,6 +83,7 @@ class InvertedResidual(nn.Module):
 
 class FuseSRFast(FuseSRFrame):
     NAME = "fusesr-fast"
+    FRESH_PARAMETERS = FuseSRFrame.GATE_PARAMETERS + ("hr_in.weight", "hr_in.bias")
 
     def __init__(self, scale: int, **keys):
         super().__init__(scale, **keys)  # keys: SRModel's; options: FuseSRFastOptions (switches read by FuseSRFrame)
@@ -93,6 +101,11 @@ class FuseSRFast(FuseSRFrame):
         self.head = conv(width + PRIMARY, 3 * s * s)
         self.refine = conv(3, 3)
         self.confidence = self.confidence_head(width + PRIMARY)
+        self.hr_in = None  # hr_geometry (module doc): 1x1 conv of the unshuffled HR geometry into the fusion
+        if opt.hr_geometry and self.use_hr:
+            self.hr_in = nn.Conv2d(HR_GEOMETRY_CHANNELS * s * s, width, 1)
+            nn.init.zeros_(self.hr_in.weight)  # starts as the network without it (run.init_from: FRESH_PARAMETERS)
+            nn.init.zeros_(self.hr_in.bias)
         if opt.zero_init_refine and self.residual:
             nn.init.zeros_(self.refine.weight)
             nn.init.zeros_(self.refine.bias)
@@ -103,6 +116,8 @@ class FuseSRFast(FuseSRFrame):
             keys.append("hr/fbeta_used")
         if self.demod:
             keys.append("hr/emission")
+        if self.hr_in is not None:
+            keys += ["hr/depth", "hr/normal", "hr/albedo"]
         if self.residual:
             keys += self.upsample_keys(self.demod)
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
@@ -117,7 +132,12 @@ class FuseSRFast(FuseSRFrame):
         j_t = self.frame_jitter(batch)
         if j_t is not None:
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
-        y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
+        z = self.fuse_in[0](torch.cat(feats, dim=1))
+        if self.hr_in is not None:
+            hr = torch.cat([depth_features(batch, "hr", 0, self.depth_norm), current(batch, "hr/normal"),
+                            current(batch, "hr/albedo")], dim=1)
+            z = z + self.hr_in(F.pixel_unshuffle(hr.to(z.dtype), self.scale))
+        y = self.blocks(self.fuse_in[1](z))
         head_in = torch.cat([y, f_s], dim=1)
         y = self.refine(F.pixel_shuffle(self.head(head_in), self.scale))
         return self.output(self.gated(y, head_in), x[:, :3], batch, j_t)

@@ -77,6 +77,8 @@ class FuseSRFastOptions:
     # (not in the paper; training/models/fusesr.py, "Bounded correction")
     confidence_gate: bool = False    # with residual: the correction times a learned per-HR-pixel confidence in
     # [0, 1]; 0 is the residual base (not in the paper; training/models/fusesr.py, "Confidence gate")
+    hr_geometry: bool = False        # fusesr-fast only: the fusion also reads the pixel-unshuffled HR depth, normals
+    # and albedo through a 1x1 conv (not in the authors' fast network; training/models/fusesr_fast.py)
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
@@ -86,6 +88,8 @@ class FuseSRFastOptions:
         if self.confidence_gate and not self.residual:
             raise ConfigError(f"{where}.confidence_gate needs {where}.residual = true (it gates the correction of "
                               "the residual base)")
+        if self.hr_geometry and not self.hr_gbuffer:
+            raise ConfigError(f"{where}.hr_geometry needs {where}.hr_gbuffer = true (the HR G-buffer input)")
         if self.residual_clamp == "lr-guided" and not (self.guided_upsample and self.hr_gbuffer):
             raise ConfigError(f"{where}.residual_clamp = \"lr-guided\" needs {where}.guided_upsample = true and "
                               f"{where}.hr_gbuffer = true (it weighs the taps by the HR guides)")
@@ -100,6 +104,9 @@ class FuseSROptions(FuseSRFastOptions):
 
     def validate(self, where: str) -> None:
         super().validate(where)
+        if self.hr_geometry:
+            raise ConfigError(f"{where}.hr_geometry is fusesr-fast's: this network reads the HR depth, normals and "
+                              "albedo in its HR branch already")
         if self.hr_guide and not self.hr_gbuffer:
             raise ConfigError(f"{where}.hr_guide needs {where}.hr_gbuffer = true (it reads the HR G-buffers)")
 
