@@ -59,14 +59,15 @@ Confidence gate (``confidence_gate``, default off; not in the paper; the "confid
 issue 40): the correction the network adds to its residual base (the refined output, before the base is added) is
 multiplied by a per-HR-pixel confidence sigmoid(c), where c is a 1x1 convolution of the head's LR input features to
 scale^2 logits, pixel-shuffled to HR. A confidence of 0 outputs the residual base (with ``guided_upsample``:
-``demod-jbu``'s guided upsampling, done on T(L_D^LR) instead of L_D^LR); 1 is the ungated network. The convolution starts at weight 0 and bias
-``GATE_OPEN`` (sigmoid 0.982), so a network fine-tuned from ungated weights (``run.init_from``, which starts the
-gate's parameters fresh: ``FuseSRFrame.FRESH_PARAMETERS``) starts within 2 % of its correction. Trained with the baseline hinge
-(``loss.baseline_weight``), the gate is where the network learns to fall back to the baseline on content it cannot
-correct: a saturated sigmoid gives exactly the base, which an unbounded correction reaches only by cancelling to 0.
-It costs C (the head's input channels) multiply-accumulates per HR pixel, plus a sigmoid and a product: 64 for
-``fusesr-fast`` (1.5 % of its 4.3 K), 128 for ``fusesr-l``, 192 for ``fusesr``. It runs before the fused HR stage,
-which is unchanged.
+``demod-jbu``'s guided upsampling, done on T(L_D^LR) instead of L_D^LR); 1 is the ungated network. The convolution
+starts at weight 0 and bias ``GATE_OPEN`` (sigmoid 0.982), so a network fine-tuned from ungated weights
+(``run.init_from``, which starts the gate's parameters fresh: ``FuseSRFrame.FRESH_PARAMETERS``) starts within 2 % of
+its correction. Trained with the baseline hinge (``loss.baseline_weight``), the gate is where the network learns to
+fall back to the baseline on content it cannot correct: a saturated sigmoid gives exactly the base, which an
+unbounded correction reaches only by cancelling to 0. It learns at ``optim.gate_lr_scale`` times the network's rate
+(at 1 it barely moves from its start: docs/training.md, "FuseSR"). It costs C (the head's input channels)
+multiply-accumulates per HR pixel, plus a sigmoid and a product: 64 for ``fusesr-fast`` (1.5 % of its 4.3 K), 128
+for ``fusesr-l``, 192 for ``fusesr``. It runs before the fused HR stage, which is unchanged.
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
@@ -85,7 +86,7 @@ from training.models.guided import tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
-GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, so a gated network starts near its ungated self
+GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, near the ungated network
 
 
 class Encoder(nn.Module):
