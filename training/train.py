@@ -93,9 +93,10 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     if model.SCALES is not None and float(init["scale"]) != float(scale):
         raise ConfigError(f"run.init_from {cfg.run.init_from}: trained for scale {init['scale']}, not {scale}")
     weights = {k: v.float() if v.is_floating_point() else v for k, v in inference_weights(init).items()}
-    fresh = [k for k in getattr(model, "FRESH_PARAMETERS", ()) if k in model.state_dict() and k not in weights]
+    own = model.state_dict()
+    fresh = [k for k in getattr(model, "FRESH_PARAMETERS", ()) if k in own and k not in weights]
     try:
-        model.load_state_dict(weights | {k: model.state_dict()[k] for k in fresh})
+        model.load_state_dict(weights | {k: own[k] for k in fresh})
     except RuntimeError as exc:
         raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                           f"with this configuration ({str(exc).splitlines()[0]})") from None

@@ -86,6 +86,11 @@ from training.models.guided import tap_range
 from training.transforms import forward_transform, inverse_transform
 
 ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
+#: the HR geometry FuseSR's HR branch reads (and ``fusesr-fast`` with ``hr_geometry``): normalised depth (1), normal
+#: (3), albedo (3); ``FuseSRFrame.hr_geometry``
+HR_GEOMETRY_KEYS = ("hr/depth", "hr/normal", "hr/albedo")
+HR_GEOMETRY_CHANNELS = 7
+HR_CHANNELS = 3 + HR_GEOMETRY_CHANNELS  # FuseSR's HR input: F_beta, then the geometry
 GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, near the ungated network
 
 
@@ -153,6 +158,11 @@ class FuseSRFrame(SRModel):
         nn.init.constant_(head.bias, GATE_OPEN)
         return head
 
+    def hr_geometry(self, batch: dict) -> torch.Tensor:
+        """The current frame's HR geometry (B, ``HR_GEOMETRY_CHANNELS``, H, W): normalised depth, normal, albedo."""
+        return torch.cat([depth_features(batch, "hr", 0, self.depth_norm), current(batch, "hr/normal"),
+                          current(batch, "hr/albedo")], dim=1)
+
     def gated(self, y: torch.Tensor, head_in: torch.Tensor) -> torch.Tensor:
         """The correction ``y`` (B, 3, H, W) times the confidence in [0, 1] read from ``head_in`` (B, C, h, w)."""
         if self.confidence is None:
@@ -212,7 +222,7 @@ class FuseSR(FuseSRFrame):
         self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
         cin = 64 + ENCODER_CHANNELS[-1] * self.history + (2 if self.use_jitter else 0)
         if self.use_hr:
-            self.hr_branch = nn.Sequential(conv(10 * s * s, self.hr_channels), nn.ReLU(inplace=True))
+            self.hr_branch = nn.Sequential(conv(HR_CHANNELS * s * s, self.hr_channels), nn.ReLU(inplace=True))
             cin += self.hr_channels
         make = DWSConv if self.separable else conv
         self.fuse_in = nn.Sequential(make(cin, width), nn.ReLU(inplace=True))
@@ -221,7 +231,7 @@ class FuseSR(FuseSRFrame):
         self.confidence = self.confidence_head(width + ENCODER_CHANNELS[0])
         self.hr_guide = bool(opt.hr_guide) and self.use_hr
         # HR guidance (deviation, off by default): the refinement sees the 10 HR G-buffer channels at full resolution
-        self.refine = nn.Sequential(conv(3 + 10, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
+        self.refine = nn.Sequential(conv(3 + HR_CHANNELS, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
             else conv(3, 3)
         if opt.zero_init_refine and self.residual:  # start at the residual base (module doc)
             last = self.refine[-1] if self.hr_guide else self.refine
@@ -233,7 +243,7 @@ class FuseSR(FuseSRFrame):
         if self.history:
             keys.append("lr/motion")
         if self.use_hr:
-            keys += ["hr/fbeta_used", "hr/depth", "hr/normal", "hr/albedo"]
+            keys += ["hr/fbeta_used", *HR_GEOMETRY_KEYS]
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
         if self.residual:
@@ -260,8 +270,7 @@ class FuseSR(FuseSRFrame):
                 gate = self.gates[k - 1](motion, warped[:, -1:], depth_cur) * valid
                 feats.append(warped[:, :-1] * gate)
         if self.use_hr:
-            hr = torch.cat([current(batch, "hr/fbeta_used"), depth_features(batch, "hr", 0, self.depth_norm),
-                            current(batch, "hr/normal"), current(batch, "hr/albedo")], dim=1)
+            hr = torch.cat([current(batch, "hr/fbeta_used"), self.hr_geometry(batch)], dim=1)
             feats.append(self.hr_branch(F.pixel_unshuffle(hr, self.scale)))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         head_in = torch.cat([y, f_s], dim=1)

@@ -38,12 +38,11 @@ import torch.nn.functional as F
 
 from gbuffer_export.errors import BlendSRError
 from training.models.base import DWSConv, conv, current, depth_features, frame
-from training.models.fusesr import FuseSRFrame
+from training.models.fusesr import HR_GEOMETRY_CHANNELS, HR_GEOMETRY_KEYS, FuseSRFrame
 from training.transforms import forward_transform
 
 PRIMARY = 32
 ENCODER_CHANNELS = (16, 12, 12, 16)
-HR_GEOMETRY_CHANNELS = 7  # hr_geometry: normalised HR depth (1), normal (3), albedo (3), as FuseSR's HR branch
 
 
 class FastEncoder(nn.Module):
@@ -117,7 +116,7 @@ class FuseSRFast(FuseSRFrame):
         if self.demod:
             keys.append("hr/emission")
         if self.hr_in is not None:
-            keys += ["hr/depth", "hr/normal", "hr/albedo"]
+            keys += HR_GEOMETRY_KEYS
         if self.residual:
             keys += self.upsample_keys(self.demod)
         return tuple(dict.fromkeys(keys)) + self.jitter_keys()
@@ -134,9 +133,7 @@ class FuseSRFast(FuseSRFrame):
             feats.append(j_t.to(f_f.dtype).view(-1, 2, 1, 1).expand(-1, -1, *f_f.shape[-2:]))
         z = self.fuse_in[0](torch.cat(feats, dim=1))
         if self.hr_in is not None:
-            hr = torch.cat([depth_features(batch, "hr", 0, self.depth_norm), current(batch, "hr/normal"),
-                            current(batch, "hr/albedo")], dim=1)
-            z = z + self.hr_in(F.pixel_unshuffle(hr.to(z.dtype), self.scale))
+            z = z + self.hr_in(F.pixel_unshuffle(self.hr_geometry(batch).to(z.dtype), self.scale))
         y = self.blocks(self.fuse_in[1](z))
         head_in = torch.cat([y, f_s], dim=1)
         y = self.refine(F.pixel_shuffle(self.head(head_in), self.scale))
