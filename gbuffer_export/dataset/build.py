@@ -401,6 +401,12 @@ def fit_ray_threads(nodes: list, threads: int, explicit: bool, address: str | No
 
 def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, explicit: bool = True,
              device: str = "auto") -> None:
+    """Render ``todo`` as Ray tasks, one clip each, on the cluster at ``address`` (None: a local one started here).
+
+    On Ctrl-C the driver leaves the cluster (``ray.shutdown``) instead of cancelling its tasks: Ray ends a job's
+    workers when its driver goes, and their clip processes die with them (parent-death signal). ``ray.cancel``
+    races with a task's completion reply in Ray's core worker (2.60: "Check failed: ... Tried to complete task
+    that was not pending", an abort that loses the exit code; ray-project/ray#54846), measured 1 run in 24."""
     if not todo:
         return
     from .ray_cluster import bound_gcs_connection, connect
@@ -426,10 +432,8 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
                 except Exception as exc:  # noqa: BLE001 - a lost worker node: record and go on
                     rc, err = 1, f"ray task failed: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                 on_done(refs[r], rc, err)
-    except KeyboardInterrupt:  # Ctrl-C: the tasks still queued or running are cancelled (their clip processes
-        for r in refs:         # die with their Ray worker: parent-death signal)
-            with contextlib.suppress(Exception):
-                ray.cancel(r, force=True)
+    except KeyboardInterrupt:  # Ctrl-C: this driver leaves the cluster, which ends its job (below)
+        started = True
         raise
     finally:
         if started:
