@@ -7,6 +7,9 @@ geometry"); one-off measurements, not scores.
     .venv/bin/python benchmarks/fast_diagnosis.py DATASET --split val --model SPEC --clip NAME --every 3 bins
         one clip: the share of pixels whose HR F_beta (used) is 1, and the PSNR of the model and of demod-jbu per bin
         of the ground truth's tonemapped brightness (the mean of its channels), on every EVERY-th frame
+    .venv/bin/python benchmarks/fast_diagnosis.py DATASET --split val --model SPEC --every 2 transmission
+        per clip with HR TRANSMISSION pixels (the flag, docs/clip-format.md): their share, and the PSNR of the model
+        and of demod-jbu on them and on the other pixels, on every EVERY-th frame
 """
 from __future__ import annotations
 
@@ -68,19 +71,49 @@ def brightness_bins(spec: str, clip: Path, every: int) -> None:
             print(f"brightness [{lo}, {hi}): {k.mean():.3f} of pixels: {cells}")
 
 
+def transmission(spec: str, clips: list[Path], every: int) -> None:
+    from gbuffer_export.clip import open_clip
+    from gbuffer_export.conventions import Flag
+    from training import metrics
+    from training.inference import ClipFrames, load_model, run_frame
+    models = {name: load_model(name, 4) for name in (spec, "demod-jbu")}
+    for clip in clips:
+        base, sq, mask = open_clip(clip), {}, []
+        for name, model in models.items():
+            source = ClipFrames(base.at_scale(4), eps=model.demod_eps)
+            model.module.follow_reference_filter(source.clip.manifest)
+            errors = []
+            for f in list(source.frames)[::every]:
+                sr, _, inputs = run_frame(model, source, f, str(clip), None)
+                errors.append(metrics.squared_error(sr, inputs["hr/radiance"][0, -1].transpose(1, 2, 0)).ravel())
+                if name == spec:
+                    mask.append((inputs["hr/flags"][0, -1, 0].astype(np.int64) & int(Flag.TRANSMISSION)).ravel() > 0)
+            sq[name] = np.concatenate(errors)
+        t = np.concatenate(mask)
+        if not t.any():
+            continue
+        cells = " | ".join(f"{n}: T {metrics.psnr_from_mse(float(e[t].mean())):.2f} rest "
+                           f"{metrics.psnr_from_mse(float(e[~t].mean())):.2f} all {metrics.psnr_from_mse(float(e.mean())):.2f}"
+                           for n, e in sq.items())
+        print(f"{clip.name}: TRANSMISSION on {t.mean():.3f} of pixels: {cells}", flush=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
-    p.add_argument("what", choices=("gate", "bins"))
+    p.add_argument("what", choices=("gate", "bins", "transmission"))
     p.add_argument("--split", default="val")
     p.add_argument("--model", required=True, help="pretrained:NAME or a checkpoint")
     p.add_argument("--clip", help="bins: the clip folder's name")
-    p.add_argument("--every", type=int, default=3, help="bins: every EVERY-th frame")
+    p.add_argument("--every", type=int, default=3, help="bins, transmission: every EVERY-th frame")
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import split_clips
     clips = split_clips(a.dataset, a.split)
     if a.what == "gate":
         gate_stats(a.model, clips)
+        return 0
+    if a.what == "transmission":
+        transmission(a.model, clips, a.every)
         return 0
     pick = [c for c in clips if c.name == a.clip]
     if not pick:

@@ -108,6 +108,9 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None,
         level, name = k.split("/")
         hh, ww = (h, w) if level == "hr" else (round(h / s), round(w / s))
         n = t if level == "lr" else 1
+        if name == "flags":  # bits as the clips store them (uint32): none, BACKGROUND, TRANSMISSION, with ALPHA
+            out[k] = rng.choice(np.array([0, 1, 2048, 2064], np.uint32), size=(1, n, 1, hh, ww))
+            continue
         c = len(BUFFERS[name].channels) if name in BUFFERS else 3  # derived keys (irradiance, ...): RGB
         a = rng.random((1, n, c, hh, ww), dtype=np.float32)
         if name == "depth":

@@ -69,6 +69,14 @@ unbounded correction reaches only by cancelling to 0. It learns at ``optim.gate_
 multiply-accumulates per HR pixel, plus a sigmoid and a product: 64 for ``fusesr-fast`` (1.5 % of its 4.3 K), 128
 for ``fusesr-l``, 192 for ``fusesr``. It runs before the fused HR stage, which is unchanged.
 
+Transmission fallback (``transmission_fallback``, default off; not in the paper): the correction is 0 on the HR
+pixels whose flags carry TRANSMISSION (docs/clip-format.md), so the output there is the residual base. At such a
+pixel the HR depth, normals and albedo describe the transmissive surface, not the scene seen through it, so the
+guidance the network corrects with is of another surface; the engines' upscalers take the same kind of mask
+from the game for transparent surfaces (the reactive mask). Needs the HR ``flags`` buffer; costs a product per HR
+pixel. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
+lost 1.2 dB to ``demod-jbu`` on its 2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -92,6 +100,9 @@ HR_GEOMETRY_KEYS = ("hr/depth", "hr/normal", "hr/albedo")
 HR_GEOMETRY_CHANNELS = 7
 HR_CHANNELS = 3 + HR_GEOMETRY_CHANNELS  # FuseSR's HR input: F_beta, then the geometry
 GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, near the ungated network
+#: the HR flags bit of ``transmission_fallback`` (``gbuffer_export.conventions.Flag.TRANSMISSION``, read as a float:
+#: flags stay below 2^24, so float32 holds them exactly and the test is arithmetic, which every export takes)
+TRANSMISSION_BIT = 2048
 
 
 class Encoder(nn.Module):
@@ -147,6 +158,7 @@ class FuseSRFrame(SRModel):
         self.clamp = float(opt.residual_clamp_margin) if opt.residual_clamp != "none" and self.residual else None
         self.clamp_guided = opt.residual_clamp == "lr-guided"  # over the taps of the pixel's surface only
         self.confidence = None  # the confidence gate's 1x1 conv (module doc, "Confidence gate"): confidence_head
+        self.fallback = bool(opt.transmission_fallback) and self.residual  # module doc, "Transmission fallback"
 
     def confidence_head(self, cin: int) -> nn.Conv2d | None:
         """``confidence_gate`` (module doc): a 1x1 conv from the head's ``cin`` LR input channels to one logit per HR
@@ -163,11 +175,24 @@ class FuseSRFrame(SRModel):
         return torch.cat([depth_features(batch, "hr", 0, self.depth_norm), current(batch, "hr/normal"),
                           current(batch, "hr/albedo")], dim=1)
 
-    def gated(self, y: torch.Tensor, head_in: torch.Tensor) -> torch.Tensor:
-        """The correction ``y`` (B, 3, H, W) times the confidence in [0, 1] read from ``head_in`` (B, C, h, w)."""
-        if self.confidence is None:
-            return y
-        return y * torch.sigmoid(F.pixel_shuffle(self.confidence(head_in), self.scale)).to(y.dtype)
+    def gated(self, y: torch.Tensor, head_in: torch.Tensor, batch: dict) -> torch.Tensor:
+        """The correction ``y`` (B, 3, H, W) times the confidence in [0, 1] read from ``head_in`` (B, C, h, w), and
+        0 on TRANSMISSION pixels with ``transmission_fallback``."""
+        if self.confidence is not None:
+            y = y * torch.sigmoid(F.pixel_shuffle(self.confidence(head_in), self.scale)).to(y.dtype)
+        if self.fallback:
+            y = y * (1.0 - self.transmission_mask(batch)).to(y.dtype)
+        return y
+
+    @staticmethod
+    def transmission_mask(batch: dict) -> torch.Tensor:
+        """(B, 1, H, W) 1 where the current frame's HR flags carry TRANSMISSION, else 0."""
+        flags = current(batch, "hr/flags").to(torch.float32)
+        return torch.remainder(torch.floor(flags / TRANSMISSION_BIT), 2.0)
+
+    def fallback_keys(self) -> tuple[str, ...]:
+        """The batch keys ``transmission_fallback`` reads."""
+        return ("hr/flags",) if self.fallback else ()
 
     @property
     def color_key(self) -> str:
@@ -248,7 +273,7 @@ class FuseSR(FuseSRFrame):
             keys += ["hr/fbeta_used", "hr/emission"]
         if self.residual:
             keys += self.upsample_keys(self.demod)
-        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
+        return tuple(dict.fromkeys(keys + list(self.fallback_keys()))) + self.jitter_keys()
 
     def _lr_input(self, batch, back: int):
         color = forward_transform(frame(batch, self.color_key, back), self.transform)
@@ -276,4 +301,4 @@ class FuseSR(FuseSRFrame):
         head_in = torch.cat([y, f_s], dim=1)
         y = F.pixel_shuffle(self.head(head_in), self.scale)
         y = self.refine(torch.cat([y, hr.to(y.dtype)], dim=1) if self.hr_guide else y)
-        return self.output(self.gated(y, head_in), x[:, :3], batch, j_t)
+        return self.output(self.gated(y, head_in, batch), x[:, :3], batch, j_t)

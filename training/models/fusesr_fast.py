@@ -119,7 +119,7 @@ class FuseSRFast(FuseSRFrame):
             keys += HR_GEOMETRY_KEYS
         if self.residual:
             keys += self.upsample_keys(self.demod)
-        return tuple(dict.fromkeys(keys)) + self.jitter_keys()
+        return tuple(dict.fromkeys(keys + list(self.fallback_keys()))) + self.jitter_keys()
 
     def forward(self, batch):
         color = forward_transform(frame(batch, self.color_key, 0), self.transform)
@@ -137,4 +137,4 @@ class FuseSRFast(FuseSRFrame):
         y = self.blocks(self.fuse_in[1](z))
         head_in = torch.cat([y, f_s], dim=1)
         y = self.refine(F.pixel_shuffle(self.head(head_in), self.scale))
-        return self.output(self.gated(y, head_in), x[:, :3], batch, j_t)
+        return self.output(self.gated(y, head_in, batch), x[:, :3], batch, j_t)

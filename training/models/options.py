@@ -26,7 +26,7 @@ RDG_GBUFFERS = ("normal", "brdf", "depth", "motion")
 RESIDUAL_CLAMPS = ("none", "lr-range", "lr-guided")
 #: Options that change what a trained network's output goes through, not its weights: ``load_model`` lets them be
 #: set on a checkpoint (``--set model.NAME.KEY=VALUE``, or ``CHECKPOINT?KEY=VALUE``).
-INFERENCE_OPTIONS = ("residual_clamp", "residual_clamp_margin")
+INFERENCE_OPTIONS = ("residual_clamp", "residual_clamp_margin", "transmission_fallback")
 
 
 def _sigma(default: float):
@@ -79,6 +79,9 @@ class FuseSRFastOptions:
     # [0, 1]; 0 is the residual base (not in the paper; training/models/fusesr.py, "Confidence gate")
     hr_geometry: bool = False        # fusesr-fast only: the fusion also reads the pixel-unshuffled HR depth, normals
     # and albedo through a 1x1 conv (not in the authors' fast network; training/models/fusesr_fast.py)
+    transmission_fallback: bool = False  # with residual: no correction on HR pixels flagged TRANSMISSION (their
+    # G-buffers describe the glass, not what is seen through it): the residual base there (not in the paper;
+    # training/models/fusesr.py, "Transmission fallback")
 
     def validate(self, where: str) -> None:
         set_checked(self, where)
@@ -88,6 +91,9 @@ class FuseSRFastOptions:
         if self.confidence_gate and not self.residual:
             raise ConfigError(f"{where}.confidence_gate needs {where}.residual = true (it gates the correction of "
                               "the residual base)")
+        if self.transmission_fallback and not self.residual:
+            raise ConfigError(f"{where}.transmission_fallback needs {where}.residual = true (it falls back to the "
+                              "residual base)")
         if self.hr_geometry and not self.hr_gbuffer:
             raise ConfigError(f"{where}.hr_geometry needs {where}.hr_gbuffer = true (the HR G-buffer input)")
         if self.residual_clamp == "lr-guided" and not (self.guided_upsample and self.hr_gbuffer):

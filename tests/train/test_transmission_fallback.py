@@ -1,0 +1,69 @@
+"""The FuseSR family's ``transmission_fallback`` (training/models/fusesr.py, "Transmission fallback"): on HR pixels
+whose flags carry TRANSMISSION the output is the residual base, elsewhere the network with the same weights without
+the option; it reads ``hr/flags`` only when on, needs the residual base, and can be set on a trained checkpoint."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from gbuffer_export.conventions import Flag  # noqa: E402
+from gbuffer_export.typed_table import ConfigError  # noqa: E402
+from training.config import ModelConfig  # noqa: E402
+from training.export import example_inputs  # noqa: E402
+from training.inference import with_inference_options  # noqa: E402
+from training.models import build_model  # noqa: E402
+from training.models.base import current  # noqa: E402
+from training.models.fusesr import FuseSRFrame  # noqa: E402
+from training.transforms import forward_transform  # noqa: E402
+
+NAMES = ["fusesr-fast", "fusesr-l", "fusesr"]
+
+
+def _models(name):
+    torch.manual_seed(0)
+    on = build_model(ModelConfig.of(name, residual_clamp="lr-guided", confidence_gate=True,
+                                     transmission_fallback=True), 4).eval()
+    off = build_model(ModelConfig.of(name, residual_clamp="lr-guided", confidence_gate=True), 4).eval()
+    off.load_state_dict(on.state_dict())
+    return on, off
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_transmission_pixels_get_the_residual_base_and_the_others_the_network(name):
+    """Glass (TRANSMISSION, with ALPHA beside it) over the left half, other bits on the right. The remodulation
+    filters with the ground truth's pixel filter (a few pixels wide), so the halves are compared away from the seam."""
+    on, off = _models(name)
+    batch = {k: torch.from_numpy(v) for k, v in example_inputs(on, None, (48, 32), seed=3).items()}
+    flags = np.zeros((1, 1, 1, 32, 48), np.uint32)
+    flags[..., :24] = int(Flag.TRANSMISSION | Flag.ALPHA)
+    flags[..., 24:] = int(Flag.BACKGROUND | Flag.COAT)
+    batch["hr/flags"] = torch.from_numpy(flags)
+    color = forward_transform(current(batch, on.color_key), on.transform)
+    with torch.no_grad():
+        base = on.output(torch.zeros(1, 3, 32, 48), color, batch, on.frame_jitter(batch))
+        fell, plain = on(batch), off(batch)
+    glass, rest = (slice(None), slice(None), slice(None), slice(0, 20)), (slice(None),) * 3 + (slice(28, 48),)
+    assert torch.equal(fell[glass], base[glass])
+    assert torch.allclose(fell[rest], plain[rest], rtol=1e-6, atol=1e-7)
+    assert float((plain - base)[glass].abs().max()) > 1e-3  # the network corrects there: the test can tell
+
+
+def test_mask_reads_the_transmission_bit_only():
+    flags = torch.tensor([0, 1, 2048, 2049, 4096, 2048 | 32768, 2047, 6144], dtype=torch.int64).view(1, 1, 1, 1, 8)
+    mask = FuseSRFrame.transmission_mask({"hr/flags": flags.to(torch.uint32)})
+    assert mask.flatten().tolist() == [0, 0, 1, 1, 0, 1, 0, 1]
+
+
+def test_reads_flags_only_when_on_and_needs_the_residual_base():
+    assert "hr/flags" in build_model(ModelConfig.of("fusesr-fast", transmission_fallback=True), 4).needs()
+    assert "hr/flags" not in build_model(ModelConfig.of("fusesr-fast"), 4).needs()
+    with pytest.raises(ConfigError, match="transmission_fallback needs model.fusesr-l.residual"):
+        ModelConfig.of("fusesr-l", transmission_fallback=True, residual=False)
+
+
+def test_is_an_inference_option_of_a_checkpoint():
+    config = {"model": {"name": "fusesr-fast", "fusesr-fast": {"confidence_gate": True}}}
+    out = with_inference_options(config, ["transmission_fallback=true"], "ck")
+    assert out["model"]["fusesr-fast"] == {"confidence_gate": True, "transmission_fallback": True}
+    assert "transmission_fallback" not in config["model"]["fusesr-fast"]
