@@ -166,10 +166,16 @@ def recurrent_example_frames(model: InferenceModel, clip: str | None, hr_size,
     return [example_inputs(model, None, hr_size, seed=i) for i in range(frames)]
 
 
+def graph_dtypes(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``inputs`` as the ONNX graph takes them: the flags (uint32 in a clip, every bit below 2^16) as int32, since
+    the exporter takes no uint32 tensor."""
+    return {k: v.astype(np.int32) if v.dtype == np.uint32 else v for k, v in inputs.items()}
+
+
 def export_recurrent(model: InferenceModel, path: Path, clip: str | None, hr_size, opset: int) -> dict:
     import onnx
     import onnxruntime as ort
-    frames = recurrent_example_frames(model, clip, hr_size)
+    frames = [graph_dtypes(f) for f in recurrent_example_frames(model, clip, hr_size)]
     keys = list(frames[0])
     names = [k.replace("/", "_") for k in keys]
     refs, states = [], []
@@ -229,7 +235,7 @@ def export_onnx(model: InferenceModel, path, clip: str | None = None, hr_size=No
         return report
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    inputs = example_inputs(model, clip, hr_size)
+    inputs = graph_dtypes(example_inputs(model, clip, hr_size))
     keys = list(inputs)
     names = [k.replace("/", "_") for k in keys]
     wrapper = PositionalWrapper(model.module, keys).eval()
