@@ -73,8 +73,9 @@ Transmission fallback (``transmission_fallback``, default off; not in the paper)
 pixels whose flags carry TRANSMISSION (docs/clip-format.md), so the output there is the residual base. At such a
 pixel the HR depth, normals and albedo describe the transmissive surface, not the scene seen through it, so the
 guidance the network corrects with is of another surface; the engines' upscalers take the same kind of mask
-from the game for transparent surfaces (the reactive mask). Needs the HR ``flags`` buffer; costs a product per HR
-pixel. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
+from the game for transparent surfaces (the reactive mask). The correction is dropped in L_D, before the
+remodulation, which filters with the ground truth's pixel filter, so within a pixel or two of a glass edge the two
+blend. Needs the HR ``flags`` buffer; costs a product per HR pixel. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
 lost 1.2 dB to ``demod-jbu`` on its 2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
@@ -87,6 +88,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from gbuffer_export.conventions import Flag
 from training.kernels import hr_math
 from training.models.base import (DWSConv, ResBlock, SRModel, backward_warp, conv, current, demodulated_mask,
                                   depth_features, frame, history_offsets)
@@ -100,9 +102,9 @@ HR_GEOMETRY_KEYS = ("hr/depth", "hr/normal", "hr/albedo")
 HR_GEOMETRY_CHANNELS = 7
 HR_CHANNELS = 3 + HR_GEOMETRY_CHANNELS  # FuseSR's HR input: F_beta, then the geometry
 GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, near the ungated network
-#: the HR flags bit of ``transmission_fallback`` (``gbuffer_export.conventions.Flag.TRANSMISSION``, read as a float:
-#: flags stay below 2^24, so float32 holds them exactly and the test is arithmetic, which every export takes)
-TRANSMISSION_BIT = 2048
+#: the HR flags bit of ``transmission_fallback``, tested on the flags as float32 (every bit is below 2^24, so float32
+#: holds them exactly, and floor and remainder export where bitwise operations on integers may not)
+TRANSMISSION_BIT = float(Flag.TRANSMISSION)
 
 
 class Encoder(nn.Module):
