@@ -85,3 +85,31 @@ def test_fallback_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
     assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
     report = export_onnx(InferenceModel(model, "fallback"), tmp_path / "m.onnx", hr_size=(64, 48))
     assert report["match"], report
+
+
+def test_gate_transmission_starts_as_the_gate_learns_and_can_close_on_glass():
+    """``gate_transmission``: a weight on the mask added to the gate's logit, from 0 (the gated network unchanged); it
+    takes the gradient, and at -60 the glass half is the residual base; refused without the gate."""
+    torch.manual_seed(0)
+    on = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided", confidence_gate=True,
+                                     gate_transmission=True), 4)
+    off = build_model(ModelConfig.of("fusesr-fast", residual_clamp="lr-guided", confidence_gate=True), 4)
+    off.load_state_dict({k: v for k, v in on.state_dict().items() if k != "confidence_transmission"})
+    batch = {k: torch.from_numpy(v) for k, v in example_inputs(on, None, (48, 32), seed=3).items()}
+    flags = np.zeros((1, 1, 1, 32, 48), np.uint32)
+    flags[..., :24] = int(Flag.TRANSMISSION)
+    batch["hr/flags"] = torch.from_numpy(flags)
+    assert "confidence_transmission" in on.GATE_PARAMETERS and "confidence_transmission" in on.FRESH_PARAMETERS
+    on.train()(batch).mean().backward()
+    assert float(on.confidence_transmission.grad.abs()) > 0.0
+    on.eval(), off.eval()
+    color = forward_transform(current(batch, on.color_key), on.transform)
+    with torch.no_grad():
+        assert torch.equal(on(batch), off(batch))
+        on.confidence_transmission.fill_(-60.0)
+        base = on.output(torch.zeros(1, 3, 32, 48), color, batch, on.frame_jitter(batch))
+        closed, plain = on(batch), off(batch)
+    assert torch.equal(closed[..., :20], base[..., :20])
+    assert torch.allclose(closed[..., 28:], plain[..., 28:], rtol=1e-6, atol=1e-7)
+    with pytest.raises(ConfigError, match="gate_transmission needs model.fusesr-fast.confidence_gate"):
+        ModelConfig.of("fusesr-fast", gate_transmission=True)

@@ -75,7 +75,9 @@ pixel the HR depth, normals and albedo describe the transmissive surface, not th
 guidance the network corrects with is of another surface; the engines' upscalers take the same kind of mask
 from the game for transparent surfaces (the reactive mask). The correction is dropped in L_D, before the
 remodulation, which filters with the ground truth's pixel filter, so within a pixel or two of a glass edge the two
-blend. Needs the HR ``flags`` buffer; costs a product per HR pixel. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
+blend. Needs the HR ``flags`` buffer; costs a product per HR pixel. Its learned form, ``gate_transmission`` (with
+``confidence_gate``): the gate's logit gains w * mask, w a parameter starting at 0 that learns with the gate, so
+training decides how far the gate closes on glass. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
 lost 1.2 dB to ``demod-jbu`` on its 2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
@@ -143,7 +145,7 @@ class FuseSRFrame(SRModel):
 
     learned = True
     #: the confidence gate's parameters: they learn at ``optim.gate_lr_scale`` times the rate (``Trainer``)
-    GATE_PARAMETERS = ("confidence.weight", "confidence.bias")
+    GATE_PARAMETERS = ("confidence.weight", "confidence.bias", "confidence_transmission")
     #: parameters a checkpoint made before an option existed may lack: ``run.init_from`` starts them fresh
     FRESH_PARAMETERS = GATE_PARAMETERS
 
@@ -161,6 +163,9 @@ class FuseSRFrame(SRModel):
         self.clamp_guided = opt.residual_clamp == "lr-guided"  # over the taps of the pixel's surface only
         self.confidence = None  # the confidence gate's 1x1 conv (module doc, "Confidence gate"): confidence_head
         self.fallback = bool(opt.transmission_fallback) and self.residual  # module doc, "Transmission fallback"
+        # gate_transmission (module doc, "Transmission fallback"): the gate logit's weight on the TRANSMISSION mask
+        self.confidence_transmission = nn.Parameter(torch.zeros(1)) if opt.gate_transmission and \
+            opt.confidence_gate and self.residual else None
 
     def confidence_head(self, cin: int) -> nn.Conv2d | None:
         """``confidence_gate`` (module doc): a 1x1 conv from the head's ``cin`` LR input channels to one logit per HR
@@ -181,7 +186,10 @@ class FuseSRFrame(SRModel):
         """The correction ``y`` (B, 3, H, W) times the confidence in [0, 1] read from ``head_in`` (B, C, h, w), and
         0 on TRANSMISSION pixels with ``transmission_fallback``."""
         if self.confidence is not None:
-            y = y * torch.sigmoid(F.pixel_shuffle(self.confidence(head_in), self.scale)).to(y.dtype)
+            logit = F.pixel_shuffle(self.confidence(head_in), self.scale)
+            if self.confidence_transmission is not None:
+                logit = logit + self.confidence_transmission * self.transmission_mask(batch).to(logit.dtype)
+            y = y * torch.sigmoid(logit).to(y.dtype)
         if self.fallback:
             y = y * (1.0 - self.transmission_mask(batch)).to(y.dtype)
         return y
@@ -194,7 +202,7 @@ class FuseSRFrame(SRModel):
 
     def fallback_keys(self) -> tuple[str, ...]:
         """The batch keys ``transmission_fallback`` reads."""
-        return ("hr/flags",) if self.fallback else ()
+        return ("hr/flags",) if self.fallback or self.confidence_transmission is not None else ()
 
     @property
     def color_key(self) -> str:

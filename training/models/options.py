@@ -79,6 +79,9 @@ class FuseSRFastOptions:
     # [0, 1]; 0 is the residual base (not in the paper; training/models/fusesr.py, "Confidence gate")
     hr_geometry: bool = False        # fusesr-fast only: the fusion also reads the pixel-unshuffled HR depth, normals
     # and albedo through a 1x1 conv (not in the authors' fast network; training/models/fusesr_fast.py)
+    gate_transmission: bool = False  # with confidence_gate: the gate's logit also gains a learned weight (from 0)
+    # times the HR TRANSMISSION mask, so training decides how far to trust the network on glass (not in the paper;
+    # training/models/fusesr.py, "Transmission fallback")
     transmission_fallback: bool = False  # with residual: no correction on HR pixels flagged TRANSMISSION (their
     # G-buffers describe the glass, not what is seen through it): the residual base there (not in the paper;
     # training/models/fusesr.py, "Transmission fallback")
@@ -91,6 +94,9 @@ class FuseSRFastOptions:
         if self.confidence_gate and not self.residual:
             raise ConfigError(f"{where}.confidence_gate needs {where}.residual = true (it gates the correction of "
                               "the residual base)")
+        if self.gate_transmission and not self.confidence_gate:
+            raise ConfigError(f"{where}.gate_transmission needs {where}.confidence_gate = true (it adds to the "
+                              "gate's logit)")
         if self.transmission_fallback and not self.residual:
             raise ConfigError(f"{where}.transmission_fallback needs {where}.residual = true (it falls back to the "
                               "residual base)")
