@@ -25,8 +25,6 @@ BINS = (0.0, 0.2, 0.4, 0.7, 1.01)
 
 
 def gate_stats(spec: str, clips: list[Path]) -> None:
-    import torch
-    import torch.nn.functional as F
     from training.evaluate import EvalOptions, evaluate_model
     from training.inference import load_model
     model = load_model(spec, 4)
@@ -34,8 +32,13 @@ def gate_stats(spec: str, clips: list[Path]) -> None:
     if getattr(module, "confidence", None) is None:
         raise SystemExit(f"{spec}: no confidence gate (model.<M>.confidence_gate)")
     seen = []
-    module.confidence.register_forward_hook(
-        lambda m, i, out: seen.append(torch.sigmoid(F.pixel_shuffle(out, module.scale)).detach().flatten().numpy()))
+    applied = module.confidence_map  # the gate as ``gated`` applies it (with gate_transmission's term)
+
+    def record(head_in, batch):
+        out = applied(head_in, batch)
+        seen.append(out.detach().float().flatten().numpy())
+        return out
+    module.confidence_map = record
     for clip in clips:
         seen.clear()
         evaluate_model(model, [str(clip)], EvalOptions(flip=False, scale=4, baseline=None))

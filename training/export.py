@@ -108,8 +108,8 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None,
         level, name = k.split("/")
         hh, ww = (h, w) if level == "hr" else (round(h / s), round(w / s))
         n = t if level == "lr" else 1
-        if name == "flags":  # bits as the clips store them (uint32): none, BACKGROUND, TRANSMISSION, with ALPHA
-            out[k] = rng.choice(np.array([0, 1, 2048, 2064], np.uint32), size=(1, n, 1, hh, ww))
+        if name == "flags":  # bits as the loaders give them (float32): none, BACKGROUND, TRANSMISSION, with ALPHA
+            out[k] = rng.choice(np.array([0, 1, 2048, 2064], np.float32), size=(1, n, 1, hh, ww))
             continue
         c = len(BUFFERS[name].channels) if name in BUFFERS else 3  # derived keys (irradiance, ...): RGB
         a = rng.random((1, n, c, hh, ww), dtype=np.float32)
@@ -167,9 +167,9 @@ def recurrent_example_frames(model: InferenceModel, clip: str | None, hr_size,
 
 
 def graph_dtypes(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``inputs`` as the ONNX graph takes them: the flags (uint32 in a clip, every bit below 2^16) as int32, since
-    the exporter takes no uint32 tensor."""
-    return {k: v.astype(np.int32) if v.dtype == np.uint32 else v for k, v in inputs.items()}
+    """``inputs`` as the ONNX graph takes them: the flags (bits, all below 2^16; float32 from the loaders, uint32 in
+    a clip's cache) as int32, whatever their source, since the exporter takes no uint32 and bits are integers."""
+    return {k: v.astype(np.int32) if k.endswith("/flags") else v for k, v in inputs.items()}
 
 
 def export_recurrent(model: InferenceModel, path: Path, clip: str | None, hr_size, opset: int) -> dict:

@@ -403,10 +403,12 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
              device: str = "auto") -> None:
     """Render ``todo`` as Ray tasks, one clip each, on the cluster at ``address`` (None: a local one started here).
 
-    On Ctrl-C the driver leaves the cluster (``ray.shutdown``) instead of cancelling its tasks: Ray ends a job's
-    workers when its driver goes, and their clip processes die with them (parent-death signal). ``ray.cancel``
-    races with a task's completion reply in Ray's core worker (2.60: "Check failed: ... Tried to complete task
-    that was not pending", an abort that loses the exit code; ray-project/ray#54846), measured 1 run in 24."""
+    On Ctrl-C a driver that this call connected (or a local cluster it started) leaves the cluster
+    (``ray.shutdown``) instead of cancelling its tasks: Ray ends a job's workers when its driver goes, and their clip
+    processes die with them (parent-death signal). ``ray.cancel`` races with a task's completion reply in Ray's core
+    worker (2.60: "Check failed: ... Tried to complete task that was not pending", an abort that loses the exit
+    code; ray-project/ray#54846), measured 1 run in 24 under load. In a Ray session the caller opened before (the
+    Python API), which is not this call's to end, the tasks are cancelled as before."""
     if not todo:
         return
     from .ray_cluster import bound_gcs_connection, connect
@@ -432,8 +434,11 @@ def _ray_map(todo, root: Path, threads: int, address: str | None, on_done, expli
                 except Exception as exc:  # noqa: BLE001 - a lost worker node: record and go on
                     rc, err = 1, f"ray task failed: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                 on_done(refs[r], rc, err)
-    except KeyboardInterrupt:  # Ctrl-C: this driver leaves the cluster, which ends its job (below)
-        started = True
+    except KeyboardInterrupt:  # Ctrl-C: a driver of this call's leaves the cluster below, which ends its job
+        if not started:        # the caller's own session: cancel this call's tasks
+            for r in refs:
+                with contextlib.suppress(Exception):
+                    ray.cancel(r, force=True)
         raise
     finally:
         if started:

@@ -135,7 +135,7 @@ def _dataset_jobs_under(out: Path) -> list[int]:
 @pytest.mark.bpy
 def test_ctrl_c_stops_a_ray_dataset_within_seconds(tmp_path):
     """The Ray executor (a local instance this test starts, loopback only, its token in a HOME of its own): Ctrl-C
-    to the coordinator cancels the tasks, and no clip process keeps rendering."""
+    to the coordinator ends the job (the driver leaves the cluster), and no clip process keeps rendering."""
     pytest.importorskip("ray")
     spec = tmp_path / "spec.toml"
     spec.write_text(SPEC)

@@ -49,9 +49,10 @@ def test_transmission_pixels_get_the_residual_base_and_the_others_the_network(na
     assert float((plain - base)[glass].abs().max()) > 1e-3  # the network corrects there: the test can tell
 
 
-def test_mask_reads_the_transmission_bit_only():
+@pytest.mark.parametrize("dtype", [torch.float32, torch.int32, torch.uint32])  # loaders, ONNX, a clip's cache
+def test_mask_reads_the_transmission_bit_only(dtype):
     flags = torch.tensor([0, 1, 2048, 2049, 4096, 2048 | 32768, 2047, 6144], dtype=torch.int64).view(1, 1, 1, 1, 8)
-    mask = FuseSRFrame.transmission_mask({"hr/flags": flags.to(torch.uint32)})
+    mask = FuseSRFrame.transmission_mask({"hr/flags": flags.to(dtype)})
     assert mask.flatten().tolist() == [0, 0, 1, 1, 0, 1, 0, 1]
 
 
@@ -113,3 +114,36 @@ def test_gate_transmission_starts_as_the_gate_learns_and_can_close_on_glass():
     assert torch.allclose(closed[..., 28:], plain[..., 28:], rtol=1e-6, atol=1e-7)
     with pytest.raises(ConfigError, match="gate_transmission needs model.fusesr-fast.confidence_gate"):
         ModelConfig.of("fusesr-fast", gate_transmission=True)
+
+
+def test_gate_transmission_learns_with_the_gate_and_starts_fresh_from_older_weights(tmp_path):
+    """``confidence_transmission`` is in the gate's parameter group (``optim.gate_lr_scale``), and ``run.init_from``
+    of weights made without it (no error) keeps it at its start, 0, and loads everything else."""
+    import types
+    from training.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, save_checkpoint
+    from training.config import load_config
+    from training.train import init_from
+    from training.trainer import param_groups
+    cfg = load_config(None, ['model.name="fusesr-fast"', "model.fusesr-fast.confidence_gate=true",
+                             "model.fusesr-fast.gate_transmission=true", "optim.gate_lr_scale=100", "optim.lr=1e-4"])
+    torch.manual_seed(1)
+    model = build_model(ModelConfig.of("fusesr-fast", confidence_gate=True, gate_transmission=True), 4)
+    groups = param_groups(model, cfg)
+    assert id(model.confidence_transmission) in {id(p) for p in groups[1]["params"]}
+    assert groups[1]["lr"] == pytest.approx(1e-2)
+    older = build_model(ModelConfig.of("fusesr-fast", confidence_gate=True), 4)
+    path = tmp_path / "older.pt"
+    save_checkpoint(path, {"model": older.state_dict(), "scale": 4, "step": 3, "format": CHECKPOINT_FORMAT,
+                           "version": CHECKPOINT_VERSION})
+    init_from(model, types.SimpleNamespace(run=types.SimpleNamespace(init_from=str(path)),
+                                           model=types.SimpleNamespace(name="fusesr-fast")), 4)
+    assert float(model.confidence_transmission) == 0.0
+    assert torch.equal(model.confidence.weight, older.confidence.weight)
+
+
+def test_onnx_graph_takes_the_flags_as_int32_from_any_source():
+    from training.export import graph_dtypes
+    for dtype in (np.float32, np.uint32):
+        out = graph_dtypes({"hr/flags": np.array([0, 2048], dtype), "hr/depth": np.ones(2, np.float32)})
+        assert out["hr/flags"].dtype == np.int32 and out["hr/flags"].tolist() == [0, 2048]
+        assert out["hr/depth"].dtype == np.float32

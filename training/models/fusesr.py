@@ -77,8 +77,9 @@ from the game for transparent surfaces (the reactive mask). The correction is dr
 remodulation, which filters with the ground truth's pixel filter, so within a pixel or two of a glass edge the two
 blend. Needs the HR ``flags`` buffer; costs a product per HR pixel. Its learned form, ``gate_transmission`` (with
 ``confidence_gate``): the gate's logit gains w * mask, w a parameter starting at 0 that learns with the gate, so
-training decides how far the gate closes on glass. Measured on val before it was offered (docs/training.md, "FuseSR"): the shipped FuseSR-fast's worst val clip
-lost 1.2 dB to ``demod-jbu`` on its 2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
+training decides how far the gate closes on glass. Measured on val before it was offered (docs/training.md,
+"FuseSR"): the worst val clip of the FuseSR-fast weights shipped then (b50c607) lost 1.2 dB to ``demod-jbu`` on its
+2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
 
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
@@ -186,13 +187,18 @@ class FuseSRFrame(SRModel):
         """The correction ``y`` (B, 3, H, W) times the confidence in [0, 1] read from ``head_in`` (B, C, h, w), and
         0 on TRANSMISSION pixels with ``transmission_fallback``."""
         if self.confidence is not None:
-            logit = F.pixel_shuffle(self.confidence(head_in), self.scale)
-            if self.confidence_transmission is not None:
-                logit = logit + self.confidence_transmission * self.transmission_mask(batch).to(logit.dtype)
-            y = y * torch.sigmoid(logit).to(y.dtype)
+            y = y * self.confidence_map(head_in, batch).to(y.dtype)
         if self.fallback:
             y = y * (1.0 - self.transmission_mask(batch)).to(y.dtype)
         return y
+
+    def confidence_map(self, head_in: torch.Tensor, batch: dict) -> torch.Tensor:
+        """(B, 1, H, W) the confidence gate as applied: sigmoid of the 1x1 conv of ``head_in``, pixel-shuffled, plus
+        ``confidence_transmission`` times the TRANSMISSION mask with ``gate_transmission``."""
+        logit = F.pixel_shuffle(self.confidence(head_in), self.scale)
+        if self.confidence_transmission is not None:
+            logit = logit + self.confidence_transmission * self.transmission_mask(batch).to(logit.dtype)
+        return torch.sigmoid(logit)
 
     @staticmethod
     def transmission_mask(batch: dict) -> torch.Tensor:
@@ -201,7 +207,7 @@ class FuseSRFrame(SRModel):
         return torch.remainder(torch.floor(flags / TRANSMISSION_BIT), 2.0)
 
     def fallback_keys(self) -> tuple[str, ...]:
-        """The batch keys ``transmission_fallback`` reads."""
+        """The batch keys ``transmission_fallback`` and ``gate_transmission`` read."""
         return ("hr/flags",) if self.fallback or self.confidence_transmission is not None else ()
 
     @property
