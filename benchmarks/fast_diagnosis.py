@@ -47,24 +47,35 @@ def gate_stats(spec: str, clips: list[Path]) -> None:
               f"min {a.min():.3f} below 0.5 {(a < 0.5).mean():.4f}")
 
 
-def brightness_bins(spec: str, clip: Path, every: int) -> None:
+def squared_errors(models: dict, clip: Path, every: int, keep=None) -> dict[str, np.ndarray]:
+    """Per model (name -> ``load_model``), the squared errors of every pixel of every EVERY-th frame of ``clip``,
+    flattened; ``keep(inputs)`` is called on the first model's inputs of each frame."""
     from gbuffer_export.clip import open_clip
     from training import metrics
-    from training.inference import ClipFrames, load_model, run_frame
-    base, sq, lum, unit = open_clip(clip), {}, [], []
-    for name in (spec, "demod-jbu"):
-        model = load_model(name, 4)
+    from training.inference import ClipFrames, run_frame
+    base, sq = open_clip(clip), {}
+    for k, (name, model) in enumerate(models.items()):
         source = ClipFrames(base.at_scale(4), eps=model.demod_eps)
         model.module.follow_reference_filter(source.clip.manifest)
         errors = []
         for f in list(source.frames)[::every]:
             sr, _, inputs = run_frame(model, source, f, str(clip), None)
-            gt = inputs["hr/radiance"][0, -1].transpose(1, 2, 0)
-            errors.append(metrics.squared_error(sr, gt).ravel())
-            if name == spec:
-                lum.append(metrics.tonemapped(gt).mean(dim=1)[0].numpy().ravel())
-                unit.append((inputs["hr/fbeta_used"][0, -1] == 1).all(axis=0).ravel())
+            errors.append(metrics.squared_error(sr, inputs["hr/radiance"][0, -1].transpose(1, 2, 0)).ravel())
+            if k == 0 and keep is not None:
+                keep(inputs)
         sq[name] = np.concatenate(errors)
+    return sq
+
+
+def brightness_bins(spec: str, clip: Path, every: int) -> None:
+    from training import metrics
+    from training.inference import load_model
+    lum, unit = [], []
+
+    def keep(inputs):
+        lum.append(metrics.tonemapped(inputs["hr/radiance"][0, -1].transpose(1, 2, 0)).mean(dim=1)[0].numpy().ravel())
+        unit.append((inputs["hr/fbeta_used"][0, -1] == 1).all(axis=0).ravel())
+    sq = squared_errors({n: load_model(n, 4) for n in (spec, "demod-jbu")}, clip, every, keep)
     lum = np.concatenate(lum)
     print(f"{clip.name}: HR F_beta (used) is 1 on {np.concatenate(unit).mean():.3f} of pixels")
     for lo, hi in zip(BINS[:-1], BINS[1:]):
@@ -75,23 +86,14 @@ def brightness_bins(spec: str, clip: Path, every: int) -> None:
 
 
 def transmission(spec: str, clips: list[Path], every: int) -> None:
-    from gbuffer_export.clip import open_clip
     from gbuffer_export.conventions import Flag
     from training import metrics
-    from training.inference import ClipFrames, load_model, run_frame
+    from training.inference import load_model
     models = {name: load_model(name, 4) for name in (spec, "demod-jbu")}
     for clip in clips:
-        base, sq, mask = open_clip(clip), {}, []
-        for name, model in models.items():
-            source = ClipFrames(base.at_scale(4), eps=model.demod_eps)
-            model.module.follow_reference_filter(source.clip.manifest)
-            errors = []
-            for f in list(source.frames)[::every]:
-                sr, _, inputs = run_frame(model, source, f, str(clip), None)
-                errors.append(metrics.squared_error(sr, inputs["hr/radiance"][0, -1].transpose(1, 2, 0)).ravel())
-                if name == spec:
-                    mask.append((inputs["hr/flags"][0, -1, 0].astype(np.int64) & int(Flag.TRANSMISSION)).ravel() > 0)
-            sq[name] = np.concatenate(errors)
+        mask = []  # read from the flags with numpy's bit operations, apart from the model's arithmetic test
+        sq = squared_errors(models, clip, every, lambda inputs: mask.append(
+            (inputs["hr/flags"][0, -1, 0].astype(np.int64) & int(Flag.TRANSMISSION)).ravel() > 0))
         t = np.concatenate(mask)
         if not t.any():
             continue

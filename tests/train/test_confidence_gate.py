@@ -92,13 +92,16 @@ def test_init_from_ungated_weights_starts_only_the_gate_fresh(tmp_path, caplog):
         init_from(narrow, _cfg(path), 4)
 
 
-def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
-    """The gate acts before the fused HR stage (unchanged): the fused torch stage equals the eager output, and the
-    ONNX export matches torch (a gate that reads its features: random 1x1 weights)."""
+@pytest.mark.parametrize("extra", [{}, {"transmission_fallback": True}], ids=["gate", "gate+fallback"])
+def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path, extra):
+    """The gate (and ``transmission_fallback``, which reads the HR flags: the example inputs hold TRANSMISSION on
+    about half the pixels) acts before the fused HR stage (unchanged): the fused torch stage equals the eager output,
+    and the ONNX export (the flags an int32 input) matches torch (a gate that reads its features: random 1x1
+    weights)."""
     pytest.importorskip("onnxruntime")
     from training.export import export_onnx
     from training.inference_model import InferenceModel
-    model = _gated("fusesr-fast", residual_clamp="lr-guided")
+    model = _gated("fusesr-fast", residual_clamp="lr-guided", **extra)
     with torch.no_grad():
         model.confidence.weight.normal_(0.0, 0.3)
     batch = _batch(model)
@@ -110,6 +113,7 @@ def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
     assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
     report = export_onnx(InferenceModel(model, "gated"), tmp_path / "m.onnx", hr_size=(64, 48))
     assert report["match"], report
+    assert ("hr_flags" in report["inputs"]) == bool(extra)  # the graph reads the flags only with the fallback
 
 
 def test_gate_learns_at_its_own_rate_through_the_schedule():

@@ -1,6 +1,7 @@
 """The FuseSR family's ``transmission_fallback`` (training/models/fusesr.py, "Transmission fallback"): on HR pixels
 whose flags carry TRANSMISSION the output is the residual base, elsewhere the network with the same weights without
-the option; it reads ``hr/flags`` only when on, needs the residual base, and can be set on a trained checkpoint."""
+the option; it reads ``hr/flags`` only when on, needs the residual base, and can be set on a trained checkpoint. Its
+fused stage and ONNX export: tests/train/test_confidence_gate.py."""
 import numpy as np
 import pytest
 
@@ -68,24 +69,6 @@ def test_is_an_inference_option_of_a_checkpoint():
     out = with_inference_options(config, ["transmission_fallback=true"], "ck")
     assert out["model"]["fusesr-fast"] == {"confidence_gate": True, "transmission_fallback": True}
     assert "transmission_fallback" not in config["model"]["fusesr-fast"]
-
-
-def test_fallback_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path):
-    """The fallback acts before the fused HR stage: the fused torch stage equals the eager output, and the ONNX export
-    (the flags an input as the clips store them, uint32) matches torch."""
-    pytest.importorskip("onnxruntime")
-    from training.export import export_onnx
-    from training.inference_model import InferenceModel
-    model, _ = _models("fusesr-fast")
-    batch = {k: torch.from_numpy(v) for k, v in example_inputs(model, None, (48, 32), seed=3).items()}
-    with torch.no_grad():
-        eager = model(batch)
-        model.hr_impl = "torch"
-        fused = model(batch)
-    model.hr_impl = None
-    assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
-    report = export_onnx(InferenceModel(model, "fallback"), tmp_path / "m.onnx", hr_size=(64, 48))
-    assert report["match"], report
 
 
 def test_gate_transmission_starts_as_the_gate_learns_and_can_close_on_glass():
