@@ -81,6 +81,12 @@ def scene_summary(scene) -> dict:
              "verts": len(ob.data.vertices) if ob.type == "MESH" else 0,
              "fcurves": fcurves(ob), "props": {k: _value(ob[k]) if not isinstance(ob[k], str) else ob[k]
                                                  for k in ob.keys() if not k.startswith("_")}}
+        if ob.type == "MESH" and len(ob.data.vertices):
+            co = np.empty(3 * len(ob.data.vertices))
+            ob.data.vertices.foreach_get("co", co)
+            m = np.array(ob.matrix_world)
+            co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            d["bounds"] = [co.min(axis=0).tolist(), co.max(axis=0).tolist()]  # world space, m
         if ob.type == "CAMERA":
             d["camera"] = {"type": ob.data.type, "lens": ob.data.lens, "clip": [ob.data.clip_start, ob.data.clip_end]}
         objects[ob.name] = d

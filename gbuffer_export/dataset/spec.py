@@ -33,7 +33,7 @@ BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "
 #: Camera kinds a source may draw from; ``scene`` keeps the built-in scene's own designed camera (builtin only).
 SOURCE_CAMERAS = ("orbit", "walk", "scene")
 #: Opt-in props of the built-in scene (``props = [...]`` of a builtin source; the bpy layer's ``OPTIONAL_PROPS``).
-BUILTIN_PROPS = ("broken_pane",)
+BUILTIN_PROPS = ("broken_pane", "window_pane")
 #: Camera kinds of ``kind = "scene"`` sources: inside the level (walk, fly), around it (orbit), or the file's own
 #: cameras (scene: the active one; scene:*: each clip the next of the file's cameras by name; scene:NAME).
 SCENE_SOURCE_CAMERAS = ("walk", "fly", "orbit", "scene", "scene:*", "scene:NAME")

@@ -31,6 +31,7 @@ def probe():
         {"seed": 1, "frames": [1, 48], "resolution": [640, 360]},
         {"seed": 5, "frames": [3, 20], "resolution": [320, 180]},
         {"seed": 1, "frames": [1, 48], "resolution": [640, 360], "props": ["broken_pane"]},
+        {"seed": 1, "frames": [1, 48], "resolution": [640, 360], "props": ["window_pane"]},
     ]})
 
 
@@ -111,13 +112,14 @@ def test_feature_table_names_existing_things(probe, scene):
         assert owners and set(owners) <= names, (feature, owners)
 
 
-def test_optional_props_add_only_their_objects(probe):
+@pytest.mark.parametrize("build, prop", [(4, "broken_pane"), (5, "window_pane")])
+def test_optional_props_add_only_their_objects(probe, build, prop):
     """A prop adds its objects and leaves every other object, key and material of the seed as it was."""
     from gbuffer_export.dataset.spec import BUILTIN_PROPS
     assert tuple(probe["optional_props"]) == BUILTIN_PROPS  # the spec's names are the bpy layer's
-    plain, pane = probe["builds"][2], probe["builds"][4]
+    plain, pane = probe["builds"][2], probe["builds"][build]
     added = set(pane["objects"]) - set(plain["objects"])
-    assert added == set(probe["optional_props"]["broken_pane"])
+    assert added == set(probe["optional_props"][prop])
     for name, ob in plain["objects"].items():
         assert np.allclose(ob["matrix"], pane["objects"][name]["matrix"]), name
     for name, m in plain["animated_matrices"].items():  # the rolling ball and the seed's own camera path
@@ -126,17 +128,40 @@ def test_optional_props_add_only_their_objects(probe):
         assert pane["materials"][name] == m, name
 
 
-def test_broken_pane_is_alpha_cut_thin_glass(probe):
-    pane = probe["builds"][4]
-    glass = pane["objects"]["Broken Pane Glass"]
-    m = pane["materials"][glass["materials"][0]]
+def _thin_cracked_glass(build, name):
+    glass = build["objects"][name]
+    m = build["materials"][glass["materials"][0]]
     assert m["surface"] == "BSDF_PRINCIPLED" and "TEX_VORONOI" in m["node_types"]
     p = m["inputs"]
     assert p["Transmission Weight"]["value"] == 1.0 and p["Roughness"]["value"] < 0.1
     assert p["Alpha"]["linked"] and p["Normal"]["linked"] and p["Metallic"]["linked"]
+    return glass
+
+
+def test_broken_pane_is_alpha_cut_thin_glass(probe):
+    pane = probe["builds"][4]
+    glass = _thin_cracked_glass(pane, "Broken Pane Glass")
     z = np.array(glass["matrix"])[2, 3]
     frame = np.array(pane["objects"]["Broken Pane Frame"]["matrix"])
     assert np.allclose(frame, glass["matrix"]) and z > 0.76  # stands on the table top
+
+
+def test_window_pane_stands_on_the_floor_across_the_cameras_line_of_sight(probe):
+    """The window's frame reaches the floor, its glass lies between the camera's arc and the table (front edge y =
+    -0.45 m), and on every frame the camera's optical axis passes through the glass: the view is seen through it."""
+    win = probe["builds"][5]
+    glass = _thin_cracked_glass(win, "Window Pane Glass")
+    frame = win["objects"]["Window Pane Frame"]
+    assert np.allclose(frame["matrix"], glass["matrix"]) and abs(frame["bounds"][0][2]) < 1e-4
+    (gx0, gy0, gz0), (gx1, gy1, gz1) = glass["bounds"]
+    y = (gy0 + gy1) / 2
+    cams = np.array(win["animated_matrices"][win["camera"]])  # (frames, 4, 4), the camera looks along its -Z
+    eye, look = cams[:, :3, 3], -cams[:, :3, 2]
+    assert np.all(eye[:, 1] < gy0 - 0.3) and gy1 < -0.45
+    t = (y - eye[:, 1]) / look[:, 1]
+    hit = eye + t[:, None] * look
+    assert np.all(t > 0)
+    assert np.all((hit[:, 0] > gx0) & (hit[:, 0] < gx1) & (hit[:, 2] > gz0) & (hit[:, 2] < gz1))
 
 
 def test_world_is_a_bundled_studiolight(scene):

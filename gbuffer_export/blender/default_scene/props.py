@@ -5,7 +5,11 @@ as before, and a scene with it keeps every other object where it was.
 ``broken_pane``: a cracked window pane in a painted wooden frame standing on the table's front half, facing the
 courtyard camera: thin glass (transmission 1, a 4 mm slab) cut by an alpha mask into shards (cells 6-12 cm) along
 cracks 3-8 mm wide, with 15-35 % of the shards missing (the scene seen through the holes), each shard tilted a little
-(its own reflection), tinted edges with a metallic sheen along the cracks. Units are metres.
+(its own reflection), tinted edges with a metallic sheen along the cracks.
+
+``window_pane``: the same cracked glass as a large window (1.3-1.7 x 0.75-0.95 m) in a frame standing on the floor
+between the scene camera and the table, so that most of the frame is seen through glass: the table, its props and the
+courtyard behind the pane. Units are metres.
 """
 from __future__ import annotations
 
@@ -42,6 +46,27 @@ def broken_pane(scene, mats, rng) -> None:
         box(bm, (sx * (w + bar) / 2, 0.0, 0.0), (bar, bar, h))
         box(bm, (sx * (w + bar) / 2, 0.0, -(h / 2 + bar + 0.0125)), (bar, 0.16, 0.025))
     add_object(scene, "Broken Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
+
+
+def window_pane(scene, mats, rng) -> None:
+    """A window (glass ``w`` x ``h``) whose frame stands on the floor at y = -0.65 m, between the scene camera's arc
+    (y -1.8 to -1.2 m) and the table's front edge (y -0.45 m), its centre at the height where the camera's line of
+    sight crosses it (z 1.08-1.16 m), turned up to 0.12 rad about +Z."""
+    w, h = rng.uniform(1.3, 1.7), rng.uniform(0.75, 0.95)
+    x, z, rot = rng.uniform(-0.1, 0.1), rng.uniform(1.08, 1.16), rng.uniform(-0.12, 0.12)
+    bar = 0.04                                                 # frame bar (m)
+    loc, rotation = (x, -0.65, z), (0.0, 0.0, rot)
+    bm = bmesh.new()
+    box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
+    add_object(scene, "Window Pane Glass", bm, _cracked_glass(rng), location=loc, rotation=rotation)
+    bm = bmesh.new()
+    for sz in (-1, 1):                                         # top and bottom bars
+        box(bm, (0.0, 0.0, sz * (h + bar) / 2), (w + 2 * bar, bar, bar))
+    post = z + h / 2 + bar                                     # the posts reach from the floor to the top bar
+    for sx in (-1, 1):                                         # posts, and a foot on the floor under each
+        box(bm, (sx * (w + bar) / 2, 0.0, h / 2 + bar - post / 2), (bar, bar, post))
+        box(bm, (sx * (w + bar) / 2, 0.0, 0.0125 - z), (bar, 0.3, 0.025))
+    add_object(scene, "Window Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
 
 
 def _cracked_glass(rng):
@@ -85,6 +110,7 @@ def _cracked_glass(rng):
 
 
 #: Each prop: (builder, its generator's stream, the objects it adds).
-_PROPS = {"broken_pane": (broken_pane, 0x9A7E, ("Broken Pane Glass", "Broken Pane Frame"))}
+_PROPS = {"broken_pane": (broken_pane, 0x9A7E, ("Broken Pane Glass", "Broken Pane Frame")),
+          "window_pane": (window_pane, 0x3D15, ("Window Pane Glass", "Window Pane Frame"))}
 #: Opt-in props -> the objects they add (docs and tests; the spec's ``BUILTIN_PROPS`` names the same props).
 OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {name: p[2] for name, p in _PROPS.items()}
