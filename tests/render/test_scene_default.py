@@ -152,8 +152,11 @@ def test_window_pane_stands_on_the_floor_across_the_cameras_line_of_sight(probe)
     win = probe["builds"][5]
     glass = _thin_cracked_glass(win, "Window Pane Glass")
     frame = win["objects"]["Window Pane Frame"]
-    assert np.allclose(frame["matrix"], glass["matrix"]) and abs(frame["bounds"][0][2]) < 1e-4
     (gx0, gy0, gz0), (gx1, gy1, gz1) = glass["bounds"]
+    (fx0, fy0, fz0), (fx1, fy1, fz1) = frame["bounds"]
+    assert np.allclose(frame["matrix"], glass["matrix"]) and abs(fz0) < 1e-4      # the feet on the floor
+    assert abs(fz1 - (gz1 + 0.04)) < 1e-4 and fx0 < gx0 and fx1 > gx1            # the top bar over the glass
+    assert fy0 > -1.0 and fy1 < -0.37 - 0.025                                    # short of the table legs
     y = (gy0 + gy1) / 2
     cams = np.array(win["animated_matrices"][win["camera"]])  # (frames, 4, 4), the camera looks along its -Z
     eye, look = cams[:, :3, 3], -cams[:, :3, 2]

@@ -50,8 +50,9 @@ def broken_pane(scene, mats, rng) -> None:
 
 def window_pane(scene, mats, rng) -> None:
     """A window (glass ``w`` x ``h``) whose frame stands on the floor at y = -0.65 m, between the scene camera's arc
-    (y -1.8 to -1.2 m) and the table's front edge (y -0.45 m), its centre at the height where the camera's line of
-    sight crosses it (z 1.08-1.16 m), turned up to 0.12 rad about +Z."""
+    (y -1.8 to -1.2 m) and the table's front edge (y -0.45 m), its centre near the height where the camera's line
+    of sight crosses it (about z 1.07-1.26 m; z 1.08-1.16), turned up to 0.12 rad about +Z. Its feet (0.3 m deep)
+    end at least 2 mm short of the table's front legs."""
     w, h = rng.uniform(1.3, 1.7), rng.uniform(0.75, 0.95)
     x, z, rot = rng.uniform(-0.1, 0.1), rng.uniform(1.08, 1.16), rng.uniform(-0.12, 0.12)
     bar = 0.04                                                 # frame bar (m)
