@@ -25,8 +25,14 @@ FUSESR_L_STEPS=${FUSESR_L_STEPS:-2500}
 THREADS=${THREADS:-1}
 PY=${PY:-.venv/bin/python}
 export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=68719476736
-$PY -m gbuffer_export.cli dataset "$SPEC" -o "$DS" --workers 2
-$PY -m gbuffer_export.cli validate "$DS" --quick --no-progress
+# Two runs started side by side on one dataset take turns here (blendsr dataset refuses a second run on a folder):
+# the first renders or resumes it, the other waits for the lock (flock, util-linux), then finds it complete.
+mkdir -p "$(dirname "$DS")"
+(
+  if command -v flock >/dev/null; then flock 9; fi
+  $PY -m gbuffer_export.cli dataset "$SPEC" -o "$DS" --workers 2
+  $PY -m gbuffer_export.cli validate "$DS" --quick --no-progress
+) 9>"$DS.pretrain.lock"
 MODELS=${MODELS:-"fusesr fusesr-l"}
 for M in $MODELS; do
   R="$RUNS/${M//-/_}"

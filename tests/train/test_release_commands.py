@@ -1,8 +1,15 @@
 """benchmarks/release_weights.py: the JSON beside released weights names every training stage that made them, first
 stage first, so a fine-tune in stages (one run started from another run's checkpoint) can be replayed."""
 import importlib.util
+import os
 import shlex
+import shutil
+import subprocess
+import time
+from pathlib import Path
 from types import SimpleNamespace
+
+import pytest
 
 from tests.conftest import REPO
 
@@ -57,3 +64,35 @@ def test_weights_fine_tuned_in_stages_name_the_shipped_weights_they_started_from
     assert origin["weights"].startswith("pretrained:fusesr-l?residual_clamp=lr-range as shipped before")
     other = _run(tmp_path, "c", "runs/elsewhere/checkpoints/last.pt")  # not shipped weights, no run directory
     assert rw.shipped_origin(rw.stage_runs(other), weights) is None
+
+
+STUB_PY = """#!/bin/bash
+# stands in for the venv's python: "dataset" holds the folder as blendsr's lock does and is refused while another
+# holds it; train and the rest print what they were asked and succeed
+if [ "$3" = dataset ]; then
+  mkdir -- "$6.busy" 2>/dev/null || { echo "another 'blendsr dataset' is running on this folder"; exit 2; }
+  sleep 2; rmdir -- "$6.busy"; echo dataset-done; exit 0
+fi
+echo "$3"
+"""
+
+
+@pytest.mark.skipif(shutil.which("flock") is None or shutil.which("bash") is None, reason="needs bash and flock")
+def test_two_pretrain_runs_side_by_side_take_turns_on_the_dataset(tmp_path):
+    """Two ``benchmarks/pretrain.sh`` started together on one dataset both train: the second waits for the first's
+    dataset step instead of failing on the dataset folder's lock."""
+    stub = tmp_path / "py"
+    stub.write_text(STUB_PY)
+    stub.chmod(0o755)
+    env = {**os.environ, "PY": str(stub), "MODELS": "fusesr-fast", "RELEASE": "0"}
+    script = str(Path(REPO) / "benchmarks" / "pretrain.sh")
+    procs = []
+    for name in ("a", "b"):
+        procs.append(subprocess.Popen(["bash", script, str(tmp_path / "ds"), str(tmp_path / name)], env=env,
+                                      cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      text=True))
+        time.sleep(0.3)
+    outs = [p.communicate(timeout=60)[0] for p in procs]
+    for p, out in zip(procs, outs):
+        assert p.returncode == 0, out
+        assert "dataset-done" in out and "train" in out.split("dataset-done")[1], out
