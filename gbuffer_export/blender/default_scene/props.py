@@ -35,17 +35,9 @@ def broken_pane(scene, mats, rng) -> None:
     w, h = rng.uniform(0.50, 0.75), rng.uniform(0.38, 0.55)
     x, rot = rng.uniform(-0.25, 0.25), rng.uniform(-0.1, 0.1)
     bar, z_glass = 0.03, TABLE_TOP_Z + 0.03 + h / 2  # frame bar (m); the glass above the bottom bar
-    loc, rotation = (x, -0.22, z_glass), (0.0, 0.0, rot)
-    bm = bmesh.new()
-    box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
-    add_object(scene, "Broken Pane Glass", bm, _cracked_glass(rng), location=loc, rotation=rotation)
-    bm = bmesh.new()
-    for sz in (-1, 1):   # top and bottom bars
-        box(bm, (0.0, 0.0, sz * (h + bar) / 2), (w + 2 * bar, bar, bar))
-    for sx in (-1, 1):   # sides, and a foot under each
-        box(bm, (sx * (w + bar) / 2, 0.0, 0.0), (bar, bar, h))
-        box(bm, (sx * (w + bar) / 2, 0.0, -(h / 2 + bar + 0.0125)), (bar, 0.16, 0.025))
-    add_object(scene, "Broken Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
+    # sides as tall as the glass, and a foot under each (inside the table top, out of sight)
+    _framed_pane(scene, mats, rng, "Broken Pane", (w, h, bar), (x, -0.22, z_glass), rot,
+                 sides=((0.0, bar, h), (-(h / 2 + bar + 0.0125), 0.16, 0.025)))
 
 
 def window_pane(scene, mats, rng) -> None:
@@ -56,18 +48,27 @@ def window_pane(scene, mats, rng) -> None:
     w, h = rng.uniform(1.3, 1.7), rng.uniform(0.75, 0.95)
     x, z, rot = rng.uniform(-0.1, 0.1), rng.uniform(1.08, 1.16), rng.uniform(-0.12, 0.12)
     bar = 0.04                                                 # frame bar (m)
-    loc, rotation = (x, -0.65, z), (0.0, 0.0, rot)
+    post = z + h / 2 + bar                                     # the posts reach from the floor to the top bar
+    _framed_pane(scene, mats, rng, "Window Pane", (w, h, bar), (x, -0.65, z), rot,
+                 sides=((h / 2 + bar - post / 2, bar, post), (0.0125 - z, 0.3, 0.025)))  # posts, feet on the floor
+
+
+def _framed_pane(scene, mats, rng, name: str, size, loc, rot: float, sides) -> None:
+    """The objects "NAME Glass" (``_cracked_glass``, a 4 mm slab ``w`` x ``h`` of ``size`` = (w, h, bar)) and "NAME
+    Frame" (paint: a top and a bottom bar ``bar`` thick, and on each side, x = +-(w + bar) / 2, a box per entry of
+    ``sides``, (z centre, depth along y, height), in the pane's frame), both at ``loc`` turned by ``rot`` about +Z."""
+    w, h, bar = size
+    rotation = (0.0, 0.0, rot)
     bm = bmesh.new()
     box(bm, (0.0, 0.0, 0.0), (w, 0.004, h))
-    add_object(scene, "Window Pane Glass", bm, _cracked_glass(rng), location=loc, rotation=rotation)
+    add_object(scene, f"{name} Glass", bm, _cracked_glass(rng), location=loc, rotation=rotation)
     bm = bmesh.new()
-    for sz in (-1, 1):                                         # top and bottom bars
+    for sz in (-1, 1):   # top and bottom bars
         box(bm, (0.0, 0.0, sz * (h + bar) / 2), (w + 2 * bar, bar, bar))
-    post = z + h / 2 + bar                                     # the posts reach from the floor to the top bar
-    for sx in (-1, 1):                                         # posts, and a foot on the floor under each
-        box(bm, (sx * (w + bar) / 2, 0.0, h / 2 + bar - post / 2), (bar, bar, post))
-        box(bm, (sx * (w + bar) / 2, 0.0, 0.0125 - z), (bar, 0.3, 0.025))
-    add_object(scene, "Window Pane Frame", bm, mats["paint"], location=loc, rotation=rotation)
+    for sx in (-1, 1):
+        for zc, depth, height in sides:
+            box(bm, (sx * (w + bar) / 2, 0.0, zc), (bar, depth, height))
+    add_object(scene, f"{name} Frame", bm, mats["paint"], location=loc, rotation=rotation)
 
 
 def _cracked_glass(rng):
