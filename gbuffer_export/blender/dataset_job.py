@@ -42,7 +42,8 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
     cfg = render_config(job, Path(clip_dir), threads, progress, device)
     if job.kind == "scene":
         return render_clip(cfg, {"dataset_clip": job.id, "licence": job.licence, "region": job.region,
-                                 "scene_id": job.scene_id})
+                                 "scene_id": job.scene_id, "families": job.families,
+                                 "family_group": job.family_group})
     frames = cfg.frames
     world = {"hdri": job.hdri, "rotation_deg": job.hdri_rotation_deg, "strength": job.hdri_strength}
     if job.kind == "builtin":
@@ -62,6 +63,7 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
         info = {"file": Path(job.asset).name, "sha256": file_sha256(Path(job.asset)), "builtin": None, **extra}
     info["dataset_clip"] = job.id
     info["licence"] = job.licence
+    info["families"], info["family_group"] = job.families, job.family_group  # docs/dataset.md, "Held-out families"
     return render_loaded_scene(cfg, scene, info)
 
 

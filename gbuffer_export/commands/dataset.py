@@ -46,15 +46,19 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ..dataset.build import RunOptions, build_dataset, summary
-    from ..dataset.spec import expand, load_spec
+    from ..dataset.spec import expand, load_spec, plan_totals
 
     spec = load_spec(args.spec)
     if args.dry_run:
-        for j in expand(spec):
+        jobs = expand(spec)
+        for j in jobs:
             where = (f"scene={Path(j.asset).name} region={j.region['cell'] if j.region else None} light={j.light}"
                      if j.kind == "scene" else f"hdri={Path(j.hdri).name} strength={j.hdri_strength} "
                      f"clutter={[Path(c).stem for c in j.clutter]}")
-            print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} {where}")
+            print(f"{j.id:40s} {j.split:5s} {j.kind:7s} camera={j.camera:5s} {where} "
+                  f"families={','.join(j.families or ())} ({j.family_group})")
+        for key, t in sorted(plan_totals(jobs).items(), key=lambda kv: (kv[0] != "all", kv[0])):
+            print(f"total {key}: {t['clips']} clips, {t['frames']} frames, {t['hr_pixels'] / 1e6:.1f} M HR pixels")
         return 0
     from ..extras import require
     require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))

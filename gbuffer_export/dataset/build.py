@@ -475,6 +475,11 @@ def planned_jobs(spec: DatasetSpec, opts: RunOptions = RunOptions()) -> list[Cli
     return jobs
 
 
+#: Job keys derived from the others (what a clip holds, by the spec's family lists): an index written before them,
+#: or under other held-out lists, holds the same renders.
+DERIVED_JOB_KEYS = ("families", "family_group")
+
+
 def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob]) -> dict | None:
     """Whether ``jobs`` of ``spec`` may be rendered into ``out``, checked before anything is written: DatasetError
     (one line naming the folder) when it is a file, holds another dataset (name or seed), or holds a clip rendered
@@ -490,10 +495,10 @@ def check_folder(out: str | os.PathLike, spec: DatasetSpec, jobs: list[ClipJob])
                            "another folder or delete it")
     old_jobs = {c["id"]: _legacy_render_keys(c) for c in old["clips"]}
     for j in jobs:
-        o = old_jobs.get(j.id)
-        if o is not None and {k: o.get(k) for k in j.to_json()} != j.to_json() and \
+        o, new = old_jobs.get(j.id), {k: v for k, v in j.to_json().items() if k not in DERIVED_JOB_KEYS}
+        if o is not None and {k: o.get(k) for k in new} != new and \
                 (root / "clips" / j.id / "manifest.json").is_file():
-            changed = sorted(k for k in j.to_json() if o.get(k) != j.to_json()[k])
+            changed = sorted(k for k in new if o.get(k) != new[k])
             if changed == ["light"] and o.get("light") == "scene" and j.to_json()["light"] == "auto":
                 raise DatasetError(f"{root}: clip {j.id} was rendered with light = \"scene\", before \"auto\" became "
                                    "the default; set light = \"scene\" in its [[source]] to keep these clips, or "

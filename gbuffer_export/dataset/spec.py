@@ -24,6 +24,8 @@ from ..config import LIGHTS, SCENE_SUFFIXES, SPEC, ConfigError, RenderConfig, ca
 from ..conventions import parse_buffer_list
 from ..table_shells import default_of, legacy_values, shell_keys
 from ..typed_table import Rule, check_keys, fields_of, option, typed_value
+from .families import (BUILTIN_FAMILIES, CAMERA_FAMILIES, builtin_family, check_family_id, family_group, hdri_family,
+                       held_split, leak)
 
 SPLITS = ("train", "val", "test")
 SOURCE_KINDS = ("builtin", "assets", "scene")
@@ -32,8 +34,9 @@ ASSET_SUFFIXES = (".gltf", ".glb", ".blend")
 BUILTIN_HDRIS = ("city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset")
 #: Camera kinds a source may draw from; ``scene`` keeps the built-in scene's own designed camera (builtin only).
 SOURCE_CAMERAS = ("orbit", "walk", "scene")
-#: Opt-in props of the built-in scene (``props = [...]`` of a builtin source; the bpy layer's ``OPTIONAL_PROPS``).
-BUILTIN_PROPS = ("broken_pane", "window_pane")
+#: Opt-in props of the built-in scene (``props = [...]`` of a builtin source; the bpy layer's ``OPTIONAL_PROPS``):
+#: the built-in generator's families (``families.BUILTIN_FAMILIES``), each drawn from a random stream of its own.
+BUILTIN_PROPS = tuple(BUILTIN_FAMILIES)
 #: Camera kinds of ``kind = "scene"`` sources: inside the level (walk, fly), around it (orbit), or the file's own
 #: cameras (scene: the active one; scene:*: each clip the next of the file's cameras by name; scene:NAME).
 SCENE_SOURCE_CAMERAS = ("walk", "fly", "orbit", "scene", "scene:*", "scene:NAME")
@@ -146,12 +149,16 @@ class Variation:
 @dataclass(frozen=True)
 class Splits:
     """Split rule: explicit ``val``/``test`` lists of scene ids (asset stems, or ``builtin:SEED``), and for the
-    rest a stable hash rule with fractions ``val_fraction`` and ``test_fraction`` (0 = everything else trains)."""
+    rest a stable hash rule with fractions ``val_fraction`` and ``test_fraction`` (0 = everything else trains).
+    ``val_families``/``test_families``: held-out families (``families.py``: ``asset:STEM``, ``level:STEM``,
+    ``hdri:NAME``, ``material:voronoi``, ...) that no clip of an earlier split may hold or draw."""
 
     val: tuple[str, ...] = ()
     test: tuple[str, ...] = ()
     val_fraction: float = 0.0
     test_fraction: float = 0.0
+    val_families: tuple[str, ...] = ()
+    test_families: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -170,7 +177,7 @@ class DatasetSpec:
 _TOP_KEYS = ("dataset", "render", "splits", "source")
 _DATASET_KEYS = ("name", "seed")
 _RENDER_KEYS = RENDER_KEYS
-_SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction")
+_SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction", "val_families", "test_families")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
                 "clutter", "target_size_m", "licence", "sun", "props", "clips_per_scene", "light", "regions",
                 "region_val", "region_test", "world_strength", "light_strength", "sun_elevation_deg", *_RENDER_KEYS)
@@ -286,12 +293,18 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
     splits = Splits(val=_str_list(sp.get("val", []), "splits.val", spec_path),
                     test=_str_list(sp.get("test", []), "splits.test", spec_path),
                     val_fraction=_typed(sp.get("val_fraction", 0.0), float, "splits.val_fraction", spec_path),
-                    test_fraction=_typed(sp.get("test_fraction", 0.0), float, "splits.test_fraction", spec_path))
+                    test_fraction=_typed(sp.get("test_fraction", 0.0), float, "splits.test_fraction", spec_path),
+                    val_families=_families(sp, "val_families", spec_path),
+                    test_families=_families(sp, "test_families", spec_path))
     if not (0 <= splits.val_fraction and 0 <= splits.test_fraction and splits.val_fraction + splits.test_fraction < 1):
         raise SpecError(f"{spec_path}: splits: val_fraction and test_fraction must be >= 0 with a sum below 1")
     both = set(splits.val) & set(splits.test)
     if both:
         raise SpecError(f"{spec_path}: splits: {', '.join(sorted(both))} listed in both val and test")
+    both = set(splits.val_families) & set(splits.test_families)
+    if both:
+        raise SpecError(f"{spec_path}: splits: {', '.join(sorted(both))} listed in both val_families and "
+                        "test_families")
 
     raw_sources = data.get("source", [])
     if not isinstance(raw_sources, list) or not raw_sources:
@@ -330,6 +343,13 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
             kw["sun"] = _source_key(t, "sun", where, spec_path)
             kw["props"] = _source_key(t, "props", where, spec_path)
+            if set(kw["props"]) & set(CAMERA_FAMILIES) and cameras != ("scene",):
+                raise SpecError(f"{spec_path}: {where}.props: the camera families "
+                                f"({', '.join(sorted(set(kw['props']) & set(CAMERA_FAMILIES)))}) move the built-in "
+                                "scene's own camera: give the source cameras = [\"scene\"]")
+            if sum(p in CAMERA_FAMILIES for p in kw["props"]) > 1:
+                raise SpecError(f"{spec_path}: {where}.props: at most one camera family per source (each re-keys "
+                                "the one camera)")
         else:
             if "seeds" in t or "sun" in t or "props" in t:
                 raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")
@@ -348,6 +368,16 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
         sources.append(Source(**kw))
     return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
                        path=Path(spec_path) if spec_path != "<spec>" else None)
+
+
+def _families(sp: dict, key: str, spec_path) -> tuple[str, ...]:
+    """``[splits]`` ``val_families`` / ``test_families``: family ids (``families.check_family_id``)."""
+    out = _str_list(sp.get(key, []), f"splits.{key}", spec_path)
+    for fid in out:
+        bad = check_family_id(fid)
+        if bad:
+            raise SpecError(f"{spec_path}: splits.{key} item {fid!r}: {bad}", key=f"splits.{key}")
+    return out
 
 
 def _grid(v, where, spec_path) -> tuple[int, int]:
@@ -430,20 +460,26 @@ def stable_hash(*parts) -> int:
 
 
 def assign_split(scene_id: str, splits: Splits, forced: str | None, dataset_seed: int, *, spec_path=None,
-                 source: str | None = None) -> str:
-    """The split of one scene: the source's forced split, an explicit list, else the hash rule. A forced split
-    that contradicts the explicit lists (a test asset in a ``split = "train"`` source: a leak) is a SpecError."""
+                 source: str | None = None, family: str | None = None) -> str:
+    """The split of one scene: the source's forced split, an explicit list or the held-out family the scene is
+    (``family``: ``asset:STEM``, ``level:STEM``), else the hash rule. A forced split that contradicts the explicit
+    lists (a test asset in a ``split = "train"`` source: a leak) is a SpecError."""
     stem = scene_id
     listed = "test" if stem in splits.test else "val" if stem in splits.val else None
+    held = held_split([family], splits.val_families, splits.test_families) if family else None
+    if listed and held and listed != held:
+        raise SpecError(f"{spec_path}: {scene_id!r} is listed under [splits] {listed} but its family {family!r} is "
+                        f"in {held}_families: list it once")
+    listed = listed or held
     if forced and listed and forced != listed:
-        raise SpecError(f"{spec_path}: source {source!r} has split = {forced!r} but holds {scene_id!r}, listed "
-                        f"under [splits] {listed}: take it out of the source or of the list")
+        why = (f"listed under [splits] {listed}" if stem in splits.test + splits.val
+               else f"whose family {family!r} is in [splits] {listed}_families")
+        raise SpecError(f"{spec_path}: source {source!r} has split = {forced!r} but holds {scene_id!r}, {why}: take "
+                        "it out of the source or of the list")
     if forced:
         return forced
-    if stem in splits.test:
-        return "test"
-    if stem in splits.val:
-        return "val"
+    if listed:
+        return listed
     u = (stable_hash("split", dataset_seed, scene_id) % 1_000_000) / 1_000_000
     if u < splits.test_fraction:
         return "test"
@@ -565,6 +601,9 @@ class ClipJob:
     camera_index: int | None = None   # scene:*: which of the file's cameras (by name, cycling)
     region: dict | None = None        # {"grid": [nx, ny], "cell": [i, j], "cells": {split: [[i, j], ...]}}
     variation: dict | None = None     # the drawn light variation (docs/dataset.md)
+    # what the clip holds (``families.py``); derived from the fields above, so not compared on resume:
+    families: list | None = None      # its family ids (asset, clutter, level, HDRI, built-in families)
+    family_group: str | None = None   # in-family | held-out (it holds a declared held-out family)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -627,10 +666,12 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
                     props=list(src.props) or None,
                     licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
+                props = [builtin_family(p) for p in src.props]
+                _hold(jobs[-1], spec, [hdri_family(jobs[-1].hdri), *props], [*map(hdri_family, hdris), *props])
             continue
         assets = find_assets(src, base, spec.path)
         split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
-                                         source=src.name) for a in assets}
+                                         source=src.name, family=f"asset:{a.stem}") for a in assets}
         for a in assets:
             lic = dict(read_asset_licence(a))
             if a.stem in src.licence:
@@ -649,11 +690,35 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
                     hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
                     hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
                     target_size_m=src.target_size_m, licence=lic))
+                mine = [f"asset:{a.stem}", *(f"asset:{c.stem}" for c in clutter), hdri_family(jobs[-1].hdri)]
+                could = [f"asset:{b.stem}" for b in same_split] if src.clutter else []
+                _hold(jobs[-1], spec, mine, [*mine, *could, *map(hdri_family, hdris)])
     counts = Counter(j.id for j in jobs)
     dup = sorted(i for i, n in counts.items() if n > 1)
     if dup:
         raise SpecError(f"{spec.path}: clip ids collide ({', '.join(dup[:3])}): rename a source or an asset")
+    held = {f for j in jobs for f in j.families or ()}
+    for key in ("test_families", "val_families"):
+        lost = [f for f in getattr(spec.splits, key) if f not in held]
+        if lost:
+            raise SpecError(f"{spec.path}: splits.{key}: {', '.join(lost)} held by no clip of the spec (held out "
+                            "but never measured: a typo, or no source draws it)", key=f"splits.{key}")
     return jobs
+
+
+def plan_totals(jobs: list[ClipJob]) -> dict:
+    """Clips, frames and HR pixels of a plan, in all and by split and family group (``blendsr dataset --dry-run``):
+    {"all": {...}, "train": {...}, ..., "test held-out": {...}} with keys clips, frames, hr_pixels."""
+    out: dict[str, dict] = {}
+    for j in jobs:
+        w, h = j.render["hr_size"]
+        f = int(j.render["frames"])
+        for key in ("all", j.split, f"{j.split} {j.family_group or 'in-family'}"):
+            t = out.setdefault(key, {"clips": 0, "frames": 0, "hr_pixels": 0})
+            t["clips"] += 1
+            t["frames"] += f
+            t["hr_pixels"] += f * w * h
+    return out
 
 
 def region_cells(src: Source, spec_seed: int, stem: str, owner: str | None = None) -> dict[str, list[list[int]]]:
@@ -705,6 +770,11 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None, levels: dic
         if a.stem in src.licence:
             lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
         split_regions = bool(src.region_val or src.region_test)
+        held = held_split([f"level:{a.stem}"], spec.splits.val_families, spec.splits.test_families)
+        if split_regions and held:
+            raise SpecError(f"{spec.path}: source {src.name!r}: level {a.stem!r} is a {held} family ([splits] "
+                            f"{held}_families) but split by regions (its train cells would hold it): take region_val "
+                            "and region_test off")
         cells = region_cells(src, spec.seed, a.stem, levels[a.stem][0]) if split_regions else None
         order = [(sp, c) for sp in ("test", "val", "train") for c in (cells or {}).get(sp, [])]
         for k in range(src.clips_per_scene):
@@ -719,14 +789,30 @@ def _expand_scene(src: Source, spec: DatasetSpec, base: Path | None, levels: dic
                 scene_id = f"{a.stem}@cell{cell[0]}-{cell[1]}"
             else:
                 split = assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
-                                     source=src.name)
+                                     source=src.name, family=f"level:{a.stem}")
                 region, scene_id = None, a.stem
             jobs.append(ClipJob(
                 id=cid, source=src.name, kind="scene", scene_id=scene_id, split=split, seed=seed,
                 render=src.render.to_json(), camera=camera, asset=str(a), hdri=None, licence=lic, light=src.light,
                 camera_index=k if camera == "scene:*" else None, region=region,
                 variation=_draw_variation(var, hdris, rng)))
+            drawn = (jobs[-1].variation or {}).get("hdri")
+            mine = [f"level:{a.stem}", *([hdri_family(drawn)] if drawn else [])]
+            _hold(jobs[-1], spec, mine, [*mine, *map(hdri_family, hdris)])
     return jobs
+
+
+def _hold(job: ClipJob, spec: DatasetSpec, mine: list[str], could: list[str]) -> None:
+    """Record the families ``job`` holds (``mine``) and its family group; SpecError when it could draw (``could``:
+    its pools) a held-out family of a later split (a test HDRI in a train source's pool)."""
+    val, test = spec.splits.val_families, spec.splits.test_families
+    bad = leak(job.split, could, val, test)
+    if bad:
+        raise SpecError(f"{spec.path}: source {job.source!r}: clip {job.id} is in {job.split} but can hold "
+                        f"{bad[0]!r}, a {bad[1]} family ([splits] {bad[1]}_families): take it out of the source's "
+                        f"pool (hdri, props, clutter) or give the source split = \"{bad[1]}\"")
+    job.families = sorted(set(mine))
+    job.family_group = family_group(job.families, val, test)
 
 
 def _draw_variation(var: Variation, hdris: list[str], rng) -> dict | None:

@@ -90,8 +90,12 @@ def source_table(src: Source, base: RenderSettings) -> dict:
 
 
 def splits_table(s: Splits) -> dict:
-    return {"val": list(s.val), "test": list(s.test), "val_fraction": s.val_fraction,
-            "test_fraction": s.test_fraction}
+    out = {"val": list(s.val), "test": list(s.test), "val_fraction": s.val_fraction,
+           "test_fraction": s.test_fraction}
+    for k in ("val_families", "test_families"):   # only when set: a spec written before them reads the same
+        if getattr(s, k):
+            out[k] = list(getattr(s, k))
+    return out
 
 
 def spec_to_dict(spec: DatasetSpec) -> dict:

@@ -1,0 +1,152 @@
+"""Held-out families (gbuffer_export/dataset/families.py): the split rule, what each clip records, the gap report."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from gbuffer_export.dataset.build import check_folder
+from gbuffer_export.dataset.families import BUILTIN_FAMILIES
+from gbuffer_export.dataset.family_gap import family_gap, gap_table, main, read_margins
+from gbuffer_export.dataset.spec import SpecError, expand, parse_spec, plan_totals
+from gbuffer_export.dataset.writer import spec_to_toml
+from tests.conftest import shared_or_skip
+
+
+def _spec(splits: dict, *sources, path="fam.toml"):
+    return parse_spec({"render": {"frames": 2, "hr_size": "32x16"}, "splits": splits, "source": list(sources)},
+                      path)
+
+
+TRAIN = {"name": "tr", "kind": "builtin", "seeds": "0:3", "hdri": ["builtin:city", "builtin:forest"],
+         "props": ["mat_wave", "railing"]}
+TEST = {"name": "te", "kind": "builtin", "seeds": "10:11", "split": "test", "hdri": ["builtin:night"],
+        "props": ["mat_voronoi", "railing"]}
+
+
+def test_clips_record_their_families_and_group():
+    jobs = {j.id: j for j in expand(_spec({"test_families": ["material:voronoi", "hdri:night"]}, TRAIN, TEST))}
+    tr, te = jobs["tr-s0000"], jobs["te-s0010"]
+    assert tr.split == "train" and tr.family_group == "in-family"
+    assert set(tr.families) - {"material:wave", "geometry:railing"} in ({"hdri:city"}, {"hdri:forest"})
+    assert te.families == ["geometry:railing", "hdri:night", "material:voronoi"] and te.family_group == "held-out"
+    totals = plan_totals(list(jobs.values()))
+    assert totals["all"] == {"clips": 6, "frames": 12, "hr_pixels": 12 * 32 * 16}
+    assert totals["test held-out"]["clips"] == 2 and totals["train in-family"]["clips"] == 4
+
+
+@pytest.mark.parametrize("fam, why", [
+    ("material:wave", "props"),        # a prop family the train source adds
+    ("hdri:forest", "pool"),           # in the train source's HDRI pool, drawn or not
+    ("geometry:railing", "both")])     # in train and test sources alike
+def test_a_train_clip_that_can_hold_a_held_out_family_is_refused(fam, why):
+    with pytest.raises(SpecError, match=rf"fam.toml: source 'tr': clip tr-s0000 is in train but can hold "
+                                        rf"'{fam}', a test family"):
+        expand(_spec({"test_families": [fam]}, TRAIN, TEST))
+
+
+def test_a_val_clip_may_not_hold_a_test_family_but_a_test_clip_may_hold_a_val_family():
+    val = {**TEST, "name": "va", "split": "val", "seeds": "20:21"}
+    with pytest.raises(SpecError, match="clip va-s0020 is in val but can hold 'hdri:night', a test family"):
+        expand(_spec({"test_families": ["hdri:night"]}, val))
+    jobs = expand(_spec({"val_families": ["hdri:night"]}, TEST))
+    assert {j.family_group for j in jobs} == {"held-out"}
+
+
+def test_bad_family_ids_and_families_held_by_no_clip():
+    with pytest.raises(SpecError, match=r"splits.test_families item 'material:plaid': the built-in generator has "
+                                        r"no such family: its material families are material:noise, "):
+        _spec({"test_families": ["material:plaid"]}, TEST)
+    with pytest.raises(SpecError, match="unknown kind 'colour'"):
+        _spec({"val_families": ["colour:red"]}, TEST)
+    with pytest.raises(SpecError, match="hdri:night listed in both val_families and test_families"):
+        _spec({"val_families": ["hdri:night"], "test_families": ["hdri:night"]}, TEST)
+    with pytest.raises(SpecError, match=r"splits.test_families: asset:SheenChiar held by no clip"):
+        expand(_spec({"test_families": ["asset:SheenChiar"]}, TEST))
+
+
+def test_camera_families_need_the_scene_camera():
+    with pytest.raises(SpecError, match=r"source\[0\].props: the camera families \(cam_pan\) move the built-in"):
+        _spec({}, {**TEST, "props": ["cam_pan"], "cameras": ["orbit"]})
+    jobs = expand(_spec({}, {**TEST, "props": ["cam_pan"], "cameras": ["scene"]}))
+    assert "camera:pan" in jobs[0].families
+
+
+def test_asset_and_level_families_move_their_scenes_and_clutter_stays_inside_its_split():
+    gltf = shared_or_skip("scenes/gltf")
+    src = {"name": "obj", "kind": "assets", "paths": [str(gltf)], "clutter": 3, "hdri": ["builtin:studio"]}
+    jobs = expand(_spec({"test_families": ["asset:SheenChair"], "val_families": ["asset:Fox"]}, src))
+    split = {Path(j.asset).stem: j.split for j in jobs}
+    assert split["SheenChair"] == "test" and split["Fox"] == "val"
+    assert {s for k, s in split.items() if k not in ("SheenChair", "Fox")} == {"train"}
+    for j in jobs:
+        assert (j.family_group == "held-out") == (j.split != "train")
+        assert all(split[Path(c).stem] == j.split for c in j.clutter)   # no held-out asset as train clutter
+        assert f"asset:{Path(j.asset).stem}" in j.families
+    with pytest.raises(SpecError, match="split = 'train' but holds 'SheenChair', whose family 'asset:SheenChair' "
+                                        "is in"):
+        expand(_spec({"test_families": ["asset:SheenChair"]}, {**src, "split": "train"}))
+
+
+def test_a_held_out_level_may_not_be_split_by_regions():
+    garage = shared_or_skip("scenes/levels/garage/garage.blend")
+    src = {"name": "lv", "kind": "scene", "paths": [str(garage)], "clips_per_scene": 2, "cameras": ["walk"]}
+    jobs = expand(_spec({"test_families": ["level:garage"]}, src))
+    assert {(j.split, j.family_group) for j in jobs} == {("test", "held-out")}
+    with pytest.raises(SpecError, match="level 'garage' is a test family .* but split by regions"):
+        expand(_spec({"test_families": ["level:garage"]}, {**src, "regions": "2x2", "region_test": 1}))
+
+
+def test_spec_writer_keeps_the_families_and_resume_ignores_them(tmp_path):
+    import tomllib
+    spec = _spec({"test_families": ["material:voronoi", "hdri:night"]}, TRAIN, TEST)
+    again = parse_spec(tomllib.loads(spec_to_toml(spec)), "fam.toml")
+    assert again.splits == spec.splits
+    jobs = expand(spec)
+    (tmp_path / "clips" / jobs[0].id).mkdir(parents=True)
+    (tmp_path / "clips" / jobs[0].id / "manifest.json").write_text("{}")
+    old = [{**{k: v for k, v in j.to_json().items() if k not in ("families", "family_group")},
+            "path": f"clips/{j.id}"} for j in jobs]
+    (tmp_path / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1,
+                                                       "name": spec.name, "seed": 0, "clips": old}))
+    check_folder(tmp_path, spec, jobs)   # an index written before families: the same renders, no refusal
+    old[0]["hdri"] = "builtin:sunset"    # ... while a changed render is still refused
+    (tmp_path / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1,
+                                                       "name": spec.name, "seed": 0, "clips": old}))
+    with pytest.raises(ValueError, match=r"clip tr-s0000 was rendered from a different spec \(hdri\)"):
+        check_folder(tmp_path, spec, jobs)
+
+
+def test_gap_report_from_worst_case_json(tmp_path, capsys):
+    margins = {"objects": {"clips": [], "notes": [], "models": {"pretrained:fusesr": {"mean": {}, "per_clip": [
+        {"clip": "/d/clips/a", "margin": 2.0}, {"clip": "/d/clips/b", "margin": 1.0},
+        {"clip": "/d/clips/c", "margin": 0.5}, {"clip": "/d/clips/d", "margin": None}]}}}}
+    (tmp_path / "m.json").write_text(json.dumps(margins))
+    models = read_margins(tmp_path / "m.json")
+    assert models == {"pretrained:fusesr": {"a": 2.0, "b": 1.0, "c": 0.5}}
+    groups = {"a": "in-family", "b": "held-out", "c": "held-out"}
+    g = family_gap(models["pretrained:fusesr"], groups)
+    assert g["in-family"] == {"n": 1, "mean": 2.0, "min": 2.0} and g["held-out"]["mean"] == 0.75
+    assert g["gap"] == pytest.approx(1.25)
+    assert "| `pretrained:fusesr` | +2.00 (+2.00, 1) | +0.75 (+0.50, 2) | +1.25 |" in gap_table(models, groups)
+    ds = tmp_path / "ds"
+    (ds / "clips").mkdir(parents=True)
+    (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
+        {"id": k, "path": f"clips/{k}", "split": "test", "family_group": v} for k, v in groups.items()]}))
+    assert main([str(tmp_path / "m.json"), "--data", str(ds)]) == 0
+    assert "+1.25 |" in capsys.readouterr().out
+    (tmp_path / "bad.json").write_text("{}")
+    assert main([str(tmp_path / "bad.json"), "--data", str(ds)]) == 2
+    assert "bad.json: no per-clip margins" in capsys.readouterr().err
+
+
+def test_evaluate_json_margins(tmp_path):
+    (tmp_path / "e.json").write_text(json.dumps({"model": "fusesr-l", "per_clip": [{"clip": "x/c1", "margin": -0.3}]}))
+    assert read_margins(tmp_path / "e.json") == {"fusesr-l": {"c1": -0.3}}
+
+
+def test_builtin_family_names():
+    assert len(BUILTIN_FAMILIES) == len(set(BUILTIN_FAMILIES))
+    from gbuffer_export.dataset.families import BUILTIN_FAMILY_IDS
+    assert len(set(BUILTIN_FAMILY_IDS)) == len(BUILTIN_FAMILY_IDS)
