@@ -120,14 +120,16 @@ def probe_default(args) -> dict:
         scene = ds.build_default_scene(seed=b["seed"], frames=tuple(b["frames"]), resolution=tuple(b["resolution"]),
                                        props=tuple(b.get("props", ())))
         builds.append(scene_summary(scene))
+    from gbuffer_export.blender.default_scene.families import RANGES
     return {"factory": factory, "builds": builds, "features": ds.DEFAULT_SCENE_FEATURES,
-            "optional_props": ds.OPTIONAL_PROPS}
+            "optional_props": ds.OPTIONAL_PROPS, "family_ranges": RANGES}
 
 
 def probe_default_render(args) -> dict:
     """Tiny Cycles render of the default scene with a Depth pass, written as a multilayer EXR."""
     from gbuffer_export.blender.default_scene import build_default_scene
-    scene = build_default_scene(seed=args.get("seed", 0), frames=(1, 4), resolution=(64, 36))
+    scene = build_default_scene(seed=args.get("seed", 0), frames=(1, 4), resolution=tuple(args.get("size", (64, 36))),
+                                props=tuple(args.get("props", ())))
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = 1

@@ -16,13 +16,15 @@ from __future__ import annotations
 import bmesh
 import numpy as np
 
+from .families import FAMILIES
 from .geometry import add_object, box
 from .layout import TABLE_TOP_Z
 from .materials import Mat, jitter_color
 
 
 def add_props(scene, mats, seed: int, props) -> None:
-    """Add each prop of ``props`` (names of ``OPTIONAL_PROPS``) with its own generator seeded by ``seed``."""
+    """Add each prop of ``props`` (names of ``OPTIONAL_PROPS``) with its own generator seeded by ``seed``. A camera
+    family (``CAMERA_PROPS``) re-keys the scene camera: add it after the camera is keyed."""
     for name in props:
         build, stream, _ = _PROPS[name]
         build(scene, mats, np.random.default_rng([int(seed) & 0xFFFFFFFF, stream]))
@@ -111,8 +113,12 @@ def _cracked_glass(rng):
     return m.mat
 
 
-#: Each prop: (builder, its generator's stream, the objects it adds).
+#: Each prop: (builder, its generator's stream, the objects it adds; the generator's families of ``families.py``
+#: tag theirs with ``blendsr_family`` instead, as their number is drawn).
 _PROPS = {"broken_pane": (broken_pane, 0x9A7E, ("Broken Pane Glass", "Broken Pane Frame")),
-          "window_pane": (window_pane, 0x3D15, ("Window Pane Glass", "Window Pane Frame"))}
+          "window_pane": (window_pane, 0x3D15, ("Window Pane Glass", "Window Pane Frame")),
+          **{name: (build, stream, ()) for name, (build, stream) in FAMILIES.items()}}
+#: The families that re-key the scene camera (added after it).
+CAMERA_PROPS = tuple(n for n in FAMILIES if n.startswith("cam_"))
 #: Opt-in props -> the objects they add (docs and tests; the spec's ``BUILTIN_PROPS`` names the same props).
 OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {name: p[2] for name, p in _PROPS.items()}
