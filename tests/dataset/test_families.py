@@ -150,3 +150,20 @@ def test_builtin_family_names():
     assert len(BUILTIN_FAMILIES) == len(set(BUILTIN_FAMILIES))
     from gbuffer_export.dataset.families import BUILTIN_FAMILY_IDS
     assert len(set(BUILTIN_FAMILY_IDS)) == len(BUILTIN_FAMILY_IDS)
+
+
+def test_the_scale_spec_plans_ten_times_the_wide_set_with_held_out_families():
+    shared_or_skip("scenes/levels")
+    from gbuffer_export.dataset.spec import load_spec
+    from tests.conftest import REPO
+    spec = load_spec(REPO / "examples" / "dataset_scale.toml")
+    jobs = expand(spec)
+    totals = plan_totals(jobs)
+    assert totals["all"]["hr_pixels"] >= 215e6 and totals["all"]["hr_pixels"] >= 10 * 21.5e6
+    for split in ("test", "val"):   # both groups in both splits: the gap can be measured
+        assert totals[f"{split} held-out"]["clips"] >= 20 and totals[f"{split} in-family"]["clips"] >= 20
+    train = {f for j in jobs if j.split == "train" for f in j.families}
+    assert not train & set(spec.splits.test_families + spec.splits.val_families)
+    kinds = {f.split(":")[0] for f in spec.splits.test_families}
+    assert kinds >= {"asset", "level", "hdri", "material", "geometry", "light", "camera"}
+    assert {j.render["lr_spp"] for j in jobs} <= {4, 16, 32, 128} and {j.render["hr_spp"] for j in jobs} == {32}
