@@ -10,7 +10,9 @@ PyPI (``pip download --only-binary=:all:``), the dependencies of what an artist 
 ``[project].dependencies`` and the ``render`` extra of pyproject.toml, less what Blender ships (bpy and the bpy
 wheel's own requirements: numpy, requests, ...), resolved against Blender's numpy. Per-platform wheels make one zip
 per platform (``blender_ext.py build --split-platforms``: ``<id>-<version>-<platform>.zip``). torch (the
-``train`` extra) is not bundled: the preview's models need it (docs/addon.md).
+``train`` extra) is not bundled: the preview runs the ONNX graphs of the shipped networks and non-learned models
+(exported here with torch, ``export_graphs``, into the zip's ``onnx/``) through the bundled ``onnxruntime`` wheel
+(from the ``export`` extra; left out where PyPI has none for the platform), or torch where the user has it.
 
 Uses ``blender_ext.py`` (its ``build`` and ``validate`` commands), found in the bpy wheel of this Python or given
 with ``--blender-ext``; tags are checked against Blender's list of valid tags when it is there. Needs no Blender
@@ -48,11 +50,17 @@ PLATFORMS = {
                   "macosx_10_9_universal2"),
 }
 #: Bundled where a wheel exists, left out elsewhere: level cameras then use trimesh's own ray engine
-#: (gbuffer_export/blender/level_geometry.py), same answers, slower (embreex has no macOS arm64 wheel for 3.11).
-OPTIONAL = ("embreex",)
+#: (gbuffer_export/blender/level_geometry.py), same answers, slower (embreex has no macOS arm64 wheel for 3.11);
+#: without onnxruntime the preview needs torch (docs/addon.md).
+OPTIONAL = ("embreex", "onnxruntime")
 #: The extra whose packages the add-on's export and dataset paths import, besides the base dependencies.
 EXTRAS = ("render",)
+#: Packages of other extras the zip carries: ONNX Runtime runs the preview's graphs in Blender's Python.
+RUNTIME = {"export": ("onnxruntime",)}
 WHEEL_CACHE = REPO / "build" / "addon-wheels"
+GRAPH_CACHE = REPO / "build" / "addon-onnx"
+#: The zip's folder of ONNX graphs (``training.onnx_infer.graph_name``) with their JSON sidecars.
+GRAPHS = "onnx"
 
 
 class BuildError(RuntimeError):
@@ -109,7 +117,9 @@ def requirements() -> tuple[list[str], list[str]]:
     import tomllib
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     ships, _ = blender_ships()
-    reqs = [*project["dependencies"], *(r for e in EXTRAS for r in project["optional-dependencies"][e])]
+    extras = project["optional-dependencies"]
+    reqs = [*project["dependencies"], *(r for e in EXTRAS for r in extras[e]),
+            *(r for e, names in RUNTIME.items() for r in extras[e] if _name(r) in names)]
     reqs = [r for r in reqs if _name(r) not in ships]
     return [r for r in reqs if _name(r) not in OPTIONAL], [r for r in reqs if _name(r) in OPTIONAL]
 
@@ -154,6 +164,52 @@ def dependency_wheels(platform: str, python: str = sys.executable, cache: Path =
     return sorted(w for w in dest.glob("*.whl") if _name(w.name.split("-")[0]) not in ships)
 
 
+def preview_graphs() -> list[tuple[str, int | None]]:
+    """(spec, scale or None for any scale) of every graph the zip carries: the shipped networks and the non-learned
+    models, at each scale they take (``gbuffer_export.dataset.buffers.MODEL_SCALES``)."""
+    from gbuffer_export.dataset.buffers import MODEL_SCALES
+    from training.models import MODELS
+    specs = [s for s in MODEL_SCALES if s.startswith("pretrained:") or (s in MODELS and not MODELS[s].learned)]
+    return [(s, k) for s in specs for k in (MODEL_SCALES[s] or (None,))]
+
+
+def graphs_key() -> str:
+    """What the graphs depend on: the training package's files (models, weights, export) and torch's version."""
+    import torch
+    h = hashlib.sha256(torch.__version__.encode())
+    for p in sorted((REPO / "training").rglob("*")):
+        if p.is_file() and "__pycache__" not in p.parts:
+            h.update(str(p.relative_to(REPO)).encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()
+
+
+def export_graphs(cache: Path = GRAPH_CACHE) -> Path:
+    """The ONNX graphs of ``preview_graphs`` (``training.export.export_onnx``, each checked against torch),
+    exported once into ``cache`` and kept while ``graphs_key`` is the same; the folder."""
+    try:
+        key = graphs_key()
+        from training.export import export_onnx
+        from training.inference import load_model
+        from training.onnx_infer import graph_name
+    except ImportError as exc:
+        raise BuildError(f"exporting the preview's ONNX graphs needs blendsr[train,export] in this Python ({exc})"
+                         ) from None
+    stamp = cache / "training.sha256"
+    if stamp.is_file() and stamp.read_text() == key:
+        return cache
+    shutil.rmtree(cache, ignore_errors=True)
+    cache.mkdir(parents=True)
+    for spec, scale in preview_graphs():
+        path = cache / graph_name(spec, scale)
+        report = export_onnx(load_model(spec, scale or 4), path, hr_size=(64, 32))
+        if not report["match"]:
+            raise BuildError(f"{spec}: ONNX Runtime differs from torch by {report['max_abs_diff']:.3g}")
+        sidecar = path.with_suffix(".onnx.json")
+        sidecar.write_text(json.dumps({**report, "onnx": path.name}, indent=1) + "\n")  # no build path inside
+    stamp.write_text(key)
+    return cache
+
+
 def checkout_copy(dest: Path) -> Path:
     """The checkout's files (git's tracked and untracked-not-ignored ones) copied to ``dest``."""
     try:
@@ -185,11 +241,15 @@ def blendsr_wheel(dest: Path, python: str = sys.executable) -> Path:
     return out
 
 
-def stage(stage_dir: Path, wheels: list[Path], platforms: list[str]) -> Path:
-    """A copy of the add-on source in ``stage_dir`` with ``wheels/`` and the manifest's ``wheels`` and
-    ``platforms`` lists (generated here: the wheel file names change with each release)."""
+def stage(stage_dir: Path, wheels: list[Path], platforms: list[str], graphs: Path | None = None) -> Path:
+    """A copy of the add-on source in ``stage_dir`` with ``wheels/``, the ONNX graphs in ``onnx/`` and the
+    manifest's ``wheels`` and ``platforms`` lists (generated here: the wheel file names change with each release)."""
     shutil.rmtree(stage_dir, ignore_errors=True)
-    shutil.copytree(SOURCE, stage_dir, ignore=shutil.ignore_patterns("__pycache__", "wheels"))
+    shutil.copytree(SOURCE, stage_dir, ignore=shutil.ignore_patterns("__pycache__", "wheels", GRAPHS))
+    if graphs is not None:
+        (stage_dir / GRAPHS).mkdir()
+        for g in sorted(graphs.glob("*.onnx*")):
+            shutil.copyfile(g, stage_dir / GRAPHS / g.name)
     (stage_dir / "wheels").mkdir()
     for w in wheels:
         shutil.copyfile(w, stage_dir / "wheels" / w.name)
@@ -228,7 +288,7 @@ def build(output_dir: Path, blender_ext: Path | None = None, python: str = sys.e
         wheels = [blendsr_wheel(Path(tmp) / "own", python)]
         for p in platforms:
             wheels += dependency_wheels(p, python)
-        src = stage(Path(tmp) / "src", wheels, platforms)
+        src = stage(Path(tmp) / "src", wheels, platforms, export_graphs())
         zip_base = output_dir / f"{pkg_id}-{version}.zip"
         zips = [output_dir / f"{pkg_id}-{version}-{p.replace('-', '_')}.zip" for p in platforms]
         for z in zips:
@@ -250,6 +310,9 @@ def check_zip(zip_path: Path) -> None:
             raise BuildError(f"{zip_path}: {required} is missing from the package")
     if not any(n.startswith("wheels/blendsr-") for n in names):
         raise BuildError(f"{zip_path}: the blendsr wheel is missing from the package")
+    for graph in ("pretrained_fusesr-l_x4.onnx", "bilinear_xany.onnx"):
+        if f"{GRAPHS}/{graph}" not in names or f"{GRAPHS}/{graph}.json" not in names:
+            raise BuildError(f"{zip_path}: the preview's graph {GRAPHS}/{graph} (or its .json) is missing")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,11 @@ Used two ways:
   * with an external Python that has torch and the library (add-on preferences, ``python_path``):
         python external_infer.py --clip DIR --frame F --model SPEC --out DIR [--sys-path D ...] [--reference]
     writes OUT/sr.exr, OUT/bilinear.exr (and OUT/reference.exr with --reference) as linear RGB float32 and
-    OUT/result.json {ms, psnr, metric, size}; exit 0, or 2 with {error} in result.json.
+    OUT/result.json {ms, warmup_ms, repeats, runtime, psnr, metric, size}; exit 0, or 2 with {error} in result.json;
+  * in Blender's Python without torch, through ONNX Runtime and the zip's graphs: ``run_onnx_inference``.
+
+Times: the first call (with the model's loading or the ONNX Runtime sessions' creation) is ``warmup_ms``; ``ms`` is
+the median of the ``REPEATS`` calls after it (the model's time per frame, as ``blendsr bench models`` reports it).
 
 PSNR is the evaluation's: ``training.metrics.psnr_tm`` (PSNR, peak 1, of the tonemapped images: sRGB OETF of
 Reinhard x/(1+x)); if training.metrics cannot be imported, the same transform from ``gbuffer_export.preview.tonemap``
@@ -55,19 +59,25 @@ def load_model_cached(spec: str, scale: int):
     return _MODELS[key]
 
 
-def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) -> dict:
-    """Upscale ``frame`` of the clip with model ``spec`` (a model name or a checkpoint path).
+#: Calls after the first one whose median is the preview's per-frame time (the first call, with the model's or
+#: session's creation, is reported apart as the warm-up).
+REPEATS = 3
 
-    Returns {'sr', 'bilinear': HxWx3 float32 linear, 'reference': HxWx3 or absent, 'ms': inference milliseconds,
-    'psnr': dB or absent, 'metric': how PSNR was computed}."""
+
+def timed_calls(call, load_ms: float = 0.0, repeats: int = REPEATS) -> tuple[dict, dict]:
+    """(the first call's result, {'ms': median of ``repeats`` more calls' 'ms', 'warmup_ms': ``load_ms`` + the
+    first call's, 'repeats'})."""
+    import statistics
+    first = call()
+    later = [call()["ms"] for _ in range(repeats)]
+    return first, {"ms": float(statistics.median(later)) if later else float(first["ms"]),
+                   "warmup_ms": float(load_ms) + float(first["ms"]), "repeats": len(later)}
+
+
+def _result(out: dict, times: dict, runtime: str, with_reference: bool) -> dict:
     import numpy as np
-    from gbuffer_export import open_clip
-    from training.inference import upscale_frame
-    clip = open_clip(clip_dir)
-    model = load_model_cached(spec, clip.scale)
-    out = upscale_frame(model, clip, frame)
     res = {"sr": np.asarray(out["sr"], np.float32), "bilinear": np.asarray(out["bilinear"], np.float32),
-           "ms": float(out["ms"])}
+           **times, "runtime": runtime}
     ref = out.get("reference")
     if with_reference and ref is not None:
         fn, desc = psnr_function()
@@ -75,6 +85,43 @@ def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) ->
         res["psnr"] = float(fn(res["sr"], res["reference"]))
         res["metric"] = desc
     return res
+
+
+def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) -> dict:
+    """Upscale ``frame`` of the clip with model ``spec`` (a model name or a checkpoint path) through torch.
+
+    Returns {'sr', 'bilinear': HxWx3 float32 linear, 'reference': HxWx3 or absent, 'ms': median milliseconds of
+    the calls after the first, 'warmup_ms': loading plus the first call, 'runtime', 'psnr': dB or absent,
+    'metric': how PSNR was computed}."""
+    import time
+
+    import torch
+    from gbuffer_export import open_clip
+    from training.inference import upscale_frame
+    clip = open_clip(clip_dir)
+    t0 = time.perf_counter()
+    model = load_model_cached(spec, clip.scale)
+    load_ms = 1000.0 * (time.perf_counter() - t0)
+    out, times = timed_calls(lambda: upscale_frame(model, clip, frame), load_ms)
+    return _result(out, times, f"torch {torch.__version__}", with_reference)
+
+
+def run_onnx_inference(clip_dir: str, frame: int, spec: str, with_reference: bool, graphs_dir: str) -> dict:
+    """``run_inference`` through ONNX Runtime with the graphs in ``graphs_dir`` (the zip's ``onnx/``): no torch.
+    'warmup_ms' holds the sessions' creation and the first call."""
+    from gbuffer_export import open_clip
+    from training import onnx_infer
+    clip = open_clip(clip_dir)
+    path = onnx_infer.find_graph(graphs_dir, spec, clip.scale)
+    bil_path = onnx_infer.find_graph(graphs_dir, "bilinear", clip.scale)
+    if path is None or bil_path is None:
+        raise FileNotFoundError(f"{graphs_dir}: no ONNX graph of {spec if path is None else 'bilinear'} for scale "
+                                f"{clip.scale}")
+    model, bil = onnx_infer.OnnxModel(path), onnx_infer.OnnxModel(bil_path)
+    source = onnx_infer.ClipFrames(clip, eps=model.demod_eps)
+    out, times = timed_calls(lambda: onnx_infer.upscale_frame(model, source, frame, bilinear=bil),
+                             model.load_ms + bil.load_ms)
+    return _result(out, times, f"{onnx_infer.runtime_version()} (CPU)", with_reference)
 
 
 def _write_rgb(path: str, img) -> None:
@@ -107,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         _write_rgb(os.path.join(a.out, "bilinear.exr"), res["bilinear"])
         if "reference" in res:
             _write_rgb(os.path.join(a.out, "reference.exr"), res["reference"])
-        result = {"ok": True, "ms": res["ms"], "psnr": res.get("psnr"), "metric": res.get("metric", ""),
+        result = {"ok": True, "ms": res["ms"], "warmup_ms": res["warmup_ms"], "repeats": res["repeats"],
+                  "runtime": res["runtime"], "psnr": res.get("psnr"), "metric": res.get("metric", ""),
                   "size": [int(res["sr"].shape[1]), int(res["sr"].shape[0])]}
     except Exception as exc:
         traceback.print_exc()

@@ -29,6 +29,7 @@ class LibraryStatus:
     root: str = ""               # the directory holding the gbuffer_export package
     torch: bool = False
     training: bool = False
+    onnxruntime: bool = False    # the preview can run the zip's ONNX graphs without torch
     message: str = ""
     hint: tuple[str, ...] = field(default_factory=tuple)
 
@@ -100,7 +101,8 @@ def status(path: str = "", refresh: bool = False) -> LibraryStatus:
     else:
         root = str(Path(gbe.__file__).resolve().parent.parent)
         st = LibraryStatus(True, root=root, torch=importlib.util.find_spec("torch") is not None,
-                           training=importlib.util.find_spec("training") is not None)
+                           training=importlib.util.find_spec("training") is not None,
+                           onnxruntime=importlib.util.find_spec("onnxruntime") is not None)
     _CACHE[key] = st
     _CHECKED[key] = time.monotonic()
     return st

@@ -26,6 +26,8 @@ from .props import store_preview_results
 ACTIVE: dict[str, jobs.RenderJob] = {}
 
 EXTERNAL_INFER = Path(__file__).with_name("external_infer.py")
+#: The ONNX graphs of the shipped networks and non-learned models (``python -m blender_addon.build`` puts them in).
+GRAPHS_DIR = Path(__file__).with_name("onnx")
 
 
 def interactive() -> bool:
@@ -362,21 +364,41 @@ def model_spec(settings) -> str:
     return settings.preview_model
 
 
-def inference_runner(st: library.LibraryStatus, prefs: Prefs) -> str:
-    """'' for Blender's Python, else the external Python's path; ValueError saying what to install or set."""
+def onnx_graph(st: library.LibraryStatus, spec: str, scale: int) -> str:
+    """The zip's ONNX graph folder when ONNX Runtime imports and it holds ``spec``'s graph for ``scale``, else ''."""
+    if not (st.onnxruntime and GRAPHS_DIR.is_dir()):
+        return ""
+    from training.onnx_infer import find_graph
+    return str(GRAPHS_DIR) if find_graph(GRAPHS_DIR, spec, scale) is not None else ""
+
+
+def inference_runner(st: library.LibraryStatus, prefs: Prefs, spec: str = "", scale: int = 4) -> tuple[str, str]:
+    """(kind, where): ('torch', '') in Blender's Python, ('onnx', graphs folder) through ONNX Runtime in Blender's
+    Python, ('external', the external Python's path); ValueError saying what to install or set. Automatic: torch
+    when it imports here, else ONNX Runtime when the zip has the model's graph, else the external Python."""
     internal_ok = st.torch and st.training
+    onnx = onnx_graph(st, spec, scale) if spec else ""
+    if prefs.inference == "ONNX":
+        if not onnx:
+            raise ValueError(f"ONNX Runtime cannot run {os.path.basename(spec)} at scale {scale}: "
+                             + ("no ONNX graph of it in the extension (checkpoints need torch)" if st.onnxruntime
+                                else "onnxruntime is not importable from Blender's Python (reinstall the zip)"))
+        return "onnx", onnx
     if prefs.inference == "INTERNAL" or (prefs.inference == "AUTO" and internal_ok):
         if not internal_ok:
             raise ValueError("torch (or the training package) is not importable from Blender's Python; install "
                              "blendsr[train] there or choose the external Python in the add-on preferences")
-        return ""
+        return "torch", ""
+    if prefs.inference == "AUTO" and onnx:
+        return "onnx", onnx
     py = bpy.path.abspath(prefs.python_path.strip()) if prefs.python_path.strip() else ""
     if not py:
-        raise ValueError("torch is not importable from Blender's Python: install it there, or set 'External "
-                         "Python' in the add-on preferences to a Python with torch and blendsr[train]")
+        raise ValueError("torch is not importable from Blender's Python and the extension has no ONNX graph of "
+                         f"{os.path.basename(spec) or 'the model'}: install torch there, or set 'External Python' in "
+                         "the add-on preferences to a Python with torch and blendsr[train]")
     if not os.path.isfile(py):
         raise ValueError(f"external Python {py}: file not found")
-    return py
+    return "external", py
 
 
 class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
@@ -397,7 +419,7 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         problem = mapping.preview_scale(settings)[1]
         if problem:
             raise ValueError(f"{problem}: set Scale to it, or choose a model that takes any scale")
-        self.python = inference_runner(st, prefs)
+        self.runner, self.where = inference_runner(st, prefs, self.spec, int(settings.scale))
         self.status = st
         self.with_reference = bool(settings.with_reference)
         frame = scene.frame_current
@@ -442,20 +464,25 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         name = os.path.basename(self.spec)
         info = f"frame {self.frame}, {name}, {w}x{h}"
         psnr = out.get("psnr")
+        runtime = out.get("runtime", "")
         store_preview_results(context.scene.blendsr, ms=out["ms"], psnr=psnr, metric=out.get("metric", ""),
-                              info=info, clip=clip_dir)
-        msg = f"BlendSR preview: {info}, {out['ms']:.1f} ms"
+                              info=info, clip=clip_dir, warmup_ms=out.get("warmup_ms", 0.0), runtime=runtime)
+        msg = (f"BlendSR preview: {info}, {runtime}: {out['ms']:.1f} ms per frame (median of "
+               f"{out.get('repeats', 1)}), warm-up {out.get('warmup_ms', 0.0):.0f} ms")
         if psnr is not None:
             msg += f", PSNR {psnr:.2f} dB"
         self.report({"INFO"}, msg)
         return {"FINISHED"}
 
     def infer(self, clip_dir: str, out_dir: Path) -> dict:
-        """Run the model on the preview clip: in Blender's Python, or with the external Python."""
-        if not self.python:
-            from . import external_infer
+        """Run the model on the preview clip: in Blender's Python (torch or ONNX Runtime), or with the external
+        Python."""
+        from . import external_infer
+        if self.runner == "torch":
             return external_infer.run_inference(clip_dir, self.frame, self.spec, self.with_reference)
-        return run_external_inference(self.python, clip_dir, self.frame, self.spec, self.with_reference,
+        if self.runner == "onnx":
+            return external_infer.run_onnx_inference(clip_dir, self.frame, self.spec, self.with_reference, self.where)
+        return run_external_inference(self.where, clip_dir, self.frame, self.spec, self.with_reference,
                                       self.status, out_dir)
 
 
@@ -483,7 +510,9 @@ def run_external_inference(python: str, clip_dir: str, frame: int, spec: str, wi
     if not r.get("ok"):
         raise RuntimeError(r.get("error", "external inference failed"))
     out = {"sr": read_exr(out_dir / "sr.exr", ("R", "G", "B")),
-           "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"])}
+           "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"]),
+           "warmup_ms": float(r.get("warmup_ms", 0.0)), "repeats": int(r.get("repeats", 1)),
+           "runtime": f"{r.get('runtime', 'torch')} in {python}"}
     if with_reference and (out_dir / "reference.exr").is_file():
         out["reference"] = read_exr(out_dir / "reference.exr", ("R", "G", "B"))
         if r.get("psnr") is not None:

@@ -189,9 +189,26 @@ def _draw_preview_scale(box, s, st) -> None:
         col.label(text=problem, icon="ERROR")
 
 
-#: The preview's models need torch, which the extension does not bundle (the [train] extra): one line.
-TORCH_MISSING = ("The preview needs torch (blendsr[train]): install it into Blender's Python or set "
-                 "External Python in the add-on preferences")
+#: The preview's models need torch or, for the shipped ones, the zip's ONNX Runtime: one line when neither is there.
+TORCH_MISSING = ("The preview needs torch (blendsr[train]) or the extension zip's ONNX Runtime: install torch into "
+                 "Blender's Python or set External Python in the add-on preferences")
+
+
+def _runner_line(s, st, prefs) -> tuple[str, bool]:
+    """(the line saying what will run the preview's model when it is not torch in Blender's Python, alert)."""
+    from .operators import inference_runner
+    spec = s.checkpoint.strip() or s.preview_model
+    try:
+        kind, where = inference_runner(st, prefs, spec, int(s.scale))
+    except ValueError:
+        return TORCH_MISSING, True
+    if kind == "onnx":
+        return ("The preview runs the extension's ONNX graph through ONNX Runtime" if prefs.inference == "ONNX"
+                else "torch is not in Blender's Python: the preview runs the extension's ONNX graph (ONNX Runtime)",
+                False)
+    if kind == "external":
+        return f"torch is not in Blender's Python: inference runs with {where}", False
+    return "", False
 
 
 def _draw_preview(box, s, st, prefs) -> None:
@@ -201,13 +218,12 @@ def _draw_preview(box, s, st, prefs) -> None:
     row.prop(s, "preview_model")
     _draw_preview_scale(box, s, st)
     box.prop(s, "with_reference")
-    if st.ok and not (st.torch and st.training) and prefs.inference != "EXTERNAL":
-        col = box.column()
-        if prefs.python_path.strip():
-            col.label(text=f"torch is not in Blender's Python: inference runs with {prefs.python_path}")
-        else:
-            col.alert = True
-            col.label(text=TORCH_MISSING, icon="ERROR")
+    if st.ok and prefs.inference != "EXTERNAL":
+        line, alert = _runner_line(s, st, prefs)
+        if line:
+            col = box.column()
+            col.alert = alert
+            col.label(text=line, icon="ERROR" if alert else "NONE")
     from .operators import ACTIVE
     pjob = ACTIVE.get("preview")
     if pjob is not None:
@@ -219,7 +235,9 @@ def _draw_preview(box, s, st, prefs) -> None:
     if s.preview_info:
         col = box.column(align=True)
         col.label(text=f"Last preview: {s.preview_info}")
-        col.label(text=f"Inference: {s.preview_ms:.1f} ms")
+        col.label(text=f"Inference: {s.preview_ms:.1f} ms per frame, warm-up {s.preview_warmup_ms:.0f} ms")
+        if s.preview_runtime:
+            col.label(text=f"Runtime: {s.preview_runtime}")
         if s.preview_metric:
             col.label(text=f"PSNR: {s.preview_psnr:.2f} dB")
             col.label(text=f"({s.preview_metric})")

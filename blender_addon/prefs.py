@@ -26,9 +26,12 @@ class BlendSRPreferences(bpy.types.AddonPreferences):
                     "Blender's Python has no torch")
     inference: EnumProperty(
         name="Inference", default="AUTO",
-        items=(("AUTO", "Automatic", "In Blender's Python when torch imports there, else the external Python"),
+        items=(("AUTO", "Automatic", "Torch in Blender's Python when it imports there, else ONNX Runtime (the "
+                                     "extension's graphs of the shipped networks), else the external Python"),
                ("INTERNAL", "Blender's Python", "Always in Blender's Python (needs torch there)"),
-               ("EXTERNAL", "External Python", "Always with the external Python (keeps torch out of Blender)")),
+               ("EXTERNAL", "External Python", "Always with the external Python (keeps torch out of Blender)"),
+               ("ONNX", "ONNX Runtime", "Always the ONNX graphs the extension carries, through its onnxruntime, in "
+                                        "Blender's Python (no torch; shipped networks and non-learned models)")),
         description="Where the preview runs the model")
 
     def draw(self, context):
@@ -36,7 +39,8 @@ class BlendSRPreferences(bpy.types.AddonPreferences):
         layout.prop(self, "library_path")
         st = library.status(self.library_path)
         if st.ok:
-            layout.label(text=f"Library: {st.root} (torch {'found' if st.torch else 'not found'})", icon="CHECKMARK")
+            layout.label(text=f"Library: {st.root} (torch {'found' if st.torch else 'not found'}, ONNX Runtime "
+                              f"{'found' if st.onnxruntime else 'not found'})", icon="CHECKMARK")
         else:
             box = layout.box()
             box.label(text=st.message, icon="ERROR")

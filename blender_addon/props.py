@@ -178,7 +178,13 @@ class BlendSRSettings(bpy.types.PropertyGroup):
                                  description="Also render the HR ground truth (HR samples) and report PSNR")
     # -- results of the last preview (read-only) -----------------------------------------------------------------
     preview_ms: FloatProperty(name="Inference time", get=_result("_preview_ms", 0.0), unit="NONE",
-                              description="Inference time of the last preview in milliseconds")
+                              description="The last preview's model time per frame in milliseconds: the median of "
+                                          "the calls after the first (the warm-up)")
+    preview_warmup_ms: FloatProperty(name="Warm-up", get=_result("_preview_warmup_ms", 0.0), unit="NONE",
+                                     description="The last preview's first call with the model's loading or the "
+                                                 "ONNX Runtime session's creation, in milliseconds")
+    preview_runtime: StringProperty(name="Runtime", get=_result("_preview_runtime", ""),
+                                    description="What ran the last preview's model (torch, ONNX Runtime)")
     preview_psnr: FloatProperty(name="PSNR", get=_result("_preview_psnr", 0.0),
                                 description="PSNR of the last preview against the reference in dB (0: none)")
     preview_metric: StringProperty(name="Metric", get=_result("_preview_metric", ""),
@@ -200,13 +206,16 @@ for _cls in (BlendSRSettings, BlendSRDatasetSettings):
     _cls.__annotations__.update(buffer_properties(CHOICES["default_buffers"]))
 
 
-def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str) -> None:
+def store_preview_results(settings, *, ms: float, psnr: float | None, metric: str, info: str, clip: str,
+                          warmup_ms: float = 0.0, runtime: str = "") -> None:
     """Set the read-only results (ID properties behind the getters)."""
     settings["_preview_ms"] = float(ms)
     settings["_preview_psnr"] = float(psnr) if psnr is not None else 0.0
     settings["_preview_metric"] = metric if psnr is not None else ""
     settings["_preview_info"] = info
     settings["_preview_clip"] = clip
+    settings["_preview_warmup_ms"] = float(warmup_ms)
+    settings["_preview_runtime"] = runtime
 
 
 CLASSES = (BlendSRDatasetSettings, BlendSRSettings)

@@ -172,6 +172,46 @@ def graph_dtypes(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v.astype(np.int32) if k.endswith("/flags") else v for k, v in inputs.items()}
 
 
+def state_size_rules(module) -> list[list[str]] | None:
+    """Per state, the ``STATE_SIZES`` names of its height and width ([] for a per-frame vector), found by asking
+    ``module.state_shapes`` at an LR size where every rule differs (13 x 22); None when one fits no rule."""
+    import inspect
+
+    from training.onnx_infer import STATE_SIZES
+    s = module.scale
+    lr = (13, 22)
+    hr = (13 * s, 22 * s)
+    takes_hr = next(iter(inspect.signature(module.state_shapes).parameters)).startswith("hr")
+    rules = []
+    for shape in module.state_shapes(*(hr if takes_hr else lr)):
+        if len(shape) == 2:
+            rules.append([])
+            continue
+        axes = [next((k for k, f in STATE_SIZES.items() if f(n, h) == got), None)
+                for n, h, got in zip(lr, hr, shape[2:])]
+        if None in axes:
+            return None
+        rules.append(axes)
+    return rules
+
+
+def runtime_fields(model: InferenceModel, keys, lr_mod4=None) -> dict:
+    """What a runner without torch needs beside the graph (``training.onnx_infer``): the batch keys in the graph's
+    input order, the LR window, the demodulation eps, whether the graph takes any scale and the ground-truth pixel
+    filter a ``remod_filter = "REFERENCE"`` model was exported with (None for any other) and, for RDG (its padding is
+    fixed at export), the LR size's remainders modulo 4 (H, W) the graph serves (None: any LR size)."""
+    from training.models.rdg import RDG
+    module = model.module
+    ref = None
+    if getattr(module.config, "remod_filter", "NONE") == "REFERENCE":
+        from gbuffer_export.pixel_filter import HR_REFERENCE_FILTER
+        ref = list(HR_REFERENCE_FILTER)
+    return {"keys": list(keys), "window": int(module.window), "demod_eps": float(model.demod_eps),
+            "any_scale": module.SCALES is None, "remod_reference": ref,
+            "lr_mod4": lr_mod4 if isinstance(module, RDG) else None,
+            "state_sizes": state_size_rules(module) if getattr(module, "recurrent", False) else None}
+
+
 def export_recurrent(model: InferenceModel, path: Path, clip: str | None, hr_size, opset: int) -> dict:
     import onnx
     import onnxruntime as ort
@@ -217,7 +257,8 @@ def export_recurrent(model: InferenceModel, path: Path, clip: str | None, hr_siz
             "opset": opset, "recurrent": True, "inputs": {nm: list(frames[0][k].shape) for k, nm in zip(keys, names)},
             "state": {nm: list(s.shape) for nm, s in zip(s_names, states[0])}, "lr_size_mod4": [h % 4, w % 4],
             "output_shape": list(refs[0].shape), "frames_checked": len(frames), "max_abs_diff_per_frame": diffs,
-            "max_abs_diff": diff, "max_rel_diff": diff / scale_ref, "match": bool(diff <= 1e-4 * scale_ref + 1e-5)}
+            "max_abs_diff": diff, "max_rel_diff": diff / scale_ref, "match": bool(diff <= 1e-4 * scale_ref + 1e-5),
+            **runtime_fields(model, keys, [h % 4, w % 4])}
 
 
 def export_onnx(model: InferenceModel, path, clip: str | None = None, hr_size=None, opset: int = 17) -> dict:
@@ -257,6 +298,6 @@ def export_onnx(model: InferenceModel, path, clip: str | None = None, hr_size=No
     report = {"onnx": str(path), "model": model.spec, "scale": model.module.scale,
               "opset": opset, "inputs": {n: list(inputs[k].shape) for k, n in zip(keys, names)},
               "output_shape": list(ref.shape), "max_abs_diff": diff, "max_rel_diff": diff / scale_ref,
-              "match": bool(diff <= 1e-4 * scale_ref + 1e-5)}
+              "match": bool(diff <= 1e-4 * scale_ref + 1e-5), **runtime_fields(model, keys)}
     path.with_suffix(path.suffix + ".json").write_text(json.dumps(report, indent=1) + "\n")
     return report

@@ -12,19 +12,15 @@ with.
 """
 from __future__ import annotations
 
-import os
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from gbuffer_export.errors import BlendSRError
-from gbuffer_export.clip import Clip, ClipError, open_clip, scale_value
-from gbuffer_export.colour_spaces import TRAINING_SPACE
-from gbuffer_export.conventions import LEVELS
-from training.cache import DERIVED, lr_jitter
-from training.config import DataConfig, ModelConfig
+from gbuffer_export.clip import ClipError, scale_value
+from training.config import ModelConfig
+from training import frames
 from training.data import BATCH_KEYS, FRAME_KEYS, BatchSpec, frame_window
 from training.demod import demodulate
 from training.inference_model import InferenceModel, module_of
@@ -33,51 +29,9 @@ from training.models.base import upsample
 from training.recurrent import lead_in
 
 
-class ClipFrames:
-    """Frames of a clip read from its EXR files, with the derived buffers of ``ClipCache`` ('irradiance',
-    'fbeta_used') and the per-frame depth reference. Keeps the last few decoded buffers."""
-
-    def __init__(self, clip: Clip | str | os.PathLike, eps: float | None = None, keep: int = 64):
-        self.clip = clip if isinstance(clip, Clip) else open_clip(clip)
-        self.clip.colour_matrix(TRAINING_SPACE)  # ClipError now for a working space blendsr cannot convert
-        self.clip_path = Path(self.clip.path)
-        self.eps = float(DataConfig.demod_eps if eps is None else eps)  # default: the training default
-        self.frames = list(self.clip.frames)
-        self.scale = self.clip.scale
-        self.sizes = self.clip.sizes
-        self._keep = keep
-        self._lru: OrderedDict = OrderedDict()
-
-    def jitter(self, frame: int) -> np.ndarray:
-        return lr_jitter(self.clip, frame)
-
-    def has(self, key: str) -> bool:
-        level, _, name = key.partition("/")
-        if level not in LEVELS:
-            return False
-        if name in DERIVED:
-            return {"radiance", "fbeta"} <= set(self.clip.buffers)
-        return name in self.clip.buffers
-
-    def _get(self, frame: int, key: str) -> np.ndarray:
-        k = (frame, key)
-        if k in self._lru:
-            self._lru.move_to_end(k)
-            return self._lru[k]
-        level, _, name = key.partition("/")
-        if name in DERIVED:
-            irr, fbu = self._demodulate(frame, level)
-            self._put((frame, f"{level}/irradiance"), irr)
-            self._put((frame, f"{level}/fbeta_used"), fbu)
-            return irr if name == "irradiance" else fbu
-        a = self.clip.read(frame, key, space=TRAINING_SPACE, exposed=True)
-        self._put(k, a)
-        return a
-
-    def _put(self, k, a) -> None:
-        self._lru[k] = a
-        while len(self._lru) > self._keep:
-            self._lru.popitem(last=False)
+class ClipFrames(frames.ClipFrames):
+    """``training.frames.ClipFrames`` with the derived buffers computed by the torch mirror of the demodulation
+    (``training.demod``)."""
 
     def _demodulate(self, frame: int, level: str) -> tuple[np.ndarray, np.ndarray]:
         def t(a):
@@ -88,14 +42,6 @@ class ClipFrames:
         fl = t(self._get(frame, f"{level}/flags").astype(np.int64)) if "flags" in self.clip.buffers else None
         irr, fbu = demodulate(rad, em, fb, fl, self.eps)
         return irr.numpy().transpose(1, 2, 0), fbu.numpy().transpose(1, 2, 0)
-
-    def read(self, frame: int, key: str) -> np.ndarray:
-        return self._get(frame, key)
-
-    def depth_ref(self, frame: int) -> float:
-        d = self._get(frame, "lr/depth")[..., 0]
-        fin = d[np.isfinite(d) & (d > 0)]
-        return float(np.median(fin)) if fin.size else 1.0
 
 
 def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (), fast: bool = True

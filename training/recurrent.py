@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import torch
 
+from training.frames import lead_in  # noqa: F401  (torch-free, shared with training.onnx_infer)
+
 
 def is_recurrent(model) -> bool:
     return bool(getattr(model, "recurrent", False))
@@ -99,13 +101,3 @@ class StepWrapper(torch.nn.Module):
         return self.model.step(batch, state)
 
 
-def lead_in(frames, first: int) -> list[int]:
-    """The run of consecutive clip frames that ends just before ``first`` (what a recurrent model runs, from the
-    clip's start or the last gap, before it reaches ``first``)."""
-    have = set(int(f) for f in frames)
-    out = []
-    g = int(first) - 1
-    while g in have:
-        out.append(g)
-        g -= 1
-    return out[::-1]

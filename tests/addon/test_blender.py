@@ -324,7 +324,7 @@ def test_panels_draw_with_library(tmp_path):
     assert [t for t in labels if "torch" in t] == [TORCH_MISSING]  # one line: the preview needs [train]
     assert "External Python" in TORCH_MISSING and "blendsr[train]" in TORCH_MISSING
     labels = [e[1] for e in r["with_results"] if e[0] == "label"]
-    assert "Inference: 12.5 ms" in labels and "PSNR: 31.25 dB" in labels
+    assert "Inference: 12.5 ms per frame, warm-up 0 ms" in labels and "PSNR: 31.25 dB" in labels
 
 
 def test_without_library_panel_says_how_to_install():

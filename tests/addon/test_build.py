@@ -56,7 +56,8 @@ def test_zip_carries_the_library_and_its_wheels(addon_zip):
         assert f'"./wheels/{w}"' in manifest  # each listed in the manifest's wheels
         assert w.endswith("-any.whl") or "x86_64" in w or "abi3" in w, w  # only this platform's binaries
     assert 'platforms = ["linux-x64"]' in manifest
-    assert addon_zip.stat().st_size < 100e6
+    assert "onnx/pretrained_fusesr-l_x4.onnx" in names and any(w.startswith("onnxruntime-") for w in wheels)
+    assert addon_zip.stat().st_size < 140e6
 
 
 def clean_bpy_python(root: Path) -> Path:
@@ -181,3 +182,68 @@ def test_install_and_external_preview(addon_zip, tmp_path):
     o = upscale_frame(load_model("pretrained:fusesr-l", 4), clip, 1)  # the preview's default model
     assert r["psnr"] == pytest.approx(psnr_tm(o["sr"], o["reference"]), abs=1e-4)
     assert np.isfinite(o["sr"]).all()
+
+
+ONNX_PREVIEW = r'''
+import importlib.util, json, shutil, sys
+import numpy as np
+assert importlib.util.find_spec("torch") is None, "torch must not be importable"
+import bpy
+zip_path, out_dir = sys.argv[1], sys.argv[2]
+res = bpy.ops.extensions.package_install_files(repo="user_default", filepath=zip_path, enable_on_install=True)
+bpy.ops.mesh.primitive_plane_add(size=10)
+bpy.ops.mesh.primitive_uv_sphere_add(location=(0, 0, 1))
+bpy.ops.object.camera_add(location=(0, -8, 2.2), rotation=(1.45, 0, 0))
+sc = bpy.context.scene
+sc.camera = bpy.context.object
+sc.frame_start, sc.frame_end, sc.frame_current = 1, 1, 1
+s = sc.blendsr
+s.use_scene_resolution = False
+s.hr_width, s.hr_height, s.hr_spp, s.lr_spp, s.gbuffer_spp = 64, 32, 2, 1, 1
+s.with_reference = True
+out = {"install": sorted(res)}
+for spec in ("pretrained:fusesr-l", "demod-jbu"):
+    s.preview_model = spec
+    r = {"res": sorted(bpy.ops.blendsr.preview_upscale()), "ms": s.preview_ms, "warmup_ms": s.preview_warmup_ms,
+         "runtime": s.preview_runtime, "psnr": s.preview_psnr}
+    for img in ("BlendSR SR", "BlendSR bilinear"):
+        im = bpy.data.images[img]
+        w, h = im.size
+        px = np.empty(w * h * 4, np.float32)
+        im.pixels.foreach_get(px)
+        np.save(f"{out_dir}/{spec.replace(':', '_')}-{img.split()[1]}.npy", px.reshape(h, w, 4)[::-1, :, :3])
+    shutil.copytree(s.preview_clip, f"{out_dir}/{spec.replace(':', '_')}-clip")
+    out[spec] = r
+out["torch_imported"] = "torch" in sys.modules
+print("RESULT " + json.dumps(out))
+'''
+
+#: ONNX Runtime in the clean bpy against torch here, on the same rendered clip: max |diff| relative to the frame's
+#: largest value (the export's own check is 1e-4 relative; measured about 1e-7).
+ONNX_TOL = 1e-4
+
+
+def test_clean_bpy_previews_through_onnxruntime_without_torch(addon_zip, tmp_path):
+    """The zip's ONNX Runtime and graphs preview fusesr-l and demod-jbu in a bpy with no torch; the images equal
+    the torch path's on the same clip; the warm-up is reported apart from the per-frame time."""
+    python = clean_bpy_python(tmp_path / "clean")
+    env = {k: v for k, v in ENV.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    env["BLENDER_USER_RESOURCES"] = str(tmp_path / "blender_user")
+    proc = subprocess.run([str(python), "-c", ONNX_PREVIEW, str(addon_zip), str(tmp_path)], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=400)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, proc.stdout[-3000:] + proc.stderr[-3000:]
+    r = json.loads(lines[-1][7:])
+    assert r["install"] == ["FINISHED"] and not r["torch_imported"]
+    import numpy as np
+    from training.inference import load_model, upscale_frame
+    for spec in ("pretrained:fusesr-l", "demod-jbu"):
+        p = r[spec]
+        assert p["res"] == ["FINISHED"] and p["runtime"].startswith("ONNX Runtime"), p
+        assert p["ms"] > 0 and p["warmup_ms"] > p["ms"] and 10 < p["psnr"] < 100, p
+        stem = tmp_path / spec.replace(":", "_")
+        ref = upscale_frame(load_model(spec, 4), str(stem) + "-clip", 1)
+        for key, img in (("sr", "SR"), ("bilinear", "bilinear")):
+            got = np.load(f"{stem}-{img}.npy")
+            assert got.shape == ref[key].shape == (32, 64, 3)
+            assert float(np.abs(got - ref[key]).max()) <= ONNX_TOL * float(np.abs(ref[key]).max()), (spec, key)
