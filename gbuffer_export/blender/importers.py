@@ -103,7 +103,10 @@ def _fbx_light_fix():
     """Blender 5.0's FBX importer sets ``light.cycles.cast_shadow``, which Cycles no longer has (it reads the light's
     own ``use_shadow``, which the importer sets first): every FBX with a lamp failed with an AttributeError. The
     property is declared for the import and removed afterwards, so lamps import with their shadow setting."""
-    cls = getattr(bpy.types, "CyclesLightSettings", None)
+    try:
+        from cycles.properties import CyclesLightSettings as cls  # Cycles' own add-on (bpy.types does not list it)
+    except ImportError:
+        cls = None
     add = cls is not None and "cast_shadow" not in cls.bl_rna.properties
     if add:
         cls.cast_shadow = bpy.props.BoolProperty(default=True)
