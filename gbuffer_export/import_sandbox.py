@@ -151,7 +151,7 @@ def import_in_child(scene: Path, fmt_name: str, allow_read, out_dir: Path) -> di
     if report is not None and report.get("error"):
         raise ImportSandboxError(report["error"])
     if proc.returncode < 0:
-        raise ImportSandboxError(f"{scene}: the {fmt_name} importer crashed ({_signal_name(proc.returncode)}): not a "
+        raise ImportSandboxError(f"{scene}: the {fmt_name} importer failed (it crashed: {_signal_name(proc.returncode)}): not a "
                                  f"readable {fmt_name} file, or it needs more than the import memory limit "
                                  f"({_gb(memory)}, BLENDSR_IMPORT_MEMORY_GB)")
     if proc.returncode != 0 or report is None:

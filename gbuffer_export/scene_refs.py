@@ -96,10 +96,10 @@ def _gltf_json(path: Path) -> dict:
         with open(path, "rb") as f:
             head = f.read(20)
             if len(head) < 20 or head[:4] != b"glTF":
-                raise SceneRefError(f"{path}: not a glTF binary (.glb) file (bad header)")
+                raise SceneRefError(f"{path}: not a glTF binary file (bad .glb header)")
             length, kind = struct.unpack_from("<I4s", head, 12)
             if kind != b"JSON":
-                raise SceneRefError(f"{path}: not a glTF binary (.glb) file (its first chunk is not JSON)")
+                raise SceneRefError(f"{path}: not a glTF binary file (its first chunk is not JSON)")
             data = f.read(length)
             if len(data) < length:
                 raise SceneRefError(f"{path}: truncated glTF binary (its JSON chunk ends early)")

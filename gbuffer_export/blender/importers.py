@@ -95,6 +95,7 @@ def load_level(path: Path, allow_read=()):
     finally:
         shutil.rmtree(work, ignore_errors=True)
     check_interrupt()
+    warn_missing(path, report.get("missing_textures", []))
     return bpy.context.scene, report
 
 
@@ -236,8 +237,8 @@ def _set_default(sock, value) -> None:
 
 
 def neutralise_missing_textures(level: Path) -> list[str]:
-    """Replace every use of a missing image (module doc), warn once naming the files, return them sorted (as the
-    level names them, relative to its folder)."""
+    """Replace every use of a missing image (module doc); return the files sorted (as the level names them, relative
+    to its folder; ``warn_missing`` names them in one warning)."""
     images = {im.name: im for im in bpy.data.images if im.users and _missing(im)}
     if not images:
         return []
@@ -253,13 +254,16 @@ def neutralise_missing_textures(level: Path) -> list[str]:
                 tree.links.remove(link)
                 _set_default(sock, value)
     base = Path(level).parent
-    files = sorted({_named(images[n], base) for n in used})
+    return sorted({_named(images[n], base) for n in used})
+
+
+def warn_missing(level: Path, files: list[str]) -> None:
+    """One warning line naming the missing texture files (the import child found them; the render warns)."""
     if files:
         shown = ", ".join(files[:WARN_FILES]) + (f" and {len(files) - WARN_FILES} more" if len(files) > WARN_FILES
                                                   else "")
         log.warning("%s: %d texture file(s) missing, rendered as mid grey (albedo %g), never magenta: %s",
                     Path(level).name, len(files), NEUTRAL_ALBEDO, shown)
-    return files
 
 
 __all__ = ["SCENE_FORMATS", "check_image_files", "import_level", "load_level", "neutralise_missing_textures"]
