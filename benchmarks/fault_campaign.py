@@ -51,6 +51,12 @@ Parts (each prints its counts; the totals come last):
 10. **Signals during a dataset** (part ``dsignals``, two rounds): SIGINT to the process group, then to the
    coordinator alone, after a dataset's first frame must stop it with exit 130 within ``DATASET_STOP_S`` (10 s),
    leave no clip process and start no further clip; the rerun must finish a dataset that validates.
+11. **Scene files in a sandbox** (part ``sandbox``, issue 56, ``SANDBOX_CASES``): glTF buffer and image URIs and
+   OBJ/MTL maps outside the scene's folder (``..``, absolute, through a link, ``/dev/zero``, a FIFO) and a .blend
+   linking a library outside are refused in one line naming the file and the reference (an allowed folder is read
+   and listed in the manifest); a crash or limit in an importer (truncated Alembic, Alembic garbage, a PLY of 4e9
+   vertices, the time limit) is one line naming the file and the format; an FBX with a lamp imports; a glTF accessor
+   count of 10^9 and a folder named ``s.glb`` are named; Ctrl-C during the import exits 130 with no clip.
 
 ``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -66,6 +72,7 @@ import os
 import random
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -1492,10 +1499,296 @@ def _filled_during(argv: list[str], mnt: Path) -> tuple[int, str]:
     return proc.returncode, out + err
 
 
+
+# ------------------------------------------------------------------------------- scene files in a sandbox (issue 56)
+#: Render flags of the sandbox cases: the smallest render that imports the scene.
+SANDBOX_RENDER = ["--hr-size", "32x32", "--frames", "1:1", "--hr-spp", "1", "--lr-spp", "1", "--threads", "1",
+                  "--no-progress", "--camera-path", "orbit"]
+SANDBOX_BPY = r"""
+import sys, bpy
+out, kind = sys.argv[-2], sys.argv[-1]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.mesh.primitive_cube_add()
+if kind == "fbx":
+    bpy.ops.object.light_add(type="POINT", location=(2, 2, 3))
+    bpy.ops.object.camera_add(location=(6, -6, 4))
+    bpy.ops.export_scene.fbx(filepath=out)
+elif kind == "abc":
+    bpy.context.scene.frame_end = 3
+    bpy.ops.wm.alembic_export(filepath=out, as_background_job=False, start=1, end=3)
+elif kind == "lib":
+    bpy.ops.wm.save_as_mainfile(filepath=out)
+elif kind == "linker":
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    with bpy.data.libraries.load(sys.argv[-3], link=True) as (src, dst):
+        dst.objects = list(src.objects)
+    for ob in dst.objects:
+        bpy.context.scene.collection.objects.link(ob)
+    bpy.ops.wm.save_as_mainfile(filepath=out, relative_remap=False)
+"""
+
+
+def _bpy_fixture(out: Path, kind: str, *extra: str) -> Path:
+    if not out.is_file():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.run([sys.executable, "-c", SANDBOX_BPY, *extra, str(out), kind], check=True, env=ENV,
+                       capture_output=True, timeout=300)
+    return out
+
+
+def _gltf(folder: Path, name: str, buffer_uri: str | None = None, image_uri: str | None = None,
+          count: int = 3) -> Path:
+    """A one-triangle glTF whose buffer is ``buffer_uri`` (default: an inline data: URI) and whose material's base
+    colour texture is ``image_uri`` (none by default); ``count``: its position accessor's count."""
+    import base64
+    folder.mkdir(parents=True, exist_ok=True)
+    data = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0) + struct.pack("<6f", 0, 0, 1, 0, 0, 1)
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+           "buffers": [{"byteLength": len(data), "uri": buffer_uri or
+                        "data:application/octet-stream;base64," + base64.b64encode(data).decode()}],
+           "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 36},
+                           {"buffer": 0, "byteOffset": 36, "byteLength": 24}],
+           "accessors": [{"bufferView": 0, "componentType": 5126, "count": count, "type": "VEC3",
+                          "min": [0, 0, 0], "max": [1, 1, 0]},
+                         {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC2"}],
+           "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}}]}]}
+    if image_uri:
+        doc.update(images=[{"uri": image_uri}], textures=[{"source": 0}],
+                   materials=[{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}])
+        doc["meshes"][0]["primitives"][0]["material"] = 0
+    p = folder / name
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def _png(path: Path) -> Path:
+    import numpy as np
+    from PIL import Image
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((4, 4, 3), (250, 10, 10), np.uint8)).save(path)
+    return path
+
+
+def _obj(folder: Path, mtl_line: str, name: str = "level.obj") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "level.mtl").write_text(f"newmtl m\nKd 0.8 0.8 0.8\n{mtl_line}\n")
+    p = folder / name
+    p.write_text("mtllib level.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\n")
+    return p
+
+
+def _link(link: Path, target: Path) -> Path:
+    link.parent.mkdir(parents=True, exist_ok=True)
+    if not link.is_symlink():
+        link.symlink_to(target)
+    return link
+
+
+def _ply_4e9(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    p = folder / "huge.ply"
+    p.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty "
+                  b"float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                  + struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0))
+    return p
+
+
+def _abc_broken(folder: Path, how: str) -> Path:
+    good = _bpy_fixture(folder / "good.abc", "abc")
+    p = folder / f"{how}.abc"
+    data = good.read_bytes()
+    p.write_bytes(data[:len(data) // 2] if how == "truncated" else data[:64] + random.Random(5).randbytes(8192))
+    return p
+
+
+def _blend_linking_outside(work: Path) -> Path:
+    lib = _bpy_fixture(work / "elsewhere" / "lib.blend", "lib")
+    return _bpy_fixture(work / "level_blend" / "linker.blend", "linker", str(lib))
+
+
+def _fifo(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / "pipe.bin").exists():
+        os.mkfifo(folder / "pipe.bin")
+    return _gltf(folder, "fifo.gltf", "pipe.bin")
+
+
+def _render(scene: Path, out: Path, *extra: str) -> list[str]:
+    return ["render", str(scene), "-o", str(out), *SANDBOX_RENDER, *extra]
+
+
+def _lists_outside(path_of):
+    """A check: the clip's manifest lists the file read from the allowed folder."""
+    def check(w, code, err):
+        m = json.loads((w / "o_allowed" / "manifest.json").read_text())
+        return None if str(path_of(w).resolve()) in m["scene"].get("read_outside", []) and \
+            m["scene"].get("allow_read") else f"the manifest lists no outside file: {m['scene']}"
+    return check
+
+
+def _no_clip(name):
+    return lambda w, code, err: (f"a clip was written to {name}" if (w / name / "manifest.json").exists() or
+                                 list((w / name).glob("frames/*.json")) else None)
+
+
+#: name, argv(work), expected exit codes, quick, words the message must hold (None: a successful render), env.
+SANDBOX_CASES = [
+    ("glTF buffer URI ../../../../etc/passwd", lambda w: _render(_gltf(w / "g1", "s.gltf", "../../../../etc/passwd"),
+                                                                  w / "o1"), (2,), True, ("s.gltf", "buffers[0]")),
+    ("glTF buffer URI /etc/passwd", lambda w: _render(_gltf(w / "g2", "s.gltf", "/etc/passwd"), w / "o2"), (2,),
+     False, ("s.gltf", "/etc/passwd")),
+    ("glTF buffer URI /dev/zero", lambda w: _render(_gltf(w / "g3", "s.gltf", "/dev/zero"), w / "o3"), (2,), True,
+     ("s.gltf", "/dev/zero")),
+    ("glTF buffer through a link to /dev/zero", lambda w: (_link(w / "g4" / "zero.bin", Path("/dev/zero")), _render(
+        _gltf(w / "g4", "s.gltf", "zero.bin"), w / "o4"))[1], (2,), False, ("s.gltf", "zero.bin")),
+    ("glTF buffer that is a FIFO in the folder", lambda w: _render(_fifo(w / "g5"), w / "o5"), (2,), False,
+     ("fifo.gltf", "not a regular file")),
+    ("glTF image URI outside the folder", lambda w: (_png(w / "theirs" / "red.png"), _render(
+        _gltf(w / "g6", "s.gltf", image_uri="../theirs/red.png"), w / "o6"))[1], (2,), True,
+     ("s.gltf", "images[0]", "--allow-read")),
+    ("glTF image URI outside, folder allowed (listed in the manifest)", lambda w: (_png(w / "theirs" / "red.png"),
+     _render(_gltf(w / "g7", "s.gltf", image_uri="../theirs/red.png"), w / "o_allowed", "--allow-read",
+             str(w / "theirs")))[1], (0,), False, None),
+    ("OBJ map_Kd ../../../etc/shadow", lambda w: _render(_obj(w / "ob1", "map_Kd ../../../../../../etc/shadow"),
+                                                          w / "o8"), (2,), True, ("level.obj", "map_Kd")),
+    ("OBJ map_Kd an absolute path", lambda w: (_png(w / "theirs" / "red.png"), _render(
+        _obj(w / "ob2", f"map_Kd -s 1 1 1 {w / 'theirs' / 'red.png'}"), w / "o9"))[1], (2,), False,
+     ("level.obj", "red.png")),
+    ("OBJ map_Kd through a link outside", lambda w: (_link(w / "ob3" / "tex.png", _png(w / "theirs" / "red.png")),
+                                                      _render(_obj(w / "ob3", "map_Kd tex.png"), w / "o10"))[1],
+     (2,), False, ("level.obj", "a link to")),
+    (".blend linking a library outside its folder", lambda w: _render(_blend_linking_outside(w), w / "o11"), (2,),
+     False, ("linker.blend", "library")),
+    ("glTF accessor count 10^9", lambda w: _render(_gltf(w / "g8", "s.gltf", count=10**9), w / "o12"), (2,), True,
+     ("s.gltf", "accessors[0]", "1000000000")),
+    ("a folder named s.glb", lambda w: ((w / "g9" / "s.glb").mkdir(parents=True, exist_ok=True),
+                                        _render(w / "g9" / "s.glb", w / "o13"))[1], (2,), True,
+     ("s.glb", "is a folder")),
+    ("PLY declaring 4e9 vertices", lambda w: _render(_ply_4e9(w / "p1"), w / "o14"), (2,), False,
+     ("huge.ply", "PLY")),
+    ("truncated Alembic", lambda w: _render(_abc_broken(w / "a1", "truncated"), w / "o15"), (2,), False,
+     ("truncated.abc", "Alembic")),
+    ("Alembic with garbage after a valid header", lambda w: _render(_abc_broken(w / "a2", "garbage"), w / "o16"),
+     (2,), False, ("garbage.abc", "Alembic")),
+    ("FBX with a lamp (Blender 5.0's own export) imports", lambda w: _render(
+        _bpy_fixture(w / "f1" / "lamp.fbx", "fbx"), w / "o17"), (0,), True, None),
+    ("import past its time limit", lambda w: _render(_gltf(w / "g10", "s.gltf"), w / "o18"), (2,), False,
+     ("s.gltf", "time limit"), {"BLENDSR_IMPORT_TIME_S": "0.01"}),
+]
+
+
+def sandbox_imports(work: Path, tally: Tally, quick: bool, log=print) -> None:
+    """Issue 56, item 1: every importer reads only the scene's folder (and allowed ones), a crash or limit in it is
+    one line (exit 2), Ctrl-C during the import stops with exit 130 and no clip."""
+    work.mkdir(parents=True, exist_ok=True)
+    for case in SANDBOX_CASES:
+        name, argv_of, expect, is_quick, words = case[:5]
+        if quick and not is_quick:
+            continue
+        env = dict(ENV, **(case[5] if len(case) > 5 else {}))
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", *argv_of(work)], cwd=REPO, env=env,
+                                  capture_output=True, text=True, timeout=RUNAWAY_S * 5)
+            code, err = proc.returncode, proc.stderr
+        except subprocess.TimeoutExpired:
+            code, err = -9, "runaway"
+        took = time.perf_counter() - t0
+        tally.inputs_tried += 1
+        problems = []
+        if TRACEBACK in err:
+            tally.tracebacks += 1
+            problems.append("traceback")
+        if code not in expect:
+            tally.wrong_exit += 1
+            problems.append(f"exit {code}, expected {expect}")
+        if code == 2:
+            lines = [ln for ln in err.strip().splitlines() if "error:" in ln]
+            if not lines:
+                tally.no_error_line += 1
+                problems.append("no 'error:' line")
+            elif words and any(w not in lines[-1] for w in words):
+                tally.results_differ += 1
+                problems.append(f"the line does not say {[w for w in words if w not in lines[-1]]}")
+        if code in expect and expect == (0,) and "o_allowed" in " ".join(argv_of(work)):
+            extra = _lists_outside(lambda w: w / "theirs" / "red.png")(work, code, err)
+            if extra:
+                tally.escapes += 1
+                problems.append(extra)
+        if problems:
+            last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
+            tally.fail(f"sandbox: {name}: {', '.join(problems)}: {last[0][:240]}")
+        log(f"  {'FAIL' if problems else 'ok  '} {name}: exit {code} ({took:.1f} s)")
+    sigint_during_import(work, tally, log)
+
+
+#: Ctrl-C during an import must stop the render within this many seconds.
+IMPORT_STOP_S = 10.0
+
+
+def _big_obj(folder: Path) -> Path:
+    """An OBJ of 300k triangles (a few seconds to import)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    p = folder / "big.obj"
+    if not p.is_file():
+        n = 400
+        rows = [f"v {i % n} {i // n} {((i * 7919) % 13) * 0.01}" for i in range(n * n)]
+        faces = [f"f {r * n + c + 1} {r * n + c + 2} {(r + 1) * n + c + 1}" for r in range(n - 1) for c in
+                 range(n - 1)]
+        p.write_text("\n".join(rows + faces) + "\n")
+    return p
+
+
+def sigint_during_import(work: Path, tally: Tally, log=print) -> None:
+    """SIGINT to the render's process group while its import child runs: exit 130 within IMPORT_STOP_S, no
+    traceback, no clip, no import child left."""
+    import psutil
+    scene, out = _big_obj(work / "big"), work / "o_sigint"
+    proc = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", *_render(scene, out)], cwd=REPO, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    t0, child = time.perf_counter(), None
+    while child is None and proc.poll() is None and time.perf_counter() - t0 < 300:
+        kids = [c for c in psutil.Process(proc.pid).children() if "import_job" in " ".join(c.cmdline())]
+        child = kids[0] if kids else None
+        time.sleep(0.05)
+    time.sleep(0.2)
+    sent = time.perf_counter()
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+    try:
+        rc = proc.wait(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        rc = proc.wait()
+    took = time.perf_counter() - sent
+    err = proc.stderr.read()
+    tally.inputs_tried += 1
+    tally.faults += 1
+    problems = []
+    if child is None:
+        problems.append("no import child was seen")
+    if rc != 130 or TRACEBACK in err:
+        tally.tracebacks += int(TRACEBACK in err)
+        problems.append(f"exit {rc}, expected 130")
+    if took > IMPORT_STOP_S:
+        problems.append(f"stopped {took:.1f} s after the signal")
+    if (out / "manifest.json").exists() or list(out.glob("frames/*.json")):
+        tally.corrupt_clips += 1
+        problems.append("a clip was written")
+    if child is not None and child.is_running() and child.status() != psutil.STATUS_ZOMBIE:
+        problems.append("the import child outlived the render")
+        child.kill()
+    if problems:
+        tally.fail(f"sandbox: Ctrl-C during the import: {', '.join(problems)}: {err.strip()[-240:]}")
+    else:
+        tally.faults_survived += 1
+    log(f"  {'FAIL' if problems else 'ok  '} Ctrl-C during the import: exit {rc} {took:.1f} s after the signal")
+
+
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
              parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs",
-                    "huge", "dsignals"),
+                    "huge", "dsignals", "sandbox"),
              signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
@@ -1534,6 +1827,9 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "dsignals" in parts and signals:
         log("signals during a dataset:")
         signal_dataset(out, tally, rng, rounds=2, log=log)
+    if "sandbox" in parts:
+        log("scene files in a sandbox (issue 56):")
+        sandbox_imports(out / "sandbox", tally, quick, log)
     return tally
 
 
@@ -1544,7 +1840,7 @@ def main(argv=None) -> int:
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
     p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge,"
-                                      "dsignals",
+                                      "dsignals,sandbox",
                    help="comma-separated parts to run")
     p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
     p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "

@@ -216,6 +216,9 @@ class RenderConfig:
         "the level's unit for walk and fly cameras (eye height, speeds, clearance): auto (detected from the "
         "geometry: docs/rendering.md, \"A level's unit\"), metres per scene unit (e.g. 0.01), or m, cm, mm, in, ft"))
     threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL), help="render threads (0 = all cores)")
+    allow_read: tuple[str, ...] = option((), shells=(SPEC,), help=(
+        "folders besides the scene's own that its files may read (textures, buffers, libraries); the files read "
+        "there are listed in the manifest (docs/rendering.md, \"What a scene file may read\")"))
     progress: bool = option(True, shells=(), help="a progress bar")
     extra: dict = option(factory=dict, shells=(), help="what a shell adds for the scene (a dataset clip's region, "
                                                        "camera index and light variation)")
@@ -246,6 +249,8 @@ class RenderConfig:
         if self.hr_size is not None:
             self.check_size(self.hr_size, "hr_size")
         if self.scene is not None:
+            if self.scene.is_dir():
+                raise ConfigError(f"{self.scene}: is a folder, not a scene file")
             if not self.scene.is_file():
                 raise ConfigError(f"{self.scene}: scene file not found")
             if self.scene.suffix.lower() not in SCENE_SUFFIXES:

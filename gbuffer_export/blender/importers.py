@@ -70,35 +70,115 @@ def _importer_output(what: str):
         log.debug("%s importer said:\n%s", what, out.text.strip())
 
 
-def load_level(path: Path):
-    """Open or import ``path`` by its row of the format table; returns (scene, report for the manifest's
-    ``scene``: the format and the missing textures). ConfigError (one line) for an unknown suffix, a format this
-    Blender cannot import, or an importer that fails."""
+def load_level(path: Path, allow_read=()):
+    """Open or import ``path`` by its row of the format table in a child process (``import_sandbox``: memory and
+    time limits, references checked by ``scene_refs``), then open the .blend it saved; returns (scene, report for
+    the manifest's ``scene``: the format, the missing textures, files read from allowed folders outside the scene's).
+    ConfigError (one line) for an unknown suffix, a refused reference, a format this Blender cannot import, an
+    importer that fails or crashes. Ctrl-C while the child imports: it is killed, KeyboardInterrupt."""
+    import shutil
+    import tempfile
+    from ..import_sandbox import import_in_child
+    from ..interrupt import check_interrupt
+    from ..scene_refs import check_scene_file
     path = Path(path)
+    check_scene_file(path)
     fmt = scene_format(path)
     if fmt is None:
         raise ConfigError(f"{path}: not a scene file (one of {formats_text()})")
+    work = Path(tempfile.mkdtemp(prefix="blendsr-import-"))
+    try:
+        report = import_in_child(path, fmt.name, allow_read, work)["report"]
+        check_interrupt()
+        with _importer_output("Blender"):
+            bpy.ops.wm.open_mainfile(filepath=str(work / "level.blend"), load_ui=False)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    check_interrupt()
+    warn_missing(path, report.get("missing_textures", []))
+    return bpy.context.scene, report
+
+
+@contextlib.contextmanager
+def _fbx_light_fix():
+    """Blender 5.0's FBX importer sets ``light.cycles.cast_shadow``, which Cycles no longer has (it reads the light's
+    own ``use_shadow``, which the importer sets first): every FBX with a lamp failed with an AttributeError. The
+    property is declared for the import and removed afterwards, so lamps import with their shadow setting."""
+    try:
+        from cycles.properties import CyclesLightSettings as cls  # Cycles' own add-on (bpy.types does not list it)
+    except ImportError:
+        cls = None
+    add = cls is not None and "cast_shadow" not in cls.bl_rna.properties
+    if add:
+        cls.cast_shadow = bpy.props.BoolProperty(default=True)
+    try:
+        yield
+    finally:
+        if add:
+            del cls.cast_shadow
+
+
+def import_level(path: Path, allow_read=()) -> dict:
+    """Open or import ``path`` in this process (the import child, ``import_job``): its images checked against the
+    allowed folders before any is read, missing textures made neutral; returns the manifest's report."""
+    path = Path(path)
+    fmt = scene_format(path)
     if fmt.operator == "wm.open_mainfile":
-        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
-        scene = bpy.context.scene
+        with _importer_output(fmt.name):
+            bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
     else:
         bpy.ops.wm.read_factory_settings(use_empty=True)
         op = _operator(fmt, path)
+        fix = _fbx_light_fix() if fmt.name == "FBX" else contextlib.nullcontext()
         try:
-            with _importer_output(fmt.name):  # missing images are named once below
+            with _importer_output(fmt.name), fix:  # missing images are named once below
                 result = op(filepath=str(path), **dict(fmt.options))
         except RuntimeError as exc:
-            raise ConfigError(f"{path}: the {fmt.name} importer failed ({str(exc).strip().splitlines()[0]})") from None
+            raise ConfigError(f"{path}: the {fmt.name} importer failed ({_importer_error(exc)})") from None
         if "FINISHED" not in result:
             raise ConfigError(f"{path}: the {fmt.name} importer failed ({', '.join(sorted(result)).lower()}: not a "
                               f"readable {fmt.name} file)")
         scene = bpy.context.scene
         scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
-    missing = neutralise_missing_textures(path)
     report = {"format": fmt.name}
+    outside = check_image_files(path, allow_read)
+    if outside:
+        report["read_outside"] = outside
+    missing = neutralise_missing_textures(path)
     if missing:
         report["missing_textures"] = missing
-    return scene, report
+    return report
+
+
+def _importer_error(exc: RuntimeError) -> str:
+    """The line of an operator's error that says what went wrong: a Python importer's exception line (the last
+    line of its traceback), else the first line."""
+    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+    if lines and "Traceback" in lines[0]:
+        said = [ln for ln in lines if not ln.startswith(("File ", "Location:", "^", "Error: Python")) and ":" in ln
+                and not ln.startswith(("return ", "fbx_", "_"))]
+        return said[-1][:200] if said else "a Python error in the importer"
+    return lines[0] if lines else "no message"
+
+
+def check_image_files(level: Path, allow_read=()) -> list[str]:
+    """Every file image of the loaded scene, checked by the one resolver (``scene_refs.resolve_ref``) before its
+    pixels are read: ConfigError (one line) for one outside the allowed folders; returns those read from allowed
+    folders outside the level's."""
+    from ..scene_refs import read_roots, resolve_ref
+    roots = read_roots(level, allow_read)
+    outside = []
+    for im in bpy.data.images:
+        if im.source not in ("FILE", "SEQUENCE", "MOVIE", "TILED") or im.packed_file is not None:
+            continue
+        raw = im.filepath_raw or im.filepath
+        if not raw:
+            continue
+        real = resolve_ref(level, bpy.path.abspath(raw, library=im.library), Path(level).parent, roots,
+                           f"image {im.name!r} file")
+        if real is not None:
+            outside.append(str(real))
+    return sorted(set(outside))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -157,8 +237,8 @@ def _set_default(sock, value) -> None:
 
 
 def neutralise_missing_textures(level: Path) -> list[str]:
-    """Replace every use of a missing image (module doc), warn once naming the files, return them sorted (as the
-    level names them, relative to its folder)."""
+    """Replace every use of a missing image (module doc); return the files sorted (as the level names them, relative
+    to its folder; ``warn_missing`` names them in one warning)."""
     images = {im.name: im for im in bpy.data.images if im.users and _missing(im)}
     if not images:
         return []
@@ -174,13 +254,16 @@ def neutralise_missing_textures(level: Path) -> list[str]:
                 tree.links.remove(link)
                 _set_default(sock, value)
     base = Path(level).parent
-    files = sorted({_named(images[n], base) for n in used})
+    return sorted({_named(images[n], base) for n in used})
+
+
+def warn_missing(level: Path, files: list[str]) -> None:
+    """One warning line naming the missing texture files (the import child found them; the render warns)."""
     if files:
         shown = ", ".join(files[:WARN_FILES]) + (f" and {len(files) - WARN_FILES} more" if len(files) > WARN_FILES
                                                   else "")
         log.warning("%s: %d texture file(s) missing, rendered as mid grey (albedo %g), never magenta: %s",
                     Path(level).name, len(files), NEUTRAL_ALBEDO, shown)
-    return files
 
 
-__all__ = ["SCENE_FORMATS", "load_level", "neutralise_missing_textures"]
+__all__ = ["SCENE_FORMATS", "check_image_files", "import_level", "load_level", "neutralise_missing_textures"]

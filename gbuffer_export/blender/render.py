@@ -81,10 +81,11 @@ def load_scene(cfg: RenderConfig):
     if cfg.scene.suffix.lower() == ".blend":
         check_blend_file(cfg.scene)
     try:
-        scene, loaded = load_scene_file(cfg.scene)
+        scene, loaded = load_scene_file(cfg.scene, cfg.allow_read)
     except RuntimeError as exc:
         raise ConfigError(f"{cfg.scene}: Blender could not open it ({str(exc).splitlines()[0]})") from None
-    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **loaded}
+    allowed = {"allow_read": [str(Path(d).absolute()) for d in cfg.allow_read]} if cfg.allow_read else {}
+    return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **allowed, **loaded}
 
 
 def renderable_meshes(scene) -> list:

@@ -28,11 +28,12 @@ GPU_TYPES = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")
 # Loading
 # ----------------------------------------------------------------------------------------------
 
-def load_scene_file(path: Path):
-    """Open or import ``path`` by the format table (``importers.load_level``: a .blend as it is, every other format
-    into an empty file; missing textures made neutral); returns (scene, report for the manifest's ``scene``)."""
+def load_scene_file(path: Path, allow_read=()):
+    """Open or import ``path`` by the format table (``importers.load_level``: in a child process with limits, reading
+    only its folder and ``allow_read``; a .blend as it is, every other format into an empty file; missing textures
+    made neutral); returns (scene, report for the manifest's ``scene``)."""
     from .importers import load_level
-    return load_level(Path(path))
+    return load_level(Path(path), allow_read)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -54,6 +54,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="point the sun lamps (and an added sky) from elevation ELEV and azimuth AZIM, in degrees "
                         "(time of day; recorded in the manifest)")
     p.add_argument("--shard", default=None, metavar="K/N", help=field["shard"].help)
+    p.add_argument("--allow-read", action="append", default=[], metavar="DIR", help=field["allow_read"].help
+                   + "; repeat for more folders")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -90,6 +92,7 @@ def config_from_args(args) -> RenderConfig:
         output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
         scale=args.scale, scales=parse_scales(args.scales), buffers=args.buffers, shard=parse_shard(args.shard),
         progress=not args.no_progress, extra={"variation": variation} if variation else {},
+        allow_read=tuple(getattr(args, "allow_read", None) or ()),
         **values_from_args(args, RenderConfig, CLI))
 
 
@@ -100,6 +103,9 @@ def run(args) -> int:
     if getattr(args, "own_process", False):
         from ..reproducible import prepare_render_process
         prepare_render_process(cfg.threads)  # --threads 1: bit-identical EXRs for the same command
+    if cfg.scene is not None:  # refuse what the scene may not read at once, before bpy starts (the import re-checks)
+        from ..scene_refs import check_scene_refs
+        check_scene_refs(cfg.scene, cfg.allow_read)
     from ..interrupt import check_interrupt, stop_on_sigint
     with stop_on_sigint(), flags_named(args):  # Ctrl-C while bpy starts or Cycles renders: exit 130, not a crash
         from ..blender.render import render_clip  # imports bpy

@@ -82,3 +82,17 @@ def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures
     assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
     print("\n".join(lines))
     _clean(tally)
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_issue56_family_scene_files_in_a_sandbox(tmp_path):
+    """Fast form of part 11: references outside the folder refused naming file and reference, the 10^9 accessor and
+    the folder named s.glb named, an FBX with a lamp imports, Ctrl-C during an import exits 130 with no clip."""
+    tally = fc.Tally()
+    lines = []
+    fc.sandbox_imports(tmp_path, tally, quick=True, log=lines.append)
+    print("\n".join(lines))
+    assert tally.inputs_tried == sum(c[3] for c in fc.SANDBOX_CASES) + 1 >= 8
+    assert tally.faults == tally.faults_survived == 1
+    _clean(tally)

@@ -1,0 +1,163 @@
+"""Scene files imported in a child process with a memory and a time limit (core: no bpy; starts
+``python -m gbuffer_export.blender.import_job``).
+
+``import_in_child(scene, allow_read, out_dir)`` runs the importer of ``scene``'s format in a child process that
+checks its references first (``scene_refs``), imports it, makes its paths absolute and saves it as
+``out_dir/level.blend`` plus ``out_dir/result.json`` (the manifest's ``scene`` report); the renderer then opens that
+.blend. The child:
+
+- may use ``import_memory_limit()`` bytes of address space (``RLIMIT_AS`` where the OS has it; everywhere a
+  ``psutil`` watchdog in the parent kills it above that resident size), ``BLENDSR_IMPORT_MEMORY_GB`` overrides;
+- is killed after ``import_time_limit()`` seconds (``BLENDSR_IMPORT_TIME_S`` overrides);
+- runs in its own session with the scene's folder as its working directory, and dies with its parent;
+- a crash (SIGABRT, SIGSEGV), a limit or a refusal becomes one ``ConfigError`` line naming the file and the format.
+
+Ctrl-C (``gbuffer_export.interrupt``) is checked while waiting: the child is killed and KeyboardInterrupt raised.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from .errors import BlendSRError
+
+log = logging.getLogger(__name__)
+
+#: Default memory limit: this share of the machine's memory, within [MIN, MAX] GiB.
+MEMORY_SHARE, MIN_MEMORY_GB, MAX_MEMORY_GB = 0.5, 4.0, 64.0
+#: Default time limit of one import, seconds.
+IMPORT_TIME_S = 900.0
+POLL_S = 0.05
+
+
+class ImportSandboxError(BlendSRError):
+    """The importer crashed, hit a limit or refused the file (one line naming the file and the format)."""
+
+
+def _env_float(name: str, default: float) -> float:
+    v = os.environ.get(name)
+    if not v:
+        return default
+    try:
+        x = float(v)
+    except ValueError:
+        raise ImportSandboxError(f"{name}={v!r}: not a number") from None
+    if not x > 0:
+        raise ImportSandboxError(f"{name}={v!r}: must be > 0")
+    return x
+
+
+def import_memory_limit() -> int:
+    """Bytes of memory the importer may use (module doc)."""
+    import psutil
+    total = psutil.virtual_memory().total / 2**30
+    default = min(MAX_MEMORY_GB, max(MIN_MEMORY_GB, MEMORY_SHARE * total))
+    return int(_env_float("BLENDSR_IMPORT_MEMORY_GB", default) * 2**30)
+
+
+def import_time_limit() -> float:
+    return _env_float("BLENDSR_IMPORT_TIME_S", IMPORT_TIME_S)
+
+
+def set_memory_limit(limit: int) -> bool:
+    """Cap this process's address space at ``limit`` bytes (RLIMIT_AS); False where the OS has no such limit."""
+    try:
+        import resource
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        resource.setrlimit(resource.RLIMIT_AS, (limit if hard < 0 else min(limit, hard), hard))
+        return True
+    except (ImportError, AttributeError, ValueError, OSError):
+        return False
+
+
+def _gb(n: float) -> str:
+    return f"{n / 2**30:.3g} GiB"
+
+
+def _signal_name(rc: int) -> str:
+    try:
+        return signal.Signals(-rc).name
+    except ValueError:
+        return f"signal {-rc}"
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+
+
+def _wait(proc: subprocess.Popen, limit_s: float, memory: int) -> str | None:
+    """Wait for the child; returns why it was killed ("time", "memory") or None. KeyboardInterrupt on Ctrl-C."""
+    from .interrupt import check_interrupt
+    try:
+        import psutil
+        watched = psutil.Process(proc.pid)
+    except Exception:  # psutil missing or the child already gone
+        watched = None
+    t0 = time.monotonic()
+    while proc.poll() is None:
+        try:
+            check_interrupt()
+        except KeyboardInterrupt:
+            _kill(proc)
+            raise
+        if time.monotonic() - t0 > limit_s:
+            _kill(proc)
+            return "time"
+        if watched is not None:
+            try:
+                if watched.memory_info().rss > memory:
+                    _kill(proc)
+                    return "memory"
+            except Exception:  # the child ended between the two calls
+                pass
+        time.sleep(POLL_S)
+    return None
+
+
+def import_in_child(scene: Path, fmt_name: str, allow_read, out_dir: Path) -> dict:
+    """Import ``scene`` in a child process (module doc); returns its report (``level``: the saved .blend)."""
+    scene, out_dir = Path(scene).absolute(), Path(out_dir)
+    memory, limit_s = import_memory_limit(), import_time_limit()
+    result = out_dir / "result.json"
+    cmd = [sys.executable, "-m", "gbuffer_export.blender.import_job", str(scene), str(out_dir), "--memory",
+           str(memory), "--parent", str(os.getpid())]
+    for d in allow_read or ():
+        cmd += ["--allow-read", str(Path(d).absolute())]
+    env = dict(os.environ)
+    repo = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "") if env.get("PYTHONPATH") else repo
+    with open(out_dir / "import.log", "wb") as logf:
+        proc = subprocess.Popen(cmd, cwd=scene.parent, env=env, stdin=subprocess.DEVNULL, stdout=logf,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        killed = _wait(proc, limit_s, memory)
+    said = (out_dir / "import.log").read_text(errors="replace").strip()
+    if said:
+        log.debug("%s: the import process said:\n%s", scene.name, said[-4000:])
+    if killed == "time":
+        raise ImportSandboxError(f"{scene}: the {fmt_name} importer took longer than {limit_s:g} s (the import time "
+                                 "limit, BLENDSR_IMPORT_TIME_S); stopped")
+    if killed == "memory":
+        raise ImportSandboxError(f"{scene}: the {fmt_name} importer used more than {_gb(memory)} of memory (the "
+                                 "import memory limit, BLENDSR_IMPORT_MEMORY_GB); stopped")
+    report = json.loads(result.read_text()) if result.is_file() else None
+    if report is not None and report.get("error"):
+        raise ImportSandboxError(report["error"])
+    if proc.returncode < 0:
+        raise ImportSandboxError(f"{scene}: the {fmt_name} importer failed (it crashed: {_signal_name(proc.returncode)}): not a "
+                                 f"readable {fmt_name} file, or it needs more than the import memory limit "
+                                 f"({_gb(memory)}, BLENDSR_IMPORT_MEMORY_GB)")
+    if proc.returncode != 0 or report is None:
+        last = said.splitlines()[-1][:200] if said else "no output"
+        raise ImportSandboxError(f"{scene}: the {fmt_name} importer failed (exit {proc.returncode}: {last})")
+    return report
+
+
+__all__ = ["ImportSandboxError", "import_in_child", "import_memory_limit", "import_time_limit", "set_memory_limit"]
