@@ -22,7 +22,8 @@ from typing import get_type_hints
 
 from ..config import LIGHTS, SCENE_SUFFIXES, SPEC, ConfigError, RenderConfig, camera_path_ok, parse_size
 from ..conventions import parse_buffer_list
-from ..table_shells import default_of, legacy_values, shell_keys
+from ..table_shells import default_of, shell_keys
+from ..typed_table import legacy_values
 from ..typed_table import Rule, check_keys, fields_of, option, typed_value
 
 SPLITS = ("train", "val", "test")
