@@ -40,7 +40,7 @@ addon: setup
 	$(VPY) -m blender_addon.build -o dist
 
 generate: setup
-	$(VPY) -m gbuffer_export.commands.generate
+	$(VPY) -m training.generate
 
 bench: setup
 	$(VPY) -m gbuffer_export.cli bench render
