@@ -7,7 +7,7 @@ STAMP := $(VENV)/.setup-stamp
 export MALLOC_MMAP_THRESHOLD_ := 4294967296
 export MALLOC_TRIM_THRESHOLD_ := 68719476736
 
-.PHONY: setup test demo addon bench clean
+.PHONY: setup test demo addon bench clean generate
 
 setup: $(STAMP)
 
@@ -38,6 +38,9 @@ demo: setup
 
 addon: setup
 	$(VPY) -m blender_addon.build -o dist
+
+generate: setup
+	$(VPY) -m training.generate
 
 bench: setup
 	$(VPY) -m gbuffer_export.cli bench render

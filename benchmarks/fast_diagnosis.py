@@ -1,4 +1,4 @@
-"""Two diagnoses of a FuseSR-family network on a dataset split (docs/results.md, "The confidence gate and HR
+"""Two diagnoses of a FuseSR-family network on a dataset split (docs/results-history.md, "The confidence gate and HR
 geometry"); one-off measurements, not scores.
 
     .venv/bin/python benchmarks/fast_diagnosis.py DATASET --split val --model SPEC gate

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# fourier-sr on mixed scales (docs/results.md, "Shipped networks: fourier-sr on scales 2 and 4"):
+# fourier-sr on mixed scales (docs/results-history.md, "Shipped networks: fourier-sr on scales 2 and 4"):
 #   1. renders benchmarks/zoo_scales_dataset.toml (the zoo clips with an LR level at 2x as well as 4x) and validates it,
 #   2. fine-tunes the shipped fourier-sr (trained at 4x on the zoo clips, benchmarks/zoo.sh) on both levels of every
 #      training clip, with zoo.sh's recipe (the authors' losses, the residual demod-bilinear base, LR crop 16, batch 4)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Every network of BlendSR trained at equal steps on one dataset with held-out assets, then one
-# `blendsr bench models` table and Pareto plot on its test split (docs/results.md, "Networks on one dataset").
+# `blendsr bench models` table and Pareto plot on its test split (docs/results-history.md, "Networks on one dataset").
 #   1. renders benchmarks/networks_dataset.toml (12 clips; resumes when DATASET exists),
 #   2. trains each learned model for STEPS steps with its paper's losses (examples/*_config.toml) and the same
 #      crop, batch and optimiser length; RDG on windows of WINDOW frames (the other recurrent

@@ -15,7 +15,7 @@ recipe() {
     nsrd) echo examples/nsrd_config.toml "$(base nsrd)" ;;
     nsrr-fec) echo examples/nsrr_fec_config.toml --set loss.pixel_weight=1.0 "$(base nsrr-fec)" ;;
     # ^ the paper's 1 - SSIM plus an L1 term (a deviation): with 1 - SSIM alone the output's brightness drifted
-    #   (val PSNR 13.6 dB after 991 steps, median SR 7-10x the reference; docs/results.md, "Shipped networks")
+    #   (val PSNR 13.6 dB after 991 steps, median SR 7-10x the reference; docs/results-history.md, "Shipped networks")
     fourier-sr) echo examples/fourier_sr_config.toml --set optim.lr=5e-4 "$(base fourier-sr)" ;;
     fusesr-fast) echo examples/train_config.toml --set optim.warmup_steps=0 \
                    --set model.fusesr-fast.zero_init_refine=true --set optim.decay_steps="$2" ;;

@@ -1,5 +1,5 @@
 #!/bin/bash
-# FuseSR Table 3 ablation on clean clips (docs/results.md, "The clean-clip benchmark"): render 4 training clips of the
+# FuseSR Table 3 ablation on clean clips (docs/results-history.md, "The clean-clip benchmark"): render 4 training clips of the
 # built-in scene and 4 unseen test clips (3 glTF assets + the built-in scene with another seed), evaluate the
 # non-learned baselines, train FuseSR with the 4 settings of the HR G-buffer / demodulation switches for the same
 # number of steps, evaluate each, and write the speed-against-error table and Pareto plot.

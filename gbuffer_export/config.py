@@ -12,7 +12,7 @@ from typing import Sequence
 
 from .conventions import DEFAULT_BUFFERS, check_level_sizes, parse_buffer_list, parse_exposure, scale_fraction
 from .scene_formats import SCENE_SUFFIXES, formats_text
-from .typed_table import ConfigError, key_error, option, set_checked
+from .typed_table import ConfigError, key_error, legacy_values, option, set_checked
 
 CAMERA_PATHS = ("scene", "orbit", "walk", "fly")  # also scene:NAME and scene:* (the file's own cameras)
 #: Generated paths that move inside a level (``gbuffer_export.blender.level_cameras``).
@@ -336,3 +336,30 @@ class RenderConfig:
         d["output"] = str(self.output)
         d["scene"] = str(self.scene) if self.scene else None
         return d
+
+
+#: The keys of ``RenderConfig`` that the manifest's header writes by hand (``render._manifest_header``: sizes, samples,
+#: camera, light, materials, buffers, F_beta ...) or that do not change what a clip holds (where it is written,
+#: threads, the progress bar, shards). Every key added after these is recorded by ``recorded_keys`` from its rule:
+#: do not add a new key here.
+MANIFEST_BY_HAND = frozenset({
+    "output", "scene", "frames", "hr_size", "scale", "scales", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise",
+    "lr_denoise", "adaptive", "adaptive_threshold", "adaptive_min_samples", "camera_path", "light", "materials",
+    "exposure", "device", "seed", "jitter", "buffers", "fbeta", "hr_fbeta", "gbuffer_transmission", "shard",
+    "only_frames", "max_bounces", "unit_scale", "threads", "progress", "extra"})
+
+
+def recorded_keys(cfg: RenderConfig) -> dict:
+    """The manifest's ``settings`` entry: {key: value} of every key outside ``MANIFEST_BY_HAND`` whose value is not
+    what clips rendered before the key existed were made with (its ``Rule.legacy``, else its default). A clip
+    rendered at those values has no entry for the key, so its identity is the one it had before the key: adding a
+    key never makes an older clip "a different clip", and it resumes."""
+    names = [f.name for f in dataclasses.fields(cfg) if f.name not in MANIFEST_BY_HAND]
+    legacy = legacy_values(type(cfg), names)
+    out = {}
+    for name in names:
+        value = getattr(cfg, name)
+        value = list(value) if isinstance(value, tuple) else value
+        if value != legacy[name]:
+            out[name] = value
+    return {"settings": out} if out else {}

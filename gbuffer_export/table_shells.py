@@ -20,7 +20,7 @@ import typing
 from pathlib import Path
 from typing import Any, get_args, get_origin
 
-from .typed_table import AS_DEFAULT, ConfigError, Rule, fields_of, key_error
+from .typed_table import AS_DEFAULT, ConfigError, Rule, fields_of, key_error, legacy_values  # noqa: F401 (re-exported)
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The add-on's copy of the render keys it derives properties from (the add-on never imports the library when it
@@ -51,14 +51,6 @@ def shell_keys(cls, shell: str) -> list[str]:
     return [name for name, (_, r) in fields_of(cls).items() if r.shells is None or shell in r.shells]
 
 
-def legacy_values(cls, names) -> dict[str, Any]:
-    """{key: what data written before the key existed was made with} (``Rule.legacy``, else the default)."""
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    out = {}
-    for name in names:
-        r = fields_of(cls)[name][1]
-        out[name] = default_of(fields[name]) if r.legacy is AS_DEFAULT else r.legacy
-    return out
 
 
 def _inner(typ):

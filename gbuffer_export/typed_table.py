@@ -221,6 +221,21 @@ def typed_value(path: str, value, typ, r: Rule, error=ConfigError, prefix: str =
 # Tables
 # ----------------------------------------------------------------------------------------------
 
+def legacy_values(cls, names) -> dict[str, Any]:
+    """{key: what data written before the key existed was made with} (``Rule.legacy``, else the field's default)."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = {}
+    for name in names:
+        f, r = fields[name], fields_of(cls)[name][1]
+        if r.legacy is not AS_DEFAULT:
+            out[name] = r.legacy
+        elif f.default is not dataclasses.MISSING:
+            out[name] = f.default
+        else:
+            out[name] = f.default_factory()
+    return out
+
+
 def fields_of(cls) -> dict[str, tuple[Any, Rule]]:
     """{name: (annotation, rule)} of the dataclass ``cls``, in field order."""
     hints = get_type_hints(cls)

@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import __version__
 from ..clip import FRAMES_DIR, ClipWriter, frame_name, levels_header
-from ..config import ConfigError, RenderConfig
+from ..config import ConfigError, RenderConfig, recorded_keys
 from ..conventions import (Flag, computed_buffers, exposure_header, halton_jitter, intrinsics_from_projection,
                            level_name, material_flags_for_source, pass_seed)
 from ..interrupt import check_interrupt, stop_on_sigint
@@ -558,6 +558,8 @@ def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRend
         # only when untextured: a clip of the scene's own materials keeps the identity it had before the key
         **({"material_mode": r.material_mode} if r.material_mode else {}),
         "moving_objects": list(r.moving),
+        # every key added after MANIFEST_BY_HAND, from its rule; none at its legacy value (identity kept)
+        **recorded_keys(cfg),
         "shard": list(cfg.shard),
         "command": " ".join(sys.argv),
     }

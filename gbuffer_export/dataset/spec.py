@@ -22,7 +22,8 @@ from typing import get_type_hints
 
 from ..config import LIGHTS, SCENE_SUFFIXES, SPEC, ConfigError, RenderConfig, camera_path_ok, parse_size
 from ..conventions import parse_buffer_list
-from ..table_shells import default_of, legacy_values, shell_keys
+from ..table_shells import default_of, shell_keys
+from ..typed_table import legacy_values
 from ..typed_table import Rule, check_keys, fields_of, option, typed_value
 from .families import (BUILTIN_FAMILIES, CAMERA_FAMILIES, builtin_family, check_family_id, family_group, hdri_family,
                        held_split, leak)

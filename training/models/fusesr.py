@@ -18,7 +18,7 @@ ground truth are both rasterised), or T^-1(.) without demodulation.
 Options are the ``[model.fusesr]`` table (``training.models.options.FuseSROptions``; ``[model.fusesr-l]`` for
 ``fusesr-l``). Option (``hr_guide``, default off; not in the paper): the HR refinement reads the 10 HR G-buffer channels
 beside the pixel-shuffled prediction (3x3 conv 13 -> 16 + ReLU, 3x3 conv 16 -> 3) instead of the 3x3 conv 3 -> 3,
-a direct full-resolution path for the HR geometry (docs/results.md, "FuseSR Table 3 on the clean clips").
+a direct full-resolution path for the HR geometry (docs/results-history.md, "FuseSR Table 3 on the clean clips").
 
 Deviation (``residual``, default on): the bilinear upsampling of the transformed LR input T(L_D^LR) is added
 before the final ReLU, so the network learns a correction of the demod-bilinear baseline. Without it (the authors'
@@ -32,11 +32,11 @@ warping adds the jitter difference to the motion (``base.history_offsets``).
 Guided base (``guided_upsample``, default on; not in the paper): with the HR branch on, the residual base is
 the joint bilateral upsampling of T(L_D^LR) guided by HR depth and normals (``guided.upsample_guided``, the
 ``demod-jbu`` baseline's upsampling) instead of the bilinear one, so the network corrects a base that already
-respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (measured: docs/results.md).
+respects the HR geometry. ``hr_gbuffer = false`` removes it with the branch (measured: docs/results-history.md).
 
 Option (``zero_init_refine``, default off; not in the paper): the last 3x3 conv starts at zero, so a fresh
 network outputs exactly its residual base (the guided or bilinear upsampling) and training moves away from it only
-where the loss says so (docs/results.md, "FuseSR Table 3 on the clean clips", has the measurement).
+where the loss says so (docs/results-history.md, "FuseSR Table 3 on the clean clips", has the measurement).
 
 Bounded correction (``residual_clamp``, default ``"none"``: the paper's network; not in the paper): with
 ``"lr-range"`` the network's demodulated HR output (after T^-1, before the remodulation) is clamped per channel to
