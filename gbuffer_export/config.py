@@ -346,7 +346,8 @@ MANIFEST_BY_HAND = frozenset({
     "output", "scene", "frames", "hr_size", "scale", "scales", "hr_spp", "lr_spp", "gbuffer_spp", "hr_denoise",
     "lr_denoise", "adaptive", "adaptive_threshold", "adaptive_min_samples", "camera_path", "light", "materials",
     "exposure", "device", "seed", "jitter", "buffers", "fbeta", "hr_fbeta", "gbuffer_transmission", "shard",
-    "only_frames", "max_bounces", "unit_scale", "threads", "progress", "extra"})
+    "only_frames", "max_bounces", "unit_scale", "threads", "progress", "extra",
+    "allow_read"})  # the manifest's scene.allow_read, written when not empty
 
 
 def recorded_keys(cfg: RenderConfig) -> dict:
