@@ -32,6 +32,7 @@ from ..errors import BlendSRError
 from ..exr import HALF_MAX, exr_size, read_exr, write_exr
 from . import conventions as cv
 from .output import ExportOptions, Target, clean_temp_files
+from .table import check_clips
 
 log = logging.getLogger(__name__)
 
@@ -97,19 +98,11 @@ def frame_runs(frames) -> list[list[int]]:
     return runs
 
 
-def check_clip(clip) -> None:
-    """NssError (one line naming the clip and the fix) when ``clip`` cannot become an NSS sequence that the model
-    gym's converter reads: it needs radiance, depth and motion, a finished frame and an LR level at ratio 2."""
-    need = {"radiance", "depth", "motion"}
-    if not need <= set(clip.buffers):
-        raise NssError(f"{clip.path}: NSS needs the buffers {', '.join(sorted(need))} (clip has "
-                       f"{', '.join(clip.buffers)}); render it with --buffers radiance,depth,motion or more")
-    if not clip.frames:
-        raise NssError(f"{clip.path}: no finished frames")
-    if not any(abs(s - GYM_RATIO) < 1e-9 for s in clip.scales):
-        raise NssError(f"{clip.path}: NSS needs a 2x level (Arm's converter reads x2/ only) and the clip has "
-                       f"scale(s) {', '.join(f'{s:g}' for s in clip.scales)}; render it with --scales 2,4 "
-                       "(a dataset spec: scale = 2 and scales = [2, 4] in its [render] table)")
+def check_clip(clip, fmt: str = "nss") -> None:
+    """NssError (one line naming the clip and the fix) when ``clip`` cannot become a sequence of format ``fmt``
+    that its consumer reads: the limits of ``formats.table.FORMATS`` (NSS: radiance, depth and motion, a finished
+    frame and an LR level at ratio 2)."""
+    check_clips(fmt, [clip], NssError)
 
 
 def _exr_rgba(path: Path, rgb: np.ndarray) -> None:
@@ -238,16 +231,15 @@ def export_sequences(sources, out, options: ExportOptions, *, fmt: str, write_se
     clips = [open_clip(p) for p in source_clips(sources)]
     if not clips:
         raise NssError(f"{', '.join(map(str, sources))}: no finished clips to export")
-    for clip in clips:
-        check_clip(clip)
-    seq = 0
-    if target.appending:
-        remove_orphan_sequences(out)
-        clean_temp_files(out)
-        names = sequence_names(out)
-        seq = int(names[-1]) + 1 if names else 0
+    check_clips(fmt, clips, NssError)  # every limit of the consumer, before anything is written
     written: list[str] = []
-    with target:
+    with target:  # holds OUT's lock when appending: the numbers below are this export's alone
+        seq = 0
+        if target.appending:
+            remove_orphan_sequences(out)
+            clean_temp_files(out)
+            names = sequence_names(out)
+            seq = int(names[-1]) + 1 if names else 0
         for clip in clips:
             runs = frame_runs(clip.frames)
             if len(runs) > 1:
