@@ -116,6 +116,38 @@ def check_clips(fmt: str, clips, error: type[BlendSRError] = FormatLimitError) -
             raise error(line)
 
 
+def render_problem(fmt: str, render: dict) -> str:
+    """'' when a clip rendered with ``render`` (a dataset job's settings: scale, scales, hr_size, buffers) can be
+    exported as ``fmt``, else what it lacks in a few words ('no 2x level', 'HR 640x360, not 1920x1080', 'buffers
+    depth')."""
+    f = FORMATS[fmt]
+    scales = [float(s) for s in (render.get("scales") or (render["scale"],))]
+    out = [f"no {s:g}x level" for s in f.scales if not any(abs(s - c) < 1e-9 for c in scales)]
+    size = tuple(render.get("hr_size") or ())
+    if f.hr_size and size != tuple(f.hr_size):
+        out.append(f"HR {'x'.join(map(str, size)) or 'the scene size'}, not {f.hr_size[0]}x{f.hr_size[1]}")
+    lacking = [b for b in f.buffers if b not in render.get("buffers", ())]
+    if lacking:
+        out.append(f"no {','.join(lacking)}")
+    return "; ".join(out)
+
+
+def formats_report(renders) -> list[str]:
+    """One line per format: whether every clip of ``renders`` (job render settings) can be exported as it, and
+    otherwise how many cannot, why, and the fix (``blendsr dataset --dry-run``)."""
+    renders = list(renders)
+    lines = []
+    for n, f in FORMATS.items():
+        bad = [p for p in (render_problem(n, r) for r in renders) if p]
+        if not bad:
+            lines.append(f"export {n}: every clip can be exported ({f.needs()})")
+        else:
+            lines.append(f"export {n}: {len(bad)} of {len(renders)} clips cannot be ({bad[0]}); {f.title} needs "
+                         f"{f.needs()}: add for_formats = [\"{n}\"] to the spec's [dataset] table or pass "
+                         f"--for-formats {n}")
+    return lines
+
+
 def render_for_formats(formats, *, scales, hr_size, buffers, where: str = "--for-formats") -> dict:
     """The render settings that give clips every format of ``formats`` loads: ``scales`` (the clip's, its first
     the 'lr' level) with each LR level a format reads added after them, ``hr_size`` set to the size a format
@@ -138,5 +170,5 @@ def render_for_formats(formats, *, scales, hr_size, buffers, where: str = "--for
             "buffers": tuple(b for b in ALL_BUFFERS if b in need_bufs)}
 
 
-__all__ = ["ExportFormat", "FORMATS", "FormatLimitError", "NAMES", "check_clips", "clip_problem", "names_text",
-           "needs_text", "parse_formats", "render_for_formats"]
+__all__ = ["ExportFormat", "FORMATS", "FormatLimitError", "NAMES", "check_clips", "clip_problem", "formats_report",
+           "names_text", "needs_text", "parse_formats", "render_for_formats", "render_problem"]
