@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import BlendSRError, first_line
+from .errors import BlendSRError, first_line, with_path
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import (BUFFERS, LEVELS, METERED_KEYS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes,
                           expose, exposure_of, is_level_name, level_name, luminance_stats, metered_exposure)
@@ -132,7 +132,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
-            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+            raise with_path(exc, path) from exc
         raise
 
 
