@@ -22,6 +22,7 @@ import argparse
 import hashlib
 import importlib.metadata
 import importlib.util
+import io
 import json
 import re
 import shutil
@@ -30,6 +31,8 @@ import sys
 import tempfile
 import zipfile
 from pathlib import Path
+
+from blender_addon import wheel_problem
 
 SOURCE = Path(__file__).resolve().parent
 REPO = SOURCE.parent
@@ -250,6 +253,16 @@ def check_zip(zip_path: Path) -> None:
             raise BuildError(f"{zip_path}: {required} is missing from the package")
     if not any(n.startswith("wheels/blendsr-") for n in names):
         raise BuildError(f"{zip_path}: the blendsr wheel is missing from the package")
+    with zipfile.ZipFile(zip_path) as z:
+        for name in sorted(n for n in names if n.startswith("wheels/") and n.endswith(".whl")):
+            problem = wheel_problem(io.BytesIO(z.read(name)))
+            if not problem:
+                with zipfile.ZipFile(io.BytesIO(z.read(name))) as w:
+                    bad = w.testzip()
+                problem = f"{bad} fails its CRC" if bad else ""
+            if problem:
+                raise BuildError(f"{zip_path}: {name} is corrupt ({problem}); delete it from {WHEEL_CACHE} and "
+                                 "build again")
 
 
 def main(argv: list[str] | None = None) -> int:
