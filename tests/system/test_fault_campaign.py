@@ -82,3 +82,11 @@ def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures
     assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
     print("\n".join(lines))
     _clean(tally)
+
+
+def test_exports_appends_at_once_consumer_limits_and_the_nss_round_trip(fixtures):
+    """Part 11, quick form (NSS and RDG races; NFRU's 1920x1080 race in the full campaign)."""
+    tally = fc.Tally()
+    fc.export_cases(fixtures, tally, quick=True, log=lambda m: None)
+    assert tally.inputs_tried == 5
+    _clean(tally)
