@@ -81,8 +81,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
     level_cam = level_report(manifest)
     exposure = check_exposure(c, manifest)
-    derived_hr_depth = (manifest.get("imported") or {}).get("hr_depth") if isinstance(manifest.get("imported"),
-                                                                                     dict) else None
+    imported = manifest.get("imported") if isinstance(manifest.get("imported"), dict) else {}
+    derived_hr_depth = imported.get("hr_depth")  # an imported NSS capture's: interpolated, not data
     ratios: dict[int, float] = {}
     if frames is not None:
         wanted = set(int(f) for f in frames)
