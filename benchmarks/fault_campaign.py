@@ -57,6 +57,10 @@ Parts (each prints its counts; the totals come last):
    and listed in the manifest); a crash or limit in an importer (truncated Alembic, Alembic garbage, a PLY of 4e9
    vertices, the time limit) is one line naming the file and the format; an FBX with a lamp imports; a glTF accessor
    count of 10^9 and a folder named ``s.glb`` are named; Ctrl-C during the import exits 130 with no clip.
+12. **Exports** (part ``exports``): two ``export-dataset --append`` at once onto one export, for NSS, RDG and (not
+   ``--quick``) NFRU on 1920x1080 clips, must both exit 0 with every sequence or scene listed once and none mixed;
+   NFRU without a 2x level is refused naming NFRU; an NFRU export of a 64x36 clip (its reader loads 1920x1080) is
+   refused before anything is written; ``import-nss`` of an NSS export validates.
 
 ``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
@@ -1784,11 +1788,96 @@ def sigint_during_import(work: Path, tally: Tally, log=print) -> None:
         tally.faults_survived += 1
     log(f"  {'FAIL' if problems else 'ok  '} Ctrl-C during the import: exit {rc} {took:.1f} s after the signal")
 
+# ------------------------------------------------------------------------------------------------------ exports
+def _append_race(src: dict, fmt: str, work: Path) -> tuple[list[int], str, dict]:
+    """Export ``src['base']`` as ``fmt``, then two ``--append`` (``a``, ``b``) started while the campaign holds the
+    export's lock, let go once both wait: (exit codes, stderr of both, {sequence or scene: frames})."""
+    from gbuffer_export.locks import FolderLock
+    out = work / "out"
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    cli(["export-dataset", str(src["base"]), "--format", fmt, "-o", str(out)])
+    held = FolderLock(out, "the campaign holds it")
+    logs = [work / "a.log", work / "b.log"]
+    try:
+        procs = []
+        for k, log_path in zip(("a", "b"), logs):
+            with open(log_path, "w") as f:
+                procs.append(subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "export-dataset",
+                                               str(src[k]), "--format", fmt, "-o", str(out), "--append"],
+                                              cwd=REPO, env=ENV, stdout=f, stderr=f))
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 120 and any(p.poll() is None for p in procs):
+            if all("waiting for it" in g.read_text() for g in logs):
+                break
+            time.sleep(0.1)
+    finally:
+        held.close()
+    codes = [p.wait(timeout=600) for p in procs]
+    if fmt == "rdg":
+        got = {ln.split()[0]: int(ln.split()[1]) for ln in (out / "meta_info_train.txt").read_text().splitlines()}
+    else:
+        got = {j.stem: len(json.loads(j.read_text())["Frames"]) for j in out.glob("*.json")}
+        for seq, n in got.items():  # a sequence mixing two appends holds more files than its JSON has frames
+            if len(list((out / "ground_truth" / seq).glob("*.exr"))) != n:
+                got[seq] = -1
+    return codes, "".join(g.read_text() for g in logs), got
+
+
+def export_cases(fx: Fixtures, tally: Tally, quick: bool = False, log=print) -> None:
+    """Part 11 (issue 56 item 4, issue 57 item 4): two ``--append`` at once for every format (NFRU on 1920x1080
+    clips unless ``quick``) lose no sequence; the NFRU refusal of a missing 2x level names NFRU; an NFRU export
+    its reader cannot load (not 1920x1080) is refused before anything is written; the NSS round trip validates."""
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
+    work = fx.root / "exports"
+    small = {k: fx.root / f"exp_{k}" for k in ("base", "a", "b")}
+    for k, n in zip(small, (1, 3, 2)):
+        if not small[k].exists():
+            make_synthetic_clip(small[k], frames=range(1, n + 1), hr_size=(32, 16), scales=(2, 4))
+    sets = {"nss": small, "rdg": small}
+    if not quick:
+        hd = {k: fx.root / f"exp_hd_{k}" for k in ("base", "a", "b")}
+        for k in hd:
+            if not hd[k].exists():
+                make_synthetic_clip(hd[k], frames=(1,), hr_size=(1920, 1080), scales=(2,),
+                                    buffers=("radiance", "depth", "motion"), look=SyntheticLook(hr_supersample=1))
+        sets["nfru"] = hd
+    for fmt, src in sets.items():
+        label = f"exports: two --append at once ({fmt})"
+        codes, err, got = _append_race(src, fmt, work / fmt)
+        tally.inputs_tried += 1
+        if TRACEBACK in err:
+            tally.tracebacks += 1
+        want = 3 if fmt != "rdg" else {src[k].name: n for k, n in (("base", 1), ("a", 3), ("b", 2))}
+        if codes != [0, 0] or (len(got) != want if fmt != "rdg" else got != want) or -1 in got.values():
+            tally.lost_frames += 1
+            tally.fail(f"{label}: exits {codes}, the export lists {got}")
+        log(f"  {'ok  ' if codes == [0, 0] else 'FAIL'} {label}: {len(got)} sequences or scenes")
+    proc = cli(["export-dataset", str(fx.clip), "--format", "nfru", "-o", str(work / "nfru4")])
+    if _outcome(tally, "exports: NFRU without a 2x level", proc.returncode, proc.stderr, (2,), log=log) and \
+            ("NSS" in proc.stderr or "NFRU needs a 2x level" not in proc.stderr):
+        tally.fail(f"exports: the NFRU refusal names another format: {proc.stderr.strip()[-200:]}")
+    proc = cli(["export-dataset", str(fx.clip2), "--format", "nfru", "-o", str(work / "nfru_small")])
+    if _outcome(tally, "exports: NFRU at 64x36 (its reader loads 1920x1080)", proc.returncode, proc.stderr, (2,),
+                log=log) and ("1920x1080" not in proc.stderr or (work / "nfru_small").exists()
+                              or list(work.glob(".nfru_small.*"))):
+        tally.fail(f"exports: the NFRU size refusal wrote something or named no fix: {proc.stderr.strip()[-200:]}")
+    proc = cli(["export-dataset", str(fx.clip2), "--format", "nss", "-o", str(work / "nss_rt")])
+    back = work / "nss_rt_clip"
+    if back.exists():
+        shutil.rmtree(back)
+    if proc.returncode == 0:
+        proc = cli(["import-nss", str(work / "nss_rt"), "-o", str(back)])
+    if proc.returncode == 0:
+        proc = cli(["validate", str(back)])
+    _outcome(tally, "exports: the NSS round trip validates", proc.returncode, proc.stderr, (0,), log=log)
+
 
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
              parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs",
-                    "huge", "dsignals", "sandbox"),
+                    "huge", "dsignals", "sandbox", "exports"),
              signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
@@ -1830,6 +1919,9 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "sandbox" in parts:
         log("scene files in a sandbox (issue 56):")
         sandbox_imports(out / "sandbox", tally, quick, log)
+    if "exports" in parts:
+        log("exports (appends at once, consumer limits, the NSS round trip):")
+        export_cases(fx, tally, quick=quick, log=log)
     return tally
 
 
@@ -1840,7 +1932,7 @@ def main(argv=None) -> int:
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
     p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge,"
-                                      "dsignals,sandbox",
+                                      "dsignals,sandbox,exports",
                    help="comma-separated parts to run")
     p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
     p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "

@@ -24,6 +24,7 @@ import argparse
 import hashlib
 import importlib.metadata
 import importlib.util
+import io
 import json
 import re
 import shutil
@@ -32,6 +33,8 @@ import sys
 import tempfile
 import zipfile
 from pathlib import Path
+
+from blender_addon import wheel_problem
 
 SOURCE = Path(__file__).resolve().parent
 REPO = SOURCE.parent
@@ -313,6 +316,16 @@ def check_zip(zip_path: Path) -> None:
     for graph in ("pretrained_fusesr-l_x4.onnx", "bilinear_xany.onnx"):
         if f"{GRAPHS}/{graph}" not in names or f"{GRAPHS}/{graph}.json" not in names:
             raise BuildError(f"{zip_path}: the preview's graph {GRAPHS}/{graph} (or its .json) is missing")
+    with zipfile.ZipFile(zip_path) as z:
+        for name in sorted(n for n in names if n.startswith("wheels/") and n.endswith(".whl")):
+            problem = wheel_problem(io.BytesIO(z.read(name)))
+            if not problem:
+                with zipfile.ZipFile(io.BytesIO(z.read(name))) as w:
+                    bad = w.testzip()
+                problem = f"{bad} fails its CRC" if bad else ""
+            if problem:
+                raise BuildError(f"{zip_path}: {name} is corrupt ({problem}); delete it from {WHEEL_CACHE} and "
+                                 "build again")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -136,6 +136,12 @@ def for_models(ds) -> list[str]:
     return render_keys.flag_list(ds.for_models, render_keys.CHOICES["models"])
 
 
+def for_formats(ds) -> list[str]:
+    """The ticked *For formats*, in the format table's order (written as the spec's ``[dataset] for_formats``)."""
+    return render_keys.flag_list(getattr(ds, "for_formats", set()),
+                                 [f["name"] for f in render_keys.CHOICES["formats"]])
+
+
 def preview_scale(settings) -> tuple[bool, str]:
     """(whether the preview's model takes any scale, the one-line problem with the settings' Scale or ''), for the
     chosen preview model (``gbuffer_export.dataset.buffers.scale_problem``); a checkpoint file is checked when it
@@ -178,7 +184,10 @@ def dataset_spec_dict(ds, stem: str) -> dict:
     src = {"name": "scene", "kind": "scene", "paths": [f"{SCENE_DIR}/{stem}.blend"], "clips_per_scene": ds.clips,
            "cameras": cameras(ds), "light": ds.light, "regions": [ds.regions_x, ds.regions_y],
            "region_val": ds.region_val, "region_test": ds.region_test, **variation_keys(ds)}
-    return {"dataset": {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}, "render": render, "source": [src]}
+    head = {"name": ds.dataset_name.strip() or stem, "seed": ds.seed}
+    if for_formats(ds):  # parse_spec adds what they need (levels, size, buffers) to every clip
+        head["for_formats"] = for_formats(ds)
+    return {"dataset": head, "render": render, "source": [src]}
 
 
 def variation_keys(ds) -> dict:

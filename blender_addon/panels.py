@@ -301,6 +301,8 @@ def _draw_dataset_clips(layout, context) -> None:
     row.prop(ds, "hr_height")
     layout.label(text="Scales (an LR level each)")
     layout.row(align=True).prop(ds, "scales", expand=True)
+    layout.label(text="For formats (what each export needs is added)")
+    layout.row(align=True).prop(ds, "for_formats", expand=True)
     layout.prop(ds, "light")
 
 

@@ -36,6 +36,10 @@ BUFFER_PRESET_ITEMS = (
 #: Models of *For models* (the model-buffer table's), and the scales the models take.
 MODEL_ITEMS = tuple((m, m, f"Render the buffers {m} reads") for m in CHOICES["models"])
 SCALE_ITEMS = tuple((str(k), f"{k}x", f"An LR level at 1/{k} of the HR size") for k in CHOICES["scales"])
+#: Export formats of *For formats* (``formats.table`` through choices.json), each with what it needs.
+FORMAT_ITEMS = tuple((f["name"], f["title"], f"Render what {f['title']} needs: {f['needs']}")
+                     for f in CHOICES["formats"])
+FORMAT_NEEDS = "; ".join(f"{f['title']}: {f['needs']}" for f in CHOICES["formats"])
 
 
 def buffer_properties(default_set) -> dict:
@@ -110,12 +114,16 @@ class BlendSRDatasetSettings(bpy.types.PropertyGroup):
                            description="HR (target) height in pixels; divisible by every scale")
     scales: EnumProperty(name="Scales", items=SCALE_ITEMS, options={"ENUM_FLAG"}, default={"4"},
                          description="Upscaling factors: every clip gets one LR level per ticked scale (the "
-                                     "smallest is the level 'lr'); NSS datasets need 2x")
+                                     "smallest is the level 'lr'). Exports need: " + FORMAT_NEEDS)
     light: render_property("light")  # the source's light (a [[source]] key), RenderConfig's choices and default
     device: render_property("device")  # the run's device (blendsr dataset --device)
     for_models: EnumProperty(name="For models", items=MODEL_ITEMS, options={"ENUM_FLAG"}, default=set(),
                              description="Render only the buffers the ticked models read (as --for-models); "
                                          "none ticked: the Buffers setting")
+    for_formats: EnumProperty(name="For formats", items=FORMAT_ITEMS, options={"ENUM_FLAG"}, default=set(),
+                              description="Also render what the ticked export formats need (as --for-formats: "
+                                          "their LR levels, size and buffers; blendsr export-dataset checks them). "
+                                          + FORMAT_NEEDS)
     vary_world: BoolProperty(name="Vary world strength", default=False,
                              description="Multiply the world's background strength per clip (log-uniform in the range)")
     world_strength_min: FloatProperty(name="Min", default=0.5, min=0.001, description="Smallest world multiplier")

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import BlendSRError, first_line
+from .errors import BlendSRError, first_line, with_path
 from .colour_spaces import DEFAULT_WORKING_SPACE, conversion_matrix, convert_buffer
 from .conventions import (BUFFERS, LEVELS, METERED_KEYS, SCHEMA, SCHEMA_VERSION, buffer_spec, check_level_sizes,
                           expose, exposure_of, is_level_name, level_name, luminance_stats, metered_exposure)
@@ -110,15 +110,21 @@ def open_nofollow(path: Path, flags: int) -> int:
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as JSON to ``path`` through a temporary file and a rename (a link at ``path`` is replaced,
     never written through)."""
+    text = json.dumps(obj, indent=1, sort_keys=False, default=_json_default, allow_nan=False) + "\n"
+    write_bytes_atomic(path, text.encode())
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file ``.NAME.tmpPID`` and a rename (a link at ``path`` is
+    replaced, never written through); a filesystem fault (a full disk) names ``path``, and no temporary stays."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     with contextlib.suppress(FileNotFoundError):
         os.unlink(tmp)  # a leftover (or a planted link) of the same name
     try:
-        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=False, default=_json_default, allow_nan=False)
-            f.write("\n")
+        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -126,7 +132,7 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
-            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+            raise with_path(exc, path) from exc
         raise
 
 

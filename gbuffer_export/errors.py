@@ -48,6 +48,16 @@ def filesystem_message(exc: BaseException) -> str | None:
     return None
 
 
+def with_path(exc: OSError, path) -> OSError:
+    """``exc`` as an OSError naming ``path`` when it names no file (a failed ``write`` or ``flush`` on a full disk
+    names none), so that the one-line error says which file; ``exc`` itself otherwise."""
+    if exc.filename is None and exc.errno is not None:
+        named = OSError(exc.errno, exc.strerror, str(path))
+        named.__cause__ = exc
+        return named
+    return exc
+
+
 def bad_input_line(exc: BaseException) -> str | None:
     """The one-line message of an exception that is the user's to fix, or None for a bug."""
     fs = filesystem_message(exc)
@@ -61,4 +71,4 @@ def bad_input_line(exc: BaseException) -> str | None:
 
 
 __all__ = ["BlendSRError", "EXIT_INTERNAL", "FILESYSTEM_ERRNOS", "bad_input_line", "filesystem_message",
-           "first_line"]
+           "first_line", "with_path"]

@@ -35,16 +35,16 @@ class FolderLock:
     """Hold ``root/name`` exclusively until ``close()`` (or the end of a ``with`` block, or the process).
 
     ``busy`` is the one-line message raised (``FolderBusyError``) when another process (or another ``FolderLock``
-    of this process) holds it. A symbolic link planted at the lock file's place is refused (UnsafePathError), never
-    written through."""
+    of this process) holds it; ``timeout`` > 0 waits that many seconds for it first, -1 waits until it is free. A
+    symbolic link planted at the lock file's place is refused (UnsafePathError), never written through."""
 
-    def __init__(self, root: str | os.PathLike, busy: str, name: str = ".lock"):
+    def __init__(self, root: str | os.PathLike, busy: str, name: str = ".lock", timeout: float = 0):
         self.root = Path(root)
         path = self.root / name
         if path.is_symlink():
             raise UnsafePathError(f"{path}: is a symbolic link; refused")
         self._lock: filelock.BaseFileLock | None = filelock.FileLock(
-            path, timeout=0, thread_local=False, is_singleton=False)
+            path, timeout=timeout, thread_local=False, is_singleton=False)
         try:
             self._lock.acquire()
         except filelock.Timeout:

@@ -317,15 +317,18 @@ def replace_between(text: str, begin: str, end: str, body: str) -> str:
 def addon_choices() -> dict:
     """What the add-on's menus and checkboxes offer, from the one place each lives: camera paths
     (``config.CAMERA_PATHS`` and ``scene:*``; ``LEVEL_CAMERA_PATHS``), buffers (``conventions.BUFFERS``, ``DEFAULT_BUFFERS``), models
-    (the model-buffer table's, for *For models*) and the integer scales the fixed-scale models take (its
-    ``scales``; any-scale models take these too)."""
+    (the model-buffer table's, for *For models*), the integer scales the fixed-scale models take (its
+    ``scales``; any-scale models take these too) and the export formats with what each needs (*For formats*,
+    ``formats.table``)."""
     from .config import CAMERA_PATHS, LEVEL_CAMERA_PATHS
     from .conventions import BUFFERS, DEFAULT_BUFFERS
     from .dataset.buffers import MODEL_BUFFERS, MODEL_SCALES
+    from .formats.table import FORMATS
     scales = sorted({k for v in MODEL_SCALES.values() if v for k in v})
     return {"camera_paths": [*CAMERA_PATHS, "scene:*"], "level_camera_paths": list(LEVEL_CAMERA_PATHS),
             "buffers": [{"name": b.name, "help": b.meaning} for b in BUFFERS.values()],
-            "default_buffers": list(DEFAULT_BUFFERS), "models": list(MODEL_BUFFERS), "scales": scales}
+            "default_buffers": list(DEFAULT_BUFFERS), "models": list(MODEL_BUFFERS), "scales": scales,
+            "formats": [{"name": f.name, "title": f.title, "needs": f.needs()} for f in FORMATS.values()]}
 
 
 def derived_files() -> dict[Path, str]:

@@ -85,7 +85,7 @@ def save_checkpoint(path: Path, state: dict) -> None:
         try:
             torch.save(state, tmp)
         except RuntimeError as exc:  # torch reports a failed write as "unexpected pos", not as the OSError it was
-            full = _write_fault(tmp)
+            full = _write_fault(tmp, path)
             if full is not None:
                 raise full from exc
             raise
@@ -113,9 +113,10 @@ def remove_stale_temporaries(folder: Path) -> list[Path]:
     return gone
 
 
-def _write_fault(tmp: Path) -> OSError | None:
-    """The filesystem fault behind a failed torch.save into ``tmp``: ENOSPC when the folder's disk is (nearly) full,
-    EROFS/EACCES when it cannot be written; None when neither explains it."""
+def _write_fault(tmp: Path, path: Path) -> OSError | None:
+    """The filesystem fault behind a failed torch.save into ``tmp``, naming the checkpoint ``path`` being written:
+    ENOSPC when the folder's disk is (nearly) full, EROFS/EACCES when it cannot be written; None when neither
+    explains it."""
     import errno
     import shutil
     folder = tmp.parent
@@ -125,9 +126,9 @@ def _write_fault(tmp: Path) -> OSError | None:
     except OSError as exc:
         return exc
     if free < max(1 << 20, written // 8):
-        return OSError(errno.ENOSPC, f"No space left on device ({free} bytes free)", str(folder))
+        return OSError(errno.ENOSPC, f"No space left on device ({free} bytes free)", str(path))
     if not os.access(folder, os.W_OK):
-        return OSError(errno.EACCES, "Permission denied", str(folder))
+        return OSError(errno.EACCES, "Permission denied", str(path))
     return None
 
 

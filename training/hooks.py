@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from gbuffer_export.clip import write_json_atomic
+from gbuffer_export.errors import with_path
 from training.checkpoint import save_checkpoint
 
 LOG_COLUMNS = ("step", "loss", "pixel", "ssim", "fft", "temporal", "perceptual", "baseline", "lr", "step_ms",
@@ -62,7 +63,7 @@ class RunLog:
         self.logf = self.writer = self.tb = self.bar = None
         self.columns = LOG_COLUMNS
         if main:
-            path = run_dir / "log.csv"
+            path = self.path = run_dir / "log.csv"
             header = []
             if path.exists():  # a resumed run keeps the columns its log started with (an older version's, too)
                 with open(path, newline="") as f:
@@ -95,8 +96,11 @@ class RunLog:
                    "mem_mb": peak_memory_mb(trainer.device)}
             self.mem_peak = max(self.mem_peak, row["mem_mb"])
             if self.writer is not None:
-                self.writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in self.columns])
-                self.logf.flush()
+                try:
+                    self.writer.writerow(["" if row.get(c) is None else row.get(c, "") for c in self.columns])
+                    self.logf.flush()
+                except OSError as exc:  # a full disk: the one-line error names log.csv
+                    raise with_path(exc, self.path) from exc
             if self.tb is not None:
                 for k, v in row.items():
                     if k != "step":
@@ -118,7 +122,11 @@ class RunLog:
         if self.bar is not None:
             self.bar.close()
         if self.logf is not None:
-            self.logf.close()
+            try:
+                self.logf.close()
+            except OSError as err:  # the rows a full disk refused: after another error, that error is the news
+                if exc is None:
+                    raise with_path(err, self.path) from err
         if self.tb is not None:
             self.tb.close()
 

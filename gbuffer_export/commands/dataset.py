@@ -35,6 +35,10 @@ def register(subparsers) -> None:
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="render only the buffers these models read, plus radiance and motion for evaluation "
                         "(default: the spec's buffers)")
+    from ..formats.table import names_text, needs_text
+    p.add_argument("--for-formats", default=None, metavar="F1,F2",
+                   help=f"render what these export formats ({names_text()}) need, besides the spec's [dataset] "
+                        f"for_formats: {needs_text()}")
     p.add_argument("--limit", type=int, default=None, help="render at most N clips in this run")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"),
                    help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
@@ -48,8 +52,9 @@ def run(args) -> int:
     from ..dataset.build import RunOptions, build_dataset, summary
     from ..dataset.spec import expand, load_spec, plan_totals
 
-    spec = load_spec(args.spec)
+    spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
     if args.dry_run:
+        from ..formats.table import formats_report
         jobs = expand(spec)
         for j in jobs:
             where = (f"scene={Path(j.asset).name} region={j.region['cell'] if j.region else None} light={j.light}"
@@ -59,6 +64,8 @@ def run(args) -> int:
                   f"families={','.join(j.families or ())} ({j.family_group})")
         for key, t in sorted(plan_totals(jobs).items(), key=lambda kv: (kv[0] != "all", kv[0])):
             print(f"total {key}: {t['clips']} clips, {t['frames']} frames, {t['hr_pixels'] / 1e6:.1f} M HR pixels")
+        for line in formats_report(j.render for j in jobs):  # what blendsr export-dataset will take
+            print(line)
         return 0
     from ..extras import require
     require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))

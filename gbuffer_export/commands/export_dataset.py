@@ -6,8 +6,7 @@ import sys
 from pathlib import Path
 
 from ..extras import HelpFormatter
-
-FORMATS = ("nss", "nfru", "rdg")
+from ..formats.table import FORMATS as FORMATS_NEEDS, NAMES as FORMATS, needs_text
 
 HELP = """Write BlendSR clips (or every finished clip of a dataset folder) as Arm's NSS capture layout
 (neural-graphics-model-gym's docs/nss/nss_dataset_specification.md): one sequence per clip (0000.json, ...),
@@ -21,8 +20,11 @@ every mapping and what is lost.
 
 The output folder must be new or empty, unless --overwrite (the export replaces it whole: written beside it, then
 swapped in) or --append (sequences or scenes are added after the ones it holds). A clip with missing frames becomes
-one sequence (or scene) per contiguous run of frames, each starting with a camera cut. NSS needs a 2x level in
-every clip (Arm's converter reads x2/ only): render with --scales 2,4."""
+one sequence (or scene) per contiguous run of frames, each starting with a camera cut.
+
+What each format's consumer loads is checked before anything is written (a clip that breaks a limit is refused in
+one line naming the fix). What a clip needs for each (render it with --for-formats FORMAT):
+""" + "\n".join(f"  {n}: {FORMATS_NEEDS[n].needs()}" for n in FORMATS)
 
 
 def positive_int(text: str) -> int:
@@ -38,11 +40,13 @@ def positive_int(text: str) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export-dataset", help="write clips as another trainer's dataset layout (NSS, RDG)",
+    p = subparsers.add_parser("export-dataset", help="write clips as another trainer's dataset layout "
+                                                     f"({', '.join(FORMATS)})",
                               description=HELP, formatter_class=HelpFormatter)
     p.add_argument("sources", nargs="+", type=Path, metavar="DATASET_OR_CLIP",
                    help="clip folders and/or dataset folders (holding dataset.json)")
-    p.add_argument("--format", choices=FORMATS, required=True, help="the layout to write")
+    p.add_argument("--format", choices=FORMATS, required=True,
+                   help="the layout to write (" + needs_text() + ")")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     p.add_argument("--framerate", type=positive_int, default=24,
                    help="EmulatedFramerate to record, frames per second in 1..1000 (BlendSR clips do not store "

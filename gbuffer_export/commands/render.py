@@ -20,7 +20,11 @@ z in scene units (+inf on background); normals are unit vectors in camera space 
 viewer); radiance is linear scene-referred RGB (float32).
 
 Rerunning the same command resumes: finished frames are skipped. --shard K/N renders every N-th frame starting at
-the K-th, so N processes can fill one clip; their manifests merge."""
+the K-th, so N processes can fill one clip; their manifests merge.
+
+Exports (blendsr export-dataset) check what their consumer loads before writing: a default render (one level at
+--scale 4) cannot be exported as NSS or NFRU, which need a 2x level. --for-formats nss (or nfru, rdg) adds what each
+format needs (levels, size, buffers)."""
 
 
 class HelpFormatter(_HelpFormatter):
@@ -46,6 +50,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="instead of --buffers: only the buffers these models read, plus radiance and motion for "
                         "evaluation (docs/dataset.md)")
+    from ..formats.table import names_text, needs_text
+    p.add_argument("--for-formats", default=None, metavar="F1,F2",
+                   help=f"also render what these export formats ({names_text()}; blendsr export-dataset --format) "
+                        f"need, added to --scales, --hr-size and --buffers: {needs_text()}")
     p.add_argument("--world-strength", type=float, default=None, metavar="X",
                    help="multiply the world's background strength by X (recorded in the manifest)")
     p.add_argument("--light-strength", type=float, default=None, metavar="X",
@@ -81,6 +89,19 @@ def variation_from_args(args) -> dict | None:
     return out or None
 
 
+def formats_from_args(args) -> None:
+    """``--for-formats``: ``args.scales``, ``args.hr_size`` and ``args.buffers`` with what the formats need
+    (``formats.table.render_for_formats``, the derivation the spec key ``for_formats`` uses too)."""
+    from ..conventions import parse_buffer_list
+    from ..formats.table import render_for_formats
+    r = render_for_formats(args.for_formats, scales=parse_scales(args.scales) or (args.scale,),
+                           hr_size=parse_size(args.hr_size), buffers=parse_buffer_list(args.buffers))
+    args.scales = ",".join(f"{s:g}" for s in r["scales"])
+    args.buffers = ",".join(r["buffers"])
+    if r["hr_size"] is not None:
+        args.hr_size = f"{r['hr_size'][0]}x{r['hr_size'][1]}"
+
+
 def config_from_args(args) -> RenderConfig:
     variation = variation_from_args(args)
     if args.scene is None:
@@ -88,6 +109,8 @@ def config_from_args(args) -> RenderConfig:
     if getattr(args, "for_models", None):
         from ..dataset.buffers import buffers_for_models
         args.buffers = ",".join(buffers_for_models([m for m in args.for_models.split(",") if m.strip()]))
+    if getattr(args, "for_formats", None):
+        formats_from_args(args)
     return RenderConfig(
         output=args.output, scene=args.scene, frames=parse_frames(args.frames), hr_size=parse_size(args.hr_size),
         scale=args.scale, scales=parse_scales(args.scales), buffers=args.buffers, shard=parse_shard(args.shard),

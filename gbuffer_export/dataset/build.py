@@ -146,6 +146,7 @@ def make_index(spec: DatasetSpec, jobs: list[ClipJob], root: Path, old: dict | N
         "spec": {"file": str(spec.path) if spec.path else None, "sha256": spec_digest(spec.path),
                  "text": spec.path.read_text() if spec.path else None},
         "for_models": list(opts.buffers_for),
+        "for_formats": list(spec.for_formats),
         "splits": {s: [e["id"] for e in entries if e["split"] == s] for s in SPLITS},
         "clips": entries,
     }

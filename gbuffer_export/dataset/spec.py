@@ -169,6 +169,7 @@ class DatasetSpec:
     sources: tuple[Source, ...]
     splits: Splits
     path: Path | None = None  # the spec file (relative source paths resolve against its folder)
+    for_formats: tuple[str, ...] = ()  # [dataset] for_formats (and --for-formats): every clip renders what they need
 
 
 # ----------------------------------------------------------------------------------------------
@@ -176,7 +177,7 @@ class DatasetSpec:
 # ----------------------------------------------------------------------------------------------
 
 _TOP_KEYS = ("dataset", "render", "splits", "source")
-_DATASET_KEYS = ("name", "seed")
+_DATASET_KEYS = ("name", "seed", "for_formats")
 _RENDER_KEYS = RENDER_KEYS
 _SPLIT_KEYS = ("val", "test", "val_fraction", "test_fraction", "val_families", "test_families")
 _SOURCE_KEYS = ("name", "kind", "split", "cameras", "seeds", "paths", "clips_per_asset", "hdri", "hdri_strength",
@@ -278,13 +279,39 @@ def _seeds(v, where, spec_path) -> tuple[int, int]:
     return a, b
 
 
-def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
-    """Validate a parsed TOML document and return the typed spec."""
+def _for_formats(render: RenderSettings, formats, sized: bool, where: str, spec_path) -> RenderSettings:
+    """``render`` with what the export formats need (``formats.table.render_for_formats``, the one derivation that
+    ``blendsr render --for-formats`` uses too): their LR levels added after the clip's, their HR size (when the
+    spec gives none: ``sized`` False), their buffers; SpecError naming the key on a conflict."""
+    from ..conventions import parse_buffer_list
+    from ..formats.table import FormatLimitError, render_for_formats
+    bufs = render.buffers if not isinstance(render.buffers, str) else parse_buffer_list(render.buffers)
+    try:
+        r = render_for_formats(formats, scales=render.scales or (render.scale,),
+                               hr_size=render.hr_size if sized else None, buffers=bufs,
+                               where=f"dataset.for_formats ({where})")
+    except FormatLimitError as exc:
+        raise SpecError(f"{spec_path}: {exc}", key="dataset.for_formats") from None
+    table = {"scales": list(r["scales"]), "buffers": list(r["buffers"])}
+    if r["hr_size"] is not None:
+        table["hr_size"] = f"{r['hr_size'][0]}x{r['hr_size'][1]}"
+    return _render_settings(render, table, where, spec_path)
+
+
+def parse_spec(data: dict, spec_path: str | Path = "<spec>", formats=()) -> DatasetSpec:
+    """Validate a parsed TOML document and return the typed spec; ``formats``: export formats whose needs every
+    clip renders besides the spec's ``for_formats`` (``blendsr dataset --for-formats``)."""
     _check_keys(data, _TOP_KEYS, "", spec_path)
     ds = data.get("dataset", {})
     _check_keys(ds, _DATASET_KEYS, "dataset", spec_path)
     name = _typed(ds.get("name", Path(str(spec_path)).stem), str, "dataset.name", spec_path)
     seed = _typed(ds.get("seed", 0), int, "dataset.seed", spec_path)
+    from ..formats.table import FormatLimitError, parse_formats
+    try:
+        for_formats = parse_formats([*_str_list(ds.get("for_formats", []), "dataset.for_formats", spec_path),
+                                     *formats], "dataset.for_formats")
+    except FormatLimitError as exc:
+        raise SpecError(f"{spec_path}: {exc}", key="dataset.for_formats") from None
     render_table = data.get("render", {})
     _check_keys(render_table, _RENDER_KEYS, "render", spec_path)
     defaults = _render_settings(RenderSettings(), render_table, "render", spec_path)
@@ -322,6 +349,8 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             raise SpecError(f"{spec_path}: {where}.name {sname!r}: must be unique, letters, digits, - and _")
         names.add(sname)
         render = _render_settings(defaults, t, where, spec_path)
+        if for_formats:
+            render = _for_formats(render, for_formats, "hr_size" in t or "hr_size" in render_table, where, spec_path)
         if kind != "scene":
             for k in _SCENE_ONLY:
                 if k in t:
@@ -368,7 +397,7 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>") -> DatasetSpec:
             strength=_range(t.get("hdri_strength", [0.7, 1.5]), f"{where}.hdri_strength", spec_path))
         sources.append(Source(**kw))
     return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
-                       path=Path(spec_path) if spec_path != "<spec>" else None)
+                       path=Path(spec_path) if spec_path != "<spec>" else None, for_formats=for_formats)
 
 
 def _families(sp: dict, key: str, spec_path) -> tuple[str, ...]:
@@ -438,8 +467,9 @@ def _scene_source(t: dict, name: str, render: RenderSettings, split, where: str,
                   variation=var, licence=t.get("licence", {}) if isinstance(t.get("licence", {}), dict) else {})
 
 
-def load_spec(path: str | Path) -> DatasetSpec:
-    """Read and validate a spec file; SpecError (one line naming the file) on any problem."""
+def load_spec(path: str | Path, formats=()) -> DatasetSpec:
+    """Read and validate a spec file (``formats``: as ``parse_spec``); SpecError (one line naming the file) on any
+    problem."""
     path = Path(path)
     if not path.is_file():
         raise SpecError(f"{path}: dataset spec not found")
@@ -447,7 +477,7 @@ def load_spec(path: str | Path) -> DatasetSpec:
         data = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SpecError(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
-    return parse_spec(data, path)
+    return parse_spec(data, path, formats)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -101,7 +101,9 @@ def splits_table(s: Splits) -> dict:
 def spec_to_dict(spec: DatasetSpec) -> dict:
     """The TOML document of ``spec`` as a dict (what ``tomllib.loads`` would give for the written text)."""
     base = spec.sources[0].render if spec.sources else RenderSettings()
-    return {"dataset": {"name": spec.name, "seed": spec.seed}, "render": render_table(base),
+    head = {"name": spec.name, "seed": spec.seed, **({"for_formats": list(spec.for_formats)} if spec.for_formats
+                                                      else {})}
+    return {"dataset": head, "render": render_table(base),
             "splits": splits_table(spec.splits), "source": [source_table(s, base) for s in spec.sources]}
 
 

@@ -32,6 +32,7 @@ from ..errors import BlendSRError
 from ..exr import HALF_MAX, exr_size, read_exr, write_exr
 from . import conventions as cv
 from .output import ExportOptions, Target, clean_temp_files
+from .table import check_clips
 
 log = logging.getLogger(__name__)
 
@@ -97,19 +98,11 @@ def frame_runs(frames) -> list[list[int]]:
     return runs
 
 
-def check_clip(clip) -> None:
-    """NssError (one line naming the clip and the fix) when ``clip`` cannot become an NSS sequence that the model
-    gym's converter reads: it needs radiance, depth and motion, a finished frame and an LR level at ratio 2."""
-    need = {"radiance", "depth", "motion"}
-    if not need <= set(clip.buffers):
-        raise NssError(f"{clip.path}: NSS needs the buffers {', '.join(sorted(need))} (clip has "
-                       f"{', '.join(clip.buffers)}); render it with --buffers radiance,depth,motion or more")
-    if not clip.frames:
-        raise NssError(f"{clip.path}: no finished frames")
-    if not any(abs(s - GYM_RATIO) < 1e-9 for s in clip.scales):
-        raise NssError(f"{clip.path}: NSS needs a 2x level (Arm's converter reads x2/ only) and the clip has "
-                       f"scale(s) {', '.join(f'{s:g}' for s in clip.scales)}; render it with --scales 2,4 "
-                       "(a dataset spec: scale = 2 and scales = [2, 4] in its [render] table)")
+def check_clip(clip, fmt: str = "nss") -> None:
+    """NssError (one line naming the clip and the fix) when ``clip`` cannot become a sequence of format ``fmt``
+    that its consumer reads: the limits of ``formats.table.FORMATS`` (NSS: radiance, depth and motion, a finished
+    frame and an LR level at ratio 2)."""
+    check_clips(fmt, [clip], NssError)
 
 
 def _exr_rgba(path: Path, rgb: np.ndarray) -> None:
@@ -238,16 +231,15 @@ def export_sequences(sources, out, options: ExportOptions, *, fmt: str, write_se
     clips = [open_clip(p) for p in source_clips(sources)]
     if not clips:
         raise NssError(f"{', '.join(map(str, sources))}: no finished clips to export")
-    for clip in clips:
-        check_clip(clip)
-    seq = 0
-    if target.appending:
-        remove_orphan_sequences(out)
-        clean_temp_files(out)
-        names = sequence_names(out)
-        seq = int(names[-1]) + 1 if names else 0
+    check_clips(fmt, clips, NssError)  # every limit of the consumer, before anything is written
     written: list[str] = []
-    with target:
+    with target:  # holds OUT's lock when appending: the numbers below are this export's alone
+        seq = 0
+        if target.appending:
+            remove_orphan_sequences(out)
+            clean_temp_files(out)
+            names = sequence_names(out)
+            seq = int(names[-1]) + 1 if names else 0
         for clip in clips:
             runs = frame_runs(clip.frames)
             if len(runs) > 1:
@@ -473,10 +465,36 @@ def read_frame(root, seq: str | int, j: int, meta: dict | None = None) -> dict:
     return out
 
 
+def upsample_depth(d_lr: np.ndarray, jitter, size: tuple[int, int]) -> np.ndarray:
+    """HR view depth (``size`` W x H) from an LR level's depth sampled at each LR pixel centre + ``jitter`` (LR
+    pixels): inverse depth interpolated bilinearly between the four LR samples around each HR pixel centre (exact
+    on a plane, whose inverse depth is linear on screen); nearest where those four straddle an edge (depths more
+    than 25 % apart) or the background."""
+    w, h = size
+    lh, lw = d_lr.shape
+    d = np.asarray(d_lr, np.float64)
+    fx = (np.arange(w) + 0.5) * lw / w - 0.5 - float(jitter[0])
+    fy = (np.arange(h) + 0.5) * lh / h - 0.5 - float(jitter[1])
+    x0, y0 = np.clip(np.floor(fx).astype(int), 0, lw - 1), np.clip(np.floor(fy).astype(int), 0, lh - 1)
+    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
+    ax, ay = np.clip(fx - x0, 0, 1)[None, :], np.clip(fy - y0, 0, 1)[:, None]
+    corners = [d[np.ix_(yy, xx)] for yy in (y0, y1) for xx in (x0, x1)]
+    with np.errstate(all="ignore"):
+        inv = [np.where(np.isfinite(c) & (c > 0), 1.0 / c, 0.0) for c in corners]
+        lin = 1.0 / ((inv[0] * (1 - ax) + inv[1] * ax) * (1 - ay) + (inv[2] * (1 - ax) + inv[3] * ax) * ay)
+        lo, hi = np.minimum.reduce(corners), np.maximum.reduce(corners)
+        smooth = np.isfinite(hi) & (lo > 0) & (hi <= lo * 1.25)
+    nx = np.clip(np.round(fx).astype(int), 0, lw - 1)
+    ny = np.clip(np.round(fy).astype(int), 0, lh - 1)
+    return np.where(smooth, lin, d[np.ix_(ny, nx)]).astype(np.float32)
+
+
 def nss_to_clip(root, seq: str | int, out) -> Path:
     """Write NSS sequence ``seq`` as a BlendSR clip at ``out`` (buffers radiance, depth, motion; one LR level per
-    ratio). NSS has no HR depth: ``hr/depth`` is the first LR level's depth repeated nearest-neighbour (the
-    manifest's ``imported.hr_depth`` says so). The first frame's previous camera is its own camera. A frame's
+    ratio). NSS has no HR depth: ``hr/depth`` is interpolated from the first LR level's (``upsample_depth``; the
+    manifest's ``imported.hr_depth`` says so). A camera cut (the first frame, and every frame whose ``CameraCut``
+    is true; ``imported.camera_cuts``) has nothing before it: its previous camera is its own and its motion is
+    zero, whatever the file holds (an export's first frame points at a frame it does not hold). A frame's
     ``Exposure`` (when given) multiplies its colour: the clip holds exposed radiance, at exposure 1. The JSON and
     every file are checked (``check_sequence_meta``, ``check_capture_files``) before the clip is created."""
     root = Path(root)
@@ -488,6 +506,7 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
     w, h = meta["TargetResolution"]["X"], meta["TargetResolution"]["Y"]
     levels = levels_header((w, h), scales)
     frames = list(range(len(meta["Frames"])))
+    cuts = [j for j in frames if j == 0 or meta["Frames"][j].get("CameraCut") is True]
     samples = meta.get("Samples")
     header = {
         "blendsr_version": "imported-nss", "blender_version": None,
@@ -498,7 +517,8 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
                    else "none",
                    "hr": {}, "lr": {}},
         "materials": {}, "material_summary": {},
-        "imported": {"format": "nss", "version": meta.get("Version"), "hr_depth": "nearest-upsampled-from-lr"},
+        "imported": {"format": "nss", "version": meta.get("Version"), "hr_depth": "interpolated-from-lr",
+                     "camera_cuts": cuts},
     }
     wr = ClipWriter(out, header)
     prev = None
@@ -511,20 +531,21 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
         fr = {k: a * np.float32(exposure) if k.endswith("/radiance") else a for k, a in fr.items()}
         record = {}
         cam = (fr["world_from_camera"], fr["intrinsics"])
-        pcam = prev or cam
+        cut = j in cuts
+        pcam = cam if cut else prev
         for lvl, info in levels.items():
             lw, lh = info["width"], info["height"]
             f = lw / w
             if lvl == "hr":
-                d_lr = fr[f"{names[0]}/depth"]
-                iy = np.minimum((np.arange(h) * d_lr.shape[0]) // h, d_lr.shape[0] - 1)
-                ix = np.minimum((np.arange(w) * d_lr.shape[1]) // w, d_lr.shape[1] - 1)
-                bufs = {"radiance": fr["hr/radiance"], "depth": d_lr[np.ix_(iy, ix)], "motion": fr["hr/motion"]}
+                bufs = {"radiance": fr["hr/radiance"], "motion": fr["hr/motion"],
+                        "depth": upsample_depth(fr[f"{names[0]}/depth"], fr[f"{names[0]}/jitter"], (w, h))}
                 jit = (0.0, 0.0)
             else:
                 r = names[scales.index(info["scale"])]
                 bufs = {b: fr[f"{r}/{b}"] for b in ("radiance", "depth", "motion")}
                 jit = fr[f"{r}/jitter"]
+            if cut:  # nothing before it in the sequence: no motion (the previous camera is its own)
+                bufs["motion"] = np.zeros_like(bufs["motion"])
             for b, a in bufs.items():
                 wr.write_buffer(j, lvl, b, a)
             k = tuple(v * f for v in cam[1])

@@ -5,6 +5,9 @@
   read.
 - A non-empty ``OUT`` is refused unless ``mode`` is ``overwrite`` (the export replaces it whole) or ``append``
   (the new sequences or scenes are added after the existing ones; OUT must hold an export of the same format).
+- ``--append`` and ``--overwrite`` hold the export's lock, ``OUT/.lock`` (``locks.FolderLock``, the OS's lock,
+  released with the process), from before they read what OUT holds (its sequences, its scenes) until their files
+  are in place: a second export to OUT waits for it (a note says so), then numbers its sequences after the first's.
 - Everything is written into a temporary sibling, ``.OUT.export<PID>``, and moved into place at the end: a new or
   overwritten export appears whole (overwrite: OUT is renamed to ``.OUT.old<PID>``, the sibling to OUT, then the old
   folder removed); an appended one moves its sequence folders in and writes its metadata files last. An export that
@@ -31,6 +34,8 @@ from ..errors import BlendSRError
 log = logging.getLogger(__name__)
 
 MODES = ("new", "overwrite", "append")
+#: The export's lock file inside OUT (``--append``, ``--overwrite``); not part of the export.
+LOCK_NAME = ".lock"
 #: ``.NAME.tmp<PID>`` / ``.NAME.tmp<PID>.exr`` written by write_exr, write_png and write_json_atomic
 TEMP_FILE = re.compile(r"^\..*\.tmp(\d+)(\.\w+)?$")
 
@@ -131,36 +136,80 @@ def clean_temp_files(root: Path) -> int:
     return n
 
 
+def _entries(out: Path) -> list[Path]:
+    """What OUT holds, its lock file left out."""
+    return [p for p in out.iterdir() if p.name != LOCK_NAME] if out.is_dir() else []
+
+
+def lock_export(out: Path):
+    """Hold ``OUT/.lock`` (created with OUT when missing); when another export holds it, log a note and wait for
+    it (two appends are serialized, never interleaved). Returns the ``FolderLock``."""
+    from ..locks import FolderBusyError, FolderLock
+    out.mkdir(parents=True, exist_ok=True)
+    busy = "another export to this folder is running"
+    try:
+        return FolderLock(out, busy, LOCK_NAME)
+    except FolderBusyError:
+        log.info(f"{out}: {busy}; waiting for it to finish")
+        return FolderLock(out, busy, LOCK_NAME, timeout=-1)
+
+
 class Target:
     """The folder an export writes: ``work`` (the temporary sibling) while it runs, ``commit()`` moves it into
-    place. Use as a context manager: an exception removes the sibling and leaves OUT as it was."""
+    place. Use as a context manager: entering takes OUT's lock (append, overwrite) and checks OUT again under it
+    (``appending``: sequences are numbered inside the block); an exception removes the sibling and leaves OUT as it
+    was."""
 
     def __init__(self, out, sources, mode: str, *, is_export: Callable[[Path], bool], fmt: str):
         self.out, self.mode, self.fmt = Path(os.path.abspath(out)), mode, fmt  # '.', 'a/..': a named folder
         if self.out == Path(self.out.anchor):
             raise ExportError(f"{out}: is the root of the file system; -o names a folder of its own")
         check_output(self.out, sources, mode)
+        self.is_export = is_export
         clean_stale(self.out)
-        nonempty = self.out.is_dir() and any(self.out.iterdir())
-        if nonempty and mode == "new":
+        self._check_state()  # before any clip is read; again under the lock
+        self.appending = False
+        self.lock = None
+        self.work = self.out.parent / f".{self.out.name}.export{os.getpid()}"
+
+    def _check_state(self) -> bool:
+        """Whether OUT holds something; ExportError when the mode does not allow what it holds."""
+        nonempty = bool(_entries(self.out))
+        if nonempty and self.mode == "new":
             raise ExportError(f"{self.out}: is not empty; pass --overwrite to replace it or --append to add "
                               "to the export in it")
-        if mode == "append" and nonempty and not is_export(self.out):
-            raise ExportError(f"{self.out}: holds no {fmt.upper()} export to append to (pass --overwrite to "
+        if self.mode == "append" and nonempty and not self.is_export(self.out):
+            raise ExportError(f"{self.out}: holds no {self.fmt.upper()} export to append to (pass --overwrite to "
                               "replace what is there)")
-        self.appending = mode == "append" and nonempty
-        self.work = self.out.parent / f".{self.out.name}.export{os.getpid()}"
+        return nonempty
 
     def __enter__(self) -> "Target":
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        if self.work.exists():
-            shutil.rmtree(self.work)
-        self.work.mkdir()
+        if self.mode == "append" or (self.mode == "overwrite" and self.out.is_dir()):
+            self.lock = lock_export(self.out)
+        try:
+            clean_stale(self.out)
+            self._check_state()
+            self.appending = self.mode == "append"  # into OUT as it is now (empty: sequences from 0)
+            if self.work.exists():
+                shutil.rmtree(self.work)
+            self.work.mkdir()
+        except BaseException:
+            self._release()
+            raise
         return self
 
+    def _release(self) -> None:
+        if self.lock is not None:
+            self.lock.close()
+            self.lock = None
+
     def __exit__(self, exc_type, exc, tb) -> None:
-        if self.work.exists():
-            shutil.rmtree(self.work, ignore_errors=True)
+        try:
+            if self.work.exists():
+                shutil.rmtree(self.work, ignore_errors=True)
+        finally:
+            self._release()
 
     def commit(self, last: tuple[str, ...] = ()) -> None:
         """Move the export into place. Append: every file of ``work`` into OUT (``last``: top-level names moved
@@ -168,16 +217,16 @@ class Target:
         if self.appending:
             self._merge(last)
             return
-        if self.out.is_dir() and any(self.out.iterdir()) and self.mode != "overwrite":
+        if _entries(self.out) and self.mode != "overwrite":
             raise ExportError(f"{self.out}: another export wrote there while this one ran; nothing replaced")
-        if self.out.is_dir() and self.mode == "overwrite" and any(self.out.iterdir()):
+        if self.out.is_dir() and self.mode == "overwrite" and _entries(self.out):
             old = self.out.parent / f".{self.out.name}.old{os.getpid()}"
             os.rename(self.out, old)
             os.rename(self.work, self.out)
             shutil.rmtree(old)
             return
         if self.out.is_dir():
-            self.out.rmdir()
+            shutil.rmtree(self.out)  # empty, or only a lock file
         os.rename(self.work, self.out)
 
     def _merge(self, last: tuple[str, ...]) -> None:
@@ -192,4 +241,5 @@ class Target:
             os.replace(p, dest)
 
 
-__all__ = ["ExportError", "ExportOptions", "MODES", "Target", "check_output", "clean_stale", "clean_temp_files"]
+__all__ = ["ExportError", "ExportOptions", "LOCK_NAME", "MODES", "Target", "check_output", "clean_stale",
+           "clean_temp_files", "lock_export"]

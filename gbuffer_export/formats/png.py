@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..clip import write_bytes_atomic
+
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
@@ -21,11 +23,7 @@ def write_png(path: str | os.PathLike, rgb8: np.ndarray) -> None:
     raw = b"".join(b"\x00" + a[i].tobytes() for i in range(h))  # filter type 0 per row
     data = (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
             + _chunk(b"IDAT", zlib.compress(raw, 6)) + _chunk(b"IEND", b""))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    write_bytes_atomic(path, data)  # a full disk names the file
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:

@@ -27,12 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..clip import check_no_links, open_clip
+from ..clip import check_no_links, open_clip, write_bytes_atomic
 from ..exr import write_exr
 from ..errors import BlendSRError
 from . import conventions as cv
 from .nss import NSS_SPACE, frame_runs, source_clips
 from .output import ExportOptions, Target, clean_temp_files
+from .table import FORMATS, check_clips
 from .png import write_png
 
 log = logging.getLogger(__name__)
@@ -41,7 +42,7 @@ log = logging.getLogger(__name__)
 BUFFER_MAP = {"Normal": "normal", "BRDF": "fbeta", "Depth": "depth", "Motion": "motion", "Emit": "emission"}
 #: The buffers RDG's shipped configs read (``use_lq_normal``, ``use_lq_brdf``, ``use_lq_motion``, ``use_lq_depth``:
 #: true in options/train/train_RDG_x4.yml, train_RDG-s_x4.yml and both test configs of github.com/sunny2109/RDG).
-CONFIG_BUFFERS = ("Normal", "BRDF", "Motion", "Depth")
+CONFIG_BUFFERS = tuple(b for b, src in BUFFER_MAP.items() if src in FORMATS["rdg"].read_buffers)
 META_TRAIN, META_TEST = "meta_info_train.txt", "meta_info_test.txt"
 
 
@@ -137,19 +138,15 @@ def export_rdg(sources, out, options: ExportOptions = ExportOptions()) -> dict:
     clips = [open_clip(p) for p in source_clips(sources)]
     if not clips:
         raise RdgError(f"{', '.join(map(str, sources))}: no finished clips to export")
-    for clip in clips:
-        if not clip.frames:
-            raise RdgError(f"{clip.path}: no finished frames")
-        if "radiance" not in clip.buffers:
-            raise RdgError(f"{clip.path}: RDG needs the radiance buffer (clip has {', '.join(clip.buffers)})")
+    check_clips("rdg", clips, RdgError)  # every limit of the consumer, before anything is written
     train, test = [], []
-    if target.appending:
-        train, test = read_meta(out)
-        remove_orphan_scenes(out, {ln.split()[0] for ln in train + test})
-        clean_temp_files(out)
-    taken = {ln.split()[0] for ln in train + test}
     written: dict[str, list[str]] = {}
-    with target:
+    with target:  # holds OUT's lock when appending: the scenes read below are the export's as this one ends
+        if target.appending:
+            train, test = read_meta(out)
+            remove_orphan_scenes(out, {ln.split()[0] for ln in train + test})
+            clean_temp_files(out)
+        taken = {ln.split()[0] for ln in train + test}
         for clip in clips:
             bufs = [b for b, src in BUFFER_MAP.items() if src in clip.buffers]
             lacking = [f"{b} ({BUFFER_MAP[b]})" for b in CONFIG_BUFFERS if b not in bufs]
@@ -170,7 +167,7 @@ def export_rdg(sources, out, options: ExportOptions = ExportOptions()) -> dict:
                 written[scene] = bufs
             if options.progress:
                 options.progress(clip.path, scene)
-        (target.work / META_TRAIN).write_text("\n".join(train) + "\n")
-        (target.work / META_TEST).write_text("\n".join(test) + "\n")
+        write_bytes_atomic(target.work / META_TRAIN, ("\n".join(train) + "\n").encode())  # a full disk names it
+        write_bytes_atomic(target.work / META_TEST, ("\n".join(test) + "\n").encode())
         target.commit(last=(META_TRAIN, META_TEST))
     return written

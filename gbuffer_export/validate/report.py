@@ -79,6 +79,8 @@ CODES: dict[str, str] = {
     # motion
     "motion-reprojection": "stored motion disagrees with reprojection from depth and cameras on static surfaces",
     "background-motion": "background motion is not the camera's rotation-only motion",
+    "motion-unchecked": "a level's motion is not checked against reprojection because its depth is not data (an "
+                        "imported NSS capture's HR depth, interpolated from LR) (warning)",
     "next-camera": "a clip with motion_next lacks a rigid next_world_from_camera or a valid next_intrinsics",
     "motion-next-reprojection": "stored motion_next disagrees with reprojection to the next camera on static "
                                 "surfaces",

@@ -81,6 +81,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
     level_cam = level_report(manifest)
     exposure = check_exposure(c, manifest)
+    imported = manifest.get("imported") if isinstance(manifest.get("imported"), dict) else {}
+    derived_hr_depth = imported.get("hr_depth")  # an imported NSS capture's: interpolated, not data
     ratios: dict[int, float] = {}
     if frames is not None:
         wanted = set(int(f) for f in frames)
@@ -117,7 +119,8 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                         c.stats.setdefault("camera_view", {})[str(f)] = view
                 if env_bg and lvl != "hr" and not lr_denoised:  # point-sampled, not denoised: L_D = 0 on the sky
                     check_background_emission(c, f, lvl, b, surface)
-                mst = check_motion(c, f, lvl, b, cams.get(lvl), surface)
+                # an imported clip's HR depth is not data (NSS has none): its HR motion cannot be reprojected
+                mst = {} if lvl == "hr" and derived_hr_depth else check_motion(c, f, lvl, b, cams.get(lvl), surface)
                 check_motion_next(c, f, lvl, b, cams.get(lvl), h["frame_data"][f].get(lvl), surface)
                 accumulate(c, lvl, b, surface, mst)
                 if mst:
@@ -131,6 +134,10 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
     finally:
         if bar is not None:
             bar.close()
+    if derived_hr_depth and full:
+        c.add("motion-unchecked", f"hr/motion is not checked against reprojection: hr/depth is "
+                                  f"{derived_hr_depth} (the imported capture holds no HR depth)", key="hr/motion",
+              severity=WARNING)
     if level_cam is not None:
         check_level_motion(c, selected, h["frame_data"], level_cam)
     check_flat_views(c, ratios)

@@ -47,6 +47,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         default_opts = mapping.run_options_json(mapping.dataset_run_options(ds))
         ds.scales, ds.for_models, ds.regions_x, ds.regions_y, ds.region_val, ds.region_test = {"2", "4"}, {"nsrr"}, 3, 3, 1, 1
         ds.dataset_name = "mine"
+        ds.for_formats = {"nss", "rdg"}
         ds.vary_sun, ds.sun_elevation_min, ds.sun_elevation_max = True, 25.0, 60.0
         ds.vary_world, ds.world_strength_min, ds.world_strength_max = True, 0.7, 1.3
         custom_doc = mapping.dataset_spec_dict(ds, "lvl")
@@ -82,6 +83,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert default == plain and default.sources[0].render == RenderSettings()
     assert (d["frames"], d["hr_width"], d["hr_height"], d["scales"]) == (12, 256, 144, ["4"])
     assert d["cameras"] == ["fly", "walk"] and d["for_models"] == [] and d["buffers"] == "default"
+    assert d["for_formats"] == [] and default.for_formats == ()
     opts = RunOptions(**{**r["default_opts"], "buffers_for": tuple(r["default_opts"]["buffers_for"])})
     assert opts == RunOptions(progress=False)
     assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "auto" and d["device"] == "auto"
@@ -99,7 +101,11 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert r["custom_opts"]["buffers_for"] == ["nsrr"] and r["custom_opts"]["blender"] == "/opt/blender"
     # For models is written into the spec as the buffers those models read: the spec alone renders the same clips.
     from gbuffer_export.dataset.buffers import buffers_for_models
-    assert all(s.render.buffers == buffers_for_models(["nsrr"]) for s in custom.sources)
+    assert r["custom_doc"]["render"]["buffers"] == list(buffers_for_models(["nsrr"]))
+    # For formats is the spec's [dataset] for_formats: the spec adds what they need (RDG's buffers) to every clip.
+    assert r["custom_doc"]["dataset"]["for_formats"] == ["nss", "rdg"] and custom.for_formats == ("nss", "rdg")
+    assert all(set(s.render.buffers) == set(buffers_for_models(["nsrr"])) | {"normal", "fbeta", "depth"}
+               for s in custom.sources)
 
     # Bad settings: one line naming the setting or the spec key.
     e = r["errors"]
@@ -125,6 +131,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
         labels = [e[1] for e in log if e[0] == "label"]
         assert "4 clips x 12 frames, HR 256x144, scales 2, 4" in labels, labels
         assert "cameras walk, fly (clip k: kind k), light auto" in labels
+        assert "For formats (what each export needs is added)" in labels
         assert any("relative to the .blend file: save the file first" in t for t in labels)  # unsaved file
 
 

@@ -139,7 +139,7 @@ def test_a_full_disk_under_cycles_is_not_blamed_on_the_exr(tmpfs):
     assert cli.bad_input_line(info.value) == f"{full}: no space left on device"
 
 
-def test_a_checkpoint_saved_to_a_full_disk_is_enospc_naming_the_folder(tmpfs):
+def test_a_checkpoint_saved_to_a_full_disk_is_enospc_naming_the_file(tmpfs):
     """torch.save reports a full disk as a RuntimeError ('unexpected pos'); save_checkpoint says what it was."""
     torch = pytest.importorskip("torch")
     from training.checkpoint import save_checkpoint
@@ -147,7 +147,7 @@ def test_a_checkpoint_saved_to_a_full_disk_is_enospc_naming_the_folder(tmpfs):
     with pytest.raises(OSError) as info:
         save_checkpoint(full / "checkpoints" / "last.pt", {"w": torch.zeros(100_000)})
     assert info.value.errno == errno.ENOSPC
-    assert cli.bad_input_line(info.value) == f"{full / 'checkpoints'}: no space left on device"
+    assert cli.bad_input_line(info.value) == f"{full / 'checkpoints' / 'last.pt'}: no space left on device"
     assert not list((full / "checkpoints").iterdir())  # no temporary left behind
 
 

@@ -215,3 +215,31 @@ def test_rdg_warns_in_one_line_about_buffers_its_configs_read(tmp_path, capsys):
     full = make_synthetic_clip(tmp_path / "full", frames=(1, 2), hr_size=(16, 8), scales=(2,))
     code, text = run(["export-dataset", full, "--format", "rdg", "-o", tmp_path / "rdg2"], capsys)
     assert code == 0 and "RDG's shipped configs" not in text
+
+
+@pytest.mark.parametrize("fmt", ["nss", "nfru"])
+def test_a_missing_2x_level_is_refused_in_the_formats_own_name(tmp_path, capsys, fmt):
+    clip = make_synthetic_clip(tmp_path / "c4", frames=(1, 2), hr_size=(16, 8), scale=4)
+    line = one_error(*run(["export-dataset", clip, "--format", fmt, "-o", tmp_path / "o"], capsys))
+    assert f"{fmt.upper()} needs a 2x level" in line and f"--for-formats {fmt}" in line
+    assert ("NSS" in line) == (fmt == "nss")  # the NFRU refusal never speaks of NSS
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c4"]
+
+
+def test_nfru_refuses_a_size_its_reader_cannot_load_before_writing(clips, tmp_path, capsys):
+    """Arm's NFRU reader loads 1920x1080 captures only (docs/formats.md): a 16x8 clip with a 2x level is refused in
+    one line naming the size and the fix, and nothing is written (not even the sibling), whatever the mode."""
+    a, _ = clips
+    out = tmp_path / "out"
+    for mode in ([], ["--append"], ["--overwrite"]):
+        line = one_error(*run(["export-dataset", a, "--format", "nfru", "-o", out, *mode], capsys))
+        assert "NFRU needs HR 1920x1080" in line and "is 16x8" in line and "--hr-size 1920x1080" in line, line
+        assert str(a) in line
+        assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+
+
+def test_export_dataset_help_lists_the_format_table(capsys):
+    from gbuffer_export.cli import build_parser
+    from gbuffer_export.formats.table import FORMATS
+    text = " ".join(build_parser().format_help().split())
+    assert "(NSS, RDG)" not in text and f"dataset layout ({', '.join(FORMATS)})" in text, text

@@ -243,3 +243,28 @@ def test_rdg_layout_and_encodings(synthetic_export, tmp_path):
         n = read_exr(base / "Normal" / "002.exr", ("R", "G", "B"))
         r = clip.camera(f, lvl)["world_from_camera"][:3, :3]
         assert np.allclose(n @ r, clip.read(f, f"{lvl}/normal"), atol=1e-5)  # world space, rotated back
+
+
+def test_the_nss_round_trip_validates(tmp_path):
+    """Issue 56: ``import-nss`` of BlendSR's own NSS export passes ``validate``. The export's first frame points
+    at a frame the sequence does not hold: imported, that camera cut has its own camera as the previous one and zero
+    motion (its LR and HR motion checks then agree, not "static" against 0.2-0.5 px); the HR depth is interpolated
+    (NSS has none), so HR motion is reported as unchecked (a warning), while every LR level's motion is checked."""
+    from gbuffer_export.validate import WARNING, validate_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 32), scales=(2, 4), jitter=True)
+    nss.export_nss([clip], tmp_path / "nss")
+    back = nss.nss_to_clip(tmp_path / "nss", "0000", tmp_path / "back")
+    report = validate_clip(back)
+    assert report.ok, [f.line() for f in report.findings]
+    assert report.codes(WARNING) == {"motion-unchecked"}
+    b, src = open_clip(back), open_clip(clip)
+    assert b.manifest["imported"]["camera_cuts"] == [0]
+    assert not np.any(b.read(0, "lr/motion")) and not np.any(b.read(0, "hr/motion"))
+    assert np.array_equal(b.camera(0, "lr")["prev_world_from_camera"], b.camera(0, "lr")["world_from_camera"])
+    assert np.any(src.read(src.frames[0], "lr/motion"))  # the source did move into its first frame
+    per = report.stats["per_frame"]
+    assert per["0"]["lr"]["static_fraction"] == 1.0 and per["1"]["lr_x4"]["static_fraction"] >= 0.99
+    # the interpolated HR depth is the source's on smooth surfaces (inverse depth is linear on a plane)
+    d, ds = b.read(1, "hr/depth")[..., 0], src.read(src.frames[1], "hr/depth")[..., 0]
+    fin = np.isfinite(d) & np.isfinite(ds)
+    assert np.median(np.abs(d - ds)[fin] / ds[fin]) < 2e-3

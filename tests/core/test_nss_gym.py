@@ -245,10 +245,10 @@ def nfru_read(src: Path, seq: str) -> list[dict]:
 def test_nfru_export_reads_as_the_gym_reader_reads_it(tmp_path):
     """A static synthetic scene seen by a moving, un-jittered camera: the reader's camera motion from the exported
     depth and ViewProjections equals the exported motion_m1 and motion_m2 (within half precision) on surfaces."""
-    from gbuffer_export.formats.nfru import export_nfru
+    from gbuffer_export.formats.nfru import export_sequence
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 9), hr_size=(64, 32), scales=(2, 4))
-    export_nfru([clip], tmp_path / "nfru")
-    out = tmp_path / "nfru"
+    out = tmp_path / "nfru"  # the sequence writer itself: export_nfru refuses sizes other than the reader's 1920x1080
+    export_sequence(open_clip(clip), list(open_clip(clip).frames), out, "0000")
     assert sorted(p.name for p in (out / "x2" / "motion_m2" / "0000").iterdir()) == [
         "0000.exr", "0002.exr", "0004.exr", "0006.exr"]
     frames = nfru_read(out, "0000")

@@ -96,3 +96,11 @@ def test_issue56_family_scene_files_in_a_sandbox(tmp_path):
     assert tally.inputs_tried == sum(c[3] for c in fc.SANDBOX_CASES) + 1 >= 8
     assert tally.faults == tally.faults_survived == 1
     _clean(tally)
+
+
+def test_exports_appends_at_once_consumer_limits_and_the_nss_round_trip(fixtures):
+    """Part 12, quick form (NSS and RDG races; NFRU's 1920x1080 race in the full campaign)."""
+    tally = fc.Tally()
+    fc.export_cases(fixtures, tally, quick=True, log=lambda m: None)
+    assert tally.inputs_tried == 5
+    _clean(tally)
