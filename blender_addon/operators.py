@@ -444,7 +444,8 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         psnr = out.get("psnr")
         store_preview_results(context.scene.blendsr, ms=out["ms"], psnr=psnr, metric=out.get("metric", ""),
                               info=info, clip=clip_dir)
-        msg = f"BlendSR preview: {info}, {out['ms']:.1f} ms"
+        path = (out.get("inference") or {}).get("path")  # training.fastpath: the inference path that ran
+        msg = f"BlendSR preview: {info}, {out['ms']:.1f} ms" + (f" ({path} path)" if path else "")
         if psnr is not None:
             msg += f", PSNR {psnr:.2f} dB"
         self.report({"INFO"}, msg)
@@ -483,7 +484,8 @@ def run_external_inference(python: str, clip_dir: str, frame: int, spec: str, wi
     if not r.get("ok"):
         raise RuntimeError(r.get("error", "external inference failed"))
     out = {"sr": read_exr(out_dir / "sr.exr", ("R", "G", "B")),
-           "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"])}
+           "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"]),
+           "inference": r.get("inference")}
     if with_reference and (out_dir / "reference.exr").is_file():
         out["reference"] = read_exr(out_dir / "reference.exr", ("R", "G", "B"))
         if r.get("psnr") is not None:
