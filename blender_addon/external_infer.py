@@ -5,11 +5,15 @@ Used two ways:
   * with an external Python that has torch and the library (add-on preferences, ``python_path``):
         python external_infer.py --clip DIR --frame F --model SPEC --out DIR [--sys-path D ...] [--reference]
     writes OUT/sr.exr, OUT/bilinear.exr (and OUT/reference.exr with --reference) as linear RGB float32 and
-    OUT/result.json {ms, warmup_ms, repeats, runtime, psnr, metric, size}; exit 0, or 2 with {error} in result.json;
+    OUT/result.json {ms, warmup_ms, repeats, runtime, psnr, metric, size, inference}; exit 0, or 2 with {error} in
+    result.json;
   * in Blender's Python without torch, through ONNX Runtime and the zip's graphs: ``run_onnx_inference``.
 
 Times: the first call (with the model's loading or the ONNX Runtime sessions' creation) is ``warmup_ms``; ``ms`` is
 the median of the ``REPEATS`` calls after it (the model's time per frame, as ``blendsr bench models`` reports it).
+
+The torch model runs on the inference path ``--path`` (default ``auto``: the fastest that passes the reference check,
+``training.fastpath.AutoPath``), as ``blendsr upscale`` does; ``inference`` records the path that ran.
 
 PSNR is the evaluation's: ``training.metrics.psnr_tm`` (PSNR, peak 1, of the tonemapped images: sRGB OETF of
 Reinhard x/(1+x)); if training.metrics cannot be imported, the same transform from ``gbuffer_export.preview.tonemap``
@@ -48,14 +52,19 @@ def tonemapped_psnr(sr, ref) -> float:
 _MODELS: dict = {}
 
 
-def load_model_cached(spec: str, scale: int):
-    """``training.inference.load_model`` with a cache keyed on the spec, scale and checkpoint file time."""
+def load_model_cached(spec: str, scale: int, path: str | None = None):
+    """``training.inference.load_model`` prepared for inference path ``path`` (``fastpath.prepare_inference``, on
+    the GPU when there is one), with a cache keyed on the spec, scale, path and checkpoint file time (the path
+    ``auto`` chooses on the first frame is kept with the model); None: ``fastpath.default_path``."""
+    from training.device import resolve_device
+    from training.fastpath import default_path, prepare_inference
     from training.inference import load_model
+    path = path or default_path()
     mtime = os.path.getmtime(spec) if os.path.isfile(spec) else None
-    key = (spec, scale, mtime)
+    key = (spec, scale, path, mtime)
     if key not in _MODELS:
         _MODELS.clear()
-        _MODELS[key] = load_model(spec, scale)
+        _MODELS[key] = prepare_inference(load_model(spec, scale, fast=False), resolve_device("auto"), path=path)
     return _MODELS[key]
 
 
@@ -87,8 +96,9 @@ def _result(out: dict, times: dict, runtime: str, with_reference: bool) -> dict:
     return res
 
 
-def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) -> dict:
-    """Upscale ``frame`` of the clip with model ``spec`` (a model name or a checkpoint path) through torch.
+def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool, path: str | None = None) -> dict:
+    """Upscale ``frame`` of the clip with model ``spec`` (a model name or a checkpoint path) through torch, on
+    inference path ``path`` ('inference' in the result: the path that ran, ``fastpath.path_record``).
 
     Returns {'sr', 'bilinear': HxWx3 float32 linear, 'reference': HxWx3 or absent, 'ms': median milliseconds of
     the calls after the first, 'warmup_ms': loading plus the first call, 'runtime', 'psnr': dB or absent,
@@ -97,13 +107,14 @@ def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool) ->
 
     import torch
     from gbuffer_export import open_clip
+    from training.fastpath import path_record
     from training.inference import upscale_frame
     clip = open_clip(clip_dir)
     t0 = time.perf_counter()
-    model = load_model_cached(spec, clip.scale)
+    model = load_model_cached(spec, clip.scale, path)
     load_ms = 1000.0 * (time.perf_counter() - t0)
     out, times = timed_calls(lambda: upscale_frame(model, clip, frame), load_ms)
-    return _result(out, times, f"torch {torch.__version__}", with_reference)
+    return {**_result(out, times, f"torch {torch.__version__}", with_reference), "inference": path_record(model)}
 
 
 def run_onnx_inference(clip_dir: str, frame: int, spec: str, with_reference: bool, graphs_dir: str) -> dict:
@@ -136,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", required=True, help="model name (e.g. demod-bilinear) or checkpoint path")
     p.add_argument("--out", required=True, help="output folder for sr.exr, bilinear.exr, result.json")
     p.add_argument("--reference", action="store_true", help="also write reference.exr and the PSNR")
+    p.add_argument("--path", default=None, choices=("auto", "reference", "fast", "fused", "graph"),
+                   help="inference path (training.fastpath; default $BLENDSR_INFERENCE_PATH, else auto: the fastest "
+                        "that passes the reference check)")
     p.add_argument("--sys-path", action="append", default=[], help="folder to put on sys.path (repeatable)")
     p.add_argument("--site-dir", action="append", default=[], help="site folder to add (repeatable)")
     a = p.parse_args(argv)
@@ -149,14 +163,14 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(a.out, exist_ok=True)
     result: dict = {}
     try:
-        res = run_inference(a.clip, a.frame, a.model, a.reference)
+        res = run_inference(a.clip, a.frame, a.model, a.reference, a.path)
         _write_rgb(os.path.join(a.out, "sr.exr"), res["sr"])
         _write_rgb(os.path.join(a.out, "bilinear.exr"), res["bilinear"])
         if "reference" in res:
             _write_rgb(os.path.join(a.out, "reference.exr"), res["reference"])
         result = {"ok": True, "ms": res["ms"], "warmup_ms": res["warmup_ms"], "repeats": res["repeats"],
                   "runtime": res["runtime"], "psnr": res.get("psnr"), "metric": res.get("metric", ""),
-                  "size": [int(res["sr"].shape[1]), int(res["sr"].shape[0])]}
+                  "size": [int(res["sr"].shape[1]), int(res["sr"].shape[0])], "inference": res.get("inference")}
     except Exception as exc:
         traceback.print_exc()
         result = {"ok": False, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__}

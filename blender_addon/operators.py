@@ -467,8 +467,10 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         runtime = out.get("runtime", "")
         store_preview_results(context.scene.blendsr, ms=out["ms"], psnr=psnr, metric=out.get("metric", ""),
                               info=info, clip=clip_dir, warmup_ms=out.get("warmup_ms", 0.0), runtime=runtime)
-        msg = (f"BlendSR preview: {info}, {runtime}: {out['ms']:.1f} ms per frame (median of "
-               f"{out.get('repeats', 1)}), warm-up {out.get('warmup_ms', 0.0):.0f} ms")
+        path = (out.get("inference") or {}).get("path")  # training.fastpath: the inference path that ran
+        msg = (f"BlendSR preview: {info}, {runtime}" + (f" ({path} path)" if path else "")
+               + f": {out['ms']:.1f} ms per frame (median of {out.get('repeats', 1)}), "
+               f"warm-up {out.get('warmup_ms', 0.0):.0f} ms")
         if psnr is not None:
             msg += f", PSNR {psnr:.2f} dB"
         self.report({"INFO"}, msg)
@@ -512,7 +514,7 @@ def run_external_inference(python: str, clip_dir: str, frame: int, spec: str, wi
     out = {"sr": read_exr(out_dir / "sr.exr", ("R", "G", "B")),
            "bilinear": read_exr(out_dir / "bilinear.exr", ("R", "G", "B")), "ms": float(r["ms"]),
            "warmup_ms": float(r.get("warmup_ms", 0.0)), "repeats": int(r.get("repeats", 1)),
-           "runtime": f"{r.get('runtime', 'torch')} in {python}"}
+           "runtime": f"{r.get('runtime', 'torch')} in {python}", "inference": r.get("inference")}
     if with_reference and (out_dir / "reference.exr").is_file():
         out["reference"] = read_exr(out_dir / "reference.exr", ("R", "G", "B"))
         if r.get("psnr") is not None:

@@ -100,7 +100,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--path", default=None, metavar="PATHS",
                         help="speed mode: comma-separated inference paths timed side by side: reference (fp32 eager, "
                              "= --eager-reference), fast (fast ops, autocast; the default), fused (fused HR stage, "
-                             "weights held in the precision's dtype); adds kernels per frame and each output's "
+                             "weights held in the precision's dtype), graph (fused as one frozen inductor graph on "
+                             "the CPU, one CUDA graph per frame on a GPU, timed as N >= 100 replays between two CUDA "
+                             "events in 5 rounds: median and spread); adds kernels per frame and each output's "
                              "error to the fp32 reference, checked against the precision's tolerance")
 
 
@@ -510,7 +512,7 @@ def _bar(items, desc: str, unit: str, on: bool):
 
 
 def _paths(text: str | None) -> tuple[str, ...] | None:
-    """--path: None (the fast path alone) or the paths among reference, fast, fused."""
+    """--path: None (the fast path alone) or the paths among reference, fast, fused, graph."""
     if not text:
         return None
     from training.fastpath import PATHS
@@ -640,6 +642,9 @@ def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
            "gmacs": macs / 1e9, "mbytes": r["bytes"] / 1e6, "ms": ms, "ms_min": min(r["times"]),
            "roofline_ms": roof, "ratio": ms / roof,
            **{k: r[k] for k in ("kernels", "max_rel_err", "tolerance") if k in r}}
+    if "graph_timing" in r:  # frame_graph.time_replays: the spread of its rounds and the replays per round
+        rec.update(spread=r["graph_timing"]["spread"], replays=r["graph_timing"]["n"],
+                   timing="CUDA graph replays between two CUDA events")
     log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
         f"x{rec['ratio']:.0f})")
     return rec
@@ -667,8 +672,8 @@ class SpeedOptions:
     """How ``speed_benchmark`` times: HR ``size`` (W, H) of the random inputs, the ``precisions`` and ``compiles``
     settings of the fast path, ``warmup`` and ``repeats``, the roofline's ``peak_tflops`` and ``bandwidth_gbs`` (0:
     ``device_peaks``), ``reference`` (also the fp32 eager reference path), ``progress`` and ``log``; ``paths``
-    (``--path``): the inference paths to time (reference, fast, fused; None: fast): given, every variant's kernels
-    per frame and output error to the fp32 reference are measured too, and a variant outside its precision's
+    (``--path``): the inference paths to time (reference, fast, fused, graph; None: fast): given, every variant's
+    kernels per frame and output error to the fp32 reference are measured too, and a variant outside its precision's
     tolerance (``fastpath.TOLERANCE``) fails the run (BlendSRError, after the files are written)."""
 
     size: tuple[int, int] = (1920, 1080)
@@ -702,7 +707,7 @@ def speed_benchmark(models: list[tuple[str, object]], out, options: SpeedOptions
     checked = o.paths is not None
     paths = o.paths or ("fast",)
     variants = ([("fp32 eager reference", None)] if o.reference or "reference" in paths else []) + \
-        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}{' fused' if fp == 'fused' else ''}",
+        [(f"{dtype_label(amp_dtype(p, device))}{' compiled' if c else ''}{'' if fp == 'fast' else ' ' + fp}",
           (p, c, fp)) for fp in paths if fp != "reference" for c in o.compiles for p in o.precisions]
     # labelled by the dtype that runs ("auto" resolved)
     peaks = {}
@@ -783,8 +788,15 @@ def _time_runners(runners: list[dict], device, o: SpeedOptions) -> None:
             for _ in range(max(o.warmup, 1)):
                 forward(r["module"], r["batch"])
             _sync(device)
-        for _ in _bar(range(o.repeats), f"time {len(runners)} variants", "round", o.progress):
-            for r in runners:
+        graphs = [r for r in runners if r["module"].settings.get("frame_graph")]
+        for r in graphs:  # one CUDA graph per frame: N replays between two CUDA events, several rounds
+            from training.frame_graph import time_replays
+            r["graph_timing"] = time_replays(r["module"].settings["graphs"]["forward"].replay_last(),
+                                             n=max(100, o.repeats), rounds=5)
+            r["times"] = list(r["graph_timing"]["rounds"])
+        timed = [r for r in runners if r not in graphs]
+        for _ in _bar(range(o.repeats if timed else 0), f"time {len(timed)} variants", "round", o.progress):
+            for r in timed:
                 r["times"].append(timer(lambda: forward(r["module"], r["batch"])))
 
 

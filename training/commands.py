@@ -71,6 +71,7 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
+    add_path_flag(p)
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
                    help="configuration of a non-learned --model (TOML value), e.g. "
                         "model.demod-jbu.guide_sigma_depth=0.05; of a --checkpoint only its inference options, "
@@ -90,6 +91,7 @@ def register(subparsers) -> None:
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
     p.add_argument("--compile", action="store_true", help="torch.compile the inference fast path")
+    add_path_flag(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_upscale)
 
@@ -105,6 +107,19 @@ def register(subparsers) -> None:
     p.add_argument("--hr-size", default="128x72", metavar="WxH", help="HR size of random example inputs")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset")
     p.set_defaults(func=cmd_export)
+
+
+#: ``--path``'s choices (``training.fastpath.PATH_CHOICES``; written here: the CLI imports no torch to register)
+PATH_CHOICES = ("auto", "reference", "fast", "fused", "graph")
+
+
+def add_path_flag(p) -> None:
+    p.add_argument("--path", default=None, choices=PATH_CHOICES,
+                   help="inference path (default: $BLENDSR_INFERENCE_PATH, else auto): auto (the fastest that "
+                        "passes the fp32 reference check on the first frame: graph, else fused, else fast; logged and recorded in the output), reference (fp32 "
+                        "eager, the model as built), fast (fast ops, autocast), fused (fused HR stage, weights held "
+                        "in the precision), graph (fused as one compiled graph on the CPU, one CUDA graph per "
+                        "frame on a GPU); docs/evaluation.md, 'Inference paths'")
 
 
 def refuse_dataset(path, option: str) -> None:
@@ -190,23 +205,25 @@ def cmd_evaluate(args) -> int:
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
     from training.inference import load_model
-    from training.device import amp_dtype, resolve_device
+    from training.device import resolve_device
     if args.threads:
         torch.set_num_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
-    model = load_model(spec, scale, args.set).to(resolve_device(args.device))
-    if args.compile:
-        from training.fastpath import prepare_inference
-        prepare_inference(model, compile=True)
+    from training.fastpath import default_path, path_record, prepare_inference
+    model = load_model(spec, scale, args.set, fast=False)
+    prepare_inference(model, resolve_device(args.device), args.amp, compile=args.compile,
+                      path=args.path or default_path())
     frames = _frames(args.frames)
     from training.evaluate import EvalOptions
     result = evaluate_model(model, args.data, EvalOptions(
-        frames={str(c): frames for c in args.data} if frames else None, amp=amp_dtype(args.amp, model.device),
+        frames={str(c): frames for c in args.data} if frames else None, amp=None,
         flip=not args.no_flip, delta_e_itp=args.delta_e_itp, save_images=args.save_images, warmup=args.warmup,
         progress=not args.no_progress))
+    result["amp"] = args.amp  # the precision asked; result["inference"] names the one that ran
+    result["inference"] = path_record(model)
     write_json_atomic(args.json, result)
     from training.evaluate import worst_case_line
     m = result["mean"]
@@ -230,9 +247,10 @@ def cmd_upscale(args) -> int:
     refuse_dataset(args.clip, "--clip")
     clip = open_clip(args.clip)
     from training.fastpath import prepare_inference
-    model = load_model(args.checkpoint or args.model, clip.scale)
-    prepare_inference(model, resolve_device(args.device), args.amp,
-                      compile=args.compile)
+    from training.fastpath import default_path, path_record
+    model = load_model(args.checkpoint or args.model, clip.scale, fast=False)
+    prepare_inference(model, resolve_device(args.device), args.amp, compile=args.compile,
+                      path=args.path or default_path())
     source = ClipFrames(clip, eps=model.demod_eps)
     frames = _frames(args.frames) or clip.frames
     out = Path(args.output)
@@ -256,7 +274,7 @@ def cmd_upscale(args) -> int:
     write_json_atomic(out / "upscale.json", {"model": model.spec, "clip": str(args.clip), "scale": clip.scale,
                                             "exposure": clip.exposure,  # the EXRs hold exposed radiance
                                             "frames": [int(f) for f in frames], "ms": times,
-                                            "nonfinite_values": nonfinite})
+                                            "nonfinite_values": nonfinite, "inference": path_record(model)})
     print(f"wrote {len(frames)} frames to {out}"
           + (f" ({len(nonfinite)} with non-finite model output set to 0)" if nonfinite else ""))
     return 0

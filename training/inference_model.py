@@ -82,16 +82,36 @@ class InferenceModel:
 
     def forward(self, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         """SR of ``batch`` (tensors on the device) with the fast-path settings of ``prepare_inference``
-        (``training.fastpath``): channels-last inputs, the compiled module, autocast to the prepared dtype; ``amp``
-        overrides the prepared dtype when given."""
+        (``training.fastpath``): channels-last inputs, the compiled module or one CUDA graph per frame, autocast to
+        the prepared dtype; ``amp`` overrides the prepared dtype when given. Under ``path="auto"`` the first call
+        chooses the path (``fastpath.AutoPath``)."""
+        auto = self.settings.get("auto")
+        if hasattr(auto, "check"):
+            return auto.check(lambda: self._forward(batch, amp))
+        return self._forward(batch, amp)
+
+    def _forward(self, batch: dict, amp: torch.dtype | None) -> torch.Tensor:
         from training.device import autocast
         dtype = amp if amp is not None else self.settings.get("dtype")
         if self.settings.get("channels_last"):
             batch = channels_last_batch(batch, self.settings.get("channels_last_levels", ("lr", "hr")))
         fn = self.settings.get("compiled")
         fn = self.module if fn is None else fn
-        with autocast(next(iter(batch.values())).device, dtype):
-            return fn(batch)
+
+        def call(b):
+            with autocast(next(iter(b.values())).device, dtype):
+                return fn(b)
+        if self.settings.get("frame_graph"):
+            return self._graph("forward", call)(batch)
+        return call(batch)
+
+    def _graph(self, name: str, fn):
+        """The ``FrameGraph`` (one CUDA graph per frame and input layout) of ``fn`` kept under ``name``."""
+        from training.frame_graph import FrameGraph
+        graphs = self.settings.setdefault("graphs", {})
+        if name not in graphs:
+            graphs[name] = FrameGraph(fn)
+        return graphs[name]
 
     def run(self, inputs: dict[str, np.ndarray], amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
         """(SR H x W x 3 float32, ms) of the whole input window (numpy (1, T, C, H, W)), no state: the forward pass
@@ -114,13 +134,21 @@ class InferenceModel:
         batch = {k: torch.from_numpy(v[:, -1:] if v.ndim > 1 else v).to(self.device) for k, v in inputs.items()
                  if k in needs or k == "scale"}  # 'scale' (B,): per batch element, no time axis
         state = self.state.get(*at) if at is not None else None
-        dtype = amp if amp is not None else self.settings.get("dtype")
         from training.device import autocast
 
+        def call(b, st):
+            with autocast(self.device, amp if amp is not None else self.settings.get("dtype")):
+                return self.module.step(b, st)
+
         def one():
-            with autocast(self.device, dtype):
-                return self.module.step(batch, state)
-        (sr, new), ms = self._timed(one)
+            if self.settings.get("frame_graph"):
+                return self._graph("step", call)(batch, state)
+            return call(batch, state)
+        auto = self.settings.get("auto")
+        if hasattr(auto, "check"):
+            (sr, new), ms = self._timed(lambda: auto.check(one, pick=lambda r: r[0]))
+        else:
+            (sr, new), ms = self._timed(one)
         if at is not None:
             self.state.put(*at, new)
         return _image(sr), ms

@@ -13,9 +13,17 @@
 # CHECK=clamp: the CUDA tests of the fused path (the residual clamps' kernel included) and the 1080p frame time of
 #   fusesr-l and fusesr-fast with residual_clamp none, lr-range and lr-guided (bf16, fused path). Writes log.txt,
 #   speed_clamp.json/.md.
+# CHECK=graph (issue 58: one CUDA graph per frame, the replay timer; docs/evaluation.md "Inference paths"): the CUDA
+#   tests of the paths (FrameGraph against eager, recurrent state included), then the 1080p 4x table of every model
+#   with --path fast,fused,graph (bf16, eager): graph variants timed as N=200 replays between two CUDA events in 5
+#   rounds (median, spread), kernels per frame, ratio to the roofline, every output against the fp32 reference
+#   (bilinear's graph row is the timer's own check: within 2x of its roofline). Step timeouts sum to 430 s (not yet
+#   run on a GPU). Writes log.txt, speed_graph.json/.md; a second call on another machine:
+#   python3 benchmarks/gpu/compare.py A/speed_graph.json B/speed_graph.json (the spread between machines).
 # Needs the wheels of fetch_wheels.sh carried as .whl (about 5 MB; the image's torch brings triton).
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 #        run(command="CHECK=speed bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
+#        run(command="CHECK=graph bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 # CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 [CHECK=speed COMPILE=off] bash benchmarks/gpu/check.sh
 set -u
 OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEATS:-30}; STEPS=${STEPS:-300}
@@ -42,6 +50,15 @@ if [ "$CHECK" = clamp ]; then  # the residual clamps' CUDA tests and their cost 
       'pretrained:fusesr-l?residual_clamp=none,pretrained:fusesr-l?residual_clamp=lr-range,pretrained:fusesr-l?residual_clamp=lr-guided,pretrained:fusesr-fast?residual_clamp=none,pretrained:fusesr-fast?residual_clamp=lr-range,pretrained:fusesr-fast?residual_clamp=lr-guided' \
       -o "$W/clamp"
   cp "$W/clamp/bench_speed.json" "$OUT/speed_clamp.json" && cp "$W/clamp/bench_speed.md" "$OUT/speed_clamp.md"
+  exit 0
+fi
+if [ "$CHECK" = graph ]; then  # issue 58: one CUDA graph per frame, every model (about 430 s of step timeouts)
+  [ "$DEV" = cuda ] && step "CUDA tests of the inference paths and the fused HR stage" 130 python3 -m pytest -v \
+      -p no:cacheprovider --durations=0 -k cuda tests/train/test_inference_paths.py tests/train/hr_stage_cases.py
+  step "speed table, fast / fused / graph (bf16; graph: CUDA graph replays)" 300 "${bench[@]}" --precision bf16 \
+      --compile off --path fast,fused,graph --repeats 200 -o "$W/graph" \
+      --models bilinear,bicubic,demod-bilinear,demod-jbu,fusesr-fast,fusesr-l,fusesr,nsrd,rdg
+  cp "$W/graph/bench_speed.json" "$OUT/speed_graph.json" && cp "$W/graph/bench_speed.md" "$OUT/speed_graph.md"
   exit 0
 fi
 if [ "$CHECK" = speed ]; then

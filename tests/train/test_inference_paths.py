@@ -1,0 +1,187 @@
+"""Issue 58: the inference path of the commands and the add-on (``--path``, default ``auto``:
+``training.fastpath.AutoPath``), the record of the path that ran, one CUDA graph per frame
+(``training.frame_graph.FrameGraph``; CUDA only, its CPU pass-through here) and the replay timer with a fake clock."""
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from gbuffer_export.errors import BlendSRError  # noqa: E402
+from training import fastpath  # noqa: E402
+from training.config import ModelConfig  # noqa: E402
+from training.export import example_inputs  # noqa: E402
+from training.frame_graph import FrameGraph, time_replays  # noqa: E402
+from training.inference import InferenceModel  # noqa: E402
+from training.models import build_model  # noqa: E402
+
+from tests.conftest import run_cli  # noqa: E402
+
+
+def _model(name: str = "demod-bilinear", seed: int = 0) -> tuple[InferenceModel, dict]:
+    torch.manual_seed(seed)
+    m = InferenceModel(build_model(ModelConfig(name=name, scale=4), 4).eval(), name)
+    batch = {k: torch.from_numpy(v) for k, v in example_inputs(m, None, (32, 16)).items()}
+    return m, batch
+
+
+def _reference(name: str, batch: dict) -> torch.Tensor:
+    m, _ = _model(name)
+    with torch.inference_mode():
+        return m.forward(batch)
+
+
+class FakeClock:
+    """start()/stop() -> ms over a counter that ``tick`` advances: each replay costs ``costs[i]`` ms in round i."""
+
+    def __init__(self, costs):
+        self.costs, self.round, self.now = list(costs), -1, 0.0
+
+    def tick(self):
+        self.now += self.costs[max(self.round, 0)]
+
+    def start(self):
+        self.round += 1
+        self.t0 = self.now
+
+    def stop(self):
+        return self.now - self.t0
+
+
+def test_time_replays_median_and_spread_of_the_rounds():
+    clock = FakeClock([0.5, 0.3, 0.4, 0.4, 0.6])
+    r = time_replays(clock.tick, n=100, rounds=5, clock=clock, warmup=0)
+    assert r["rounds"] == pytest.approx([0.5, 0.3, 0.4, 0.4, 0.6])
+    assert r["ms"] == pytest.approx(0.4) and r["ms_min"] == pytest.approx(0.3) and r["ms_max"] == pytest.approx(0.6)
+    assert r["spread"] == pytest.approx(0.3 / 0.4) and r["n"] == 100
+    with pytest.raises(ValueError, match="at least 100"):
+        time_replays(clock.tick, n=10, clock=clock)
+
+
+def test_frame_graph_calls_the_function_without_cuda():
+    calls = []
+    g = FrameGraph(lambda b, s: calls.append(1) or (b["x"] * 2, s))
+    out, state = g({"x": torch.ones(2)}, None)
+    assert calls == [1] and torch.equal(out, torch.full((2,), 2.0)) and state is None and len(g) == 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+def test_cuda_frame_graph_replays_a_recurrent_step():
+    w = torch.randn(3, 3, device="cuda")
+
+    def step(x, state):
+        new = x @ w if state is None else x @ w + state
+        return new.sum(), new
+    g = FrameGraph(step)
+    xs = [torch.randn(4, 3, device="cuda") for _ in range(4)]
+    state, want = None, None
+    for x in xs:
+        got, state = g(x, state)
+        want_state = x @ w if want is None else x @ w + want
+        want = want_state
+        assert torch.allclose(state, want, atol=1e-5)
+    assert len(g) == 2  # the first frame (no state) and the following ones
+
+
+def test_path_choices_and_default(monkeypatch):
+    monkeypatch.delenv(fastpath.PATH_ENV, raising=False)
+    assert fastpath.default_path() == "auto"
+    monkeypatch.setenv(fastpath.PATH_ENV, "fused")
+    assert fastpath.default_path() == "fused"
+    monkeypatch.setenv(fastpath.PATH_ENV, "fastest")
+    with pytest.raises(BlendSRError, match="BLENDSR_INFERENCE_PATH='fastest'"):
+        fastpath.default_path()
+    with pytest.raises(BlendSRError, match="inference path 'quick'"):
+        fastpath.prepare_inference(_model()[0], path="quick")
+
+
+def test_reference_path_leaves_the_model_as_built():
+    m, batch = _model("demod-jbu")
+    fastpath.prepare_inference(m, "cpu", path="reference")
+    assert fastpath.path_record(m)["path"] == "reference" and not m.module.fast_ops and m.module.hr_impl is None
+    with torch.inference_mode():
+        assert torch.equal(m.forward(batch), _reference("demod-jbu", batch))
+
+
+def _break_graph(monkeypatch, how: str):
+    """The graph path's compiled module replaced: 'raise' (a CPU without a C++ compiler) or 'wrong' output."""
+    def fake(model, dev, compile, path):
+        if path != "graph":
+            return None
+        if how == "raise":
+            def fail(batch):
+                raise RuntimeError("no C++ compiler found\nmore lines")
+            return fail
+        return lambda batch: model(batch) * 1.01
+    monkeypatch.setattr(fastpath, "_compiled", fake)
+
+
+@pytest.mark.parametrize("how", ["raise", "wrong"])
+def test_auto_falls_back_to_the_next_path_that_passes(monkeypatch, caplog, how):
+    _break_graph(monkeypatch, how)
+    m, batch = _model("demod-jbu")
+    fastpath.prepare_inference(m, "cpu", path="auto")
+    assert m.settings["path"] == "graph"  # prepared for the first candidate, not yet checked
+    with caplog.at_level(logging.INFO, logger="training.fastpath"), torch.inference_mode():
+        out = m.forward(batch)
+        again = m.forward(batch)  # the chosen path, no further check
+    rec = fastpath.path_record(m)
+    assert rec["path"] == "fused" and rec["auto"]["checked"] and rec["auto"]["max_rel_err"] <= 2e-5
+    why = "failed (RuntimeError: no C++ compiler found)" if how == "raise" else "error 1.00e-02 > 2e-05"
+    assert rec["auto"]["rejected"] == [f"graph: {why}"]
+    assert "inference path graph" in caplog.text and "inference path: fused (auto" in caplog.text
+    want = _reference("demod-jbu", batch)
+    for o in (out, again):
+        assert float((o - want).abs().max() / want.abs().max()) <= 2e-5
+
+
+def test_auto_ends_on_the_reference_path(monkeypatch):
+    monkeypatch.setattr(fastpath, "AUTO_ORDER", ("graph",))
+    _break_graph(monkeypatch, "wrong")
+    m, batch = _model("demod-jbu")
+    fastpath.prepare_inference(m, "cpu", path="auto")
+    with torch.inference_mode():
+        out = m.forward(batch)
+    rec = fastpath.path_record(m)
+    assert rec["path"] == "reference" and rec["auto"]["rejected"][-1] == "reference: the last resort"
+    assert torch.equal(out, _reference("demod-jbu", batch)) and not m.module.fast_ops
+
+
+def test_auto_checks_a_recurrent_model_on_its_first_step(monkeypatch):
+    _break_graph(monkeypatch, "raise")  # the recurrent step does not run the compiled module: graph passes
+    m, _ = _model("nsrd")
+    inputs = example_inputs(m, None, (32, 16))
+    fastpath.prepare_inference(m, "cpu", path="auto")
+    sr, _ = m.step(inputs, ("clip", 1))
+    rec = fastpath.path_record(m)
+    assert rec["path"] == "graph" and rec["auto"]["checked"] and rec["auto"]["max_rel_err"] <= 2e-5
+    ref, _ = _model("nsrd")
+    want, _ = ref.step(inputs, None)
+    assert abs(sr - want).max() <= 2e-5 * abs(want).max()
+
+
+def test_auto_picks_the_compiled_graph_on_the_cpu():
+    """The product's CPU default, unpatched: the whole model compiled with freezing, within fp32's tolerance."""
+    m, batch = _model("demod-bilinear")
+    fastpath.prepare_inference(m, "cpu", path="auto")
+    with torch.inference_mode():
+        out = m.forward(batch)
+    rec = fastpath.path_record(m)
+    assert rec["path"] == "graph" and rec["compiled"] and rec["auto"]["rejected"] == []
+    want = _reference("demod-bilinear", batch)
+    assert float((out - want).abs().max() / want.abs().max()) <= fastpath.TOLERANCE["fp32"]
+
+
+def test_upscale_records_the_path_and_takes_the_default_from_the_environment(tmp_path, monkeypatch):
+    from gbuffer_export.synthetic import make_synthetic_clip
+    clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(32, 16), scale=4)
+    run_cli("upscale", "--model", "demod-jbu", "--clip", clip, "-o", tmp_path / "a", "--path", "reference",
+            "--no-progress", check=True)
+    assert json.loads((tmp_path / "a" / "upscale.json").read_text())["inference"]["path"] == "reference"
+    run_cli("upscale", "--model", "demod-jbu", "--clip", clip, "-o", tmp_path / "b", "--no-progress", check=True)
+    assert json.loads((tmp_path / "b" / "upscale.json").read_text())["inference"]["path"] == "fast"  # the suite's
+    bad = run_cli("upscale", "--model", "demod-jbu", "--clip", clip, "-o", tmp_path / "c", "--path", "quick")
+    assert bad.returncode == 2 and "--path: invalid choice: 'quick'" in bad.stderr
