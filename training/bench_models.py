@@ -92,7 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where models run")
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                         help="autocast (with --data; --precision takes precedence)")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: the cores this process may use)")
     parser.add_argument("--warmup", type=int, default=BenchOptions.warmup, help="untimed runs before timing")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
@@ -462,10 +462,9 @@ def run(args) -> int:
 
     from gbuffer_export.config import parse_frames
     from training.clip_sets import dataset_clips, scale_of
-    from training.device import amp_dtype, resolve_device
+    from training.device import amp_dtype, resolve_device, set_threads
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     device = resolve_device(args.device)
     args.data = [str(c) for c in dataset_clips(args.data, args.split)]
     precisions = _precisions(args.precision)

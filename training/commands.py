@@ -68,7 +68,7 @@ def register(subparsers) -> None:
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
     p.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: the cores this process may use)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     p.add_argument("--set", action="append", default=[], metavar="model.KEY=VALUE",
@@ -186,13 +186,11 @@ def _check_radiance(clips, frames) -> None:
 
 def cmd_evaluate(args) -> int:
     require("blendsr evaluate", "train")
-    import torch
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
     from training.inference import load_model
-    from training.device import amp_dtype, resolve_device
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from training.device import amp_dtype, resolve_device, set_threads
+    set_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
