@@ -62,6 +62,9 @@ def register(subparsers) -> None:
     p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all finished frames)")
     p.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (about 4 s per 1080p frame on a CPU)")
+    p.add_argument("--cvvdp", action="store_true",
+                   help="also ColorVideoVDP per clip (JOD; flicker and shimmer over the frames, on the display model "
+                        "'standard_fhd'; docs/evaluation.md): the [video] extra")
     p.add_argument("--delta-e-itp", action="store_true",
                    help="also score Delta E ITP (HDR colour difference, radiance 1 shown at 203 cd/m^2)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
@@ -204,7 +207,7 @@ def cmd_evaluate(args) -> int:
     result = evaluate_model(model, args.data, EvalOptions(
         frames={str(c): frames for c in args.data} if frames else None, amp=amp_dtype(args.amp, model.device),
         flip=not args.no_flip, delta_e_itp=args.delta_e_itp, save_images=args.save_images, warmup=args.warmup,
-        progress=not args.no_progress))
+        progress=not args.no_progress, cvvdp=args.cvvdp))
     write_json_atomic(args.json, result)
     from training.evaluate import worst_case_line
     m = result["mean"]
@@ -215,6 +218,10 @@ def cmd_evaluate(args) -> int:
         print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
             f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
             for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
+    if result["cvvdp"] is not None:
+        print(f"  ColorVideoVDP {m['cvvdp']:.3f} JOD (mean of {len(result['per_clip'])} clip(s): " + ", ".join(
+            f"{Path(c['clip']).name} {c['cvvdp']:.3f}" for c in result["per_clip"])
+            + f"; display {result['cvvdp']['display']})")
     print(worst_case_line(result))
     return 0
 
