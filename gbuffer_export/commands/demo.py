@@ -117,6 +117,8 @@ def _run(args) -> int:
     with flags_named(args):
         a, b = parse_frames(args.frames)
     later = f"{b + 1}:{2 * b - a + 1}"
+    from ..resources import usable_cores
+    threads = args.threads or usable_cores()  # the renders' too (Cycles' AUTO threads do not read the cgroup quota)
     clips = {"test": (out / "clips" / f"test_seed{seed}", args.frames),
              "finetune": (out / "clips" / f"finetune_seed{seed}_frames{later.replace(':', '-')}", later)}
     t = _step(f"render built-in scene {seed}: frames {args.frames} (to score) and {later} (to fine-tune on)")
@@ -124,7 +126,7 @@ def _run(args) -> int:
         _cli("render", "-o", path, "--seed", seed, "--hr-size", args.hr_size, "--frames", frames,
              "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu", "--buffers", "all",
              "--hr-denoise" if args.hr_denoise else "--no-hr-denoise",  # all: every shipped network is scored
-             *(["--threads", args.threads] if args.threads else []))
+             "--threads", threads)
     print(f"   {time.perf_counter() - t:.0f} s")
     _step("validate")
     for name, (path, _) in clips.items():
