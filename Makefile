@@ -16,8 +16,13 @@ setup: $(STAMP)
 TORCH_INDEX ?=
 PIP := $(VPY) -m pip install --disable-pip-version-check --progress-bar on
 
-# Re-runs only when pyproject.toml or this Makefile changed; otherwise 'make setup' is a no-op.
-$(STAMP): pyproject.toml Makefile
+# The demo's install: blendsr[demo] (render and train: no test tools, no Triton); 'make setup'/'make test' install
+# blendsr[dev] (everything, the test tools and Triton), which the demo then finds in place.
+DEMO_STAMP := $(VENV)/.demo-stamp
+# make demo THREADS=1: the demo's CPU threads (default: the cores this process may use; 1 on a busy machine)
+THREADS ?=
+
+define venv_torch
 	@echo "== setup 1/4: virtual environment $(VENV) (Python 3.11)"
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
 	@echo "== setup 2/4: pip"
@@ -25,16 +30,28 @@ $(STAMP): pyproject.toml Makefile
 	@echo "== setup 3/4: torch 2.13.0$(if $(TORCH_INDEX), from $(TORCH_INDEX))"
 	# torch first; blendsr's own range (torch>=2.5) is then already satisfied and nothing pulls another build.
 	$(PIP) $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "torch==2.13.0"
+endef
+
+# Re-runs only when pyproject.toml or this Makefile changed; otherwise 'make setup' is a no-op.
+$(STAMP): pyproject.toml Makefile
+	$(venv_torch)
 	@echo "== setup 4/4: blendsr[dev] (bpy is about 820 MB)"
 	$(PIP) -e ".[dev]"
-	@touch $(STAMP)
+	@touch $(STAMP) $(DEMO_STAMP)
+	@echo "== setup done: $(VENV)"
+
+$(DEMO_STAMP): pyproject.toml Makefile
+	$(venv_torch)
+	@echo "== setup 4/4: blendsr[demo] (bpy is about 820 MB; no test tools)"
+	$(PIP) -e ".[demo]"
+	@touch $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
 test: setup
 	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15
 
-demo: setup
-	$(VPY) -m gbuffer_export.cli demo -o demo_out
+demo: $(DEMO_STAMP)
+	$(VPY) -m gbuffer_export.cli demo -o demo_out $(if $(THREADS),--threads $(THREADS))
 
 addon: setup
 	$(VPY) -m blender_addon.build -o dist

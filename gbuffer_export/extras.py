@@ -21,6 +21,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "train": ("torch", "matplotlib", "pytorch_msssim", "flip_evaluator", "safetensors"),
     "export": ("onnx", "onnxruntime"),
     "cluster": ("ray",),
+    "video": ("pycvvdp",),  # the cvvdp package (ColorVideoVDP)
 }
 
 

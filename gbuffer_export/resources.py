@@ -126,6 +126,49 @@ def peak_rss_bytes() -> int | None:
         return None
 
 
+#: The cgroup file system: v2 ``cpu.max`` ("QUOTA PERIOD", or "max PERIOD" without a quota), v1
+#: ``cpu/cpu.cfs_quota_us`` (-1 without one) over ``cpu/cpu.cfs_period_us`` (also under ``cpu,cpuacct``). In a
+#: container (Docker, Kubernetes, systemd-nspawn) these are the container's own: its cgroup namespace or bind mount.
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+
+
+def _read_quota(folder: Path) -> float | None:
+    """CPUs of the quota in one cgroup folder (v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us``), None when unlimited."""
+    try:
+        quota, period = (folder / "cpu.max").read_text().split()[:2]
+        return int(quota) / int(period) if quota != "max" and int(period) > 0 else None
+    except (OSError, ValueError):
+        pass
+    try:
+        quota, period = (int((folder / f"cpu.cfs_{k}_us").read_text()) for k in ("quota", "period"))
+        return quota / period if quota > 0 and period > 0 else None
+    except (OSError, ValueError):
+        return None
+
+
+def cgroup_cpu_quota(root: Path | None = None) -> float | None:
+    """CPUs the cgroup CPU quota allows this process (v2 ``cpu.max``, else v1 ``cpu.cfs_quota_us`` over
+    ``cpu.cfs_period_us``; the smallest found), or None without a quota or off Linux."""
+    root = CGROUP_ROOT if root is None else Path(root)
+    found = [q for q in map(_read_quota, (root, root / "cpu", root / "cpu,cpuacct")) if q is not None]
+    return min(found) if found else None
+
+
+def usable_cores(root: Path | None = None) -> int:
+    """Cores this process may use: the CPUs of its affinity mask (``os.sched_getaffinity``; ``os.cpu_count``
+    where the platform has none), capped by the cgroup CPU quota (rounded down, at least 1). The default thread
+    count of training, evaluation, benchmarks and ``blendsr demo`` (torch's own default counts every core of the
+    machine, whatever the container may use)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    quota = cgroup_cpu_quota(root)
+    if quota is not None:
+        cores = min(cores, max(1, int(quota)))
+    return max(1, cores)
+
+
 def free_disk(path: Path) -> int | None:
     """Free bytes on the file system that holds ``path`` (its nearest existing ancestor)."""
     p = Path(path).absolute()

@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--crop", type=int, default=64, help="LR crop side, pixels")
     parser.add_argument("--batches", type=int, default=20, help="batches loaded for the timing")
     parser.add_argument("--steps", type=int, default=5, help="training steps timed (after one warm-up step)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: the cores this process may use)")
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"), help="autocast of the step")
     parser.add_argument("--workers", type=int, default=0,
                         help="loader processes (0: the main thread, one batch at a time)")
@@ -72,11 +72,10 @@ def run(args) -> int:
     from training.data import BatchSpec, TrainSampler
     from training.losses import Criterion
     from training.models import build_model
-    from training.device import amp_dtype, autocast, resolve_device
+    from training.device import amp_dtype, autocast, resolve_device, set_threads
     from training.trainer import to_device
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     tmp = None
     clips = list(args.data)
     from training.commands import refuse_dataset

@@ -38,7 +38,7 @@ import numpy as np
 from gbuffer_export.errors import BlendSRError
 
 COLUMNS = ("model", "params", "macs_per_px", "ms_per_frame", "psnr", "margin", "margin_min", "ssim", "psnr_hdr",
-           "flip", "tpsnr", "warp_error", "worst_share", "artifact_fraction", "artifact_fraction_max", "roofline_ms",
+           "flip", "cvvdp", "tpsnr", "warp_error", "worst_share", "artifact_fraction", "artifact_fraction_max", "roofline_ms",
            "ratio")
 
 
@@ -89,10 +89,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the JSON, CSV and markdown tables (and pareto.png with --data) here; default: "
                              "print the table only, write nothing")
     parser.add_argument("--flip", action="store_true", help="also compute HDR-FLIP (slow on CPU)")
+    parser.add_argument("--cvvdp", action="store_true",
+                        help="also ColorVideoVDP per clip (JOD, display model 'standard_fhd'; docs/evaluation.md): "
+                             "the [video] extra")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where models run")
     parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                         help="autocast (with --data; --precision takes precedence)")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: the cores this process may use)")
     parser.add_argument("--warmup", type=int, default=BenchOptions.warmup, help="untimed runs before timing")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bars on stderr (per model and clip with --data; preparing and timing "
@@ -347,6 +350,7 @@ class BenchOptions:
     frames: dict | None = None
     amp: object = None
     flip: bool = False
+    cvvdp: bool = False
     warmup: int = 2
     precision: str | None = None
     compile: bool = False
@@ -382,13 +386,13 @@ def benchmark(models: list[tuple[str, object]], clips, out, options: BenchOption
         amp = None if o.precision is not None or o.compile else o.amp
         res = evaluate_model(model, clips, EvalOptions(frames=o.frames, amp=amp, flip=o.flip, warmup=o.warmup,
                                                        label=label, progress=o.progress, scale=scale,
-                                                       baseline=baseline))
+                                                       baseline=baseline, cvvdp=o.cvvdp))
         rows.append(_row(label, model, res, clips, o, peaks, amp))
         results.append(res)
         r = rows[-1]
         o.log(f"{label:24s} {r['ms_per_frame']:9.2f} ms  PSNR {r['psnr']:6.2f} dB  SSIM {r['ssim']:.4f}"
               + (f"  margin {r['margin']:+.2f} dB (min {r['margin_min']:+.2f})" if r.get("margin") is not None
-                 else ""))
+                 else "") + (f"  ColorVideoVDP {r['cvvdp']:.3f} JOD" if r.get("cvvdp") is not None else ""))
     if not rows:
         raise BlendSRError("bench models: no model could be scored on these clips (" + "; ".join(left_out) + ")")
     device_name = results[0]["device"]
@@ -425,8 +429,8 @@ def _row(label: str, model, res: dict, clips, o: BenchOptions, peaks: dict, amp)
     inputs = model_inputs(model, src, first[0])
     row = {"model": label, "params": model.n_params, "macs_per_px": macs_per_pixel(model, inputs),
            **{k: m[k] for k in COLUMNS if k in m}, "margin_min_clip": m.get("margin_min_clip"),
-           "per_clip": [{k: c[k] for k in ("clip", "margin", "worst_share", "artifact_pixels", "artifact_fraction")}
-                        for c in res["per_clip"]]}
+           "per_clip": [{k: c[k] for k in ("clip", "margin", "worst_share", "artifact_pixels", "artifact_fraction",
+                                           "cvvdp")} for c in res["per_clip"]]}
     scale = src.scale
     hw = inputs["lr/radiance"].shape[-2] * inputs["lr/radiance"].shape[-1] * scale * scale
     nbytes = sum(v.nbytes for k, v in inputs.items() if k in set(model.module.needs())) + 3 * hw * 4
@@ -447,6 +451,7 @@ def _write_bench(out: Path, result: dict, peaks: dict, clips) -> None:
     (out / "bench_models.json").write_text(json.dumps(
         {"device": device_name, "scale": scale, "peaks": peaks, "clips": [str(c) for c in clips], "rows": rows,
          "left_out": result["left_out"], "transform": result["results"][0]["transform"],
+         "cvvdp": result["results"][0]["cvvdp"],
          "worst_case": result["results"][0]["worst_case"]}, indent=1) + "\n")
     with open(out / "bench_models.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
@@ -464,10 +469,9 @@ def run(args) -> int:
 
     from gbuffer_export.config import parse_frames
     from training.clip_sets import dataset_clips, scale_of
-    from training.device import amp_dtype, resolve_device
+    from training.device import amp_dtype, resolve_device, set_threads
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     device = resolve_device(args.device)
     args.data = [str(c) for c in dataset_clips(args.data, args.split)]
     precisions = _precisions(args.precision)
@@ -493,7 +497,7 @@ def run(args) -> int:
     models = load_models(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"),
                          scale_of(args.data))
     benchmark([(label, m.to(device)) for label, m in models], list(args.data), args.output, BenchOptions(
-        frames=frames, amp=amp_dtype(args.amp, device), flip=args.flip, warmup=args.warmup,
+        frames=frames, amp=amp_dtype(args.amp, device), flip=args.flip, cvvdp=args.cvvdp, warmup=args.warmup,
         precision=precisions[0] if precisions else None, compile=compiles[0], peak_tflops=args.peak_tflops,
         bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress))
     if args.output:

@@ -62,13 +62,16 @@ def register(subparsers) -> None:
     p.add_argument("--save-images", metavar="DIR", help="also write SR EXR + tonemapped PNG per frame")
     p.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all finished frames)")
     p.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (about 4 s per 1080p frame on a CPU)")
+    p.add_argument("--cvvdp", action="store_true",
+                   help="also ColorVideoVDP per clip (JOD; flicker and shimmer over the frames, on the display model "
+                        "'standard_fhd'; docs/evaluation.md): the [video] extra")
     p.add_argument("--delta-e-itp", action="store_true",
                    help="also score Delta E ITP (HDR colour difference, radiance 1 shown at 203 cd/m^2)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where the model runs")
     p.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
                    help="autocast precision of the model")
     p.add_argument("--warmup", type=int, default=2, help="untimed runs before timing")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: the cores this process may use)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the inference fast path (CUDA graphs on a GPU; compiling takes a while)")
     add_path_flag(p)
@@ -201,13 +204,11 @@ def _check_radiance(clips, frames) -> None:
 
 def cmd_evaluate(args) -> int:
     require("blendsr evaluate", "train")
-    import torch
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
     from training.inference import load_model
-    from training.device import resolve_device
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from training.device import resolve_device, set_threads
+    set_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
@@ -221,7 +222,7 @@ def cmd_evaluate(args) -> int:
     result = evaluate_model(model, args.data, EvalOptions(
         frames={str(c): frames for c in args.data} if frames else None, amp=None,
         flip=not args.no_flip, delta_e_itp=args.delta_e_itp, save_images=args.save_images, warmup=args.warmup,
-        progress=not args.no_progress))
+        progress=not args.no_progress, cvvdp=args.cvvdp))
     result["amp"] = args.amp  # the precision asked; result["inference"] names the one that ran
     result["inference"] = path_record(model)
     write_json_atomic(args.json, result)
@@ -234,6 +235,10 @@ def cmd_evaluate(args) -> int:
         print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
             f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
             for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
+    if result["cvvdp"] is not None:
+        print(f"  ColorVideoVDP {m['cvvdp']:.3f} JOD (mean of {len(result['per_clip'])} clip(s): " + ", ".join(
+            f"{Path(c['clip']).name} {c['cvvdp']:.3f}" for c in result["per_clip"])
+            + f"; display {result['cvvdp']['display']})")
     print(worst_case_line(result))
     return 0
 

@@ -3,24 +3,34 @@ and the baselines on the demo's held-out clip, optionally fine-tune one of them 
 weights are installed) on the demo's training clip, and write the speed-against-error table, the Pareto plot and a
 side-by-side image.
 
-``run_training_demo(train_clips, test_clips, out, steps)`` writes under ``out``:
+``run_training_demo(train_clips, test_clips, out, steps, threads=0)`` writes under ``out``:
 
-    run_<model>/           the fine-tuning run (config, log, checkpoints) and demo_run.json (its starting weights'
-                           sha256 and its step budget): an interrupted run resumes up to its budget, a finished
-                           one is scored again as it is, and other starting weights or another budget start anew
+    run_<model>/           the fine-tuning run (config, log, checkpoints, summary.json with the steps it ran and
+                           why it stopped) and demo_run.json (its starting weights and their sha256): a rerun on
+                           the same weights continues it from its checkpoint up to the budget (a larger budget
+                           continues too), one that has run its budget is scored again as it is; other weights, or
+                           a budget below the steps already run, start anew
     bench/                 bench_models.{json,csv,md} and pareto.png
     pareto.png             copy of bench/pareto.png
     side_by_side.png       LR (nearest), bicubic, demod-jbu, the best learned model, ground truth of a middle
                            test frame (tonemapped with the evaluation tonemap): whole frames with PSNR, the crop
                            where they differ most at full resolution, and why bicubic rings
 
-and returns a JSON-ready summary.
+and returns a JSON-ready summary. The fine-tune is scored only after it has run its whole budget: stopped before
+(SIGTERM during a step: ``training.train`` stops after it and records the steps run), the training half raises
+``FineTuneStopped`` (a KeyboardInterrupt: the demo stops; the same command continues it). Every row, the plot and
+the summary name the steps the run made (from its summary.json), never the budget asked for.
 """
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
+
+from gbuffer_export.clip import write_json_atomic
+
+logger = logging.getLogger(__name__)
 
 #: Configuration of the brief demo run: small crops, constant learning rate (the step budget sets the length: the
 #: same number of steps on every machine, so the gain it reports does not depend on the machine's speed).
@@ -31,15 +41,18 @@ FINETUNE_OVERRIDES = ("data.crop=32", "data.batch_size=4", "optim.lr=1e-4", "opt
                       "optim.warmup_steps=0", "run.checkpoint_every=200", "run.log_every=5", "data.val_frames=0")
 
 
-def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l") -> dict:
+class FineTuneStopped(KeyboardInterrupt):
+    """The fine-tune stopped before its budget (a signal): the demo stops instead of scoring it."""
+
+
+def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l", threads: int = 0) -> dict:
     from training.bench_models import BenchOptions, benchmark, load_models
     from training.clip_sets import scale_of
-    from training.config import config_from_checkpoint, load_config
+    from training.device import set_threads
     from training.pretrained import available
-    from training.checkpoint import load_checkpoint
-    from training.train import train
 
     out = Path(out)
+    set_threads(threads)  # the scoring's threads; the fine-tune sets run.threads the same way
     pretrained = available()
     models = [("bilinear", "bilinear"), ("bicubic", "bicubic"), ("demod-bilinear", "demod-bilinear"),
               ("demod-jbu", "demod-jbu"), *[(p, p) for p in pretrained]]
@@ -47,19 +60,8 @@ def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fu
     if steps > 0:
         init = f"pretrained:{model}" if f"pretrained:{model}" in pretrained else ""
         run_dir = out / (f"run_{model.replace('-', '_')}" + ("_finetuned" if init else ""))
-        resume = _prepare_run(run_dir, init, steps)
-        if init:  # the pretrained configuration, fine-tuned
-            cfg = config_from_checkpoint(load_checkpoint(init)["config"], source=init)
-            over = load_config(None, [*FINETUNE_OVERRIDES, f"run.max_steps={int(steps)}"])
-            cfg.data, cfg.optim, cfg.run = over.data, over.optim, over.run
-            cfg.run.init_from = init
-        else:
-            cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", f"run.max_steps={int(steps)}"])
-        cfg.data.clips = [str(c) for c in train_clips]  # a crop larger than the clips shrinks (training.run)
-        if not (run_dir / "summary.json").is_file():
-            train(cfg, run_dir, resume=resume)
-        summary = json.loads((run_dir / "summary.json").read_text())
-        label = f"{model} ({'fine-tuned ' if init else ''}{int(steps)} steps)"
+        summary = fine_tune(run_dir, model, init, train_clips, steps, threads)
+        label = f"{model} ({'fine-tuned ' if init else ''}{int(summary['step'])} steps)"
         models.append((label, str(run_dir / "checkpoints" / "last.pt")))
     clips = [str(c) for c in test_clips]
     bench = benchmark(load_models(models, scale_of(clips)), clips, out / "bench", BenchOptions(flip=False))
@@ -70,29 +72,68 @@ def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fu
     result = {"bench": bench["rows"], "device": bench["device"], "pretrained": pretrained,
               "side_by_side": str(side) if side else None, "pareto": str(out / "pareto.png")}
     if summary is not None:
-        result["train"] = {k: summary[k] for k in ("model", "step", "stopped_by", "elapsed_s", "params", "device")
-                           if k in summary}
+        result["train"] = {k: summary[k] for k in ("model", "step", "max_steps", "stopped_by", "elapsed_s", "params",
+                                                   "device", "threads") if k in summary}
     return result
 
 
+def fine_tune(run_dir: Path, model: str, init: str, train_clips, steps: int, threads: int = 0) -> dict:
+    """The demo's fine-tune (or training from scratch, ``init`` empty) in ``run_dir``, run or continued up to
+    ``steps``; returns its summary.json, which records the steps run. FineTuneStopped when it stopped before."""
+    from training.checkpoint import load_checkpoint
+    from training.config import config_from_checkpoint, load_config
+    from training.train import train
+    done = _finished(run_dir, steps)
+    if done is not None:
+        return done
+    resume = _prepare_run(run_dir, init, steps)
+    over = [f"run.max_steps={int(steps)}", f"run.threads={int(threads)}"]
+    if init:  # the pretrained configuration, fine-tuned
+        cfg = config_from_checkpoint(load_checkpoint(init)["config"], source=init)
+        sections = load_config(None, [*FINETUNE_OVERRIDES, *over])
+        cfg.data, cfg.optim, cfg.run = sections.data, sections.optim, sections.run
+        cfg.run.init_from = init
+    else:
+        cfg = load_config(None, [*DEMO_OVERRIDES, f"model.name=\"{model}\"", *over])
+    cfg.data.clips = [str(c) for c in train_clips]  # a crop larger than the clips shrinks (training.run)
+    summary = train(cfg, run_dir, resume=resume)
+    if int(summary["step"]) < int(steps):
+        logger.warning(f"the fine-tune stopped at step {summary['step']} of {steps} ({summary.get('stopped_by')}): "
+                       "not scored; the same command continues it from its checkpoint")
+        raise FineTuneStopped(f"the fine-tune stopped at step {summary['step']} of {steps} "
+                              f"({summary.get('stopped_by')}); the same command continues it")
+    return summary
+
+
+def _finished(run_dir: Path, steps: int) -> dict | None:
+    """The run's summary.json when it has run exactly ``steps`` steps (and its marker is there), else None."""
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    ok = (run_dir / "demo_run.json").is_file() and (run_dir / "checkpoints" / "last.pt").is_file()
+    return summary if ok and int(summary.get("step", -1)) == int(steps) else None
+
+
 def _prepare_run(run_dir: Path, init: str, steps: int) -> bool:
-    """Whether the demo's run in ``run_dir`` resumes: ``steps`` on the same starting weights (``init``'s sha256, or
-    none) in total over however many invocations. A run with other weights or another budget is removed (False);
-    one with a checkpoint of the same weights and budget resumes up to the budget (True; a finished one, with its
-    summary.json, is scored as it is)."""
-    from training.checkpoint import file_sha256
+    """Whether the demo's run in ``run_dir`` continues (True) or starts anew (False, the folder emptied). It
+    continues from its checkpoint when it started from the same weights (``init`` and their sha256, or none) and
+    has not run more than ``steps`` steps: an interrupted run, or a finished one given a larger budget. Its summary
+    is removed first: a run is recorded as done only when it writes one again."""
+    from training.checkpoint import file_sha256, load_checkpoint
     from training.pretrained import resolve
-    want = {"init": init, "init_sha256": file_sha256(resolve(init)) if init else None, "steps": int(steps)}
+    want = {"init": init, "init_sha256": file_sha256(resolve(init)) if init else None}
     mark, last = run_dir / "demo_run.json", run_dir / "checkpoints" / "last.pt"
     try:
-        same = json.loads(mark.read_text()) == want
-    except (OSError, ValueError):
+        same = json.loads(mark.read_text()) == want and int(load_checkpoint(last)["step"]) <= int(steps)
+    except (OSError, ValueError, KeyError):
         same = False
-    if not same or not last.is_file():
+    if not same:
         shutil.rmtree(run_dir, ignore_errors=True)
         run_dir.mkdir(parents=True)
-        mark.write_text(json.dumps(want))
+        write_json_atomic(mark, want)
         return False
+    (run_dir / "summary.json").unlink(missing_ok=True)
     return True
 
 

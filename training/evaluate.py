@@ -37,6 +37,7 @@ from gbuffer_export.exr import write_exr
 from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
 from training import metrics
 from training.flip_worker import FlipRunner
+from training.video_metric import ClipVideo, VideoScorer, clip_fps
 from training.inference import ClipFrames, missing_keys, model_inputs, run_frame
 from training.inference_model import InferenceModel
 
@@ -138,7 +139,8 @@ class EvalOptions:
     ``metrics.delta_e_itp`` (None otherwise); ``save_images``: write SR EXR + PNG per frame under this folder;
     ``warmup``: untimed runs on the first frame; ``progress``: a bar per clip on stderr; ``label``: the result's
     model name (default: the model's spec); ``baseline``: the model of the worst-case metrics (a name, a shared
-    ``Baseline``, or None: none computed)."""
+    ``Baseline``, or None: none computed); ``cvvdp``: ColorVideoVDP per clip (``training.video_metric``; the
+    ``video`` extra)."""
 
     frames: dict | None = None
     scales: dict | None = None
@@ -151,6 +153,7 @@ class EvalOptions:
     progress: bool = False
     label: str | None = None
     baseline: "str | Baseline | None" = metrics.BASELINE
+    cvvdp: bool = False
 
 
 class Baseline:
@@ -215,6 +218,7 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
             raise ValueError("evaluate_model: give scales or scale, not both")
         scales = {str(c): [float(o.scale)] for c in clips}
     model.eval()
+    video = VideoScorer(model.device) if o.cvvdp else None  # before any work: a missing extra is one line
     runner = FlipRunner() if o.flip else None
     baseline = Baseline(o.baseline, model.device) if isinstance(o.baseline, str) else o.baseline
     per_frame: list[dict] = []
@@ -225,7 +229,7 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
             base = open_clip(c)
             jobs += [(c, base, s_) for s_ in eval_scales(model.module, base, (scales or {}).get(str(c)))]
         for job in jobs:
-            per_frame += _score_clip(model, job, o, runner, baseline, warnings)
+            per_frame += _score_clip(model, job, o, runner, baseline, warnings, video)
     finally:
         if runner is not None:
             runner.close()
@@ -235,11 +239,12 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
         mine = {(str(c), float(sc)) for c, _, sc in jobs}
         warnings += [f"{c} (x{sc:g}): no {baseline.name} baseline ({why})"
                      for (c, sc), why in baseline.missing.items() if (c, sc) in mine]
-    return _result(model, clips, o, per_frame, warnings, runner)
+    return _result(model, clips, o, per_frame, warnings, runner, video)
 
 
-def _score_clip(model: InferenceModel, job, o: EvalOptions, runner, baseline, warnings: list) -> list[dict]:
-    """The per-frame rows of one (clip path, Clip, scale) job."""
+def _score_clip(model: InferenceModel, job, o: EvalOptions, runner, baseline, warnings: list,
+                video: "VideoScorer | None" = None) -> list[dict]:
+    """The per-frame rows of one (clip path, Clip, scale) job; with ``video``, its ColorVideoVDP score too."""
     clip_path, base, s_clip = job
     source = ClipFrames(base.at_scale(s_clip), eps=model.demod_eps)
     key = f"{clip_path}@x{s_clip:g}"
@@ -255,6 +260,7 @@ def _score_clip(model: InferenceModel, job, o: EvalOptions, runner, baseline, wa
         model.step(first, None, o.amp)
     model.reset()  # a clip starts from no state (its first scored frame runs the frames before it)
     rows, prev = [], None
+    frames = ClipVideo(clip_fps(source.clip.manifest)) if video is not None else None
     iterator = todo
     if o.progress:
         from tqdm import tqdm
@@ -277,9 +283,13 @@ def _score_clip(model: InferenceModel, job, o: EvalOptions, runner, baseline, wa
                **_worst_scores(sr, gt, sq, baseline.frame(clip_path, base, s_clip, f) if baseline else None)}
         prev = (f, sr, gt)
         rows.append(row)
+        if frames is not None:
+            frames.add(sr, gt)
         if o.save_images:
             name = Path(clip_path).name
             _save(Path(o.save_images), name if len(base.scales) == 1 else f"{name}_x{s_clip:g}", f, sr)
+    if frames is not None:
+        video.scores[(str(clip_path), s_clip)] = frames.score(video.metric)
     return rows
 
 
@@ -294,10 +304,17 @@ def _worst_scores(sr, gt, sq: np.ndarray, base) -> dict:
     return row
 
 
-def _result(model: InferenceModel, clips, o: EvalOptions, per_frame: list[dict], warnings: list, runner) -> dict:
+def _result(model: InferenceModel, clips, o: EvalOptions, per_frame: list[dict], warnings: list, runner,
+            video: "VideoScorer | None" = None) -> dict:
     mean, per_scale = _means(per_frame), {}
     for sc in sorted({r["scale"] for r in per_frame}):
         per_scale[f"{sc:g}"] = _means([r for r in per_frame if r["scale"] == sc])
+    clips_rows = per_clip(per_frame)
+    for c in clips_rows:
+        c["cvvdp"] = video.scores.get((c["clip"], c["scale"])) if video is not None else None
+    mean["cvvdp"] = _mean([c["cvvdp"] for c in clips_rows]) if video is not None else None
+    for sc, m in per_scale.items():
+        m["cvvdp"] = _mean([c["cvvdp"] for c in clips_rows if f"{c['scale']:g}" == sc]) if video else None
     return {
         "model": o.label or model.spec,
         "transform": metrics.TRANSFORM,
@@ -312,12 +329,15 @@ def _result(model: InferenceModel, clips, o: EvalOptions, per_frame: list[dict],
                        "artifact_baseline_error": metrics.ARTIFACT_BASELINE},
         "timing": f"median over frames of the forward pass after {o.warmup} warm-up runs, inputs on the device",
         "flip_failures": runner.failures if runner is not None else [],
+        "cvvdp": None if video is None else {"unit": "JOD (10: no visible difference)", "display": video.display,
+                                             "frames": "the evaluation tonemap (display-encoded sRGB)",
+                                             "per": "clip (one video per clip and scale; mean over clips)"},
         "sr_nonfinite_frames": sum(1 for r in per_frame if r["sr_nonfinite"]),
         "warnings": warnings,
         "clips": [str(c) for c in clips],
         "mean": mean,
         "per_scale": per_scale,
-        "per_clip": per_clip(per_frame),
+        "per_clip": clips_rows,
         "per_frame": per_frame,
     }
 

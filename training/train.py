@@ -41,6 +41,7 @@ from training.cache import ClipCache
 from training.checkpoint import inference_weights, load_checkpoint
 from training.config import TrainConfig
 from training.data import BatchSpec, Prefetcher, TrainSampler
+from training.device import set_threads
 from training.hooks import Checkpoints, Evaluations, RunLog, StepInfo
 from training.models import OPTIONAL_KEYS, build_model
 from training.run import (ResolvedRun, manifest_record, refuse_existing, resume_run, run_config_toml, start_run,
@@ -123,8 +124,7 @@ def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dis
 def build_trainer(cfg: TrainConfig, run: ResolvedRun, clips: dict, dist: Dist, ck: dict | None):
     """Seeds, model, caches, sampler and Trainer (restored from ``ck`` when resuming); returns (trainer, caches).
     ``cfg`` is the effective configuration."""
-    if cfg.run.threads:
-        torch.set_num_threads(cfg.run.threads)
+    set_threads(cfg.run.threads)
     random.seed(cfg.run.seed)
     np.random.seed(cfg.run.seed % 2**32)
     torch.manual_seed(cfg.run.seed)

@@ -7,12 +7,18 @@ shipped pretrained FuseSR-l briefly on the later frames, as a user fine-tunes on
 scratch when no weights are installed), 5. evaluate the pretrained models, the fine-tuned one and the baselines on
 the frames the fine-tune never saw,
 6. write the speed-against-error table, the Pareto plot and a side-by-side image (LR, bicubic, demod-jbu, the best
-learned model, ground truth)."""
+learned model, ground truth).
+
+SIGINT (Ctrl-C) and SIGTERM stop it within seconds wherever it is: a render stops after its pass in progress, the
+fine-tune after its step (its checkpoint kept; the steps it ran recorded, not its budget), the scoring at once; the
+same command then continues where it stopped. The fine-tune is scored only once it has run its whole budget, and
+every table, plot and summary names the steps it ran."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
-import json
+import signal
 import subprocess
 import sys
 import time
@@ -39,6 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-seed", type=int, default=90,
                    help="built-in scene seed of the demo's scene (the shipped weights saw seeds 0-41, "
                         "dataset_large.toml adds 42-71)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="CPU threads of the renders, the fine-tune and the scoring (0: the cores this process may "
+                        "use: its CPU affinity, capped by the cgroup CPU quota; on a machine other work keeps busy, "
+                        "1 can be several times faster; make demo THREADS=1)")
     p.add_argument("--render-only", action="store_true", help="stop after the contact sheet")
 
 
@@ -47,16 +57,53 @@ def _step(msg: str) -> float:
     return time.perf_counter()
 
 
+#: Seconds a render step is given to stop after its pass in progress once the demo is interrupted, then killed (its
+#: clip then stays as consistent as after kill -9, and resumes: docs/clip-format.md).
+STOP_GRACE_S = 5.0
+
+
 def _cli(*args) -> None:
     cmd = [sys.executable, "-m", "gbuffer_export.cli", *map(str, args)]
     print("$ blendsr " + " ".join(map(str, args)), flush=True)
-    proc = subprocess.run(cmd)
-    if proc.returncode != 0:
-        raise SystemExit(f"blendsr: error: demo step failed (exit {proc.returncode}): blendsr {' '.join(map(str, args))}")
+    proc = subprocess.Popen(cmd)
+    try:
+        code = proc.wait()
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM (stop_on_signals): the step stops too, within seconds
+        with contextlib.suppress(ValueError, OSError):
+            proc.send_signal(signal.SIGINT if sys.platform != "win32" else signal.SIGTERM)
+        try:
+            proc.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        raise
+    if code != 0:
+        raise SystemExit(f"blendsr: error: demo step failed (exit {code}): blendsr {' '.join(map(str, args))}")
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """Within the block SIGTERM is KeyboardInterrupt as SIGINT is: the demo stops where it is, and the CLI prints its
+    resume line (exit 130). The fine-tune's loop turns SIGTERM into a stop after its step while it runs
+    (training.train), and the training half then stops the demo."""
+    try:
+        previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    except ValueError:  # not the main thread: nothing to replace
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run(args) -> int:
-    from ..clip import open_clip
+    with stop_on_signals():
+        return _run(args)
+
+
+def _run(args) -> int:
+    from ..clip import open_clip, write_json_atomic
     from ..preview import contact_sheet
     from ..validate import validate_clip
 
@@ -70,13 +117,16 @@ def run(args) -> int:
     with flags_named(args):
         a, b = parse_frames(args.frames)
     later = f"{b + 1}:{2 * b - a + 1}"
+    from ..resources import usable_cores
+    threads = args.threads or usable_cores()  # the renders' too (Cycles' AUTO threads do not read the cgroup quota)
     clips = {"test": (out / "clips" / f"test_seed{seed}", args.frames),
              "finetune": (out / "clips" / f"finetune_seed{seed}_frames{later.replace(':', '-')}", later)}
     t = _step(f"render built-in scene {seed}: frames {args.frames} (to score) and {later} (to fine-tune on)")
     for _, (path, frames) in clips.items():
         _cli("render", "-o", path, "--seed", seed, "--hr-size", args.hr_size, "--frames", frames,
              "--hr-spp", args.hr_spp, "--lr-spp", args.lr_spp, "--device", "cpu", "--buffers", "all",
-             "--hr-denoise" if args.hr_denoise else "--no-hr-denoise")  # all: every shipped network is scored
+             "--hr-denoise" if args.hr_denoise else "--no-hr-denoise",  # all: every shipped network is scored
+             "--threads", threads)
     print(f"   {time.perf_counter() - t:.0f} s")
     _step("validate")
     for name, (path, _) in clips.items():
@@ -94,12 +144,14 @@ def run(args) -> int:
     if run_training_demo is None:
         print("   torch or the training package is not installed: skipping training (pip install 'blendsr[train]')")
         return 0
+    (out / "demo_summary.json").unlink(missing_ok=True)  # written again only once this run has scored
     summary = run_training_demo(train_clips=[clips["finetune"][0]], test_clips=[clips["test"][0]], out=out,
-                                steps=args.train_steps)
+                                steps=args.train_steps, threads=args.threads)
     if "train" in summary:
         t = summary["train"]
-        print(f"   fine-tune: {t.get('step')} steps in {float(t.get('elapsed_s', 0.0)):.0f} s on {t.get('device')}")
-    (out / "demo_summary.json").write_text(json.dumps(summary, indent=1))
+        print(f"   fine-tune: {t.get('step')} steps run in {float(t.get('elapsed_s', 0.0)):.0f} s on {t.get('device')}"
+              f" ({t.get('threads')} threads)")
+    write_json_atomic(out / "demo_summary.json", summary)
     print(f"\nDone. Look at {out}/contact_sheet.png, {out}/side_by_side.png and {out}/pareto.png")
     return 0
 

@@ -46,6 +46,44 @@ def test_available_memory_is_psutils_bounded_by_the_cgroup_limit(tmp_path, monke
     assert resources.available_memory() == 2**30  # psutil cannot read /proc: the cgroup's alone
 
 
+def test_usable_cores_are_the_affinity_capped_by_the_cgroup_quota(tmp_path, monkeypatch):
+    """Issue 57 item 2: the default thread count is what this process may use, not every core of the machine."""
+    from gbuffer_export import resources
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 5}, raising=False)
+    assert resources.usable_cores(tmp_path) == 4  # no cgroup files: the affinity mask
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert resources.usable_cores(tmp_path) == 4  # v2 without a quota
+    (tmp_path / "cpu.max").write_text("250000 100000\n")
+    assert resources.cgroup_cpu_quota(tmp_path) == 2.5 and resources.usable_cores(tmp_path) == 2
+    (tmp_path / "cpu.max").write_text("50000 100000\n")
+    assert resources.usable_cores(tmp_path) == 1  # half a core: at least one thread
+    (tmp_path / "cpu.max").unlink()
+    v1 = tmp_path / "cpu,cpuacct"
+    v1.mkdir()
+    (v1 / "cpu.cfs_quota_us").write_text("-1\n")
+    (v1 / "cpu.cfs_period_us").write_text("100000\n")
+    assert resources.cgroup_cpu_quota(tmp_path) is None and resources.usable_cores(tmp_path) == 4
+    (v1 / "cpu.cfs_quota_us").write_text("300000\n")
+    assert resources.usable_cores(tmp_path) == 3  # v1 quota
+    monkeypatch.delattr(os, "sched_getaffinity")  # macOS, Windows: os.cpu_count, still capped by a quota file
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    assert resources.usable_cores(tmp_path) == 3 and resources.usable_cores(tmp_path / "none") == 16
+
+
+def test_torch_threads_default_to_the_usable_cores(monkeypatch):
+    torch = pytest.importorskip("torch")
+    from gbuffer_export import resources
+    from training.config import RunConfig
+    from training.device import set_threads
+    before = torch.get_num_threads()
+    monkeypatch.setattr(resources, "usable_cores", lambda root=None: 1)
+    try:
+        assert RunConfig().threads == 0 and set_threads(0) == 1 and torch.get_num_threads() == 1
+        assert set_threads(2) == 2 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_peak_rss_is_at_least_the_current_rss():
     from gbuffer_export.resources import peak_rss_bytes
     assert peak_rss_bytes() >= psutil.Process().memory_info().rss * 0.9 > 0

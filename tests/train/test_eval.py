@@ -306,33 +306,91 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")  # no shipped weights: train from scratch
-    s = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    s = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l", threads=1)
     assert s["train"]["step"] == 3 and s["train"]["stopped_by"] == "max_steps" and s["train"]["elapsed_s"] > 0
+    assert s["train"]["threads"] == 1 and torch.get_num_threads() == 1
     assert [r["model"] for r in s["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
                                                 "fusesr-l (3 steps)"]
     for f in ("pareto.png", "side_by_side.png", "bench/bench_models.md"):
         assert (tmp_path / "demo" / f).stat().st_size > 100
-    # a finished run is scored as it is (the budget is the total over reruns); another budget starts anew
-    again = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    # a finished run is scored as it is
+    again = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l", threads=1)
     assert again["train"] == s["train"]
     assert [r["psnr"] for r in again["bench"]] == [r["psnr"] for r in s["bench"]]
     run = tmp_path / "demo" / "run_fusesr_l"
     (run / "summary.json").unlink()  # as if stopped after its last checkpoint
-    assert _prepare_run(run, "", 3) is True  # same weights and budget: resumes from its checkpoint
-    resumed = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l")
+    assert _prepare_run(run, "", 3) is True  # same weights, no more steps than the budget: continues
+    resumed = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l", threads=1)
     assert resumed["train"]["step"] == 3 and [r["psnr"] for r in resumed["bench"]] == [r["psnr"] for r in s["bench"]]
-    assert _prepare_run(run, "", 5) is False and not (run / "checkpoints").exists()  # another budget: anew
-    interrupted = run_training_demo([a], [b], tmp_path / "demo", steps=5, model="fusesr-l")
-    assert interrupted["train"]["step"] == 5
-    assert json.loads((run / "demo_run.json").read_text())["steps"] == 5
-    assert interrupted["bench"][-1]["model"] == "fusesr-l (5 steps)"
+    # a larger budget continues the run from its checkpoint (step 3 is not trained again)
+    more = run_training_demo([a], [b], tmp_path / "demo", steps=5, model="fusesr-l", threads=1)
+    assert more["train"]["step"] == 5 and more["bench"][-1]["model"] == "fusesr-l (5 steps)"
+    assert (run / "checkpoints" / "step_00000003.pt").is_file()
+    # a budget below the steps run starts anew
+    assert _prepare_run(run, "", 4) is False and not (run / "checkpoints").exists()
+    fewer = run_training_demo([a], [b], tmp_path / "demo", steps=4, model="fusesr-l", threads=1)
+    assert fewer["train"]["step"] == 4 and fewer["bench"][-1]["model"] == "fusesr-l (4 steps)"
     # with shipped weights the demo scores them and fine-tunes one of them
     release(tmp_path / "demo" / "run_fusesr_l" / "checkpoints" / "last.pt",
             tmp_path / "weights" / "fusesr_l_x4.safetensors", {"model": "fusesr-l"})
-    ft = run_training_demo([a], [b], tmp_path / "demo2", steps=2, model="fusesr-l")
+    ft = run_training_demo([a], [b], tmp_path / "demo2", steps=2, model="fusesr-l", threads=1)
     assert [r["model"] for r in ft["bench"]] == ["bilinear", "bicubic", "demod-bilinear", "demod-jbu",
                                                  "pretrained:fusesr-l", "fusesr-l (fine-tuned 2 steps)"]
     assert ft["pretrained"] == ["pretrained:fusesr-l"] and (tmp_path / "demo2" / "side_by_side.png").is_file()
+
+
+_DEMO_SCRIPT = """
+import sys
+from pathlib import Path
+from training import pretrained
+from training.demo import run_training_demo
+pretrained.WEIGHTS_DIR = Path(sys.argv[4])
+run_training_demo([sys.argv[1]], [sys.argv[2]], sys.argv[3], steps=100000, model="fusesr-l", threads=1)
+"""
+
+
+def test_training_demo_stopped_by_sigterm_records_the_steps_run_and_a_rerun_continues(tmp_path, monkeypatch):
+    """Issue 57 item 3: SIGTERM stops the fine-tune within seconds; its summary records the steps it ran (not its
+    budget), it is not scored and not taken for done; the next run continues from its checkpoint."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from tests.conftest import ENV, REPO
+    from training import pretrained
+    from training.demo import run_training_demo
+    a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
+    b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    out, run = tmp_path / "demo", tmp_path / "demo" / "run_fusesr_l"
+    proc = subprocess.Popen([sys.executable, "-c", _DEMO_SCRIPT, str(a), str(b), str(out), str(tmp_path / "w")],
+                            cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (run / "log.csv").is_file() or len((run / "log.csv").read_text().splitlines()) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.poll() else ""
+            time.sleep(0.2)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        stopped_in = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    log = proc.stdout.read()
+    assert proc.returncode != 0 and stopped_in < 10, (proc.returncode, stopped_in, log[-2000:])
+    assert "FineTuneStopped" in log and "not scored" in log, log[-2000:]
+    summary = json.loads((run / "summary.json").read_text())
+    ran = summary["step"]
+    assert summary["stopped_by"] == "signal" and 5 <= ran < 100000 and summary["max_steps"] == 100000
+    assert not (out / "bench").exists() and not (out / "pareto.png").exists()  # nothing scored
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "w")
+    cont = run_training_demo([a], [b], out, steps=ran + 2, model="fusesr-l", threads=1)
+    assert cont["train"]["step"] == ran + 2 and cont["train"]["stopped_by"] == "max_steps"
+    assert cont["bench"][-1]["model"] == f"fusesr-l ({ran + 2} steps)"
+    rows = [r for r in (run / "log.csv").read_text().splitlines()[1:] if r]
+    steps_logged = [int(r.split(",")[0]) for r in rows]
+    assert steps_logged == sorted(set(steps_logged)), "the rerun trained steps again instead of continuing"
 
 
 def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):

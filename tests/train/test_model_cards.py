@@ -1,0 +1,50 @@
+"""Issue 57 item 7: every shipped network has a model card generated from its weights JSON; a stale card fails."""
+from __future__ import annotations
+
+import copy
+import json
+
+import pytest
+
+from tests.conftest import REPO, shared_or_skip
+from training import model_cards
+from training.pretrained import PRETRAINED, WEIGHTS_DIR
+
+
+@pytest.fixture(scope="module")
+def readme():
+    return shared_or_skip("scenes/README.md").read_text(encoding="utf-8")
+
+
+def test_every_shipped_network_has_a_current_card(readme):
+    cards = model_cards.cards()
+    assert len(cards) == len(PRETRAINED)
+    assert model_cards.stale() == [], "run: python -m training.model_cards"
+
+
+def test_cards_name_every_third_party_scene_with_its_licence_and_the_recorded_margins(readme):
+    for path, text in model_cards.cards().items():
+        meta = json.loads((WEIGHTS_DIR / (path.stem + ".json")).read_text())
+        assert "not listed in ../shared/scenes/README.md" not in text, path.name
+        assert meta["sha256"] in text and f"{meta['params']:,} parameters" in text
+        test, base = meta["scores_on_test_split"][meta["model"]], meta["scores_on_test_split"]["demod-jbu"]
+        assert f"margin {test['psnr'] - base['psnr']:+.2f} dB over `demod-jbu`" in text
+        for needle in ("## What it is for", "## Inputs", "## Training data", "## Speed", "## Limits"):
+            assert needle in text, (path.name, needle)
+    fusesr = (model_cards.CARDS_DIR / "fusesr_x4.md").read_text()
+    assert "| CC-BY 4.0 | Copyright 2020 Wayfair LLC, model and textures by Eric Chadwick |" in fusesr  # SheenChair
+
+
+def test_a_changed_record_or_licence_makes_the_card_stale(readme):
+    stem = "fusesr_l_x4"
+    meta = json.loads((WEIGHTS_DIR / f"{stem}.json").read_text())
+    spec = (REPO / meta["dataset"]["spec_file"]).read_text()
+    buffers = json.loads(model_cards.BUFFERS_JSON.read_text())
+    now = model_cards.card_text(stem, meta, spec, readme, buffers)
+    assert now == (model_cards.CARDS_DIR / f"{stem}.md").read_text()
+    other = copy.deepcopy(meta)
+    other["scores_on_val_split"]["fusesr-l"]["psnr"] -= 2.0  # the recorded val score changes
+    assert "Below `demod-jbu` on the val split's mean" in model_cards.card_text(stem, other, spec, readme, buffers)
+    relicensed = readme.replace("| CC0 + CC-BY 4.0 | Low poly fox", "| CC-BY 4.0 | Low poly fox")
+    assert model_cards.card_text(stem, meta, spec, relicensed, buffers) != now
+    assert "absent when generated" in model_cards.card_text(stem, meta, spec, None, buffers)
