@@ -9,6 +9,7 @@ file. It lives in the torch layer because two of its generators read the models 
 | render shells | ``RenderConfig``, the conventions | ``blender_addon/render_keys.json``, ``choices.json``, docs/configuration.md's render keys |
 | training tables | the training configuration's sections | docs/configuration.md's training tables |
 | model tables | every model's ``needs()``, ``SCALES`` and shipped weights | ``gbuffer_export/dataset/model_buffers.json`` |
+| model cards | each shipped weights JSON, ../shared/scenes/README.md's licences | ``docs/models/cards/*.md`` |
 | results page | ``docs/bench/results_page.toml`` and the records it names | ``docs/results.md`` |
 """
 from __future__ import annotations
@@ -40,13 +41,18 @@ def model_tables() -> dict[Path, str]:
     return {Path(TABLE_PATH): json.dumps(table, indent=1) + "\n"}
 
 
+def model_cards() -> dict[Path, str]:
+    from training.model_cards import cards
+    return cards()
+
+
 def results_page() -> dict[Path, str]:
     from gbuffer_export.results_page import PAGE, page_text
     return {PAGE: page_text()}
 
 
 GENERATORS = {"render shells": render_shells, "training tables": training_tables, "model tables": model_tables,
-              "results page": results_page}
+              "model cards": model_cards, "results page": results_page}
 
 
 def derived() -> dict[Path, str]:
@@ -76,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"stale: {p} (run make generate)")
         return 1 if stale else 0
     for p in stale:
+        p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f".{p.name}.tmp")
         tmp.write_text(files[p])
         tmp.replace(p)
