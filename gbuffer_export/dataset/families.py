@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 #: Family kinds: the first three come from a spec's files, the rest are the built-in generator's.
-FAMILY_KINDS = ("asset", "level", "hdri", "prop", "material", "geometry", "light", "camera")
+FAMILY_KINDS = ("asset", "level", "hdri", "prop", "material", "geometry", "light", "camera", "motion")
 
 #: The built-in generator's opt-in families (``props = [...]`` of a builtin source) -> their kind; each draws from a
 #: random stream of its own (the bpy layer's ``OPTIONAL_PROPS`` holds the same names).
@@ -25,7 +25,8 @@ BUILTIN_FAMILIES: dict[str, str] = {
     "mat_noise": "material", "mat_voronoi": "material", "mat_wave": "material", "mat_brick": "material",
     "mat_layered": "material",
     "railing": "geometry", "wires": "geometry", "foliage_cards": "geometry", "stripes_panel": "geometry",
-    "text_panel": "geometry", "scatter": "geometry",
+    "text_panel": "geometry", "scatter": "geometry", "boolean": "geometry", "displaced": "geometry",
+    "instanced": "geometry", "fog": "light", "motion_objects": "motion",
     "neon": "light", "small_emitters": "light", "strong_sun": "light", "night": "light",
     "cam_pan": "camera", "cam_strafe": "camera", "cam_turn": "camera", "cam_cut": "camera",
 }
@@ -36,10 +37,11 @@ IN_FAMILY, HELD_OUT = "in-family", "held-out"
 
 
 def builtin_family(name: str) -> str:
-    """The family id of a built-in generator family (a builtin source's prop): ``KIND:NAME`` without the ``mat_``
-    and ``cam_`` prefixes (``mat_voronoi`` -> ``material:voronoi``, ``window_pane`` -> ``prop:window_pane``)."""
+    """The family id of a built-in generator family (a builtin source's prop): ``KIND:NAME`` without the ``mat_``,
+    ``cam_`` and ``motion_`` prefixes (``mat_voronoi`` -> ``material:voronoi``, ``motion_objects`` ->
+    ``motion:objects``, ``window_pane`` -> ``prop:window_pane``)."""
     kind = BUILTIN_FAMILIES[name]
-    short = name.split("_", 1)[1] if kind in ("material", "camera") else name
+    short = name.split("_", 1)[1] if kind in ("material", "camera", "motion") else name
     return f"{kind}:{short}"
 
 
