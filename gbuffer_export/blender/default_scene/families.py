@@ -568,8 +568,9 @@ def instanced(scene, mats, rng) -> None:
     for sy in (-1, 1):
         box(bm, (0.0, sy * (depth / 2 + 0.02), h / 2), (length, 0.04, h))
     d.tag(add_object(scene, "Instanced Planter", bm, mats["wood"], location=loc))
-    bm = bmesh.new()
-    box(bm, (0.0, 0.0, h - 0.04), (length, depth, 0.004))
+    bm = bmesh.new()                                                    # the soil: one quad, instances on top
+    bm.faces.new([bm.verts.new((sx * length / 2, sy * depth / 2, h - 0.04))
+                  for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
     bed = add_object(scene, "Instanced Soil", bm, Mat("Gravel Soil", tuple(rng.uniform(0.12, 0.25, 3)),
                                                       roughness=0.9).mat, location=loc)
     count = instance_on_faces(bed, _instance_sources(d("size_m"), mats, rng), d("density_per_m2"), (0.6, 1.6),
