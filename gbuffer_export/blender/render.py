@@ -94,6 +94,12 @@ def renderable_meshes(scene) -> list:
             and not ob.hide_render]
 
 
+def has_fog(scene) -> bool:
+    """True when a renderable object of ``scene`` is a volume-only domain (``materials.volume_domain``): its G-buffer
+    passes need a render of their own with the volumes muted."""
+    return any(mats.volume_domain(ob) for ob in renderable_meshes(scene))
+
+
 def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
     start, end = scene.frame_start, scene.frame_end
     if cfg.frames is None:
@@ -758,6 +764,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     footprint = _footprint(cfg, plan)
     if not (footprint and near_glass is not None and near_glass.any()):
         near_glass = None
+    if footprint and has_fog(scene):   # the radiance render's colour passes hold the fog: take every pixel's behind
+        near_glass = np.ones(bg.shape, dtype=bool)
     if near_glass is not None:  # the surface behind, filtered alike (the ground truth's filter, seed and samples)
         t = time.perf_counter()
         with render_border(scene, near_glass):
@@ -824,7 +832,7 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
         t = time.perf_counter()
         passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
-        fog = plan.any and any(mats.volume_domain(ob) for ob in renderable_meshes(scene))
+        fog = plan.any and has_fog(scene)
         if plan.any and (ctx.resolved.behind or fog):
             t = time.perf_counter()
             gpasses = (render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"], cfg.lr_spp) if fog

@@ -3,7 +3,7 @@
 A family is one thing a clip can show that training could learn by heart: an object asset (``asset:STEM``), a
 level (``level:STEM``, a scene file's stem), an HDRI (``hdri:NAME``: ``builtin:NAME`` of bpy's eight, or a file's
 stem), or one of the built-in generator's families (``BUILTIN_FAMILIES``: ``prop:window_pane``,
-``material:voronoi``, ``geometry:railing``, ``light:neon``, ``camera:pan``, ...). A spec lists held-out families in
+``material:voronoi``, ``geometry:railing``, ``light:neon``, ``camera:pan``, ``motion:objects``, ...). A spec lists held-out families in
 ``[splits]`` (``val_families``, ``test_families``); ``expand`` (``spec.py``) refuses a spec where such a family can
 appear in a clip of an earlier split (a test family in a train or val clip, a val family in a train clip), counting
 every family a clip could draw (its HDRI pool, its clutter candidates, its props), and records in each clip the

@@ -17,6 +17,11 @@ street lamp).
 camera (re-key the scene camera; with ``cameras = ["scene"]``): ``cam_pan`` (fast pans, 1.5-4 degrees a frame),
 ``cam_strafe`` (sideways at 2-5 cm a frame), ``cam_turn`` (a 60-120 degree turn in 4-8 frames), ``cam_cut`` (a cut
 to another shot at frame start+1 .. start+6).
+modifier-built geometry (``modifiers.py``, applied): ``boolean`` (a wall with windows and vents cut by an exact
+Boolean, a machined block), ``displaced`` (a boulder and a column, subdivided and displaced by a procedural texture),
+``instanced`` (hundreds of pebbles, bolts and grass tufts on a raised bed, scattered by a geometry node group).
+``fog`` (a homogeneous Principled Volume in a box domain around the courtyard and its cameras). ``motion_objects``
+(2-4 props gliding and spinning over the table, keyed on every frame).
 
 Each family's drawn parameters are kept on its objects as ``family_params`` (JSON), within ``RANGES``.
 """
