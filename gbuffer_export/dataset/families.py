@@ -25,10 +25,10 @@ BUILTIN_FAMILIES: dict[str, str] = {
     "mat_noise": "material", "mat_voronoi": "material", "mat_wave": "material", "mat_brick": "material",
     "mat_layered": "material",
     "railing": "geometry", "wires": "geometry", "foliage_cards": "geometry", "stripes_panel": "geometry",
-    "text_panel": "geometry", "scatter": "geometry", "boolean": "geometry", "displaced": "geometry",
-    "instanced": "geometry", "fog": "light", "motion_objects": "motion",
+    "text_panel": "geometry", "scatter": "geometry",
     "neon": "light", "small_emitters": "light", "strong_sun": "light", "night": "light",
     "cam_pan": "camera", "cam_strafe": "camera", "cam_turn": "camera", "cam_cut": "camera",
+    "boolean": "geometry", "displaced": "geometry", "instanced": "geometry", "fog": "light", "motion_objects": "motion",
 }
 #: Camera families re-key the built-in scene's own camera: only with ``cameras = ["scene"]``.
 CAMERA_FAMILIES = tuple(k for k, v in BUILTIN_FAMILIES.items() if v == "camera")
