@@ -18,6 +18,7 @@ import numpy as np
 from bpy_extras import anim_utils
 from mathutils import Euler, Matrix
 from ..errors import BlendSRError
+from .materials import volume_domain
 
 CAMERA_NAME = "BlendSR Camera"
 CAMERA_KINDS = ("orbit", "walk")
@@ -70,6 +71,8 @@ def object_boxes(scene: bpy.types.Scene) -> list[Box]:
         if ob.type not in GEOMETRY_TYPES:
             continue
         orig = ob.original
+        if volume_domain(orig):   # fog: a medium, not a surface to frame or to keep clear of
+            continue
         if not _renders(orig) or (inst.is_instance and inst.parent and not _renders(inst.parent.original)):
             continue
         corners = np.array([tuple(c) for c in ob.bound_box], dtype=np.float64)

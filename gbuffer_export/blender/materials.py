@@ -370,6 +370,39 @@ def install_behind(view_layer, names) -> None:
             out.inputs["Value"].default_value = 1.0
 
 
+def is_volume_only(mat) -> bool:
+    """True when ``mat``'s Cycles output has a volume shader and no surface one: a participating medium's domain (fog,
+    smoke), whose boundary no ray stops at."""
+    node, has_volume = _surface_node(mat)
+    return bool(has_volume) and node is None
+
+
+def volume_domain(ob) -> bool:
+    """True when every material of ``ob`` is volume-only (``is_volume_only``): a fog or smoke box is a medium to see
+    through, not a surface to frame, keep a camera clear of, or record in a G-buffer."""
+    slots = [s.material for s in getattr(ob, "material_slots", ())]
+    return bool(slots) and all(m is not None and is_volume_only(m) for m in slots)
+
+
+@contextlib.contextmanager
+def volumes_muted(scene):
+    """While inside, the volume-only materials of ``scene``'s objects have their Volume output unlinked: the
+    G-buffer passes hold the first surface behind fog, as a game's G-buffer does (Cycles stops the passes of a
+    camera ray at its first volume scattering event). Restored on leaving, also on an error."""
+    saved = []
+    mats = {s.material for ob in scene.objects for s in getattr(ob, "material_slots", ()) if s.material is not None}
+    try:
+        for mat in sorted((m for m in mats if is_volume_only(m)), key=lambda m: m.name):
+            out = mat.node_tree.get_output_node("CYCLES")
+            link = out.inputs["Volume"].links[0]
+            saved.append((mat.node_tree, link.from_socket, out.inputs["Volume"]))
+            mat.node_tree.links.remove(link)
+        yield
+    finally:
+        for tree, src, dst in saved:
+            tree.links.new(src, dst)
+
+
 @contextlib.contextmanager
 def see_through(names):
     """While inside, each material of ``names`` (prepared by ``install_behind``) is a white Transparent BSDF: its

@@ -94,6 +94,12 @@ def renderable_meshes(scene) -> list:
             and not ob.hide_render]
 
 
+def has_fog(scene) -> bool:
+    """True when a renderable object of ``scene`` is a volume-only domain (``materials.volume_domain``): its G-buffer
+    passes need a render of their own with the volumes muted."""
+    return any(mats.volume_domain(ob) for ob in renderable_meshes(scene))
+
+
 def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
     start, end = scene.frame_start, scene.frame_end
     if cfg.frames is None:
@@ -704,13 +710,13 @@ def render_gbuffer(ctx: RenderContext, path: Path, seed: int, spp: int,
     """A G-buffer render at the scene's current size and camera: ``spp`` samples (point-sampled unless
     ``pixel_filter`` says otherwise), no bounces but the scene's transparent ones (the rays pass alpha cut-outs, as
     in the LR render); with ``gbuffer_transmission = "behind"`` its transmissive materials are transparent too
-    (``materials.see_through``).
+    (``materials.see_through``); fog and other volume-only domains are muted (``materials.volumes_muted``).
     Returns its passes."""
     set_sampling(ctx.scene, spp=spp, pixel_filter=pixel_filter, denoise=False, adaptive=False,
                  cfg=ctx.cfg, seed=seed, light_paths=None)
     # camera rays pass alpha cut-outs as in the LR render, whose passes are the LR G-buffers (docs/rendering.md)
     ctx.scene.cycles.transparent_max_bounces = ctx.light_paths["transparent_max_bounces"]
-    with mats.see_through(ctx.resolved.behind):
+    with mats.see_through(ctx.resolved.behind), mats.volumes_muted(ctx.scene):
         return render_to(ctx.scene, path)
 
 
@@ -758,6 +764,8 @@ def render_hr(ctx: RenderContext, frame: int, cams: LevelCameras) -> dict:
     footprint = _footprint(cfg, plan)
     if not (footprint and near_glass is not None and near_glass.any()):
         near_glass = None
+    if footprint and has_fog(scene):   # the radiance render's colour passes hold the fog: take every pixel's behind
+        near_glass = np.ones(bg.shape, dtype=bool)
     if near_glass is not None:  # the surface behind, filtered alike (the ground truth's filter, seed and samples)
         t = time.perf_counter()
         with render_border(scene, near_glass):
@@ -824,9 +832,11 @@ def render_lr_level(ctx: RenderContext, frame: int, cams_hr: LevelCameras, i: in
         t = time.perf_counter()
         passes = gpasses = render_to(scene, ctx.tmpdir / f"{lvl}.exr")
         seconds["radiance"] = time.perf_counter() - t
-        if plan.any and ctx.resolved.behind:
+        fog = plan.any and has_fog(scene)
+        if plan.any and (ctx.resolved.behind or fog):
             t = time.perf_counter()
-            gpasses = lr_gbuffer_behind(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", passes, settings_lr["seed"])
+            gpasses = (render_gbuffer(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", settings_lr["seed"], cfg.lr_spp) if fog
+                       else lr_gbuffer_behind(ctx, ctx.tmpdir / f"{lvl}_gbuffer.exr", passes, settings_lr["seed"]))
             if gpasses is not passes:
                 seconds["gbuffer"] = time.perf_counter() - t
                 extra["gbuffer_seed"] = settings_lr["seed"]

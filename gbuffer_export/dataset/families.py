@@ -3,7 +3,7 @@
 A family is one thing a clip can show that training could learn by heart: an object asset (``asset:STEM``), a
 level (``level:STEM``, a scene file's stem), an HDRI (``hdri:NAME``: ``builtin:NAME`` of bpy's eight, or a file's
 stem), or one of the built-in generator's families (``BUILTIN_FAMILIES``: ``prop:window_pane``,
-``material:voronoi``, ``geometry:railing``, ``light:neon``, ``camera:pan``, ...). A spec lists held-out families in
+``material:voronoi``, ``geometry:railing``, ``light:neon``, ``camera:pan``, ``motion:objects``, ...). A spec lists held-out families in
 ``[splits]`` (``val_families``, ``test_families``); ``expand`` (``spec.py``) refuses a spec where such a family can
 appear in a clip of an earlier split (a test family in a train or val clip, a val family in a train clip), counting
 every family a clip could draw (its HDRI pool, its clutter candidates, its props), and records in each clip the
@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 #: Family kinds: the first three come from a spec's files, the rest are the built-in generator's.
-FAMILY_KINDS = ("asset", "level", "hdri", "prop", "material", "geometry", "light", "camera")
+FAMILY_KINDS = ("asset", "level", "hdri", "prop", "material", "geometry", "light", "camera", "motion")
 
 #: The built-in generator's opt-in families (``props = [...]`` of a builtin source) -> their kind; each draws from a
 #: random stream of its own (the bpy layer's ``OPTIONAL_PROPS`` holds the same names).
@@ -28,6 +28,7 @@ BUILTIN_FAMILIES: dict[str, str] = {
     "text_panel": "geometry", "scatter": "geometry",
     "neon": "light", "small_emitters": "light", "strong_sun": "light", "night": "light",
     "cam_pan": "camera", "cam_strafe": "camera", "cam_turn": "camera", "cam_cut": "camera",
+    "boolean": "geometry", "displaced": "geometry", "instanced": "geometry", "fog": "light", "motion_objects": "motion",
 }
 #: Camera families re-key the built-in scene's own camera: only with ``cameras = ["scene"]``.
 CAMERA_FAMILIES = tuple(k for k, v in BUILTIN_FAMILIES.items() if v == "camera")
@@ -36,10 +37,11 @@ IN_FAMILY, HELD_OUT = "in-family", "held-out"
 
 
 def builtin_family(name: str) -> str:
-    """The family id of a built-in generator family (a builtin source's prop): ``KIND:NAME`` without the ``mat_``
-    and ``cam_`` prefixes (``mat_voronoi`` -> ``material:voronoi``, ``window_pane`` -> ``prop:window_pane``)."""
+    """The family id of a built-in generator family (a builtin source's prop): ``KIND:NAME`` without the ``mat_``,
+    ``cam_`` and ``motion_`` prefixes (``mat_voronoi`` -> ``material:voronoi``, ``motion_objects`` ->
+    ``motion:objects``, ``window_pane`` -> ``prop:window_pane``)."""
     kind = BUILTIN_FAMILIES[name]
-    short = name.split("_", 1)[1] if kind in ("material", "camera") else name
+    short = name.split("_", 1)[1] if kind in ("material", "camera", "motion") else name
     return f"{kind}:{short}"
 
 

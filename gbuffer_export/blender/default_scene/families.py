@@ -17,6 +17,11 @@ street lamp).
 camera (re-key the scene camera; with ``cameras = ["scene"]``): ``cam_pan`` (fast pans, 1.5-4 degrees a frame),
 ``cam_strafe`` (sideways at 2-5 cm a frame), ``cam_turn`` (a 60-120 degree turn in 4-8 frames), ``cam_cut`` (a cut
 to another shot at frame start+1 .. start+6).
+modifier-built geometry (``modifiers.py``, applied): ``boolean`` (a wall with windows and vents cut by an exact
+Boolean, a machined block), ``displaced`` (a boulder and a column, subdivided and displaced by a procedural texture),
+``instanced`` (hundreds of pebbles, bolts and grass tufts on a raised bed, scattered by a geometry node group).
+``fog`` (a homogeneous Principled Volume in a box domain around the courtyard and its cameras). ``motion_objects``
+(2-4 props gliding and spinning over the table, keyed on every frame).
 
 Each family's drawn parameters are kept on its objects as ``family_params`` (JSON), within ``RANGES``.
 """
@@ -30,9 +35,10 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from ..camera_paths import key_look_at
-from .geometry import add_object, box, catenary, cylinder, sphere, text_object, tube
+from ..camera_paths import key_channels, key_look_at
+from .geometry import add_object, box, catenary, cylinder, lathe, sphere, text_object, tube
 from .materials import Mat
+from .modifiers import boolean_cut, displace, instance_on_faces
 
 #: Principled classes a material family's primitives draw from.
 CLASSES = ("metal", "dielectric", "coat", "sheen", "transmission", "anisotropy", "emission")
@@ -58,6 +64,15 @@ RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "cam_strafe": {"m_per_frame": (0.02, 0.05)},
     "cam_turn": {"turn_deg": (60.0, 120.0), "frames": (4, 8), "start_offset": (0, 3)},
     "cam_cut": {"cut_offset": (1, 6)},
+    "boolean": {"width_m": (0.6, 0.9), "height_m": (1.0, 1.3), "thickness_m": (0.08, 0.14), "bevel_m": (0.004, 0.015),
+                "cols": (2, 5), "rows": (2, 4), "yaw_rad": (-0.35, 0.35), "block_m": (0.16, 0.26)},
+    "displaced": {"rock_radius_m": (0.18, 0.3), "feature_m": (0.04, 0.15), "strength_m": (0.015, 0.05),
+                  "column_radius_m": (0.08, 0.14), "column_height_m": (1.0, 1.5)},
+    "instanced": {"density_per_m2": (250.0, 600.0), "length_m": (2.0, 3.0), "depth_m": (0.3, 0.4),
+                  "height_m": (0.5, 0.6), "size_m": (0.015, 0.035)},
+    "fog": {"density_per_m": (0.02, 0.1), "anisotropy": (0.1, 0.6)},
+    "motion_objects": {"count": (2, 4), "size_m": (0.08, 0.2), "m_per_frame": (0.01, 0.06),
+                       "deg_per_frame": (2.0, 12.0)},
 }
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
@@ -437,6 +452,184 @@ def cam_cut(scene, mats, rng) -> None:
     d.tag(cam)
 
 
+def _bevelled_box(size, bevel: float):
+    """A bmesh box of ``size`` (x, y, z) centred at the origin, every edge bevelled by ``bevel`` (2 segments)."""
+    bm = bmesh.new()
+    box(bm, (0.0, 0.0, 0.0), size)
+    bmesh.ops.bevel(bm, geom=bm.edges[:], offset=bevel, segments=2, affect="EDGES")
+    return bm
+
+
+def _cutter(scene, name: str, bm):
+    """A mesh object of the closed shells in ``bm`` (no material), for :func:`boolean_cut`."""
+    mesh = bpy.data.meshes.new(name)
+    bm.to_mesh(mesh)
+    bm.free()
+    obj = bpy.data.objects.new(name, mesh)
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def boolean(scene, mats, rng) -> None:
+    """A bevelled wall segment (0.6-0.9 x 1.0-1.3 m, 8-14 cm thick) standing behind the table at y 0.8, turned up to
+    0.35 rad, with a grid of 2-5 x 2-4 windows and a row of round vents cut through it (exact Boolean, applied), and
+    at its foot a bevelled block (16-26 cm) with a bore through it and a slot across its top."""
+    d = Draw("boolean", rng)
+    w, h, t, bev = d("width_m"), d("height_m"), d("thickness_m"), d("bevel_m")
+    cols, rows, yaw = d("cols", integer=True), d("rows", integer=True), d("yaw_rad")
+    bm = _bevelled_box((w, t, h), bev)
+    bmesh.ops.translate(bm, verts=bm.verts, vec=(0.0, 0.0, h / 2))
+    wall = add_object(scene, "Boolean Wall", bm, Mat("Boolean Concrete", tuple(rng.uniform(0.35, 0.7, 3)),
+                                                     roughness=0.8).mat, location=(0.0, 0.8, 0.0),
+                      rotation=(0.0, 0.0, yaw))
+    cut, m = bmesh.new(), 0.06                                          # margin between windows (m)
+    ww, wh = (w - m * (cols + 1)) / cols, (0.72 * h - m * (rows + 1)) / rows
+    for i in range(cols):
+        for j in range(rows):
+            box(cut, (-w / 2 + m + ww / 2 + i * (ww + m), 0.0, 0.2 * h + m + wh / 2 + j * (wh + m)), (ww, 3 * t, wh))
+    for x in np.linspace(-w / 2 + 0.08, w / 2 - 0.08, max(3, int(w / 0.1))):
+        cylinder(cut, (float(x), 0.0, 0.93 * h), 0.02, 3 * t, 16, axis="Y")
+    boolean_cut(wall, _cutter(scene, "Boolean Wall Cutter", cut))
+    d.tag(wall)
+    s = d("block_m")
+    bm = _bevelled_box((s, s, s), bev)
+    block = add_object(scene, "Boolean Block", bm, Mat("Boolean Steel", (0.6, 0.6, 0.62), metallic=1.0,
+                                                       roughness=float(rng.uniform(0.15, 0.45))).mat,
+                       location=(float(rng.uniform(-0.2, 0.2)), 0.55, s / 2), rotation=(0.0, 0.0, yaw + 0.5))
+    cut = bmesh.new()
+    cylinder(cut, (0.0, 0.0, 0.0), s / 4, 2 * s, 32, axis="X")
+    box(cut, (0.0, 0.0, s / 2), (2 * s, s / 6, s / 2))
+    boolean_cut(block, _cutter(scene, "Boolean Block Cutter", cut))
+    d.tag(block)
+
+
+def displaced(scene, mats, rng) -> None:
+    """A boulder (radius 18-30 cm) on the floor right of the table's front and a column (radius 8-14 cm, 1.0-1.5 m) at the right,
+    each subdivided and displaced along its normals by a procedural texture (features 4-15 cm, 1.5-5 cm deep)."""
+    d = Draw("displaced", rng)
+    r = d("rock_radius_m")
+    bm = bmesh.new()
+    bmesh.ops.create_icosphere(bm, subdivisions=3, radius=r)
+    bmesh.ops.scale(bm, vec=(1.0, float(rng.uniform(0.75, 1.0)), float(rng.uniform(0.55, 0.8))), verts=bm.verts)
+    stone = Mat("Displaced Stone", tuple(rng.uniform(0.2, 0.5, 3)), roughness=float(rng.uniform(0.5, 0.9))).mat
+    rock = add_object(scene, "Displaced Boulder", bm, stone, rotation=(0.0, 0.0, float(rng.uniform(0, math.pi))),
+                      location=(float(rng.uniform(1.05, 1.3)), float(rng.uniform(-0.25, -0.05)), 0.3 * r))
+    displace(rock, ("CLOUDS", "VORONOI", "STUCCI")[int(rng.integers(3))], d("feature_m"), d("strength_m"), 2,
+             int(rng.integers(1 << 30)))
+    d.tag(rock)
+    cr, ch = d("column_radius_m"), d("column_height_m")
+    bm = bmesh.new()
+    lathe(bm, [(0.0, 0.0)] + [(cr, z) for z in np.linspace(0.0, ch, max(4, int(ch / cr)))] + [(0.0, ch)],
+          segments=24)
+    col = add_object(scene, "Displaced Column", bm, Mat("Displaced Sandstone", tuple(rng.uniform(0.45, 0.8, 3)),
+                                                        roughness=0.7).mat, location=(1.55, 0.85, 0.0))
+    displace(col, ("MARBLE", "CLOUDS", "WOOD")[int(rng.integers(3))], d("feature_m"), d("strength_m") * 0.6, 2,
+             int(rng.integers(1 << 30)))
+    d.tag(col)
+
+
+def _source(name: str, bm, material):
+    """A mesh object (not linked to a scene) for :func:`instance_on_faces`."""
+    mesh = bpy.data.meshes.new(name)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.materials.append(material)
+    return bpy.data.objects.new(name, mesh)
+
+
+def _instance_sources(size: float, mats, rng) -> list:
+    """A pebble, a bolt and a grass tuft, each about ``size`` m, standing on z = 0."""
+    bm = bmesh.new()
+    bmesh.ops.create_icosphere(bm, subdivisions=2, radius=size / 2)
+    bmesh.ops.scale(bm, vec=(1.0, 0.8, 0.55), verts=bm.verts)
+    for f in bm.faces:
+        f.smooth = True
+    pebble = _source("Pebble", bm, Mat("Pebble Stone", tuple(rng.uniform(0.3, 0.6, 3)), roughness=0.6).mat)
+    bm = bmesh.new()
+    cylinder(bm, (0.0, 0.0, size * 0.1), size * 0.45, size * 0.2, 6)
+    cylinder(bm, (0.0, 0.0, size * 0.6), size * 0.2, size * 0.8, 10)
+    bolt = _source("Bolt", bm, mats["chrome"])
+    bm = bmesh.new()
+    for a in np.linspace(0.0, 2 * math.pi, 6, endpoint=False):
+        tip = Vector((0.35 * size * math.cos(a), 0.35 * size * math.sin(a), 2.2 * size))
+        base = [Vector((0.08 * size * math.cos(a + da), 0.08 * size * math.sin(a + da), 0.0)) for da in (-0.6, 0.6)]
+        bm.faces.new([bm.verts.new(v) for v in (*base, tip)])
+    grass = _source("Grass Tuft", bm, Mat("Grass Blades", (0.12, 0.35, 0.06), roughness=0.5,
+                                          inputs={"Subsurface Weight": 0.15}).mat)
+    return [pebble, bolt, grass]
+
+
+def instanced(scene, mats, rng) -> None:
+    """A raised bed along the fence (2-3 m long, 0.3-0.4 m deep, 0.5-0.6 m high: seen over the table) at y 1.3, its
+    soil strewn with pebbles, bolts and grass tufts (1.5-3.5 cm, scaled 0.6-1.6) through geometry nodes (Distribute
+    Points on Faces at 250-600 per m2 + Instance on Points, realised): hundreds of small instances. The soil object
+    records ``instance_count``."""
+    d = Draw("instanced", rng)
+    length, depth, h = d("length_m"), d("depth_m"), d("height_m")
+    loc = (float(rng.uniform(-0.5, 0.5)), 1.3, 0.0)
+    bm = bmesh.new()
+    for sx in (-1, 1):
+        box(bm, (sx * (length / 2 + 0.02), 0.0, h / 2), (0.04, depth + 0.08, h))
+    for sy in (-1, 1):
+        box(bm, (0.0, sy * (depth / 2 + 0.02), h / 2), (length, 0.04, h))
+    d.tag(add_object(scene, "Instanced Planter", bm, mats["wood"], location=loc))
+    bm = bmesh.new()                                                    # the soil: one quad, instances on top
+    bm.faces.new([bm.verts.new((sx * length / 2, sy * depth / 2, h - 0.04))
+                  for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+    bed = add_object(scene, "Instanced Soil", bm, Mat("Gravel Soil", tuple(rng.uniform(0.12, 0.25, 3)),
+                                                      roughness=0.9).mat, location=loc)
+    count = instance_on_faces(bed, _instance_sources(d("size_m"), mats, rng), d("density_per_m2"), (0.6, 1.6),
+                              int(rng.integers(1 << 30)))
+    bed["instance_count"] = count
+    d.tag(bed)
+
+
+def fog(scene, mats, rng) -> None:
+    """Fog where Cycles renders it: a box domain (9 x 9 x 4 m, the courtyard and every camera inside) whose only
+    shader is a homogeneous Principled Volume of density 0.02-0.1 per m (anisotropy 0.1-0.6, a faint tint)."""
+    d = Draw("fog", rng)
+    mat = bpy.data.materials.new("Fog")
+    nt = mat.node_tree
+    for n in [n for n in nt.nodes if n.type != "OUTPUT_MATERIAL"]:
+        nt.nodes.remove(n)
+    vol = nt.nodes.new("ShaderNodeVolumePrincipled")
+    vol.inputs["Density"].default_value = d("density_per_m")
+    vol.inputs["Anisotropy"].default_value = d("anisotropy")
+    vol.inputs["Color"].default_value = (*rng.uniform(0.85, 1.0, 3), 1.0)
+    nt.links.new(vol.outputs["Volume"], nt.nodes["Material Output"].inputs["Volume"])
+    bm = bmesh.new()
+    box(bm, (0.0, 0.4, 1.95), (9.0, 9.0, 4.0))
+    d.tag(add_object(scene, "Fog Volume", bm, mat))
+
+
+def motion_objects(scene, mats, rng) -> None:
+    """2-4 bevelled props (8-20 cm) flying over and behind the table (x -1.2..1.2, y 0.2..1.3, z 1.0..1.5), each
+    keyed on every frame from start-1: a straight back-and-forth glide (over 0.3-0.6 m) at 1-6 cm a frame and a
+    spin about a seeded axis at 2-12 degrees a frame, so that motion vectors carry object motion."""
+    d = Draw("motion_objects", rng)
+    frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
+    t = (frames - frames[0]).astype(np.float64)
+    for k in range(d("count", integer=True)):
+        size, v, w = d("size_m"), d("m_per_frame"), math.radians(d("deg_per_frame"))
+        cls = CLASSES[int(rng.integers(len(CLASSES)))]
+        bm = bmesh.new()
+        _bevelled(bm, ("cube", "cylinder", "sphere")[int(rng.integers(3))], (0.0, 0.0, 0.0), size, size / 10)
+        mat = Mat(f"Mover {k + 1}", tuple(rng.uniform(0.1, 0.9, 3)), roughness=float(rng.uniform(0.1, 0.6)),
+                  metallic=1.0 if cls in ("metal", "anisotropy") else 0.0).mat
+        obj = add_object(scene, f"Mover {k + 1}", bm, mat)
+        start = np.array([rng.uniform(-1.2, 1.2), rng.uniform(0.2, 1.3), rng.uniform(1.0, 1.5)])
+        heading = rng.normal(size=3) * (1.0, 1.0, 0.3)
+        span, phase = rng.uniform(0.3, 0.6), rng.uniform(0.0, 1.0)
+        s = np.abs(((v * t / span + phase) % 2.0) - 1.0) * span      # a triangle wave in [0, span] metres
+        axis = rng.normal(size=3)
+        angle = w * t + rng.uniform(0.0, 2 * math.pi)
+        quats = [Matrix.Rotation(a, 3, Vector(axis)).to_quaternion() for a in angle]
+        obj.rotation_mode = "QUATERNION"
+        key_channels(obj, frames, {"location": start + np.outer(s, heading / np.linalg.norm(heading)),
+                                   "rotation_quaternion": np.array([tuple(q) for q in quats])})
+        d.tag(obj)
+
+
 #: Family name -> (builder, stream): the stream of its generator (``np.random.default_rng([seed, stream])``).
 FAMILIES = {
     **{f"mat_{p}": (material_family(p), 0x6A00 + i) for i, p in enumerate(SLOTS)},
@@ -446,4 +639,7 @@ FAMILIES = {
     "night": (night, 0x6C04),
     "cam_pan": (cam_pan, 0x6D01), "cam_strafe": (cam_strafe, 0x6D02), "cam_turn": (cam_turn, 0x6D03),
     "cam_cut": (cam_cut, 0x6D04),
+    "boolean": (boolean, 0x6B07), "displaced": (displaced, 0x6B08), "instanced": (instanced, 0x6B09),
+    "fog": (fog, 0x6C05),
+    "motion_objects": (motion_objects, 0x6E01),
 }
