@@ -7,7 +7,7 @@ of the clip (``manifest.json``, each finished frame's record and every buffer EX
 size, mtime, ctime and inode. ``digest`` hashes the list of (file, hash): the clip's content in one key (the
 training cache's key, ``training.cache``).
 
-``open_valid_clip`` is how ``train``, ``evaluate``, ``upscale``, ``preview`` and ``export-dataset`` open a clip: the
+``gate.open_valid_clip`` is how ``train``, ``evaluate``, ``upscale``, ``preview`` and ``export-dataset`` open a clip: the
 clip is read only if its last verdict passed and nothing changed since (the same identity, the same files, each
 file's hash; a file whose size, times and inode are those recorded is not read again: ``utime`` cannot set the
 ctime, so new bytes under kept file times still read as changed and are hashed). Otherwise the consumer validates
@@ -24,8 +24,8 @@ import time
 from pathlib import Path
 from typing import Iterable
 
-from ..clip import (FRAMES_DIR, MANIFEST, Clip, ClipError, UnsafePathError, check_no_links, frame_name, open_clip,
-                    open_nofollow, write_json_atomic)
+from ..clip import (FRAMES_DIR, MANIFEST, ClipError, UnsafePathError, check_no_links, frame_name, open_nofollow,
+                    write_json_atomic)
 from .report import ValidationReport
 
 log = logging.getLogger(__name__)
@@ -173,44 +173,10 @@ def clip_content_digest(root: str | os.PathLike) -> str:
     """The content key of the clip at ``root`` (``content_digest`` of its files), hashing only the files whose stat
     differs from its recorded verdict's."""
     root = Path(root)
-    rec, _ = current_verdict(root)
-    if rec is not None:
-        return rec["digest"]
     manifest = _read_json(root / MANIFEST) or {}
     old = read_verdict(root)
     return content_digest(snapshot(root, clip_files(manifest), old["files"] if old else None))
 
 
-def require_valid(path: str | os.PathLike, *, tolerate: Iterable[str] = ()) -> dict:
-    """The clip's verdict (validated now when none is current); ClipError naming the clip and its first failed
-    check when it fails on a check not in ``tolerate`` (codes a consumer checks itself, in validate's words)."""
-    from .runner import validate_clip
-    root = Path(path)
-    rec, why = current_verdict(root)
-    if rec is None:
-        log.info(f"{root}: validating it ({why})")
-        report = validate_clip(root, quick=True)
-        rec = report.verdict
-        if rec is None:  # changed while validated: judge on the report, key on the files as they are now
-            rec = {"ok": report.ok, "errors": [{"code": f.code, "line": f.line()} for f in report.errors],
-                   "digest": clip_content_digest(root)}
-    tolerated = set(tolerate)
-    listed = rec.get("errors", [])
-    failed = [e for e in listed if e.get("code") not in tolerated]
-    if failed or (not rec["ok"] and rec.get("error_count", len(listed)) > len(listed)):
-        line = failed[0]["line"] if failed else "failed"
-        raise ClipError(f"{root}: fails validation: {line} ('blendsr validate {root}' lists every finding)")
-    return rec
-
-
-def open_valid_clip(path: str | os.PathLike, *, tolerate: Iterable[str] = ()) -> Clip:
-    """``open_clip`` for a consumer: the clip only if its last validation passed and nothing changed since, else
-    validated now (``require_valid``); ``clip.digest`` is its content key."""
-    clip = open_clip(path)  # the reader's own one-line refusals first
-    rec = require_valid(path, tolerate=tolerate)
-    clip.digest = rec.get("digest")
-    return clip
-
-
 __all__ = ["VERDICT", "HASH_ALGORITHM", "clip_files", "file_hash", "snapshot", "content_digest", "read_verdict",
-           "record_verdict", "current_verdict", "clip_content_digest", "require_valid", "open_valid_clip"]
+           "record_verdict", "current_verdict", "clip_content_digest"]
