@@ -43,16 +43,21 @@ def test_geometry_that_renders_is_no_problem(summary):
     assert geometry_problem(summary) is None
 
 
-def _obj(path, text):
-    path.write_text(text)
+def nan_stl(path, triangles: int = 2):
+    """A binary STL whose every vertex is NaN (Blender's OBJ importer reads 'nan' as 0)."""
+    import struct
+    tri = struct.pack("<12fH", *([0.0] * 3 + [float("nan")] * 9), 0)
+    path.write_bytes(b"\0" * 80 + struct.pack("<I", triangles) + tri * triangles)
     return path
 
 
+#: case -> (file name, its text or a writer, the words of the refusal)
 OBJ_CASES = {
-    "no-faces": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n", "4 vertices but no faces"),
-    "nan": ("v nan nan nan\nv nan 1 0\nv inf 0 1\nf 1 2 3\n", "NaN or infinite"),
-    "zero-extent": ("v 2 2 2\nv 2 2 2\nv 2 2 2\nf 1 2 3\n", "zero extent"),
-    "1e7-m": ("v 0 0 0\nv 1e7 0 0\nv 0 1e7 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n", "absurdly large"),
+    "no-faces": ("no-faces.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n", "4 vertices but no faces"),
+    # Blender's STL importer turns NaN vertices into one point at the origin: refused as zero extent
+    "nan": ("nan.stl", nan_stl, "zero extent"),
+    "zero-extent": ("zero.obj", "v 2 2 2\nv 2 2 2\nv 2 2 2\nf 1 2 3\n", "zero extent"),
+    "1e7-m": ("big.obj", "v 0 0 0\nv 1e7 0 0\nv 0 1e7 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n", "absurdly large"),
 }
 
 
@@ -60,8 +65,9 @@ OBJ_CASES = {
 @pytest.mark.bpy
 @pytest.mark.parametrize("case", sorted(OBJ_CASES))
 def test_render_refuses_a_scene_with_nothing_to_render_before_rendering(tmp_path, case):
-    text, words = OBJ_CASES[case]
-    scene = _obj(tmp_path / f"{case}.obj", text)
+    name, text, words = OBJ_CASES[case]
+    scene = tmp_path / name
+    scene.write_text(text) if isinstance(text, str) else text(scene)
     out = tmp_path / "out"
     proc = run_cli("render", scene, "-o", out, "--camera-path", "orbit", "--light", "sky", "--hr-size", "32x32",
                    "--frames", "1:1", "--hr-spp", "1", "--lr-spp", "1", "--threads", "1", "--no-progress",
