@@ -229,7 +229,7 @@ def cmd_upscale(args) -> int:
     from training.inference import ClipFrames, load_model, upscale_frame
     from training.device import resolve_device
     refuse_dataset(args.clip, "--clip")
-    clip = open_valid_clip(args.clip)
+    clip = open_valid_clip(args.clip, tolerate=("non-finite",))  # non-finite input: warned, output made finite
     from training.fastpath import prepare_inference
     model = load_model(args.checkpoint or args.model, clip.scale)
     prepare_inference(model, resolve_device(args.device), args.amp,

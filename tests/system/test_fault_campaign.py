@@ -82,3 +82,17 @@ def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures
     assert tally.inputs_tried == sum(c[3] for c in fc.HUGE_AND_NONFINITE) >= 8
     print("\n".join(lines))
     _clean(tally)
+
+
+@pytest.mark.torch
+def test_issue56_frames_with_nothing_and_untrusted_clips_are_refused(fixtures):
+    """Issue 56: the quick subset of part ``empty`` (a truncated OBJ refused before rendering; train and evaluate
+    refusing a clip whose exposure was edited or whose radiance was scaled, naming the check; the cache rebuilt
+    after an EXR changed under kept file times, a linked EXR refused)."""
+    pytest.importorskip("bpy")
+    tally = fc.Tally()
+    lines = []
+    fc.empty_and_untrusted(fixtures, tally, quick=True, log=lines.append)
+    assert tally.inputs_tried == sum(c[3] for c in fc.EMPTY_AND_UNTRUSTED) + 2 >= 7
+    print("\n".join(lines))
+    _clean(tally)
