@@ -141,13 +141,13 @@ class Fixtures:
         self._variants: dict[str, Path] = {}
         self._ck: Path | None = None
 
-    def variant(self, name: str, mutate) -> Path:
-        """A copy of the good clip changed by ``mutate(path)``."""
+    def variant(self, name: str, mutate, base: Path | None = None) -> Path:
+        """A copy of the good clip (or of ``base``) changed by ``mutate(path)``."""
         if name not in self._variants:
             p = self.root / f"v_{name}"
             if p.exists():
                 shutil.rmtree(p)
-            shutil.copytree(self.clip, p, ignore=shutil.ignore_patterns(".blendsr_cache"))
+            shutil.copytree(base or self.clip, p, ignore=shutil.ignore_patterns(".blendsr_cache"))
             mutate(p)
             self._variants[name] = p
         return self._variants[name]
@@ -697,6 +697,9 @@ def _consumers(variant: str, mutate, check: str, quick: bool = False) -> list:
     """Rows: train, evaluate, upscale and export-dataset on the clip variant, each refused naming the check."""
     def clip(f):
         return str(f.variant(variant, mutate))
+
+    def clip2(f):  # NSS reads a 2x level: the scale-2 clip, so that nothing else refuses it
+        return str(f.variant(f"{variant}_x2", mutate, base=f.clip2))
     says = _says("fails validation", f"[{check}]")
     return [
         (f"train: {variant}", lambda f: ["train", "--model", "fusesr", "--data", clip(f), "-o",
@@ -707,7 +710,7 @@ def _consumers(variant: str, mutate, check: str, quick: bool = False) -> list:
          says),
         (f"upscale: {variant}", lambda f: ["upscale", "--model", "bilinear", "--clip", clip(f), "-o",
                                             str(f.root / f"u56_{variant}")], (2,), False, True, says),
-        (f"export-dataset: {variant}", lambda f: ["export-dataset", clip(f), "--format", "nss", "-o",
+        (f"export-dataset: {variant}", lambda f: ["export-dataset", clip2(f), "--format", "nss", "-o",
                                                    str(f.root / f"x56_{variant}")], (2,), False, True, says),
     ]
 
