@@ -15,6 +15,11 @@ from .verdict import clip_content_digest, current_verdict
 
 log = logging.getLogger(__name__)
 
+#: Findings no consumer is refused for: planned frames not rendered (yet) and the buffer files of such frames, since
+#: every consumer reads the finished frames only (an interrupted shard run exports as one sequence per run of
+#: finished frames).
+UNFINISHED = ("missing-frame", "incomplete-frame")
+
 
 def require_valid(path: str | os.PathLike, *, tolerate: Iterable[str] = ()) -> dict:
     """The clip's verdict (validated now when none is current); ClipError naming the clip and its first failed
@@ -28,7 +33,7 @@ def require_valid(path: str | os.PathLike, *, tolerate: Iterable[str] = ()) -> d
         if rec is None:  # changed while validated: judge on the report, key on the files as they are now
             rec = {"ok": report.ok, "errors": [{"code": f.code, "line": f.line()} for f in report.errors],
                    "digest": clip_content_digest(root)}
-    tolerated = set(tolerate)
+    tolerated = {*tolerate, *UNFINISHED}
     listed = rec.get("errors", [])
     failed = [e for e in listed if e.get("code") not in tolerated]
     if failed or (not rec["ok"] and rec.get("error_count", len(listed)) > len(listed)):
@@ -46,4 +51,4 @@ def open_valid_clip(path: str | os.PathLike, *, tolerate: Iterable[str] = ()) ->
     return clip
 
 
-__all__ = ["require_valid", "open_valid_clip"]
+__all__ = ["UNFINISHED", "require_valid", "open_valid_clip"]
