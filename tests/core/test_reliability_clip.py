@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import edit_header, edit_manifest, edit_record
+from tests.conftest import edit_header, edit_record
 from gbuffer_export.clip import ClipError, ClipWriter, load_manifest, open_clip
 from gbuffer_export.conventions import pass_seed
 from gbuffer_export.synthetic import make_synthetic_clip
