@@ -62,6 +62,14 @@ Parts (each prints its counts; the totals come last):
    NFRU without a 2x level is refused naming NFRU; an NFRU export of a 64x36 clip (its reader loads 1920x1080) is
    refused before anything is written; ``import-nss`` of an NSS export validates.
 
+13. **Frames with nothing in them, untrusted clips** (part ``empty``, issue 56, ``EMPTY_AND_UNTRUSTED``): a
+   truncated OBJ (vertices, no faces), a truncated and a random-bytes STL, every vertex NaN, a PLY face naming a
+   missing vertex, a zero-extent mesh and a 1e7 m level are refused by ``render`` before rendering in one line
+   naming the file; a clip whose exposure was set x10 or 1e6, nulled or deleted in its manifest, or whose radiance
+   was scaled by 1e-5, is refused by ``train``, ``evaluate``, ``upscale`` and ``export-dataset`` naming the
+   failed check; the training cache rebuilds after an EXR changed under kept file times and ``train`` refuses an
+   EXR become a link.
+
 ``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
 count of failures is 0.
 """
@@ -144,13 +152,13 @@ class Fixtures:
         self._variants: dict[str, Path] = {}
         self._ck: Path | None = None
 
-    def variant(self, name: str, mutate) -> Path:
-        """A copy of the good clip changed by ``mutate(path)``."""
+    def variant(self, name: str, mutate, base: Path | None = None) -> Path:
+        """A copy of the good clip (or of ``base``) changed by ``mutate(path)``."""
         if name not in self._variants:
             p = self.root / f"v_{name}"
             if p.exists():
                 shutil.rmtree(p)
-            shutil.copytree(self.clip, p, ignore=shutil.ignore_patterns(".blendsr_cache"))
+            shutil.copytree(base or self.clip, p, ignore=shutil.ignore_patterns(".blendsr_cache"))
             mutate(p)
             self._variants[name] = p
         return self._variants[name]
@@ -608,7 +616,12 @@ HUGE_AND_NONFINITE = [
 def huge_and_nonfinite(fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
     """Huge specs and non-finite values through evaluate and upscale (issue 26): refused in one line within
     RUNAWAY_S seconds, or accepted with a warning and finite results."""
-    for name, argv_of, expect, is_quick, inproc, check in HUGE_AND_NONFINITE:
+    run_cases(HUGE_AND_NONFINITE, fx, tally, quick, log)
+
+
+def run_cases(cases, fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
+    """Run rows of (name, argv(fx), expected exits, quick, in-process, check) and count them."""
+    for name, argv_of, expect, is_quick, inproc, check in cases:
         if quick and not is_quick:
             continue
         argv = argv_of(fx)
@@ -644,6 +657,142 @@ def huge_and_nonfinite(fx: Fixtures, tally: Tally, quick: bool, log=print) -> No
             last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
             tally.fail(f"{name}: {', '.join(problems)}: {last[0][:200]}")
         log(f"  {'FAIL' if problems else 'ok  '} {name}: exit {code} ({took:.1f} s)")
+
+
+# ------------------------------------------------------------------ issue 56: frames with nothing, untrusted clips
+def _scene_file(fx: Fixtures, name: str, data) -> Path:
+    """A scene file under the fixtures: ``data`` text or bytes."""
+    p = fx.root / "scenes56" / name
+    p.parent.mkdir(exist_ok=True)
+    p.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return p
+
+
+def _stl(triangles: int, value: float = float("nan"), cut: int | None = None) -> bytes:
+    import struct
+    tri = struct.pack("<12fH", *([0.0] * 3 + [value] * 9), 0)
+    data = b"\0" * 80 + struct.pack("<I", triangles) + tri * triangles
+    return data[:cut] if cut else data
+
+
+def _render_scene(fx: Fixtures, name: str, data) -> list[str]:
+    return _r(str(_scene_file(fx, name, data)), "-o", str(fx.root / f"out56_{name}"), "--camera-path", "orbit",
+              "--light", "sky", "--hr-size", "32x32", "--frames", "1:1", "--hr-spp", "1", "--lr-spp", "1",
+              "--threads", "1", "--no-progress")
+
+
+def _fixed_exposure(value: float):
+    """A mutation: the clip as rendered at a fixed exposure of 0.5 (identity stamped), then ``exposure.value`` set
+    to ``value`` in its manifest (None: the exposure nulled; 0: deleted)."""
+    def mutate(c: Path):
+        from gbuffer_export.clip import header_identity
+        m = json.loads((c / "manifest.json").read_text())
+        m["exposure"] = {"mode": "fixed", "value": 0.5}
+        m["identity"] = header_identity(m)
+        if value is None:
+            m["exposure"] = None
+        elif value == 0:
+            del m["exposure"]
+        else:
+            m["exposure"]["value"] = value
+        (c / "manifest.json").write_text(json.dumps(m))
+    return mutate
+
+
+def _dim(c: Path) -> None:
+    for f in (1, 2, 3, 4):
+        _edit_exr(c, f, "hr/radiance", lambda a: a * 1e-5)
+
+
+def _consumers(variant: str, mutate, check: str, quick: bool = False) -> list:
+    """Rows: train, evaluate, upscale and export-dataset on the clip variant, each refused naming the check."""
+    def clip(f):
+        return str(f.variant(variant, mutate))
+
+    def clip2(f):  # NSS reads a 2x level: the scale-2 clip, so that nothing else refuses it
+        return str(f.variant(f"{variant}_x2", mutate, base=f.clip2))
+    says = _says("fails validation", f"[{check}]")
+    return [
+        (f"train: {variant}", lambda f: ["train", "--model", "fusesr", "--data", clip(f), "-o",
+                                          str(f.root / f"t56_{variant}"), "--max-steps", "1", "--set",
+                                          "data.crop=8"], (2,), quick, True, says),
+        (f"evaluate: {variant}", lambda f: ["evaluate", "--model", "bilinear", "--data", clip(f), "--json",
+                                             str(f.root / f"e56_{variant}.json"), "--no-flip"], (2,), quick, True,
+         says),
+        (f"upscale: {variant}", lambda f: ["upscale", "--model", "bilinear", "--clip", clip(f), "-o",
+                                            str(f.root / f"u56_{variant}")], (2,), False, True, says),
+        (f"export-dataset: {variant}", lambda f: ["export-dataset", clip2(f), "--format", "nss", "-o",
+                                                   str(f.root / f"x56_{variant}")], (2,), False, True, says),
+    ]
+
+
+def _ply_missing_vertex() -> str:
+    return ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+
+
+#: Issue 56 items 2 and 3: scenes whose geometry renders nothing (refused before rendering, in one line naming the
+#: file) and clips that fail validation (refused by every consumer naming the failed check).
+EMPTY_AND_UNTRUSTED = [
+    ("render: truncated OBJ (vertices, no faces)", lambda f: _render_scene(
+        f, "truncated.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2"), (2,), True, False,
+     _says("truncated.obj: ", "no faces")),
+    ("render: truncated STL", lambda f: _render_scene(f, "truncated.stl", _stl(40, 1.0, cut=400)), (2,), False,
+     False, _says("truncated.stl: ")),
+    ("render: random-bytes STL", lambda f: _render_scene(f, "random.stl", random.Random(5).randbytes(2000)), (2,),
+     False, False, _says("random.stl: ")),
+    ("render: every vertex NaN (STL)", lambda f: _render_scene(f, "nan.stl", _stl(4)), (2,), False, False,
+     _says("nan.stl: ")),
+    ("render: PLY face naming a missing vertex", lambda f: _render_scene(f, "missing.ply", _ply_missing_vertex()),
+     (2,), False, False, _says("missing.ply: ")),
+    ("render: zero-extent mesh (scene camera orbit)", lambda f: _render_scene(
+        f, "zero.obj", "v 2 2 2\nv 2 2 2\nv 2 2 2\nf 1 2 3\n"), (2,), False, False, _says("zero extent")),
+    ("render: a 1e7 m level", lambda f: _render_scene(
+        f, "huge.obj", "v 0 0 0\nv 1e7 0 0\nv 0 1e7 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n"), (2,), False, False,
+     _says("huge.obj: ", "absurdly large")),
+    *_consumers("exposure_x10", _fixed_exposure(5.0), "manifest-identity", quick=True),
+    *_consumers("exposure_1e6", _fixed_exposure(1e6), "manifest-identity"),
+    *_consumers("exposure_nulled", _fixed_exposure(None), "manifest-identity"),
+    *_consumers("exposure_deleted", _fixed_exposure(0), "manifest-identity"),
+    *_consumers("radiance_1e-5", _dim, "dark-frame", quick=True),
+]
+
+
+def _keep_times(path: Path, fn) -> None:
+    st = os.stat(path)
+    fn(path)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def cache_staleness(fx: Fixtures, tally: Tally, log=print) -> None:
+    """The training cache after its clip changed under kept file times: an EXR rewritten must rebuild it; an EXR
+    become a link must be refused (``train``: exit 2 naming the link)."""
+    from training.cache import ClipCache
+    clip = fx.variant("cache56", lambda c: None)
+    cache = ClipCache(clip).ensure(["lr/radiance"])
+    old = cache.read(2, "lr/radiance").copy()
+    exr = _path(clip, 2, "lr/radiance")
+    _keep_times(exr, lambda p: _edit_exr(clip, 2, "lr/radiance", lambda a: a * 2.0))
+    fresh = ClipCache(clip).ensure(["lr/radiance"])
+    tally.inputs_tried += 1
+    if not fresh.rebuilt or not abs(float(fresh.read(2, "lr/radiance").mean()) - 2 * float(old.mean())) <= \
+            1e-4 * abs(float(old.mean())):
+        tally.results_differ += 1
+        tally.fail("cache: an EXR rewritten under kept file times did not rebuild the cache")
+    log(f"  {'ok  ' if fresh.rebuilt else 'FAIL'} cache: EXR rewritten under kept file times")
+    outside = fx.root / "outside56.exr"
+    shutil.copy2(exr, outside)
+    exr.unlink()
+    exr.symlink_to(outside)
+    run_cases([("train: an EXR become a link after the cache was built", lambda f: [
+        "train", "--model", "fusesr", "--data", str(clip), "-o", str(f.root / "t56_link"), "--max-steps", "1",
+        "--set", "data.crop=8"], (2,), True, True, _says("symbolic link"))], fx, tally, False, log)
+
+
+def empty_and_untrusted(fx: Fixtures, tally: Tally, quick: bool, log=print) -> None:
+    """Issue 56 (part ``empty``): EMPTY_AND_UNTRUSTED and the cache's staleness."""
+    run_cases(EMPTY_AND_UNTRUSTED, fx, tally, quick, log)
+    cache_staleness(fx, tally, log)
 
 
 # ------------------------------------------------------------------------------------------------ random inputs
@@ -1826,7 +1975,7 @@ def _append_race(src: dict, fmt: str, work: Path) -> tuple[list[int], str, dict]
 
 
 def export_cases(fx: Fixtures, tally: Tally, quick: bool = False, log=print) -> None:
-    """Part 11 (issue 56 item 4, issue 57 item 4): two ``--append`` at once for every format (NFRU on 1920x1080
+    """Part 12 (issue 56 item 4, issue 57 item 4): two ``--append`` at once for every format (NFRU on 1920x1080
     clips unless ``quick``) lose no sequence; the NFRU refusal of a missing 2x level names NFRU; an NFRU export
     its reader cannot load (not 1920x1080) is refused before anything is written; the NSS round trip validates."""
     from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
@@ -1877,7 +2026,7 @@ def export_cases(fx: Fixtures, tally: Tally, quick: bool = False, log=print) -> 
 # --------------------------------------------------------------------------------------------------------- main
 def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = False, seed: int = 0,
              parts=("bad", "random", "render", "train", "addon", "concurrent", "traversal", "signals", "fullfs",
-                    "huge", "dsignals", "sandbox", "exports"),
+                    "huge", "dsignals", "sandbox", "exports", "empty"),
              signals: int = 4, races: int = 1, log=print) -> Tally:
     rng = random.Random(seed)
     tally = Tally()
@@ -1889,6 +2038,9 @@ def campaign(out: Path, *, kills: int = 10, examples: int = 40, quick: bool = Fa
     if "huge" in parts:
         log("huge specs, non-finite values through evaluate and upscale:")
         huge_and_nonfinite(fx, tally, quick, log)
+    if "empty" in parts:
+        log("frames with nothing in them, clips that fail validation, cache staleness (issue 56):")
+        empty_and_untrusted(fx, tally, quick, log)
     if "random" in parts:
         log("random inputs (hypothesis):")
         random_inputs(fx, tally, examples, log)
@@ -1932,7 +2084,7 @@ def main(argv=None) -> int:
     p.add_argument("--examples", type=int, default=40, help="hypothesis examples per random-input family")
     p.add_argument("--quick", action="store_true", help="the make-test subset of the bad inputs")
     p.add_argument("--parts", default="bad,random,render,train,addon,concurrent,traversal,signals,fullfs,huge,"
-                                      "dsignals,sandbox,exports",
+                                      "dsignals,sandbox,exports,empty",
                    help="comma-separated parts to run")
     p.add_argument("--signals", type=int, default=4, help="SIGINT rounds of part 7 (renders)")
     p.add_argument("--races", type=int, default=1, help="rounds of render races (part 5) and the resumed render "

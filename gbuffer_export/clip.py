@@ -229,6 +229,8 @@ class Clip:
             self.exposure: float = exposure_of(manifest)
         except BlendSRError as exc:
             raise ClipError(f"{path / MANIFEST}: {exc}") from None
+        #: the content key of a clip opened through ``validate.verdict.open_valid_clip`` (None otherwise)
+        self.digest: str | None = None
 
     def __repr__(self) -> str:
         return f"Clip({str(self.path)!r}, frames={len(self.frames)}, scale={self.scale})"
@@ -258,7 +260,9 @@ class Clip:
                        "lr": {**self.manifest["levels"][lvl], "scale": self.level_scale[lvl]}}
         m["frame_data"] = {f: {**{k: v for k, v in rec.items() if not k.startswith("lr")}, "lr": rec[lvl]}
                            for f, rec in self.frame_data.items() if lvl in rec}
-        return Clip(self.path, m, {**self.level_dirs, "lr": real})
+        view = Clip(self.path, m, {**self.level_dirs, "lr": real})
+        view.digest = self.digest
+        return view
 
     def path_of(self, frame: int, key: str) -> Path:
         level, name = split_key(key)

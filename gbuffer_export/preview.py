@@ -515,6 +515,7 @@ def dataset_sheet_layout(root: str | Path, width: int = 256, splits=None, *, max
     dataset has no finished clip; a clip path that leaves the dataset is refused (``dataset.build.clip_dir``)."""
     from .clip import ClipError, UnsafePathError, open_clip
     from .dataset.build import clip_dir, read_index
+    from .validate.gate import require_valid
     root = Path(root)
     index = read_index(root)
     dirs = [(c, clip_dir(root, c)) for c in index["clips"] if not splits or c.get("split") in splits]
@@ -528,6 +529,8 @@ def dataset_sheet_layout(root: str | Path, width: int = 256, splits=None, *, max
             continue
         if not clip.frames:
             continue
+        if clip.complete:  # a finished clip is shown only if it passes validation (a clip still rendering is shown)
+            require_valid(folder)
         for f, which in ((clip.frames[0], "first"), (clip.frames[-1], "last")):
             img = visualize("radiance", clip.read(f, "hr/radiance", space=DISPLAY_SPACE, exposed=True))
             h = max(1, round(img.shape[0] * width / img.shape[1]))

@@ -99,6 +99,17 @@ def edit_manifest(clip: Path, fn) -> None:
     write_json_atomic(clip / "manifest.json", m)
 
 
+def edit_header(clip: Path, fn) -> None:
+    """Apply ``fn`` to a clip's manifest and re-stamp its identity (``clip.header_identity``), as a render with the
+    edited settings would have written it (``edit_manifest`` alone leaves the old identity: ``manifest-identity``)."""
+    from gbuffer_export.clip import header_identity
+
+    def stamped(m):
+        fn(m)
+        m["identity"] = header_identity(m)
+    edit_manifest(clip, stamped)
+
+
 def edit_record(clip: Path, frame: int, fn) -> None:
     """Apply ``fn`` to a frame's record both in the manifest and in frames/ (so they stay merged)."""
     import json

@@ -9,7 +9,8 @@ Layout::
 
 ``CACHE`` is ``CLIP/.blendsr_cache`` (ClipWriter ignores dot-names), or ``DIR/<clip-name>-<path-hash>`` when a cache
 directory is given or the clip is not writable. The cache identity hashes the bytes of ``manifest.json``, the
-cache format version, the demodulation eps and the non-finite policy: when any of them changes the cache is wiped
+clip's content (``validate.verdict.clip_content_digest``: the BLAKE2b hash of every file, so an EXR rewritten with
+its file times kept, or replaced by a link, rebuilds the cache), the cache format version, the demodulation eps and the non-finite policy: when any of them changes the cache is wiped
 and rebuilt. Arrays are added lazily (``ensure``), each under a file lock, written to a temporary name and renamed.
 
 Colour buffers (radiance, emission, albedo, fbeta) are stored in ``colour_spaces.TRAINING_SPACE`` (Linear Rec.709):
@@ -40,9 +41,13 @@ from gbuffer_export.clip import (Clip, ClipError, UnsafePathError, open_clip, op
 from gbuffer_export.colour_spaces import TRAINING_SPACE, convert_buffer
 from gbuffer_export.conventions import BUFFERS, LEVELS
 from gbuffer_export.demod import RADIANCE_CAP, demodulate
+from gbuffer_export.validate.verdict import clip_content_digest
 
-CACHE_VERSION = 4  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space;
-#                  4: radiance checked by validate's rule (non-finite, negative on surfaces)
+CACHE_VERSION = 5  # 2: radiance/emission beyond RADIANCE_CAP fall under data.nonfinite; 3: training space;
+#                  4: radiance checked by validate's rule (non-finite, negative on surfaces); 5: keyed by content
+#: The findings of ``blendsr validate`` the cache checks itself as it reads each frame, in validate's words, and
+#: refuses or sanitises under ``data.nonfinite``: a clip failing only these is not refused before the cache.
+CACHE_CHECKED = ("non-finite", "negative-radiance")
 CACHE_DIRNAME = ".blendsr_cache"
 DERIVED = ("irradiance", "fbeta_used")
 #: The clip buffers the derived ones are computed from (``demodulate``; emission and flags are optional).
@@ -179,8 +184,10 @@ class ClipCache:
         self.nonfinite = nonfinite
         self.path = default_cache_path(self.clip_path, cache_dir)
         self.manifest_sha256 = manifest_sha256(self.clip_path)
+        self.content = clip_content_digest(self.clip_path)  # every file's hash, not its time: new bytes rebuild
         self.identity = hashlib.sha256(json.dumps(
-            [CACHE_VERSION, self.manifest_sha256, self.eps, nonfinite, TRAINING_SPACE]).encode()).hexdigest()[:16]
+            [CACHE_VERSION, self.manifest_sha256, self.content, self.eps, nonfinite,
+             TRAINING_SPACE]).encode()).hexdigest()[:16]
         self.frames = list(self.clip.frames)
         if not self.frames:
             raise ClipError(f"{self.clip_path}: clip has no finished frame")
@@ -233,7 +240,7 @@ class ClipCache:
                     if p.name != ".lock":
                         shutil.rmtree(p) if p.is_dir() else p.unlink()
                 idx = {"version": CACHE_VERSION, "identity": self.identity, "clip": str(self.clip_path.resolve()),
-                       "manifest_sha256": self.manifest_sha256, "frames": self.frames, "scale": self.scale,
+                       "manifest_sha256": self.manifest_sha256, "content": self.content, "frames": self.frames, "scale": self.scale,
                        "sizes": self._base_sizes, "eps": self.eps, "nonfinite": self.nonfinite, "arrays": {},
                        "depth_ref": {}, "sanitized": []}
                 try:

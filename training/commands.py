@@ -245,12 +245,13 @@ def cmd_evaluate(args) -> int:
 
 def cmd_upscale(args) -> int:
     require("blendsr upscale", "train")
-    from gbuffer_export.clip import open_clip, write_json_atomic
+    from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.exr import write_exr
+    from gbuffer_export.validate.gate import open_valid_clip
     from training.inference import ClipFrames, load_model, upscale_frame
     from training.device import resolve_device
     refuse_dataset(args.clip, "--clip")
-    clip = open_clip(args.clip)
+    clip = open_valid_clip(args.clip, tolerate=("non-finite",))  # non-finite input: warned, output made finite
     from training.fastpath import prepare_inference
     from training.fastpath import default_path, path_record
     model = load_model(args.checkpoint or args.model, clip.scale, fast=False)

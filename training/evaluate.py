@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gbuffer_export.clip import ClipError, buffer_path, open_clip
+from gbuffer_export.clip import ClipError, buffer_path
+from gbuffer_export.validate.gate import open_valid_clip
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.exr import write_exr
 from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
@@ -226,7 +227,7 @@ def evaluate_model(model: InferenceModel, clips, options: EvalOptions = EvalOpti
     try:
         jobs = []  # (clip path, Clip, scale), checked before anything runs
         for c in clips:
-            base = open_clip(c)
+            base = open_valid_clip(c)
             jobs += [(c, base, s_) for s_ in eval_scales(model.module, base, (scales or {}).get(str(c)))]
         for job in jobs:
             per_frame += _score_clip(model, job, o, runner, baseline, warnings, video)

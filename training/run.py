@@ -215,9 +215,12 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 # ------------------------------------------------------------------------------------------------- starting a run
 def open_clips(paths) -> dict:
-    """{path: open Clip} (manifests read once)."""
-    from gbuffer_export.clip import open_clip
-    return {c: open_clip(c) for c in paths}
+    """{path: open Clip} (manifests read once), each only if its last validation passed and nothing changed since,
+    or it passes now (``open_valid_clip``); radiance that is not finite or negative is the cache's to refuse, or to
+    sanitise under ``data.nonfinite``, in validate's words (``training.cache.CACHE_CHECKED``)."""
+    from gbuffer_export.validate.gate import open_valid_clip
+    from training.cache import CACHE_CHECKED
+    return {c: open_valid_clip(c, tolerate=CACHE_CHECKED) for c in paths}
 
 
 def manifest_record(clips: dict) -> list[dict]:

@@ -77,13 +77,14 @@ def load_scene(cfg: RenderConfig):
         res = cfg.hr_size or (640, 360)
         scene = build_default_scene(seed=cfg.seed, frames=(min(frames[0], 1), max(frames[1], 48)), resolution=res)
         return scene, {"file": None, "sha256": None, "builtin": "default", "seed": cfg.seed}
-    from .scene_setup import load_scene_file
+    from .scene_setup import check_scene_geometry, load_scene_file
     if cfg.scene.suffix.lower() == ".blend":
         check_blend_file(cfg.scene)
     try:
         scene, loaded = load_scene_file(cfg.scene, cfg.allow_read)
     except RuntimeError as exc:
         raise ConfigError(f"{cfg.scene}: Blender could not open it ({str(exc).splitlines()[0]})") from None
+    check_scene_geometry(scene, cfg.scene)  # empty, degenerate, non-finite or absurd: refused before rendering
     allowed = {"allow_read": [str(Path(d).absolute()) for d in cfg.allow_read]} if cfg.allow_read else {}
     return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **allowed, **loaded}
 

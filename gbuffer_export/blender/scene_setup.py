@@ -36,6 +36,56 @@ def load_scene_file(path: Path, allow_read=()):
     return load_level(Path(path), allow_read)
 
 
+#: Renderable object types other than meshes (their geometry is not measured by ``geometry_summary``).
+OTHER_GEOMETRY = ("CURVE", "SURFACE", "META", "FONT", "CURVES", "POINTCLOUD", "VOLUME")
+
+
+def _mesh_box(mesh, world) -> tuple[int, int, int, np.ndarray | None]:
+    """(vertices, faces, non-finite vertices, 8 x 3 world corners of the finite vertices' box or None)."""
+    n = len(mesh.vertices)
+    co = np.empty(n * 3, np.float64)
+    mesh.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    ok = np.isfinite(co).all(axis=1)
+    if not ok.any():
+        return n, len(mesh.polygons), n, None
+    lo, hi = co[ok].min(axis=0), co[ok].max(axis=0)
+    corners = np.array([[(lo, hi)[(i >> k) & 1][k] for k in range(3)] + [1.0] for i in range(8)])
+    return n, len(mesh.polygons), int((~ok).sum()), (np.asarray(world, np.float64) @ corners.T).T[:, :3]
+
+
+def geometry_summary(scene):
+    """The scene's renderable mesh geometry as ``scene_geometry.GeometrySummary`` (the meshes as stored, placed by
+    their world matrices; curves, text, volumes and collection instancers only flagged as ``other``)."""
+    from ..scene_geometry import GeometrySummary
+    verts = faces = bad = 0
+    boxes, other = [], False
+    for ob in scene.objects:
+        if ob.hide_render:
+            continue
+        if ob.type == "MESH" and ob.data is not None:
+            n, f, b, box = _mesh_box(ob.data, ob.matrix_world)
+            verts, faces, bad = verts + n, faces + f, bad + b
+            if box is not None and f:
+                boxes.append(box)
+        elif ob.type in OTHER_GEOMETRY or (ob.type == "EMPTY" and ob.instance_type == "COLLECTION"):
+            other = True
+    pts = np.concatenate(boxes) if boxes else None
+    ok = pts is not None and np.isfinite(pts).all()
+    return GeometrySummary(verts, faces, bad, tuple(pts.min(axis=0)) if ok else None,
+                           tuple(pts.max(axis=0)) if ok else None,
+                           float(scene.unit_settings.scale_length or 1.0), other)
+
+
+def check_scene_geometry(scene, path: Path) -> None:
+    """ConfigError naming ``path`` when the scene's geometry is empty, degenerate, non-finite or absurdly large
+    (``scene_geometry.geometry_problem``): refused before anything renders."""
+    from ..scene_geometry import geometry_problem
+    problem = geometry_problem(geometry_summary(scene))
+    if problem:
+        raise ConfigError(f"{path}: {problem}")
+
+
 # ----------------------------------------------------------------------------------------------
 # Cameras
 # ----------------------------------------------------------------------------------------------

@@ -18,7 +18,12 @@ luminance below 0.02 or over 20% of the pixels below 1e-3, nor blown out, log-av
 than 75% of the frames hold near and far content, HR depth p90/p10 >= 3; docs/clip-format.md "Usable views") and
 motion (agreement with reprojection from depth and cameras on static surface pixels, with the camera's
 rotation-only motion on background pixels). A half-written clip (planned frames missing, buffer files of
-unfinished frames) never passes.
+unfinished frames) never passes, nor does a manifest whose identity is not the hash of its header (an exposure
+edited, nulled or deleted) or an HR frame whose depth is finite on less than 0.5% of its pixels (nothing in view).
+A validation of every frame records its verdict in the clip (CLIP/validation.json: pass/fail, the manifest's
+identity, every file's BLAKE2b-128 hash); train, evaluate, upscale, preview and export-dataset trust a passing
+verdict while nothing changed, and otherwise validate the clip themselves (docs/clip-format.md, "Identity and the
+recorded verdict").
 
 Prints one line per finding ('ERROR frame 12 hr/normal: ... [code]') and a summary line; with --json one JSON
 object (ok, errors, warnings, findings, stats) on stdout. Exit code 0: no errors (warnings allowed); 1: errors;

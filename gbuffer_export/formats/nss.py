@@ -27,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..clip import ClipWriter, check_no_links, levels_header, open_clip, scale_value, write_json_atomic
+from ..clip import ClipWriter, check_no_links, levels_header, scale_value, write_json_atomic
 from ..errors import BlendSRError
 from ..exr import HALF_MAX, exr_size, read_exr, write_exr
+from ..validate.gate import open_valid_clip
 from . import conventions as cv
 from .output import ExportOptions, Target, clean_temp_files
 from .table import check_clips
@@ -189,7 +190,7 @@ def export_clip(clip_path, out, seq: int, *, framerate: int = DEFAULT_FRAMERATE)
     """Write one BlendSR clip as sequences ``seq``, ``seq + 1``, ... (one per contiguous run of finished frames)
     of the NSS capture at ``out`` (written in place: ``export_nss`` is the command's safe path); returns their
     JSON."""
-    clip = open_clip(clip_path)
+    clip = open_valid_clip(clip_path)
     check_clip(clip)
     planes = clip_planes(clip)
     return [export_sequence(clip, run, out, f"{seq + i:04d}", framerate=framerate, planes=planes)
@@ -228,7 +229,7 @@ def export_sequences(sources, out, options: ExportOptions, *, fmt: str, write_se
     options.validate()
     out = Path(out)
     target = Target(out, sources, options.mode, is_export=is_export, fmt=fmt)
-    clips = [open_clip(p) for p in source_clips(sources)]
+    clips = [open_valid_clip(p) for p in source_clips(sources)]
     if not clips:
         raise NssError(f"{', '.join(map(str, sources))}: no finished clips to export")
     check_clips(fmt, clips, NssError)  # every limit of the consumer, before anything is written

@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..clip import check_no_links, open_clip, write_bytes_atomic
+from ..clip import check_no_links, write_bytes_atomic
 from ..exr import write_exr
+from ..validate.gate import open_valid_clip
 from ..errors import BlendSRError
 from . import conventions as cv
 from .nss import NSS_SPACE, frame_runs, source_clips
@@ -135,7 +136,7 @@ def export_rdg(sources, out, options: ExportOptions = ExportOptions()) -> dict:
     options.validate()
     out = Path(out)
     target = Target(out, sources, options.mode, is_export=is_rdg_export, fmt="rdg")
-    clips = [open_clip(p) for p in source_clips(sources)]
+    clips = [open_valid_clip(p) for p in source_clips(sources)]
     if not clips:
         raise RdgError(f"{', '.join(map(str, sources))}: no finished clips to export")
     check_clips("rdg", clips, RdgError)  # every limit of the consumer, before anything is written

@@ -22,6 +22,10 @@ Checks, in the order ``runner.run`` calls them (one module per family):
     motion     (``motion``) stored motion against ``reprojection_motion`` on static surface pixels and against the
                rotation-only motion on background pixels (fractions within tolerance); ``motion_next`` the same
                way towards the next camera.
+Also: the manifest's ``identity`` is the hash of its header (``manifest-identity``); an HR frame whose depth is finite on
+less than 0.5% of its pixels shows nothing (``empty-frame``, in ``camera``). A validation of every frame records its
+verdict in the clip (``verdict``: ``CLIP/validation.json``, every file's BLAKE2b-128 hash); consumers open clips
+through ``gate.open_valid_clip``, which trusts a current passing verdict or validates the clip itself.
 Findings, the report and the run's state are in ``report``, the tolerances in ``options``.
 """
 from __future__ import annotations

@@ -12,6 +12,10 @@ from .report import Collector
 #: level's extent such as a skybox or a far ground plane).
 MAX_BACKGROUND = 0.5
 SPEED_TOLERANCE = 1.02
+#: ``empty-frame``: an HR frame whose depth is finite (a surface, not sky or background) on less than this share of
+#: its pixels shows nothing of the scene. A walk under open sky keeps the ground in view (a level camera may show at
+#: most MAX_BACKGROUND of background); a frame of only the added sky is a scene whose geometry was lost on import.
+MIN_SURFACE_SHARE = 0.005
 
 
 def check_black_frame(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarray]) -> None:
@@ -25,6 +29,18 @@ def check_black_frame(c: Collector, frame: int, lvl: str, b: dict[str, np.ndarra
     elif not np.any(rad[finite] != 0):
         c.add("black-frame", "radiance is 0 on every pixel (is the scene lit? blendsr render --light sky)",
               frame=frame, key=f"{lvl}/radiance")
+
+
+def check_empty_frame(c: Collector, frame: int, b: dict[str, np.ndarray]) -> None:
+    """``empty-frame``: the HR depth is finite on less than MIN_SURFACE_SHARE of the frame's pixels."""
+    depth = b.get("depth")
+    if depth is None or depth.size == 0:
+        return
+    share = float(np.isfinite(depth[..., 0]).mean())
+    if share < MIN_SURFACE_SHARE:
+        c.add("empty-frame", f"the HR depth is finite on {100 * share:.3g}% of the pixels (at least "
+              f"{100 * MIN_SURFACE_SHARE:g}% needed): the frame shows no geometry, only sky or background; was the "
+              "scene's geometry lost on import?", frame=frame, key="hr/depth", surface_share=share)
 
 
 def level_report(manifest: dict) -> dict | None:

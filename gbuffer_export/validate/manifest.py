@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import re
 
-from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, load_manifest
+from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, header_identity, load_manifest
 from ..colour_spaces import DEFAULT_WORKING_SPACE, WORKING_SPACES
 from ..conventions import BUFFERS, LEVELS, SCHEMA, SCHEMA_VERSION, is_level_name, level_name
 from .report import WARNING, Collector, as_int, json_safe
@@ -51,7 +51,28 @@ def check_manifest(c: Collector) -> dict | None:
         if not missing:
             c.add("manifest-invalid", str(exc).splitlines()[0])
         return None
+    check_identity(c, manifest)
     return manifest
+
+
+def check_identity(c: Collector, m: dict) -> None:
+    """``manifest-identity``: the stored ``identity`` is the hash of the header the clip was rendered with
+    (``clip.header_identity``: every key but ``VOLATILE_KEYS``, an auto exposure's request but not its metering);
+    a deleted, nulled or edited ``exposure`` (or any other covered field) changes it."""
+    mpath = c.root / MANIFEST
+    stored = m.get("identity")
+    try:
+        expect = header_identity(m)
+    except (TypeError, ValueError) as exc:
+        c.add("manifest-identity", f"{mpath}: the header cannot be hashed ({exc})", key="identity")
+        return
+    if stored is None:
+        c.add("manifest-identity", f"{mpath}: manifest lacks its 'identity' (the hash of its header); a clip "
+              "whose identity was removed cannot prove its header is the one it was rendered with", key="identity")
+    elif stored != expect:
+        c.add("manifest-identity", f"{mpath}: identity {stored!r} is not the hash of the header ({expect!r}): a "
+              "field the identity covers (exposure, render, scene, levels, buffers, frames, ...) was edited, "
+              "added or removed after rendering", key="identity", stored=stored, expected=expect)
 
 
 def check_header(c: Collector, m: dict) -> dict | None:

@@ -22,6 +22,9 @@ CODES: dict[str, str] = {
     "manifest-invalid": "manifest is not valid JSON, not a BlendSR manifest, or a header value has the wrong type",
     "schema-newer": "manifest schema_version is newer than this blendsr reads",
     "manifest-incomplete": "a required header key is missing",
+    "manifest-identity": "the manifest's identity is missing or not the hash of its header (clip.header_identity): "
+                         "a field the identity covers (exposure, render, scene, levels, buffers, ...) was edited, "
+                         "added or removed after rendering",
     "manifest-colour-space": "scene_linear is a working space training cannot convert into its space (warning)",
     "manifest-inconsistent": "header values contradict each other (hr size != lr size * scale, unknown buffer)",
     "no-frames": "the clip has no finished frame",
@@ -63,6 +66,9 @@ CODES: dict[str, str] = {
     "flags-range": "flags hold unknown bits",
     "emission-background": "on a point-sampled LR level, radiance is not the environment that emission holds on "
                            "background (render.gbuffer.emission_background = \"environment\")",
+    "empty-frame": "the HR depth is finite (a surface) on less than MIN_SURFACE_SHARE (0.5%) of a frame's pixels "
+                   "while the clip's scene has geometry: nothing but sky or background in view (geometry lost on "
+                   "import?)",
     "black-frame": "radiance is zero, or not finite, on every pixel of a frame (an unlit scene)",
     # usable views (exposure, depth)
     "exposure-invalid": "the manifest's exposure is malformed, or not the auto exposure its frames' metering gives",
@@ -127,6 +133,8 @@ class ValidationReport:
     path: str
     findings: list[Finding]
     stats: dict[str, Any]
+    #: the verdict recorded in the clip (``verdict.record_verdict``), None when none was recorded
+    verdict: dict[str, Any] | None = None
 
     @property
     def errors(self) -> list[Finding]:

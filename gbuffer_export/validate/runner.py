@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import BlendSRError
 from ..clip import ClipError
-from .camera import check_black_frame, check_level_motion, check_level_view, level_report
+from .camera import check_black_frame, check_empty_frame, check_level_motion, check_level_view, level_report
 from .exposure import check_exposed_frame, check_exposure, check_flat_views, depth_ratio
 from .files import read_level
 from .manifest import check_frames, check_header, check_manifest
@@ -21,6 +21,7 @@ from .options import ValidationOptions
 from .records import check_against_header, check_record
 from .report import ERROR, WARNING, Collector, ValidationReport
 from .values import check_background_emission, check_values
+from .verdict import HASH_ALGORITHM, VERDICT, before_validation, record_verdict
 
 
 def accumulate(c: Collector, lvl: str, b: dict[str, np.ndarray], surface, mst: dict) -> None:
@@ -109,6 +110,7 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
                 surface = check_values(c, f, lvl, b)
                 check_black_frame(c, f, lvl, b)
                 if lvl == "hr":
+                    check_empty_frame(c, f, b)
                     check_exposed_frame(c, f, b, exposure, manifest, h["frame_data"][f])
                     r = depth_ratio(b)
                     if r is not None:
@@ -153,6 +155,8 @@ def validate_clip(path: str | Path, *, frames: Iterable[int] | None = None, quic
     quick: read pixel data (value and motion checks) of the first and last selected frame only; the other frames
         get existence, size and channel checks from the EXR headers.
     progress: show a tqdm bar on stderr when more than 3 frames are checked.
+    A validation of every frame (``frames`` None) with the default options records its verdict in the clip
+    (``verdict.record_verdict``: ``CLIP/validation.json``, the files' hashes; ``report.verdict``).
     Raises ClipError only when ``path`` is not a directory; every problem of the clip is a finding.
     """
     root = Path(path)
@@ -160,8 +164,16 @@ def validate_clip(path: str | Path, *, frames: Iterable[int] | None = None, quic
         raise ClipError(f"{root}: not a directory")
     t0 = time.perf_counter()
     c = Collector(root, options or ValidationOptions())
+    recorded = frames is None and c.opt == ValidationOptions()
+    before = before_validation(root) if recorded else None
     run(c, frames, quick, progress)
     c.stats["seconds"] = time.perf_counter() - t0
     c.stats["errors"] = sum(f.severity == ERROR for f in c.findings)
     c.stats["warnings"] = sum(f.severity == WARNING for f in c.findings)
-    return ValidationReport(str(root), c.findings, c.stats)
+    report = ValidationReport(str(root), c.findings, c.stats)
+    if recorded:
+        report.verdict = record_verdict(root, report, before, quick=quick)
+        if report.verdict is not None:
+            c.stats["verdict"] = {"file": str(root / VERDICT), "digest": report.verdict["digest"],
+                                  "files": len(report.verdict["files"]), "hash": HASH_ALGORITHM}
+    return report

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import edit_manifest, edit_record
+from tests.conftest import edit_header, edit_record
 from gbuffer_export.clip import ClipError, ClipWriter, load_manifest, open_clip
 from gbuffer_export.conventions import pass_seed
 from gbuffer_export.synthetic import make_synthetic_clip
@@ -83,7 +83,7 @@ def test_shards_share_a_clip_but_two_writers_of_one_shard_or_of_two_splits_do_no
 
 def _as_rendered(clip: Path, seed: int = 7, hr_spp: int = 16, lr_spp: int = 2) -> None:
     """Give the synthetic clip a render header and records that follow it (what ``render`` writes)."""
-    edit_manifest(clip, lambda m: m["render"].update(seed=seed, hr={**m["render"]["hr"], "spp": hr_spp},
+    edit_header(clip, lambda m: m["render"].update(seed=seed, hr={**m["render"]["hr"], "spp": hr_spp},
                                                       lr={**m["render"]["lr"], "spp": lr_spp}))
     for f in (1, 2, 3):
         def fn(r, f=f):

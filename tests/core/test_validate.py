@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from tests.conftest import edit_manifest, edit_record, requires_bpy, run_cli
+from tests.conftest import edit_header, edit_manifest, edit_record, requires_bpy, run_cli
 from gbuffer_export.cli import main
 from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.conventions import BUFFERS, SCHEMA_VERSION, Flag
@@ -200,7 +200,7 @@ def _level_camera(clip, **over):
     report = {"kind": "walk", "rules": {"clearance_m": 0.25}, "metres_per_unit": 1.0, "fps": 24.0,
               "level_extent_m": 1e6, "declared_max_speed_mps": 1e6, "clearance_m": 1.0,
               "min_clearance_rule_m": 0.25, "region": None, **over}
-    edit_manifest(clip, lambda m: m.__setitem__("camera", report))
+    edit_header(clip, lambda m: m.__setitem__("camera", report))
 
 
 def _linked_buffer(clip):
@@ -230,6 +230,9 @@ def _ground_only(clip):
 
 #: code -> (corruption, severity, frame, key) of the finding it must produce (None: not checked).
 CASES = {
+    # nothing in view: the HR depth of frame 2 infinite everywhere (only sky), as a scene whose geometry was lost
+    "empty-frame": (lambda c: edit_buffer(c, 2, "hr/depth", lambda a: np.full_like(a, np.inf)), ERROR, 2,
+                    "hr/depth"),
     "black-frame": (lambda c: edit_buffer(c, 2, "hr/radiance", np.zeros_like), ERROR, 2, "hr/radiance"),
     # usable views (validate/exposure.py): the exposed radiance (1e-5 of it: practically black; 100 times: blown
     # out), a malformed exposure, a metering that is not the radiance's, a view of one surface at one depth
@@ -253,17 +256,20 @@ CASES = {
                          None),
     "schema-newer": (lambda c: edit_manifest(c, lambda m: m.__setitem__("schema_version", SCHEMA_VERSION + 1)),
                      ERROR, None, None),
+    # a header field the identity covers edited after rendering (exposure deleted; nulled; the identity removed)
+    "manifest-identity": (lambda c: edit_manifest(c, lambda m: m.__setitem__("exposure", None)), ERROR, None,
+                          "identity"),
     "manifest-incomplete": (lambda c: edit_manifest(c, lambda m: m.pop("blender_version")), ERROR, None, None),
-    "manifest-colour-space": (lambda c: edit_manifest(c, lambda m: m.__setitem__("scene_linear", "AgX Log")),
+    "manifest-colour-space": (lambda c: edit_header(c, lambda m: m.__setitem__("scene_linear", "AgX Log")),
                               WARNING, None, None),
     "manifest-inconsistent": (lambda c: edit_manifest(c, lambda m: m["levels"]["hr"].__setitem__("width", 68)),
                               ERROR, None, None),
     # the synthetic clip writes emission 0 on its sky: declaring that emission holds the environment contradicts it
-    "emission-background": (lambda c: edit_manifest(c, lambda m: m["render"].__setitem__(
+    "emission-background": (lambda c: edit_header(c, lambda m: m["render"].__setitem__(
         "gbuffer", {"emission_background": "environment"})), ERROR, None, "lr/emission"),
     "no-frames": (_no_frames, ERROR, None, None),
     "missing-frame": (_missing_frame, ERROR, 2, None),
-    "unplanned-frame": (lambda c: edit_manifest(c, lambda m: m["frames"].remove(3)), WARNING, 3, None),
+    "unplanned-frame": (lambda c: edit_header(c, lambda m: m["frames"].remove(3)), WARNING, 3, None),
     "manifest-stale": (lambda c: (c / "frames" / "000002.json").write_text(json.dumps(
         {**json.loads((c / "frames" / "000002.json").read_text()), "extra": 1})), ERROR, 2, None),
     "missing-record": (lambda c: (c / "frames" / "000002.json").unlink(), ERROR, 2, None),
@@ -534,7 +540,7 @@ def test_material_values_out_of_range_on_alpha_pixels_are_a_warning(clip):
 
 def test_half_written_clip_never_passes(clip):
     """A render interrupted in frame 4 of 4: buffers of frame 4 partly written, no record."""
-    edit_manifest(clip, lambda m: m["frames"].append(4))
+    edit_header(clip, lambda m: m["frames"].append(4))
     for name in ("radiance", "albedo"):
         shutil.copy(buffer_path(clip, 3, "hr", name), buffer_path(clip, 4, "hr", name))
     r = validate_clip(clip)

@@ -104,3 +104,17 @@ def test_exports_appends_at_once_consumer_limits_and_the_nss_round_trip(fixtures
     fc.export_cases(fixtures, tally, quick=True, log=lambda m: None)
     assert tally.inputs_tried == 5
     _clean(tally)
+
+
+@pytest.mark.torch
+def test_issue56_frames_with_nothing_and_untrusted_clips_are_refused(fixtures):
+    """Issue 56: the quick subset of part ``empty`` (a truncated OBJ refused before rendering; train and evaluate
+    refusing a clip whose exposure was edited or whose radiance was scaled, naming the check; the cache rebuilt
+    after an EXR changed under kept file times, a linked EXR refused)."""
+    pytest.importorskip("bpy")
+    tally = fc.Tally()
+    lines = []
+    fc.empty_and_untrusted(fixtures, tally, quick=True, log=lines.append)
+    assert tally.inputs_tried == sum(c[3] for c in fc.EMPTY_AND_UNTRUSTED) + 2 >= 7
+    print("\n".join(lines))
+    _clean(tally)
