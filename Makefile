@@ -57,7 +57,7 @@ addon: setup
 	$(VPY) -m blender_addon.build -o dist
 
 generate: setup
-	$(VPY) -m training.generate
+	$(VPY) -m training.commands.generate
 
 bench: setup
 	$(VPY) -m gbuffer_export.cli bench render

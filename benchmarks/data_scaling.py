@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     from gbuffer_export.dataset.build import split_clips
     from training.config import load_config
     from training.evaluate import EvalOptions, evaluate_model, group_means
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.train import train
 
     test_clips = [str(c) for c in split_clips(a.dataset, "test")]

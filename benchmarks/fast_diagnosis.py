@@ -26,7 +26,7 @@ BINS = (0.0, 0.2, 0.4, 0.7, 1.01)
 
 def gate_stats(spec: str, clips: list[Path]) -> None:
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     model = load_model(spec, 4)
     module = model.module
     if getattr(module, "confidence", None) is None:
@@ -52,7 +52,7 @@ def squared_errors(models: dict, clip: Path, every: int, keep=None) -> dict[str,
     flattened; ``keep(inputs)`` is called on the first model's inputs of each frame."""
     from gbuffer_export.clip import open_clip
     from training import metrics
-    from training.inference import ClipFrames, run_frame
+    from training.inference.loading import ClipFrames, run_frame
     base, sq = open_clip(clip), {}
     for k, (name, model) in enumerate(models.items()):
         source = ClipFrames(base.at_scale(4), eps=model.demod_eps)
@@ -69,7 +69,7 @@ def squared_errors(models: dict, clip: Path, every: int, keep=None) -> dict[str,
 
 def brightness_bins(spec: str, clip: Path, every: int) -> None:
     from training import metrics
-    from training.inference import load_model
+    from training.inference.loading import load_model
     lum, unit = [], []
 
     def keep(inputs):
@@ -88,7 +88,7 @@ def brightness_bins(spec: str, clip: Path, every: int) -> None:
 def transmission(spec: str, clips: list[Path], every: int) -> None:
     from gbuffer_export.conventions import Flag
     from training import metrics
-    from training.inference import load_model
+    from training.inference.loading import load_model
     models = {name: load_model(name, 4) for name in (spec, "demod-jbu")}
     for clip in clips:
         mask = []  # read from the flags with numpy's bit operations, apart from the model's arithmetic test

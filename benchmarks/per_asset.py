@@ -28,9 +28,9 @@ def main(argv=None) -> int:
     p.add_argument("-o", dest="out", type=Path)
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import read_index, split_clips
-    from training.bench_models import parse_models
+    from training.commands.bench_models import parse_models
     from training.evaluate import EvalOptions, evaluate_model, group_means
-    from training.inference import load_model
+    from training.inference.loading import load_model
 
     index = read_index(a.dataset)
     group_of = {Path(c["path"]).name: str(c.get("scene_id") or Path(c["path"]).name) for c in index["clips"]}

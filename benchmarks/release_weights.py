@@ -93,7 +93,7 @@ METRIC = "PSNR/SSIM on the evaluation tonemap (docs/training.md), no FLIP"
 def evaluate(spec: str, clips: list[str]) -> dict:
     """``evaluate_model`` of ``spec`` (at 4x, no FLIP) on ``clips``, with the demod-jbu baseline the rule reads."""
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     return evaluate_model(load_model(spec, 4), clips, EvalOptions(flip=False, scale=4))
 
 

@@ -20,7 +20,7 @@ def score(spec: str, clips: list[str], clip_scales: list[float], flip: bool) -> 
     supports (one instance per scale)."""
     from training.checkpoint import load_checkpoint
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.models import model_class
     if spec.startswith("pretrained:"):  # shipped weights (pretrained:NAME, NAME the model): every level it takes
         name, label = spec.split(":", 1)[1], spec

@@ -39,7 +39,7 @@ def main(argv=None) -> int:
 
     from gbuffer_export.dataset.build import split_clips
     from training.checkpoint import load_checkpoint
-    from training.inference import with_inference_options
+    from training.inference.loading import with_inference_options
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     from training.release import release
     from training.selection import choose

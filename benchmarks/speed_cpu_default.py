@@ -21,9 +21,9 @@ import time
 import torch
 
 from training.config import ModelConfig
-from training.export import example_inputs
-from training.fastpath import TOLERANCE, forward, prepare_inference, prepared_batch
-from training.inference import InferenceModel
+from training.inference.export import example_inputs
+from training.inference.fastpath import TOLERANCE, forward, prepare_inference, prepared_batch
+from training.inference.loading import InferenceModel
 from training.models import build_model
 
 PATHS = ("fast", "fused", "graph")

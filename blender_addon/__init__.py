@@ -1,7 +1,7 @@
 """BlendSR add-on (Blender 4.2+ extension): export super-resolution datasets and preview upscaling from a panel.
 
 A thin UI over the BlendSR library: exports call ``gbuffer_export.blender.render.render_clip`` in a worker process,
-the preview calls ``training.inference``. Importing this package has no side effects and imports neither bpy nor
+the preview calls ``training.inference.loading``. Importing this package has no side effects and imports neither bpy nor
 the library; ``register()`` loads the submodules. See docs/addon.md.
 """
 from __future__ import annotations

@@ -62,7 +62,7 @@ EXTRAS = ("render",)
 RUNTIME = {"export": ("onnxruntime",)}
 WHEEL_CACHE = REPO / "build" / "addon-wheels"
 GRAPH_CACHE = REPO / "build" / "addon-onnx"
-#: The zip's folder of ONNX graphs (``training.onnx_infer.graph_name``) with their JSON sidecars.
+#: The zip's folder of ONNX graphs (``training.inference.onnx_infer.graph_name``) with their JSON sidecars.
 GRAPHS = "onnx"
 
 
@@ -187,13 +187,13 @@ def graphs_key() -> str:
 
 
 def export_graphs(cache: Path = GRAPH_CACHE) -> Path:
-    """The ONNX graphs of ``preview_graphs`` (``training.export.export_onnx``, each checked against torch),
+    """The ONNX graphs of ``preview_graphs`` (``training.inference.export.export_onnx``, each checked against torch),
     exported once into ``cache`` and kept while ``graphs_key`` is the same; the folder."""
     try:
         key = graphs_key()
-        from training.export import export_onnx
-        from training.inference import load_model
-        from training.onnx_infer import graph_name
+        from training.inference.export import export_onnx
+        from training.inference.loading import load_model
+        from training.inference.onnx_infer import graph_name
     except ImportError as exc:
         raise BuildError(f"exporting the preview's ONNX graphs needs blendsr[train,export] in this Python ({exc})"
                          ) from None

@@ -13,7 +13,7 @@ Times: the first call (with the model's loading or the ONNX Runtime sessions' cr
 the median of the ``REPEATS`` calls after it (the model's time per frame, as ``blendsr bench models`` reports it).
 
 The torch model runs on the inference path ``--path`` (default ``auto``: the fastest that passes the reference check,
-``training.fastpath.AutoPath``), as ``blendsr upscale`` does; ``inference`` records the path that ran.
+``training.inference.fastpath.AutoPath``), as ``blendsr upscale`` does; ``inference`` records the path that ran.
 
 PSNR is the evaluation's: ``training.metrics.psnr_tm`` (PSNR, peak 1, of the tonemapped images: sRGB OETF of
 Reinhard x/(1+x)); if training.metrics cannot be imported, the same transform from ``gbuffer_export.preview.tonemap``
@@ -53,12 +53,12 @@ _MODELS: dict = {}
 
 
 def load_model_cached(spec: str, scale: int, path: str | None = None):
-    """``training.inference.load_model`` prepared for inference path ``path`` (``fastpath.prepare_inference``, on
+    """``training.inference.loading.load_model`` prepared for inference path ``path`` (``fastpath.prepare_inference``, on
     the GPU when there is one), with a cache keyed on the spec, scale, path and checkpoint file time (the path
     ``auto`` chooses on the first frame is kept with the model); None: ``fastpath.default_path``."""
     from training.device import resolve_device
-    from training.fastpath import default_path, prepare_inference
-    from training.inference import load_model
+    from training.inference.fastpath import default_path, prepare_inference
+    from training.inference.loading import load_model
     path = path or default_path()
     mtime = os.path.getmtime(spec) if os.path.isfile(spec) else None
     key = (spec, scale, path, mtime)
@@ -107,8 +107,8 @@ def run_inference(clip_dir: str, frame: int, spec: str, with_reference: bool, pa
 
     import torch
     from gbuffer_export import open_clip
-    from training.fastpath import path_record
-    from training.inference import upscale_frame
+    from training.inference.fastpath import path_record
+    from training.inference.loading import upscale_frame
     clip = open_clip(clip_dir)
     t0 = time.perf_counter()
     model = load_model_cached(spec, clip.scale, path)
@@ -121,7 +121,7 @@ def run_onnx_inference(clip_dir: str, frame: int, spec: str, with_reference: boo
     """``run_inference`` through ONNX Runtime with the graphs in ``graphs_dir`` (the zip's ``onnx/``): no torch.
     'warmup_ms' holds the sessions' creation and the first call."""
     from gbuffer_export import open_clip
-    from training import onnx_infer
+    from training.inference import onnx_infer
     clip = open_clip(clip_dir)
     path = onnx_infer.find_graph(graphs_dir, spec, clip.scale)
     bil_path = onnx_infer.find_graph(graphs_dir, "bilinear", clip.scale)
@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder for sr.exr, bilinear.exr, result.json")
     p.add_argument("--reference", action="store_true", help="also write reference.exr and the PSNR")
     p.add_argument("--path", default=None, choices=("auto", "reference", "fast", "fused", "graph"),
-                   help="inference path (training.fastpath; default $BLENDSR_INFERENCE_PATH, else auto: the fastest "
+                   help="inference path (training.inference.fastpath; default $BLENDSR_INFERENCE_PATH, else auto: the fastest "
                         "that passes the reference check)")
     p.add_argument("--sys-path", action="append", default=[], help="folder to put on sys.path (repeatable)")
     p.add_argument("--site-dir", action="append", default=[], help="site folder to add (repeatable)")

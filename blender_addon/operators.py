@@ -368,7 +368,7 @@ def onnx_graph(st: library.LibraryStatus, spec: str, scale: int) -> str:
     """The zip's ONNX graph folder when ONNX Runtime imports and it holds ``spec``'s graph for ``scale``, else ''."""
     if not (st.onnxruntime and GRAPHS_DIR.is_dir()):
         return ""
-    from training.onnx_infer import find_graph
+    from training.inference.onnx_infer import find_graph
     return str(GRAPHS_DIR) if find_graph(GRAPHS_DIR, spec, scale) is not None else ""
 
 
@@ -467,7 +467,7 @@ class BLENDSR_OT_preview_upscale(_JobOperator, bpy.types.Operator):
         runtime = out.get("runtime", "")
         store_preview_results(context.scene.blendsr, ms=out["ms"], psnr=psnr, metric=out.get("metric", ""),
                               info=info, clip=clip_dir, warmup_ms=out.get("warmup_ms", 0.0), runtime=runtime)
-        path = (out.get("inference") or {}).get("path")  # training.fastpath: the inference path that ran
+        path = (out.get("inference") or {}).get("path")  # training.inference.fastpath: the inference path that ran
         msg = (f"BlendSR preview: {info}, {runtime}" + (f" ({path} path)" if path else "")
                + f": {out['ms']:.1f} ms per frame (median of {out.get('repeats', 1)}), "
                f"warm-up {out.get('warmup_ms', 0.0):.0f} ms")

@@ -36,7 +36,7 @@ BUFFER_PRESET_ITEMS = (
 #: Models of *For models* (the model-buffer table's), and the scales the models take.
 MODEL_ITEMS = tuple((m, m, f"Render the buffers {m} reads") for m in CHOICES["models"])
 SCALE_ITEMS = tuple((str(k), f"{k}x", f"An LR level at 1/{k} of the HR size") for k in CHOICES["scales"])
-#: Export formats of *For formats* (``formats.table`` through choices.json), each with what it needs.
+#: Export formats of *For formats* (``format_limits`` through choices.json), each with what it needs.
 FORMAT_ITEMS = tuple((f["name"], f["title"], f"Render what {f['title']} needs: {f['needs']}")
                      for f in CHOICES["formats"])
 FORMAT_NEEDS = "; ".join(f"{f['title']}: {f['needs']}" for f in CHOICES["formats"])

@@ -1,5 +1,5 @@
 """The add-on's render settings derived from ``RenderConfig``'s fields: ``render_keys.json`` (written by
-``python -m gbuffer_export.table_shells`` from each field's type, default, choices, range, label, help and unit;
+``make generate`` from each field's type, default, choices, range, label, help and unit;
 a test fails while it is stale) is read here, because the add-on never imports the library when it registers.
 
 A key whose rule names the shell ``clip_panel`` becomes a property of ``Scene.blendsr`` (the clip export) and one
@@ -77,7 +77,7 @@ def values(settings, shell: str) -> dict:
 
 
 #: The menus' and checkboxes' choices (``choices.json``, written with ``render_keys.json`` by
-#: ``python -m gbuffer_export.table_shells``): camera paths, buffers, default buffers, models, scales.
+#: ``make generate``): camera paths, buffers, default buffers, models, scales.
 CHOICES: dict = json.loads((Path(__file__).parent / "choices.json").read_text())
 
 

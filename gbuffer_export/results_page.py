@@ -3,7 +3,7 @@
 The page is a function of two things only: ``docs/bench/results_page.toml`` (which sections, in which order, each
 with its title, date, the command that reproduces it and a few lines on what was measured) and the JSON records the
 benchmarks wrote (``docs/bench/<topic>/*.json``). Every table cell is read from a record; no number is typed into the
-page. ``python -m training.generate`` rewrites the page; ``tests/system/test_results_page.py`` fails
+page. ``python -m training.commands.generate`` rewrites the page; ``tests/system/test_results_page.py`` fails
 when the committed page differs from what the records give, or when it grows past ``MAX_LINES``.
 
 Table kinds (``[[section.table]] kind = ...``):
@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 PAGE = REPO / "docs" / "results.md"
 DEFINITION = REPO / "docs" / "bench" / "results_page.toml"
 MAX_LINES = 400
-GENERATED_BY = "python -m training.generate"
+GENERATED_BY = "python -m training.commands.generate"
 
 
 class PageError(ValueError):

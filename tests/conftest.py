@@ -15,7 +15,7 @@ SCENES_SCRIPT = Path(__file__).with_name("scenes.py")
 HAVE_BPY = importlib.util.find_spec("bpy") is not None
 
 # The suite runs models on the fast inference path unless a test asks for another: the product's default ("auto",
-# training.fastpath.AutoPath) compiles the whole model on the CPU (tens of seconds a model), which the tests of
+# training.inference.fastpath.AutoPath) compiles the whole model on the CPU (tens of seconds a model), which the tests of
 # the paths themselves (tests/train/test_inference_paths.py) pay once, not every command test.
 os.environ.setdefault("BLENDSR_INFERENCE_PATH", "fast")
 ENV = dict(os.environ, MALLOC_MMAP_THRESHOLD_="4294967296", MALLOC_TRIM_THRESHOLD_="68719476736")

@@ -1,5 +1,5 @@
 """The clips a command runs on (torch-free): ``--data`` arguments expanded to clip directories, and their one scale.
-Used by ``blendsr train/evaluate`` (``training.commands``) and ``bench models`` (``training.bench_models``)."""
+Used by ``blendsr train/evaluate`` (``training.commands.cli``) and ``bench models`` (``training.commands.bench_models``)."""
 from __future__ import annotations
 
 from pathlib import Path

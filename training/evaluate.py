@@ -39,8 +39,8 @@ from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
 from training import metrics
 from training.flip_worker import FlipRunner
 from training.video_metric import ClipVideo, VideoScorer, clip_fps
-from training.inference import ClipFrames, missing_keys, model_inputs, run_frame
-from training.inference_model import InferenceModel
+from training.inference.loading import ClipFrames, missing_keys, model_inputs, run_frame
+from training.inference.model import InferenceModel
 
 
 log = logging.getLogger(__name__)
@@ -191,7 +191,7 @@ class Baseline:
         return psnr, np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
 
     def _source(self, clip_path, clip, scale: float):
-        from training.inference import load_model
+        from training.inference.loading import load_model
         from training.models import model_class
         skey = (str(clip_path), float(scale))
         if skey not in self._sources and not model_class(self.name).supports_scale(scale):

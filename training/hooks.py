@@ -194,7 +194,7 @@ class Evaluations:
 
 def _evaluated(model, cfg, device):
     """The trained module as an ``InferenceModel`` on ``device`` with the run's demodulation eps."""
-    from training.inference_model import InferenceModel
+    from training.inference.model import InferenceModel
     return InferenceModel(model, demod_eps=cfg.data.demod_eps).to(device)
 
 

@@ -6,41 +6,22 @@ clip's first frame. Training feeds windows of ``data.window`` consecutive frames
 (``window_losses``): the state is carried across the window and detached every ``data.detach_every`` frames
 (truncated back-propagation: each chunk is back-propagated as soon as it is complete, so only one chunk's graph is
 held). Evaluation, ``upscale``, the add-on preview and ``bench models`` run a clip's frames in order with the state
-reset at its first frame: ``training.inference_model.InferenceModel.step`` holds the state, ``lead_in`` says which
+reset at its first frame: ``training.inference.model.InferenceModel.step`` holds the state, ``lead_in`` says which
 frames lead to a frame asked out of order.
 """
 from __future__ import annotations
 
 import torch
 
-from training.frames import lead_in  # noqa: F401  (torch-free, shared with training.onnx_infer)
+from training.models.window import frame_slice, window_length
 
 
 def is_recurrent(model) -> bool:
     return bool(getattr(model, "recurrent", False))
 
 
-def frame_slice(batch: dict, i: int) -> dict:
-    """The one-frame batch of frame ``i`` of a window batch (every key keeps its time axis, of length 1). Keys with
-    fewer frames (HR keys of an inference batch) end at the same current frame: their frame i - (T - T_key),
-    clamped to their first. A per-batch value without a time axis, ``scale`` (B,), is kept as it is."""
-    t = window_length(batch)
-    out = {}
-    for k, v in batch.items():
-        if v.dim() < 2:
-            out[k] = v
-            continue
-        j = max(i - (t - v.shape[1]), 0)
-        out[k] = v[:, j:j + 1]
-    return out
-
-
 def detach_state(state):
     return None if state is None else [s.detach() for s in state]
-
-
-def window_length(batch: dict) -> int:
-    return next(v.shape[1] for k, v in batch.items() if k.startswith("lr/"))
 
 
 def window_losses(net, criterion, batch: dict, detach_every: int, backward, temporal: bool,

@@ -39,7 +39,7 @@ def release(checkpoint: str | Path | dict, out: str | Path, meta: dict) -> dict:
     to ``out`` with suffix .json; returns that metadata. BlendSRError for another suffix or a file over 10 MB."""
     from gbuffer_export.clip import write_json_atomic
     from training.checkpoint import file_sha256, load_checkpoint
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.trainer import param_digest
     out = Path(out)
     if out.suffix != ".safetensors":

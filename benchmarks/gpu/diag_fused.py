@@ -10,7 +10,7 @@ import torch  # noqa: E402
 
 from tests.train.hr_stage_cases import _batch, _rel  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.fastpath import forward, prepare_inference  # noqa: E402
+from training.inference.fastpath import forward, prepare_inference  # noqa: E402
 from training.models import build_model  # noqa: E402
 
 dev = torch.device("cuda")

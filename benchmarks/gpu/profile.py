@@ -42,9 +42,9 @@ def profile(name: str, size, device, repeats: int, precision: str, path: str = "
     from torch.profiler import ProfilerActivity, profile as tprofile
 
     from training.config import ModelConfig
-    from training.export import example_inputs
-    from training.fastpath import forward, prepare_inference
-    from training.inference import InferenceModel
+    from training.inference.export import example_inputs
+    from training.inference.fastpath import forward, prepare_inference
+    from training.inference.loading import InferenceModel
     from training.models import build_model
 
     m = InferenceModel(build_model(ModelConfig(name=name, scale=4), 4).eval(), name).to(device)

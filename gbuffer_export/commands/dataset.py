@@ -35,7 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="render only the buffers these models read, plus radiance and motion for evaluation "
                         "(default: the spec's buffers)")
-    from ..formats.table import names_text, needs_text
+    from ..format_limits import names_text, needs_text
     p.add_argument("--for-formats", default=None, metavar="F1,F2",
                    help=f"render what these export formats ({names_text()}) need, besides the spec's [dataset] "
                         f"for_formats: {needs_text()}")
@@ -54,7 +54,7 @@ def run(args) -> int:
 
     spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
     if args.dry_run:
-        from ..formats.table import formats_report
+        from ..format_limits import formats_report
         jobs = expand(spec)
         for j in jobs:
             where = (f"scene={Path(j.asset).name} region={j.region['cell'] if j.region else None} light={j.light}"

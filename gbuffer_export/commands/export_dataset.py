@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from ..extras import HelpFormatter
-from ..formats.table import FORMATS as FORMATS_NEEDS, NAMES as FORMATS, needs_text
+from ..format_limits import FORMATS as FORMATS_NEEDS, NAMES as FORMATS, needs_text
 
 HELP = """Write BlendSR clips (or every finished clip of a dataset folder) as Arm's NSS capture layout
 (neural-graphics-model-gym's docs/nss/nss_dataset_specification.md): one sequence per clip (0000.json, ...),

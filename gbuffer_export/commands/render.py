@@ -50,7 +50,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--for-models", default=None, metavar="M1,M2",
                    help="instead of --buffers: only the buffers these models read, plus radiance and motion for "
                         "evaluation (docs/dataset.md)")
-    from ..formats.table import names_text, needs_text
+    from ..format_limits import names_text, needs_text
     p.add_argument("--for-formats", default=None, metavar="F1,F2",
                    help=f"also render what these export formats ({names_text()}; blendsr export-dataset --format) "
                         f"need, added to --scales, --hr-size and --buffers: {needs_text()}")
@@ -91,9 +91,9 @@ def variation_from_args(args) -> dict | None:
 
 def formats_from_args(args) -> None:
     """``--for-formats``: ``args.scales``, ``args.hr_size`` and ``args.buffers`` with what the formats need
-    (``formats.table.render_for_formats``, the derivation the spec key ``for_formats`` uses too)."""
+    (``format_limits.render_for_formats``, the derivation the spec key ``for_formats`` uses too)."""
     from ..conventions import parse_buffer_list
-    from ..formats.table import render_for_formats
+    from ..format_limits import render_for_formats
     r = render_for_formats(args.for_formats, scales=parse_scales(args.scales) or (args.scale,),
                            hr_size=parse_size(args.hr_size), buffers=parse_buffer_list(args.buffers))
     args.scales = ",".join(f"{s:g}" for s in r["scales"])

@@ -2,7 +2,7 @@
 --for-models`` render only these (plus what evaluation needs).
 
 The core may not import the torch layer, so the table is derived from every model's ``needs()`` by
-``python -m training.buffer_table`` into ``model_buffers.json`` beside this file; ``tests/dataset/test_dataset.py``
+``make generate`` into ``model_buffers.json`` beside this file; ``tests/dataset/test_dataset.py``
 fails when the file differs from the models, so a model that starts reading a new buffer fails the suite until the
 table is regenerated. Buffers apply to both levels of a clip (a buffer read at HR only is also
 written at LR). Derived keys map to their sources: ``irradiance`` and ``fbeta_used`` are computed from radiance,
@@ -19,7 +19,7 @@ from ..conventions import ALL_BUFFERS
 #: Buffers every clip keeps: the ground truth (radiance) and HR motion for tPSNR and the warping error.
 EVALUATION_BUFFERS: tuple[str, ...] = ("radiance", "motion")
 
-#: The table, written by ``python -m training.buffer_table`` from every model's ``needs()``.
+#: The table, written by ``make generate`` from every model's ``needs()``.
 TABLE_PATH = Path(__file__).resolve().parent / "model_buffers.json"
 
 #: model name -> buffers it reads with its default configuration and with its shipped weights' (``pretrained:NAME``:

@@ -8,10 +8,8 @@ prints one Markdown row per model: in-family mean (smallest, clips), held-out me
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 from .build import read_index
@@ -78,28 +76,3 @@ def gap_table(models: dict[str, dict[str, float]], groups: dict[str, str]) -> st
         if g["unknown"]["n"]:
             lines.append(f"| `{label}` | {g['unknown']['n']} clips not in the datasets' indexes | | |")
     return "\n".join(lines)
-
-
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gbuffer_export.dataset.family_gap",
-                                description="in-family vs held-out-family margins over demod-jbu, and the gap")
-    p.add_argument("margins", type=Path, nargs="+", help="worst_case.py -o JSON or evaluate --json files")
-    p.add_argument("--data", type=Path, action="append", required=True,
-                   help="dataset folder(s) whose index names each clip's family group")
-    a = p.parse_args(argv)
-    from ..errors import BlendSRError
-    try:
-        groups = {k: v for d in a.data for k, v in index_groups(d).items()}
-        models: dict[str, dict[str, float]] = {}
-        for m in a.margins:
-            for label, rows in read_margins(m).items():
-                models.setdefault(label, {}).update(rows)
-    except (BlendSRError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(gap_table(models, groups))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -280,11 +280,11 @@ def _seeds(v, where, spec_path) -> tuple[int, int]:
 
 
 def _for_formats(render: RenderSettings, formats, sized: bool, where: str, spec_path) -> RenderSettings:
-    """``render`` with what the export formats need (``formats.table.render_for_formats``, the one derivation that
+    """``render`` with what the export formats need (``format_limits.render_for_formats``, the one derivation that
     ``blendsr render --for-formats`` uses too): their LR levels added after the clip's, their HR size (when the
     spec gives none: ``sized`` False), their buffers; SpecError naming the key on a conflict."""
     from ..conventions import parse_buffer_list
-    from ..formats.table import FormatLimitError, render_for_formats
+    from ..format_limits import FormatLimitError, render_for_formats
     bufs = render.buffers if not isinstance(render.buffers, str) else parse_buffer_list(render.buffers)
     try:
         r = render_for_formats(formats, scales=render.scales or (render.scale,),
@@ -306,7 +306,7 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>", formats=()) -> Data
     _check_keys(ds, _DATASET_KEYS, "dataset", spec_path)
     name = _typed(ds.get("name", Path(str(spec_path)).stem), str, "dataset.name", spec_path)
     seed = _typed(ds.get("seed", 0), int, "dataset.seed", spec_path)
-    from ..formats.table import FormatLimitError, parse_formats
+    from ..format_limits import FormatLimitError, parse_formats
     try:
         for_formats = parse_formats([*_str_list(ds.get("for_formats", []), "dataset.for_formats", spec_path),
                                      *formats], "dataset.for_formats")

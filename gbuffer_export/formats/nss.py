@@ -33,7 +33,7 @@ from ..exr import HALF_MAX, exr_size, read_exr, write_exr
 from ..validate.gate import open_valid_clip
 from . import conventions as cv
 from .output import ExportOptions, Target, clean_temp_files
-from .table import check_clips
+from ..format_limits import check_clips
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def frame_runs(frames) -> list[list[int]]:
 
 def check_clip(clip, fmt: str = "nss") -> None:
     """NssError (one line naming the clip and the fix) when ``clip`` cannot become a sequence of format ``fmt``
-    that its consumer reads: the limits of ``formats.table.FORMATS`` (NSS: radiance, depth and motion, a finished
+    that its consumer reads: the limits of ``format_limits.FORMATS`` (NSS: radiance, depth and motion, a finished
     frame and an LR level at ratio 2)."""
     check_clips(fmt, [clip], NssError)
 

@@ -34,7 +34,7 @@ from ..errors import BlendSRError
 from . import conventions as cv
 from .nss import NSS_SPACE, frame_runs, source_clips
 from .output import ExportOptions, Target, clean_temp_files
-from .table import FORMATS, check_clips
+from ..format_limits import FORMATS, check_clips
 from .png import write_png
 
 log = logging.getLogger(__name__)

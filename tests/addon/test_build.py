@@ -176,7 +176,7 @@ def test_install_and_external_preview(addon_zip, tmp_path):
     # the PSNR reported by the external Python is the evaluation's on the preview clip's images
     import numpy as np
     from gbuffer_export import open_clip
-    from training.inference import load_model, upscale_frame
+    from training.inference.loading import load_model, upscale_frame
     from training.metrics import psnr_tm
     clip = open_clip(tmp_path / "preview_clip")
     o = upscale_frame(load_model("pretrained:fusesr-l", 4), clip, 1)  # the preview's default model
@@ -236,7 +236,7 @@ def test_clean_bpy_previews_through_onnxruntime_without_torch(addon_zip, tmp_pat
     r = json.loads(lines[-1][7:])
     assert r["install"] == ["FINISHED"] and not r["torch_imported"]
     import numpy as np
-    from training.inference import load_model, upscale_frame
+    from training.inference.loading import load_model, upscale_frame
     for spec in ("pretrained:fusesr-l", "demod-jbu"):
         p = r[spec]
         assert p["res"] == ["FINISHED"] and p["runtime"].startswith("ONNX Runtime"), p

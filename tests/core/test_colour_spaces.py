@@ -125,7 +125,7 @@ def test_training_cache_and_evaluation_see_the_training_space(acescg_clip, tmp_p
     from gbuffer_export.clip import open_clip
     from gbuffer_export.colour_spaces import TRAINING_SPACE
     from training.cache import ClipCache
-    from training.inference import ClipFrames
+    from training.inference.loading import ClipFrames
     clip = open_clip(acescg_clip)
     cache = ClipCache(acescg_clip, cache_dir=tmp_path).ensure(
         ["hr/radiance", "lr/radiance", "lr/albedo", "lr/fbeta", "lr/emission", "lr/irradiance", "lr/fbeta_used"])

@@ -240,6 +240,6 @@ def test_nfru_refuses_a_size_its_reader_cannot_load_before_writing(clips, tmp_pa
 
 def test_export_dataset_help_lists_the_format_table(capsys):
     from gbuffer_export.cli import build_parser
-    from gbuffer_export.formats.table import FORMATS
+    from gbuffer_export.format_limits import FORMATS
     text = " ".join(build_parser().format_help().split())
     assert "(NSS, RDG)" not in text and f"dataset layout ({', '.join(FORMATS)})" in text, text

@@ -231,7 +231,7 @@ def test_previews_and_exporters_read_the_exposed_radiance(dim_auto, tmp_path):
 def test_training_and_inference_read_the_exposed_radiance(dim_auto, tmp_path):
     pytest.importorskip("torch")
     from training.cache import ClipCache
-    from training.inference import ClipFrames
+    from training.inference.loading import ClipFrames
     c = open_clip(dim_auto)
     want = c.read(2, "hr/radiance", exposed=True)
     src = tmp_path / "clip"

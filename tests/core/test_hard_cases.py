@@ -71,7 +71,7 @@ def test_background_depth_is_inf_and_motion_finite(tmp_path):
 @pytest.mark.torch
 def test_models_run_on_a_one_frame_1x1_clip(tmp_path):
     pytest.importorskip("torch")
-    from training.inference import load_model, upscale_frame
+    from training.inference.loading import load_model, upscale_frame
     clip = open_clip(make_synthetic_clip(tmp_path / "tiny", frames=[3], hr_size=(4, 4), scale=4))
     for name in ("bicubic", "demod-bilinear"):
         out = upscale_frame(load_model(name, 4), clip, 3)

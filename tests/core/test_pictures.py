@@ -177,7 +177,7 @@ def test_side_by_side_explains_bicubic(tmp_path):
     from PIL import Image
 
     from gbuffer_export.synthetic import make_synthetic_clip
-    from training.demo import side_by_side
+    from training.commands.demo import side_by_side
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
     out = side_by_side("bicubic", str(clip), tmp_path / "s.png", "bicubic again")
     img = np.asarray(Image.open(out))

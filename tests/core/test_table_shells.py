@@ -97,14 +97,14 @@ def test_every_render_key_has_help_and_the_shells_take_it():
 
 def test_the_files_derived_from_render_config_are_current():
     for path, text in derived_files().items():
-        assert path.read_text() == text, f"{path} is stale: run python -m gbuffer_export.table_shells"
+        assert path.read_text() == text, f"{path} is stale: run make generate"
 
 
 def test_the_training_tables_of_the_docs_are_current():
     from gbuffer_export.table_shells import CONFIG_DOC
-    from training.config_tables import SECTIONS, derived_doc
+    from training.commands.config_tables import SECTIONS, derived_doc
     text = CONFIG_DOC.read_text()
-    assert derived_doc(text) == text, "docs/configuration.md is stale: run python -m training.config_tables"
+    assert derived_doc(text) == text, "docs/configuration.md is stale: run make generate"
     for section, cls in SECTIONS.items():
         for name, (_, r) in fields_of(cls).items():
             assert r.help or name == "options", f"{section}.{name}: give it option(help=...)"

@@ -150,11 +150,11 @@ def test_for_models_buffers():
 def test_model_buffer_table_is_derived_from_every_models_needs():
     pytest.importorskip("torch")
     from training.models import MODELS
-    from training.buffer_table import model_buffer_table
+    from training.commands.buffer_table import model_buffer_table
     table = model_buffer_table()
     assert list(table) == list(MODELS)
     assert {k: tuple(v) for k, v in table.items()} == MODEL_BUFFERS, (
-        "gbuffer_export/dataset/model_buffers.json is stale: run python -m training.buffer_table")
+        "gbuffer_export/dataset/model_buffers.json is stale: run make generate")
 
 
 def assert_same_geometry(a: Path, b: Path, frame: int) -> None:
@@ -518,6 +518,6 @@ def test_scale_problem_names_the_scales_a_model_takes():
 def test_model_scale_table_is_derived_from_the_models_and_the_shipped_weights():
     pytest.importorskip("torch")
     from gbuffer_export.dataset.buffers import MODEL_SCALES
-    from training.buffer_table import model_scale_table
+    from training.commands.buffer_table import model_scale_table
     assert {k: None if v is None else tuple(v) for k, v in model_scale_table().items()} == MODEL_SCALES, (
-        "gbuffer_export/dataset/model_buffers.json is stale: run python -m training.buffer_table")
+        "gbuffer_export/dataset/model_buffers.json is stale: run make generate")

@@ -8,7 +8,8 @@ import pytest
 
 from gbuffer_export.dataset.build import check_folder
 from gbuffer_export.dataset.families import BUILTIN_FAMILIES
-from gbuffer_export.dataset.family_gap import family_gap, gap_table, main, read_margins
+from gbuffer_export.commands.family_gap import main
+from gbuffer_export.dataset.family_gap import family_gap, gap_table, read_margins
 from gbuffer_export.dataset.spec import SpecError, expand, parse_spec, plan_totals
 from gbuffer_export.dataset.writer import spec_to_toml
 from tests.conftest import shared_or_skip

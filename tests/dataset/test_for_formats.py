@@ -1,6 +1,6 @@
 """What export formats need, rendered on request (issue 57, item 4): ``blendsr render --for-formats``, the spec key
 ``[dataset] for_formats`` and ``blendsr dataset --for-formats`` add each format's LR levels, HR size and buffers
-(``formats.table.render_for_formats``, one derivation), refuse a conflicting size in one line before anything is
+(``format_limits.render_for_formats``, one derivation), refuse a conflicting size in one line before anything is
 rendered, and ``--dry-run`` says which formats the clips can be exported to."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from gbuffer_export.cli import build_parser, main
 from gbuffer_export.dataset.spec import SpecError, expand, parse_spec
 from gbuffer_export.dataset.writer import spec_to_toml
-from gbuffer_export.formats.table import FormatLimitError, clip_problem, render_for_formats
+from gbuffer_export.format_limits import FormatLimitError, clip_problem, render_for_formats
 
 SPEC = {"dataset": {"name": "f", "seed": 1}, "render": {"frames": 2, "hr_size": "64x36"},
         "source": [{"kind": "builtin", "seeds": "0:1"}]}

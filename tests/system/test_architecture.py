@@ -16,13 +16,16 @@ PACKAGES = ("gbuffer_export", "training", "blender_addon")
 
 
 def layer_of(module: str) -> str:
-    """core (numpy), bpy (gbuffer_export.blender), commands (the CLI), torch (training), addon."""
+    """core (numpy), bpy (gbuffer_export.blender), commands (the CLI), torch (training), torch-commands
+    (training.commands: the torch layer's commands and generators), addon."""
     if module.startswith("gbuffer_export.blender"):
         return "bpy"
     if module.startswith("gbuffer_export.commands") or module == "gbuffer_export.cli":
         return "commands"
     if module.startswith("gbuffer_export"):
         return "core"
+    if module.startswith("training.commands"):
+        return "torch-commands"
     if module.startswith("training"):
         return "torch"
     return "addon"
@@ -31,10 +34,11 @@ def layer_of(module: str) -> str:
 #: layer -> the project layers and third-party top-level packages it must never import (at any depth of the code,
 #: function-local imports included).
 FORBIDDEN = {
-    "core": ({"bpy", "torch", "commands", "addon"}, {"bpy", "bmesh", "mathutils", "torch", "training"}),
-    "bpy": ({"torch", "commands", "addon"}, {"torch", "training"}),
-    "commands": ({"torch", "addon"}, {"torch", "training"}),
-    "torch": ({"bpy", "commands", "addon"}, {"bpy", "bmesh", "mathutils"}),
+    "core": ({"bpy", "torch", "commands", "torch-commands", "addon"}, {"bpy", "bmesh", "mathutils", "torch", "training"}),
+    "bpy": ({"torch", "commands", "torch-commands", "addon"}, {"torch", "training"}),
+    "commands": ({"torch", "torch-commands", "addon"}, {"torch", "training"}),
+    "torch": ({"bpy", "commands", "torch-commands", "addon"}, {"bpy", "bmesh", "mathutils"}),
+    "torch-commands": ({"bpy", "addon"}, {"bpy", "bmesh", "mathutils"}),
     "addon": (set(), set()),
 }
 
@@ -162,3 +166,84 @@ def test_a_package_adds_a_command_without_touching_the_core(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", "hello", "--name", "BlendSR"],
                           capture_output=True, text=True, cwd=REPO, env=env, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "hello BlendSR"
+
+
+def _package_graph(pkg: str, known: dict[str, Path]) -> dict[str, set[str]]:
+    """Inside package ``pkg``: its own modules one node each, each direct subpackage one node (``name/``); an edge
+    for every import between two nodes."""
+    def node(mod: str) -> str:
+        head = pkg + "." + mod[len(pkg) + 1:].split(".")[0]
+        return head + "/" if head in known and known[head].name == "__init__.py" else mod
+    graph: dict[str, set[str]] = {}
+    for name, path in known.items():
+        if not name.startswith(pkg + "."):
+            continue
+        a = node(name)
+        for target, _ in imports(name, path, known):
+            if target.startswith(pkg + ".") and target in known and node(target) != a:
+                graph.setdefault(a, set()).add(node(target))
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` as a list of nodes, or None."""
+    state: dict[str, int] = {}
+    path: list[str] = []
+
+    def visit(v):
+        state[v] = 1
+        path.append(v)
+        for w in sorted(graph.get(v, ())):
+            if state.get(w) == 1:
+                return path[path.index(w):] + [w]
+            if w not in state and (found := visit(w)):
+                return found
+        state[v] = 2
+        path.pop()
+        return None
+
+    for v in sorted(graph):
+        if v not in state and (found := visit(v)):
+            return found
+    return None
+
+
+def test_no_module_imports_one_above_it_in_its_package():
+    """Inside every package the subpackages and modules form layers: a module never imports one that (through
+    others) imports it back, counting a subpackage as one node (models/ must not import the training configuration
+    that imports the models; the kernels must not import the models that call them)."""
+    known = modules()
+    bad = []
+    for pkg in sorted(n for n, p in known.items() if p.name == "__init__.py"):
+        cycle = _cycle(_package_graph(pkg, known))
+        if cycle:
+            bad.append(f"{pkg}: " + " -> ".join(cycle))
+    assert not bad, "imports that go up inside a package:\n" + "\n".join(bad)
+
+
+#: Library modules that parse arguments because they are the entry points of child processes the library itself
+#: starts (their arguments are written by the library, not typed by a user).
+CHILD_ENTRY_POINTS = {"gbuffer_export.blender.dataset_job", "gbuffer_export.blender.import_job",
+                      "gbuffer_export.blender.furnace"}
+
+
+def test_only_commands_parse_arguments():
+    """An argument parser is built only in the command rooms (``gbuffer_export/commands``, ``training/commands``),
+    the CLI's entry and the add-on's scripts; a library module that needs a command line has its command there."""
+    bad = []
+    for name, path in modules().items():
+        if layer_of(name) in ("commands", "torch-commands", "addon") or name in CHILD_ENTRY_POINTS:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) in (
+                    "ArgumentParser", "parse_args", "parse_known_args"):
+                bad.append(f"{path.relative_to(REPO)}:{node.lineno}")
+    assert not bad, "argument parsing outside the commands: " + ", ".join(bad)
+
+
+def test_the_rooms_of_training():
+    """training/ keeps at most 25 modules at its root; the commands and inference have rooms of their own."""
+    root = [p for p in (REPO / "training").glob("*.py") if p.name != "__init__.py"]
+    assert len(root) <= 25, f"{len(root)} modules at training/'s root: {sorted(p.name for p in root)}"
+    for room in ("commands", "inference", "models", "kernels"):
+        assert (REPO / "training" / room / "__init__.py").is_file()

@@ -11,7 +11,7 @@ from gbuffer_export.results_page import MAX_LINES, PAGE, PageError, page_text
 
 def test_the_committed_page_is_what_its_records_give_and_short():
     text = page_text()
-    assert PAGE.read_text() == text, "docs/results.md is stale: run python -m training.generate"
+    assert PAGE.read_text() == text, "docs/results.md is stale: run python -m training.commands.generate"
     assert len(text.splitlines()) <= MAX_LINES, f"docs/results.md has {len(text.splitlines())} lines (at most {MAX_LINES})"
 
 
@@ -64,5 +64,5 @@ def test_pivoted_rows_and_significant_digits(tmp_path, monkeypatch):
 
 
 def test_generate_check_finds_every_derived_file_current():
-    from training.generate import main
+    from training.commands.generate import main
     assert main(["--check"]) == 0

@@ -10,8 +10,8 @@ torch.set_num_threads(1)
 
 from gbuffer_export.errors import BlendSRError  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
-from training.fastpath import forward, hold_weights, prepare_inference  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
+from training.inference.fastpath import forward, hold_weights, prepare_inference  # noqa: E402
 from training.kernels import hr_stage  # noqa: E402
 from training.kernels.hr_stage import HRInputs, HRStage  # noqa: E402
 from training.models import MODELS, build_model  # noqa: E402
@@ -292,7 +292,7 @@ def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
     path's within the fp32 tolerance, so its scores are unchanged."""
     from gbuffer_export.synthetic import make_synthetic_clip
     from training import pretrained
-    from training.inference import ClipFrames, load_model, model_inputs
+    from training.inference.loading import ClipFrames, load_model, model_inputs
     if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).is_file():
         pytest.skip(f"{name} not shipped")
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4, jitter=True)
@@ -314,7 +314,7 @@ def test_bench_models_paths_side_by_side_with_kernels_and_the_reference_check(tm
     import json
 
     from gbuffer_export.cli import main
-    from training import fastpath
+    from training.inference import fastpath
     args = ["bench", "models", "--device", "cpu", "--size", "64x32", "--models", "demod-jbu,fusesr-l",
             "--path", "reference,fast,fused", "--precision", "none,bf16", "--repeats", "1", "--warmup", "1",
             "--threads", "1", "--no-progress", "-o", str(tmp_path / "b")]

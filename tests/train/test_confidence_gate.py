@@ -10,7 +10,7 @@ torch.set_num_threads(1)
 
 from gbuffer_export.typed_table import ConfigError  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models.base import current  # noqa: E402
 from training.models.fusesr import GATE_OPEN  # noqa: E402
@@ -99,8 +99,8 @@ def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path, ext
     and the ONNX export (the flags an int32 input) matches torch (a gate that reads its features: random 1x1
     weights)."""
     pytest.importorskip("onnxruntime")
-    from training.export import export_onnx
-    from training.inference_model import InferenceModel
+    from training.inference.export import export_onnx
+    from training.inference.model import InferenceModel
     model = _gated("fusesr-fast", residual_clamp="lr-guided", **extra)
     with torch.no_grad():
         model.confidence.weight.normal_(0.0, 0.3)

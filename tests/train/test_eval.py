@@ -176,7 +176,7 @@ def _bilinear_by_class(irr_lr, fbu_lr, fbu_hr, s):
 
 
 def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
-    from training.inference import load_model, upscale_frame
+    from training.inference.loading import load_model, upscale_frame
     c = open_clip(clip)
     model = load_model("demod-bilinear", 4)
     out = upscale_frame(model, clip, 3)
@@ -207,7 +207,7 @@ def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
 
 
 def test_no_model_reads_the_ground_truth(clip, checkpoint):
-    from training.inference import ClipFrames, load_model, model_inputs, run_model
+    from training.inference.loading import ClipFrames, load_model, model_inputs, run_model
     src = ClipFrames(clip)
     for spec in ["bilinear", "bicubic", "demod-bilinear", str(checkpoint)]:
         model = load_model(spec, 4)
@@ -221,8 +221,8 @@ def test_no_model_reads_the_ground_truth(clip, checkpoint):
 
 def test_onnx_export_matches_torch_at_another_size(clip, checkpoint, tmp_path):
     import onnxruntime as ort
-    from training.export import example_inputs
-    from training.inference import load_model, run_model
+    from training.inference.export import example_inputs
+    from training.inference.loading import load_model, run_model
     path = tmp_path / "m.onnx"
     assert main(["export", "--checkpoint", str(checkpoint), "--onnx", str(path), "--clip", str(clip)]) == 0
     report = json.loads(path.with_suffix(".onnx.json").read_text())
@@ -241,8 +241,8 @@ def test_onnx_export_of_a_model_that_remodulates_through_the_pixel_filter(name, 
     """The default REFERENCE filter (Blackman-Harris 1.5 px) runs after remodulation; its convolution must export
     with dynamic shapes (it did not before session 5). Checked again at another size."""
     import onnxruntime as ort
-    from training.export import example_inputs
-    from training.inference import load_model, run_model
+    from training.inference.export import example_inputs
+    from training.inference.loading import load_model, run_model
     path = tmp_path / "m.onnx"
     assert main(["export", "--model", name, "--onnx", str(path), "--hr-size", "64x32"]) == 0
     model = load_model(name, 4)
@@ -257,8 +257,8 @@ def test_onnx_export_of_a_model_that_remodulates_through_the_pixel_filter(name, 
 def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
     import argparse
 
-    from training import bench_models
-    from training.inference import ClipFrames, load_model, model_inputs
+    from training.commands import bench_models
+    from training.inference.loading import ClipFrames, load_model, model_inputs
     p = argparse.ArgumentParser()
     bench_models.add_arguments(p)
     out = tmp_path / "bench"
@@ -301,7 +301,7 @@ def test_models_table_is_listed(capsys):
 
 def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch):
     from training import pretrained
-    from training.demo import _prepare_run, run_training_demo
+    from training.commands.demo import _prepare_run, run_training_demo
     from training.release import release
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
@@ -343,7 +343,7 @@ _DEMO_SCRIPT = """
 import sys
 from pathlib import Path
 from training import pretrained
-from training.demo import run_training_demo
+from training.commands.demo import run_training_demo
 pretrained.WEIGHTS_DIR = Path(sys.argv[4])
 run_training_demo([sys.argv[1]], [sys.argv[2]], sys.argv[3], steps=100000, model="fusesr-l", threads=1)
 """
@@ -359,7 +359,7 @@ def test_training_demo_stopped_by_sigterm_records_the_steps_run_and_a_rerun_cont
     import time
     from tests.conftest import ENV, REPO
     from training import pretrained
-    from training.demo import run_training_demo
+    from training.commands.demo import run_training_demo
     a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
     b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
     out, run = tmp_path / "demo", tmp_path / "demo" / "run_fusesr_l"
@@ -395,7 +395,7 @@ def test_training_demo_stopped_by_sigterm_records_the_steps_run_and_a_rerun_cont
 
 def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):
     from gbuffer_export.clip import ClipError
-    from training.inference import load_model, upscale_frame
+    from training.inference.loading import load_model, upscale_frame
     bufs = ("radiance", "albedo", "depth", "fbeta", "motion")  # no emission, no flags, no normal
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 36), scale=4, buffers=bufs)
     out = upscale_frame(load_model("demod-bilinear", 4), clip, 2)
@@ -406,7 +406,7 @@ def test_clips_without_optional_buffers_and_missing_required_ones(tmp_path):
     np.testing.assert_allclose(out["sr"], up * fb, rtol=1e-5, atol=1e-6)
     assert main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "b.json")]) == 0
     from training.config import ModelConfig
-    from training.inference import ClipFrames, model_inputs
+    from training.inference.loading import ClipFrames, model_inputs
     from training.models import build_model
     with pytest.raises(ClipError, match="lacks 'lr/normal'"):
         model_inputs(build_model(ModelConfig(name="fusesr"), 4), ClipFrames(clip), 2)

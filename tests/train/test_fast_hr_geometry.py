@@ -11,7 +11,7 @@ torch.set_num_threads(1)
 from gbuffer_export.typed_table import ConfigError  # noqa: E402
 from training.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, save_checkpoint  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.train import init_from  # noqa: E402
 

@@ -11,8 +11,8 @@ torch.set_num_threads(1)  # 2 threads on a shared 2-core machine can be 10x slow
 from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import ModelConfig, load_config  # noqa: E402
-from training.export import example_inputs  # noqa: E402
-from training.fastpath import channels_last_batch, fold_batchnorm, forward, prepare_inference  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
+from training.inference.fastpath import channels_last_batch, fold_batchnorm, forward, prepare_inference  # noqa: E402
 from training.models import MODELS, build_model  # noqa: E402
 from training.models import fast_ops  # noqa: E402
 from training.models.base import separable_filter, upsample_by_class  # noqa: E402
@@ -208,7 +208,7 @@ def test_worker_loader_gives_the_same_training_as_the_prefetch_thread(tmp_path):
 def test_bench_models_speed_mode_on_random_inputs(tmp_path):
     import argparse
 
-    from training import bench_models
+    from training.commands import bench_models
     p = argparse.ArgumentParser()
     bench_models.add_arguments(p)
     out = tmp_path / "speed"
@@ -261,7 +261,7 @@ def test_cuda_fast_path_bf16_compiled_matches_the_cpu_fp32_reference(name):
 
 @cuda
 def test_bench_models_speed_mode_on_cuda(tmp_path):
-    from training.bench_models import SpeedOptions, load_models, speed_benchmark
+    from training.commands.bench_models import SpeedOptions, load_models, speed_benchmark
     models = load_models([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], 4, fast=False)
     res = speed_benchmark([(label, m.to("cuda")) for label, m in models], tmp_path, SpeedOptions(
         size=(256, 128), precisions=("none", "bf16"), compiles=(False, True), warmup=2, repeats=3,
@@ -273,7 +273,7 @@ def test_bench_models_speed_mode_on_cuda(tmp_path):
 def test_bench_models_on_a_clip_adds_the_roofline_columns(tmp_path):
     import argparse
 
-    from training import bench_models
+    from training.commands import bench_models
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 3), hr_size=(64, 36), scale=4)
     p = argparse.ArgumentParser()
     bench_models.add_arguments(p)

@@ -212,7 +212,7 @@ def trained(clips, tmp_path_factory):
 
 
 def test_evaluates_at_a_scale_it_never_trained_on(trained, clips, tmp_path):
-    from training.inference import load_model
+    from training.inference.loading import load_model
     ck = trained
     out = tmp_path / "x4.json"
     assert main(["evaluate", "--checkpoint", str(ck), "--data", str(clips[4]), "--json", str(out), "--no-flip",
@@ -226,8 +226,8 @@ def test_evaluates_at_a_scale_it_never_trained_on(trained, clips, tmp_path):
 def test_onnx_export_takes_the_scale_as_an_input_and_matches_torch_at_two_scales(tmp_path):
     import onnxruntime as ort
 
-    from training.export import export_onnx
-    from training.inference_model import InferenceModel
+    from training.inference.export import export_onnx
+    from training.inference.model import InferenceModel
     m = model_at(2)
     path = tmp_path / "fsr.onnx"
     report = export_onnx(InferenceModel(m), path, hr_size=(32, 24))

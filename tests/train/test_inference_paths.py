@@ -1,6 +1,6 @@
 """Issue 58: the inference path of the commands and the add-on (``--path``, default ``auto``:
-``training.fastpath.AutoPath``), the record of the path that ran, one CUDA graph per frame
-(``training.frame_graph.FrameGraph``; CUDA only, its CPU pass-through here) and the replay timer with a fake clock."""
+``training.inference.fastpath.AutoPath``), the record of the path that ran, one CUDA graph per frame
+(``training.inference.frame_graph.FrameGraph``; CUDA only, its CPU pass-through here) and the replay timer with a fake clock."""
 from __future__ import annotations
 
 import json
@@ -11,11 +11,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from gbuffer_export.errors import BlendSRError  # noqa: E402
-from training import fastpath  # noqa: E402
+from training.inference import fastpath  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
-from training.frame_graph import FrameGraph, time_replays  # noqa: E402
-from training.inference import InferenceModel  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
+from training.inference.frame_graph import FrameGraph, time_replays  # noqa: E402
+from training.inference.loading import InferenceModel  # noqa: E402
 from training.models import build_model  # noqa: E402
 
 from tests.conftest import run_cli  # noqa: E402
@@ -125,7 +125,7 @@ def test_auto_falls_back_to_the_next_path_that_passes(monkeypatch, caplog, how):
     m, batch = _model("demod-jbu")
     fastpath.prepare_inference(m, "cpu", path="auto")
     assert m.settings["path"] == "graph"  # prepared for the first candidate, not yet checked
-    with caplog.at_level(logging.INFO, logger="training.fastpath"), torch.inference_mode():
+    with caplog.at_level(logging.INFO, logger="training.inference.fastpath"), torch.inference_mode():
         out = m.forward(batch)
         again = m.forward(batch)  # the chosen path, no further check
     rec = fastpath.path_record(m)

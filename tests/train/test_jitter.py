@@ -13,7 +13,7 @@ from training.augment import apply, apply_vector  # noqa: E402
 from training.cache import ClipCache  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
 from training.data import BatchSpec, TrainSampler  # noqa: E402
-from training.inference import ClipFrames, model_inputs  # noqa: E402
+from training.inference.loading import ClipFrames, model_inputs  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models.base import backward_warp, history_offsets  # noqa: E402
 

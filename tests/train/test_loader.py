@@ -1,4 +1,4 @@
-"""The loader benchmark runs and reports consistent numbers; training.bench_loader/commands import no torch."""
+"""The loader benchmark runs and reports consistent numbers; training.commands.bench_loader/commands import no torch."""
 import argparse
 import json
 import subprocess
@@ -12,7 +12,7 @@ from gbuffer_export.synthetic import make_synthetic_clip
 
 def test_bench_loader_reports_load_and_step_times(tmp_path):
     pytest.importorskip("torch")
-    from training import bench_loader
+    from training.commands import bench_loader
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
     p = argparse.ArgumentParser()
     bench_loader.add_arguments(p)
@@ -27,11 +27,11 @@ def test_bench_loader_reports_load_and_step_times(tmp_path):
 
 def test_command_modules_do_not_import_torch():
     code = ("import sys, argparse\n"
-            "import training.commands, training.bench_loader, training.bench_models, training.config\n"
+            "import training.commands.cli, training.commands.bench_loader, training.commands.bench_models, training.config\n"
             "import training.models, training.cache, training.data, training.augment\n"
-            "p = argparse.ArgumentParser(); s = p.add_subparsers(); training.commands.register(s)\n"
-            "training.bench_loader.add_arguments(argparse.ArgumentParser())\n"
-            "training.bench_models.add_arguments(argparse.ArgumentParser())\n"
+            "p = argparse.ArgumentParser(); s = p.add_subparsers(); training.commands.cli.register(s)\n"
+            "training.commands.bench_loader.add_arguments(argparse.ArgumentParser())\n"
+            "training.commands.bench_models.add_arguments(argparse.ArgumentParser())\n"
             "assert 'torch' not in sys.modules, 'torch imported'\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -39,7 +39,7 @@ def test_command_modules_do_not_import_torch():
 
 def test_bench_loader_with_workers_reports_samples_per_second(tmp_path):
     pytest.importorskip("torch")
-    from training import bench_loader
+    from training.commands import bench_loader
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
     p = argparse.ArgumentParser()
     bench_loader.add_arguments(p)

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from tests.conftest import REPO, shared_or_skip
-from training import model_cards
+from training.commands import model_cards
 from training.pretrained import PRETRAINED, WEIGHTS_DIR
 
 
@@ -19,7 +19,7 @@ def readme():
 def test_every_shipped_network_has_a_current_card(readme):
     cards = model_cards.cards()
     assert len(cards) == len(PRETRAINED)
-    assert model_cards.stale() == [], "run: python -m training.model_cards"
+    assert model_cards.stale() == [], "run: make generate"
 
 
 def test_cards_name_every_third_party_scene_with_its_licence_and_the_recorded_margins(readme):

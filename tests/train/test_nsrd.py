@@ -13,7 +13,7 @@ from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import nsrd as nsrd_mod  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
-from training.recurrent import frame_slice  # noqa: E402
+from training.models.window import frame_slice  # noqa: E402
 
 
 
@@ -130,8 +130,8 @@ def test_onnx_export_at_scales_2_and_4_runs_at_another_size(scale, residual, tmp
     """Untrained weights, random inputs: exported at an LR size that needs no padding (8 x 8), checked over 3 frames,
     then run at an odd LR size (10 x 7, padded inside the graph) against torch with the state carried."""
     import onnxruntime as ort
-    from training.export import example_inputs, export_onnx
-    from training.inference_model import InferenceModel
+    from training.inference.export import example_inputs, export_onnx
+    from training.inference.model import InferenceModel
     torch.manual_seed(0)
     model = build_model(ModelConfig.of("nsrd", residual=residual), scale).eval()
     report = export_onnx(InferenceModel(model), tmp_path / "m.onnx", hr_size=(scale * 8, scale * 8))

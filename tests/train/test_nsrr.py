@@ -17,7 +17,7 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import ModelConfig, load_config  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import nsrr_fec as nsrr_mod  # noqa: E402
-from training.recurrent import frame_slice  # noqa: E402
+from training.models.window import frame_slice  # noqa: E402
 from tests.conftest import set_args  # noqa: E402
 
 
@@ -209,8 +209,8 @@ def test_base_nsrr_trains_on_five_frame_windows(clip, tmp_path):
 
 
 def test_base_nsrr_exports_to_onnx(tmp_path):
-    from training.export import export_onnx
-    from training.inference_model import InferenceModel
+    from training.inference.export import export_onnx
+    from training.inference.model import InferenceModel
     model = build_model(ModelConfig(name="nsrr"), 4).eval()
     report = export_onnx(InferenceModel(model), tmp_path / "nsrr.onnx", hr_size=(32, 24))
     assert report["match"] and report["inputs"]["lr_radiance"] == [1, 5, 3, 6, 8]

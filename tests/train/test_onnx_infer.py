@@ -1,5 +1,5 @@
-"""``training.onnx_infer``: the exported graphs run through ONNX Runtime without torch give the torch path's
-upscaled frame (``training.inference.upscale_frame``) on a synthetic clip: feed-forward, non-learned, recurrent
+"""``training.inference.onnx_infer``: the exported graphs run through ONNX Runtime without torch give the torch path's
+upscaled frame (``training.inference.loading.upscale_frame``) on a synthetic clip: feed-forward, non-learned, recurrent
 (state carried over the lead-in frames) and the any-scale bilinear image."""
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ TOL = 1e-4
 
 @pytest.fixture(scope="module")
 def graphs(tmp_path_factory):
-    from training.export import export_onnx
-    from training.inference import load_model
-    from training.onnx_infer import graph_name
+    from training.inference.export import export_onnx
+    from training.inference.loading import load_model
+    from training.inference.onnx_infer import graph_name
     out = tmp_path_factory.mktemp("graphs")
     for spec, scale in (("pretrained:fusesr-l", 4), ("demod-jbu", 4), ("pretrained:nsrd", 4), ("bilinear", None)):
         report = export_onnx(load_model(spec, scale or 4), out / graph_name(spec, scale), hr_size=(64, 32))
@@ -48,8 +48,8 @@ def clip(tmp_path_factory):
 
 @pytest.mark.parametrize("spec", ["pretrained:fusesr-l", "demod-jbu", "pretrained:nsrd"])
 def test_onnx_runtime_matches_the_torch_path(graphs, clip, spec):
-    from training import onnx_infer
-    from training.inference import load_model, upscale_frame
+    from training.inference import onnx_infer
+    from training.inference.loading import load_model, upscale_frame
     model = onnx_infer.OnnxModel(onnx_infer.find_graph(graphs, spec, 4))
     bil = onnx_infer.OnnxModel(onnx_infer.find_graph(graphs, "bilinear", 4))
     got = onnx_infer.upscale_frame(model, clip, 3, bilinear=bil)  # 36 HR rows: another size than the export's
@@ -62,14 +62,14 @@ def test_onnx_runtime_matches_the_torch_path(graphs, clip, spec):
 
 
 def test_runner_imports_no_torch_and_refuses_another_scale(graphs, clip, tmp_path):
-    code = ("import sys; from training import onnx_infer; "
+    code = ("import sys; from training.inference import onnx_infer; "
             f"m = onnx_infer.OnnxModel(onnx_infer.find_graph({str(graphs)!r}, 'demod-jbu', 4)); "
             "assert 'torch' not in sys.modules, 'torch imported'; print(m.keys)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=ENV, capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     from gbuffer_export.clip import ClipError
-    from training import onnx_infer
+    from training.inference import onnx_infer
     assert onnx_infer.find_graph(graphs, "demod-jbu", 2) is None
     other = make_synthetic_clip(tmp_path / "x2", frames=range(1, 2), hr_size=(32, 16), scale=2)
     m = onnx_infer.OnnxModel(onnx_infer.find_graph(graphs, "pretrained:fusesr-l", 4))

@@ -13,7 +13,7 @@ from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training import pretrained  # noqa: E402
 from training.config import load_config  # noqa: E402
-from training.inference import ClipFrames, load_model, upscale_frame  # noqa: E402
+from training.inference.loading import ClipFrames, load_model, upscale_frame  # noqa: E402
 from training.checkpoint import load_checkpoint  # noqa: E402
 from training.trainer import param_digest  # noqa: E402
 from training.train import train  # noqa: E402

@@ -12,7 +12,7 @@ from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models import rdg as rdg_mod  # noqa: E402
-from training.recurrent import frame_slice  # noqa: E402
+from training.models.window import frame_slice  # noqa: E402
 
 
 

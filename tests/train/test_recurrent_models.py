@@ -16,7 +16,7 @@ from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.models import build_model  # noqa: E402
-from training.recurrent import lead_in  # noqa: E402
+from training.inference.frames import lead_in  # noqa: E402
 from tests.conftest import set_args  # noqa: E402
 
 
@@ -84,7 +84,7 @@ def checkpoint(name, clip, tmp_path_factory):
 def _manual(model, clip, frames):
     """SR of ``frames`` (consecutive, from the clip's first) by stepping the model by hand: the state reset at the
     clip's first frame and carried."""
-    from training.inference import ClipFrames, model_inputs
+    from training.inference.loading import ClipFrames, model_inputs
     src = ClipFrames(clip, eps=model.demod_eps)
     out, state = {}, None
     with torch.no_grad():
@@ -134,7 +134,7 @@ def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name
 def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
     from training import metrics
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import ClipFrames, load_model
+    from training.inference.loading import ClipFrames, load_model
     model = load_model(str(checkpoint), 4)
     ref = _manual(model, clip, [1, 2, 3, 4, 5, 6])
     src = ClipFrames(clip)
@@ -151,7 +151,7 @@ def test_lead_in_is_the_run_of_frames_before_the_first_scored_one():
 
 
 def test_upscale_carries_the_state_and_a_jump_reruns_from_the_clip_start(clip, checkpoint, tmp_path):
-    from training.inference import ClipFrames, load_model, upscale_frame
+    from training.inference.loading import ClipFrames, load_model, upscale_frame
     model = load_model(str(checkpoint), 4)
     ref = _manual(model, clip, [1, 2, 3, 4])
     src = ClipFrames(clip)
@@ -177,8 +177,8 @@ def test_onnx_export_carries_the_state_over_three_frames(name, clip, checkpoint,
 
 
 def test_bench_models_row(name, clip, checkpoint, tmp_path):
-    from training.bench_models import BenchOptions, benchmark, load_models
-    from training.inference import load_model
+    from training.commands.bench_models import BenchOptions, benchmark, load_models
+    from training.inference.loading import load_model
     flip = name == "nsrr-fec"  # FLIP (the slow metric) and a baseline row beside the checkpoint, each for one model
     baseline = [("bicubic", "bicubic")] if name == "rdg-s" else []
     res = benchmark(load_models([(f"{name} (x)", str(checkpoint)), *baseline], 4), [str(clip)], tmp_path / "b",
@@ -194,8 +194,8 @@ def test_bench_models_row(name, clip, checkpoint, tmp_path):
 
 
 def frames_batch(model, h, w, frames=3):
-    """``frames`` frames of random plausible inputs (``training.export.example_inputs``, one seed a frame), LR h x w."""
-    from training.export import example_inputs
+    """``frames`` frames of random plausible inputs (``training.inference.export.example_inputs``, one seed a frame), LR h x w."""
+    from training.inference.export import example_inputs
     per = [example_inputs(model, None, (w * model.scale, h * model.scale), seed=s) for s in range(frames)]
     return {k: torch.from_numpy(np.concatenate([p[k] for p in per], 1) if per[0][k].ndim >= 2 else per[0][k])
             for k in per[0]}
@@ -204,7 +204,7 @@ def frames_batch(model, h, w, frames=3):
 @pytest.mark.parametrize("model_name", MODELS + ["rdg"])  # full-size RDG: only here (cheap untrained)
 def test_state_is_carried_and_reset_is_a_clip_start(model_name):
     from training.config import ModelConfig
-    from training.recurrent import frame_slice
+    from training.models.window import frame_slice
     torch.manual_seed(0)
     model = build_model(ModelConfig(name=model_name), 4).eval()
     h, w = (5, 7) if model_name == "nsrd" else (6, 8)  # NSRD: not a multiple of 4, the U-Net's padding

@@ -45,7 +45,7 @@ def test_evaluate_refuses_a_non_finite_ground_truth_naming_its_file(clip, tmp_pa
 def test_evaluate_warns_about_and_counts_a_non_finite_model_output(clip, tmp_path, capsys, caplog):
     """The library's evaluate_model on an LR input with NaN (the command refuses that input: issue 43 item 8)."""
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     p = _poison(clip, 2, "lr", np.nan)
     assert main(["evaluate", "--model", "bilinear", "--data", str(clip), "--json", str(tmp_path / "e.json")]) == 2
     assert f"{p}: frame 2 lr/radiance: 5 of 144 pixel(s) non-finite" in capsys.readouterr().err

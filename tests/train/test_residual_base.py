@@ -10,7 +10,7 @@ torch.set_num_threads(1)
 from gbuffer_export.typed_table import ConfigError  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
 from training.models import build_model  # noqa: E402
-from training.recurrent import frame_slice  # noqa: E402
+from training.models.window import frame_slice  # noqa: E402
 
 
 #: model -> its options for the base (rdg's needs its demodulated input)

@@ -12,7 +12,7 @@ torch.set_num_threads(1)
 from gbuffer_export.errors import BlendSRError  # noqa: E402
 from gbuffer_export.typed_table import ConfigError  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
 from training.kernels import hr_stage  # noqa: E402
 from training.kernels.spec import HRStage  # noqa: E402
 from training.models import build_model  # noqa: E402
@@ -184,7 +184,7 @@ def test_trained_with_the_clamp_it_loads_with_it_and_a_checkpoint_takes_only_inf
     from gbuffer_export.cli import main
     from gbuffer_export.synthetic import make_synthetic_clip
     from training.checkpoint import load_checkpoint
-    from training.inference import load_model
+    from training.inference.loading import load_model
     clip = make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4)
     run = tmp_path / "run"
     sets = ["data.crop=8", "data.batch_size=2", "run.progress=false", "run.amp=\"none\"", "run.threads=0",
@@ -203,7 +203,7 @@ def test_trained_with_the_clamp_it_loads_with_it_and_a_checkpoint_takes_only_inf
         load_model(f"{ck_path}?width=16", 4)
     with pytest.raises(BlendSRError, match="expected MODEL\\?KEY=VALUE"):
         load_model(f"{ck_path}?lr-range", 4)
-    from training.bench_models import load_models, parse_models  # NAME:CHECKPOINT?KEY=VALUE, as bench models reads
+    from training.commands.bench_models import load_models, parse_models  # NAME:CHECKPOINT?KEY=VALUE, as bench models reads
     rows = load_models(parse_models(f"fusesr-l:{ck_path},fusesr-l:{ck_path}?residual_clamp=none"), 4, fast=False)
     assert [r[0] for r in rows] == ["fusesr-l (run)", "fusesr-l (run?residual_clamp=none)"]
     assert rows[0][1].module.clamp == 0.25 and rows[1][1].module.clamp is None

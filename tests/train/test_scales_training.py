@@ -16,7 +16,7 @@ from training.cache import ClipCache  # noqa: E402
 from training.config import ConfigError, ModelConfig, config_from_checkpoint, load_config  # noqa: E402
 from training.data import BatchSpec, TrainSampler, crop_grid  # noqa: E402
 from training.evaluate import EvalOptions, evaluate_model  # noqa: E402
-from training.inference import load_model  # noqa: E402
+from training.inference.loading import load_model  # noqa: E402
 from training.models import MODELS, ModelInfo, build_model  # noqa: E402
 from training.models.resample import upsample  # noqa: E402
 from training.checkpoint import load_checkpoint  # noqa: E402

@@ -32,7 +32,7 @@ def test_each_line_of_the_rule():
 
 def test_the_rule_on_evaluated_models(tmp_path):
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     clip = str(make_synthetic_clip(tmp_path / "c", frames=range(1, 4), hr_size=(64, 36), scale=4))
     jbu = evaluate_model(load_model("demod-jbu", 4), [clip], EvalOptions(flip=False))
     bil = evaluate_model(load_model("bicubic", 4), [clip], EvalOptions(flip=False))

@@ -7,7 +7,7 @@ from gbuffer_export.errors import BlendSRError
 
 def test_an_inference_option_is_stored_with_the_same_tensors(tmp_path):
     from training.checkpoint import load_checkpoint
-    from training.inference import load_model, with_inference_options
+    from training.inference.loading import load_model, with_inference_options
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     from training.release import release
     from training.trainer import param_digest
@@ -23,7 +23,7 @@ def test_an_inference_option_is_stored_with_the_same_tensors(tmp_path):
 
 
 def test_a_key_that_changes_the_weights_meaning_is_refused():
-    from training.inference import with_inference_options
+    from training.inference.loading import with_inference_options
     with pytest.raises(BlendSRError, match="inference options"):
         with_inference_options({"model": {"name": "fusesr-fast", "fusesr-fast": {}}}, ["width=64"], "w.safetensors")
 
@@ -41,7 +41,7 @@ def test_ship_option_end_to_end_stores_the_option_and_its_verdict(tmp_path, monk
     from gbuffer_export.synthetic import make_synthetic_clip
     from training import pretrained
     from training.checkpoint import load_checkpoint
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.trainer import param_digest
     pytest.importorskip("torch")
     name = "fusesr-fast"

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 #: torch API -> (the release that added it, a file of ours that calls it)
 APIS = {
     "torch.serialization.safe_globals": ("2.5", "training/checkpoint.py"),
-    "torch.onnx.export(dynamo=)": ("2.5", "training/export.py"),
+    "torch.onnx.export(dynamo=)": ("2.5", "training/inference/export.py"),
     "torch.amp.GradScaler": ("2.3", "training/trainer.py"),
 }
 #: used when present (the refusal message names the globals from 2.6 on)

@@ -166,7 +166,7 @@ def test_max_steps_and_minutes_combine_whichever_comes_first(clip, tmp_path, cap
 
 def test_checkpoints_that_predate_jitter_and_norm_load_with_their_old_behaviour(clip, tmp_path):
     import torch
-    from training.inference import load_model
+    from training.inference.loading import load_model
     run = tmp_path / "run"
     assert main(["train", "--model", "fusesr", "--data", str(clip), "-o", str(run), "--max-steps", "1",
                  *set_args(SMALL + ["model.norm=\"batch\"", "model.jitter=false"])]) == 0
@@ -235,7 +235,7 @@ def test_ema_weights_are_the_moving_average_and_resume_bit_identically(clip, tmp
     for k, v in last["ema_model"].items():
         assert torch.equal(v, b["ema_model"][k]), k
     # what inference and the shipped-weights writer read
-    from training.inference import load_model
+    from training.inference.loading import load_model
     model = load_model(str(straight / "checkpoints" / "last.pt"), 4)
     for k, v in model.module.state_dict().items():
         assert torch.equal(v, last["ema_model"][k]), k

@@ -11,8 +11,8 @@ torch.set_num_threads(1)
 from gbuffer_export.conventions import Flag  # noqa: E402
 from gbuffer_export.typed_table import ConfigError  # noqa: E402
 from training.config import ModelConfig  # noqa: E402
-from training.export import example_inputs  # noqa: E402
-from training.inference import with_inference_options  # noqa: E402
+from training.inference.export import example_inputs  # noqa: E402
+from training.inference.loading import with_inference_options  # noqa: E402
 from training.models import build_model  # noqa: E402
 from training.models.base import current  # noqa: E402
 from training.models.fusesr import FuseSRFrame  # noqa: E402
@@ -125,7 +125,7 @@ def test_gate_transmission_learns_with_the_gate_and_starts_fresh_from_older_weig
 
 
 def test_onnx_graph_takes_the_flags_as_int32_from_any_source():
-    from training.export import graph_dtypes
+    from training.inference.export import graph_dtypes
     for dtype in (np.float32, np.uint32):
         out = graph_dtypes({"hr/flags": np.array([0, 2048], dtype), "hr/depth": np.ones(2, np.float32)})
         assert out["hr/flags"].dtype == np.int32 and out["hr/flags"].tolist() == [0, 2048]

@@ -44,7 +44,7 @@ def test_worst_share_and_artifact_pixels_by_hand():
 
 def _per_frame_by_hand(spec, clip):
     """{frame: (PSNR, pixel error)} of ``spec`` on every frame of ``clip`` through the inference API."""
-    from training.inference import ClipFrames, load_model, upscale_frame
+    from training.inference.loading import ClipFrames, load_model, upscale_frame
     model, src = load_model(spec, 4), ClipFrames(clip)
     out = {}
     for f in src.frames:
@@ -56,7 +56,7 @@ def _per_frame_by_hand(spec, clip):
 
 def test_evaluate_reports_margin_worst_share_and_artifact_pixels(clips):
     from training.evaluate import EvalOptions, evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     res = evaluate_model(load_model("bicubic", 4), [str(c) for c in clips], EvalOptions(flip=False, warmup=0))
     assert res["worst_case"] == {"baseline": "demod-jbu", "worst_fraction": 0.01, "artifact_error": 0.25,
                                  "artifact_baseline_error": 0.05}
@@ -103,7 +103,8 @@ def test_bench_models_leaves_out_a_model_whose_buffers_a_clip_lacks(clips, tmp_p
     """pretrained:nsrd reads lr/motion_next: on a clip rendered without it the row is left out with a note."""
     import argparse
 
-    from training import bench_models, pretrained
+    from training import pretrained
+    from training.commands import bench_models
     if not (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED["nsrd"]).is_file():
         pytest.skip("pretrained:nsrd not shipped")
     clip = make_synthetic_clip(tmp_path / "no_next", frames=range(1, 3), hr_size=(64, 36), scale=4,

@@ -28,7 +28,7 @@ operator ``blendsr::hr_stage``, which torch.compile keeps whole inside its graph
 then every HR row reading whole rows of them). On the CPU the fused path runs ``compiled``: ``hr_stage_torch``
 under ``torch.compile``, whose C++ backend (inductor) turns it into two vectorised kernels (``_compiled``);
 Triton's CPU interpreter is for tests only.
-Demodulation itself (the eps rule) runs where the inputs are read (``training.inference``, ``training.cache``:
+Demodulation itself (the eps rule) runs where the inputs are read (``training.inference.loading``, ``training.cache``:
 ``gbuffer_export.demod``) and is not repeated here: the models receive L_D and F_used.
 """
 from __future__ import annotations

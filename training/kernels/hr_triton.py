@@ -179,7 +179,7 @@ def _finish(hrs, s_hrs, at, sums, ranges, consts, FLAGS: tl.constexpr):
         tl.store(base + k * s_out[1], o, mask=mask)
 
 
-#: Longest pixel filter the kernel takes; longer ones run ``fast_ops.shift_filter``.
+#: Longest pixel filter the kernel takes; longer ones run ``filters.shift_filter``.
 MAX_TAPS = 5
 
 
@@ -238,7 +238,7 @@ def hr_stage_triton(spec, t) -> torch.Tensor:
     if spec.taps is None:
         return out
     if len(spec.taps) > MAX_TAPS:
-        from training.models.fast_ops import shift_filter
+        from training.kernels.filters import shift_filter
         return shift_filter(out, spec.taps)
     dst = torch.empty_like(out)
     taps = tuple(float(v) for v in spec.taps) + (0.0,) * (MAX_TAPS - len(spec.taps))

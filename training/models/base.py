@@ -33,7 +33,7 @@ class SRModel(nn.Module):
     #: This class's row in ``training.models.MODELS``: its options are ``MODELS[NAME].options``.
     NAME = ""
     SCALES: tuple[int, ...] | None = (2, 4, 8)
-    #: The inference fast path (``training.models.fast_ops``; ``training.fastpath.prepare_inference`` sets it):
+    #: The inference fast path (``training.models.fast_ops``; ``training.inference.fastpath.prepare_inference`` sets it):
     #: the same outputs as the reference implementations within float rounding, fewer and cheaper kernels.
     fast_ops = False
     #: The fused HR stage (``training.kernels.hr_stage``; ``prepare_inference(..., hr_stage="fused")`` sets it): None
@@ -51,7 +51,7 @@ class SRModel(nn.Module):
         if not self.supports_scale(scale):
             raise BlendSRError(f"scale {scale:g}: model {self.NAME or type(self).__name__} supports "
                                f"{self.scales_text()}")
-        from training.config import ModelConfig  # torch-free; its tables hold the defaults
+        from training.models.config import ModelConfig  # torch-free; its tables hold the defaults
         self.config = cfg = ModelConfig.of(self.NAME, **keys)
         self.scale = int(scale) if float(scale).is_integer() else float(scale)
         self.history = 0

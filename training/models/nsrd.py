@@ -234,7 +234,7 @@ class NSRD(SRModel):
     def forward(self, batch):
         """Every LR frame of the batch in order from a reset state; the SR of the last one (HR keys may hold the
         current frame only: ``frame_slice`` aligns them at the end)."""
-        from training.recurrent import frame_slice
+        from training.models.window import frame_slice
         state, sr = None, None
         for i in range(batch["lr/irradiance"].shape[1]):
             sr, state = self.step(frame_slice(batch, i), state)

@@ -276,7 +276,7 @@ class NSRRFEC(NSRR):
 
     def forward(self, batch):
         """Every frame of the batch in order from a reset state; the SR of the last one."""
-        from training.recurrent import frame_slice
+        from training.models.window import frame_slice
         t = batch["lr/radiance"].shape[1]
         state, sr = None, None
         for i in range(t):

@@ -338,7 +338,7 @@ class RDG(SRModel):
 
     def forward(self, batch):
         """Every frame of the batch in order from a reset state; the SR of the last one."""
-        from training.recurrent import frame_slice
+        from training.models.window import frame_slice
         t = batch["lr/irradiance" if self.demod else "lr/radiance"].shape[1]
         state, sr = None, None
         for i in range(t):

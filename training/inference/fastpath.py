@@ -16,7 +16,7 @@
   casts every weight on every call; ``graph``: ``fused`` run as one graph per frame: on the CPU the whole model
   compiled by inductor with ``freezing`` (weights prepacked for oneDNN, convolution + ReLU and convolution + residual
   add in one oneDNN call, the element-wise ops between them fused into C++ loops, no layout copies); on CUDA one
-  CUDA graph per frame (``training.frame_graph.FrameGraph``: static input and state buffers, the HR stage's kernels
+  CUDA graph per frame (``training.inference.frame_graph.FrameGraph``: static input and state buffers, the HR stage's kernels
   inside); ``reference``: the model as built (nothing changed); ``auto`` (the default of every command and of the
   add-on): the fastest of ``AUTO_ORDER`` that passes the reference check on the first frame (``AutoPath``).
 
@@ -32,7 +32,7 @@ import torch
 import torch.nn as nn
 from gbuffer_export.errors import BlendSRError
 from training.device import amp_dtype, dtype_label
-from training.inference_model import InferenceModel, as_inference, channels_last_batch
+from training.inference.model import InferenceModel, as_inference, channels_last_batch
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +232,7 @@ class AutoPath:
     def check(self, call, pick=lambda r: r):
         """The first frame: ``call()`` (the output with the current settings; ``pick`` takes the SR image out of
         it) on each candidate until one passes (class doc); returns its output."""
-        from training.inference_model import InferenceModel
+        from training.inference.model import InferenceModel
         ref = InferenceModel(self.pristine, self.wrapped.spec)
         ref.to(self.wrapped.device)
         want = self._swap(ref, call)

@@ -1,4 +1,5 @@
-"""``blendsr bench models``: speed against error, or speed alone against the hardware's limit.
+"""The library of ``blendsr bench models`` (its command line: ``training.commands.cli.bench_models``): speed against
+error, or speed alone against the hardware's limit.
 
 With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of
 ``training.evaluate`` and reports PSNR/SSIM (declared tonemap), PSNR-HDR, tPSNR, warping error, optionally HDR-FLIP,
@@ -14,7 +15,7 @@ roofline columns of the speed mode (below) for one frame of the clips.
 
 Without ``--data`` it times every model on random inputs of the right shapes (``export.example_inputs``) at
 ``--size`` (HR, default 1920x1080) and ``--scale``, batch 1, for each precision of ``--precision`` and each
-``--compile`` setting (the inference fast path, ``training.fastpath``); learned models named without a checkpoint
+``--compile`` setting (the inference fast path, ``training.inference.fastpath``); learned models named without a checkpoint
 run with their initial weights (speed does not depend on the weights). Times are medians of ``--repeats`` runs after
 ``--warmup`` (CUDA events on a GPU; all models and variants are prepared first and then timed round-robin, so
 their ratios are measured side by side). The table gives MACs, the bytes a frame must move (inputs read once,
@@ -26,7 +27,6 @@ OUT/bench_speed.json, .csv and .md; without ``-o`` nothing is written. torch and
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import statistics
@@ -55,58 +55,6 @@ DEVICE_PEAKS = {
 }
 SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
                  "ratio", "kernels", "max_rel_err", "tolerance")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", nargs="*", default=[], metavar="CLIP",
-                        help="clip directories or dataset folders (their --split); none: speed only, on random "
-                             "inputs of --size")
-    parser.add_argument("--split", default="test", choices=("train", "val", "test"),
-                        help="split of dataset folders given to --data")
-    parser.add_argument("--models", default=None,
-                        help="comma-separated: model names, or NAME:CHECKPOINT for learned models (default: the "
-                             "non-learned models with --data, every model without)")
-    parser.add_argument("--size", default="x".join(map(str, SpeedOptions.size)), metavar="WxH",
-                        help="HR size of the random inputs")
-    parser.add_argument("--scale", type=int, default=4, help="scale of the random inputs")
-    parser.add_argument("--precision", default=None,
-                        help="comma-separated precisions to time: none (float32), bf16, fp16, auto (default none; "
-                             "with --data one precision, default from --amp); tables name the dtype that ran")
-    parser.add_argument("--compile", nargs="?", const="on", default="off", choices=("off", "on", "both", "off,on"),
-                        metavar="{off,on,both}",
-                        help="torch.compile the fast path (on CUDA: reduce-overhead, CUDA graphs); both (or off,on): "
-                             "measure without and with")
-    parser.add_argument("--eager-reference", action="store_true",
-                        help="speed mode: also time the reference path (fp32 eager, no fast ops, NCHW)")
-    parser.add_argument("--repeats", type=int, default=SpeedOptions.repeats, help="timed runs per variant (speed mode)")
-    parser.add_argument("--peak-tflops", type=float, default=0.0,
-                        help="device peak for the roofline, TFLOPS in the timed precision (0: DEVICE_PEAKS, else "
-                             "measured)")
-    parser.add_argument("--bandwidth-gbs", type=float, default=0.0,
-                        help="device memory bandwidth for the roofline, GB/s (0: DEVICE_PEAKS, else measured)")
-    parser.add_argument("--frames", metavar="A:B", help="inclusive frame range (default: all)")
-    parser.add_argument("-o", "--output", default=None, metavar="DIR",
-                        help="write the JSON, CSV and markdown tables (and pareto.png with --data) here; default: "
-                             "print the table only, write nothing")
-    parser.add_argument("--flip", action="store_true", help="also compute HDR-FLIP (slow on CPU)")
-    parser.add_argument("--cvvdp", action="store_true",
-                        help="also ColorVideoVDP per clip (JOD, display model 'standard_fhd'; docs/evaluation.md): "
-                             "the [video] extra")
-    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="where models run")
-    parser.add_argument("--amp", default="none", choices=("none", "bf16", "fp16", "auto"),
-                        help="autocast (with --data; --precision takes precedence)")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: the cores this process may use)")
-    parser.add_argument("--warmup", type=int, default=BenchOptions.warmup, help="untimed runs before timing")
-    parser.add_argument("--no-progress", action="store_true",
-                        help="no progress bars on stderr (per model and clip with --data; preparing and timing "
-                             "without)")
-    parser.add_argument("--path", default=None, metavar="PATHS",
-                        help="speed mode: comma-separated inference paths timed side by side: reference (fp32 eager, "
-                             "= --eager-reference), fast (fast ops, autocast; the default), fused (fused HR stage, "
-                             "weights held in the precision's dtype), graph (fused as one frozen inductor graph on "
-                             "the CPU, one CUDA graph per frame on a GPU, timed as N >= 100 replays between two CUDA "
-                             "events in 5 rounds: median and spread); adds kernels per frame and each output's "
-                             "error to the fp32 reference, checked against the precision's tolerance")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -167,7 +115,7 @@ def load_models(models: list[tuple[str, str]], scale: float, fast: bool = True) 
     ``fast``: prepared for the fast path (``load_model``)."""
     from training.checkpoint import load_checkpoint
     from training.config import ModelConfig
-    from training.inference import InferenceModel, load_model, split_spec
+    from training.inference.loading import InferenceModel, load_model, split_spec
     from training.models import MODELS, build_model
     out = []
     for label, spec in models:
@@ -381,7 +329,7 @@ def benchmark(models: list[tuple[str, object]], clips, out, options: BenchOption
             left_out.append(note)
             continue
         if o.precision is not None or o.compile:
-            from training.fastpath import prepare_inference
+            from training.inference.fastpath import prepare_inference
             prepare_inference(model, None, o.precision or "none", compile=o.compile)
         amp = None if o.precision is not None or o.compile else o.amp
         res = evaluate_model(model, clips, EvalOptions(frames=o.frames, amp=amp, flip=o.flip, warmup=o.warmup,
@@ -410,7 +358,7 @@ def benchmark(models: list[tuple[str, object]], clips, out, options: BenchOption
 
 def _lacking(label: str, model, clips) -> str | None:
     """A one-line note when a clip lacks inputs of ``model`` (it is then left out of the table), else None."""
-    from training.inference import ClipFrames, missing_keys
+    from training.inference.loading import ClipFrames, missing_keys
     for c in clips:
         lacking = missing_keys(model, ClipFrames(c, eps=model.demod_eps))
         if lacking:
@@ -422,7 +370,7 @@ def _row(label: str, model, res: dict, clips, o: BenchOptions, peaks: dict, amp)
     """The table row of one evaluated model, with its roofline on one frame of these clips (bytes: the model's
     inputs read once, the output written once)."""
     from training.device import dtype_label
-    from training.inference import ClipFrames, model_inputs
+    from training.inference.loading import ClipFrames, model_inputs
     src = ClipFrames(clips[0], eps=model.demod_eps)
     first = (o.frames or {}).get(str(clips[0])) or src.frames
     m = res["mean"]
@@ -462,49 +410,6 @@ def _write_bench(out: Path, result: dict, peaks: dict, clips) -> None:
     plot(rows, out / "pareto.png", device_name, BenchData.of(clips, result["results"][0], list(peaks)))
 
 
-def run(args) -> int:
-    from gbuffer_export.extras import require
-    require("blendsr bench models", "train")
-    import torch
-
-    from gbuffer_export.config import parse_frames
-    from training.clip_sets import dataset_clips, scale_of
-    from training.device import amp_dtype, resolve_device, set_threads
-
-    set_threads(args.threads)
-    device = resolve_device(args.device)
-    args.data = [str(c) for c in dataset_clips(args.data, args.split)]
-    precisions = _precisions(args.precision)
-    compiles = {"off": [False], "on": [True], "both": [False, True], "off,on": [False, True]}[args.compile]
-    if not args.data:
-        from training.models import MODELS
-        w, h = _size(args.size)
-        if w % args.scale or h % args.scale:
-            raise BlendSRError(f"--size {w}x{h} is not divisible by the scale {args.scale}")
-        models = load_models(parse_models(args.models or ",".join(MODELS), need_checkpoints=False), args.scale,
-                             fast=False)
-        speed_benchmark([(label, m.to(device)) for label, m in models], args.output, SpeedOptions(
-            size=(w, h), precisions=tuple(precisions or ["none"]), compiles=tuple(compiles), warmup=args.warmup,
-            repeats=args.repeats, peak_tflops=args.peak_tflops, bandwidth_gbs=args.bandwidth_gbs,
-            reference=args.eager_reference, progress=not args.no_progress, paths=_paths(args.path)))
-        if args.output:
-            print(f"wrote {Path(args.output) / 'bench_speed.json'}, {Path(args.output) / 'bench_speed.md'}")
-        return 0
-    if len(precisions or []) > 1 or len(compiles) > 1:
-        raise BlendSRError("--data: one --precision and one --compile setting at a time")
-    rng = parse_frames(args.frames)
-    frames = {str(c): list(range(rng[0], rng[1] + 1)) for c in args.data} if rng else None
-    models = load_models(parse_models(args.models or "bilinear,bicubic,demod-bilinear,demod-jbu"),
-                         scale_of(args.data))
-    benchmark([(label, m.to(device)) for label, m in models], list(args.data), args.output, BenchOptions(
-        frames=frames, amp=amp_dtype(args.amp, device), flip=args.flip, cvvdp=args.cvvdp, warmup=args.warmup,
-        precision=precisions[0] if precisions else None, compile=compiles[0], peak_tflops=args.peak_tflops,
-        bandwidth_gbs=args.bandwidth_gbs, progress=not args.no_progress))
-    if args.output:
-        print(f"wrote {Path(args.output) / 'bench_models.json'}, {Path(args.output) / 'pareto.png'}")
-    return 0
-
-
 def _bar(items, desc: str, unit: str, on: bool):
     """``items``, under a tqdm bar on stderr when ``on``."""
     if not on:
@@ -513,37 +418,6 @@ def _bar(items, desc: str, unit: str, on: bool):
 
     from tqdm import tqdm
     return tqdm(items, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
-
-
-def _paths(text: str | None) -> tuple[str, ...] | None:
-    """--path: None (the fast path alone) or the paths among reference, fast, fused, graph."""
-    if not text:
-        return None
-    from training.fastpath import PATHS
-    out = [p.strip() for p in text.split(",") if p.strip()]
-    bad = [p for p in out if p not in ("reference",) + PATHS]
-    if bad or not out:
-        raise BlendSRError(f"--path {text!r}: comma-separated reference, {', '.join(PATHS)}")
-    return tuple(out)
-
-
-def _precisions(text: str | None) -> list[str] | None:
-    if not text:
-        return None
-    from training.device import PRECISIONS
-    out = [p.strip() for p in text.split(",") if p.strip()]
-    bad = [p for p in out if p not in PRECISIONS]
-    if bad or not out:
-        raise BlendSRError(f"--precision {text!r}: comma-separated {', '.join(PRECISIONS)}")
-    return out
-
-
-def _size(text: str) -> tuple[int, int]:
-    from gbuffer_export.config import parse_size
-    try:
-        return parse_size(text)
-    except ValueError as exc:
-        raise BlendSRError(str(exc).replace("--hr-size", "--size")) from None
 
 
 # ------------------------------------------------------------------------------------------------ speed mode
@@ -757,8 +631,8 @@ def _speed_runners(models, variants, o: SpeedOptions, checked: bool = False) -> 
     import torch
 
     from training.device import dtype_label
-    from training.export import example_inputs
-    from training.fastpath import prepare_inference, prepared_batch
+    from training.inference.export import example_inputs
+    from training.inference.fastpath import prepare_inference, prepared_batch
     w, h = o.size
     runners = []
     for label, base in _bar(models, "prepare", "model", o.progress):
@@ -785,7 +659,7 @@ def _time_runners(runners: list[dict], device, o: SpeedOptions) -> None:
     machine state."""
     import torch
 
-    from training.fastpath import forward
+    from training.inference.fastpath import forward
     timer = _timer(device)
     with torch.inference_mode():
         for r in runners:
@@ -794,7 +668,7 @@ def _time_runners(runners: list[dict], device, o: SpeedOptions) -> None:
             _sync(device)
         graphs = [r for r in runners if r["module"].settings.get("frame_graph")]
         for r in graphs:  # one CUDA graph per frame: N replays between two CUDA events, several rounds
-            from training.frame_graph import time_replays
+            from training.inference.frame_graph import time_replays
             r["graph_timing"] = time_replays(r["module"].settings["graphs"]["forward"].replay_last(),
                                              n=max(100, o.repeats), rounds=5)
             r["times"] = list(r["graph_timing"]["rounds"])
@@ -809,7 +683,7 @@ def _check_variant(r: dict, device) -> dict:
     max |out - reference| / max |reference| against the fp32 reference output ``r['want']``."""
     import torch
 
-    from training.fastpath import TOLERANCE, forward
+    from training.inference.fastpath import TOLERANCE, forward
     with torch.inference_mode():
         got = forward(r["module"], r["batch"]).float()
         kernels = kernels_per_frame(lambda: forward(r["module"], r["batch"]), device)

@@ -112,7 +112,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_export)
 
 
-#: ``--path``'s choices (``training.fastpath.PATH_CHOICES``; written here: the CLI imports no torch to register)
+#: ``--path``'s choices (``training.inference.fastpath.PATH_CHOICES``; written here: the CLI imports no torch to register)
 PATH_CHOICES = ("auto", "reference", "fast", "fused", "graph")
 
 
@@ -206,14 +206,14 @@ def cmd_evaluate(args) -> int:
     require("blendsr evaluate", "train")
     from gbuffer_export.clip import write_json_atomic
     from training.evaluate import evaluate_model
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.device import resolve_device, set_threads
     set_threads(args.threads)
     args.data = [str(c) for c in _dataset_clips(args.data, args.split)]
     _check_radiance(args.data, _frames(args.frames))
     scale = _scale_of(args.data)
     spec = args.checkpoint or args.model
-    from training.fastpath import default_path, path_record, prepare_inference
+    from training.inference.fastpath import default_path, path_record, prepare_inference
     model = load_model(spec, scale, args.set, fast=False)
     prepare_inference(model, resolve_device(args.device), args.amp, compile=args.compile,
                       path=args.path or default_path())
@@ -248,12 +248,12 @@ def cmd_upscale(args) -> int:
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.exr import write_exr
     from gbuffer_export.validate.gate import open_valid_clip
-    from training.inference import ClipFrames, load_model, upscale_frame
+    from training.inference.loading import ClipFrames, load_model, upscale_frame
     from training.device import resolve_device
     refuse_dataset(args.clip, "--clip")
     clip = open_valid_clip(args.clip, tolerate=("non-finite",))  # non-finite input: warned, output made finite
-    from training.fastpath import prepare_inference
-    from training.fastpath import default_path, path_record
+    from training.inference.fastpath import prepare_inference
+    from training.inference.fastpath import default_path, path_record
     model = load_model(args.checkpoint or args.model, clip.scale, fast=False)
     prepare_inference(model, resolve_device(args.device), args.amp, compile=args.compile,
                       path=args.path or default_path())
@@ -288,8 +288,8 @@ def cmd_upscale(args) -> int:
 
 def cmd_export(args) -> int:
     require("blendsr export", "train", "export")
-    from training.export import export_onnx
-    from training.inference import load_model, split_spec
+    from training.inference.export import export_onnx
+    from training.inference.loading import load_model, split_spec
     from gbuffer_export.config import parse_size
     if args.checkpoint:  # CK or CK?KEY=VALUE (the inference options, e.g. residual_clamp)
         from training.checkpoint import load_checkpoint

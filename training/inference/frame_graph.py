@@ -1,5 +1,5 @@
 """One CUDA graph per frame (torch): ``FrameGraph`` replays a model's whole frame, HR stage included, as one CUDA
-graph; ``time_replays`` times N replays between two CUDA events (``training.fastpath`` path ``graph``;
+graph; ``time_replays`` times N replays between two CUDA events (``training.inference.fastpath`` path ``graph``;
 ``blendsr bench models --path graph``; ``benchmarks/gpu/check.sh`` with ``CHECK=graph``).
 
 ``FrameGraph(fn)`` is called like ``fn`` (tensors, or lists/tuples/dicts of them, and None). The first call with a

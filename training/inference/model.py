@@ -1,6 +1,6 @@
 """``InferenceModel``: a model ready for inference and what inference keeps beside it (torch), instead of
-attributes bolted onto the ``nn.Module``. ``training.inference.load_model`` returns one,
-``training.fastpath.prepare_inference`` fills in its fast-path settings, and ``evaluate``, ``upscale``, ``export``,
+attributes bolted onto the ``nn.Module``. ``training.inference.loading.load_model`` returns one,
+``training.inference.fastpath.prepare_inference`` fills in its fast-path settings, and ``evaluate``, ``upscale``, ``export``,
 the benches and the add-on preview take one.
 
 It is a plain object: the module's own attributes are read on ``model.module`` (``model.module.scale``,
@@ -82,7 +82,7 @@ class InferenceModel:
 
     def forward(self, batch: dict, amp: torch.dtype | None = None) -> torch.Tensor:
         """SR of ``batch`` (tensors on the device) with the fast-path settings of ``prepare_inference``
-        (``training.fastpath``): channels-last inputs, the compiled module or one CUDA graph per frame, autocast to
+        (``training.inference.fastpath``): channels-last inputs, the compiled module or one CUDA graph per frame, autocast to
         the prepared dtype; ``amp`` overrides the prepared dtype when given. Under ``path="auto"`` the first call
         chooses the path (``fastpath.AutoPath``)."""
         auto = self.settings.get("auto")
@@ -107,7 +107,7 @@ class InferenceModel:
 
     def _graph(self, name: str, fn):
         """The ``FrameGraph`` (one CUDA graph per frame and input layout) of ``fn`` kept under ``name``."""
-        from training.frame_graph import FrameGraph
+        from training.inference.frame_graph import FrameGraph
         graphs = self.settings.setdefault("graphs", {})
         if name not in graphs:
             graphs[name] = FrameGraph(fn)

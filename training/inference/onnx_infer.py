@@ -3,12 +3,12 @@
     model = OnnxModel(graphs_dir / graph_name("pretrained:fusesr-l", 4))
     out = upscale_frame(model, clip_dir, frame, bilinear=OnnxModel(graphs_dir / graph_name("bilinear", None)))
 
-The graphs are ``training.export.export_onnx``'s (``blendsr export``; ``python -m blender_addon.build`` exports
+The graphs are ``training.inference.export.export_onnx``'s (``blendsr export``; ``python -m blender_addon.build`` exports
 every shipped network and non-learned model into the add-on zip) with their JSON sidecar, whose ``keys``,
 ``window``, ``demod_eps``, ``any_scale`` and ``remod_reference`` say how to feed them. Inputs are read as the torch
-path reads them (``training.frames.ClipFrames``, ``training.data.frame_window``); a recurrent graph carries its
+path reads them (``training.inference.frames.ClipFrames``, ``training.data.frame_window``); a recurrent graph carries its
 state as inputs and outputs (``state_i`` -> ``state_out_i``, ``reset`` 1 at a clip's first frame) and runs the
-frames before the asked one from the clip's start, as ``training.inference.run_frame`` does.
+frames before the asked one from the clip's start, as ``training.inference.loading.run_frame`` does.
 """
 from __future__ import annotations
 
@@ -21,10 +21,10 @@ import numpy as np
 from gbuffer_export.clip import ClipError
 from gbuffer_export.errors import BlendSRError
 from training.data import BatchSpec, frame_window
-from training.frames import ClipFrames, lead_in
+from training.inference.frames import ClipFrames, lead_in
 
 #: How a recurrent state's height or width follows the frame's LR size n and HR size (names recorded per state by
-#: ``training.export.state_size_rules`` in the sidecar's ``state_sizes``).
+#: ``training.inference.export.state_size_rules`` in the sidecar's ``state_sizes``).
 STATE_SIZES = {"lr": lambda n, hr: n, "hr": lambda n, hr: hr, "pad4": lambda n, hr: -(-n // 4) * 4,
                "pad4/2": lambda n, hr: -(-n // 4) * 2, "pad4/4": lambda n, hr: -(-n // 4)}
 
@@ -137,7 +137,7 @@ class OnnxModel:
 
     def zero_state(self, lr_h: int, lr_w: int, scale: float) -> list[np.ndarray]:
         """A clip's first state (ignored by the graph under ``reset`` = 1): zeros shaped by the sidecar's
-        ``state_sizes`` rules (``training.export.STATE_SIZES``) for this LR size."""
+        ``state_sizes`` rules (``training.inference.export.STATE_SIZES``) for this LR size."""
         rules = self.info.get("state_sizes")
         if rules is None:
             raise BlendSRError(f"{self.path}.json: no 'state_sizes' (exported before the runner's fields; export it "
@@ -168,7 +168,7 @@ def run_frame(model: OnnxModel, source: ClipFrames, frame: int, targets=()) -> t
 
 
 def upscale_frame(model: OnnxModel, clip, frame: int, bilinear: OnnxModel) -> dict:
-    """``training.inference.upscale_frame`` through ONNX Runtime: ``sr`` and ``bilinear`` (the ``bilinear``
+    """``training.inference.loading.upscale_frame`` through ONNX Runtime: ``sr`` and ``bilinear`` (the ``bilinear``
     model's any-scale graph), HR H x W x 3 float32 linear, ``ms`` and ``reference`` (hr/radiance, when present)."""
     source = clip if isinstance(clip, ClipFrames) else ClipFrames(clip, eps=model.demod_eps)
     model.check(source)

@@ -4,7 +4,7 @@ from every model's ``SCALES`` and shipped weights (torch layer).
 ``blendsr dataset/render --for-models`` must work without torch, so the core reads the table from
 ``gbuffer_export/dataset/model_buffers.json``; this module writes that file from the models themselves (each with
 its default configuration and, when shipped, its ``pretrained:NAME`` weights' configuration), and ``tests/dataset/test_dataset.py`` fails when the file is stale. After adding a model or
-changing what one reads: ``python -m training.buffer_table``.
+changing what one reads: ``make generate``.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def model_buffer_table() -> dict[str, list[str]]:
     """model name (in ``MODELS`` order) -> the clip buffers its default configuration reads, and those its shipped
     weights' configuration reads (``pretrained:NAME``, when shipped), in canonical order."""
     from training.config import ModelConfig
-    from training.inference import load_model
+    from training.inference.loading import load_model
     from training.models import MODELS, build_model
     from training.pretrained import PREFIX, PRETRAINED
     table = {}
@@ -49,7 +49,7 @@ def model_scale_table() -> dict[str, list[int] | None]:
 def write_table(path: Path = TABLE_PATH) -> dict[str, list[str]]:
     """Write ``model_buffer_table()`` and ``model_scale_table()`` to ``path`` (atomic); return the buffer table."""
     table = model_buffer_table()
-    write_json_atomic(path, {"generated_by": "python -m training.buffer_table", "models": table,
+    write_json_atomic(path, {"generated_by": "make generate", "models": table,
                              "scales": model_scale_table()})
     return table
 

@@ -1,7 +1,7 @@
 """Frames of a clip as the models read them, without torch (the inference API's and ONNX Runtime's reader).
 
 ``ClipFrames`` reads a clip's EXRs with the derived buffers of ``ClipCache`` ('irradiance', 'fbeta_used'), computed
-with ``gbuffer_export.demod.demodulate`` as the training cache does; ``training.inference.ClipFrames`` computes them
+with ``gbuffer_export.demod.demodulate`` as the training cache does; ``training.inference.loading.ClipFrames`` computes them
 with the torch mirror (``training.demod``) instead, as the torch path always has.
 """
 from __future__ import annotations

@@ -78,7 +78,7 @@ def run(args) -> int:
     set_threads(args.threads)
     tmp = None
     clips = list(args.data)
-    from training.commands import refuse_dataset
+    from training.commands.cli import refuse_dataset
     for c in clips:
         refuse_dataset(c, "--data")
     if not clips:

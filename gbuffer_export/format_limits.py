@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..conventions import ALL_BUFFERS
-from ..errors import BlendSRError
+from .conventions import ALL_BUFFERS
+from .errors import BlendSRError
 
 
 class FormatLimitError(BlendSRError):

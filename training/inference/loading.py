@@ -20,17 +20,17 @@ import torch
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.clip import ClipError, scale_value
 from training.config import ModelConfig
-from training import frames
+from training.inference import frames
 from training.data import BATCH_KEYS, FRAME_KEYS, BatchSpec, frame_window
 from training.demod import demodulate
-from training.inference_model import InferenceModel, module_of
+from training.inference.model import InferenceModel, module_of
 from training.models import MODELS, OPTIONAL_KEYS, build_model
 from training.models.base import upsample
-from training.recurrent import lead_in
+from training.inference.frames import lead_in
 
 
 class ClipFrames(frames.ClipFrames):
-    """``training.frames.ClipFrames`` with the derived buffers computed by the torch mirror of the demodulation
+    """``training.inference.frames.ClipFrames`` with the derived buffers computed by the torch mirror of the demodulation
     (``training.demod``)."""
 
     def _demodulate(self, frame: int, level: str) -> tuple[np.ndarray, np.ndarray]:
@@ -53,7 +53,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
     ``spec`` may end in '?KEY=VALUE&...', the model's own options (``split_spec``), e.g.
     ``pretrained:fusesr?residual_clamp=lr-range``; the model keeps the whole text as its label. The model holds
     ``module``, ``spec``, ``demod_eps``, ``config`` and ``n_params``. With ``fast`` (default) it is prepared for the inference fast path
-    (``training.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
+    (``training.inference.fastpath.prepare_inference``: fast ops, BatchNorm folded, channels-last, fp32; call it again after
     moving the model to set the precision or compile)."""
     scale = scale_value(scale)
     label = str(spec)
@@ -80,7 +80,7 @@ def load_model(spec: str, scale: int, overrides: list[str] | tuple[str, ...] = (
 
 def _prepared(model: InferenceModel, fast: bool) -> InferenceModel:
     if fast:
-        from training.fastpath import prepare_inference
+        from training.inference.fastpath import prepare_inference
         prepare_inference(model)
     return model
 

@@ -46,7 +46,7 @@ class FineTuneStopped(KeyboardInterrupt):
 
 
 def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l", threads: int = 0) -> dict:
-    from training.bench_models import BenchOptions, benchmark, load_models
+    from training.commands.bench_models import BenchOptions, benchmark, load_models
     from training.clip_sets import scale_of
     from training.device import set_threads
     from training.pretrained import available
@@ -146,7 +146,7 @@ def side_by_side(checkpoint: str, clip: str, path: Path, label: str | None = Non
 
     from gbuffer_export.preview import comparison_sheet, save_png
     from training import metrics
-    from training.inference import ClipFrames, load_model, upscale_frame
+    from training.inference.loading import ClipFrames, load_model, upscale_frame
 
     src = ClipFrames(clip)
     frame = src.frames[len(src.frames) // 2]

@@ -31,7 +31,7 @@ import torch
 from gbuffer_export.errors import BlendSRError
 from gbuffer_export.conventions import BUFFERS
 from training.data import FRAME_KEYS, BatchSpec, frame_window
-from training.inference_model import InferenceModel, as_inference
+from training.inference.model import InferenceModel, as_inference
 
 
 @contextlib.contextmanager
@@ -79,7 +79,7 @@ def example_inputs(model, clip: str | None, hr_size: tuple[int, int] | None,
     module = model.module
     keys = list(module.needs())
     if clip:
-        from training.inference import ClipFrames
+        from training.inference.loading import ClipFrames
         src = ClipFrames(clip, eps=model.demod_eps)
         spec = BatchSpec.for_model(module, targets=())
         inputs = frame_window(src, src.frames[-1], spec)
@@ -148,7 +148,7 @@ def recurrent_example_frames(model: InferenceModel, clip: str | None, hr_size,
     """``frames`` consecutive frames of inputs: the last ones of ``clip``, or random ones (moving content)."""
     module = model.module
     if clip:
-        from training.inference import ClipFrames
+        from training.inference.loading import ClipFrames
         src = ClipFrames(clip, eps=model.demod_eps)
         if len(src.frames) < frames:
             raise BlendSRError(f"{clip}: the check needs {frames} consecutive frames, the clip has {len(src.frames)}")
@@ -177,7 +177,7 @@ def state_size_rules(module) -> list[list[str]] | None:
     ``module.state_shapes`` at an LR size where every rule differs (13 x 22); None when one fits no rule."""
     import inspect
 
-    from training.onnx_infer import STATE_SIZES
+    from training.inference.onnx_infer import STATE_SIZES
     s = module.scale
     lr = (13, 22)
     hr = (13 * s, 22 * s)
@@ -196,7 +196,7 @@ def state_size_rules(module) -> list[list[str]] | None:
 
 
 def runtime_fields(model: InferenceModel, keys, lr_mod4=None) -> dict:
-    """What a runner without torch needs beside the graph (``training.onnx_infer``): the batch keys in the graph's
+    """What a runner without torch needs beside the graph (``training.inference.onnx_infer``): the batch keys in the graph's
     input order, the LR window, the demodulation eps, whether the graph takes any scale and the ground-truth pixel
     filter a ``remod_filter = "REFERENCE"`` model was exported with (None for any other) and, for RDG (its padding is
     fixed at export), the LR size's remainders modulo 4 (H, W) the graph serves (None: any LR size)."""

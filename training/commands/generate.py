@@ -1,4 +1,4 @@
-"""``python -m training.generate`` (``make generate``): rewrite every derived file of the repository in one command.
+"""``python -m training.commands.generate`` (``make generate``): rewrite every derived file of the repository in one command.
 
 Derived files are written from one source each and never edited by hand; a test per file fails when it is stale.
 This command runs every generator in order (``GENERATORS``); ``--check`` writes nothing and exits 1 naming each stale
@@ -21,12 +21,12 @@ from pathlib import Path
 
 
 def render_shells() -> dict[Path, str]:
-    from gbuffer_export.table_shells import derived_files
+    from gbuffer_export.commands.shells import derived_files
     return derived_files()
 
 
 def training_tables() -> dict[Path, str]:
-    from training.config_tables import derived_doc
+    from training.commands.config_tables import derived_doc
     from gbuffer_export.table_shells import CONFIG_DOC
     # the render-key block of the same file is the render shells' part: start from their text
     text = render_shells()[CONFIG_DOC]
@@ -34,15 +34,15 @@ def training_tables() -> dict[Path, str]:
 
 
 def model_tables() -> dict[Path, str]:
-    from training.buffer_table import model_buffer_table, model_scale_table
+    from training.commands.buffer_table import model_buffer_table, model_scale_table
     from gbuffer_export.dataset.buffers import TABLE_PATH
-    table = {"generated_by": "python -m training.buffer_table", "models": model_buffer_table(),
+    table = {"generated_by": "make generate", "models": model_buffer_table(),
              "scales": model_scale_table()}
     return {Path(TABLE_PATH): json.dumps(table, indent=1) + "\n"}
 
 
 def model_cards() -> dict[Path, str]:
-    from training.model_cards import cards
+    from training.commands.model_cards import cards
     return cards()
 
 
@@ -65,7 +65,7 @@ def derived() -> dict[Path, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m training.generate",
+    parser = argparse.ArgumentParser(prog="python -m training.commands.generate",
                                      description="Rewrite every derived file (render shells, training and model tables, "
                                                  "the results page) from its one source.")
     parser.add_argument("--check", action="store_true", help="write nothing; exit 1 naming each stale file")
