@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     p.add_argument("-o", dest="out", type=Path)
     a = p.parse_args(argv)
     from gbuffer_export.dataset.build import read_index, split_clips
-    from training.commands.bench_models import parse_models
+    from training.bench import parse_models
     from training.evaluate import EvalOptions, evaluate_model, group_means
     from training.inference.loading import load_model
 

@@ -41,7 +41,7 @@ def clip_groups(datasets: list[Path], split: str) -> dict[str, list[str]]:
 
 def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
     """``evaluate_model`` of every model on every group (the baseline scored once per group)."""
-    from training.commands.bench_models import _lacking
+    from training.bench import _lacking
     from training.evaluate import Baseline, EvalOptions, evaluate_model
     from training.inference.loading import load_model
     result: dict = {}
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.record and a.split != "val":
         p.error("--record takes the val split only (the test split never chooses or marks)")
-    from training.commands.bench_models import parse_models
+    from training.bench import parse_models
     if a.scores:
         result = json.loads(a.scores.read_text())
     else:

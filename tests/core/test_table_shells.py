@@ -10,8 +10,9 @@ from dataclasses import dataclass
 import pytest
 
 from gbuffer_export.config import CLI, CLIP_PANEL, DATASET_PANEL, SPEC, ConfigError, RenderConfig
-from gbuffer_export.table_shells import (add_arguments, derived_files, markdown_table, property_table, shell_keys,
-                                         value_from_text, values_from_args)
+from gbuffer_export.commands.shells import derived_files
+from gbuffer_export.table_shells import (add_arguments, markdown_table, property_table, shell_keys, value_from_text,
+                                         values_from_args)
 from gbuffer_export.typed_table import fields_of, from_table, option, set_checked
 
 

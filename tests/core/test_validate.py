@@ -308,7 +308,7 @@ CASES = {
     "motion-reprojection": (_motion_offset, ERROR, 2, "hr/motion"),
     "background-motion": (_background_motion_zero, ERROR, 2, "hr/motion"),
     # an imported NSS capture's HR depth is interpolated (nss_to_clip): its HR motion is said to be unchecked
-    "motion-unchecked": (lambda c: edit_manifest(c, lambda m: m.__setitem__(
+    "motion-unchecked": (lambda c: edit_header(c, lambda m: m.__setitem__(
         "imported", {"format": "nss", "hr_depth": "interpolated-from-lr"})), WARNING, None, "hr/motion"),
     # motion_next (validate/motion.py): the motion's corruptions, and a record without the next camera
     "motion-next-reprojection": (lambda c: _motion_offset(c, key="lr/motion_next", offset=(0.0, 0.5)), ERROR, 2,

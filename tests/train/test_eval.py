@@ -257,6 +257,7 @@ def test_onnx_export_of_a_model_that_remodulates_through_the_pixel_filter(name, 
 def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
     import argparse
 
+    from training import bench
     from training.commands import bench_models
     from training.inference.loading import ClipFrames, load_model, model_inputs
     p = argparse.ArgumentParser()
@@ -282,15 +283,15 @@ def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
     for h in hs:
         h.remove()
     assert rows[2]["macs_per_px"] == pytest.approx(sum(total) / (128 * 72), rel=1e-6)
-    assert bench_models.pareto_front([(1, 10), (2, 9), (3, 12), (0.5, 8)]) == [3, 0, 2]
+    assert bench.pareto_front([(1, 10), (2, 9), (3, 12), (0.5, 8)]) == [3, 0, 2]
     with pytest.raises(ValueError, match="learned"):
-        bench_models.parse_models("fusesr")
+        bench.parse_models("fusesr")
     # two runs whose model folders share a name keep two rows (labelled by path); one model twice is an error
     a, b = "runs/a/fusesr/checkpoints/last.pt", "runs/b/fusesr/checkpoints/last.pt"
-    assert bench_models.parse_models(f"fusesr:{a},fusesr:{b},fusesr:{a}?residual_clamp=none") == [
+    assert bench.parse_models(f"fusesr:{a},fusesr:{b},fusesr:{a}?residual_clamp=none") == [
         (f"fusesr ({a})", a), (f"fusesr ({b})", b), ("fusesr (fusesr?residual_clamp=none)", f"{a}?residual_clamp=none")]
     with pytest.raises(ValueError, match="given twice"):
-        bench_models.parse_models(f"demod-jbu,fusesr:{a},demod-jbu")
+        bench.parse_models(f"demod-jbu,fusesr:{a},demod-jbu")
 
 
 def test_models_table_is_listed(capsys):

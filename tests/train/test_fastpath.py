@@ -261,7 +261,7 @@ def test_cuda_fast_path_bf16_compiled_matches_the_cpu_fp32_reference(name):
 
 @cuda
 def test_bench_models_speed_mode_on_cuda(tmp_path):
-    from training.commands.bench_models import SpeedOptions, load_models, speed_benchmark
+    from training.bench import SpeedOptions, load_models, speed_benchmark
     models = load_models([("demod-jbu", "demod-jbu"), ("fusesr-fast", "fusesr-fast")], 4, fast=False)
     res = speed_benchmark([(label, m.to("cuda")) for label, m in models], tmp_path, SpeedOptions(
         size=(256, 128), precisions=("none", "bf16"), compiles=(False, True), warmup=2, repeats=3,

@@ -28,7 +28,7 @@ def _overlap(a, b) -> bool:
 @pytest.mark.parametrize("n_extra", [0, 10])
 def test_pareto_labels_never_overlap(tmp_path, n_extra):
     pytest.importorskip("matplotlib")
-    from training.commands.bench_models import BenchData, plot
+    from training.bench import BenchData, plot
     rows = _rows(n_extra)
     data = BenchData(["/d/clips/walk-00"], [(160, 88)], 4.0, 2, "cpu (test, 2 threads)", "fp32")
     out = plot(rows, tmp_path / "pareto.png", "cpu", data)
@@ -47,7 +47,7 @@ def test_pareto_labels_never_overlap(tmp_path, n_extra):
 
 def test_pareto_plot_states_its_data(tmp_path):
     pytest.importorskip("matplotlib")
-    from training.commands.bench_models import BenchData, plot
+    from training.bench import BenchData, plot
     clips = [make_synthetic_clip(tmp_path / "ds" / "clips" / f"c{i}", frames=(1, 2), hr_size=(64, 36), scale=4)
              for i in range(2)]
     result = {"scale": 4, "per_frame": [{}] * 4, "device": "cpu (test, 2 threads)",

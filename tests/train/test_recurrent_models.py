@@ -177,7 +177,7 @@ def test_onnx_export_carries_the_state_over_three_frames(name, clip, checkpoint,
 
 
 def test_bench_models_row(name, clip, checkpoint, tmp_path):
-    from training.commands.bench_models import BenchOptions, benchmark, load_models
+    from training.bench import BenchOptions, benchmark, load_models
     from training.inference.loading import load_model
     flip = name == "nsrr-fec"  # FLIP (the slow metric) and a baseline row beside the checkpoint, each for one model
     baseline = [("bicubic", "bicubic")] if name == "rdg-s" else []

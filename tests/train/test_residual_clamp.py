@@ -203,7 +203,7 @@ def test_trained_with_the_clamp_it_loads_with_it_and_a_checkpoint_takes_only_inf
         load_model(f"{ck_path}?width=16", 4)
     with pytest.raises(BlendSRError, match="expected MODEL\\?KEY=VALUE"):
         load_model(f"{ck_path}?lr-range", 4)
-    from training.commands.bench_models import load_models, parse_models  # NAME:CHECKPOINT?KEY=VALUE, as bench models reads
+    from training.bench import load_models, parse_models  # NAME:CHECKPOINT?KEY=VALUE, as bench models reads
     rows = load_models(parse_models(f"fusesr-l:{ck_path},fusesr-l:{ck_path}?residual_clamp=none"), 4, fast=False)
     assert [r[0] for r in rows] == ["fusesr-l (run)", "fusesr-l (run?residual_clamp=none)"]
     assert rows[0][1].module.clamp == 0.25 and rows[1][1].module.clamp is None

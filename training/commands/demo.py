@@ -46,7 +46,7 @@ class FineTuneStopped(KeyboardInterrupt):
 
 
 def run_training_demo(train_clips, test_clips, out, steps: int, model: str = "fusesr-l", threads: int = 0) -> dict:
-    from training.commands.bench_models import BenchOptions, benchmark, load_models
+    from training.bench import BenchOptions, benchmark, load_models
     from training.clip_sets import scale_of
     from training.device import set_threads
     from training.pretrained import available
