@@ -7,7 +7,7 @@ STAMP := $(VENV)/.setup-stamp
 export MALLOC_MMAP_THRESHOLD_ := 4294967296
 export MALLOC_TRIM_THRESHOLD_ := 68719476736
 
-.PHONY: setup test demo addon bench clean generate
+.PHONY: setup test test-heavy demo addon bench clean generate
 
 setup: $(STAMP)
 
@@ -47,8 +47,12 @@ $(DEMO_STAMP): pyproject.toml Makefile
 	@touch $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
+# make test: the suite without the cases over a minute (marked heavy); make test-heavy: those. CI runs both.
 test: setup
-	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15
+	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15 -m "not heavy"
+
+test-heavy: setup
+	$(VPY) -m pytest -q -n 2 --timeout 2400 --durations=15 -m heavy
 
 demo: $(DEMO_STAMP)
 	$(VPY) -m gbuffer_export.cli demo -o demo_out $(if $(THREADS),--threads $(THREADS))

@@ -54,14 +54,29 @@ def _rel(got, want):
     return float((got - want).abs().max()) / float(want.abs().max())
 
 
+#: Over a minute each on 2 busy cores (torch.compile, the Triton interpreter, shipped networks at size): run by
+#: ``make test-heavy``, which CI runs after ``make test``.
+heavy = pytest.mark.heavy
+
+
 @pytest.mark.parametrize("name,opts", CASES)
 def test_fused_hr_stage_matches_the_fp32_eager_reference(name, opts):
+    _fused_matches(name, opts, ("torch",))
+
+
+@heavy
+@pytest.mark.parametrize("name", ["demod-jbu", "fusesr-fast"])
+def test_compiled_fused_hr_stage_matches_the_fp32_eager_reference(name):
+    _fused_matches(name, {}, ("compiled",))
+
+
+def _fused_matches(name, opts, impls):
     torch.manual_seed(0)
     ref = build_model(ModelConfig.of(name, **opts), 4).eval()
     batch = _batch(ref)
     with torch.inference_mode():
         want = ref(batch)
-        for impl in ("torch", "compiled") if name in ("demod-jbu", "fusesr-fast") and not opts else ("torch",):
+        for impl in impls:
             fused = prepare_inference(copy.deepcopy(ref), path="fused")
             fused.module.hr_impl = impl
             got = forward(fused, batch)
@@ -88,7 +103,8 @@ def test_the_fused_stage_is_what_runs():
     assert len(calls) == 1 and calls[0].guided and calls[0].by_class and calls[0].remod and not calls[0].head
 
 
-@pytest.mark.parametrize("name", [n for n in MODELS if MODELS[n].learned])
+@pytest.mark.parametrize("name", [pytest.param(n, marks=heavy) if n in ("fusesr", "fusesr-l") else n
+                                  for n in MODELS if MODELS[n].learned])
 def test_bf16_weights_held_without_autocast_match_the_fp32_reference(name):
     torch.manual_seed(0)
     ref = build_model(ModelConfig.of(name), 4).eval()
@@ -220,11 +236,13 @@ def interpreted():
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+@heavy
 @pytest.mark.parametrize("k", range(len(SPECS)))
 def test_triton_kernels_match_the_torch_path_under_the_interpreter(interpreted, k):
     assert interpreted[0][k] <= 1e-6, (SPECS[k], interpreted[0][k])
 
 
+@heavy
 @pytest.mark.parametrize("k", range(len(COMPILED)))
 def test_triton_stage_runs_inside_torch_compile_as_one_operator(interpreted, k):
     assert interpreted[1][k] <= TOL["none"], (COMPILED[k], interpreted[1][k])
@@ -286,6 +304,7 @@ def test_cuda_fused_path_matches_the_cpu_fp32_reference(name):
         assert _rel(got, want) <= tol, (precision, comp, _rel(got, want))
 
 
+@heavy
 @pytest.mark.parametrize("name", ["fusesr-l", "fusesr-fast", "fusesr"])
 def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
     """A shipped network on a rendered-like synthetic clip frame: the fused path's output (fp32) is the reference
@@ -310,6 +329,7 @@ def test_shipped_weights_score_as_before_on_the_fused_path(name, tmp_path):
     assert abs(psnr[0] - psnr[1]) < 1e-3, psnr
 
 
+@heavy
 def test_bench_models_paths_side_by_side_with_kernels_and_the_reference_check(tmp_path, monkeypatch, capsys):
     import json
 
