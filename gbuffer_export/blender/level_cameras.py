@@ -45,6 +45,8 @@ LEVEL_KINDS = ("walk", "fly")
 #: motion is not the planned one (validate allows the declared speed + 2%). Far from the scene's origin a float32
 #: position is coarse (0.5 m at 5000 km): a level whose allowed region lies that far is refused before planning.
 FLOAT32_STEP_TOLERANCE = 0.01
+#: Why a path is refused when its region holds none of the level's floor (``floor_samples``).
+NO_FLOOR = "no floor in the region"
 #: Why a path is refused under ``min_sky_fraction`` (an eye under a roof).
 ROOF = "stands under a roof (sees no sky; the level is lit by the sky alone)"
 
@@ -238,6 +240,16 @@ def free_distance(geom: LevelGeometry, p: np.ndarray, dirs: np.ndarray) -> np.nd
     return dist
 
 
+def region_room(region: Region, p: np.ndarray, dirs: np.ndarray, ahead: float, n: int = 8) -> np.ndarray:
+    """Per direction: how far (up to ``ahead``) a move from ``p`` stays inside ``region``'s allowed cells, probed
+    at ``n`` points; the planner steers away from a cell's border before it must stop at it."""
+    t = ahead * (np.arange(1, n + 1) / n)
+    pts = p[None, None, :2] + t[None, :, None] * dirs[:, None, :2]
+    ok = region.contains(pts.reshape(-1, 2)).reshape(len(dirs), n)
+    first_out = np.where(ok.all(axis=1), n, np.argmin(ok, axis=1))
+    return np.where(first_out == n, ahead, np.where(first_out == 0, 0.0, t[np.maximum(first_out - 1, 0)]))
+
+
 def _heading_dirs(theta: np.ndarray, pitch: np.ndarray | float = 0.0) -> np.ndarray:
     theta = np.atleast_1d(theta)
     pitch = np.broadcast_to(pitch, theta.shape)
@@ -259,25 +271,76 @@ class _Smooth:
         return max(-1.0, min(1.0, self.v))
 
 
+#: Points drawn on the floor of a region (``floor_samples``), area-weighted, once per level and region.
+FLOOR_SAMPLES = 4000
+
+
+def _cells_box(region: Region) -> tuple[np.ndarray, np.ndarray]:
+    """The (x, y) box of ``region``'s allowed cells."""
+    lo, hi = np.array(region.lo, np.float64), np.array(region.hi, np.float64)
+    if region.cells is None:
+        return lo, hi
+    size = (hi - lo) / np.array([region.nx, region.ny])
+    c = np.array(region.cells, np.float64).reshape(-1, 2)
+    return lo + c.min(axis=0) * size, lo + (c.max(axis=0) + 1) * size
+
+
+def floor_samples(geom: LevelGeometry, region: Region) -> np.ndarray:
+    """(N, 3) points spread uniformly by area over the walkable surfaces (within 45 degrees of horizontal, either
+    side: a room modelled with outward normals has its floor facing down) inside
+    ``region``: of the level's content, or, where that has none there, of every object (a ground plane under
+    props). Each triangle is weighted by its area times the share of its box over the region's box, and points
+    outside the allowed cells are dropped, so a 2 km ground plane gives a room its floor without drowning it.
+    Drawn with a fixed seed and cached on ``geom``; empty when the region holds no floor."""
+    cache = geom.__dict__.setdefault("_floor_samples", {})
+    if region in cache:
+        return cache[region]
+    lo, hi = _cells_box(region)
+    tri = geom.mesh.triangles
+    tlo, thi = tri[:, :, :2].min(axis=1), tri[:, :, :2].max(axis=1)
+    span = np.maximum(thi - tlo, 1e-12)
+    share = np.prod(np.clip((np.minimum(thi, hi) - np.maximum(tlo, lo)) / span, 0.0, 1.0), axis=1)
+    share[np.all(thi - tlo <= 1e-12, axis=1)] = 1.0
+    weight = np.asarray(geom.mesh.area_faces, np.float64) * share * (np.abs(geom.normals[:, 2]) > WALKABLE_COS)
+    content = weight * geom._content_mask
+    weight = content if content.sum() > 0 else weight
+    out = np.zeros((0, 3))
+    if weight.sum() > 0:
+        rng = np.random.default_rng(0)
+        k = rng.choice(len(weight), size=FLOOR_SAMPLES, p=weight / weight.sum())
+        r1, r2 = rng.random(FLOOR_SAMPLES), rng.random(FLOOR_SAMPLES)
+        flip = r1 + r2 > 1
+        r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+        t = tri[k]
+        out = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+        out = out[region.contains(out[:, :2])]
+    cache[region] = out
+    return out
+
+
 def _start_points(geom, region: Region, rng, kind: str, rules: PathRules, n: int = 48):
-    """Candidate starting eyes (list of (3,) arrays) in the region, with their floor height."""
-    lo, hi = geom.content_bounds()
-    top = geom.bounds()[1][2] + geom.units(1.0)
+    """Candidate starting eyes (list of ((3,) eye, floor height)) seeded on the level's floor inside the region
+    (``floor_samples``), not on a grid over its box: a mostly empty, open or steep cell still gives starts where it
+    has floor. A walk's eye stands ``eye_height_m`` above its floor point when that floor is the first surface below
+    the eye (not a floor under a table); a fly's eye at a random height between ``min_fly_height_m`` above it and
+    the top of the content box."""
+    pts = floor_samples(geom, region)
+    if len(pts) == 0:
+        return []
+    hi = geom.content_bounds()[1]
     eye_h = geom.units(rules.eye_height_m)
     out = []
-    for xy in region.sample(rng, n):
-        floors = floors_below(geom, xy, top)
-        floors = floors[(floors >= lo[2] - geom.units(2.0)) & (floors <= hi[2])]
-        if len(floors) == 0:
-            continue
-        zf = float(floors[rng.integers(0, len(floors))])
+    for k in rng.choice(len(pts), size=min(n, len(pts)), replace=False):
+        x, y, zf = (float(v) for v in pts[k])
         if kind == "walk":
-            z = zf + eye_h
+            eye = np.array([x, y, zf + eye_h])
+            f = floor_under(geom, eye, eye_h * 1.01 + geom.units(0.01))
+            if f is None or abs(f - zf) > 1e-3 * eye_h:
+                continue
+            out.append((eye, zf))
         else:
             zmin = zf + geom.units(rules.min_fly_height_m)
-            zmax = max(zmin, hi[2])
-            z = float(rng.uniform(zmin, zmax))
-        out.append((np.array([xy[0], xy[1], z]), zf))
+            out.append((np.array([x, y, float(rng.uniform(zmin, max(zmin, hi[2])))]), zf))
     return out
 
 
@@ -292,6 +355,8 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     need = clearance + 0.5 * speed
     max_turn = math.radians(rules.max_turn_deg_s) / fps
     starts = _start_points(geom, region, rng, kind, rules)
+    if not starts:
+        return None, NO_FLOOR if len(floor_samples(geom, region)) == 0 else "no free standing point in the region"
     starts = [s for s in starts if _valid_eye(geom, s[0], need, rules)]
     if not starts:
         return None, "no free standing point in the region"
@@ -321,7 +386,8 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
         dirs = _heading_dirs(cand, pitch_move)
         free = free_distance(geom, p, dirs)
         pref = theta + max_turn * turn()
-        score = np.minimum(free, ahead) - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
+        room = np.minimum(free, region_room(region, p, dirs, ahead))  # the cell's border steers as a wall does
+        score = room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
         order = np.argsort(-score)
         moved = False
         for k in order:
