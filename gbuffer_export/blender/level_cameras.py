@@ -551,3 +551,55 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
     text = "; ".join(f"{k}: {v}" for k, v in ranked) or "no attempt"
     raise PathError(f"no {kind} path meets the rules after {rules.tries} tries ({text})",
                     ranked[0][0] if ranked else None)
+
+
+# ----------------------------------------------------------------------------------------------
+# A dataset clip's region: its cell, moved where the level has floor
+# ----------------------------------------------------------------------------------------------
+
+def clip_regions(geom: LevelGeometry, spec: dict) -> list[tuple[Region, dict | None]]:
+    """The ``Region``s a dataset clip may use, in order, each with the move the manifest records (None: its own
+    cell). ``spec``: the clip's ``region`` (``grid``, ``cell``, ``split``, ``cells`` per split) over the level's
+    content box. Its own cell first when that has floor (``floor_samples``), else the nearest cell of its split
+    that has; then every cell of its split with floor, for when no path fits in the first. A cell never leaves its
+    split, so a test cell's clips stay test clips."""
+    lo, hi = geom.content_bounds()
+    nx, ny = (int(v) for v in spec["grid"])
+
+    def region(cells) -> Region:
+        return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), nx, ny,
+                      tuple(tuple(int(v) for v in c) for c in cells))
+    cell = tuple(int(v) for v in spec["cell"])
+    split_cells = [tuple(int(v) for v in c) for c in (spec.get("cells") or {}).get(spec.get("split"), [])] or [cell]
+    floored = [c for c in split_cells if len(floor_samples(geom, region([c])))]
+    out: list[tuple[Region, dict | None]] = []
+    if cell in floored:
+        out.append((region([cell]), None))
+    elif floored:
+        near = min(floored, key=lambda c: ((c[0] - cell[0]) ** 2 + (c[1] - cell[1]) ** 2, c))
+        out.append((region([near]), {"from": list(cell), "to": [list(near)], "reason": NO_FLOOR + " of its cell"}))
+    else:
+        out.append((region([cell]), None))  # no floor in the split: the planner says so
+    if len(floored) > 1:
+        out.append((region(floored), {"from": list(cell), "to": [list(c) for c in floored],
+                                      "reason": "no path in the cell alone"}))
+    return out
+
+
+def plan_clip_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                   region: "Region | dict | None" = None, rules: PathRules = PathRules()) -> LevelPath:
+    """``plan_level_path`` for a clip: ``region`` a ``Region``, None (the whole level) or a dataset clip's region
+    spec, tried cell by cell (``clip_regions``); a path planned outside the clip's own cell records the move in
+    its report (``region_move``). PathError of the last region tried when none holds a path."""
+    tries = clip_regions(geom, region) if isinstance(region, dict) else [(region, None)]
+    for k, (reg, move) in enumerate(tries):
+        try:
+            path = plan_level_path(geom, kind, n_frames, fps, seed, fov, reg, rules)
+        except PathError:
+            if k == len(tries) - 1:
+                raise
+            continue
+        if move is not None:
+            path.report["region_move"] = move
+        return path
+    raise AssertionError("unreachable")

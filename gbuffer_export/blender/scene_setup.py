@@ -92,23 +92,6 @@ def scene_fps(scene) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
 
 
-def level_regions(geom, spec: dict) -> list:
-    """The ``Region``s a dataset clip may use, in order: its cell ``spec["cell"]`` of a ``spec["grid"]`` grid over
-    the level's content box (x, y), then every cell of its split (``spec["cells"][spec["split"]]``)."""
-    from .level_cameras import Region
-    lo, hi = geom.content_bounds()
-    nx, ny = spec["grid"]
-
-    def region(cells):
-        return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), int(nx), int(ny),
-                      tuple(tuple(int(v) for v in c) for c in cells))
-    out = [region([spec["cell"]])]
-    split_cells = (spec.get("cells") or {}).get(spec.get("split"), [])
-    if len(split_cells) > 1:
-        out.append(region(split_cells))
-    return out
-
-
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
                       unit_scale="auto", geom=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
@@ -116,7 +99,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``); its metres per unit
     are ``unit_scale`` ("auto": detected, ``level_scale``)."""
     from .camera_paths import half_fov, key_look_at
-    from .level_cameras import PathError, PathRules, plan_level_path
+    from .level_cameras import PathRules, plan_clip_path
     from .level_geometry import from_scene
     from .level_scale import resolve_unit_scale
 
@@ -126,15 +109,8 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     geom = geom if geom is not None else from_scene(scene, start)
     unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
-    regions = level_regions(geom, region) if isinstance(region, dict) else [region]
-    for k, reg in enumerate(regions):
-        try:
-            path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, (hfov, vfov), reg,
-                                   rules or PathRules())
-            break
-        except PathError:
-            if k == len(regions) - 1:
-                raise
+    path = plan_clip_path(geom, kind, end - start + 2, scene_fps(scene), seed, (hfov, vfov), region,
+                          rules or PathRules())
     key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
     lo, hi = geom.bounds()
     cam.data.clip_start = geom.units(0.05)
