@@ -603,3 +603,105 @@ def plan_clip_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, se
             path.report["region_move"] = move
         return path
     raise AssertionError("unreachable")
+
+
+# ----------------------------------------------------------------------------------------------
+# The level's unit checked on the planned views
+# ----------------------------------------------------------------------------------------------
+
+#: The most a walk's median view depth (metres, the median over its frames) may be in a level with ceilings (an
+#: interior: ``level_scale``'s headroom cue) and in any level; a walk that sees further was planned in a wrong unit
+#: (a Cube map read in metres sees 138-260 m).
+INTERIOR_MAX_VIEW_M = 40.0
+MAX_VIEW_M = 250.0
+
+
+def implausible_view(path: LevelPath, unit: dict) -> str | None:
+    """Why ``path``'s views say the level's unit is wrong (None when they do not): a walk whose median view depth
+    is beyond ``INTERIOR_MAX_VIEW_M`` in an interior or ``MAX_VIEW_M`` anywhere."""
+    depth = float(path.report["median_depth_m"])
+    interior = "headroom" in unit.get("used", ())
+    limit = INTERIOR_MAX_VIEW_M if interior else MAX_VIEW_M
+    if path.kind == "walk" and depth > limit:
+        return (f"the walk's views see {depth:.0f} m (median), more than {limit:g} m "
+                f"{'inside an interior' if interior else 'on foot'}")
+    return None
+
+
+def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int,
+                      fov: tuple[float, float], region=None, rules: PathRules = PathRules(), unit_scale="auto",
+                      source=None) -> tuple[LevelPath, dict]:
+    """The level's unit (``level_scale.resolve_unit_scale``) and a clip's path in it (``plan_clip_path``): the
+    renderer and ``blendsr dataset --dry-run`` plan through this one function. With ``unit_scale`` "auto" the unit
+    is checked on the planned views (``implausible_view``): a wrong one gives way to the next candidate by score
+    whose path looks right. Returns (path, the unit's record for the manifest: cues, scores, choice and the
+    ``view_check``). ``source``: the level's file (its engine line names its unit)."""
+    from .level_scale import UNITS, resolve_unit_scale
+    unit = resolve_unit_scale(geom, unit_scale, source)
+    path = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+    if unit_scale != "auto":
+        return path, unit
+    why = implausible_view(path, unit)
+    check = {"median_depth_m": path.report["median_depth_m"], "plausible": why is None, "rejected": []}
+    if why is not None:
+        first = (path, unit["metres_per_unit"])
+        order = sorted(unit.get("scores", {}), key=lambda k: -unit["scores"][k])
+        mpu_of = {**UNITS, "declared": unit.get("declared")}
+        check["rejected"].append({"unit": unit["unit"], "why": why})
+        for name in order[1:3]:
+            geom.metres_per_unit = float(mpu_of[name])
+            try:
+                other = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+            except PathError as exc:
+                check["rejected"].append({"unit": name, "why": str(exc)})
+                continue
+            why = implausible_view(other, unit)
+            if why is None:
+                path = other
+                unit = {**unit, "unit": name, "metres_per_unit": geom.metres_per_unit, "chosen_by": "view check"}
+                check.update(median_depth_m=other.report["median_depth_m"], plausible=True)
+                break
+            check["rejected"].append({"unit": name, "why": why})
+        else:
+            path, geom.metres_per_unit = first
+    unit["view_check"] = check
+    return path, unit
+
+
+def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                region=None, rules: PathRules = PathRules(), unit: dict | None = None) -> str:
+    """A fix that works for a clip that has no path: each alternative is planned, in order (the other camera kind
+    in the same region, the same kind over the whole level: fewer regions, then the next units by score: a
+    ``unit_scale``), and the first that gives a path is named. A single object (no floor anywhere, one object) is
+    framed by orbit; otherwise the one-line advice says none of them works."""
+    if len(floor_samples(geom, Region(*_whole(geom)))) == 0:
+        objs = len(np.unique(geom.owner))
+        return (f"the scene is {'a single object' if objs == 1 else f'{objs} objects'} with no floor: walk and fly "
+                "cannot be planned on it; use the camera orbit")
+    other = "fly" if kind == "walk" else "walk"
+    tries = [(f"use the camera {other} for this clip", other, region, None)]
+    if region is not None:
+        tries.append(('use fewer regions (regions = "1x1"): the whole level has a path', kind, None, None))
+    scores = (unit or {}).get("scores") or {}
+    from .level_scale import UNITS
+    for name in sorted(scores, key=lambda k: -scores[k])[1:3]:
+        if name in UNITS:
+            tries.append((f"set unit_scale = {UNITS[name]:g} ({name}): the level has a path in that unit", kind,
+                          region, UNITS[name]))
+    keep = geom.metres_per_unit
+    try:
+        for text, k, reg, mpu in tries:
+            geom.metres_per_unit = keep if mpu is None else mpu
+            try:
+                plan_clip_path(geom, k, n_frames, fps, seed, fov, reg, rules)
+            except PathError:
+                continue
+            return text
+    finally:
+        geom.metres_per_unit = keep
+    return "no other camera kind, region or unit gives a path: use cameras scene:NAME (the file's own camera)"
+
+
+def _whole(geom: LevelGeometry):
+    lo, hi = geom.content_bounds()
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))

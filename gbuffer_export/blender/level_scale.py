@@ -41,8 +41,19 @@ import numpy as np
 
 from .level_geometry import LevelGeometry
 
-#: Candidate units (metres per unit), besides the file's declared one.
-UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01}
+#: Candidate units (metres per unit), besides the file's declared one: "cube" is the unit of the Cube 2 engine
+#: family (Sauerbraten, Tesseract, Red Eclipse: a player 15 units tall, eye 14 units above the feet, so about
+#: 0.12 m); Quake's is about an inch (a player 56 units tall).
+UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01, "cube": 0.12, "km": 1000.0}
+#: Log-prior of the rarer candidates: a level is read in them only when its cues say so by a clear margin (a
+#: jungle's canopy reads as a 14 m ceiling, which Cube units would make a 1.7 m one).
+UNIT_PRIOR = {"cube": -2.0, "km": -2.0}
+#: Text a level file opens with that names the engine it was exported from -> (unit name, metres per unit, why).
+#: A file that names its engine declares its unit as a .blend's unit scale does (``DECLARED_BONUS``).
+ENGINE_SIGNATURES = {
+    "of cube 2 level": ("cube", 0.12, "written by the Cube 2 engine family's /writeobj (Sauerbraten, Tesseract, "
+                                      "Red Eclipse): a player's eye stands 14 units above its feet"),
+}
 #: cue -> (typical metres, sigma of its natural log).
 CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5)}
 DECLARED_BONUS = 4.5
@@ -140,20 +151,44 @@ def detect_unit_scale(geom: LevelGeometry, declared: float | None = None) -> dic
     names = {**UNITS}
     if not any(math.isclose(declared, u, rel_tol=1e-9) for u in UNITS.values()):
         names["declared"] = declared
-    scores = {k: _score(cues, u, use) + (DECLARED_BONUS if math.isclose(u, declared, rel_tol=1e-9) else 0.0)
-              for k, u in names.items()}
+    scores = {k: _score(cues, u, use) + (DECLARED_BONUS if math.isclose(u, declared, rel_tol=1e-9) else
+                                         UNIT_PRIOR.get(k, 0.0)) for k, u in names.items()}
     best = max(scores, key=scores.get) if use else next(k for k, u in names.items() if
                                                         math.isclose(u, declared, rel_tol=1e-9))
     return {"metres_per_unit": names[best], "unit": best, "declared": declared, "cues": cues, "used": list(use),
             "scores": {k: round(v, 3) for k, v in scores.items()}}
 
 
-def resolve_unit_scale(geom: LevelGeometry, unit_scale) -> dict:
+def engine_unit(path) -> dict | None:
+    """The unit a text level file (an OBJ) names by its engine in its first lines (``ENGINE_SIGNATURES``):
+    ``{"unit", "metres_per_unit", "engine_line", "why"}``, or None (a binary or unknown file)."""
+    from pathlib import Path
+    try:
+        with open(Path(path), "rb") as f:
+            head = f.read(4096).decode("utf-8", errors="replace")
+    except (OSError, TypeError):
+        return None
+    for line in head.splitlines()[:20]:
+        low = line.strip().lower()
+        if not low.startswith("#"):
+            continue
+        for sig, (name, mpu, why) in ENGINE_SIGNATURES.items():
+            if sig in low:
+                return {"unit": name, "metres_per_unit": mpu, "engine_line": line.strip(), "why": why}
+    return None
+
+
+def resolve_unit_scale(geom: LevelGeometry, unit_scale, source=None) -> dict:
     """Set ``geom.metres_per_unit`` from ``unit_scale`` (``RenderConfig.unit_scale``: "auto" detects it, a
-    number is taken as given) and return the manifest's record of it."""
+    number is taken as given) and return the manifest's record of it. ``source``: the level's file, whose engine
+    line (``engine_unit``) declares its unit where the file format has no unit of its own."""
     declared = float(geom.metres_per_unit)
     if unit_scale == "auto":
-        out = {"requested": "auto", **detect_unit_scale(geom, declared)}
+        engine = engine_unit(source) if source is not None else None
+        if engine is not None:
+            declared = engine["metres_per_unit"]
+        out = {"requested": "auto", **detect_unit_scale(geom, declared),
+               **({"engine": engine} if engine is not None else {})}
     else:
         out = {"requested": float(unit_scale), "metres_per_unit": float(unit_scale), "declared": declared}
     geom.metres_per_unit = float(out["metres_per_unit"])

@@ -93,24 +93,21 @@ def scene_fps(scene) -> float:
 
 
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
-                      unit_scale="auto", geom=None):
+                      unit_scale="auto", geom=None, source=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
     returns (camera, report for the manifest). ``geom``: the level's geometry (default: every renderable object
     at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``); its metres per unit
-    are ``unit_scale`` ("auto": detected, ``level_scale``)."""
+    are ``unit_scale`` ("auto": detected, ``level_scale``, and checked on the planned views; ``source``: the
+    level's file)."""
     from .camera_paths import half_fov, key_look_at
-    from .level_cameras import PathRules, plan_clip_path
     from .level_geometry import from_scene
-    from .level_scale import resolve_unit_scale
 
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
     geom = geom if geom is not None else from_scene(scene, start)
-    unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
-    path = plan_clip_path(geom, kind, end - start + 2, scene_fps(scene), seed, (hfov, vfov), region,
-                          rules or PathRules())
+    path, unit = plan_scene_path(scene, geom, kind, frames, seed, (hfov, vfov), region, rules, unit_scale, source)
     key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
     lo, hi = geom.bounds()
     cam.data.clip_start = geom.units(0.05)
@@ -121,6 +118,16 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     scene.frame_set(start)
     return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
                  "triangles": geom.n_triangles, "unit_scale": unit}
+
+
+def plan_scene_path(scene, geom, kind: str, frames: tuple[int, int], seed: int, fov, region=None, rules=None,
+                    unit_scale="auto", source=None):
+    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_level_camera``): what
+    ``make_level_camera`` keys and ``blendsr dataset --dry-run`` reports, planned the same way."""
+    from .level_cameras import PathRules, plan_level_camera
+    start, end = int(frames[0]), int(frames[1])
+    return plan_level_camera(geom, kind, end - start + 2, scene_fps(scene), seed, fov, region, rules or PathRules(),
+                             unit_scale, source)
 
 
 #: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).
