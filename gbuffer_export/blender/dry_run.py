@@ -39,7 +39,7 @@ def plan_job(job, cache: dict, tmp: Path) -> dict:
     from .dataset_job import render_config
     from .level_cameras import PathError, suggest_fix
     from .render import level_rules, resolve_frames
-    from .scene_setup import ensure_level_camera, plan_scene_path, scene_fps
+    from .scene_setup import ensure_level_camera, plan_scene_path, scene_fps, spawn_points
     cfg = render_config(job, tmp / job.id)
     rec = {"id": job.id, "camera": job.camera, "scene": Path(job.asset).name,
            "cell": job.region["cell"] if job.region else None}
@@ -57,7 +57,7 @@ def plan_job(job, cache: dict, tmp: Path) -> dict:
     except PathError as exc:
         from .level_scale import resolve_unit_scale
         geom.metres_per_unit = declared
-        unit = resolve_unit_scale(geom, cfg.unit_scale, cfg.scene)
+        unit = resolve_unit_scale(geom, cfg.unit_scale, cfg.scene, spawn_points(scene))
         fix = suggest_fix(geom, job.camera, len(frames) + 1, scene_fps(scene), cfg.seed, fov, region, rules, unit)
         return {**rec, "ok": False, "reason": str(exc), "fix": fix, "unit": unit.get("unit"),
                 "metres_per_unit": unit["metres_per_unit"]}

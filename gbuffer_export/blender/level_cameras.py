@@ -159,10 +159,11 @@ def view_dirs(forward: np.ndarray, hfov: float, vfov: float, nx: int = 16, ny: i
 
 def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov: float, vfov: float) -> dict:
     """Per frame: background fraction (rays missing or beyond the extent), median depth along the view axis of the
-    rays that hit (metres; inf when none does), the share of rays on walls and objects (``structure``) and the
+    rays that hit (metres; inf when none does) and their 90th percentile (``far_depth_m``: how far the view
+    reaches), the share of rays on walls and objects (``structure``) and the
     view's depth p90/p10 with background counted as infinitely far (``depth_ratio``: validate's ``flat-view``
     measure on the ray grid; 1 when nothing is hit)."""
-    bg, med, steep, ratio = [], [], [], []
+    bg, med, steep, ratio, far = [], [], [], [], []
     for e, t in zip(eyes, targets):
         f = (t - e) / np.linalg.norm(t - e)
         d = view_dirs(f, hfov, vfov)
@@ -171,12 +172,13 @@ def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov:
         bg.append(1.0 - hit.mean())
         z = dist[hit] * (d[hit] @ f)
         med.append(float(np.median(z)) * geom.metres_per_unit if hit.any() else math.inf)
+        far.append(float(np.quantile(z, 0.9)) * geom.metres_per_unit if hit.any() else math.inf)
         steep.append(float((np.abs(geom.normals[tri[hit]][:, 2]) < WALKABLE_COS).sum()) / len(d))
         zall = np.where(hit, dist * (d @ f), np.inf)
         p10, p90 = np.quantile(zall, [0.1, 0.9], method="nearest")
         ratio.append(float(p90 / p10) if math.isfinite(p10) and p10 > 0 else 1.0)
     return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep),
-            "depth_ratio": np.array(ratio)}
+            "depth_ratio": np.array(ratio), "far_depth_m": np.array(far)}
 
 
 def near_far_fraction(depth_ratio: np.ndarray) -> float:
@@ -514,6 +516,7 @@ def _candidates(draw: _Drawing, rules: PathRules, reasons: dict[str, int]) -> li
                                                                                       kind == "walk" else 1.0),
                   "clearance_m": float(clear.min()), "min_clearance_rule_m": rules.clearance_m,
                   "median_depth_m": float(np.median(vs["median_depth_m"])),
+                  "far_depth_m": float(np.median(vs["far_depth_m"])),
                   "background_fraction_max": float(vs["background"].max()),
                   "background_fraction_mean": float(vs["background"].mean()),
                   "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
@@ -617,32 +620,34 @@ MAX_VIEW_M = 250.0
 
 
 def implausible_view(path: LevelPath, unit: dict) -> str | None:
-    """Why ``path``'s views say the level's unit is wrong (None when they do not): a walk whose median view depth
-    is beyond ``INTERIOR_MAX_VIEW_M`` in an interior or ``MAX_VIEW_M`` anywhere."""
-    depth = float(path.report["median_depth_m"])
+    """Why ``path``'s views say the level's unit is wrong (None when they do not): a walk whose views reach
+    (``far_depth_m``: the 90th percentile of the view depth, the median over frames) beyond ``INTERIOR_MAX_VIEW_M``
+    in an interior or ``MAX_VIEW_M`` anywhere."""
+    depth = float(path.report["far_depth_m"])
     interior = "headroom" in unit.get("used", ())
     limit = INTERIOR_MAX_VIEW_M if interior else MAX_VIEW_M
     if path.kind == "walk" and depth > limit:
-        return (f"the walk's views see {depth:.0f} m (median), more than {limit:g} m "
+        return (f"the walk's views reach {depth:.0f} m, more than {limit:g} m "
                 f"{'inside an interior' if interior else 'on foot'}")
     return None
 
 
 def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int,
                       fov: tuple[float, float], region=None, rules: PathRules = PathRules(), unit_scale="auto",
-                      source=None) -> tuple[LevelPath, dict]:
+                      source=None, spawns=None) -> tuple[LevelPath, dict]:
     """The level's unit (``level_scale.resolve_unit_scale``) and a clip's path in it (``plan_clip_path``): the
     renderer and ``blendsr dataset --dry-run`` plan through this one function. With ``unit_scale`` "auto" the unit
     is checked on the planned views (``implausible_view``): a wrong one gives way to the next candidate by score
     whose path looks right. Returns (path, the unit's record for the manifest: cues, scores, choice and the
-    ``view_check``). ``source``: the level's file (its engine line names its unit)."""
+    ``view_check``). ``source``: the level's file (its engine line names its unit); ``spawns``: its spawn points'
+    positions."""
     from .level_scale import UNITS, resolve_unit_scale
-    unit = resolve_unit_scale(geom, unit_scale, source)
+    unit = resolve_unit_scale(geom, unit_scale, source, spawns)
     path = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
     if unit_scale != "auto":
         return path, unit
     why = implausible_view(path, unit)
-    check = {"median_depth_m": path.report["median_depth_m"], "plausible": why is None, "rejected": []}
+    check = {"far_depth_m": path.report["far_depth_m"], "plausible": why is None, "rejected": []}
     if why is not None:
         first = (path, unit["metres_per_unit"])
         order = sorted(unit.get("scores", {}), key=lambda k: -unit["scores"][k])
@@ -659,7 +664,7 @@ def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float,
             if why is None:
                 path = other
                 unit = {**unit, "unit": name, "metres_per_unit": geom.metres_per_unit, "chosen_by": "view check"}
-                check.update(median_depth_m=other.report["median_depth_m"], plausible=True)
+                check.update(far_depth_m=other.report["far_depth_m"], plausible=True)
                 break
             check["rejected"].append({"unit": name, "why": why})
         else:

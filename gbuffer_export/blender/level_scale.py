@@ -55,11 +55,14 @@ ENGINE_SIGNATURES = {
                                       "Red Eclipse): a player's eye stands 14 units above its feet"),
 }
 #: cue -> (typical metres, sigma of its natural log).
-CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5)}
+CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5),
+        "spawn": (1.5, 0.3)}
+#: Object names of spawn points (player starts) in a level file: their height over the floor below is a person's.
+SPAWN_NAMES = r"spawn|player.?start|info_player|start.?point"
 DECLARED_BONUS = 4.5
 COLUMNS = 48
 MIN_COVERED = 24
-MIN_COVERED_FRACTION = 0.1
+MIN_COVERED_FRACTION = 0.15
 MIN_OBJECTS = 8
 FLAT_COS = math.cos(math.radians(45.0))  # level_cameras.WALKABLE_COS: a surface within 45 degrees of horizontal
 
@@ -113,6 +116,16 @@ def measure_cues(geom: LevelGeometry, n: int = COLUMNS) -> dict:
             "extent_units": float(geom.extent)}
 
 
+def spawn_heights(geom: LevelGeometry, points) -> list[float]:
+    """The height (scene units) of each spawn point (``points``: (N, 3) positions) over the first surface below
+    it; points with nothing below, or on it, are left out."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return []
+    dist, tri = geom.first_hits(pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)))
+    return [float(d) for d, t in zip(dist, tri) if t >= 0 and d > 1e-6 * max(geom.extent, 1e-9)]
+
+
 def _object_sizes(geom: LevelGeometry) -> np.ndarray:
     """The box diagonal of each object (``geom.owner``) that does not enclose the others, in scene units."""
     keep = geom._content_mask
@@ -137,15 +150,20 @@ def _score(cues: dict, unit: float, use: tuple[str, ...]) -> float:
     return s
 
 
-def detect_unit_scale(geom: LevelGeometry, declared: float | None = None) -> dict:
+def detect_unit_scale(geom: LevelGeometry, declared: float | None = None, spawns=None) -> dict:
     """The level's metres per unit (module doc) and the evidence: ``{"metres_per_unit", "unit", "declared",
-    "cues", "used", "scores"}``. ``declared``: the file's own unit (default: ``geom.metres_per_unit``)."""
+    "cues", "used", "scores"}``. ``declared``: the file's own unit (default: ``geom.metres_per_unit``);
+    ``spawns``: positions (N, 3) of the file's spawn points (``SPAWN_NAMES``), whose median height over the floor
+    is the ``spawn`` cue."""
     declared = float(geom.metres_per_unit if declared is None else declared)
     cues = measure_cues(geom)
+    heights = spawn_heights(geom, spawns) if spawns is not None else []
+    cues.update(spawns=len(heights), spawn_units=float(np.median(heights)) if heights else None)
     has_headroom = (cues["headroom_units"] is not None and cues["covered_floors"] >= MIN_COVERED
                     and cues["covered_fraction"] >= MIN_COVERED_FRACTION)
     use = tuple(k for k, ok in (("headroom", has_headroom), ("objects", cues["objects_units"] is not None),
                                 ("height", cues["height_units"] is not None),
+                                ("spawn", cues["spawn_units"] is not None),
                                 ("extent", not has_headroom and cues["objects_units"] is None
                                  and cues["extent_units"] > 0)) if ok)
     names = {**UNITS}
@@ -178,16 +196,17 @@ def engine_unit(path) -> dict | None:
     return None
 
 
-def resolve_unit_scale(geom: LevelGeometry, unit_scale, source=None) -> dict:
+def resolve_unit_scale(geom: LevelGeometry, unit_scale, source=None, spawns=None) -> dict:
     """Set ``geom.metres_per_unit`` from ``unit_scale`` (``RenderConfig.unit_scale``: "auto" detects it, a
     number is taken as given) and return the manifest's record of it. ``source``: the level's file, whose engine
-    line (``engine_unit``) declares its unit where the file format has no unit of its own."""
+    line (``engine_unit``) declares its unit where the file format has no unit of its own; ``spawns``: its
+    spawn points' positions (``detect_unit_scale``)."""
     declared = float(geom.metres_per_unit)
     if unit_scale == "auto":
         engine = engine_unit(source) if source is not None else None
         if engine is not None:
             declared = engine["metres_per_unit"]
-        out = {"requested": "auto", **detect_unit_scale(geom, declared),
+        out = {"requested": "auto", **detect_unit_scale(geom, declared, spawns),
                **({"engine": engine} if engine is not None else {})}
     else:
         out = {"requested": float(unit_scale), "metres_per_unit": float(unit_scale), "declared": declared}

@@ -127,7 +127,16 @@ def plan_scene_path(scene, geom, kind: str, frames: tuple[int, int], seed: int, 
     from .level_cameras import PathRules, plan_level_camera
     start, end = int(frames[0]), int(frames[1])
     return plan_level_camera(geom, kind, end - start + 2, scene_fps(scene), seed, fov, region, rules or PathRules(),
-                             unit_scale, source)
+                             unit_scale, source, spawn_points(scene))
+
+
+def spawn_points(scene) -> list:
+    """World positions of the file's spawn points: objects named as a game names its player starts
+    (``level_scale.SPAWN_NAMES``); their height over the floor is a unit cue."""
+    import re
+    from .level_scale import SPAWN_NAMES
+    return [tuple(ob.matrix_world.translation) for ob in scene.objects
+            if re.search(SPAWN_NAMES, ob.name, re.I) and not ob.name.startswith("BlendSR ")]
 
 
 #: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).
