@@ -673,16 +673,23 @@ def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float,
     return path, unit
 
 
+#: A scene of one object smaller than this (metres across, in its detected unit) is an object, not a level.
+SINGLE_OBJECT_M = 20.0
+
+
 def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
                 region=None, rules: PathRules = PathRules(), unit: dict | None = None) -> str:
     """A fix that works for a clip that has no path: each alternative is planned, in order (the other camera kind
     in the same region, the same kind over the whole level: fewer regions, then the next units by score: a
-    ``unit_scale``), and the first that gives a path is named. A scene with no floor, or a single small object
-    (under 20 m) where none works, is framed by orbit; otherwise the advice is the file's own camera."""
+    ``unit_scale``), and the first that gives a path is named. A scene with no floor, or a single object under
+    ``SINGLE_OBJECT_M`` across, is framed by orbit; where nothing works, the advice is the file's own camera."""
     if len(floor_samples(geom, Region(*_whole(geom)))) == 0:
         objs = len(np.unique(geom.owner))
         return (f"the scene is {'a single object' if objs == 1 else f'{objs} objects'} with no floor: walk and fly "
                 "cannot be planned on it; use the camera orbit")
+    if len(np.unique(geom.owner)) == 1 and geom.extent * geom.metres_per_unit < SINGLE_OBJECT_M:
+        return ("the scene is a single object, nothing a camera moves inside: walk and fly find no path on it; "
+                "use the camera orbit")
     other = "fly" if kind == "walk" else "walk"
     tries = [(f"use the camera {other} for this clip", other, region, None)]
     if region is not None:
@@ -704,9 +711,6 @@ def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed:
             return text
     finally:
         geom.metres_per_unit = keep
-    if len(np.unique(geom.owner)) == 1 and geom.extent * geom.metres_per_unit < 20.0:
-        return ("the scene is a single object, nothing a camera moves inside: walk and fly find no path on it; "
-                "use the camera orbit")
     return "no other camera kind, region or unit gives a path: use cameras scene:NAME (the file's own camera)"
 
 

@@ -46,8 +46,9 @@ from .level_geometry import LevelGeometry
 #: 0.12 m); Quake's is about an inch (a player 56 units tall).
 UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01, "cube": 0.12, "km": 1000.0}
 #: Log-prior of the rarer candidates: a level is read in them only when its cues say so by a clear margin (a
-#: jungle's canopy reads as a 14 m ceiling, which Cube units would make a 1.7 m one).
-UNIT_PRIOR = {"cube": -2.0, "km": -2.0}
+#: jungle's canopy reads as a 14 m ceiling, which Cube units would make a 1.7 m one; a 26 cm bottle, whose size
+#: alone says little, would be a 260 m tower in kilometres).
+UNIT_PRIOR = {"cube": -2.0, "km": -8.0}
 #: Text a level file opens with that names the engine it was exported from -> (unit name, metres per unit, why).
 #: A file that names its engine declares its unit as a .blend's unit scale does (``DECLARED_BONUS``).
 ENGINE_SIGNATURES = {

@@ -93,7 +93,7 @@ def _dry_run_plan(jobs, skip: bool) -> int:
     from ..blender.dry_run import describe, plan_jobs
     recs = plan_jobs(todo)
     for rec in recs:
-        if not rec["ok"] and "no floor" in rec["fix"]:
+        if not rec["ok"] and "orbit" in rec["fix"]:  # a single object: walk and fly cannot be planned on it
             logging.getLogger(__name__).warning("blendsr: %s: %s", rec["scene"], rec["fix"])
         print(describe(rec))
     bad = sum(not r["ok"] for r in recs)
