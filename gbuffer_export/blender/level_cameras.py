@@ -363,9 +363,11 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     if not starts:
         return None, "no free standing point in the region"
     p, zf = starts[0]
-    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter).
+    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter), the
+    # region's border counting as a wall.
     thetas = np.linspace(0, 2 * math.pi, 24, endpoint=False)
     free = free_distance(geom, p, _heading_dirs(thetas))
+    free = np.minimum(free, region_room(region, p, _heading_dirs(thetas), min(geom.extent, 64 * speed), 32))
     best = np.argsort(-np.minimum(free, geom.extent))[:6]
     theta = float(thetas[rng.choice(best)]) + float(rng.uniform(-0.1, 0.1))
     climb = 0.0
@@ -375,6 +377,7 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     lo_c, hi_c = geom.content_bounds()
     eyes, looks = [p.copy()], []
     ahead = max(geom.units(1.5), 12 * speed)
+    border_ahead = max(ahead, 2.5 * speed / max(max_turn, 1e-9))  # a U-turn's width at the bounded turn rate
     for i in range(n):
         # look direction for the current eye
         pitch = math.radians(rules.pitch_deg[0] + (rules.pitch_deg[1] - rules.pitch_deg[0]) * 0.5 * (look_pitch() + 1))
@@ -388,8 +391,14 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
         dirs = _heading_dirs(cand, pitch_move)
         free = free_distance(geom, p, dirs)
         pref = theta + max_turn * turn()
-        room = np.minimum(free, region_room(region, p, dirs, ahead))  # the cell's border steers as a wall does
-        score = room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
+        border = region_room(region, p, dirs, border_ahead)
+        room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)
+        if free[3] < ahead or border[3] < border_ahead:  # a wall or the cell's border ahead: turn at full rate
+            # towards the more open side
+            side = _heading_dirs(theta + np.array([-1.0, 1.0]) * math.radians(60.0), pitch_move)
+            open_ = np.minimum(free_distance(geom, p, side), region_room(region, p, side, border_ahead))
+            pref = theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
+        score = room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)  # the cell's border: a wall
         order = np.argsort(-score)
         moved = False
         for k in order:

@@ -125,3 +125,16 @@ def test_a_single_object_is_told_to_use_orbit():
     assert bottom_up.any()  # a sphere has near-horizontal faces at its poles: they are floor samples...
     fix = suggest_fix(g, "walk", 9, FPS, 0, (HFOV, VFOV), None, PathRules(tries=3))
     assert "orbit" in fix  # ...but nothing plans on them, and the advice for one object is orbit
+
+
+def test_a_long_walk_turns_before_its_cells_border():
+    """A 3.5 s walk (85 frames, 4.8 m) in 11 x 6 m cells of a room: a walker that turns at most 45 degrees a second
+    needs 3.6 m for a U-turn, so it must turn before the border, which steers as a wall does (the issue's city:
+    'walked into a dead end' in its 2 x 2 cells)."""
+    from tests.render.test_level_cameras import _room
+    g = _room(size=(24.0, 18.0, 3.0))
+    lo, hi = g.content_bounds()
+    for cell in [(1, 0), (1, 1)]:
+        r = Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), 2, 2, (cell,))
+        p = plan_clip_path(g, "walk", 85, FPS, 3, (HFOV, VFOV), r, PathRules(tries=20))
+        assert r.contains(p.eyes[:, :2]).all()
