@@ -142,11 +142,15 @@ def refusals(args: dict) -> dict:
 
 
 def units(args: dict) -> dict:
-    from gbuffer_export.blender.level_scale import detect_unit_scale
+    """Each level's unit as a level camera reads it: its geometry without sky meshes, its file's engine line and
+    spawn points (``level_scale.resolve_unit_scale``)."""
+    from gbuffer_export.blender.level_scale import resolve_unit_scale
+    from gbuffer_export.blender.lighting import level_light
+    from gbuffer_export.blender.scene_setup import spawn_points
     out = {}
     for p in args["levels"]:
         scene, _ = load_level(Path(p))
-        out[p] = detect_unit_scale(from_scene(scene, scene.frame_start))
+        out[p] = resolve_unit_scale(level_light(scene, scene.frame_start).level, "auto", p, spawn_points(scene))
     return out
 
 

@@ -45,6 +45,8 @@ LEVEL_KINDS = ("walk", "fly")
 #: motion is not the planned one (validate allows the declared speed + 2%). Far from the scene's origin a float32
 #: position is coarse (0.5 m at 5000 km): a level whose allowed region lies that far is refused before planning.
 FLOAT32_STEP_TOLERANCE = 0.01
+#: Why a path is refused when its region holds none of the level's floor (``floor_samples``).
+NO_FLOOR = "no floor in the region"
 #: Why a path is refused under ``min_sky_fraction`` (an eye under a roof).
 ROOF = "stands under a roof (sees no sky; the level is lit by the sky alone)"
 
@@ -157,10 +159,11 @@ def view_dirs(forward: np.ndarray, hfov: float, vfov: float, nx: int = 16, ny: i
 
 def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov: float, vfov: float) -> dict:
     """Per frame: background fraction (rays missing or beyond the extent), median depth along the view axis of the
-    rays that hit (metres; inf when none does), the share of rays on walls and objects (``structure``) and the
+    rays that hit (metres; inf when none does) and their 90th percentile (``far_depth_m``: how far the view
+    reaches), the share of rays on walls and objects (``structure``) and the
     view's depth p90/p10 with background counted as infinitely far (``depth_ratio``: validate's ``flat-view``
     measure on the ray grid; 1 when nothing is hit)."""
-    bg, med, steep, ratio = [], [], [], []
+    bg, med, steep, ratio, far = [], [], [], [], []
     for e, t in zip(eyes, targets):
         f = (t - e) / np.linalg.norm(t - e)
         d = view_dirs(f, hfov, vfov)
@@ -169,12 +172,13 @@ def view_stats(geom: LevelGeometry, eyes: np.ndarray, targets: np.ndarray, hfov:
         bg.append(1.0 - hit.mean())
         z = dist[hit] * (d[hit] @ f)
         med.append(float(np.median(z)) * geom.metres_per_unit if hit.any() else math.inf)
+        far.append(float(np.quantile(z, 0.9)) * geom.metres_per_unit if hit.any() else math.inf)
         steep.append(float((np.abs(geom.normals[tri[hit]][:, 2]) < WALKABLE_COS).sum()) / len(d))
         zall = np.where(hit, dist * (d @ f), np.inf)
         p10, p90 = np.quantile(zall, [0.1, 0.9], method="nearest")
         ratio.append(float(p90 / p10) if math.isfinite(p10) and p10 > 0 else 1.0)
     return {"background": np.array(bg), "median_depth_m": np.array(med), "structure": np.array(steep),
-            "depth_ratio": np.array(ratio)}
+            "depth_ratio": np.array(ratio), "far_depth_m": np.array(far)}
 
 
 def near_far_fraction(depth_ratio: np.ndarray) -> float:
@@ -238,6 +242,16 @@ def free_distance(geom: LevelGeometry, p: np.ndarray, dirs: np.ndarray) -> np.nd
     return dist
 
 
+def region_room(region: Region, p: np.ndarray, dirs: np.ndarray, ahead: float, n: int = 8) -> np.ndarray:
+    """Per direction: how far (up to ``ahead``) a move from ``p`` stays inside ``region``'s allowed cells, probed
+    at ``n`` points; the planner steers away from a cell's border before it must stop at it."""
+    t = ahead * (np.arange(1, n + 1) / n)
+    pts = p[None, None, :2] + t[None, :, None] * dirs[:, None, :2]
+    ok = region.contains(pts.reshape(-1, 2)).reshape(len(dirs), n)
+    first_out = np.where(ok.all(axis=1), n, np.argmin(ok, axis=1))
+    return np.where(first_out == n, ahead, np.where(first_out == 0, 0.0, t[np.maximum(first_out - 1, 0)]))
+
+
 def _heading_dirs(theta: np.ndarray, pitch: np.ndarray | float = 0.0) -> np.ndarray:
     theta = np.atleast_1d(theta)
     pitch = np.broadcast_to(pitch, theta.shape)
@@ -259,25 +273,76 @@ class _Smooth:
         return max(-1.0, min(1.0, self.v))
 
 
+#: Points drawn on the floor of a region (``floor_samples``), area-weighted, once per level and region.
+FLOOR_SAMPLES = 4000
+
+
+def _cells_box(region: Region) -> tuple[np.ndarray, np.ndarray]:
+    """The (x, y) box of ``region``'s allowed cells."""
+    lo, hi = np.array(region.lo, np.float64), np.array(region.hi, np.float64)
+    if region.cells is None:
+        return lo, hi
+    size = (hi - lo) / np.array([region.nx, region.ny])
+    c = np.array(region.cells, np.float64).reshape(-1, 2)
+    return lo + c.min(axis=0) * size, lo + (c.max(axis=0) + 1) * size
+
+
+def floor_samples(geom: LevelGeometry, region: Region) -> np.ndarray:
+    """(N, 3) points spread uniformly by area over the walkable surfaces (within 45 degrees of horizontal, either
+    side: a room modelled with outward normals has its floor facing down) inside
+    ``region``: of the level's content, or, where that has none there, of every object (a ground plane under
+    props). Each triangle is weighted by its area times the share of its box over the region's box, and points
+    outside the allowed cells are dropped, so a 2 km ground plane gives a room its floor without drowning it.
+    Drawn with a fixed seed and cached on ``geom``; empty when the region holds no floor."""
+    cache = geom.__dict__.setdefault("_floor_samples", {})
+    if region in cache:
+        return cache[region]
+    lo, hi = _cells_box(region)
+    tri = geom.mesh.triangles
+    tlo, thi = tri[:, :, :2].min(axis=1), tri[:, :, :2].max(axis=1)
+    span = np.maximum(thi - tlo, 1e-12)
+    share = np.prod(np.clip((np.minimum(thi, hi) - np.maximum(tlo, lo)) / span, 0.0, 1.0), axis=1)
+    share[np.all(thi - tlo <= 1e-12, axis=1)] = 1.0
+    weight = np.asarray(geom.mesh.area_faces, np.float64) * share * (np.abs(geom.normals[:, 2]) > WALKABLE_COS)
+    content = weight * geom._content_mask
+    weight = content if content.sum() > 0 else weight
+    out = np.zeros((0, 3))
+    if weight.sum() > 0:
+        rng = np.random.default_rng(0)
+        k = rng.choice(len(weight), size=FLOOR_SAMPLES, p=weight / weight.sum())
+        r1, r2 = rng.random(FLOOR_SAMPLES), rng.random(FLOOR_SAMPLES)
+        flip = r1 + r2 > 1
+        r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+        t = tri[k]
+        out = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+        out = out[region.contains(out[:, :2])]
+    cache[region] = out
+    return out
+
+
 def _start_points(geom, region: Region, rng, kind: str, rules: PathRules, n: int = 48):
-    """Candidate starting eyes (list of (3,) arrays) in the region, with their floor height."""
-    lo, hi = geom.content_bounds()
-    top = geom.bounds()[1][2] + geom.units(1.0)
+    """Candidate starting eyes (list of ((3,) eye, floor height)) seeded on the level's floor inside the region
+    (``floor_samples``), not on a grid over its box: a mostly empty, open or steep cell still gives starts where it
+    has floor. A walk's eye stands ``eye_height_m`` above its floor point when that floor is the first surface below
+    the eye (not a floor under a table); a fly's eye at a random height between ``min_fly_height_m`` above it and
+    the top of the content box."""
+    pts = floor_samples(geom, region)
+    if len(pts) == 0:
+        return []
+    hi = geom.content_bounds()[1]
     eye_h = geom.units(rules.eye_height_m)
     out = []
-    for xy in region.sample(rng, n):
-        floors = floors_below(geom, xy, top)
-        floors = floors[(floors >= lo[2] - geom.units(2.0)) & (floors <= hi[2])]
-        if len(floors) == 0:
-            continue
-        zf = float(floors[rng.integers(0, len(floors))])
+    for k in rng.choice(len(pts), size=min(n, len(pts)), replace=False):
+        x, y, zf = (float(v) for v in pts[k])
         if kind == "walk":
-            z = zf + eye_h
+            eye = np.array([x, y, zf + eye_h])
+            f = floor_under(geom, eye, eye_h * 1.01 + geom.units(0.01))
+            if f is None or abs(f - zf) > 1e-3 * eye_h:
+                continue
+            out.append((eye, zf))
         else:
             zmin = zf + geom.units(rules.min_fly_height_m)
-            zmax = max(zmin, hi[2])
-            z = float(rng.uniform(zmin, zmax))
-        out.append((np.array([xy[0], xy[1], z]), zf))
+            out.append((np.array([x, y, float(rng.uniform(zmin, max(zmin, hi[2])))]), zf))
     return out
 
 
@@ -292,13 +357,17 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     need = clearance + 0.5 * speed
     max_turn = math.radians(rules.max_turn_deg_s) / fps
     starts = _start_points(geom, region, rng, kind, rules)
+    if not starts:
+        return None, NO_FLOOR if len(floor_samples(geom, region)) == 0 else "no free standing point in the region"
     starts = [s for s in starts if _valid_eye(geom, s[0], need, rules)]
     if not starts:
         return None, "no free standing point in the region"
     p, zf = starts[0]
-    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter).
+    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter), the
+    # region's border counting as a wall.
     thetas = np.linspace(0, 2 * math.pi, 24, endpoint=False)
     free = free_distance(geom, p, _heading_dirs(thetas))
+    free = np.minimum(free, region_room(region, p, _heading_dirs(thetas), min(geom.extent, 64 * speed), 32))
     best = np.argsort(-np.minimum(free, geom.extent))[:6]
     theta = float(thetas[rng.choice(best)]) + float(rng.uniform(-0.1, 0.1))
     climb = 0.0
@@ -308,6 +377,7 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
     lo_c, hi_c = geom.content_bounds()
     eyes, looks = [p.copy()], []
     ahead = max(geom.units(1.5), 12 * speed)
+    border_ahead = max(ahead, 2.5 * speed / max(max_turn, 1e-9))  # a U-turn's width at the bounded turn rate
     for i in range(n):
         # look direction for the current eye
         pitch = math.radians(rules.pitch_deg[0] + (rules.pitch_deg[1] - rules.pitch_deg[0]) * 0.5 * (look_pitch() + 1))
@@ -321,7 +391,14 @@ def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rn
         dirs = _heading_dirs(cand, pitch_move)
         free = free_distance(geom, p, dirs)
         pref = theta + max_turn * turn()
-        score = np.minimum(free, ahead) - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
+        border = region_room(region, p, dirs, border_ahead)
+        room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)
+        if free[3] < ahead or border[3] < border_ahead:  # a wall or the cell's border ahead: turn at full rate
+            # towards the more open side
+            side = _heading_dirs(theta + np.array([-1.0, 1.0]) * math.radians(60.0), pitch_move)
+            open_ = np.minimum(free_distance(geom, p, side), region_room(region, p, side, border_ahead))
+            pref = theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
+        score = room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)  # the cell's border: a wall
         order = np.argsort(-score)
         moved = False
         for k in order:
@@ -448,6 +525,7 @@ def _candidates(draw: _Drawing, rules: PathRules, reasons: dict[str, int]) -> li
                                                                                       kind == "walk" else 1.0),
                   "clearance_m": float(clear.min()), "min_clearance_rule_m": rules.clearance_m,
                   "median_depth_m": float(np.median(vs["median_depth_m"])),
+                  "far_depth_m": float(np.median(vs["far_depth_m"])),
                   "background_fraction_max": float(vs["background"].max()),
                   "background_fraction_mean": float(vs["background"].mean()),
                   "level_extent_m": extent_m, "region": region.to_json(), "rules": rules.to_json(),
@@ -485,3 +563,166 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
     text = "; ".join(f"{k}: {v}" for k, v in ranked) or "no attempt"
     raise PathError(f"no {kind} path meets the rules after {rules.tries} tries ({text})",
                     ranked[0][0] if ranked else None)
+
+
+# ----------------------------------------------------------------------------------------------
+# A dataset clip's region: its cell, moved where the level has floor
+# ----------------------------------------------------------------------------------------------
+
+def clip_regions(geom: LevelGeometry, spec: dict) -> list[tuple[Region, dict | None]]:
+    """The ``Region``s a dataset clip may use, in order, each with the move the manifest records (None: its own
+    cell). ``spec``: the clip's ``region`` (``grid``, ``cell``, ``split``, ``cells`` per split) over the level's
+    content box. Its own cell first when that has floor (``floor_samples``), else the nearest cell of its split
+    that has; then every cell of its split with floor, for when no path fits in the first. A cell never leaves its
+    split, so a test cell's clips stay test clips."""
+    lo, hi = geom.content_bounds()
+    nx, ny = (int(v) for v in spec["grid"])
+
+    def region(cells) -> Region:
+        return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), nx, ny,
+                      tuple(tuple(int(v) for v in c) for c in cells))
+    cell = tuple(int(v) for v in spec["cell"])
+    split_cells = [tuple(int(v) for v in c) for c in (spec.get("cells") or {}).get(spec.get("split"), [])] or [cell]
+    floored = [c for c in split_cells if len(floor_samples(geom, region([c])))]
+    out: list[tuple[Region, dict | None]] = []
+    if cell in floored:
+        out.append((region([cell]), None))
+    elif floored:
+        near = min(floored, key=lambda c: ((c[0] - cell[0]) ** 2 + (c[1] - cell[1]) ** 2, c))
+        out.append((region([near]), {"from": list(cell), "to": [list(near)], "reason": NO_FLOOR + " of its cell"}))
+    else:
+        out.append((region([cell]), None))  # no floor in the split: the planner says so
+    if len(floored) > 1:
+        out.append((region(floored), {"from": list(cell), "to": [list(c) for c in floored],
+                                      "reason": "no path in the cell alone"}))
+    return out
+
+
+def plan_clip_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                   region: "Region | dict | None" = None, rules: PathRules = PathRules()) -> LevelPath:
+    """``plan_level_path`` for a clip: ``region`` a ``Region``, None (the whole level) or a dataset clip's region
+    spec, tried cell by cell (``clip_regions``); a path planned outside the clip's own cell records the move in
+    its report (``region_move``). PathError of the last region tried when none holds a path."""
+    tries = clip_regions(geom, region) if isinstance(region, dict) else [(region, None)]
+    for k, (reg, move) in enumerate(tries):
+        try:
+            path = plan_level_path(geom, kind, n_frames, fps, seed, fov, reg, rules)
+        except PathError:
+            if k == len(tries) - 1:
+                raise
+            continue
+        if move is not None:
+            path.report["region_move"] = move
+        return path
+    raise AssertionError("unreachable")
+
+
+# ----------------------------------------------------------------------------------------------
+# The level's unit checked on the planned views
+# ----------------------------------------------------------------------------------------------
+
+#: The most a walk's median view depth (metres, the median over its frames) may be in a level with ceilings (an
+#: interior: ``level_scale``'s headroom cue) and in any level; a walk that sees further was planned in a wrong unit
+#: (a Cube map read in metres sees 138-260 m).
+INTERIOR_MAX_VIEW_M = 40.0
+MAX_VIEW_M = 250.0
+
+
+def implausible_view(path: LevelPath, unit: dict) -> str | None:
+    """Why ``path``'s views say the level's unit is wrong (None when they do not): a walk whose views reach
+    (``far_depth_m``: the 90th percentile of the view depth, the median over frames) beyond ``INTERIOR_MAX_VIEW_M``
+    in an interior or ``MAX_VIEW_M`` anywhere."""
+    depth = float(path.report["far_depth_m"])
+    interior = "headroom" in unit.get("used", ())
+    limit = INTERIOR_MAX_VIEW_M if interior else MAX_VIEW_M
+    if path.kind == "walk" and depth > limit:
+        return (f"the walk's views reach {depth:.0f} m, more than {limit:g} m "
+                f"{'inside an interior' if interior else 'on foot'}")
+    return None
+
+
+def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int,
+                      fov: tuple[float, float], region=None, rules: PathRules = PathRules(), unit_scale="auto",
+                      source=None, spawns=None) -> tuple[LevelPath, dict]:
+    """The level's unit (``level_scale.resolve_unit_scale``) and a clip's path in it (``plan_clip_path``): the
+    renderer and ``blendsr dataset --dry-run`` plan through this one function. With ``unit_scale`` "auto" the unit
+    is checked on the planned views (``implausible_view``): a wrong one gives way to the next candidate by score
+    whose path looks right. Returns (path, the unit's record for the manifest: cues, scores, choice and the
+    ``view_check``). ``source``: the level's file (its engine line names its unit); ``spawns``: its spawn points'
+    positions."""
+    from .level_scale import UNITS, resolve_unit_scale
+    unit = resolve_unit_scale(geom, unit_scale, source, spawns)
+    path = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+    if unit_scale != "auto":
+        return path, unit
+    why = implausible_view(path, unit)
+    check = {"far_depth_m": path.report["far_depth_m"], "plausible": why is None, "rejected": []}
+    if why is not None:
+        first = (path, unit["metres_per_unit"])
+        order = sorted(unit.get("scores", {}), key=lambda k: -unit["scores"][k])
+        mpu_of = {**UNITS, "declared": unit.get("declared")}
+        check["rejected"].append({"unit": unit["unit"], "why": why})
+        for name in order[1:3]:
+            geom.metres_per_unit = float(mpu_of[name])
+            try:
+                other = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+            except PathError as exc:
+                check["rejected"].append({"unit": name, "why": str(exc)})
+                continue
+            why = implausible_view(other, unit)
+            if why is None:
+                path = other
+                unit = {**unit, "unit": name, "metres_per_unit": geom.metres_per_unit, "chosen_by": "view check"}
+                check.update(far_depth_m=other.report["far_depth_m"], plausible=True)
+                break
+            check["rejected"].append({"unit": name, "why": why})
+        else:
+            path, geom.metres_per_unit = first
+    unit["view_check"] = check
+    return path, unit
+
+
+#: A scene of one object smaller than this (metres across, in its detected unit) is an object, not a level.
+SINGLE_OBJECT_M = 20.0
+
+
+def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
+                region=None, rules: PathRules = PathRules(), unit: dict | None = None) -> str:
+    """A fix that works for a clip that has no path: each alternative is planned, in order (the other camera kind
+    in the same region, the same kind over the whole level: fewer regions, then the next units by score: a
+    ``unit_scale``), and the first that gives a path is named. A scene with no floor, or a single object under
+    ``SINGLE_OBJECT_M`` across, is framed by orbit; where nothing works, the advice is the file's own camera."""
+    if len(floor_samples(geom, Region(*_whole(geom)))) == 0:
+        objs = len(np.unique(geom.owner))
+        return (f"the scene is {'a single object' if objs == 1 else f'{objs} objects'} with no floor: walk and fly "
+                "cannot be planned on it; use the camera orbit")
+    if len(np.unique(geom.owner)) == 1 and geom.extent * geom.metres_per_unit < SINGLE_OBJECT_M:
+        return ("the scene is a single object, nothing a camera moves inside: walk and fly find no path on it; "
+                "use the camera orbit")
+    other = "fly" if kind == "walk" else "walk"
+    tries = [(f"use the camera {other} for this clip", other, region, None)]
+    if region is not None:
+        tries.append(('use fewer regions (regions = "1x1"): the whole level has a path', kind, None, None))
+    scores = (unit or {}).get("scores") or {}
+    from .level_scale import UNITS
+    for name in sorted(scores, key=lambda k: -scores[k])[1:3]:
+        if name in UNITS:
+            tries.append((f"set unit_scale = {UNITS[name]:g} ({name}): the level has a path in that unit", kind,
+                          region, UNITS[name]))
+    keep = geom.metres_per_unit
+    try:
+        for text, k, reg, mpu in tries:
+            geom.metres_per_unit = keep if mpu is None else mpu
+            try:
+                plan_clip_path(geom, k, n_frames, fps, seed, fov, reg, rules)
+            except PathError:
+                continue
+            return text
+    finally:
+        geom.metres_per_unit = keep
+    return "no other camera kind, region or unit gives a path: use cameras scene:NAME (the file's own camera)"
+
+
+def _whole(geom: LevelGeometry):
+    lo, hi = geom.content_bounds()
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))

@@ -41,14 +41,29 @@ import numpy as np
 
 from .level_geometry import LevelGeometry
 
-#: Candidate units (metres per unit), besides the file's declared one.
-UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01}
+#: Candidate units (metres per unit), besides the file's declared one: "cube" is the unit of the Cube 2 engine
+#: family (Sauerbraten, Tesseract, Red Eclipse: a player 15 units tall, eye 14 units above the feet, so about
+#: 0.12 m); Quake's is about an inch (a player 56 units tall).
+UNITS = {"m": 1.0, "in": 0.0254, "cm": 0.01, "cube": 0.12, "km": 1000.0}
+#: Log-prior of the rarer candidates: a level is read in them only when its cues say so by a clear margin (a
+#: jungle's canopy reads as a 14 m ceiling, which Cube units would make a 1.7 m one; a 26 cm bottle, whose size
+#: alone says little, would be a 260 m tower in kilometres).
+UNIT_PRIOR = {"cube": -2.0, "km": -8.0}
+#: Text a level file opens with that names the engine it was exported from -> (unit name, metres per unit, why).
+#: A file that names its engine declares its unit as a .blend's unit scale does (``DECLARED_BONUS``).
+ENGINE_SIGNATURES = {
+    "of cube 2 level": ("cube", 0.12, "written by the Cube 2 engine family's /writeobj (Sauerbraten, Tesseract, "
+                                      "Red Eclipse): a player's eye stands 14 units above its feet"),
+}
 #: cue -> (typical metres, sigma of its natural log).
-CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5)}
+CUES = {"headroom": (3.0, 0.5), "objects": (4.0, 0.8), "height": (12.0, 1.2), "extent": (100.0, 1.5),
+        "spawn": (1.5, 0.3)}
+#: Object names of spawn points (player starts) in a level file: their height over the floor below is a person's.
+SPAWN_NAMES = r"spawn|player.?start|info_player|start.?point"
 DECLARED_BONUS = 4.5
 COLUMNS = 48
 MIN_COVERED = 24
-MIN_COVERED_FRACTION = 0.1
+MIN_COVERED_FRACTION = 0.15
 MIN_OBJECTS = 8
 FLAT_COS = math.cos(math.radians(45.0))  # level_cameras.WALKABLE_COS: a surface within 45 degrees of horizontal
 
@@ -102,6 +117,16 @@ def measure_cues(geom: LevelGeometry, n: int = COLUMNS) -> dict:
             "extent_units": float(geom.extent)}
 
 
+def spawn_heights(geom: LevelGeometry, points) -> list[float]:
+    """The height (scene units) of each spawn point (``points``: (N, 3) positions) over the first surface below
+    it; points with nothing below, or on it, are left out."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return []
+    dist, tri = geom.first_hits(pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)))
+    return [float(d) for d, t in zip(dist, tri) if t >= 0 and d > 1e-6 * max(geom.extent, 1e-9)]
+
+
 def _object_sizes(geom: LevelGeometry) -> np.ndarray:
     """The box diagonal of each object (``geom.owner``) that does not enclose the others, in scene units."""
     keep = geom._content_mask
@@ -126,34 +151,64 @@ def _score(cues: dict, unit: float, use: tuple[str, ...]) -> float:
     return s
 
 
-def detect_unit_scale(geom: LevelGeometry, declared: float | None = None) -> dict:
+def detect_unit_scale(geom: LevelGeometry, declared: float | None = None, spawns=None) -> dict:
     """The level's metres per unit (module doc) and the evidence: ``{"metres_per_unit", "unit", "declared",
-    "cues", "used", "scores"}``. ``declared``: the file's own unit (default: ``geom.metres_per_unit``)."""
+    "cues", "used", "scores"}``. ``declared``: the file's own unit (default: ``geom.metres_per_unit``);
+    ``spawns``: positions (N, 3) of the file's spawn points (``SPAWN_NAMES``), whose median height over the floor
+    is the ``spawn`` cue."""
     declared = float(geom.metres_per_unit if declared is None else declared)
     cues = measure_cues(geom)
+    heights = spawn_heights(geom, spawns) if spawns is not None else []
+    cues.update(spawns=len(heights), spawn_units=float(np.median(heights)) if heights else None)
     has_headroom = (cues["headroom_units"] is not None and cues["covered_floors"] >= MIN_COVERED
                     and cues["covered_fraction"] >= MIN_COVERED_FRACTION)
     use = tuple(k for k, ok in (("headroom", has_headroom), ("objects", cues["objects_units"] is not None),
                                 ("height", cues["height_units"] is not None),
+                                ("spawn", cues["spawn_units"] is not None),
                                 ("extent", not has_headroom and cues["objects_units"] is None
                                  and cues["extent_units"] > 0)) if ok)
     names = {**UNITS}
     if not any(math.isclose(declared, u, rel_tol=1e-9) for u in UNITS.values()):
         names["declared"] = declared
-    scores = {k: _score(cues, u, use) + (DECLARED_BONUS if math.isclose(u, declared, rel_tol=1e-9) else 0.0)
-              for k, u in names.items()}
+    scores = {k: _score(cues, u, use) + (DECLARED_BONUS if math.isclose(u, declared, rel_tol=1e-9) else
+                                         UNIT_PRIOR.get(k, 0.0)) for k, u in names.items()}
     best = max(scores, key=scores.get) if use else next(k for k, u in names.items() if
                                                         math.isclose(u, declared, rel_tol=1e-9))
     return {"metres_per_unit": names[best], "unit": best, "declared": declared, "cues": cues, "used": list(use),
             "scores": {k: round(v, 3) for k, v in scores.items()}}
 
 
-def resolve_unit_scale(geom: LevelGeometry, unit_scale) -> dict:
+def engine_unit(path) -> dict | None:
+    """The unit a text level file (an OBJ) names by its engine in its first lines (``ENGINE_SIGNATURES``):
+    ``{"unit", "metres_per_unit", "engine_line", "why"}``, or None (a binary or unknown file)."""
+    from pathlib import Path
+    try:
+        with open(Path(path), "rb") as f:
+            head = f.read(4096).decode("utf-8", errors="replace")
+    except (OSError, TypeError):
+        return None
+    for line in head.splitlines()[:20]:
+        low = line.strip().lower()
+        if not low.startswith("#"):
+            continue
+        for sig, (name, mpu, why) in ENGINE_SIGNATURES.items():
+            if sig in low:
+                return {"unit": name, "metres_per_unit": mpu, "engine_line": line.strip(), "why": why}
+    return None
+
+
+def resolve_unit_scale(geom: LevelGeometry, unit_scale, source=None, spawns=None) -> dict:
     """Set ``geom.metres_per_unit`` from ``unit_scale`` (``RenderConfig.unit_scale``: "auto" detects it, a
-    number is taken as given) and return the manifest's record of it."""
+    number is taken as given) and return the manifest's record of it. ``source``: the level's file, whose engine
+    line (``engine_unit``) declares its unit where the file format has no unit of its own; ``spawns``: its
+    spawn points' positions (``detect_unit_scale``)."""
     declared = float(geom.metres_per_unit)
     if unit_scale == "auto":
-        out = {"requested": "auto", **detect_unit_scale(geom, declared)}
+        engine = engine_unit(source) if source is not None else None
+        if engine is not None:
+            declared = engine["metres_per_unit"]
+        out = {"requested": "auto", **detect_unit_scale(geom, declared, spawns),
+               **({"engine": engine} if engine is not None else {})}
     else:
         out = {"requested": float(unit_scale), "metres_per_unit": float(unit_scale), "declared": declared}
     geom.metres_per_unit = float(out["metres_per_unit"])

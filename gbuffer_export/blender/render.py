@@ -135,25 +135,32 @@ def uses_level_camera(cfg: RenderConfig) -> bool:
 SKY_LIT_MIN_SKY = 0.05
 
 
+def level_rules(cfg: RenderConfig):
+    """The rules of ``cfg``'s level camera path (``level_cameras.PathRules``): a sky-lit level's eyes must see the
+    sky."""
+    from .level_cameras import PathRules
+    return PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else PathRules()
+
+
 def setup_camera(cfg: RenderConfig, scene, frames: list[int], level=None):
     """The clip's camera and its report for the manifest (the planned path's rules and measurements). ``level``:
     the level's geometry for a level camera (``lighting.LevelLight.level``; None: taken from the scene)."""
     if uses_level_camera(cfg):
-        from .level_cameras import ROOF, PathError, PathRules
+        from .level_cameras import ROOF, PathError
         from .level_geometry import LevelGeometryError
         from .scene_setup import make_level_camera
         try:
-            rules = PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else None
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=rules, unit_scale=cfg.unit_scale,
-                                     geom=level)
+                                     region=cfg.extra.get("region"), rules=level_rules(cfg), unit_scale=cfg.unit_scale,
+                                     geom=level, source=cfg.scene)
         except (PathError, LevelGeometryError) as exc:
             if isinstance(exc, PathError) and exc.most_often == ROOF:
                 raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; set light auto (it lights a level under a roof "
                                   "with lamps under its ceilings, and adds the sun and sky where the cameras see "
                                   "the sky)", key="light") from None
-            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; a single object (no floor, nothing around it) is "
-                              "framed by camera_path orbit", key="camera_path") from None
+            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; blendsr dataset --dry-run names a fix that works for "
+                              "a level (another camera kind, fewer regions, unit_scale); a single object (no floor, "
+                              "nothing around it) is framed by camera_path orbit", key="camera_path") from None
     if cfg.camera_path in ("orbit", "walk"):
         from .camera_paths import make_camera_path
         return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}

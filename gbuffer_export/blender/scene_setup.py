@@ -143,49 +143,22 @@ def scene_fps(scene) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
 
 
-def level_regions(geom, spec: dict) -> list:
-    """The ``Region``s a dataset clip may use, in order: its cell ``spec["cell"]`` of a ``spec["grid"]`` grid over
-    the level's content box (x, y), then every cell of its split (``spec["cells"][spec["split"]]``)."""
-    from .level_cameras import Region
-    lo, hi = geom.content_bounds()
-    nx, ny = spec["grid"]
-
-    def region(cells):
-        return Region((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), int(nx), int(ny),
-                      tuple(tuple(int(v) for v in c) for c in cells))
-    out = [region([spec["cell"]])]
-    split_cells = (spec.get("cells") or {}).get(spec.get("split"), [])
-    if len(split_cells) > 1:
-        out.append(region(split_cells))
-    return out
-
-
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
-                      unit_scale="auto", geom=None):
+                      unit_scale="auto", geom=None, source=None):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
     returns (camera, report for the manifest). ``geom``: the level's geometry (default: every renderable object
     at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``); its metres per unit
-    are ``unit_scale`` ("auto": detected, ``level_scale``)."""
+    are ``unit_scale`` ("auto": detected, ``level_scale``, and checked on the planned views; ``source``: the
+    level's file)."""
     from .camera_paths import half_fov, key_look_at
-    from .level_cameras import PathError, PathRules, plan_level_path
     from .level_geometry import from_scene
-    from .level_scale import resolve_unit_scale
 
     start, end = int(frames[0]), int(frames[1])
     cam = ensure_level_camera(scene)
     cam.animation_data_clear()
     geom = geom if geom is not None else from_scene(scene, start)
-    unit = resolve_unit_scale(geom, unit_scale)
     hfov, vfov = half_fov(scene, cam.data)
-    regions = level_regions(geom, region) if isinstance(region, dict) else [region]
-    for k, reg in enumerate(regions):
-        try:
-            path = plan_level_path(geom, kind, end - start + 2, scene_fps(scene), seed, (hfov, vfov), reg,
-                                   rules or PathRules())
-            break
-        except PathError:
-            if k == len(regions) - 1:
-                raise
+    path, unit = plan_scene_path(scene, geom, kind, frames, seed, (hfov, vfov), region, rules, unit_scale, source)
     key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
     lo, hi = geom.bounds()
     cam.data.clip_start = geom.units(0.05)
@@ -196,6 +169,25 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     scene.frame_set(start)
     return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
                  "triangles": geom.n_triangles, "unit_scale": unit}
+
+
+def plan_scene_path(scene, geom, kind: str, frames: tuple[int, int], seed: int, fov, region=None, rules=None,
+                    unit_scale="auto", source=None):
+    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_level_camera``): what
+    ``make_level_camera`` keys and ``blendsr dataset --dry-run`` reports, planned the same way."""
+    from .level_cameras import PathRules, plan_level_camera
+    start, end = int(frames[0]), int(frames[1])
+    return plan_level_camera(geom, kind, end - start + 2, scene_fps(scene), seed, fov, region, rules or PathRules(),
+                             unit_scale, source, spawn_points(scene))
+
+
+def spawn_points(scene) -> list:
+    """World positions of the file's spawn points: objects named as a game names its player starts
+    (``level_scale.SPAWN_NAMES``); their height over the floor is a unit cue."""
+    import re
+    from .level_scale import SPAWN_NAMES
+    return [tuple(ob.matrix_world.translation) for ob in scene.objects
+            if re.search(SPAWN_NAMES, ob.name, re.I) and not ob.name.startswith("BlendSR ")]
 
 
 #: Bytes Cycles holds per triangle (vertices, normals, BVH nodes; measured order of magnitude for bpy 5.0).

@@ -43,7 +43,11 @@ def register(subparsers) -> None:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"),
                    help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
                         "(recorded in each clip's manifest)")
-    p.add_argument("--dry-run", action="store_true", help="print the clips the spec expands to and exit")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the clips the spec expands to, plan every walk and fly clip's camera in its level "
+                        "(import and plan, no render: the path it would take, or why it has none and a fix) and "
+                        "exit; 1 when a clip has no path")
+    p.add_argument("--no-plan", action="store_true", help="with --dry-run: print the clips only, plan nothing")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
 
@@ -66,7 +70,7 @@ def run(args) -> int:
             print(f"total {key}: {t['clips']} clips, {t['frames']} frames, {t['hr_pixels'] / 1e6:.1f} M HR pixels")
         for line in formats_report(j.render for j in jobs):  # what blendsr export-dataset will take
             print(line)
-        return 0
+        return _dry_run_plan(jobs, args.no_plan)
     from ..extras import require
     require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
@@ -81,3 +85,28 @@ def run(args) -> int:
     for c in invalid:  # rendered to the end, but blendsr validate refuses it (checked as each clip finished)
         print(f"INVALID {c['id']}: {c['invalid']} (blendsr validate {args.output / 'clips' / c['id']})")
     return 1 if failed or invalid else 0
+
+
+def _dry_run_plan(jobs, skip: bool) -> int:
+    """Plan the walk and fly clips of ``jobs`` (``gbuffer_export.blender.dry_run``) and print one line each; 1 when
+    a clip has no path."""
+    import logging
+    todo = [j for j in jobs if j.kind == "scene" and j.camera in ("walk", "fly")]
+    if skip or not todo:
+        return 0
+    from ..errors import BlendSRError
+    from ..extras import require
+    try:
+        require("blendsr dataset --dry-run's planner", "render")
+    except BlendSRError as exc:
+        logging.getLogger(__name__).warning("blendsr: %s; the %d walk/fly clips are not planned", exc, len(todo))
+        return 0
+    from ..blender.dry_run import describe, plan_jobs
+    recs = plan_jobs(todo)
+    for rec in recs:
+        if not rec["ok"] and "orbit" in rec["fix"]:  # a single object: walk and fly cannot be planned on it
+            logging.getLogger(__name__).warning("blendsr: %s: %s", rec["scene"], rec["fix"])
+        print(describe(rec))
+    bad = sum(not r["ok"] for r in recs)
+    print(f"blendsr: planned {len(recs)} walk/fly clips: {len(recs) - bad} have a path, {bad} none")
+    return 1 if bad else 0

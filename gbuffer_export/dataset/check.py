@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..clip import ClipError
+from ..errors import BlendSRError
 from .build import clip_dir, clip_state, read_index
 
 
@@ -22,16 +23,28 @@ class DatasetReport:
     path: str
     clips: dict = field(default_factory=dict)      # id -> {"ok", "errors", "warnings", "first_error"}
     index_errors: list = field(default_factory=list)
+    sources: dict = field(default_factory=dict)    # source -> {"clips", "usable", "share", "reasons": {id: why}}
 
     @property
     def ok(self) -> bool:
-        return not self.index_errors and all(c["ok"] for c in self.clips.values())
+        return (not self.index_errors and all(c["ok"] for c in self.clips.values())
+                and all(s["usable"] for s in self.sources.values()))
 
     def lines(self) -> list[str]:
         out = [f"ERROR dataset: {e}" for e in self.index_errors]
         for cid, c in self.clips.items():
             if not c["ok"]:
                 out.append(f"ERROR {cid}: {c['errors']} errors, first: {c['first_error']}")
+        for name, s in self.sources.items():
+            out.append(f"source {name}: {s['usable']}/{s['clips']} clips usable ({100 * s['share']:.0f}%)")
+        dropped = {n: s for n, s in self.sources.items() if not s["usable"]}
+        if dropped:
+            out.append(f"ERROR dataset: {len(dropped)} source(s) without a usable clip: "
+                       f"{', '.join(dropped)} (each clip's reason below)")
+            rows = [(n, cid, why) for n, s in dropped.items() for cid, why in s["reasons"].items()]
+            w0, w1 = max(len("source"), *(len(r[0]) for r in rows)), max(len("clip"), *(len(r[1]) for r in rows))
+            out.append(f"  {'source':{w0}s}  {'clip':{w1}s}  reason")
+            out += [f"  {n:{w0}s}  {cid:{w1}s}  {why}" for n, cid, why in rows]
         return out
 
     def summary_line(self) -> str:
@@ -42,7 +55,8 @@ class DatasetReport:
                 f"{len(self.index_errors)} index errors")
 
     def to_dict(self) -> dict:
-        return {"path": self.path, "ok": self.ok, "clips": self.clips, "index_errors": self.index_errors}
+        return {"path": self.path, "ok": self.ok, "clips": self.clips, "index_errors": self.index_errors,
+                "sources": self.sources}
 
 
 def region_errors(index: dict, root: Path | None = None) -> list[str]:
@@ -179,4 +193,50 @@ def validate_dataset(root, options=None, quick: bool = False, progress: bool = T
         first = r.errors[0].line() if r.errors else ""
         rep.clips[c["id"]] = {"ok": r.ok, "errors": len(r.errors), "warnings": len(r.warnings),
                               "first_error": first}
+    rep.sources = source_shares(root, index, rep.clips)
     return rep
+
+
+def source_of(entry: dict) -> str:
+    """The source an index entry is counted under: its spec source, and for a scene file its level
+    (``SOURCE/STEM``), so that one level of a source that lists several is never dropped unseen."""
+    src = str(entry.get("source") or "?")
+    if entry.get("kind") == "scene" and entry.get("asset"):
+        return f"{src}/{Path(str(entry['asset'])).stem}"
+    return src
+
+
+def unusable_reason(root: Path, entry: dict, checked: dict | None) -> str | None:
+    """Why a clip gives no training data (None: it is usable): failed, unfinished, refused when it finished
+    (``invalid``) or failing validation (its first error)."""
+    if entry.get("state") == "failed" or entry.get("error"):
+        err = str(entry.get("error") or "").strip().splitlines()
+        return f"failed: {err[-1] if err else 'no error recorded'}"
+    if checked is None:
+        try:
+            state, _ = clip_state(clip_dir(root, entry), int(entry.get("frames_planned", 0)))
+        except BlendSRError as exc:  # a path outside the dataset (an index error too)
+            return str(exc)
+        return f"not rendered ({state})"
+    if not checked["ok"]:
+        return f"invalid: {checked['first_error'] or str(checked['errors']) + ' errors'}"
+    if entry.get("invalid"):
+        return f"invalid: {entry['invalid']}"
+    return None
+
+
+def source_shares(root: Path, index: dict, checked: dict) -> dict:
+    """Per source (``source_of``): its clips, how many are usable, their share and each unusable clip's reason
+    (``unusable_reason``); ``checked``: the validated clips by id."""
+    out: dict[str, dict] = {}
+    for c in index["clips"]:
+        s = out.setdefault(source_of(c), {"clips": 0, "usable": 0, "share": 0.0, "reasons": {}})
+        why = unusable_reason(root, c, checked.get(c["id"]))
+        s["clips"] += 1
+        if why is None:
+            s["usable"] += 1
+        else:
+            s["reasons"][c["id"]] = why
+    for s in out.values():
+        s["share"] = s["usable"] / s["clips"]
+    return out

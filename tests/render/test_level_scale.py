@@ -1,5 +1,7 @@
 """A level's unit from its geometry (gbuffer_export/blender/level_scale.py) on synthetic levels built with trimesh
-(no Blender): interiors, a town and a jungle, each in metres, centimetres (x100) and inches (x39.37)."""
+(no Blender): interiors, a town and a jungle, each in metres, centimetres (x100) and inches (x39.37), and with
+spawn points in Cube units (0.12 m) and kilometres too; the engine line of an OBJ; the unit checked on the planned
+views (level_cameras.plan_level_camera)."""
 from __future__ import annotations
 
 import math
@@ -181,3 +183,89 @@ def test_unit_scale_key_refuses_bad_values_in_one_line(value, words, tmp_path):
         RenderConfig(output=tmp_path, unit_scale=value)
     msg = str(e.value)
     assert msg.startswith("unit_scale") and words in msg and "\n" not in msg and e.value.key == "unit_scale"
+
+
+# ------------------------------------------------------------------------------------------------ issue 55 item 2
+
+#: scene units per metre of every unit the synthetic levels are built in (issue 55: metres, centimetres, inches,
+#: Cube units of about 0.12 m, kilometres)
+ALL_UNITS = {**PER_METRE, "cube": 1 / 0.12, "km": 1e-3}
+
+
+def _spawns(g: LevelGeometry, per_metre: float, n: int = 6) -> np.ndarray:
+    """``n`` spawn points (player starts) 1.6 m over the first surface below seeded (x, y) points of the level."""
+    rng = np.random.default_rng(1)
+    lo, hi = g.content_bounds()
+    xy = rng.uniform(lo[:2], hi[:2], (n, 2))
+    top = g.bounds()[1][2] + 1.0
+    d, _ = g.first_hits(np.c_[xy, np.full(n, top)], np.tile([0.0, 0.0, -1.0], (n, 1)))
+    return np.c_[xy, top - d + 1.6 * per_metre]
+
+
+@pytest.mark.parametrize("unit", list(ALL_UNITS))
+@pytest.mark.parametrize("level", list(LEVELS))
+def test_with_spawn_points_every_level_is_read_within_a_factor_1_5_in_every_unit(level, unit):
+    """Spawn points (a game's player starts, where the file has them) stand an eye height over the floor: with
+    them every synthetic level in every unit is read within a factor 1.5 of its unit (issue 55's acceptance),
+    including those the geometry alone cannot tell apart (a town in inches or in Cube units)."""
+    g = _geometry(LEVELS[level](), ALL_UNITS[unit])
+    r = level_scale.detect_unit_scale(g, spawns=_spawns(g, ALL_UNITS[unit]))
+    ratio = r["metres_per_unit"] * ALL_UNITS[unit]
+    assert 1 / 1.5 <= ratio <= 1.5, r
+    assert "spawn" in r["used"] and r["cues"]["spawns"] == 6 and r["cues"]["spawn_units"] == pytest.approx(
+        1.6 * ALL_UNITS[unit], rel=1e-6)
+
+
+@pytest.mark.parametrize("unit", ["cube", "km"])
+def test_an_interior_in_cube_units_or_kilometres_is_read_from_its_geometry(unit):
+    r = level_scale.detect_unit_scale(_geometry(_apartment(), ALL_UNITS[unit]))
+    assert r["unit"] == unit and "headroom" in r["used"], r
+
+
+def _hangar_obj(tmp_path, first_line: str):
+    """An OBJ whose only geometry is a Cube-style map's: halls with 64-unit (7.7 m) ceilings. Its first line is
+    ``first_line``."""
+    path = tmp_path / "map.obj"
+    path.write_text(f"{first_line}\n\nmtllib map.mtl\n\nv 540 25 0\n")
+    parts = []
+    for i in range(4):
+        parts.append(_box((320.0, 256.0, 64.0), (i * 330.0, 0, 32.0), inward=True))
+        parts.append(_box((32.0, 32.0, 16.0), (i * 330.0 - 80, 40, 8.0)))
+    return path, _geometry(parts, 1.0)
+
+
+def test_an_obj_naming_the_cube_engine_is_read_in_cube_units(tmp_path):
+    """Cube 2's /writeobj opens the file with '# obj file of Cube 2 level' (the shared steelribs map): the file
+    declares its engine's unit (0.12 m), which its halls alone (64 units high: 1.6 m in inches) would not say."""
+    path, g = _hangar_obj(tmp_path, "# obj file of Cube 2 level")
+    assert level_scale.engine_unit(path)["unit"] == "cube"
+    rec = level_scale.resolve_unit_scale(g, "auto", path)
+    assert rec["unit"] == "cube" and g.metres_per_unit == 0.12 and rec["engine"]["engine_line"].startswith("# obj")
+    other, g2 = _hangar_obj(tmp_path / "x" if (tmp_path / "x").mkdir() is None else tmp_path, "# exported")
+    assert level_scale.engine_unit(other) is None
+    assert level_scale.resolve_unit_scale(g2, "auto", other)["unit"] == "in"
+    assert level_scale.engine_unit(tmp_path / "absent.obj") is None
+
+
+def test_a_unit_whose_walk_sees_hundreds_of_metres_indoors_gives_way_to_the_next(monkeypatch):
+    """The apartment in centimetres, with the detection forced to read it in metres: the walk's eye stands 1.6 cm
+    over the floor and its views reach hundreds of 'metres' inside an interior, so the view check takes the next
+    unit by score (centimetres) and records why."""
+    from gbuffer_export.blender import level_cameras
+    hfov, vfov = math.atan(0.75), math.atan(0.75 * 9 / 16)
+    _, right = level_cameras.plan_level_camera(_geometry(_apartment(), 100.0), "walk", 9, 24.0, 0, (hfov, vfov),
+                                               rules=PathRules(tries=20))
+    assert right["view_check"]["rejected"] == [] and right["unit"] == "cm"  # detected right: nothing rejected
+    g = _geometry(_apartment(), 100.0)
+    real = level_scale.detect_unit_scale
+
+    def wrong(geom, declared=None, spawns=None):
+        r = real(geom, declared, spawns)
+        return {**r, "unit": "m", "metres_per_unit": 1.0, "scores": {**r["scores"], "m": 99.0}}
+    monkeypatch.setattr(level_scale, "detect_unit_scale", wrong)
+    path, unit = level_cameras.plan_level_camera(g, "walk", 9, 24.0, 0, (hfov, vfov), rules=PathRules(tries=20))
+    check = unit["view_check"]
+    assert check["rejected"][0]["unit"] == "m" and "inside an interior" in check["rejected"][0]["why"]
+    assert unit["unit"] == "cm" and unit["metres_per_unit"] == 0.01 and unit["chosen_by"] == "view check"
+    assert g.metres_per_unit == 0.01 and check["plausible"] and check["far_depth_m"] < 40
+    assert path.report["metres_per_unit"] == 0.01
