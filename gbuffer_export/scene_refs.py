@@ -79,8 +79,12 @@ def resolve_ref(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what
     shown = ref if shown is None else shown
     target = Path(ref) if os.path.isabs(ref) else Path(base) / ref
     real = Path(os.path.realpath(target))
+    # an importer may apply '..' as text before following links (os.path.abspath), or follow links first
+    # (realpath): the reference is read only when both readings stay inside an allowed folder
+    textual = Path(os.path.realpath(os.path.normpath(os.path.abspath(target))))
     inside = next((r for r in roots if _inside(real, r)), None)
-    if inside is None:
+    if inside is None or not any(_inside(textual, r) for r in roots):
+        real = real if inside is None else textual
         via = f" (a link to {real})" if str(real) != os.path.normpath(os.path.abspath(target)) else ""
         raise SceneRefError(f"{scene}: {what} {shown!r} is outside the scene's folder{via}; it is not read (allow its "
                             "folder with --allow-read DIR, or render.allow_read in a spec)")
@@ -176,11 +180,14 @@ def _check_accessors(path: Path, doc: dict) -> None:
         if not _int(bv) or bv >= len(views):
             raise SceneRefError(f"{path}: glTF accessors[{i}].bufferView {bv!r} does not exist")
         view = views[bv]
-        stride = view.get("byteStride") or size
-        need = acc.get("byteOffset", 0) + (stride * (count - 1) + size if count else 0)
-        if not _int(stride) or need > view["byteLength"]:
+        stride, offset, length = view.get("byteStride") or size, acc.get("byteOffset", 0), view.get("byteLength")
+        if not (_int(stride) and _int(offset) and _int(length)):
+            raise SceneRefError(f"{path}: glTF accessors[{i}] or bufferViews[{bv}]: byteOffset, byteStride and "
+                                "byteLength must be non-negative integers: a corrupt glTF file")
+        need = offset + (stride * (count - 1) + size if count else 0)
+        if need > length:
             raise SceneRefError(f"{path}: glTF accessors[{i}] count {count} needs {need} bytes but its bufferView "
-                                f"{bv} holds {view['byteLength']}: a corrupt glTF file")
+                                f"{bv} holds {length}: a corrupt glTF file")
 
 
 def _gltf_refs(path: Path, roots, outside: list) -> None:
@@ -223,7 +230,7 @@ def _mtl_path(rest: str) -> list[str]:
 
 def _obj_refs(path: Path, roots, outside: list) -> None:
     for _, rest in _lines_with(path, ("mtllib",)):
-        names = {rest, *rest.split()}
+        names = {rest, *rest.split(), rest.strip('"'), *(w.strip('"') for w in rest.split())}
         for name in sorted(n for n in names if n):
             real = resolve_ref(path, name, path.parent, roots, "mtllib")
             if real is not None:

@@ -1,4 +1,4 @@
-"""The library of ``blendsr bench models`` (its command line: ``training.commands.cli.bench_models``): speed against
+"""The library of ``blendsr bench models`` (its command line: ``training.commands.bench_models``): speed against
 error, or speed alone against the hardware's limit.
 
 With ``--data`` (clips), for every model (a non-learned name, or NAME:CHECKPOINT) it runs the evaluation of

@@ -141,6 +141,7 @@ def import_level(path: Path, allow_read=()) -> dict:
         scene = bpy.context.scene
         scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
     report = {"format": fmt.name}
+    check_file_nodes(path, allow_read)
     outside = check_image_files(path, allow_read)
     if outside:
         report["read_outside"] = outside
@@ -161,6 +162,35 @@ def _importer_error(exc: RuntimeError) -> str:
     return lines[0] if lines else "no message"
 
 
+#: Geometry nodes that read a file named by a socket when the tree is evaluated (the path may be computed: it
+#: cannot be checked before the render evaluates it), refused in a scene file.
+FILE_READING_NODES = ("GeometryNodeImportCSV", "GeometryNodeImportOBJ", "GeometryNodeImportPLY",
+                      "GeometryNodeImportSTL", "GeometryNodeImportText", "GeometryNodeImportVDB")
+
+
+def _node_trees():
+    yield from bpy.data.node_groups
+    for coll in (bpy.data.materials, bpy.data.worlds, bpy.data.lights):
+        for idb in coll:
+            if getattr(idb, "node_tree", None) is not None:
+                yield idb.node_tree
+
+
+def check_file_nodes(level: Path, allow_read=()) -> None:
+    """ConfigError (one line) for a node that reads a file the resolver cannot check before evaluation (geometry
+    nodes' Import nodes); an IES texture's external file goes through the one resolver."""
+    from ..scene_refs import read_roots, resolve_ref
+    roots = read_roots(level, allow_read)
+    for tree in _node_trees():
+        for node in tree.nodes:
+            if node.bl_idname in FILE_READING_NODES:
+                raise ConfigError(f"{level}: node {node.name!r} of {tree.name!r} ({node.bl_idname}) reads a file "
+                                  "named when the scene is evaluated; such nodes are refused (apply or remove it)")
+            if node.bl_idname == "ShaderNodeTexIES" and node.mode == "EXTERNAL" and node.filepath:
+                resolve_ref(level, bpy.path.abspath(node.filepath), Path(level).parent, roots,
+                            f"IES file of node {node.name!r}")
+
+
 def check_image_files(level: Path, allow_read=()) -> list[str]:
     """Every file image of the loaded scene, checked by the one resolver (``scene_refs.resolve_ref``) before its
     pixels are read: ConfigError (one line) for one outside the allowed folders; returns those read from allowed
@@ -169,7 +199,11 @@ def check_image_files(level: Path, allow_read=()) -> list[str]:
     roots = read_roots(level, allow_read)
     outside = []
     for im in bpy.data.images:
-        if im.source not in ("FILE", "SEQUENCE", "MOVIE", "TILED") or im.packed_file is not None:
+        if im.source not in ("FILE", "SEQUENCE", "MOVIE", "TILED"):
+            continue
+        # a .blend's packed image is data of the file itself; an importer that packs (glTF) has read the path
+        # during the import: that path is checked like any other
+        if im.packed_file is not None and Path(level).suffix.lower() == ".blend":
             continue
         raw = im.filepath_raw or im.filepath
         if not raw:

@@ -2,7 +2,7 @@
 (``benchmarks/worst_case.py -o``, ``blendsr evaluate --json``) of the in-family and the held-out-family clips of a
 dataset (each clip's ``family_group`` in its index, ``families.py``) side by side, and their difference::
 
-    python -m gbuffer_export.dataset.family_gap MARGINS.json [...] --data DATASET [--data ...]
+    python -m gbuffer_export.commands.family_gap MARGINS.json [...] --data DATASET [--data ...]
 
 prints one Markdown row per model: in-family mean (smallest, clips), held-out mean (smallest, clips), gap (dB).
 """

@@ -185,7 +185,7 @@ class Target:
 
     def __enter__(self) -> "Target":
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        if self.mode == "append" or (self.mode == "overwrite" and self.out.is_dir()):
+        if self.mode in ("append", "overwrite"):  # an overwrite into a missing OUT too: never beside an append
             self.lock = lock_export(self.out)
         try:
             clean_stale(self.out)

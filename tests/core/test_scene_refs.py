@@ -116,3 +116,33 @@ def test_blend_reader_refuses_a_non_blend(tmp_path):
     p.write_bytes(b"BLENDER-v405" + b"\0" * 10)
     with pytest.raises(SceneRefError, match="x.blend: truncated .blend"):
         check_scene_refs(p)
+
+
+def test_a_link_followed_by_dotdot_is_refused_whichever_way_an_importer_reads_it(tmp_path):
+    """``lnk/../../secret.png`` with ``lnk -> sub/deeper``: following the link first stays inside, applying ``..``
+    first (os.path.abspath, as the glTF importer does) leaves the folder: refused."""
+    scene = tmp_path / "top" / "scene"
+    (scene / "sub" / "deeper").mkdir(parents=True)
+    (tmp_path / "top" / "secret.png").write_bytes(b"x")
+    (scene / "sub" / "secret.png").write_bytes(b"x")
+    os.symlink(scene / "sub" / "deeper", scene / "lnk")
+    with pytest.raises(SceneRefError, match="lnk/../../secret.png"):
+        check_scene_refs(_gltf(scene, image_uri="lnk/../../secret.png"))
+
+
+def test_a_quoted_mtllib_outside_is_refused(tmp_path):
+    (tmp_path / "x.mtl").write_text("newmtl m\nmap_Kd /etc/hostname\n")
+    lvl = tmp_path / "lvl"
+    lvl.mkdir()
+    (lvl / "s.obj").write_text('mtllib "../x.mtl"\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n')
+    with pytest.raises(SceneRefError, match="mtllib"):
+        check_scene_refs(lvl / "s.obj")
+
+
+def test_a_string_offset_is_a_corrupt_gltf_not_a_crash(tmp_path):
+    p = _gltf(tmp_path / "lvl")
+    doc = json.loads(p.read_text())
+    doc["accessors"][0]["byteOffset"] = "0"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(SceneRefError, match="non-negative integers"):
+        check_scene_refs(p)

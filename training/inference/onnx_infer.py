@@ -137,7 +137,7 @@ class OnnxModel:
 
     def zero_state(self, lr_h: int, lr_w: int, scale: float) -> list[np.ndarray]:
         """A clip's first state (ignored by the graph under ``reset`` = 1): zeros shaped by the sidecar's
-        ``state_sizes`` rules (``training.inference.export.STATE_SIZES``) for this LR size."""
+        ``state_sizes`` rules (``STATE_SIZES`` in this module) for this LR size."""
         rules = self.info.get("state_sizes")
         if rules is None:
             raise BlendSRError(f"{self.path}.json: no 'state_sizes' (exported before the runner's fields; export it "
