@@ -72,10 +72,13 @@ def _inside(real: Path, root: Path) -> bool:
 
 
 def resolve_ref(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what: str,
-                shown: str | None = None) -> Path | None:
+                shown: str | None = None, missing_ok: bool = False) -> Path | None:
     """``ref`` (as the file names it, relative to ``base`` or absolute) resolved with its links; SceneRefError
     when it leaves ``roots`` or is not a regular file. Returns the real path when it lies in an allowed folder other
-    than the scene's (listed in the manifest), None otherwise. ``shown``: the reference as the file writes it."""
+    than the scene's (listed in the manifest), None otherwise. ``shown``: the reference as the file writes it.
+    ``missing_ok`` (textures): a reference outside that names nothing at all reads nothing, and is left to the
+    importer, which finds it missing and renders it neutral grey (an author's absolute texture path in a downloaded
+    scene), as before the resolver."""
     shown = ref if shown is None else shown
     target = Path(ref) if os.path.isabs(ref) else Path(base) / ref
     real = Path(os.path.realpath(target))
@@ -84,6 +87,8 @@ def resolve_ref(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what
     textual = Path(os.path.realpath(os.path.normpath(os.path.abspath(target))))
     inside = next((r for r in roots if _inside(real, r)), None)
     if inside is None or not any(_inside(textual, r) for r in roots):
+        if missing_ok and not any(os.path.lexists(p) for p in (target, real, textual)):
+            return None  # nothing there to read (an author's absolute texture path): the importer finds it missing
         real = real if inside is None else textual
         via = f" (a link to {real})" if str(real) != os.path.normpath(os.path.abspath(target)) else ""
         raise SceneRefError(f"{scene}: {what} {shown!r} is outside the scene's folder{via}; it is not read (allow its "
@@ -136,7 +141,8 @@ def _uri_refs(path: Path, doc: dict, roots, outside: list) -> None:
             if re.match(r"^[A-Za-z][A-Za-z0-9+.-]+:", uri):
                 raise SceneRefError(f"{path}: glTF {key}[{i}].uri {uri!r} is not a file in the scene's folder "
                                     "(a URL); it is not read")
-            real = resolve_ref(path, unquote(uri), path.parent, roots, f"glTF {key}[{i}].uri", uri)
+            real = resolve_ref(path, unquote(uri), path.parent, roots, f"glTF {key}[{i}].uri", uri,
+                               missing_ok=key == "images")
             if real is not None:
                 outside.append(str(real))
 
@@ -243,7 +249,7 @@ def _obj_refs(path: Path, roots, outside: list) -> None:
                     continue
                 for ref in _mtl_path(line):
                     for base in {mtl.parent, path.parent}:  # the MTL's folder; the OBJ's (the importer's cwd)
-                        real = resolve_ref(path, ref, base, roots, f"{mtl.name}: {key}")
+                        real = resolve_ref(path, ref, base, roots, f"{mtl.name}: {key}", missing_ok=True)
                         if real is not None:
                             outside.append(str(real))
 
@@ -263,7 +269,8 @@ def _blend_refs(path: Path, roots, outside: list, depth: int = 0, seen=None) -> 
     for ref in refs:
         rel = ref.path[2:] if ref.path.startswith("//") else ref.path
         base = Path(path).parent
-        real = resolve_ref(path, rel, base, roots, f"{ref.kind} {ref.name!r} file")
+        real = resolve_ref(path, rel, base, roots, f"{ref.kind} {ref.name!r} file",
+                           missing_ok=ref.kind != "library")
         if real is not None:
             outside.append(str(real))
         if ref.kind == "library":

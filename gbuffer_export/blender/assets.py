@@ -42,6 +42,11 @@ def import_asset(scene, path: Path) -> list:
     path = Path(path)
     if not path.is_file():
         raise AssetError(f"{path}: asset file not found")
+    from ..scene_refs import SceneRefError, check_scene_refs
+    try:  # the one resolver, as for a scene file: an asset reads only inside its own folder
+        check_scene_refs(path)
+    except SceneRefError as exc:
+        raise AssetError(str(exc)) from None
     before = set(bpy.data.objects)
     suffix = path.suffix.lower()
     if suffix in (".gltf", ".glb"):

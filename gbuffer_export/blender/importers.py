@@ -209,7 +209,7 @@ def check_image_files(level: Path, allow_read=()) -> list[str]:
         if not raw:
             continue
         real = resolve_ref(level, bpy.path.abspath(raw, library=im.library), Path(level).parent, roots,
-                           f"image {im.name!r} file")
+                           f"image {im.name!r} file", missing_ok=True)
         if real is not None:
             outside.append(str(real))
     return sorted(set(outside))
