@@ -15,6 +15,11 @@ Table kinds (``[[section.table]] kind = ...``):
   ``row_key`` and one column per value of ``column_key`` (e.g. model x variant -> ms).
 - ``table``: a record that is itself a table, ``{"columns": [...], "rows": [[...], ...]}`` (measurements whose
   script printed a table rather than writing rows).
+- ``fields``: one row per ``[label, dotted.key, format]`` of ``fields``, one column per ``[header, record]`` of
+  ``records`` (e.g. a campaign's counts before and after a change).
+
+``rows`` may name a dict instead of a list (``key``): each entry becomes a row with its name under ``name``. A format
+``MB`` prints bytes as megabytes.
 """
 from __future__ import annotations
 
@@ -45,6 +50,8 @@ class Cell:
     def __str__(self) -> str:
         if self.value is None or self.value == "":
             return ""
+        if self.fmt == "MB" and isinstance(self.value, (int, float)):
+            return f"{self.value / 1e6:,.0f}"
         if self.fmt.startswith("sig") and isinstance(self.value, (int, float)):
             return significant(float(self.value), int(self.fmt[3:]))
         try:
@@ -106,7 +113,9 @@ def margins_table(spec: dict, where: str) -> str:
 def rows_table(spec: dict, where: str) -> str:
     """Columns picked from a record's ``rows`` (optionally pivoted); ``only`` keeps rows whose key is listed."""
     data = _record(spec["record"], where)
-    rows = data.get(spec.get("key", "rows"))
+    rows = _at(data, spec.get("key", "rows"))
+    if isinstance(rows, dict):
+        rows = [{"name": k, **v} for k, v in rows.items() if isinstance(v, dict)]
     if not isinstance(rows, list):
         raise PageError(f"{spec['record']}: no list {spec.get('key', 'rows')!r} (named by {where})")
     only = spec.get("only")
@@ -128,6 +137,19 @@ def rows_table(spec: dict, where: str) -> str:
     return markdown(header, body)
 
 
+def _at(data, dotted: str):
+    """``data``'s value at ``a.b.c`` (None where a key is missing)."""
+    for part in dotted.split("."):
+        data = data.get(part) if isinstance(data, dict) else None
+    return data
+
+
+def fields_table(spec: dict, where: str) -> str:
+    records = [(header, _record(path, where)) for header, path in spec["records"]]
+    body = [[label] + [Cell(_at(data, key), fmt) for _, data in records] for label, key, fmt in spec["fields"]]
+    return markdown([spec.get("label_header", "")] + [h for h, _ in records], body)
+
+
 def literal_table(spec: dict, where: str) -> str:
     data = _record(spec["record"], where)
     if "columns" not in data or "rows" not in data:
@@ -135,7 +157,7 @@ def literal_table(spec: dict, where: str) -> str:
     return markdown(data["columns"], data["rows"])
 
 
-TABLE_KINDS = {"margins": margins_table, "rows": rows_table, "table": literal_table}
+TABLE_KINDS = {"margins": margins_table, "rows": rows_table, "table": literal_table, "fields": fields_table}
 
 
 def section_text(section: dict, index: int) -> str:
