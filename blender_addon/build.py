@@ -313,9 +313,6 @@ def check_zip(zip_path: Path) -> None:
             raise BuildError(f"{zip_path}: {required} is missing from the package")
     if not any(n.startswith("wheels/blendsr-") for n in names):
         raise BuildError(f"{zip_path}: the blendsr wheel is missing from the package")
-    for graph in ("pretrained_fusesr-l_x4.onnx", "bilinear_xany.onnx"):
-        if f"{GRAPHS}/{graph}" not in names or f"{GRAPHS}/{graph}.json" not in names:
-            raise BuildError(f"{zip_path}: the preview's graph {GRAPHS}/{graph} (or its .json) is missing")
     with zipfile.ZipFile(zip_path) as z:
         for name in sorted(n for n in names if n.startswith("wheels/") and n.endswith(".whl")):
             problem = wheel_problem(io.BytesIO(z.read(name)))
@@ -326,6 +323,9 @@ def check_zip(zip_path: Path) -> None:
             if problem:
                 raise BuildError(f"{zip_path}: {name} is corrupt ({problem}); delete it from {WHEEL_CACHE} and "
                                  "build again")
+    for graph in ("pretrained_fusesr-l_x4.onnx", "bilinear_xany.onnx"):
+        if f"{GRAPHS}/{graph}" not in names or f"{GRAPHS}/{graph}.json" not in names:
+            raise BuildError(f"{zip_path}: the preview's graph {GRAPHS}/{graph} (or its .json) is missing")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -61,14 +61,15 @@ def test_zip_carries_the_library_and_its_wheels(addon_zip):
 
 
 def clean_bpy_python(root: Path) -> Path:
-    """A Python whose only packages are bpy and what the bpy wheel brings (numpy, like Blender's own Python):
-    a fresh virtual environment with links to them, no blendsr."""
+    """A Python whose only packages are bpy and what the bpy wheel brings that Blender's own Python ships too
+    (numpy; zstandard, which reads compressed .blend files): a fresh virtual environment with links to them, no
+    blendsr."""
     venv.EnvBuilder(with_pip=False, symlinks=True).create(root)
     python = root / "bin" / "python"
     site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
                                capture_output=True, text=True, check=True).stdout.strip())
     here = Path(importlib.metadata.distribution("bpy").locate_file(""))
-    for name in ("bpy", "numpy", "numpy.libs"):
+    for name in ("bpy", "numpy", "numpy.libs", "zstandard"):
         if (here / name).exists():
             (site / name).symlink_to(here / name)
     return python

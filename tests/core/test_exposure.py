@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from tests.conftest import edit_manifest, make_blend, requires_bpy, run_cli
+from tests.conftest import edit_header, edit_manifest, make_blend, requires_bpy, run_cli
 from gbuffer_export import conventions as cv
 from gbuffer_export.clip import buffer_path, open_clip
 from gbuffer_export.config import RenderConfig
@@ -164,7 +164,7 @@ def test_a_dark_but_exposed_clip_passes_and_an_unlit_one_does_not(tmp_path):
     """Exposure decides: the dim clip of exposure 1 fails, the same data with the auto exposure recorded passes."""
     dim = _clip(tmp_path, "dim", light=1e-4)
     assert "dark-frame" in validate_clip(dim).codes()
-    edit_manifest(dim, lambda m: m.__setitem__("exposure", {"mode": "fixed", "value": 0.18 / (1e-4 * BRIGHT)}))
+    edit_header(dim, lambda m: m.__setitem__("exposure", {"mode": "fixed", "value": 0.18 / (1e-4 * BRIGHT)}))
     assert validate_clip(dim).ok
 
 

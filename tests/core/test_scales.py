@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from tests.conftest import edit_manifest, edit_record
+from tests.conftest import edit_header, edit_manifest, edit_record
 
 from gbuffer_export import open_clip
 from gbuffer_export.clip import ClipError, buffer_path
@@ -115,7 +115,7 @@ def test_version_1_clip_still_reads_and_validates(tmp_path):
         m["schema_version"] = 1
         for v in m["levels"].values():
             v.pop("scale")
-    edit_manifest(path, to_v1)
+    edit_header(path, to_v1)  # as version 1 wrote it: the identity of its own header
     c = open_clip(path)
     assert c.scale == 4 and c.scales == [4.0] and c.at_scale(4) is c and c.sizes["lr"] == (16, 9)
     r = validate_clip(path)

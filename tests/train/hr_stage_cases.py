@@ -231,7 +231,7 @@ def interpreted():
     env = {**os.environ, "TRITON_INTERPRET": "1"}
     code = ("import json, tests.train.hr_stage_cases as t; "
             "print(json.dumps([t.interpreter_errors(), t.interpreter_model_errors()]))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=1200)
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
 
