@@ -38,6 +38,7 @@ def addon_zip(tmp_path_factory):
     return zip_path
 
 
+@pytest.mark.heavy
 def test_zip_carries_the_library_and_its_wheels(addon_zip):
     from blender_addon import build
     with zipfile.ZipFile(addon_zip) as z:
@@ -101,6 +102,7 @@ print("RESULT " + json.dumps(out))
 '''
 
 
+@pytest.mark.heavy
 def test_clean_bpy_installs_the_zip_and_exports_a_clip(addon_zip, tmp_path):
     """The acceptance line: the zip installs into a clean bpy and its panel exports a clip without a separately
     installed library (Blender installs the bundled wheels into the user's extensions folder)."""
@@ -158,6 +160,7 @@ print("RESULT " + json.dumps(out))
 '''
 
 
+@pytest.mark.heavy
 @pytest.mark.torch
 def test_install_and_external_preview(addon_zip, tmp_path):
     env = dict(ENV, BLENDER_USER_RESOURCES=str(tmp_path / "blender_user"))
@@ -224,6 +227,7 @@ print("RESULT " + json.dumps(out))
 ONNX_TOL = 1e-4
 
 
+@pytest.mark.heavy
 def test_clean_bpy_previews_through_onnxruntime_without_torch(addon_zip, tmp_path):
     """The zip's ONNX Runtime and graphs preview fusesr-l and demod-jbu in a bpy with no torch; the images equal
     the torch path's on the same clip; the warm-up is reported apart from the per-frame time."""

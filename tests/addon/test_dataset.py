@@ -169,6 +169,7 @@ def _fake_blender(tmp_path: Path) -> Path:
     return exe
 
 
+@pytest.mark.heavy
 @requires_bpy
 @pytest.mark.bpy
 @pytest.mark.shared

@@ -301,6 +301,7 @@ def test_dataset_resumes_after_kill_9(tiny, tmp_path):
             assert_same_geometry(out / "clips" / clip, reference / "clips" / clip, f)
 
 
+@pytest.mark.heavy
 @requires_bpy
 @pytest.mark.bpy
 def test_ray_local_cluster_gives_the_same_clips(tiny, tmp_path, monkeypatch):

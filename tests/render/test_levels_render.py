@@ -106,6 +106,7 @@ def test_a_gpu_that_cycles_does_not_see_is_refused(tmp_path):
     assert r.returncode == 2 and "--device cuda: Cycles sees no CUDA device" in r.stderr
 
 
+@pytest.mark.heavy
 def test_levels_dataset_with_split_regions_validates_and_previews(tmp_path):
     garage, town = shared_or_skip(GARAGE), shared_or_skip(TOWN)
     spec = tmp_path / "levels.toml"

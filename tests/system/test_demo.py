@@ -16,6 +16,7 @@ pytestmark = [pytest.mark.bpy, pytest.mark.torch]
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.heavy
 def test_demo_scores_every_shipped_network_on_its_own_clips(tmp_path):
     from training.pretrained import available
     r = subprocess.run([sys.executable, "-m", "gbuffer_export.cli", "demo", "-o", str(tmp_path / "d"),
@@ -55,6 +56,7 @@ def _signal_when(proc, ready, sig, timeout=600):
             proc.kill()
 
 
+@pytest.mark.heavy
 def test_sigterm_and_sigint_stop_the_demo_within_seconds_and_it_continues(tmp_path):
     """Issue 57 item 3: SIGTERM during the fine-tune and SIGINT during a render each stop ``blendsr demo`` within
     seconds, with nothing recorded as done; the same command then continues (the fine-tune from its checkpoint)."""

@@ -124,6 +124,7 @@ def test_channels_last_batch_keeps_values_and_lays_frames_out_nhwc():
     assert out["lr/x"][:, -1].is_contiguous(memory_format=torch.channels_last)
 
 
+@pytest.mark.heavy
 def test_torch_compile_of_the_fast_path_matches_the_reference():
     """inductor (C++ on the CPU) fuses the guided upsampling's gathers and the remodulation: same output."""
     ref = build_model(ModelConfig(name="demod-jbu"), 4).eval()

@@ -119,6 +119,7 @@ def _break_graph(monkeypatch, how: str):
     monkeypatch.setattr(fastpath, "_compiled", fake)
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("how", ["raise", "wrong"])
 def test_auto_falls_back_to_the_next_path_that_passes(monkeypatch, caplog, how):
     _break_graph(monkeypatch, how)

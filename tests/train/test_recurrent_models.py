@@ -96,6 +96,7 @@ def _manual(model, clip, frames):
     return out
 
 
+@pytest.mark.heavy
 def test_train_logs_per_frame_losses_and_memory_and_resumes_bit_identically(name, clip, tmp_path):
     from training.checkpoint import load_checkpoint
     from training.train import train
