@@ -39,7 +39,7 @@ def plan_job(job, cache: dict, tmp: Path) -> dict:
     from .dataset_job import render_config
     from .level_cameras import PathError, suggest_fix
     from .render import level_rules, resolve_frames
-    from .scene_setup import ensure_level_camera, plan_scene_path, scene_fps, spawn_points
+    from .scene_setup import LevelUnit, clip_plan, ensure_level_camera, plan_scene_path, spawn_points
     cfg = render_config(job, tmp / job.id)
     rec = {"id": job.id, "camera": job.camera, "scene": Path(job.asset).name,
            "cell": job.region["cell"] if job.region else None}
@@ -52,13 +52,13 @@ def plan_job(job, cache: dict, tmp: Path) -> dict:
     fov = half_fov(scene, ensure_level_camera(scene).data)
     rules, region = level_rules(cfg), cfg.extra.get("region")
     try:
-        path, unit = plan_scene_path(scene, geom, job.camera, (frames[0], frames[-1]), cfg.seed, fov, region,
-                                     rules, cfg.unit_scale, cfg.scene)
+        clip = clip_plan(scene, job.camera, (frames[0], frames[-1]), cfg.seed, fov, region)
+        path, unit = plan_scene_path(scene, geom, clip, rules, LevelUnit(cfg.unit_scale, cfg.scene))
     except PathError as exc:
         from .level_scale import resolve_unit_scale
         geom.metres_per_unit = declared
         unit = resolve_unit_scale(geom, cfg.unit_scale, cfg.scene, spawn_points(scene))
-        fix = suggest_fix(geom, job.camera, len(frames) + 1, scene_fps(scene), cfg.seed, fov, region, rules, unit)
+        fix = suggest_fix(geom, clip, rules, unit)
         return {**rec, "ok": False, "reason": str(exc), "fix": fix, "unit": unit.get("unit"),
                 "metres_per_unit": unit["metres_per_unit"]}
     r = path.report

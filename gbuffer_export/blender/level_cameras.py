@@ -641,8 +641,25 @@ def implausible_view(path: LevelPath, unit: dict) -> str | None:
     return None
 
 
-def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int,
-                      fov: tuple[float, float], region=None, rules: PathRules = PathRules(), unit_scale="auto",
+@dataclass(frozen=True)
+class ClipPlan:
+    """What one clip's path is planned for: the camera ``kind`` ("walk", "fly"), ``n_frames`` eyes, the frame rate,
+    the seed, the half fields of view (radians) and the region cell (None: the whole level)."""
+    kind: str
+    n_frames: int
+    fps: float
+    seed: int
+    fov: tuple[float, float]
+    region: object = None
+
+    def path(self, geom: LevelGeometry, rules: PathRules, kind: str | None = None, region=False) -> LevelPath:
+        """``plan_clip_path`` of this clip (``kind``/``region``: another camera kind or cell; None: the whole
+        level)."""
+        return plan_clip_path(geom, kind or self.kind, self.n_frames, self.fps, self.seed, self.fov,
+                              self.region if region is False else region, rules)
+
+
+def plan_level_camera(geom: LevelGeometry, clip: ClipPlan, rules: PathRules = PathRules(), unit_scale="auto",
                       source=None, spawns=None) -> tuple[LevelPath, dict]:
     """The level's unit (``level_scale.resolve_unit_scale``) and a clip's path in it (``plan_clip_path``): the
     renderer and ``blendsr dataset --dry-run`` plan through this one function. With ``unit_scale`` "auto" the unit
@@ -652,7 +669,7 @@ def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float,
     positions."""
     from .level_scale import UNITS, resolve_unit_scale
     unit = resolve_unit_scale(geom, unit_scale, source, spawns)
-    path = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+    path = clip.path(geom, rules)
     if unit_scale != "auto":
         return path, unit
     why = implausible_view(path, unit)
@@ -665,7 +682,7 @@ def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float,
         for name in order[1:3]:
             geom.metres_per_unit = float(mpu_of[name])
             try:
-                other = plan_clip_path(geom, kind, n_frames, fps, seed, fov, region, rules)
+                other = clip.path(geom, rules)
             except PathError as exc:
                 check["rejected"].append({"unit": name, "why": str(exc)})
                 continue
@@ -686,8 +703,7 @@ def plan_level_camera(geom: LevelGeometry, kind: str, n_frames: int, fps: float,
 SINGLE_OBJECT_M = 20.0
 
 
-def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed: int, fov: tuple[float, float],
-                region=None, rules: PathRules = PathRules(), unit: dict | None = None) -> str:
+def suggest_fix(geom: LevelGeometry, clip: ClipPlan, rules: PathRules = PathRules(), unit: dict | None = None) -> str:
     """A fix that works for a clip that has no path: each alternative is planned, in order (the other camera kind
     in the same region, the same kind over the whole level: fewer regions, then the next units by score: a
     ``unit_scale``), and the first that gives a path is named. A scene with no floor, or a single object under
@@ -699,6 +715,7 @@ def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed:
     if len(np.unique(geom.owner)) == 1 and geom.extent * geom.metres_per_unit < SINGLE_OBJECT_M:
         return ("the scene is a single object, nothing a camera moves inside: walk and fly find no path on it; "
                 "use the camera orbit")
+    kind, region = clip.kind, clip.region
     other = "fly" if kind == "walk" else "walk"
     tries = [(f"use the camera {other} for this clip", other, region, None)]
     if region is not None:
@@ -714,7 +731,7 @@ def suggest_fix(geom: LevelGeometry, kind: str, n_frames: int, fps: float, seed:
         for text, k, reg, mpu in tries:
             geom.metres_per_unit = keep if mpu is None else mpu
             try:
-                plan_clip_path(geom, k, n_frames, fps, seed, fov, reg, rules)
+                clip.path(geom, rules, kind=k, region=reg)
             except PathError:
                 continue
             return text

@@ -148,13 +148,13 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int], level=None):
     if uses_level_camera(cfg):
         from .level_cameras import ROOF, PathError
         from .level_geometry import LevelGeometryError
-        from .scene_setup import make_level_camera
+        from .scene_setup import LevelUnit, make_level_camera
         try:
             return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=level_rules(cfg), unit_scale=cfg.unit_scale,
-                                     geom=level, source=cfg.scene)
+                                     region=cfg.extra.get("region"), rules=level_rules(cfg), geom=level,
+                                     unit=LevelUnit(cfg.unit_scale, cfg.scene))
         except (PathError, LevelGeometryError) as exc:
-            if isinstance(exc, PathError) and exc.most_often == ROOF:
+            if isinstance(exc, PathError) and (exc.most_often == ROOF or ROOF in str(exc)):  # a sky light under a roof
                 raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; set light auto (it lights a level under a roof "
                                   "with lamps under its ceilings, and adds the sun and sky where the cameras see "
                                   "the sky)", key="light") from None

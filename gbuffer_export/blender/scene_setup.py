@@ -7,6 +7,8 @@ and the fix.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import contextlib
 import math
 from pathlib import Path
@@ -143,12 +145,20 @@ def scene_fps(scene) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
 
 
-def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None,
-                      unit_scale="auto", geom=None, source=None):
+@dataclass(frozen=True)
+class LevelUnit:
+    """A level's unit as asked (``unit_scale``: "auto", metres per unit or a unit name) and the file whose cues
+    decide it when "auto" (its engine line; None: the scene's geometry alone)."""
+    scale: object = "auto"
+    source: object = None
+
+
+def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None, geom=None,
+                      unit: LevelUnit = LevelUnit()):
     """Key a ``kind`` ("walk" or "fly") path inside the level on frames ``start-1 .. end`` (``level_cameras``);
     returns (camera, report for the manifest). ``geom``: the level's geometry (default: every renderable object
     at the first frame; the renderer passes it without sky meshes, ``lighting.level_light``); its metres per unit
-    are ``unit_scale`` ("auto": detected, ``level_scale``, and checked on the planned views; ``source``: the
+    are ``unit.scale`` ("auto": detected, ``level_scale``, and checked on the planned views; ``unit.source``: the
     level's file)."""
     from .camera_paths import half_fov, key_look_at
     from .level_geometry import from_scene
@@ -158,7 +168,7 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     cam.animation_data_clear()
     geom = geom if geom is not None else from_scene(scene, start)
     hfov, vfov = half_fov(scene, cam.data)
-    path, unit = plan_scene_path(scene, geom, kind, frames, seed, (hfov, vfov), region, rules, unit_scale, source)
+    path, found = plan_scene_path(scene, geom, clip_plan(scene, kind, frames, seed, (hfov, vfov), region), rules, unit)
     key_look_at(cam, np.arange(start - 1, end + 1), path.eyes, path.targets)
     lo, hi = geom.bounds()
     cam.data.clip_start = geom.units(0.05)
@@ -168,17 +178,22 @@ def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, regi
     scene.camera = cam
     scene.frame_set(start)
     return cam, {**path.report, "hfov_deg": 2 * math.degrees(hfov), "lens_mm": LEVEL_LENS_MM,
-                 "triangles": geom.n_triangles, "unit_scale": unit}
+                 "triangles": geom.n_triangles, "unit_scale": found}
 
 
-def plan_scene_path(scene, geom, kind: str, frames: tuple[int, int], seed: int, fov, region=None, rules=None,
-                    unit_scale="auto", source=None):
-    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_level_camera``): what
-    ``make_level_camera`` keys and ``blendsr dataset --dry-run`` reports, planned the same way."""
+def clip_plan(scene, kind: str, frames: tuple[int, int], seed: int, fov, region=None):
+    """The ``level_cameras.ClipPlan`` of a clip on frames ``start .. end`` of ``scene`` (one eye before the first
+    frame, at the scene's frame rate)."""
+    from .level_cameras import ClipPlan
+    return ClipPlan(kind, int(frames[1]) - int(frames[0]) + 2, scene_fps(scene), seed, tuple(fov), region)
+
+
+def plan_scene_path(scene, geom, clip, rules=None, unit: LevelUnit = LevelUnit()):
+    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_level_camera``; ``clip``:
+    ``clip_plan``): what ``make_level_camera`` keys and ``blendsr dataset --dry-run`` reports, planned the same
+    way."""
     from .level_cameras import PathRules, plan_level_camera
-    start, end = int(frames[0]), int(frames[1])
-    return plan_level_camera(geom, kind, end - start + 2, scene_fps(scene), seed, fov, region, rules or PathRules(),
-                             unit_scale, source, spawn_points(scene))
+    return plan_level_camera(geom, clip, rules or PathRules(), unit.scale, unit.source, spawn_points(scene))
 
 
 def spawn_points(scene) -> list:

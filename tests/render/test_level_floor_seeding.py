@@ -10,7 +10,7 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
-from gbuffer_export.blender.level_cameras import (NO_FLOOR, PathError, PathRules, Region,  # noqa: E402
+from gbuffer_export.blender.level_cameras import (NO_FLOOR, ClipPlan, PathError, PathRules, Region,  # noqa: E402
                                                   _start_points, clip_regions, floor_samples, plan_clip_path,
                                                   suggest_fix)
 from gbuffer_export.blender.level_geometry import LevelGeometry  # noqa: E402
@@ -113,7 +113,7 @@ def test_a_clip_with_no_floor_in_its_split_is_told_to_use_fewer_regions(hall):
                                                                          "train": [[0, 0], [1, 0], [1, 1]]}}
     with pytest.raises(PathError, match=NO_FLOOR):
         plan_clip_path(hall, "walk", 9, FPS, 0, (HFOV, VFOV), spec, PathRules(tries=4))
-    fix = suggest_fix(hall, "walk", 9, FPS, 0, (HFOV, VFOV), spec, PathRules(tries=8))
+    fix = suggest_fix(hall, ClipPlan("walk", 9, FPS, 0, (HFOV, VFOV), spec), PathRules(tries=8))
     assert fix.startswith('use fewer regions (regions = "1x1")'), fix
 
 
@@ -123,7 +123,7 @@ def test_a_single_object_is_told_to_use_orbit():
     g.__dict__.pop("_floor_samples", None)
     bottom_up = np.abs(g.normals[:, 2]) > math.cos(math.radians(45.0))
     assert bottom_up.any()  # a sphere has near-horizontal faces at its poles: they are floor samples...
-    fix = suggest_fix(g, "walk", 9, FPS, 0, (HFOV, VFOV), None, PathRules(tries=3))
+    fix = suggest_fix(g, ClipPlan("walk", 9, FPS, 0, (HFOV, VFOV), None), PathRules(tries=3))
     assert "orbit" in fix  # ...but nothing plans on them, and the advice for one object is orbit
 
 

@@ -253,8 +253,8 @@ def test_a_unit_whose_walk_sees_hundreds_of_metres_indoors_gives_way_to_the_next
     unit by score (centimetres) and records why."""
     from gbuffer_export.blender import level_cameras
     hfov, vfov = math.atan(0.75), math.atan(0.75 * 9 / 16)
-    _, right = level_cameras.plan_level_camera(_geometry(_apartment(), 100.0), "walk", 9, 24.0, 0, (hfov, vfov),
-                                               rules=PathRules(tries=20))
+    clip = level_cameras.ClipPlan("walk", 9, 24.0, 0, (hfov, vfov))
+    _, right = level_cameras.plan_level_camera(_geometry(_apartment(), 100.0), clip, rules=PathRules(tries=20))
     assert right["view_check"]["rejected"] == [] and right["unit"] == "cm"  # detected right: nothing rejected
     g = _geometry(_apartment(), 100.0)
     real = level_scale.detect_unit_scale
@@ -263,7 +263,7 @@ def test_a_unit_whose_walk_sees_hundreds_of_metres_indoors_gives_way_to_the_next
         r = real(geom, declared, spawns)
         return {**r, "unit": "m", "metres_per_unit": 1.0, "scores": {**r["scores"], "m": 99.0}}
     monkeypatch.setattr(level_scale, "detect_unit_scale", wrong)
-    path, unit = level_cameras.plan_level_camera(g, "walk", 9, 24.0, 0, (hfov, vfov), rules=PathRules(tries=20))
+    path, unit = level_cameras.plan_level_camera(g, clip, rules=PathRules(tries=20))
     check = unit["view_check"]
     assert check["rejected"][0]["unit"] == "m" and "inside an interior" in check["rejected"][0]["why"]
     assert unit["unit"] == "cm" and unit["metres_per_unit"] == 0.01 and unit["chosen_by"] == "view check"
