@@ -53,11 +53,12 @@ ROOF = "stands under a roof (sees no sky; the level is lit by the sky alone)"
 
 class PathError(BlendSRError):
     """No path meets the rules (one line naming each rule that failed, the most frequent first);
-    ``most_often``: that rule."""
+    ``most_often``: that rule; ``reasons``: every rule that failed, with how often."""
 
-    def __init__(self, message: str, most_often: str | None = None):
+    def __init__(self, message: str, most_often: str | None = None, reasons: dict | None = None):
         super().__init__(message)
         self.most_often = most_often
+        self.reasons = dict(reasons or {})
 
 
 @dataclass(frozen=True)
@@ -562,7 +563,7 @@ def plan_level_path(geom: LevelGeometry, kind: str, n_frames: int, fps: float, s
     ranked = sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0]))
     text = "; ".join(f"{k}: {v}" for k, v in ranked) or "no attempt"
     raise PathError(f"no {kind} path meets the rules after {rules.tries} tries ({text})",
-                    ranked[0][0] if ranked else None)
+                    ranked[0][0] if ranked else None, dict(ranked))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -154,7 +154,7 @@ def setup_camera(cfg: RenderConfig, scene, frames: list[int], level=None):
                                      region=cfg.extra.get("region"), rules=level_rules(cfg), geom=level,
                                      unit=LevelUnit(cfg.unit_scale, cfg.scene))
         except (PathError, LevelGeometryError) as exc:
-            if isinstance(exc, PathError) and (exc.most_often == ROOF or ROOF in str(exc)):  # a sky light under a roof
+            if isinstance(exc, PathError) and ROOF in exc.reasons:  # a sky-lit walk stood under a roof on some try
                 raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; set light auto (it lights a level under a roof "
                                   "with lamps under its ceilings, and adds the sun and sky where the cameras see "
                                   "the sky)", key="light") from None

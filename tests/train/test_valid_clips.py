@@ -19,11 +19,10 @@ from gbuffer_export.exr import read_exr, write_exr  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from gbuffer_export.validate.verdict import VERDICT  # noqa: E402
 from training.cache import ClipCache  # noqa: E402
+from tests.train.test_reliability_train_inputs import SMALL  # noqa: E402  (the smallest FuseSR run)
 
 pytestmark = pytest.mark.torch
 
-SMALL = ["data.batch_size=2", "model.fusesr.width=8", "model.fusesr.blocks=1", "run.progress=false",
-         "run.amp=\"none\"", "run.threads=1"]
 
 
 @pytest.fixture(scope="module")
