@@ -10,6 +10,8 @@
 # The temporary folder (the render, the default export, the safetensors, the converter's log) is removed on exit;
 # KEEP=1 keeps it and prints where it is.
 #
+# A local clone serves where GitHub cannot be reached: NGMG_REPO=/path/to/neural-graphics-model-gym.
+#
 # Environment:
 #   VENV=...              the virtual environment to create/reuse (default .venv-ngmg in the repository)
 #   NGMG_REPO=...         a checkout of arm/neural-graphics-model-gym (default: git clone into $VENV/src)
@@ -17,9 +19,15 @@
 #                         then ng-model-gym is installed with --no-deps plus its light dependencies, instead of
 #                         the full pinned set (torch 2.11 with CUDA, executorch, ...: gigabytes). executorch 1.2.0
 #                         (the model gym's export path) and torchvision (torcheval's FID) do not import against
-#                         another torch (aten.transpose.Dimname / torchvision::nms), so this mode replaces both
-#                         with empty stub modules ($VENV/stubs/sitecustomize.py): the data code never calls them.
+#                         another torch (aten.transpose.Dimname / torchvision::nms), so this mode replaces both,
+#                         and pyiqa (an unused metric), with stub modules (benchmarks/ngmg_stubs/sitecustomize.py):
+#                         the data and training code never calls them.
 #   PY=python3.11         the interpreter (ng-model-gym needs Python 3.10-3.12)
+#   STEP=1                after the dataset, one optimizer step of the gym's NSS-v1 model with its own Trainer
+#                         (benchmarks/nss_gym_step.py; STEP_ARGS passes options, STEP_JSON=FILE keeps its record).
+#                         Exit 0: the step ran; 3: the forward refused a machine without CUDA (Slang shaders)
+#   STAGE=DIR             copy the converter's safetensors to DIR/safetensors (for the GPU step, which has no
+#                         Blender: benchmarks/gpu/fetch_nss_gym.sh)
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 VENV=${VENV:-$REPO/.venv-ngmg}
@@ -36,27 +44,9 @@ if [ ! -x "$VENV/bin/python" ]; then
     echo "$NGMG_REUSE_SITE" > "$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/blendsr-reuse.pth"
     "$VENV/bin/pip" install -q --no-deps ng-model-gym
     "$VENV/bin/pip" install -q safetensors torcheval tqdm pydantic rich typer click psutil gputil gpustat \
-      memory-profiler ruamel.yaml tabulate joblib cloudpickle slangtorch
-    "$VENV/bin/pip" install -q --no-deps torchao==0.17.0 tosa-tools==2026.2.1
-    mkdir -p "$VENV/stubs"
-    cat > "$VENV/stubs/sitecustomize.py" <<'STUB'
-import importlib.abc, importlib.machinery, sys, types
-class _Any(types.ModuleType):
-    __path__ = []
-    def __getattr__(self, name):
-        if name.startswith("__"):
-            raise AttributeError(name)
-        return type(name, (), {"__init__": lambda self, *a, **k: None, "__call__": lambda self, *a, **k: None})
-class _Stubs(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    def find_spec(self, name, path, target=None):
-        if name.split(".")[0] in ("executorch", "torchvision"):
-            return importlib.machinery.ModuleSpec(name, self, is_package=True)
-    def create_module(self, spec):
-        return _Any(spec.name)
-    def exec_module(self, module):
-        pass
-sys.meta_path.insert(0, _Stubs())
-STUB
+      memory-profiler ruamel.yaml tabulate joblib cloudpickle slangtorch==1.3.19 tensorboard lightning-utilities
+    "$VENV/bin/pip" install -q --no-deps torchao==0.17.0 tosa-tools==2026.2.1 lpips==0.1.4 torchmetrics==1.8.2
+    touch "$VENV/reuse-site"
   else
     "$VENV/bin/pip" install -q ng-model-gym
   fi
@@ -68,7 +58,7 @@ if [ -z "${NGMG_REPO:-}" ]; then
   [ -d "$NGMG_REPO" ] || git clone -q --depth 1 https://github.com/arm/neural-graphics-model-gym "$NGMG_REPO"
 fi
 
-[ -d "$VENV/stubs" ] && export PYTHONPATH=$VENV/stubs
+[ -e "$VENV/reuse-site" ] && export PYTHONPATH=$REPO/benchmarks/ngmg_stubs
 EXPORT=${1:-}
 if [ -z "$EXPORT" ]; then
   (cd "$REPO" && PYTHONPATH=$REPO "$BLENDSR_PY" -m gbuffer_export.cli render -o "$WORK/clip" --hr-size 64x36 \
@@ -114,3 +104,16 @@ if m is not None:
 print("OK: ng-model-gym's NSSDataset loaded the BlendSR export")
 
 PY
+
+if [ -n "${STAGE:-}" ]; then  # keep the converter's output for the GPU step (benchmarks/gpu/fetch_nss_gym.sh)
+  rm -rf "$STAGE/safetensors" && mkdir -p "$STAGE" && cp -r "$WORK/st" "$STAGE/safetensors"
+  echo "staged $(du -sh "$STAGE/safetensors" | cut -f1) of safetensors in $STAGE/safetensors"
+fi
+if [ -n "${STEP:-}" ]; then
+  echo "== one optimizer step of the model gym's NSS-v1 model (benchmarks/nss_gym_step.py)"
+  rc=0
+  "$VENV/bin/python" "$REPO/benchmarks/nss_gym_step.py" "$WORK/st" "$WORK/step" --json "${STEP_JSON:-$WORK/step.json}" \
+    ${STEP_ARGS:-} || rc=$?
+  [ "$rc" = 3 ] && echo "the model gym's NSS-v1 forward needs CUDA (its Slang shaders): run benchmarks/gpu/nss_gym_step.sh there"
+  exit "$rc"
+fi

@@ -20,12 +20,16 @@
 #   (bilinear's graph row is the timer's own check: within 2x of its roofline). Step timeouts sum to 430 s (not yet
 #   run on a GPU). Writes log.txt, speed_graph.json/.md; a second call on another machine:
 #   python3 benchmarks/gpu/compare.py A/speed_graph.json B/speed_graph.json (the spread between machines).
+# CHECK=nss (issue 57 item 4): one optimizer step of Arm's NSS-v1 model by the model gym's Trainer on a BlendSR
+#   export: benchmarks/gpu/nss_gym_step.sh, which needs .nss-gym (benchmarks/gpu/fetch_nss_gym.sh) carried instead of
+#   .whl: run(command="CHECK=nss bash benchmarks/gpu/check.sh", carry=[".nss-gym"], timeout_s=600).
 # Needs the wheels of fetch_wheels.sh carried as .whl (about 5 MB; the image's torch brings triton).
 # Usage: run(command="bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 #        run(command="CHECK=speed bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 #        run(command="CHECK=graph bash benchmarks/gpu/check.sh", carry=[".whl"], timeout_s=600)
 # CPU dry run of the same steps: DEV=cpu SIZE=128x72 REPEATS=2 STEPS=5 [CHECK=speed COMPILE=off] bash benchmarks/gpu/check.sh
 set -u
+[ "${CHECK:-}" = nss ] && exec bash "$(dirname "$0")/nss_gym_step.sh"
 OUT=${OUT:-gpu_out}; DEV=${DEV:-cuda}; SIZE=${SIZE:-1920x1080}; REPEATS=${REPEATS:-30}; STEPS=${STEPS:-300}
 CHECK=${CHECK:-all}; COMPILE=${COMPILE:-both}  # COMPILE: the speed set's --compile (off for a quick CPU dry run)
 mkdir -p "$OUT"; export PYTHONUNBUFFERED=1; W=/tmp/blendsr_gpu; rm -rf "$W"; mkdir -p "$W"; LOG="$OUT/log.txt"
