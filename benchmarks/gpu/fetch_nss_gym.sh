@@ -8,12 +8,13 @@
 #                          converted by Arm's own converter (benchmarks/check_nss_consumer.sh, Python 3.11 + bpy)
 # Usage (repository root): NGMG_REPO=/path/to/neural-graphics-model-gym NGMG_REUSE_SITE=... \
 #                          bash benchmarks/gpu/fetch_nss_gym.sh; echo /.nss-gym/ >> .git/info/exclude
-# (NGMG_REPO and NGMG_REUSE_SITE as for check_nss_consumer.sh; SKIP_EXPORT=1 stages the wheels only.)
+# (NGMG_REPO and NGMG_REUSE_SITE as for check_nss_consumer.sh; SKIP_EXPORT=1 stages the wheels only; a CPU dry run
+# of nss_gym_step.sh here: PYVER=3.11 STAGE=.nss-gym-311 SKIP_EXPORT=1, then PY=... STAGE=.nss-gym-311 there.)
 set -euo pipefail
-STAGE=.nss-gym
+STAGE=${STAGE:-.nss-gym}; PYVER=${PYVER:-3.12}
 rm -rf "$STAGE/wheels" && mkdir -p "$STAGE/wheels"
 get() {
-  python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+  python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
     --platform manylinux1_x86_64 -d "$STAGE/wheels" "$@"
 }
