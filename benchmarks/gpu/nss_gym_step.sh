@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # One optimizer step of Arm's NSS-v1 model, by the model gym's own Trainer (benchmarks/nss_gym_step.py), on a
 # BlendSR export, on the CUDA machine (issue 57 item 4). Nothing is fetched there: it needs .nss-gym/ staged here by
-# benchmarks/gpu/fetch_nss_gym.sh (the wheels the image lacks and the export's safetensors; about 28 MB).
+# benchmarks/gpu/fetch_nss_gym.sh (the wheels the image lacks and the export's safetensors; about 18 MB).
 # Usage: run(command="bash benchmarks/gpu/nss_gym_step.sh", carry=[".nss-gym"], timeout_s=600)
 #        (or CHECK=nss bash benchmarks/gpu/check.sh). About 1-5 min: slangtorch JIT-builds the NSS shaders first.
 # Writes $OUT/log.txt and $OUT/nss_gym_step.json (losses before/after, lr, grad norm, parameters changed, stages).
 # PY, NGMG_STUBS, EXTRA_PATH: for a CPU dry run of this script elsewhere (fetch_nss_gym.sh says how).
 # Exit: 0 the step ran; 2 .nss-gym missing; 4 no CUDA compiler (slangtorch needs nvcc, ninja and a C++ compiler);
 # 3 the forward refused (no CUDA device); 1 anything else (the traceback is in the log).
-set -u
+set -u -o pipefail
 OUT=${OUT:-gpu_out}; STAGE=${STAGE:-.nss-gym}; W=/tmp/blendsr_nss_gym; PY=${PY:-python3}
 mkdir -p "$OUT"; LOG=$OUT/log.txt; export PYTHONUNBUFFERED=1; rm -rf "$W" /tmp/ngmg-site
 say() { echo "$*" | tee -a "$LOG"; }
@@ -39,7 +39,6 @@ if [ ! -e "$CH/include/cusparse.h" ]; then
   done
   say "no cusparse.h in CUDA_HOME (${CH:-none})/include; CPATH=${CPATH:-none found}"
 fi
-set -o pipefail
 timeout 500 "$PY" benchmarks/nss_gym_step.py "$STAGE/safetensors" "$W" --json "$OUT/nss_gym_step.json" 2>&1 \
   | tee -a "$LOG"
 rc=$?
