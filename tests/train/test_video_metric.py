@@ -52,7 +52,8 @@ def _untonemap(d: np.ndarray) -> np.ndarray:
 def test_identical_clip_scores_10_jod_and_a_brightness_flicker_far_below_a_steady_offset():
     """A still shot (a ramp, 12 frames at 24 fps): the ground truth scores 10 JOD; a result 0.04 brighter on every
     frame and one alternately 0.04 brighter and darker (every 2 frames: 6 Hz) have the same tonemapped error in every
-    pixel of every frame, so the same per-frame PSNR; the flicker is what a viewer objects to, and the metric says so."""
+    pixel of every frame, so the same per-frame PSNR; the flicker is what a viewer objects to, and the metric says
+    so."""
     _needs_cvvdp()
     from training.metrics import psnr_tm
     from training.video_metric import ClipVideo, load_cvvdp
