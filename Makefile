@@ -36,7 +36,8 @@ endef
 $(STAMP): pyproject.toml Makefile
 	$(venv_torch)
 	@echo "== setup 4/4: blendsr[dev] (bpy is about 820 MB)"
-	$(PIP) -e ".[dev]"
+	# torch again: cvvdp's torchvision would otherwise be the newest, pinning (and installing) the newest torch
+	$(PIP) -e ".[dev]" "torch==2.13.0"
 	@touch $(STAMP) $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 

@@ -11,6 +11,9 @@ beside PSNR, SSIM, tPSNR and FLIP (docs/evaluation.md).
 """
 from __future__ import annotations
 
+import logging
+import re
+
 import numpy as np
 
 from gbuffer_export.extras import MissingExtra, install_hint
@@ -21,34 +24,76 @@ DISPLAY = "standard_fhd"
 #: Frame rate of a clip whose manifest records none (Blender's default scene rate).
 DEFAULT_FPS = 24.0
 
+log = logging.getLogger(__name__)
+
 
 def load_cvvdp(device=None, display: str = DISPLAY):
     """The ColorVideoVDP metric on ``device`` (default: the CPU); MissingExtra naming the ``video`` extra when
-    ``pycvvdp`` (or a module it imports: torchvision built for this torch, ffmpeg-python, einops,
-    huggingface_hub) cannot be imported."""
+    ``pycvvdp`` (or a module it imports: torchvision, ffmpeg-python, einops, huggingface_hub) cannot be imported."""
     import torch
     try:
-        import pycvvdp
-    except ImportError as exc:  # ModuleNotFoundError, or torchvision's C extension built for another torch
+        pycvvdp = _import_pycvvdp()
+    except ImportError as exc:  # ModuleNotFoundError, or a module that imports but does not fit
         name = getattr(exc, "name", None) or str(exc).splitlines()[0]
         raise MissingExtra(f"--cvvdp needs ColorVideoVDP (the cvvdp package), which cannot be imported ({name}): "
-                           f"{install_hint('video')}{_torchvision_note()}") from None
-    except RuntimeError as exc:  # torchvision from another torch build registers operators that do not exist
+                           f"{install_hint('video')}{_keep_torch_note()}") from None
+    except RuntimeError as exc:  # a torchvision that fails otherwise for this torch
         raise MissingExtra(f"--cvvdp: ColorVideoVDP cannot be imported (torchvision does not match torch "
                            f"{torch.__version__}: {str(exc).splitlines()[0]}): {install_hint('video')}"
-                           f"{_torchvision_note()}") from None
+                           f"{_keep_torch_note()}") from None
     return pycvvdp.cvvdp(display_name=display, device=torch.device(device or "cpu"), quiet=True)
 
 
-def _torchvision_note() -> str:
-    """What a CPU build of torch needs besides: PyPI's torchvision is built against CUDA torch (and pulls it)."""
+#: The torchvision operators whose fake kernels torchvision's Python registers whether or not its C extension
+#: loaded (``torchvision/_meta_registrations.py``, 0.28: two ``torch.library.register_fake`` outside the
+#: ``_has_ops()`` guard of all the others), with their schemas as its C++ extension (``_C.so``) defines them.
+TORCHVISION_SCHEMAS = ("nms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor",
+                       "qnms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor")
+_torchvision_library = None  # the torch.library.Library holding them: kept, as collecting it removes them
+
+
+def _import_pycvvdp():
+    """``import pycvvdp``, also where torchvision's C extension cannot load for this torch.
+
+    PyPI's Linux torchvision is built for PyPI's CUDA torch: its ``_C.so`` needs ``libc10_cuda.so``, which a CPU
+    build of torch (``2.13.0+cpu``, the Makefile's) does not have. torchvision then imports without its operators,
+    except that registering fakes for ``torchvision::nms`` and ``qnms`` raises "operator torchvision::nms does not
+    exist", so ``import torchvision`` fails. ColorVideoVDP needs only torchvision's Python (``GaussianBlur``,
+    ``ops.MLP``), never its operators. On exactly that error (nothing is guessed beforehand: defining the schemas
+    where the extension loads would make its own definitions fail), the two schemas are defined without kernels
+    (calling ``torchvision.ops.nms`` raises torchvision's "Couldn't load custom C++ ops") and the import is
+    retried once."""
+    try:
+        import pycvvdp
+    except RuntimeError as exc:
+        if not _define_torchvision_schemas(str(exc)):
+            raise
+        import pycvvdp
+    return pycvvdp
+
+
+def _define_torchvision_schemas(error: str) -> bool:
+    """Define ``TORCHVISION_SCHEMAS`` when ``error`` is torchvision's missing operator (once per process); False:
+    another error, left to the caller."""
+    global _torchvision_library
+    if _torchvision_library is not None or not re.search(r"operator torchvision::\w+ does not exist", error):
+        return False
     import torch
-    version, _, local = torch.__version__.partition("+")
-    if not local:
-        return ""
-    minor = int(version.split(".")[1]) + 15  # torchvision 0.(N+15) is made for torch 2.N (2.0 and 0.15 onwards)
-    return (f" (torch {torch.__version__} is the {local} build: first pip install 'torchvision==0.{minor}.*' "
-            f"--index-url https://download.pytorch.org/whl/{local}, the torchvision made for it)")
+    lib = torch.library.Library("torchvision", "DEF")
+    for schema in TORCHVISION_SCHEMAS:
+        lib.define(schema)
+    _torchvision_library = lib
+    log.debug("torchvision's C extension does not load for torch %s; defined torchvision::nms and qnms without "
+              "kernels so that its Python (all ColorVideoVDP uses) imports", torch.__version__)
+    return True
+
+
+def _keep_torch_note() -> str:
+    """How to keep this torch while pip adds the extra: the newest torchvision pins the newest torch (on Linux,
+    PyPI's CUDA build, 5 GB more), so name the installed version (``==2.13.0`` also matches ``2.13.0+cpu``)."""
+    import torch
+    version = torch.__version__.partition("+")[0]
+    return f" (add 'torch=={version}' to that command to keep torch {torch.__version__})"
 
 
 def display_description(metric) -> str:
