@@ -22,11 +22,12 @@ def plannable(job) -> bool:
 
 def _level(cfg, cache: dict):
     """(scene, its level geometry, the geometry's declared metres per unit) of ``cfg.scene``, loaded once."""
-    from .render import _level_light, load_scene, resolve_frames
+    from .render import load_scene
+    from .render_setup import find_level, resolve_frames
     key = str(cfg.scene)
     if key not in cache:
         scene, info = load_scene(cfg)
-        ll = _level_light(cfg, scene, info, resolve_frames(cfg, scene)[0])
+        ll = find_level(cfg, scene, info, resolve_frames(cfg, scene)[0])
         cache.clear()  # loading a level replaces the previous one in Blender
         cache[key] = (scene, ll.level, ll.level.metres_per_unit)
     return cache[key]
@@ -38,7 +39,7 @@ def plan_job(job, cache: dict, tmp: Path) -> dict:
     from .camera_paths import half_fov
     from .dataset_job import render_config
     from .level_cameras import PathError, suggest_fix
-    from .render import level_rules, resolve_frames
+    from .render_setup import level_rules, resolve_frames
     from .scene_setup import LevelUnit, clip_plan, ensure_level_camera, plan_scene_path, spawn_points
     cfg = render_config(job, tmp / job.id)
     rec = {"id": job.id, "camera": job.camera, "scene": Path(job.asset).name,

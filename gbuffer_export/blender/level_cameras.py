@@ -668,11 +668,19 @@ def plan_level_camera(geom: LevelGeometry, clip: ClipPlan, rules: PathRules = Pa
     whose path looks right. Returns (path, the unit's record for the manifest: cues, scores, choice and the
     ``view_check``). ``source``: the level's file (its engine line names its unit); ``spawns``: its spawn points'
     positions."""
-    from .level_scale import UNITS, resolve_unit_scale
-    unit = resolve_unit_scale(geom, unit_scale, source, spawns)
+    from .level_scale import resolve_unit_scale
+    return plan_in_unit(geom, clip, rules, resolve_unit_scale(geom, unit_scale, source, spawns))
+
+
+def plan_in_unit(geom: LevelGeometry, clip: ClipPlan, rules: PathRules, unit: dict) -> tuple[LevelPath, dict]:
+    """A clip's path in ``geom`` whose unit is resolved (``unit``: ``level_scale.resolve_unit_scale``'s record, left
+    as it is): ``plan_level_camera`` once the unit is known. An "auto" unit is checked on the planned views and may
+    give way to the next candidate (``geom.metres_per_unit`` follows); returns (path, the unit's final record)."""
+    from .level_scale import UNITS
     path = clip.path(geom, rules)
-    if unit_scale != "auto":
+    if unit["requested"] != "auto":
         return path, unit
+    unit = dict(unit)
     why = implausible_view(path, unit)
     check = {"far_depth_m": path.report["far_depth_m"], "plausible": why is None, "rejected": []}
     if why is not None:

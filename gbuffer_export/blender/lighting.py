@@ -9,7 +9,7 @@
    dark fraction is at most ``LIT_MAX_DARK`` and the log-average at least ``LIT_MIN_LOG_AVERAGE``: then nothing is
    added. A file with no light source at all is not rendered: it is unlit.
 2. Otherwise light is added, and the file's own is kept beside it:
-   - *sun and sky* (``scene_setup.add_sky``: it replaces the world) when a camera eye sees the sky: at least
+   - *sun and sky* (``add_sky``: it replaces the world) when a camera eye sees the sky: at least
      ``OPEN_SKY_MIN`` of the rays over its upper hemisphere leave the level, or at least ``SEES_SKY_MIN`` of its
      view rays do;
    - *ceiling lights* when an eye of the camera path (up to 64 spread over the clip) stands under a roof: at least
@@ -48,6 +48,7 @@ import bpy
 import numpy as np
 
 from ..colour_spaces import BT709_LUMA
+from ..config import ConfigError
 from .level_geometry import LevelGeometry, enclosure, trimesh_of
 
 log = logging.getLogger(__name__)
@@ -67,7 +68,8 @@ LIT_MAX_DARK = 0.2
 LIT_MIN_LOG_AVERAGE = KEY / 16
 #: Luminance floor inside the log-average (a black pixel counts as this).
 LOG_EPS = 1e-8
-#: An eye sees the sky: this fraction of its upper hemisphere's rays leave the level (as ``render.SKY_LIT_MIN_SKY``).
+#: An eye sees the sky: this fraction of its upper hemisphere's rays leave the level (as
+#: ``render_setup.SKY_LIT_MIN_SKY``).
 OPEN_SKY_MIN = 0.05
 #: ... or this fraction of its view rays do.
 SEES_SKY_MIN = 0.02
@@ -87,6 +89,155 @@ SKY_MESH_UPPER_HITS = 0.9
 SKY_MESH_MARGIN = 0.25
 SKY_MESH_RAYS = 256
 LIT_BSDFS_OK = frozenset({"BSDF_TRANSPARENT"})  # glTF's unlit shader mixes emission with transparency
+SKY_SUN_STRENGTH = 4.0      # W/m^2 of the added sun lamp
+SKY_STRENGTH = 0.35         # multiplier of Blender's physical sky (its radiance is in daylight units)
+
+
+# ----------------------------------------------------------------------------------------------
+# The file's light sources, the added sun and sky, light variations
+# ----------------------------------------------------------------------------------------------
+
+def _socket_value(sock):
+    v = getattr(sock, "default_value", None)
+    return tuple(v) if v is not None and hasattr(v, "__len__") else v
+
+
+def world_emits(scene) -> bool:
+    """Whether the world lights the scene: a Background or Emission node with a non-zero strength whose colour
+    is linked (a texture) or not black."""
+    w = scene.world
+    if w is None:
+        return False
+    nt = w.node_tree
+    if nt is None:
+        return any(c > 0 for c in w.color)
+    for n in nt.nodes:
+        if n.type not in ("BACKGROUND", "EMISSION") or n.mute:
+            continue
+        s = n.inputs.get("Strength")
+        c = n.inputs.get("Color")
+        strong = s is None or s.is_linked or (_socket_value(s) or 0) > 0
+        bright = c is None or c.is_linked or any(x > 0 for x in (_socket_value(c) or (0,))[:3])
+        if strong and bright and n.outputs[0].is_linked:
+            return True
+    return False
+
+
+def material_emits(mat) -> bool:
+    if mat is None or mat.node_tree is None:
+        return False
+    for n in mat.node_tree.nodes:
+        if n.mute:
+            continue
+        if n.type == "EMISSION":
+            s, c = n.inputs.get("Strength"), n.inputs.get("Color")
+        elif n.type == "BSDF_PRINCIPLED":
+            s, c = n.inputs.get("Emission Strength"), n.inputs.get("Emission Color")
+        else:
+            continue
+        if s is None or c is None:
+            continue
+        if (s.is_linked or (_socket_value(s) or 0) > 0) and (c.is_linked or any(x > 0 for x in _socket_value(c)[:3])):
+            return True
+    return False
+
+
+def light_sources(scene, exclude: set = frozenset()) -> dict:
+    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects (those of the
+    objects named in ``exclude`` left out: sky meshes, which light nothing), and whether the world emits."""
+    lamps = [ob for ob in scene.objects if ob.type == "LIGHT" and not ob.hide_render and ob.data.energy > 0]
+    emissive = {s.material.name for ob in scene.objects if ob.type == "MESH" and not ob.hide_render
+                and ob.name not in exclude for s in ob.material_slots if material_emits(s.material)}
+    return {"lamps": len(lamps), "sun_lamps": sum(ob.data.type == "SUN" for ob in lamps),
+            "emissive_materials": len(emissive), "world": world_emits(scene)}
+
+
+def check_lit(scene, where, light: str) -> dict:
+    """ConfigError when nothing lights the scene and ``light`` is "scene"; the light sources otherwise."""
+    src = light_sources(scene)
+    if light == "scene" and not (src["lamps"] or src["emissive_materials"] or src["world"]):
+        raise ConfigError(f"{where}: the scene has no lights, no emissive material and a black world, so every "
+                          "frame would be black; set light auto (it adds a sun and sky where the cameras see the sky "
+                          "and lights under the ceilings where they do not, recorded in the manifest)", key="light")
+    return src
+
+
+def add_sky(scene, seed: int = 0) -> dict:
+    """Light ``scene`` with a sun lamp and Blender's physical sky (multiple scattering) whose sun points the same
+    way: elevation 25-60 degrees and azimuth drawn from ``seed``. Returns what was added (for the manifest)."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 5])
+    elev, azim = float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.0, 360.0))
+    world = bpy.data.worlds.new("BlendSR Sky")
+    world.use_nodes = True
+    nt = world.node_tree
+    nt.nodes.clear()
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    sky.sky_type = "MULTIPLE_SCATTERING"
+    sky.sun_disc = False  # the sun lamp is the sun: sharp shadows, sampled directly
+    sky.sun_elevation, sky.sun_rotation = math.radians(elev), math.radians(azim)
+    bg = nt.nodes.new("ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = SKY_STRENGTH
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    scene.world = world
+    lamp = bpy.data.lights.new("BlendSR Sun", "SUN")
+    lamp.energy = SKY_SUN_STRENGTH
+    lamp.angle = math.radians(0.53)
+    ob = bpy.data.objects.new("BlendSR Sun", lamp)
+    # A sun lamp shines along its -Z: point it from the sky position (elevation, azimuth about +Z from +Y).
+    ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
+    scene.collection.objects.link(ob)
+    return {"light": "sky", "sun_elevation_deg": elev, "sun_azimuth_deg": azim, "sun_strength_w_m2": SKY_SUN_STRENGTH,
+            "sky": "MULTIPLE_SCATTERING", "sky_strength": SKY_STRENGTH}
+
+
+def apply_variation(scene, variation: dict | None) -> dict:
+    """Apply a drawn light variation (``dataset.spec.Variation``) to ``scene``; returns what changed."""
+    if not variation:
+        return {}
+    done = {}
+    world = scene.world
+    nodes = world.node_tree.nodes if world is not None and world.node_tree is not None else []
+    if "world_strength" in variation:
+        bgs = [n for n in nodes if n.type == "BACKGROUND"]
+        for n in bgs:
+            n.inputs["Strength"].default_value *= variation["world_strength"]
+        done["world_strength"] = {"multiplier": variation["world_strength"], "nodes": len(bgs)}
+    lamps = [ob for ob in scene.objects if ob.type == "LIGHT"]
+    if "light_strength" in variation:
+        for ob in lamps:
+            ob.data.energy *= variation["light_strength"]
+        done["light_strength"] = {"multiplier": variation["light_strength"], "lamps": len(lamps)}
+    if "sun_elevation_deg" in variation:
+        elev, azim = variation["sun_elevation_deg"], variation["sun_azimuth_deg"]
+        suns = [ob for ob in lamps if ob.data.type == "SUN"]
+        for ob in suns:
+            ob.rotation_mode = "XYZ"
+            ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
+        for n in nodes:
+            if n.type == "TEX_SKY":
+                n.sun_elevation, n.sun_rotation = math.radians(elev), math.radians(azim)
+        done["sun"] = {"elevation_deg": elev, "azimuth_deg": azim, "sun_lamps": len(suns)}
+    if "hdri" in variation:
+        envs = [n for n in nodes if n.type == "TEX_ENVIRONMENT"]
+        if envs:
+            from .default_scene import hdri_path
+            img = bpy.data.images.load(str(hdri_path(variation["hdri"])), check_existing=True)
+            for n in envs:
+                n.image = img
+                mapping = n.inputs["Vector"].links[0].from_node if n.inputs["Vector"].is_linked else None
+                if mapping is not None and mapping.type == "MAPPING":
+                    mapping.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
+                else:
+                    tc = world.node_tree.nodes.new("ShaderNodeTexCoord")
+                    mp = world.node_tree.nodes.new("ShaderNodeMapping")
+                    mp.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
+                    world.node_tree.links.new(tc.outputs["Generated"], mp.inputs["Vector"])
+                    world.node_tree.links.new(mp.outputs["Vector"], n.inputs["Vector"])
+        done["hdri"] = {"file": variation["hdri"], "rotation_deg": variation["hdri_rotation_deg"],
+                        "applied": bool(envs)}
+    return done
 
 
 # ----------------------------------------------------------------------------------------------
@@ -284,7 +435,8 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
     paths; every render setting is restored after."""
     from ..interrupt import check_interrupt
     from .convert import read_passes
-    from .scene_setup import _quiet_fds, select_device
+    from .fds import captured
+    from .scene_setup import select_device
     r, c = scene.render, scene.cycles
     select_device(scene, device)
     pairs = [(r, "engine", "CYCLES"), (r, "resolution_x", size[0]), (r, "resolution_y", size[1]),
@@ -305,7 +457,7 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
             scene.frame_set(f)
             path = Path(tmp) / f"probe_{f}.exr"
             r.filepath = str(path)
-            with _quiet_fds():  # Blender's per-render log lines (BLENDSR_VERBOSE=1 keeps them)
+            with captured():  # Blender's per-render log lines (BLENDSR_VERBOSE=1 keeps them)
                 bpy.ops.render.render(write_still=True, scene=scene.name)
             check_interrupt()  # Ctrl-C during the probe: stop here
             rgb = read_passes(path)["Combined"][..., :3]
@@ -443,7 +595,6 @@ def measure(scene, cam, views: list[ProbeView], size, cfg) -> dict:
 def unmeasured_auto_light(scene, seed: int) -> dict:
     """``light = "auto"`` where nothing is measured: a scene BlendSR built and lit, or one without triangles (no ray
     to cast), which keeps its own light or, having none, gets a sun and sky."""
-    from .scene_setup import add_sky, light_sources
     src = light_sources(scene)
     if src["lamps"] or src["emissive_materials"] or src["world"]:
         return {"light": "auto", "kept": "scene", "added": [], "scene_sources": src,
@@ -455,7 +606,6 @@ def unmeasured_auto_light(scene, seed: int) -> dict:
 def auto_light(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight) -> dict:
     """``light = "auto"`` on a user's level (module doc): keep the file's light when it lights what the clip's
     cameras see, else add a sun and sky and/or ceiling lights. Returns the manifest's ``light`` record."""
-    from .scene_setup import light_sources
     frame0 = scene.frame_current
     size = (PROBE_WIDTH, max(4, round(PROBE_WIDTH * hr_size[1] / hr_size[0])))
     views = probe_views(scene, cam, probe_frames(frames), ll.level, size)
@@ -498,7 +648,6 @@ def add_light(scene, seed: int, cam, frames, views: list[ProbeView], ll: LevelLi
     """Add a sun and sky where the probe views see the sky and ceiling lights over the path's eyes that stand
     under a roof (a sun and sky when neither applies). Returns the manifest's entries (``added``, ``sky``,
     ``ceiling_lights``, ``path``)."""
-    from .scene_setup import add_sky
     out, added = {}, []
     world = scene.world.name if scene.world is not None and src["world"] else None
     if max(v.open_sky for v in views) >= OPEN_SKY_MIN or max(v.sees_sky for v in views) >= SEES_SKY_MIN:
@@ -516,4 +665,35 @@ def add_light(scene, seed: int, cam, frames, views: list[ProbeView], ll: LevelLi
         out["sky"] = {**add_sky(scene, seed), "replaced_world": world}
         added.append("sky")
     out["added"] = added
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# A clip's light
+# ----------------------------------------------------------------------------------------------
+
+def light_clip(scene, cfg, cam, frames, hr_size: tuple[int, int], ll: LevelLight | None,
+               sources: dict | None = None) -> dict:
+    """``cfg.light`` "auto": keep the file's light where it lights what ``cam`` sees, add a sun and sky and/or
+    ceiling lights where it does not (``auto_light``); "sky": add a default sun and sky; "scene": keep the file's
+    light (``sources``: its light sources, already checked lit; None: checked here). ``ll``: the user's level and
+    its sky meshes (None for a scene BlendSR built, whose light is its own); under auto and sky its sky meshes are
+    seen by the camera only. Then ``cfg.extra["variation"]``. Returns the manifest's ``light`` record."""
+    sky_meshes = {}
+    if ll is not None:
+        treated = treat_sky_meshes(scene, ll) if cfg.light in ("auto", "sky") else []
+        sky_meshes = {"sky_meshes": {"found": list(ll.sky_meshes), "treated": treated, "candidates": ll.sky_report}}
+    if cfg.light == "sky":
+        out = {**add_sky(scene, cfg.seed), "scene_sources": check_lit(scene, cfg.scene or "scene", "sky")}
+    elif cfg.light == "auto" and ll is not None:
+        out = auto_light(scene, cfg, cam, frames, hr_size, ll)
+    elif cfg.light == "auto":
+        out = unmeasured_auto_light(scene, cfg.seed)
+    else:
+        sources = sources if sources is not None else check_lit(scene, cfg.scene or "scene", "scene")
+        out = {"light": "scene", "scene_sources": sources}
+    out.update(sky_meshes)
+    variation = apply_variation(scene, cfg.extra.get("variation"))
+    if variation:
+        out["variation"] = variation
     return out

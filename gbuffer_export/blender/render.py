@@ -11,13 +11,12 @@ Per frame and in this order:
      denoised, with the level's G-buffer passes in the same render (point sampling makes them valid). Each level is
      rendered at its own size, never downsampled from HR (a downsampled image would be anti-aliased).
 Then the passes are converted to the clip's buffers (``convert.CONVERTERS``, one converter per buffer) and written
-atomically. What the configuration and the scene settle is resolved once (``resolve_render`` -> frozen
-``ResolvedRender``); what every frame shares is one frozen ``RenderContext``.
+atomically. What the configuration and the scene settle is resolved once, stage by stage (``render_setup``:
+``resolve_render`` -> frozen ``ResolvedRender``); what every frame shares is one frozen ``RenderContext``.
 """
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hashlib
 import logging
 import os
@@ -32,17 +31,16 @@ import bpy
 import numpy as np
 
 from .. import __version__
-from ..clip import FRAMES_DIR, ClipWriter, frame_name, levels_header
+from ..clip import FRAMES_DIR, ClipWriter
 from ..config import ConfigError, RenderConfig, recorded_keys
-from ..conventions import (Flag, computed_buffers, exposure_header, halton_jitter, intrinsics_from_projection,
-                           level_name, material_flags_for_source, pass_seed)
+from ..conventions import exposure_header, halton_jitter, intrinsics_from_projection, level_name, pass_seed
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources
 from . import materials as mats
-from .convert import (BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, colour_sum, convert, plan_passes,
-                      reactive_mask, read_passes)
+from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, colour_sum, convert, reactive_mask, read_passes
+from .render_setup import ResolvedRender, renderable_meshes, resolve_render
 
 log = logging.getLogger(__name__)
 
@@ -89,92 +87,10 @@ def load_scene(cfg: RenderConfig):
     return scene, {"file": cfg.scene.name, "sha256": file_sha256(cfg.scene), "builtin": None, **allowed, **loaded}
 
 
-def renderable_meshes(scene) -> list:
-    return [ob for ob in scene.objects if ob.type in ("MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES",
-                                                       "POINTCLOUD", "VOLUME")
-            and not ob.hide_render]
-
-
 def has_fog(scene) -> bool:
     """True when a renderable object of ``scene`` is a volume-only domain (``materials.volume_domain``): its G-buffer
     passes need a render of their own with the volumes muted."""
     return any(mats.volume_domain(ob) for ob in renderable_meshes(scene))
-
-
-def resolve_frames(cfg: RenderConfig, scene) -> list[int]:
-    start, end = scene.frame_start, scene.frame_end
-    if cfg.frames is None:
-        cfg.check_frames_subset(range(start, end + 1))
-        return list(range(start, end + 1))
-    a, b = cfg.frames
-    if cfg.scene is not None and cfg.camera_path.startswith("scene") and (a < start or b > end):
-        raise ConfigError(f"frames {a}:{b} is outside the scene's range {start}:{end}", key="frames")
-    return list(range(a, b + 1))
-
-
-def resolve_size(cfg: RenderConfig, scene) -> tuple[int, int]:
-    if cfg.hr_size is not None:
-        return cfg.hr_size
-    pct = scene.render.resolution_percentage / 100.0
-    w, h = int(scene.render.resolution_x * pct), int(scene.render.resolution_y * pct)
-    try:
-        cfg.check_size((w, h), "scene resolution")
-    except ConfigError as exc:
-        raise ConfigError(f"{exc}; set hr_size", key="hr_size") from None
-    return w, h
-
-
-def uses_level_camera(cfg: RenderConfig) -> bool:
-    """fly always, and walk in a user's scene file, move inside the level (``level_cameras``); orbit and the
-    built-in scene's walk frame the scene's bounds (``camera_paths``)."""
-    return cfg.camera_path == "fly" or (cfg.camera_path == "walk" and cfg.scene is not None)
-
-
-#: ``light = "sky"``: the least fraction of the upper hemisphere a level camera's eye must see as sky (the sun and
-#: sky are the only light; an eye under a roof renders black). 5 %: a street between buildings sees far more.
-SKY_LIT_MIN_SKY = 0.05
-
-
-def level_rules(cfg: RenderConfig):
-    """The rules of ``cfg``'s level camera path (``level_cameras.PathRules``): a sky-lit level's eyes must see the
-    sky."""
-    from .level_cameras import PathRules
-    return PathRules(min_sky_fraction=SKY_LIT_MIN_SKY) if cfg.light == "sky" else PathRules()
-
-
-def setup_camera(cfg: RenderConfig, scene, frames: list[int], level=None):
-    """The clip's camera and its report for the manifest (the planned path's rules and measurements). ``level``:
-    the level's geometry for a level camera (``lighting.LevelLight.level``; None: taken from the scene)."""
-    if uses_level_camera(cfg):
-        from .level_cameras import ROOF, PathError
-        from .level_geometry import LevelGeometryError
-        from .scene_setup import LevelUnit, make_level_camera
-        try:
-            return make_level_camera(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed,
-                                     region=cfg.extra.get("region"), rules=level_rules(cfg), geom=level,
-                                     unit=LevelUnit(cfg.unit_scale, cfg.scene))
-        except (PathError, LevelGeometryError) as exc:
-            if isinstance(exc, PathError) and ROOF in exc.reasons:  # a sky-lit walk stood under a roof on some try
-                raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; set light auto (it lights a level under a roof "
-                                  "with lamps under its ceilings, and adds the sun and sky where the cameras see "
-                                  "the sky)", key="light") from None
-            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}; blendsr dataset --dry-run names a fix that works for "
-                              "a level (another camera kind, fewer regions, unit_scale); a single object (no floor, "
-                              "nothing around it) is framed by camera_path orbit", key="camera_path") from None
-    if cfg.camera_path in ("orbit", "walk"):
-        from .camera_paths import make_camera_path
-        return make_camera_path(scene, cfg.camera_path, (frames[0], frames[-1]), cfg.seed), {"kind": cfg.camera_path}
-    from .scene_setup import pick_scene_camera
-    cam = pick_scene_camera(scene, cfg.camera_path, cfg.scene or "scene", int(cfg.extra.get("camera_index", 0)))
-    return cam, {"kind": "scene", "choice": cfg.camera_path, "name": cam.name}
-
-
-def check_camera(cam, cfg: RenderConfig) -> None:
-    if cam.type != "CAMERA":
-        raise ConfigError(f"{cfg.scene or 'scene'}: scene camera {cam.name!r} is not a camera object")
-    if cam.data.type != "PERSP":
-        raise ConfigError(f"{cfg.scene or 'scene'}: camera {cam.name!r} is {cam.data.type.lower()}; only perspective "
-                          "cameras are supported (Blender's motion vectors are wrong for orthographic ones)")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -399,124 +315,6 @@ def frames_left(cfg: RenderConfig) -> int:
 
 
 @dataclass(frozen=True)
-class ResolvedRender:
-    """What a render derives from its configuration and the scene, settled once, before anything is written
-    (``resolve_render``): ``frames``, every frame of the clip (a frame's jitter is indexed by its position) and
-    ``my_frames``, those this process renders (shard, only_frames); ``hr_size`` and ``levels`` (the manifest's
-    {name: {"width", "height", ...}}); ``light``, the manifest's light record; the camera and its report; the view
-    layer; the materials, their flags (``flag_lut``: material pass index -> flag bits, uint32) and the pass plan;
-    ``moving``, the names of the objects that move (pass index 1); ``material_mode``, the manifest's record of
-    ``materials = "untextured"`` (None for "keep"); ``behind``, the transmissive materials the G-buffer renders see
-    through (``gbuffer_transmission = "behind"``; empty otherwise, and for a scene without any)."""
-
-    frames: tuple[int, ...]
-    my_frames: tuple[int, ...]
-    hr_size: tuple[int, int]
-    levels: dict
-    light: dict
-    cam: Any
-    camera_report: dict
-    view_layer: Any
-    materials: dict
-    plan: PassPlan
-    flag_lut: np.ndarray
-    moving: tuple[str, ...]
-    material_mode: dict | None = None
-    behind: tuple[str, ...] = ()
-
-
-def built_by_blendsr(scene_info: dict) -> bool:
-    """The built-in scene or an asset in a generated environment: BlendSR built it and its light (sun, HDRI)."""
-    return bool(scene_info.get("builtin")) or "asset" in scene_info
-
-
-def _level_light(cfg: RenderConfig, scene, scene_info: dict, first_frame: int):
-    """The level's geometry and its sky meshes (``lighting.level_light``) where a level camera plans on it or the
-    light is measured (auto, sky) on a scene BlendSR did not build; None otherwise, or for a scene without
-    triangles that needs no level camera."""
-    if built_by_blendsr(scene_info) or not (uses_level_camera(cfg) or cfg.light in ("auto", "sky")):
-        return None
-    from ..errors import BlendSRError
-    from .lighting import level_light
-    try:
-        return level_light(scene, first_frame)
-    except BlendSRError as exc:  # no triangles (points, volumes): nothing to plan on or measure
-        if uses_level_camera(cfg):
-            raise ConfigError(f"{cfg.scene or 'scene'}: {exc}", key="camera_path") from None
-        return None
-
-
-def resolve_render(cfg: RenderConfig, scene, scene_info: dict | None = None) -> ResolvedRender:
-    """Check the scene against ``cfg`` and settle everything the manifest and every frame need: the one place the
-    configuration meets the scene (frames inside the scene's range, sizes, light, camera, resources, materials,
-    passes). Sets up the scene for it (light, camera, AOVs, pass indices of moving objects). ``scene_info``: what
-    loading the scene recorded (``load_scene``; the built-in scene and generated environments keep their light)."""
-    if not renderable_meshes(scene):
-        raise ConfigError(f"{cfg.scene or 'scene'}: the scene is empty (no renderable objects)")
-    frames = resolve_frames(cfg, scene)
-    # before the light is probed and the materials inspected: both see the materials that render
-    material_mode = mats.make_untextured(scene) if cfg.materials == "untextured" else None
-    if cfg.light == "scene":
-        from .scene_setup import check_lit
-        check_lit(scene, cfg.scene or "scene", "scene")  # an unlit scene is refused before its camera is planned
-    ll = _level_light(cfg, scene, scene_info or {}, frames[0])
-    cam, camera_report = setup_camera(cfg, scene, frames, ll.level if ll is not None else None)
-    check_camera(cam, cfg)
-    scene.camera = cam
-    hr_size = resolve_size(cfg, scene)
-    light = prepare_light(cfg, scene, cam, frames, hr_size, ll)
-    my_frames = tuple(cfg.my_frames(frames))
-    undone = [f for f in my_frames if not (cfg.output / FRAMES_DIR / f"{frame_name(f)}.json").is_file()]
-    from .scene_setup import scene_memory_bytes
-    check_render_resources(hr_size, cfg.scales, cfg.buffers, len(undone), cfg.output,
-                           scene_bytes=scene_memory_bytes(scene), scene=str(cfg.scene or "scene"))
-    view_layer = _render_view_layer(scene)
-    infos = mats.inspect_materials(scene)
-    mats.raise_alpha_threshold(view_layer)  # a cut-out hole is never a G-buffer surface (the AOVs rely on it)
-    aov_names = mats.install_aovs(scene, view_layer, infos, computed_buffers(cfg.buffers, cfg.fbeta))
-    plan = plan_passes(cfg.buffers, cfg.fbeta, aov_names)
-    behind = _resolve_behind(cfg, scene, view_layer, infos) if plan.any else ()
-    if behind:
-        plan = dataclasses.replace(plan, aovs=(*plan.aovs, mats.AOV_REACTIVE))
-    flag_lut = np.zeros(len(infos) + 1, dtype=np.uint32)
-    flag_lut[0] = int(Flag.NO_MATERIAL)
-    for info in infos.values():
-        flag_lut[info.index] = material_flags_for_source(info.flags, cfg.fbeta)
-    moving = [ob for ob in renderable_meshes(scene) if mats.object_is_moving(ob, scene, frames[0])]
-    for ob in renderable_meshes(scene):
-        ob.pass_index = 1 if ob in moving else 0
-    return ResolvedRender(frames=tuple(frames), my_frames=my_frames, hr_size=hr_size,
-                          levels=levels_header(hr_size, cfg.scales), light=light, cam=cam, camera_report=camera_report,
-                          view_layer=view_layer, materials=infos, plan=plan,
-                          flag_lut=flag_lut, moving=tuple(sorted(ob.name for ob in moving)),
-                          material_mode=material_mode, behind=behind)
-
-
-def _resolve_behind(cfg: RenderConfig, scene, view_layer, infos: dict) -> tuple[str, ...]:
-    """``gbuffer_transmission``: the transmissive materials the G-buffer renders see through ("behind"), prepared
-    (``materials.install_behind``); () for "surface", and for a scene without transmissive materials (logged: it
-    renders as "surface", with no extra render)."""
-    if cfg.gbuffer_transmission != "behind":
-        return ()
-    behind = mats.transmissive_materials(scene, infos)
-    if not behind:
-        log.info("blendsr: %s: no transmissive material: gbuffer_transmission behind renders as surface (no extra "
-                 "render)", cfg.scene or "scene")
-        return ()
-    mats.install_behind(view_layer, behind)
-    log.info("blendsr: %s: the G-buffers see through %d transmissive material(s): %s", cfg.scene or "scene",
-             len(behind), ", ".join(behind))
-    return behind
-
-
-def _render_view_layer(scene):
-    """The context's view layer when it belongs to ``scene``, else the scene's first."""
-    ctx_vl = getattr(bpy.context, "view_layer", None)
-    view_layer = scene.view_layers.get(ctx_vl.name) if ctx_vl is not None else None
-    return view_layer or scene.view_layers[0]
-
-
-@dataclass(frozen=True)
 class RenderContext:
     """What every frame of one clip's render shares, fixed before its first frame: the configuration, the scene,
     what was resolved from both (``ResolvedRender``), the scene's own bounce limits (``light_paths``:
@@ -640,35 +438,6 @@ def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
         ctx.writer.commit_frame(f, rec)
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")
-
-
-def prepare_light(cfg: RenderConfig, scene, cam, frames: list[int], hr_size: tuple[int, int], ll=None) -> dict:
-    """``cfg.light`` "auto": keep the file's light where it lights what ``cam`` sees, add a sun and sky and/or
-    ceiling lights where it does not (``lighting``); "sky": add a default sun and sky; "scene": keep the file's
-    light, refused when nothing lights it. ``ll``: the user's level and its sky meshes (``lighting.LevelLight``;
-    None for a scene BlendSR built, whose light is its own); under auto and sky its sky meshes are seen by the
-    camera only. Returns the manifest's ``light`` record."""
-    from .scene_setup import add_sky, apply_variation, check_lit
-    sky_meshes = {}
-    if ll is not None:
-        from .lighting import treat_sky_meshes
-        treated = treat_sky_meshes(scene, ll) if cfg.light in ("auto", "sky") else []
-        sky_meshes = {"sky_meshes": {"found": list(ll.sky_meshes), "treated": treated, "candidates": ll.sky_report}}
-    if cfg.light == "sky":
-        out = {**add_sky(scene, cfg.seed), "scene_sources": check_lit(scene, cfg.scene or "scene", "sky")}
-    elif cfg.light == "auto" and ll is not None:
-        from .lighting import auto_light
-        out = auto_light(scene, cfg, cam, frames, hr_size, ll)
-    elif cfg.light == "auto":
-        from .lighting import unmeasured_auto_light
-        out = unmeasured_auto_light(scene, cfg.seed)
-    else:
-        out = {"light": "scene", "scene_sources": check_lit(scene, cfg.scene or "scene", "scene")}
-    out.update(sky_meshes)
-    variation = apply_variation(scene, cfg.extra.get("variation"))
-    if variation:
-        out["variation"] = variation
-    return out
 
 
 def _scene_linear_name() -> str:

@@ -1,5 +1,6 @@
 """A user's scene as it is (bpy layer): load a level file (``importers``: every format of the format table), check
-it can render, pick its cameras, light it on request, key cameras that move inside it, and choose Cycles' device.
+it can render, pick its cameras, key cameras that move inside it, and choose Cycles' device (its light:
+``lighting``).
 
 BlendSR overrides only what its clip contract owns (size, samples, passes, camera, jitter); the world, lights,
 materials, animation and visibility stay the file's. Every check is a one-line ``ConfigError`` naming the file
@@ -21,8 +22,6 @@ from ..typed_table import key_error
 LEVEL_CAMERA_NAME = "BlendSR Level Camera"
 #: Level cameras: a 24 mm lens on a 36 mm sensor (horizontal field of view 73.7 degrees, as games use).
 LEVEL_LENS_MM = 24.0
-SKY_SUN_STRENGTH = 4.0      # W/m^2 of the added sun lamp
-SKY_STRENGTH = 0.35         # multiplier of Blender's physical sky (its radiance is in daylight units)
 GPU_TYPES = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")
 
 
@@ -148,9 +147,12 @@ def scene_fps(scene) -> float:
 @dataclass(frozen=True)
 class LevelUnit:
     """A level's unit as asked (``unit_scale``: "auto", metres per unit or a unit name) and the file whose cues
-    decide it when "auto" (its engine line; None: the scene's geometry alone)."""
+    decide it when "auto" (its engine line; None: the scene's geometry alone); ``found``: the record
+    ``level_scale.resolve_unit_scale`` gave for this geometry when it is already resolved (the render's unit
+    stage), None to resolve it here."""
     scale: object = "auto"
     source: object = None
+    found: dict | None = None
 
 
 def make_level_camera(scene, kind: str, frames: tuple[int, int], seed: int, region=None, rules=None, geom=None,
@@ -189,11 +191,15 @@ def clip_plan(scene, kind: str, frames: tuple[int, int], seed: int, fov, region=
 
 
 def plan_scene_path(scene, geom, clip, rules=None, unit: LevelUnit = LevelUnit()):
-    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_level_camera``; ``clip``:
-    ``clip_plan``): what ``make_level_camera`` keys and ``blendsr dataset --dry-run`` reports, planned the same
-    way."""
-    from .level_cameras import PathRules, plan_level_camera
-    return plan_level_camera(geom, clip, rules or PathRules(), unit.scale, unit.source, spawn_points(scene))
+    """(path, unit record) of a level camera in ``scene`` (``level_cameras.plan_in_unit``; ``clip``:
+    ``clip_plan``; the unit resolved first unless ``unit.found`` holds it): what ``make_level_camera`` keys and
+    ``blendsr dataset --dry-run`` reports, planned the same way."""
+    from .level_cameras import PathRules, plan_in_unit
+    found = unit.found
+    if found is None:
+        from .level_scale import resolve_unit_scale
+        found = resolve_unit_scale(geom, unit.scale, unit.source, spawn_points(scene))
+    return plan_in_unit(geom, clip, rules or PathRules(), found)
 
 
 def spawn_points(scene) -> list:
@@ -219,153 +225,6 @@ def scene_memory_bytes(scene) -> int:
         if ob.type == "MESH" and not ob.hide_render and ob.data is not None:
             tris += sum(max(len(p.vertices) - 2, 0) for p in ob.data.polygons)
     return int(images + tris * BYTES_PER_TRIANGLE)
-
-
-# ----------------------------------------------------------------------------------------------
-# Light
-# ----------------------------------------------------------------------------------------------
-
-def _socket_value(sock):
-    v = getattr(sock, "default_value", None)
-    return tuple(v) if v is not None and hasattr(v, "__len__") else v
-
-
-def world_emits(scene) -> bool:
-    """Whether the world lights the scene: a Background or Emission node with a non-zero strength whose colour
-    is linked (a texture) or not black."""
-    w = scene.world
-    if w is None:
-        return False
-    nt = w.node_tree
-    if nt is None:
-        return any(c > 0 for c in w.color)
-    for n in nt.nodes:
-        if n.type not in ("BACKGROUND", "EMISSION") or n.mute:
-            continue
-        s = n.inputs.get("Strength")
-        c = n.inputs.get("Color")
-        strong = s is None or s.is_linked or (_socket_value(s) or 0) > 0
-        bright = c is None or c.is_linked or any(x > 0 for x in (_socket_value(c) or (0,))[:3])
-        if strong and bright and n.outputs[0].is_linked:
-            return True
-    return False
-
-
-def material_emits(mat) -> bool:
-    if mat is None or mat.node_tree is None:
-        return False
-    for n in mat.node_tree.nodes:
-        if n.mute:
-            continue
-        if n.type == "EMISSION":
-            s, c = n.inputs.get("Strength"), n.inputs.get("Color")
-        elif n.type == "BSDF_PRINCIPLED":
-            s, c = n.inputs.get("Emission Strength"), n.inputs.get("Emission Color")
-        else:
-            continue
-        if s is None or c is None:
-            continue
-        if (s.is_linked or (_socket_value(s) or 0) > 0) and (c.is_linked or any(x > 0 for x in _socket_value(c)[:3])):
-            return True
-    return False
-
-
-def light_sources(scene, exclude: set = frozenset()) -> dict:
-    """What lights ``scene``: counts of lamps with energy, emissive materials on renderable objects (those of the
-    objects named in ``exclude`` left out: sky meshes, which light nothing), and whether the world emits."""
-    lamps = [ob for ob in scene.objects if ob.type == "LIGHT" and not ob.hide_render and ob.data.energy > 0]
-    emissive = {s.material.name for ob in scene.objects if ob.type == "MESH" and not ob.hide_render
-                and ob.name not in exclude for s in ob.material_slots if material_emits(s.material)}
-    return {"lamps": len(lamps), "sun_lamps": sum(ob.data.type == "SUN" for ob in lamps),
-            "emissive_materials": len(emissive), "world": world_emits(scene)}
-
-
-def check_lit(scene, where, light: str) -> dict:
-    """ConfigError when nothing lights the scene and ``light`` is "scene"; the light sources otherwise."""
-    src = light_sources(scene)
-    if light == "scene" and not (src["lamps"] or src["emissive_materials"] or src["world"]):
-        raise ConfigError(f"{where}: the scene has no lights, no emissive material and a black world, so every "
-                          "frame would be black; set light auto (it adds a sun and sky where the cameras see the sky "
-                          "and lights under the ceilings where they do not, recorded in the manifest)", key="light")
-    return src
-
-
-def add_sky(scene, seed: int = 0) -> dict:
-    """Light ``scene`` with a sun lamp and Blender's physical sky (multiple scattering) whose sun points the same
-    way: elevation 25-60 degrees and azimuth drawn from ``seed``. Returns what was added (for the manifest)."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 5])
-    elev, azim = float(rng.uniform(25.0, 60.0)), float(rng.uniform(0.0, 360.0))
-    world = bpy.data.worlds.new("BlendSR Sky")
-    world.use_nodes = True
-    nt = world.node_tree
-    nt.nodes.clear()
-    sky = nt.nodes.new("ShaderNodeTexSky")
-    sky.sky_type = "MULTIPLE_SCATTERING"
-    sky.sun_disc = False  # the sun lamp is the sun: sharp shadows, sampled directly
-    sky.sun_elevation, sky.sun_rotation = math.radians(elev), math.radians(azim)
-    bg = nt.nodes.new("ShaderNodeBackground")
-    bg.inputs["Strength"].default_value = SKY_STRENGTH
-    out = nt.nodes.new("ShaderNodeOutputWorld")
-    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
-    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
-    scene.world = world
-    lamp = bpy.data.lights.new("BlendSR Sun", "SUN")
-    lamp.energy = SKY_SUN_STRENGTH
-    lamp.angle = math.radians(0.53)
-    ob = bpy.data.objects.new("BlendSR Sun", lamp)
-    # A sun lamp shines along its -Z: point it from the sky position (elevation, azimuth about +Z from +Y).
-    ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
-    scene.collection.objects.link(ob)
-    return {"light": "sky", "sun_elevation_deg": elev, "sun_azimuth_deg": azim, "sun_strength_w_m2": SKY_SUN_STRENGTH,
-            "sky": "MULTIPLE_SCATTERING", "sky_strength": SKY_STRENGTH}
-
-
-def apply_variation(scene, variation: dict | None) -> dict:
-    """Apply a drawn light variation (``dataset.spec.Variation``) to ``scene``; returns what changed."""
-    if not variation:
-        return {}
-    done = {}
-    world = scene.world
-    nodes = world.node_tree.nodes if world is not None and world.node_tree is not None else []
-    if "world_strength" in variation:
-        bgs = [n for n in nodes if n.type == "BACKGROUND"]
-        for n in bgs:
-            n.inputs["Strength"].default_value *= variation["world_strength"]
-        done["world_strength"] = {"multiplier": variation["world_strength"], "nodes": len(bgs)}
-    lamps = [ob for ob in scene.objects if ob.type == "LIGHT"]
-    if "light_strength" in variation:
-        for ob in lamps:
-            ob.data.energy *= variation["light_strength"]
-        done["light_strength"] = {"multiplier": variation["light_strength"], "lamps": len(lamps)}
-    if "sun_elevation_deg" in variation:
-        elev, azim = variation["sun_elevation_deg"], variation["sun_azimuth_deg"]
-        suns = [ob for ob in lamps if ob.data.type == "SUN"]
-        for ob in suns:
-            ob.rotation_mode = "XYZ"
-            ob.rotation_euler = (math.radians(90.0 - elev), 0.0, math.radians(azim))
-        for n in nodes:
-            if n.type == "TEX_SKY":
-                n.sun_elevation, n.sun_rotation = math.radians(elev), math.radians(azim)
-        done["sun"] = {"elevation_deg": elev, "azimuth_deg": azim, "sun_lamps": len(suns)}
-    if "hdri" in variation:
-        envs = [n for n in nodes if n.type == "TEX_ENVIRONMENT"]
-        if envs:
-            from .default_scene import hdri_path
-            img = bpy.data.images.load(str(hdri_path(variation["hdri"])), check_existing=True)
-            for n in envs:
-                n.image = img
-                mapping = n.inputs["Vector"].links[0].from_node if n.inputs["Vector"].is_linked else None
-                if mapping is not None and mapping.type == "MAPPING":
-                    mapping.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
-                else:
-                    tc = world.node_tree.nodes.new("ShaderNodeTexCoord")
-                    mp = world.node_tree.nodes.new("ShaderNodeMapping")
-                    mp.inputs["Rotation"].default_value[2] = math.radians(variation["hdri_rotation_deg"])
-                    world.node_tree.links.new(tc.outputs["Generated"], mp.inputs["Vector"])
-                    world.node_tree.links.new(mp.outputs["Vector"], n.inputs["Vector"])
-        done["hdri"] = {"file": variation["hdri"], "rotation_deg": variation["hdri_rotation_deg"],
-                        "applied": bool(envs)}
-    return done
 
 
 # ----------------------------------------------------------------------------------------------
