@@ -169,6 +169,25 @@ def usable_cores(root: Path | None = None) -> int:
     return max(1, cores)
 
 
+#: How long ``idle_cores`` watches the machine before deciding, seconds.
+IDLE_SAMPLE_S = 0.5
+
+
+def idle_cores(sample_s: float = IDLE_SAMPLE_S, root: Path | None = None) -> tuple[int, float]:
+    """(threads to use, cores other work keeps busy): the cores this process may use (``usable_cores``) less those
+    the rest of the machine kept busy over ``sample_s`` seconds (psutil's system-wide CPU use, rounded), at least 1.
+    On a 2-core machine with two busy processes beside it, the demo's fine-tune ran 0.18 steps/s with 2 threads and
+    1.43 with 1 (idle: 3.35 and 2.38; ``benchmarks/demo_speed.py``, docs/bench/demo_speed): torch's threads wait
+    for each other when another process holds a core. Without psutil: all usable cores, 0 busy."""
+    cores = usable_cores(root)
+    try:
+        import psutil
+    except ImportError:
+        return cores, 0.0
+    busy = psutil.cpu_percent(interval=sample_s) / 100.0 * (psutil.cpu_count() or cores)
+    return max(1, min(cores, cores - int(round(busy)))), busy
+
+
 def free_disk(path: Path) -> int | None:
     """Free bytes on the file system that holds ``path`` (its nearest existing ancestor)."""
     p = Path(path).absolute()

@@ -46,9 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="built-in scene seed of the demo's scene (the shipped weights saw seeds 0-41, "
                         "dataset_large.toml adds 42-71)")
     p.add_argument("--threads", type=int, default=0,
-                   help="CPU threads of the renders, the fine-tune and the scoring (0: the cores this process may "
-                        "use: its CPU affinity, capped by the cgroup CPU quota; on a machine other work keeps busy, "
-                        "1 can be several times faster; make demo THREADS=1)")
+                   help="CPU threads of the renders, the fine-tune and the scoring (0: the cores idle when it "
+                        "starts: those this process may use (CPU affinity, cgroup CPU quota) less those other work "
+                        "keeps busy; with two busy processes on 2 cores, 1 thread fine-tuned 8x faster than 2; "
+                        "make demo THREADS=N)")
     p.add_argument("--render-only", action="store_true", help="stop after the contact sheet")
 
 
@@ -117,8 +118,7 @@ def _run(args) -> int:
     with flags_named(args):
         a, b = parse_frames(args.frames)
     later = f"{b + 1}:{2 * b - a + 1}"
-    from ..resources import usable_cores
-    threads = args.threads or usable_cores()  # the renders' too (Cycles' AUTO threads do not read the cgroup quota)
+    threads = _threads(args.threads)  # the renders' too (Cycles' AUTO threads do not read the cgroup quota)
     clips = {"test": (out / "clips" / f"test_seed{seed}", args.frames),
              "finetune": (out / "clips" / f"finetune_seed{seed}_frames{later.replace(':', '-')}", later)}
     t = _step(f"render built-in scene {seed}: frames {args.frames} (to score) and {later} (to fine-tune on)")
@@ -146,7 +146,7 @@ def _run(args) -> int:
         return 0
     (out / "demo_summary.json").unlink(missing_ok=True)  # written again only once this run has scored
     summary = run_training_demo(train_clips=[clips["finetune"][0]], test_clips=[clips["test"][0]], out=out,
-                                steps=args.train_steps, threads=args.threads)
+                                steps=args.train_steps, threads=threads)
     if "train" in summary:
         t = summary["train"]
         print(f"   fine-tune: {t.get('step')} steps run in {float(t.get('elapsed_s', 0.0)):.0f} s on {t.get('device')}"
@@ -154,6 +154,17 @@ def _run(args) -> int:
     write_json_atomic(out / "demo_summary.json", summary)
     print(f"\nDone. Look at {out}/contact_sheet.png, {out}/side_by_side.png and {out}/pareto.png")
     return 0
+
+
+def _threads(asked: int) -> int:
+    """The demo's threads: ``asked``, or with 0 the cores idle now (``resources.idle_cores``), said in one line."""
+    if asked:
+        return int(asked)
+    from ..resources import idle_cores, usable_cores
+    threads, busy = idle_cores()
+    print(f"   threads: {threads} ({usable_cores()} usable core(s), {busy:.1f} kept busy by other work; "
+          "--threads or make demo THREADS= sets it)")
+    return threads
 
 
 def _training_half():

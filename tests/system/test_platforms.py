@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -68,6 +69,26 @@ def test_usable_cores_are_the_affinity_capped_by_the_cgroup_quota(tmp_path, monk
     monkeypatch.delattr(os, "sched_getaffinity")  # macOS, Windows: os.cpu_count, still capped by a quota file
     monkeypatch.setattr(os, "cpu_count", lambda: 16)
     assert resources.usable_cores(tmp_path) == 3 and resources.usable_cores(tmp_path / "none") == 16
+
+
+def test_idle_cores_leave_out_the_cores_other_work_keeps_busy(tmp_path, monkeypatch):
+    """Issue 57 item 2: the demo's default threads are the usable cores less those other processes keep busy."""
+    from gbuffer_export import resources
+    monkeypatch.setattr(resources, "usable_cores", lambda root=None: 4)
+    monkeypatch.setattr(psutil, "cpu_count", lambda logical=True: 4)
+    for percent, want in ((0.0, 4), (20.0, 3), (50.0, 2), (100.0, 1)):  # 0.8 busy cores round to 1
+        monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, p=percent: p)
+        assert resources.idle_cores(0.0)[0] == want
+    monkeypatch.undo()
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)]
+    try:  # every core busy beside it: one thread, whatever this machine has
+        time.sleep(0.5)
+        threads, load = resources.idle_cores(1.0)
+        assert threads == 1 and load > 0.5 * min(len(busy), resources.usable_cores()), (threads, load)
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
 
 
 def test_torch_threads_default_to_the_usable_cores(monkeypatch):
