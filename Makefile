@@ -19,7 +19,7 @@ PIP := $(VPY) -m pip install --disable-pip-version-check --progress-bar on
 # The demo's install: blendsr[demo] (render and train: no test tools, no Triton); 'make setup'/'make test' install
 # blendsr[dev] (everything, the test tools and Triton), which the demo then finds in place.
 DEMO_STAMP := $(VENV)/.demo-stamp
-# make demo THREADS=1: the demo's CPU threads (default: the cores this process may use; 1 on a busy machine)
+# make demo THREADS=1: the demo's CPU threads (default: the cores idle when it starts, resources.idle_cores)
 THREADS ?=
 
 define venv_torch
