@@ -10,16 +10,35 @@ level region, with all their clips) ordered by a stable hash of their ids, the f
 ``blendsr train`` run in RUNS (default OUT; resumed when its folder exists, reused when finished) and each score a
 plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
 OUT/scaling.md and OUT/scaling.png.
+
+``--multiples 1,3,10`` sizes the nested subsets by HR pixels instead: the smallest prefix of the ordered groups
+whose HR pixels (frames x width x height, from the index) reach each multiple of ``--unit-pixels`` (default: the
+train split of examples/dataset_wide.toml, 13.9 million, what the shipped weights saw); a multiple the train split
+cannot reach is refused (examples/dataset_scale.toml's train split plans 12.4 of them). Every score
+is also given per family group of the index (``in-family``, ``held-out``) with its margin over ``demod-jbu``.
+
+The schedule rule of issue 54's scaling curve (written 2026-11-29, before any of its runs; every size the same):
+``benchmarks/pretrain.toml`` (batch 8, LR crop 32, lr 5e-4, cosine to 2 %, 50 warm-up steps, seed 0), the same
+step budget for 1x, 3x and 10x (``--steps 6000``: equal compute, so the curve measures the data, not the
+optimisation), the last checkpoint scored (no choice per size), on the test split of examples/dataset_scale.toml
+by family group; FuseSR and FuseSR-l, one thread each, two runs side by side:
+
+    .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr \
+        --multiples 1,3,10 --steps 6000 --model fusesr --threads 1
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+#: HR pixels of the train split of examples/dataset_wide.toml, what the shipped weights were trained on: 47 clips
+#: (73 less 11 test and 15 val) of 8 frames at 256x144. One "x" of issue 54's scaling curve.
+WIDE_TRAIN_HR_PIXELS = 47 * 8 * 256 * 144
 
 
 def main(argv=None) -> int:
@@ -27,6 +46,9 @@ def main(argv=None) -> int:
     p.add_argument("dataset", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--counts", default="1,4,16,all", help="numbers of training clips or scenes ('all' = the whole split)")
+    p.add_argument("--multiples", default="", help="sizes as multiples of --unit-pixels HR pixels instead of --counts")
+    p.add_argument("--unit-pixels", type=float, default=WIDE_TRAIN_HR_PIXELS,
+                   help="HR pixels of one multiple (default: the wide set's train split, %(default)d)")
     p.add_argument("--by", choices=("clip", "scene"), default="clip", help="what --counts counts")
     p.add_argument("--steps", default="500", help="optimiser steps of every run; a comma list trains one run per budget")
     p.add_argument("--runs", type=Path, help="folder of the training runs (default: OUT)")
@@ -47,8 +69,13 @@ def main(argv=None) -> int:
     if not test_clips:
         raise SystemExit(f"{a.dataset}: no finished test clips")
     groups = training_groups(a.dataset, a.by)
-    counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
-    counts = sorted({min(c, len(groups)) for c in counts})
+    if a.multiples:
+        sized = pixel_prefixes(a.dataset, groups, [float(m) for m in a.multiples.split(",")], a.unit_pixels)
+        counts = sorted({n for _, n, _ in sized})
+    else:
+        counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
+        counts = sorted({min(c, len(groups)) for c in counts})
+    family_of = family_groups(a.dataset)
     budgets = [int(s) for s in a.steps.split(",")]
     out, runs = a.output, a.runs or a.output
     out.mkdir(parents=True, exist_ok=True)
@@ -59,12 +86,14 @@ def main(argv=None) -> int:
         model = load_model(spec, 4)
         r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=4))
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
-        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip}
+        by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
+        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family}
 
     rows = []
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
+    base = rows[-1]["by_family"]
     for steps in budgets:
         for n in counts:
             clips = [c for g in groups[:n] for c in g[1]]
@@ -82,7 +111,8 @@ def main(argv=None) -> int:
                 summary = train(cfg, run, resume=ck.is_file())
             rows.append({"model": a.model, "clips": len(clips), a.by + "s": n, "steps": summary["step"],
                          "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
-                         **score(str(ck))})
+                         "hr_pixels": hr_pixels(a.dataset, clips), **score(str(ck))})
+            rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
             print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
@@ -118,6 +148,42 @@ def main(argv=None) -> int:
     fig.savefig(out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
+
+
+def family_groups(dataset: Path) -> dict[str, str]:
+    """{clip folder name: its family group} from the index (``in-family`` where the index has none)."""
+    from gbuffer_export.dataset.build import read_index
+    return {Path(c["path"]).name: c.get("family_group", "in-family") for c in read_index(dataset)["clips"]}
+
+
+@functools.lru_cache(maxsize=4)
+def _pixels_of(dataset: Path) -> dict[str, int]:
+    from gbuffer_export.dataset.build import read_index
+    return {Path(c["path"]).name: int(c.get("frames_done") or c["render"]["frames"]) * c["render"]["hr_size"][0]
+            * c["render"]["hr_size"][1] for c in read_index(dataset)["clips"]}
+
+
+def hr_pixels(dataset: Path, clips) -> int:
+    """HR pixels of ``clips`` (folders of ``dataset``): frames done x width x height, from the index."""
+    pixels = _pixels_of(Path(dataset))
+    return sum(pixels.get(Path(c).name, 0) for c in clips)
+
+
+def pixel_prefixes(dataset: Path, groups, multiples, unit: float) -> list[tuple[float, int, int]]:
+    """(multiple, groups taken, HR pixels) per multiple: the smallest prefix of ``groups`` (ordered) whose HR pixels
+    reach ``multiple * unit``. SystemExit naming the dataset when the whole train split holds fewer."""
+    total, cum = 0, []
+    for _, clips in groups:
+        total += hr_pixels(dataset, clips)
+        cum.append(total)
+    out = []
+    for m in multiples:
+        need = m * unit
+        n = next((i + 1 for i, v in enumerate(cum) if v >= need), None)
+        if n is None:
+            raise SystemExit(f"{dataset}: its train split holds {total:,} HR pixels, fewer than {m:g} x {unit:,.0f}")
+        out.append((m, n, cum[n - 1]))
+    return out
 
 
 def training_groups(dataset: Path, by: str) -> list[tuple[str, list[Path]]]:

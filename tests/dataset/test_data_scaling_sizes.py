@@ -1,0 +1,39 @@
+"""Issue 54 item 4: the scaling curve's subsets are sized by HR pixels, as multiples of the wide set's train split,
+and every score is split by family group (benchmarks/data_scaling.py; no render: an index written in the test)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from gbuffer_export.dataset.build import INDEX, SCHEMA, SCHEMA_VERSION
+from tests.conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+import data_scaling  # noqa: E402
+
+
+def _dataset(root: Path, sizes: list[tuple[int, int, int]]) -> list[tuple[str, list[Path]]]:
+    """An index of train clips of (frames, width, height) and one held-out test clip; the groups, in order."""
+    clips = [{"id": f"c{i}", "path": f"clips/c{i}", "split": "train", "state": "done", "frames_done": f,
+              "render": {"frames": f, "hr_size": [w, h]}, "family_group": "in-family"}
+             for i, (f, w, h) in enumerate(sizes)]
+    clips.append({"id": "t", "path": "clips/t", "split": "test", "state": "done", "frames_done": 2,
+                  "render": {"frames": 2, "hr_size": [8, 8]}, "family_group": "held-out"})
+    root.mkdir()
+    (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
+    return [(c["id"], [root / c["path"]]) for c in clips[:-1]]
+
+
+def test_multiples_take_the_smallest_prefix_that_reaches_them(tmp_path):
+    groups = _dataset(tmp_path / "ds", [(2, 10, 10), (1, 10, 10), (4, 10, 10), (3, 10, 10)])  # 200, 100, 400, 300 px
+    got = data_scaling.pixel_prefixes(tmp_path / "ds", groups, [1, 3, 10], 100.0)
+    assert got == [(1, 1, 200), (3, 2, 300), (10, 4, 1000)]
+    assert data_scaling.hr_pixels(tmp_path / "ds", [tmp_path / "ds/clips/c2"]) == 400
+    with pytest.raises(SystemExit, match="fewer than 11 x 100"):
+        data_scaling.pixel_prefixes(tmp_path / "ds", groups, [11], 100.0)
+    assert data_scaling.family_groups(tmp_path / "ds") == {"c0": "in-family", "c1": "in-family", "c2": "in-family",
+                                                           "c3": "in-family", "t": "held-out"}
+
