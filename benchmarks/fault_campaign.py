@@ -70,8 +70,8 @@ Parts (each prints its counts; the totals come last):
    failed check; the training cache rebuilds after an EXR changed under kept file times and ``train`` refuses an
    EXR become a link.
 
-``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs in ``make test``. Exit code 0 when every
-count of failures is 0.
+``--quick`` runs the subset ``tests/system/test_fault_campaign.py`` runs (``make test`` its cheap cases, ``make
+test-heavy`` the families whose cost is the point). Exit code 0 when every count of failures is 0.
 """
 from __future__ import annotations
 

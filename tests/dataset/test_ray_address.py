@@ -56,10 +56,12 @@ def _dataset(env, spec: Path, out: Path, address: str, timeout=120, code_before=
     return proc.returncode, proc.stderr, time.perf_counter() - t0
 
 
-#: Ray's GCS connection bounds for the tests that reach Ray's own connection (a port that answers but is no Ray
-#: cluster, a cluster that refuses the driver): 1 s instead of the product's GCS_ENV (5 s), which the command keeps
-#: when they are set already. That the command sets its own bounds: test_an_explicit_address_bounds_the_gcs_connection.
-SHORT_GCS = {"RAY_gcs_rpc_server_reconnect_timeout_s": "1", "RAY_py_gcs_connect_timeout_s": "1"}
+#: Ray's GCS connection bounds for the test that waits them out (a port that answers but is no Ray cluster): 1 s
+#: instead of the product's GCS_ENV and Ray's default of 5 s for the first connection, which the command keeps when
+#: they are set already (about 4 s of connecting instead of 12 s). That the command sets its own bounds:
+#: test_an_explicit_address_bounds_the_gcs_connection.
+SHORT_GCS = {"RAY_gcs_rpc_server_reconnect_timeout_s": "1", "RAY_py_gcs_connect_timeout_s": "1",
+             "RAY_gcs_rpc_server_connect_timeout_s": "1"}
 
 
 def test_an_explicit_address_bounds_the_gcs_connection(monkeypatch):
@@ -73,7 +75,6 @@ def test_an_explicit_address_bounds_the_gcs_connection(monkeypatch):
     monkeypatch.setenv("RAY_py_gcs_connect_timeout_s", "2")
     ray_cluster.bound_gcs_connection("127.0.0.1:6379")
     assert os.environ["RAY_py_gcs_connect_timeout_s"] == "2"
-    assert set(SHORT_GCS) <= set(ray_cluster.GCS_ENV)
     for k, v in ray_cluster.GCS_ENV.items():
         assert k == "RAY_py_gcs_connect_timeout_s" or os.environ[k] == v
         assert 0 < float(v) <= 5, (k, v)
@@ -172,7 +173,7 @@ cluster.shutdown()
 
 def test_a_token_authenticated_cluster_is_one_line_naming_ray_auth_mode(ray_env, tmp_path):
     """Ray 2.60 turns token authentication on for clusters once ~/.ray/auth_token exists (a local ray.init()
-    writes it); a driver without RAY_AUTH_MODE=token is refused by such a cluster (Ray's GCS bounds: SHORT_GCS)."""
+    writes it); a driver without RAY_AUTH_MODE=token is refused by such a cluster."""
     env, spec = ray_env
     gen = pytest.importorskip("ray._private.authentication.authentication_token_generator",
                               reason="this Ray has no token authentication (added in Ray 2.52)")
@@ -184,7 +185,7 @@ def test_a_token_authenticated_cluster_is_one_line_naming_ray_auth_mode(ray_env,
     try:
         address = head.stdout.readline().strip()
         assert address.startswith("127.0.0.1:"), address
-        code, err, took = _dataset({**env, **SHORT_GCS}, spec, tmp_path / "ds", address, timeout=150)
+        code, err, took = _dataset(env, spec, tmp_path / "ds", address, timeout=150)
     finally:
         head.stdin.close()
         try:
