@@ -363,11 +363,12 @@ def test_train_and_evaluate_take_a_dataset(tiny, tmp_path):
     _, out = tiny
     run = tmp_path / "run"
     proc = run_cli("train", "--model", "fusesr-l", "--data", out, "-o", run, "--max-steps", "2",
-                   "--set", "data.crop=8", "--set", "data.batch_size=2", timeout=600)
+                   "--set", "data.crop=8", "--set", "data.batch_size=2", "--set", "run.threads=1", timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = (run / "config.toml").read_text()
     assert "builtin-s0000" in cfg and "objs-Box-00" in cfg and "objs-Ball-00" not in cfg  # train split only
-    ev = run_cli("evaluate", "--model", "bicubic", "--data", out, "--json", tmp_path / "e.json", "--no-flip")
+    ev = run_cli("evaluate", "--model", "bicubic", "--data", out, "--json", tmp_path / "e.json", "--no-flip",
+                 "--threads", "1")
     assert ev.returncode == 0, ev.stderr[-2000:]
     result = json.loads((tmp_path / "e.json").read_text())
     assert [Path(c).name for c in result["clips"]] == ["objs-Ball-00"]  # the test split by default
