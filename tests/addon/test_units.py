@@ -100,7 +100,7 @@ def test_worker_config_round_trip(tmp_path):
 def test_job_progress_cancel_resume_and_errors(tmp_path, blend_dir):
     blend = make_blend("basic", blend_dir / "addon_basic.blend")
     out = tmp_path / "clip"
-    cfg = RenderConfig(output=out, scene=blend, frames=(1, 3), hr_size=(32, 16), hr_spp=256, lr_spp=2,
+    cfg = RenderConfig(output=out, scene=blend, frames=(1, 3), hr_size=(64, 36), hr_spp=256, lr_spp=2,
                        gbuffer_spp=1, progress=False)
     paths = {"site_dirs": [], "sys_path": [str(REPO)]}
     job = jobs.RenderJob(cfg.to_json(), [1, 2, 3], job_dir=tmp_path / "j1", library_paths=paths)
