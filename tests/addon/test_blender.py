@@ -527,9 +527,7 @@ def test_modal_progress_status_bar_and_escape(tmp_path):
         sc = tiny_scene()
         blender_addon.register()
         s = tiny_settings(sc, sys.argv[1])
-        invoke_res = sorted(bpy.ops.blendsr.export_dataset("INVOKE_DEFAULT"))  # no UI here: runs synchronously
-        import shutil
-        shutil.rmtree(sys.argv[1])
+        batch = operators.interactive
         operators.interactive = lambda: True
         Event = type("Event", (), {})
         def event(kind, value="NOTHING"):
@@ -564,8 +562,12 @@ def test_modal_progress_status_bar_and_escape(tmp_path):
                 res = sorted(out)
             seen.append(job.frames_done())
             time.sleep(0.1)
+        active = list(operators.ACTIVE)
+        # without a UI (bpy as a module, blender --background) INVOKE runs synchronously: here on the finished clip
+        operators.interactive = batch
+        invoke_res = sorted(bpy.ops.blendsr.export_dataset("INVOKE_DEFAULT"))
         emit({"invoke": invoke_res, "esc": esc, "killed": killed, "res": res, "status": status,
-              "removed": removed, "reports": reports, "seen_max": max(seen), "active": list(operators.ACTIVE)})
+              "removed": removed, "reports": reports, "seen_max": max(seen), "active": active})
     ''', tmp_path / "clip")
     assert r["invoke"] == ["FINISHED"]
     assert r["esc"] == ["CANCELLED"] and r["killed"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -20,14 +21,20 @@ ENV = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHO
 
 
 @pytest.fixture(scope="module")
-def clips(tmp_path_factory):
+def small_clips(tmp_path_factory):
     root = tmp_path_factory.mktemp("race")
-    small = {n: make_synthetic_clip(root / n, frames=range(1, k + 1), hr_size=(16, 8), scales=(2, 4))
-             for n, k in (("base", 1), ("a", 3), ("b", 2))}
-    big = {n: make_synthetic_clip(root / f"{n}_hd", frames=range(1, k + 1), hr_size=(1920, 1080), scales=(2,),
-                                  buffers=("radiance", "depth", "motion"), look=SyntheticLook(hr_supersample=1))
-           for n, k in (("base", 1), ("a", 1), ("b", 1))}  # NFRU's reader loads 1920x1080 only
-    return small, big
+    return {n: make_synthetic_clip(root / n, frames=range(1, k + 1), hr_size=(16, 8), scales=(2, 4))
+            for n, k in (("base", 1), ("a", 3), ("b", 2))}
+
+
+@pytest.fixture(scope="module")
+def hd_clips(tmp_path_factory):
+    root = tmp_path_factory.mktemp("race_hd")
+    # NFRU's reader loads 1920x1080 only: one such clip, and two copies of it (the race is about sequences, not
+    # pictures; a copy is a clip of its own name, which the export lists as its source)
+    hd = make_synthetic_clip(root / "base_hd", frames=(1,), hr_size=(1920, 1080), scales=(2,),
+                             buffers=("radiance", "depth", "motion"), look=SyntheticLook(hr_supersample=1))
+    return {"base": hd, **{n: Path(shutil.copytree(hd, root / f"{n}_hd")) for n in ("a", "b")}}
 
 
 def _start(src: Path, fmt: str, out: Path, log: Path) -> subprocess.Popen:
@@ -49,10 +56,10 @@ def _frames_of(out: Path, fmt: str) -> dict[str, tuple[str, int]]:
 
 
 @pytest.mark.parametrize("fmt", ["nss", "nfru", "rdg"])
-def test_two_appends_at_once_lose_no_sequence(clips, tmp_path, fmt):
+def test_two_appends_at_once_lose_no_sequence(request, tmp_path, fmt):
     from gbuffer_export.cli import main
     from gbuffer_export.locks import FolderLock
-    src = clips[1] if fmt == "nfru" else clips[0]
+    src = request.getfixturevalue("hd_clips" if fmt == "nfru" else "small_clips")
     out = tmp_path / "out"
     assert main(["export-dataset", str(src["base"]), "--format", fmt, "-o", str(out)]) == 0
     held = FolderLock(out, "test holds it")  # the export's lock (OUT/.lock): both appends must wait for it

@@ -276,19 +276,25 @@ def test_validate_dataset_reports_a_missing_clip(tiny, tmp_path):
 @requires_bpy
 @pytest.mark.bpy
 def test_dataset_resumes_after_kill_9(tiny, tmp_path):
-    spec, reference = tiny
+    """kill -9 to the coordinator after the first frame of the tiny dataset's built-in clip (the spec's first
+    source alone: the same clip id and seed, so the same clip), then the rerun finishes a clip that validates with
+    the uninterrupted run's geometry. (One clip keeps it cheap: clips not started are what every run renders.)"""
+    spec_all, reference = tiny
+    spec = tmp_path / "one.toml"
+    spec.write_text(spec_all.read_text().split('[[source]]\nname = "objs"')[0])
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "gbuffer_export.cli", "dataset", str(spec), "-o", str(out), "--workers", "1",
            "--threads", "1", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     while time.time() < deadline and not list((out / "clips").glob("*/frames/*.json")):
-        time.sleep(0.2)
+        time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)  # the coordinator; its worker dies with it (parent-death signal)
     proc.wait()
     time.sleep(0.5)
-    assert 0 < len(list((out / "clips").glob("*/frames/*.json"))) < 6
+    assert len(list((out / "clips").glob("*/frames/*.json"))) == 1
     idx = read_index(out)
+    assert [c["id"] for c in idx["clips"]] == ["builtin-s0000"]
     assert any(c["state"] != "done" for c in idx["clips"])
     done = run_cli("dataset", spec, "-o", out, "--no-progress", "--threads", "1", timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -296,9 +302,8 @@ def test_dataset_resumes_after_kill_9(tiny, tmp_path):
     assert run_cli("validate", out, "--no-progress", "--quick").returncode == 0
     # the same clips as the uninterrupted run: the same geometry (depth bit-identical; Cycles' averaged normal
     # and vector passes may differ in the last bit of float32)
-    for clip in ("builtin-s0000", "objs-Box-00", "objs-Ball-00"):
-        for f in (1, 2):
-            assert_same_geometry(out / "clips" / clip, reference / "clips" / clip, f)
+    for f in (1, 2):
+        assert_same_geometry(out / "clips" / "builtin-s0000", reference / "clips" / "builtin-s0000", f)
 
 
 @pytest.mark.heavy
@@ -358,11 +363,12 @@ def test_train_and_evaluate_take_a_dataset(tiny, tmp_path):
     _, out = tiny
     run = tmp_path / "run"
     proc = run_cli("train", "--model", "fusesr-l", "--data", out, "-o", run, "--max-steps", "2",
-                   "--set", "data.crop=8", "--set", "data.batch_size=2", timeout=600)
+                   "--set", "data.crop=8", "--set", "data.batch_size=2", "--set", "run.threads=1", timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = (run / "config.toml").read_text()
     assert "builtin-s0000" in cfg and "objs-Box-00" in cfg and "objs-Ball-00" not in cfg  # train split only
-    ev = run_cli("evaluate", "--model", "bicubic", "--data", out, "--json", tmp_path / "e.json", "--no-flip")
+    ev = run_cli("evaluate", "--model", "bicubic", "--data", out, "--json", tmp_path / "e.json", "--no-flip",
+                 "--threads", "1")
     assert ev.returncode == 0, ev.stderr[-2000:]
     result = json.loads((tmp_path / "e.json").read_text())
     assert [Path(c).name for c in result["clips"]] == ["objs-Ball-00"]  # the test split by default

@@ -85,8 +85,13 @@ def _alive(pid: int) -> bool:
 
 @requires_bpy
 @pytest.mark.bpy
-@pytest.mark.parametrize("to_group", [True, False], ids=["group", "coordinator"])
+@pytest.mark.parametrize("to_group", [pytest.param(True, marks=pytest.mark.heavy, id="group"),
+                                      pytest.param(False, id="coordinator")])
 def test_ctrl_c_stops_a_dataset_within_seconds_and_the_rerun_renders_what_is_missing(tmp_path, to_group):
+    """Both ways stop within 10 s, leave no clip process and start no other clip; the group case then reruns and
+    renders exactly what is missing. The group case is heavy (its rerun renders three clips): make test keeps the
+    coordinator case, and the rerun's guarantee is also held by tests/dataset/test_dataset.py::
+    test_dataset_resumes_after_kill_9 and tests/render/test_render.py::test_resume_and_shards."""
     spec = tmp_path / "spec.toml"
     spec.write_text(SPEC)
     out = tmp_path / "ds"
@@ -131,11 +136,13 @@ def _dataset_jobs_under(out: Path) -> list[int]:
     return found
 
 
+@pytest.mark.heavy
 @requires_bpy
 @pytest.mark.bpy
 def test_ctrl_c_stops_a_ray_dataset_within_seconds(tmp_path):
     """The Ray executor (a local instance this test starts, loopback only, its token in a HOME of its own): Ctrl-C
-    to the coordinator ends the job (the driver leaves the cluster), and no clip process keeps rendering."""
+    to the coordinator ends the job (the driver leaves the cluster), and no clip process keeps rendering. Heavy
+    (Ctrl-C timing with a Ray instance started for it); make test keeps the local executor's coordinator case."""
     pytest.importorskip("ray")
     spec = tmp_path / "spec.toml"
     spec.write_text(SPEC)

@@ -3,6 +3,7 @@ and a CLI that other packages extend through entry points."""
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 import textwrap
@@ -53,6 +54,12 @@ def modules() -> dict[str, Path]:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def nodes(path: Path) -> tuple[ast.AST, ...]:
+    """Every node of the module at ``path`` (``ast.walk`` order), parsed once for all the tests of this file."""
+    return tuple(ast.walk(ast.parse(path.read_text())))
+
+
 def imports(name: str, path: Path, known: dict[str, Path]) -> set[tuple[str, int]]:
     """(imported module, line) of every import statement: project modules resolved to the deepest known module,
     third-party ones to their top-level package."""
@@ -65,7 +72,7 @@ def imports(name: str, path: Path, known: dict[str, Path]) -> set[tuple[str, int
             t = t.rpartition(".")[0]
         out.add((t or target.split(".")[0], line))
 
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in nodes(path):
         if isinstance(node, ast.Import):
             for a in node.names:
                 add(a.name, node.lineno)
@@ -234,7 +241,7 @@ def test_only_commands_parse_arguments():
     for name, path in modules().items():
         if layer_of(name) in ("commands", "torch-commands", "addon") or name in CHILD_ENTRY_POINTS:
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in nodes(path):
             if isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) in (
                     "ArgumentParser", "parse_args", "parse_known_args"):
                 bad.append(f"{path.relative_to(REPO)}:{node.lineno}")

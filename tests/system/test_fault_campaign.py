@@ -1,4 +1,8 @@
-"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign, numbers: docs/results.md)."""
+"""The fault campaign's fast subset (benchmarks/fault_campaign.py; the whole campaign, numbers: docs/results.md).
+
+The families whose cost is the point (a kill -9 or Ctrl-C at a moment, a disk filled mid-render, every importer in
+the sandbox, appends racing in subprocesses) are marked ``heavy``: ``make test-heavy`` (and CI) runs them. Each keeps
+a cheap representative in ``make test``, named in its docstring."""
 import importlib.util
 import random
 import sys
@@ -34,40 +38,63 @@ def test_bad_and_random_inputs_give_one_line_and_no_traceback(fixtures):
     assert len(fc.BAD_INPUTS) >= 50
 
 
+@pytest.mark.heavy
 @pytest.mark.torch
 def test_training_killed_and_resumed_gives_bit_identical_weights(fixtures):
+    """Part 3 for training (heavy: a reference run, then kill -9 and resume). In make test:
+    tests/train/test_train.py::test_resume_is_bit_identical (a resumed run's weights are bit-identical) and
+    tests/train/test_reliability_train_inputs.py::test_killed_trainer_takes_its_loader_workers_and_frees_the_lock_*
+    (a trainer killed with kill -9)."""
     tally = fc.Tally()
     fc.train_kills(fixtures, tally, kills=1, rng=random.Random(1), steps=6, log=lambda m: None)
     assert tally.faults == 1 and tally.results_compared == 1
     _clean(tally)
 
 
+@pytest.mark.heavy
 @requires_bpy
 @pytest.mark.bpy
 def test_render_killed_and_resumed_validates_with_every_frame(tmp_path):
+    """Part 3 for render (heavy: a reference render, then kill -9 and resume). In make test:
+    tests/dataset/test_dataset.py::test_dataset_resumes_after_kill_9 (a killed dataset resumes to valid clips with
+    the uninterrupted run's geometry)."""
     tally = fc.Tally()
     fc.render_kills(tmp_path, tally, kills=1, rng=random.Random(2), frames=2, log=lambda m: None)
     assert tally.faults == 1 and tally.results_compared == 1
     _clean(tally)
 
 
-def test_issue26_families_concurrent_writers_traversal_and_full_filesystem(fixtures, capsys):
-    """Fast forms of parts 5, 6 and 8: in-process writers, index paths and links, a full cache filesystem."""
+def test_issue26_families_concurrent_writers_and_traversal(fixtures, capsys):
+    """Fast forms of parts 5 and 6: in-process writers, index paths and links."""
     tally = fc.Tally()
     fc.concurrent_writers(fixtures, tally, races=0, log=lambda m: None)
     fc.traversal_inputs(fixtures, tally, quick=True, log=lambda m: None)
-    fc.full_filesystem(fixtures, tally, log=lambda m: None)
     with capsys.disabled():
-        print(f"\ncampaign (concurrent writers, traversal and symlinks, full filesystem): {tally.inputs_tried} "
+        print(f"\ncampaign (concurrent writers, traversal and symlinks): {tally.inputs_tried} "
               f"cases, {tally.tracebacks} tracebacks, {tally.wrong_exit} wrong exits, {tally.escapes} escapes")
-    assert tally.inputs_tried >= 6 + 12 + 5 + 1
+    assert tally.inputs_tried >= 6 + 12 + 5
     _clean(tally)
 
 
+@pytest.mark.heavy
+def test_issue26_family_full_filesystem(fixtures):
+    """Part 8 (heavy: training, a render and a dataset on a tmpfs filled under them). In make test:
+    tests/train/test_reliability_training.py (a simulated ENOSPC and a real 1 MB tmpfs under the training cache),
+    tests/train/test_checkpoint_full_disk.py, tests/core/test_export_full_disk.py and
+    tests/cli/test_reliability_errors.py::test_a_full_disk_under_cycles_is_not_blamed_on_the_exr."""
+    tally = fc.Tally()
+    fc.full_filesystem(fixtures, tally, log=lambda m: None)
+    assert tally.inputs_tried >= 1
+    _clean(tally)
+
+
+@pytest.mark.heavy
 @requires_bpy
 @pytest.mark.bpy
 def test_issue26_family_signals_during_render(tmp_path):
-    """Fast form of part 7: one SIGINT during a render, then the rerun finishes a valid clip."""
+    """Fast form of part 7: one SIGINT during a render, then the rerun finishes a valid clip (heavy: Ctrl-C timing).
+    In make test: tests/render/test_reliability_render.py::test_ctrl_c_stops_a_render_keeping_finished_frames and
+    tests/dataset/test_dataset_interrupt.py (Ctrl-C to a dataset's coordinator)."""
     tally = fc.Tally()
     fc.signal_render(tmp_path, tally, signals=1, rng=random.Random(3), frames=3, log=lambda m: None)
     assert tally.faults == 1
@@ -86,9 +113,26 @@ def test_huge_specs_and_non_finite_values_are_refused_or_warned_at_once(fixtures
 
 @requires_bpy
 @pytest.mark.bpy
+def test_issue56_scene_references_outside_the_folder_are_refused_by_render(tmp_path):
+    """Part 11's cheap representative, through ``blendsr render``: a glTF buffer URI leaving the folder and a folder
+    named s.glb are refused in one line naming the file and the reference (every reference rule:
+    tests/core/test_scene_refs.py; every case and Ctrl-C during an import: the heavy test below)."""
+    tally = fc.Tally()
+    lines = []
+    names = ("glTF buffer URI ../../../../etc/passwd", "a folder named s.glb")
+    fc.sandbox_imports(tmp_path, tally, quick=True, log=lines.append, names=names, sigint=False)
+    print("\n".join(lines))
+    assert tally.inputs_tried == 2
+    _clean(tally)
+
+
+@pytest.mark.heavy
+@requires_bpy
+@pytest.mark.bpy
 def test_issue56_family_scene_files_in_a_sandbox(tmp_path):
     """Fast form of part 11: references outside the folder refused naming file and reference, the 10^9 accessor and
-    the folder named s.glb named, an FBX with a lamp imports, Ctrl-C during an import exits 130 with no clip."""
+    the folder named s.glb named, an FBX with a lamp imports, Ctrl-C during an import exits 130 with no clip (heavy:
+    a render per case; the representative in make test is the test above)."""
     tally = fc.Tally()
     lines = []
     fc.sandbox_imports(tmp_path, tally, quick=True, log=lines.append)
@@ -98,8 +142,12 @@ def test_issue56_family_scene_files_in_a_sandbox(tmp_path):
     _clean(tally)
 
 
+@pytest.mark.heavy
 def test_exports_appends_at_once_consumer_limits_and_the_nss_round_trip(fixtures):
-    """Part 12, quick form (NSS and RDG races; NFRU's 1920x1080 race in the full campaign)."""
+    """Part 12, quick form (NSS and RDG races; NFRU's 1920x1080 race in the full campaign). Heavy: a subprocess per
+    export; in make test: tests/core/test_export_append_race.py (the race for every format),
+    tests/core/test_export_rules.py (the NFRU refusals) and
+    tests/core/test_formats.py::test_the_nss_round_trip_validates."""
     tally = fc.Tally()
     fc.export_cases(fixtures, tally, quick=True, log=lambda m: None)
     assert tally.inputs_tried == 5

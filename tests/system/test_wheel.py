@@ -109,7 +109,7 @@ def test_blendsr_help_and_a_tiny_render_from_the_wheel(venv):
     for cmd in ("render", "dataset", "train", "export"):
         assert f"\n    {cmd} " in proc.stdout
     clip = venv["tmp"] / "clip"
-    proc = _run(venv, blendsr, "render", "-o", clip, "--hr-size", "64x36", "--frames", "1:2", "--hr-spp", "2",
+    proc = _run(venv, blendsr, "render", "-o", clip, "--hr-size", "32x16", "--frames", "1:1", "--hr-spp", "2",
                 "--lr-spp", "1", "--gbuffer-spp", "1", "--threads", "1", "--no-progress")
     assert proc.returncode == 0, proc.stderr[-3000:]
     proc = _run(venv, blendsr, "validate", clip)
