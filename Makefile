@@ -48,7 +48,7 @@ $(DEMO_STAMP): pyproject.toml Makefile
 	@touch $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
-# make test: the suite without the cases over a minute (marked heavy); make test-heavy: those. CI runs both.
+# make test: the suite without the campaigns and slowest end-to-end cases (marked heavy); make test-heavy: those. CI runs both.
 test: setup
 	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15 -m "not heavy"
 

@@ -169,6 +169,16 @@ def usable_cores(root: Path | None = None) -> int:
     return max(1, cores)
 
 
+def default_threads(root: Path | None = None) -> int:
+    """The thread count of training, evaluation and the benchmarks when none is given: ``OMP_NUM_THREADS`` where it
+    is set to a positive whole number (the usual way to cap a process's threads, which torch's own default reads
+    too; e.g. the test suite's workers, or two jobs side by side on one machine), else ``usable_cores``."""
+    v = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if v.isdigit() and int(v) > 0:
+        return int(v)
+    return usable_cores(root)
+
+
 #: How long ``idle_cores`` watches the machine before deciding, seconds.
 IDLE_SAMPLE_S = 0.5
 

@@ -25,11 +25,12 @@ def resolve_device(name: str, option: str = "--device") -> torch.device:
 
 
 def set_threads(threads: int = 0) -> int:
-    """torch's intra-op threads: ``threads``, or with 0 the cores this process may use (affinity and cgroup quota,
-    ``gbuffer_export.resources.usable_cores``; torch's own default counts every core of the machine). Returns the
-    count set. The one place training, evaluation, the benchmarks and the demo set it."""
-    from gbuffer_export.resources import usable_cores
-    n = int(threads) or usable_cores()
+    """torch's intra-op threads: ``threads``, or with 0 ``OMP_NUM_THREADS`` where it is set, else the cores this
+    process may use (affinity and cgroup quota: ``gbuffer_export.resources.default_threads``; torch's own default
+    counts every core of the machine). Returns the count set. The one place training, evaluation, the benchmarks and
+    the demo set it."""
+    from gbuffer_export.resources import default_threads
+    n = int(threads) or default_threads()
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
     return n

@@ -97,10 +97,15 @@ def test_torch_threads_default_to_the_usable_cores(monkeypatch):
     from training.config import RunConfig
     from training.device import set_threads
     before = torch.get_num_threads()
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(resources, "usable_cores", lambda root=None: 1)
     try:
         assert RunConfig().threads == 0 and set_threads(0) == 1 and torch.get_num_threads() == 1
         assert set_threads(2) == 2 and torch.get_num_threads() == 2
+        monkeypatch.setenv("OMP_NUM_THREADS", "3")  # the user's cap (the suite's workers set it)
+        assert set_threads(0) == 3 and torch.get_num_threads() == 3
+        monkeypatch.setenv("OMP_NUM_THREADS", "0")  # not a count: the usable cores
+        assert set_threads(0) == 1
     finally:
         torch.set_num_threads(before)
 
