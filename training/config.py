@@ -153,8 +153,8 @@ class RunConfig:
     amp: str = option("auto", choices=AMP_MODES, help=(
         "auto: bf16 where the hardware has it, fp16 on older GPUs, else full precision"))
     compile: bool = option(False, help="`torch.compile` the model")
-    threads: int = option(0, lo=0, help="torch intra-op threads (0: the cores this process may use: its CPU "
-                                        "affinity, capped by the cgroup CPU quota)")
+    threads: int = option(0, lo=0, help="torch intra-op threads (0: OMP_NUM_THREADS where set, else the cores "
+                                        "this process may use: its CPU affinity, capped by the cgroup CPU quota)")
     progress: bool = option(True, help="progress bar")
     eval_every: int = option(0, lo=0, help="steps between validation runs (0: only at the end)")
     init_from: str = option("", help=(
