@@ -136,9 +136,12 @@ def _render(out, *args):
 
 @requires_bpy
 @pytest.mark.bpy
+@pytest.mark.heavy
 def test_two_renders_into_one_new_folder_never_make_a_mixed_clip(tmp_path):
     """Issue 26: two renders with other settings started together into one new folder. One writes the clip, the
-    other is refused in one line naming the folder (exit 2); the clip validates and holds only the winner's frames."""
+    other is refused in one line naming the folder (exit 2); the clip validates and holds only the winner's frames.
+    A race of two Cycles processes (make test-heavy); the writer's refusal itself is in the fast suite:
+    tests/core/test_reliability_clip.py (a writer with other settings, a second writer of a clip)."""
     from gbuffer_export.validate import validate_clip
     out = tmp_path / "c"
     procs = [_render(out, "--frames", "1:4", "--seed", str(seed)) for seed in (0, 5)]
@@ -158,9 +161,12 @@ def test_two_renders_into_one_new_folder_never_make_a_mixed_clip(tmp_path):
 
 @requires_bpy
 @pytest.mark.bpy
+@pytest.mark.heavy
 def test_ctrl_c_stops_a_render_keeping_finished_frames(tmp_path):
     """SIGINT (Ctrl-C) during a render: it stops after the Cycles pass in flight with the resume line and exit 130;
-    finished frames stay, the partial frame leaves no file and no temporary folder remains."""
+    finished frames stay, the partial frame leaves no file and no temporary folder remains. Its cost is the timing
+    of a signal into a running Cycles process (make test-heavy); Ctrl-C's one line and exit 130 are in the fast
+    suite: tests/cli/test_early_interrupt.py."""
     from gbuffer_export.validate import validate_clip
     out = tmp_path / "c"
     proc = _render(out, "--frames", "1:40")

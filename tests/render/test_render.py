@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.conftest import requires_bpy, run_cli
 from tests.render.cli_batch import make_blends, run_cli_batch
 from gbuffer_export import open_clip
 from gbuffer_export.conventions import Flag, backward_warp, reprojection_motion
@@ -16,27 +16,32 @@ FAST = ["--hr-spp", "4", "--lr-spp", "2", "--gbuffer-spp", "1", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
-def basic_blend(blend_dir):
-    return make_blend("basic", blend_dir / "basic.blend")
+def blends(tmp_path_factory):
+    """The scenes of tests/scenes.py this module renders or refuses, built in one process."""
+    return make_blends(["basic", "nocamera", "empty", "ortho"], tmp_path_factory.mktemp("blends"))
 
 
 @pytest.fixture(scope="module")
-def basic_clip(basic_blend, tmp_path_factory):
-    out = tmp_path_factory.mktemp("clips") / "basic"
-    run_cli("render", basic_blend, "-o", out, "--frames", "2:4", "--hr-size", "128x72", "--buffers", "all",
-            *FAST, check=True)
-    return out
+def basic_blend(blends):
+    return blends["basic"]
 
 
 @pytest.fixture(scope="module")
-def side_clips(basic_blend, tmp_path_factory):
-    """The basic scene's other clips, rendered in one process: "rad" (radiance only, frame 1) and "none" (no
-    jitter, frame 3 at 128x72: depth and flags)."""
-    root = tmp_path_factory.mktemp("side")
-    run_ok(["render", basic_blend, "-o", root / "rad", "--frames", "1:1", "--buffers", "radiance", *FAST],
+def basic_clips(basic_blend, tmp_path_factory):
+    """The basic scene's clips, rendered in one process (``cli_batch``): "all" (frames 2:4 at 128x72, every buffer,
+    Halton jitter), "rad" (radiance only, frame 1) and "none" (no jitter, frame 3 at 128x72: depth and flags)."""
+    root = tmp_path_factory.mktemp("clips")
+    run_ok(["render", basic_blend, "-o", root / "all", "--frames", "2:4", "--hr-size", "128x72", "--buffers", "all",
+            *FAST],
+           ["render", basic_blend, "-o", root / "rad", "--frames", "1:1", "--buffers", "radiance", *FAST],
            ["render", basic_blend, "-o", root / "none", "--frames", "3:3", "--hr-size", "128x72", "--jitter", "none",
             "--buffers", "depth,flags", *FAST])
-    return {"rad": root / "rad", "none": root / "none"}
+    return {k: root / k for k in ("all", "rad", "none")}
+
+
+@pytest.fixture(scope="module")
+def basic_clip(basic_clips):
+    return basic_clips["all"]
 
 
 #: the furnace renders: no jitter, white world, the buffers of F_beta's checks
@@ -146,10 +151,10 @@ def test_motion_next_matches_reprojection_and_the_next_frames_motion(basic_clip)
                 assert np.abs(mn[moving]).max() > 0.2  # the cube moves between frames
 
 
-def test_jitter_sign(basic_clip, side_clips):
+def test_jitter_sign(basic_clip, basic_clips):
     """LR depth rendered with jitter equals un-jittered depth sampled at p + jitter (1/z is affine on a plane). The
     jittered render is the module's clip (Halton jitter, the default; its frame 3 has jitter (-0.25, 0.17) LR px)."""
-    outs = {"none": open_clip(side_clips["none"]), "halton": open_clip(basic_clip)}
+    outs = {"none": open_clip(basic_clips["none"]), "halton": open_clip(basic_clip)}
     assert outs["halton"].manifest["render"]["jitter"] == "halton"
     jit = outs["halton"].camera(3, "lr")["jitter"]
     assert np.abs(jit).max() > 0.1
@@ -170,8 +175,8 @@ def test_jitter_sign(basic_clip, side_clips):
     assert err < 1e-3 and err_wrong > 3 * err, (err, err_wrong)
 
 
-def test_only_requested_buffers(side_clips):
-    out = side_clips["rad"]
+def test_only_requested_buffers(basic_clips):
+    out = basic_clips["rad"]
     clip = open_clip(out)
     assert clip.buffers == ("radiance",)
     assert sorted(p.name for p in (out / "hr").iterdir()) == ["radiance"]
@@ -274,17 +279,16 @@ def test_bad_input_one_line_exit_2(case, args, needle, basic_blend, tmp_path):
 SCENE_REFUSALS = {
     "frames": ("basic", ["--frames", "5:40"], "outside the scene"),
     "nocam": ("nocamera", [], "no camera"),
-    "empty": ("empty", [], "empty"),
+    "empty": ("empty", [], "no geometry to render"),  # "empty" matched the file's name, not the reason
     "ortho": ("ortho", [], "orthographic"),
 }
 
 
-def test_bad_scenes_one_line_exit_2(basic_blend, basic_clip, tmp_path):
+def test_bad_scenes_one_line_exit_2(blends, basic_clip, tmp_path):
     """Each refusal of ``SCENE_REFUSALS`` is one line and exit 2, and an output folder holding another clip (the
     module's, 128x72) is refused without touching it: the commands in one process (``cli_batch``), each opening
     its own scene."""
-    blends = make_blends(["nocamera", "empty", "ortho"], tmp_path)
-    blends["basic"] = basic_blend
+    basic_blend = blends["basic"]
     cases = list(SCENE_REFUSALS.items())
     argvs = [["render", blends[kind], *extra, "-o", tmp_path / f"out_{case}", *FAST]
              for case, (kind, extra, _) in cases]
