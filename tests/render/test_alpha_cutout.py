@@ -3,7 +3,7 @@ the AOV buffers (albedo, roughness, metallic, specular) describe the surface the
 whose alpha reaches the view layer's pass alpha threshold, never a sum over the layers a camera ray passes. A tiny
 scene (tests/scenes.py ``cutout``: a checkered wall behind a two-faced green metallic pane whose alpha is a 0/1
 checker mask on its left half and 0.25 on its right; ``nocutout``: the wall alone), 128x64 HR, 4x, one frame,
-rendered twice through ``blendsr render`` (about 10 s).
+rendered twice through ``blendsr render`` in one process (``cli_batch``).
 
 Tolerances (measured, 2026-11-27): at the holes of the mask every G-buffer (depth, normal, flags, albedo,
 roughness, metallic, specular, emission, point-sampled HR F_beta; LR F_beta too) equals the wall's without the pane
@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from gbuffer_export import Flag, open_clip
-from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.conftest import requires_bpy, run_cli
+from tests.render.cli_batch import make_blends, run_cli_batch
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 ARGS = ["--frames", "1:1", "--hr-size", "128x64", "--scales", "4", "--hr-spp", "4", "--lr-spp", "4",
@@ -30,8 +31,9 @@ ALPHA = np.uint32(Flag.ALPHA)
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory):
     d = tmp_path_factory.mktemp("cutout")
-    for kind in ("cutout", "nocutout"):
-        run_cli("render", make_blend(kind, d / f"{kind}.blend"), "-o", d / kind, *ARGS, check=True)
+    blends = make_blends(["cutout", "nocutout"], d)
+    for proc in run_cli_batch(*[["render", blend, "-o", d / kind, *ARGS] for kind, blend in blends.items()]):
+        assert proc.returncode == 0, proc.stderr[-3000:]
     return open_clip(d / "cutout"), open_clip(d / "nocutout")
 
 

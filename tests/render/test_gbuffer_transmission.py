@@ -2,8 +2,8 @@
 and at every LR level, as the same scene with the panes deleted; ``flags`` keep TRANSMISSION there (the reactive
 mask) and the radiance is the "surface" render's. A tiny scene (tests/scenes.py ``glasspane``: a checkered wall
 under the sky behind a Principled glass pane and a Glass BSDF pane; ``nopane``: the same without them), 64x32 HR,
-4x and 2x, two frames of a moving camera, rendered four times through ``blendsr render`` (25 s on 2 idle cores,
-50 s beside a dataset render).
+4x and 2x, two frames of a moving camera, rendered four times through ``blendsr render`` in one process
+(``cli_batch``).
 
 Tolerances (measured, 2026-11-27): depth, albedo, roughness, metallic, specular, emission and the footprint HR
 F_beta behind the panes are bit-identical to the scene without them; normals differ by at most 6e-8, motion by
@@ -18,7 +18,8 @@ import pytest
 
 from gbuffer_export import Flag, open_clip
 from gbuffer_export.regions import dilate
-from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.conftest import requires_bpy, run_cli
+from tests.render.cli_batch import make_blends, run_cli_batch
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 ARGS = ["--frames", "1:2", "--hr-size", "64x32", "--scales", "4,2", "--hr-spp", "4", "--lr-spp", "4",
@@ -33,11 +34,14 @@ T = np.uint32(Flag.TRANSMISSION)
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory):
     d = tmp_path_factory.mktemp("transmission")
-    glass, nopane = make_blend("glasspane", d / "glass.blend"), make_blend("nopane", d / "nopane.blend")
+    blends = make_blends(["glasspane", "nopane"], d)
+    glass, nopane = blends["glasspane"], blends["nopane"]
     runs = {"surface": (glass, "surface"), "behind": (glass, "behind"), "nopane": (nopane, "surface"),
             "nopane_behind": (nopane, "behind")}
-    for name, (scene, mode) in runs.items():
-        run_cli("render", scene, "-o", d / name, "--gbuffer-transmission", mode, *ARGS, check=True)
+    procs = run_cli_batch(*[["render", scene, "-o", d / name, "--gbuffer-transmission", mode, *ARGS]
+                            for name, (scene, mode) in runs.items()])
+    for proc in procs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
     return {name: open_clip(d / name) for name in runs}
 
 

@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 
 from tests.conftest import ENV, REPO, requires_bpy, run_cli, shared_or_skip
+from tests.render.cli_batch import run_cli_batch
 
 pytestmark = [requires_bpy, pytest.mark.bpy, pytest.mark.shared]
 
-TINY = ["--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1", "--threads", "1", "--no-progress"]
+TINY = ["--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1", "--gbuffer-spp", "1", "--threads", "1",
+        "--no-progress"]
 GARAGE = "scenes/levels/garage/garage.blend"
 TOWN = "scenes/levels/truck_town/town_model.gltf"
 
@@ -26,7 +28,8 @@ def _manifest(clip: Path) -> dict:
 def test_the_garages_own_camera_renders_through_scene_star(tmp_path):
     garage = shared_or_skip(GARAGE)
     out = tmp_path / "own"
-    r = run_cli("render", garage, "-o", out, "--camera-path", "scene:*", "--frames", "1:2", *TINY)
+    r, v = run_cli_batch(["render", garage, "-o", out, "--camera-path", "scene:*", "--frames", "1:1", *TINY],
+                         ["validate", out])
     assert r.returncode == 0, r.stderr[-2000:]
     m = _manifest(out)
     assert m["scene"]["camera"] == "Camera" and m["camera"] == {"kind": "scene", "choice": "scene:*",
@@ -35,14 +38,14 @@ def test_the_garages_own_camera_renders_through_scene_star(tmp_path):
     assert m["light"]["scene_sources"]["lamps"] == 2 and m["light"]["probe"]["scene_light"]["log_average"] > 0.02
     assert m["render"]["device"] == "CPU" and m["render"]["device_names"]
     assert "CUEW" not in r.stderr  # probing for GPUs prints nothing
-    v = run_cli("validate", out)
     assert v.returncode == 0, v.stdout + v.stderr
 
 
 def test_walk_inside_the_garage_keeps_its_rules_and_validates(tmp_path):
     garage = shared_or_skip(GARAGE)
     out = tmp_path / "walk"
-    r = run_cli("render", garage, "-o", out, "--camera-path", "walk", "--frames", "1:3", "--seed", "3", *TINY)
+    r, v = run_cli_batch(["render", garage, "-o", out, "--camera-path", "walk", "--frames", "1:2", "--seed", "3",
+                          *TINY], ["validate", out, "--json"])
     assert r.returncode == 0, r.stderr[-2000:]
     cam = _manifest(out)["camera"]
     assert cam["kind"] == "walk" and cam["speed_mps"] == pytest.approx(1.4, rel=1e-3)
@@ -52,28 +55,28 @@ def test_walk_inside_the_garage_keeps_its_rules_and_validates(tmp_path):
     lo, hi = np.array(cam["region"]["lo"]), np.array(cam["region"]["hi"])
     assert np.all(eyes[:, :2] >= lo) and np.all(eyes[:, :2] <= hi)  # inside the garage's walls
     assert np.allclose(eyes[:, 2], eyes[0, 2], atol=0.05) and 1.4 < eyes[0, 2] < 1.8  # eye height, flat floor
-    v = run_cli("validate", out, "--json")
     assert v.returncode == 0, v.stdout + v.stderr
     views = json.loads(v.stdout)["stats"]["camera_view"]
-    assert len(views) == 3 and all(x["background_fraction"] < 0.5 and 0.75 <= x["median_depth_m"] <= cam[
+    assert len(views) == 2 and all(x["background_fraction"] < 0.5 and 0.75 <= x["median_depth_m"] <= cam[
         "level_extent_m"] for x in views.values())
 
 
 def test_an_unlit_level_is_refused_under_scene_with_the_fix_then_lit_with_sky(tmp_path):
     town = shared_or_skip(TOWN)
-    r = run_cli("render", town, "-o", tmp_path / "dark", "--camera-path", "fly", "--light", "scene", "--frames",
-                "1:1", *TINY)
+    out = tmp_path / "sky"
+    r, r_sky, v = run_cli_batch(
+        ["render", town, "-o", tmp_path / "dark", "--camera-path", "fly", "--light", "scene", "--frames", "1:1", *TINY],
+        ["render", town, "-o", out, "--camera-path", "fly", "--light", "sky", "--frames", "1:1", *TINY],
+        ["validate", out])
     assert r.returncode == 2
     line = r.stderr.strip().splitlines()[-1]
     assert "no lights" in line and "set --light auto" in line and str(town.name) in line
     assert not (tmp_path / "dark" / "manifest.json").exists()
-    out = tmp_path / "sky"
-    r = run_cli("render", town, "-o", out, "--camera-path", "fly", "--light", "sky", "--frames", "1:2", *TINY)
-    assert r.returncode == 0, r.stderr[-2000:]
+    assert r_sky.returncode == 0, r_sky.stderr[-2000:]
     m = _manifest(out)
     assert m["light"]["light"] == "sky" and 25 <= m["light"]["sun_elevation_deg"] <= 60
     assert m["camera"]["kind"] == "fly" and m["camera"]["background_fraction_max"] <= 0.4
-    assert run_cli("validate", out).returncode == 0
+    assert v.returncode == 0, v.stdout + v.stderr[-2000:]
 
 
 def _garage_with_two_cameras(tmp_path: Path) -> Path:
@@ -89,15 +92,16 @@ def _garage_with_two_cameras(tmp_path: Path) -> Path:
 
 def test_cameras_present_but_none_active_are_listed_and_any_can_be_chosen(tmp_path):
     blend = _garage_with_two_cameras(tmp_path)
-    r = run_cli("render", blend, "-o", tmp_path / "none", "--frames", "1:1", *TINY)
+    r, r_zeta, r_nope = run_cli_batch(
+        ["render", blend, "-o", tmp_path / "none", "--frames", "1:1", *TINY],
+        ["render", blend, "-o", tmp_path / "zeta", "--camera-path", "scene:Zeta", "--frames", "1:1", *TINY],
+        ["render", blend, "-o", tmp_path / "nope", "--camera-path", "scene:Nope", "--frames", "1:1", *TINY])
     assert r.returncode == 2
     line = r.stderr.strip().splitlines()[-1]
     assert "2 camera(s) but none is active (Camera, Zeta)" in line and "scene:NAME" in line
-    r = run_cli("render", blend, "-o", tmp_path / "zeta", "--camera-path", "scene:Zeta", "--frames", "1:1", *TINY)
-    assert r.returncode == 0, r.stderr[-2000:]
+    assert r_zeta.returncode == 0, r_zeta.stderr[-2000:]
     assert _manifest(tmp_path / "zeta")["scene"]["camera"] == "Zeta"
-    r = run_cli("render", blend, "-o", tmp_path / "nope", "--camera-path", "scene:Nope", "--frames", "1:1", *TINY)
-    assert r.returncode == 2 and "no camera named 'Nope'" in r.stderr
+    assert r_nope.returncode == 2 and "no camera named 'Nope'" in r_nope.stderr
 
 
 def test_a_gpu_that_cycles_does_not_see_is_refused(tmp_path):
@@ -180,11 +184,11 @@ def test_walk_around_a_single_object_is_refused_naming_orbit(tmp_path):
 def test_render_takes_the_light_variation_and_records_it(tmp_path):
     garage = shared_or_skip(GARAGE)
     out = tmp_path / "v"
-    r = run_cli("render", garage, "-o", out, "--camera-path", "scene", "--frames", "1:1", "--sun", "35,120",
-                "--light-strength", "0.5", "--world-strength", "2", *TINY)
+    r, bad = run_cli_batch(["render", garage, "-o", out, "--camera-path", "scene", "--frames", "1:1", "--sun",
+                            "35,120", "--light-strength", "0.5", "--world-strength", "2", *TINY],
+                           ["render", garage, "-o", tmp_path / "b", "--sun", "95,0", *TINY])
     assert r.returncode == 0, r.stderr[-2000:]
     v = _manifest(out)["light"]["variation"]
     assert v["sun"] == {"elevation_deg": 35.0, "azimuth_deg": 120.0, "sun_lamps": 1}
     assert v["light_strength"] == {"multiplier": 0.5, "lamps": 2} and v["world_strength"]["multiplier"] == 2.0
-    bad = run_cli("render", garage, "-o", tmp_path / "b", "--sun", "95,0", *TINY)
     assert bad.returncode == 2 and "--sun '95,0': elevation" in bad.stderr

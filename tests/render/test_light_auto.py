@@ -11,12 +11,17 @@ import numpy as np
 import pytest
 
 from tests.conftest import ENV, REPO, requires_bpy, run_cli, shared_or_skip
+from tests.render.cli_batch import run_cli_batch
 from gbuffer_export import open_clip
 
 pytestmark = [requires_bpy, pytest.mark.bpy]
 
-TINY = ["--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1", "--threads", "1", "--no-progress",
-        "--frames", "1:2"]
+TINY = ["--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1", "--gbuffer-spp", "1", "--threads", "1",
+        "--no-progress", "--frames", "1:2"]
+#: the synthetic sky level in one frame: each frame is a probe view and three Cycles renders, seconds each under its
+#: sky texture, and the checks hold per frame (the shared interiors keep two: a one-frame walk in the garage stands
+#: where it sees the sky, and the ceiling lamps are not added)
+ONE_FRAME = ["--frames", "1:1"]
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -160,17 +165,24 @@ bpy.ops.wm.save_as_mainfile(filepath=out)
 """
 
 
-def _sky_level(tmp_path: Path, kind: str) -> Path:
-    out = tmp_path / f"sky_{kind}.blend"
-    subprocess.run([sys.executable, "-c", SKY_LEVEL, str(out), kind], check=True, capture_output=True, env=ENV,
-                   cwd=REPO, timeout=120)
+def _sky_levels(tmp_path: Path) -> dict[str, Path]:
+    """The level of ``SKY_LEVEL`` with an unlit (emission) dome and with a lit one, built in one process."""
+    out = {kind: tmp_path / f"sky_{kind}.blend" for kind in ("unlit", "lit")}
+    code = f"import sys\nSCRIPT = {SKY_LEVEL!r}\nfor out, kind in {[(str(v), k) for k, v in out.items()]!r}:\n" \
+           "    sys.argv = ['sky', out, kind]\n    exec(SCRIPT, {})\n"
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, env=ENV, cwd=REPO, timeout=120)
     return out
 
 
 def test_a_level_inside_a_sky_mesh_renders_lit_under_auto_and_sky(tmp_path):
-    level = _sky_level(tmp_path, "unlit")
-    out = tmp_path / "auto"
-    r = run_cli("render", level, "-o", out, "--camera-path", "walk", *TINY)
+    levels = _sky_levels(tmp_path)
+    out, out_sky = tmp_path / "auto", tmp_path / "sky"
+    # the unlit dome under auto and the lit dome under sky (made unlit, still no shadow): renders and validate in
+    # one process (cli_batch)
+    r, v, r_sky = run_cli_batch(["render", levels["unlit"], "-o", out, "--camera-path", "walk", *TINY, *ONE_FRAME],
+                                ["validate", out],
+                                ["render", levels["lit"], "-o", out_sky, "--camera-path", "walk", "--light", "sky",
+                                 *TINY, *ONE_FRAME])
     assert r.returncode == 0, r.stderr[-2000:]
     light = _manifest(out)["light"]
     sky = light["sky_meshes"]
@@ -187,17 +199,14 @@ def test_a_level_inside_a_sky_mesh_renders_lit_under_auto_and_sky(tmp_path):
     clip = open_clip(out)
     seen = [v for v in light["views"] if v["sees_sky"] > 0.05]
     assert seen  # the walls are low: the cameras see the sky, which is the dome, drawn as the game does
-    for v in seen:
-        assert (clip.read(v["frame"], "hr/depth") > 100).mean() >= 0.5 * v["sees_sky"]
-    assert run_cli("validate", out).returncode == 0
+    for view in seen:
+        assert (clip.read(view["frame"], "hr/depth") > 100).mean() >= 0.5 * view["sees_sky"]
+    assert v.returncode == 0, v.stdout + v.stderr[-2000:]
 
-    lit = _sky_level(tmp_path, "lit")  # a lit dome under light sky: made unlit, still no shadow
-    out = tmp_path / "sky"
-    r = run_cli("render", lit, "-o", out, "--camera-path", "walk", "--light", "sky", *TINY)
-    assert r.returncode == 0, r.stderr[-2000:]
-    treated = _manifest(out)["light"]["sky_meshes"]["treated"]
+    assert r_sky.returncode == 0, r_sky.stderr[-2000:]
+    treated = _manifest(out_sky)["light"]["sky_meshes"]["treated"]
     assert treated == [{"object": "Skydome", "visible": ["camera"], "made_unlit": ["sky (unlit sky)"]}]
-    y = _luminance(out)
+    y = _luminance(out_sky)
     assert (y < 1e-3).mean() < 0.2 and y.mean() > 0.05
 
 
@@ -210,7 +219,8 @@ def test_a_level_inside_a_sky_mesh_renders_lit_under_auto_and_sky(tmp_path):
 def test_unlit_interiors_render_lit_by_auto_and_say_why(tmp_path, rel):
     scene = shared_or_skip(rel)
     out = tmp_path / "clip"
-    r = run_cli("render", scene, "-o", out, "--camera-path", "walk", *TINY)  # the default light: auto
+    r, v = run_cli_batch(["render", scene, "-o", out, "--camera-path", "walk", *TINY],  # the default light: auto
+                         ["validate", out])
     assert r.returncode == 0, r.stderr[-2000:]
     light = _manifest(out)["light"]
     assert light["light"] == "auto" and light["added"] and light["why"]
@@ -221,7 +231,7 @@ def test_unlit_interiors_render_lit_by_auto_and_say_why(tmp_path, rel):
     assert "light auto:" in r.stderr  # one note naming what was added
     y = _luminance(out)
     assert (y < 1e-3).mean() < 0.2 and y.mean() > 0.02
-    assert run_cli("validate", out).returncode == 0
+    assert v.returncode == 0, v.stdout + v.stderr[-2000:]
 
 
 @pytest.mark.shared

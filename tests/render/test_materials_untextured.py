@@ -8,10 +8,16 @@ import pytest
 from gbuffer_export import open_clip
 from gbuffer_export.colour_spaces import srgb_decode
 from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.render.cli_batch import run_cli_batch
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 ARGS = ["--frames", "1:1", "--hr-size", "64x36", "--hr-spp", "1", "--lr-spp", "1", "--gbuffer-spp", "1",
         "--jitter", "none", "--buffers", "radiance,albedo,normal,flags", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def imagetex(blend_dir):
+    return make_blend("imagetex", blend_dir / "imagetex.blend")
 
 
 def _halves(clip, level: str):
@@ -22,10 +28,11 @@ def _halves(clip, level: str):
     return alb[:, : w // 2 - 2].reshape(-1, 3), alb[:, w // 2 + 2:].reshape(-1, 3)
 
 
-def test_untextured_flattens_each_material_to_its_images_mean(blend_dir, tmp_path):
-    scene = make_blend("imagetex", blend_dir / "imagetex.blend")
-    for mode in ("keep", "untextured"):
-        run_cli("render", scene, "-o", tmp_path / mode, "--materials", mode, *ARGS, check=True)
+def test_untextured_flattens_each_material_to_its_images_mean(imagetex, tmp_path):
+    scene = imagetex
+    for proc in run_cli_batch(*[["render", scene, "-o", tmp_path / mode, "--materials", mode, *ARGS]
+                                for mode in ("keep", "untextured")]):  # one process (cli_batch)
+        assert proc.returncode == 0, proc.stderr[-3000:]
     keep, flat = open_clip(tmp_path / "keep"), open_clip(tmp_path / "untextured")
     assert "material_mode" not in keep.manifest  # the scene's own materials: the manifest as before the key
     mode = flat.manifest["material_mode"]
@@ -48,8 +55,8 @@ def test_untextured_flattens_each_material_to_its_images_mean(blend_dir, tmp_pat
     assert nf[:, w // 2 + 2:].reshape(-1, 3).std(axis=0).max() < 1e-5
 
 
-def test_an_unknown_material_mode_is_one_line_exit_2(blend_dir, tmp_path):
-    scene = make_blend("imagetex", blend_dir / "imagetex.blend")  # argparse refuses it before Blender loads
+def test_an_unknown_material_mode_is_one_line_exit_2(imagetex, tmp_path):
+    scene = imagetex  # argparse refuses it before Blender loads
     proc = run_cli("render", scene, "-o", tmp_path / "x", "--materials", "grey", *ARGS)
     assert proc.returncode == 2
     err = [ln for ln in proc.stderr.splitlines() if "error:" in ln]

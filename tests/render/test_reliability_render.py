@@ -75,21 +75,26 @@ def test_fbeta_unmodeled_flag_per_source():
         assert material_flags_for_source(int(Flag.MOVING), src) == int(Flag.MOVING)
 
 
-def _furnace_clip(tmp_path, fbeta):
+def _furnace_clips(tmp_path, sources):
+    """The furnace of coat, sheen and glass rendered once per F_beta source of ``sources`` (one process:
+    ``cli_batch``); returns source -> clip."""
     import subprocess
     import sys
 
     from tests.conftest import ENV, REPO
+    from tests.render.cli_batch import run_cli_batch
     blend, layout = tmp_path / "f.blend", tmp_path / "layout.json"
-    if not blend.exists():
-        subprocess.run([sys.executable, "-m", "gbuffer_export.blender.furnace", str(blend), str(layout), "--size",
-                        "256", "64", "--columns", "4", "--materials",
-                        "diel_grey_r0.50,coat_orange_r0.50,sheen_grey_r0.50,glass_r0.30"], check=True, cwd=REPO,
-                       capture_output=True, timeout=300, env=ENV)
-    clip = tmp_path / f"clip_{fbeta}"
-    run_cli("render", blend, "-o", clip, "--frames", "1:1", "--hr-size", "256x64", "--hr-spp", "1", "--lr-spp", "256",
-            "--buffers", "all", "--jitter", "none", "--no-progress", "--fbeta", fbeta, timeout=600, check=True)
-    return clip
+    subprocess.run([sys.executable, "-m", "gbuffer_export.blender.furnace", str(blend), str(layout), "--size",
+                    "256", "64", "--columns", "4", "--materials",
+                    "diel_grey_r0.50,coat_orange_r0.50,sheen_grey_r0.50,glass_r0.30"], check=True, cwd=REPO,
+                   capture_output=True, timeout=300, env=ENV)
+    clips = {src: tmp_path / f"clip_{src}" for src in sources}
+    procs = run_cli_batch(*[["render", blend, "-o", clip, "--frames", "1:1", "--hr-size", "256x64", "--hr-spp", "1",
+                             "--lr-spp", "256", "--buffers", "all", "--jitter", "none", "--no-progress", "--fbeta",
+                             src] for src, clip in clips.items()], timeout=600)
+    for proc in procs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return clips
 
 
 @requires_bpy
@@ -102,8 +107,8 @@ def test_unflagged_pixels_match_the_furnace_for_every_fbeta_source(tmp_path):
     from gbuffer_export import open_clip
     from gbuffer_export.conventions import UNTRUSTED, Flag
     within = {}
-    for src in ("model", "cycles"):
-        c = open_clip(_furnace_clip(tmp_path, src))
+    for src, clip in _furnace_clips(tmp_path, ("model", "cycles")).items():
+        c = open_clip(clip)
         flags = c.read(1, "lr/flags")[..., 0]
         truth = c.read(1, "lr/radiance") - c.read(1, "lr/emission")
         fb = c.read(1, "lr/fbeta")
@@ -131,9 +136,12 @@ def _render(out, *args):
 
 @requires_bpy
 @pytest.mark.bpy
+@pytest.mark.heavy
 def test_two_renders_into_one_new_folder_never_make_a_mixed_clip(tmp_path):
     """Issue 26: two renders with other settings started together into one new folder. One writes the clip, the
-    other is refused in one line naming the folder (exit 2); the clip validates and holds only the winner's frames."""
+    other is refused in one line naming the folder (exit 2); the clip validates and holds only the winner's frames.
+    A race of two Cycles processes (make test-heavy); the writer's refusal itself is in the fast suite:
+    tests/core/test_reliability_clip.py (a writer with other settings, a second writer of a clip)."""
     from gbuffer_export.validate import validate_clip
     out = tmp_path / "c"
     procs = [_render(out, "--frames", "1:4", "--seed", str(seed)) for seed in (0, 5)]
@@ -153,9 +161,12 @@ def test_two_renders_into_one_new_folder_never_make_a_mixed_clip(tmp_path):
 
 @requires_bpy
 @pytest.mark.bpy
+@pytest.mark.heavy
 def test_ctrl_c_stops_a_render_keeping_finished_frames(tmp_path):
     """SIGINT (Ctrl-C) during a render: it stops after the Cycles pass in flight with the resume line and exit 130;
-    finished frames stay, the partial frame leaves no file and no temporary folder remains."""
+    finished frames stay, the partial frame leaves no file and no temporary folder remains. Its cost is the timing
+    of a signal into a running Cycles process (make test-heavy); Ctrl-C's one line and exit 130 are in the fast
+    suite: tests/cli/test_early_interrupt.py."""
     from gbuffer_export.validate import validate_clip
     out = tmp_path / "c"
     proc = _render(out, "--frames", "1:40")

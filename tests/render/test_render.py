@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.conftest import requires_bpy, run_cli
+from tests.render.cli_batch import make_blends, run_cli_batch
 from gbuffer_export import open_clip
 from gbuffer_export.conventions import Flag, backward_warp, reprojection_motion
 
@@ -15,16 +16,55 @@ FAST = ["--hr-spp", "4", "--lr-spp", "2", "--gbuffer-spp", "1", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
-def basic_blend(blend_dir):
-    return make_blend("basic", blend_dir / "basic.blend")
+def blends(tmp_path_factory):
+    """The scenes of tests/scenes.py this module renders or refuses, built in one process."""
+    return make_blends(["basic", "nocamera", "empty", "ortho"], tmp_path_factory.mktemp("blends"))
 
 
 @pytest.fixture(scope="module")
-def basic_clip(basic_blend, tmp_path_factory):
-    out = tmp_path_factory.mktemp("clips") / "basic"
-    run_cli("render", basic_blend, "-o", out, "--frames", "2:4", "--hr-size", "128x72", "--buffers", "all",
-            *FAST, check=True)
-    return out
+def basic_blend(blends):
+    return blends["basic"]
+
+
+@pytest.fixture(scope="module")
+def basic_clips(basic_blend, tmp_path_factory):
+    """The basic scene's clips, rendered in one process (``cli_batch``): "all" (frames 2:4 at 128x72, every buffer,
+    Halton jitter), "rad" (radiance only, frame 1) and "none" (no jitter, frame 3 at 128x72: depth and flags)."""
+    root = tmp_path_factory.mktemp("clips")
+    run_ok(["render", basic_blend, "-o", root / "all", "--frames", "2:4", "--hr-size", "128x72", "--buffers", "all",
+            *FAST],
+           ["render", basic_blend, "-o", root / "rad", "--frames", "1:1", "--buffers", "radiance", *FAST],
+           ["render", basic_blend, "-o", root / "none", "--frames", "3:3", "--hr-size", "128x72", "--jitter", "none",
+            "--buffers", "depth,flags", *FAST])
+    return {k: root / k for k in ("all", "rad", "none")}
+
+
+@pytest.fixture(scope="module")
+def basic_clip(basic_clips):
+    return basic_clips["all"]
+
+
+#: the furnace renders: no jitter, white world, the buffers of F_beta's checks
+FURNACE = ["--frames", "1:1", "--hr-size", "128x72", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags",
+           "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def furnace_clips(tmp_path_factory):
+    """The furnace scene (64 spp) and the sub-pixel checker in a furnace (HR 64 spp, LR 16) with the footprint and
+    the point HR F_beta: scenes built in one process, clips rendered in another."""
+    root = tmp_path_factory.mktemp("furnace")
+    blends = make_blends(["furnace", "finetex"], root)
+    run_ok(["render", blends["furnace"], "-o", root / "furnace", "--hr-spp", "64", "--lr-spp", "64", *FURNACE],
+           *[["render", blends["finetex"], "-o", root / fb, "--hr-spp", "64", "--lr-spp", "16", "--hr-fbeta", fb,
+              *FURNACE] for fb in ("footprint", "point")])
+    return {k: root / k for k in ("furnace", "footprint", "point")}
+
+
+def run_ok(*argvs):
+    """``run_cli_batch`` whose every command must succeed."""
+    for proc in run_cli_batch(*argvs):
+        assert proc.returncode == 0, f"{' '.join(proc.args)} exited {proc.returncode}:\n{proc.stderr[-3000:]}"
 
 
 def _motion_agreement(clip, frame, level):
@@ -111,14 +151,11 @@ def test_motion_next_matches_reprojection_and_the_next_frames_motion(basic_clip)
                 assert np.abs(mn[moving]).max() > 0.2  # the cube moves between frames
 
 
-def test_jitter_sign(basic_blend, tmp_path):
-    """LR depth rendered with jitter equals un-jittered depth sampled at p + jitter (1/z is affine on a plane)."""
-    outs = {}
-    for mode in ("none", "halton"):
-        out = tmp_path / mode
-        run_cli("render", basic_blend, "-o", out, "--frames", "3:3", "--hr-size", "256x144", "--jitter", mode,
-                "--buffers", "depth,flags", *FAST, check=True)
-        outs[mode] = open_clip(out)
+def test_jitter_sign(basic_clip, basic_clips):
+    """LR depth rendered with jitter equals un-jittered depth sampled at p + jitter (1/z is affine on a plane). The
+    jittered render is the module's clip (Halton jitter, the default; its frame 3 has jitter (-0.25, 0.17) LR px)."""
+    outs = {"none": open_clip(basic_clips["none"]), "halton": open_clip(basic_clip)}
+    assert outs["halton"].manifest["render"]["jitter"] == "halton"
     jit = outs["halton"].camera(3, "lr")["jitter"]
     assert np.abs(jit).max() > 0.1
     d0 = outs["none"].read(3, "lr/depth")[..., 0]
@@ -138,9 +175,8 @@ def test_jitter_sign(basic_blend, tmp_path):
     assert err < 1e-3 and err_wrong > 3 * err, (err, err_wrong)
 
 
-def test_only_requested_buffers(basic_blend, tmp_path):
-    out = tmp_path / "rad"
-    run_cli("render", basic_blend, "-o", out, "--frames", "1:1", "--buffers", "radiance", *FAST, check=True)
+def test_only_requested_buffers(basic_clips):
+    out = basic_clips["rad"]
     clip = open_clip(out)
     assert clip.buffers == ("radiance",)
     assert sorted(p.name for p in (out / "hr").iterdir()) == ["radiance"]
@@ -184,12 +220,9 @@ def test_background_emission_is_the_environment(basic_clip):
     assert not [f for f in validate_clip(basic_clip).findings if f.code == "emission-background"]
 
 
-def test_white_furnace(blend_dir, tmp_path):
+def test_white_furnace(furnace_clips):
     """Objects invisible to secondary rays under a uniform white world: radiance / fbeta = 1."""
-    scene = make_blend("furnace", blend_dir / "furnace.blend")
-    out = tmp_path / "furnace"
-    run_cli("render", scene, "-o", out, "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64", "--lr-spp",
-            "64", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--no-progress", check=True)
+    out = furnace_clips["furnace"]
     clip = open_clip(out)
     for lvl in ("hr", "lr"):
         rad, em, fb = (clip.read(1, f"{lvl}/{b}") for b in ("radiance", "emission", "fbeta"))
@@ -199,15 +232,11 @@ def test_white_furnace(blend_dir, tmp_path):
         assert abs(med - 1) < 0.01, (lvl, med)
 
 
-def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(blend_dir, tmp_path):
+def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(furnace_clips):
     """A checker finer than the pixel in a white furnace: the HR ground truth (Blackman-Harris) averages it, so the
     HR F_beta must be the same footprint average (radiance / fbeta = 1 with no texture left), not the aliased value
     at the pixel centre; the point-sampled LR keeps radiance and F_beta point-sampled alike."""
-    scene = make_blend("finetex", blend_dir / "finetex.blend")
-    out = tmp_path / "finetex"
-    run_cli("render", scene, "-o", out, "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64", "--lr-spp",
-            "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--hr-fbeta", "footprint",
-            "--no-progress", check=True)
+    out = furnace_clips["footprint"]
     clip = open_clip(out)
     for lvl in ("hr", "lr"):
         rad, em, fb = (clip.read(1, f"{lvl}/{b}")[2:-2, 2:-2, :3] for b in ("radiance", "emission", "fbeta"))
@@ -216,10 +245,7 @@ def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(blend_dir,
         assert abs(med - 1) < 0.03 and hi - lo < 0.1, (lvl, lo, med, hi)  # point-sampled HR F_beta: 0.8 .. 1.3
     assert clip.manifest["render"]["gbuffer"]["hr_fbeta"] == "footprint"
     # --hr-fbeta point: the HR F_beta as before (aliased), and the manifest as before (no key)
-    run_cli("render", scene, "-o", tmp_path / "point", "--frames", "1:1", "--hr-size", "128x72", "--hr-spp", "64",
-            "--lr-spp", "16", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags", "--hr-fbeta", "point",
-            "--no-progress", check=True)
-    old = open_clip(tmp_path / "point")
+    old = open_clip(furnace_clips["point"])
     assert "hr_fbeta" not in old.manifest["render"]["gbuffer"]
     np.testing.assert_array_equal(old.read(1, "hr/radiance"), clip.read(1, "hr/radiance"))
     rad, em, fb = (old.read(1, f"hr/{b}")[2:-2, 2:-2, :3] for b in ("radiance", "emission", "fbeta"))
@@ -227,31 +253,50 @@ def test_hr_fbeta_follows_the_ground_truth_filter_on_subpixel_texture(blend_dir,
     assert hi - lo > 0.3, (lo, hi)
 
 
-@pytest.mark.parametrize("case,args,needle", [
-    ("missing", ["render", "/nonexistent/x.blend"], "not found"),
-    ("notblend", ["render", "{txt}"], "not a .blend"),
-    ("badsize", ["render", "{basic}", "--hr-size", "65x36"], "not divisible"),
-    ("frames", ["render", "{basic}", "--frames", "5:40"], "outside the scene"),
-    ("buffer", ["render", "{basic}", "--buffers", "radiance,velocity"], "unknown buffer"),
-    ("nocam", ["render", "{nocamera}"], "no camera"),
-    ("empty", ["render", "{empty}"], "empty"),
-    ("ortho", ["render", "{ortho}"], "orthographic"),
-])
-def test_bad_input_one_line_exit_2(case, args, needle, basic_blend, blend_dir, tmp_path):
-    files = {"basic": basic_blend, "txt": tmp_path / "scene.blend"}
-    (tmp_path / "scene.blend").write_text("hello")
-    for kind in ("nocamera", "empty", "ortho"):
-        if "{%s}" % kind in args:
-            files[kind] = make_blend(kind, blend_dir / f"{kind}.blend")
-    args = [a.format(**{k: str(v) for k, v in files.items()}) for a in args]
-    proc = run_cli(*args, "-o", tmp_path / "out", *FAST)
+def _one_line_exit_2(proc, needle):
     assert proc.returncode == 2, proc.stderr[-2000:]
     last = [ln for ln in proc.stderr.splitlines() if ln.startswith("blendsr: error:")]
     assert len(last) == 1 and needle in last[0], proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
 
 
-def test_output_holding_other_clip_is_refused(basic_blend, basic_clip):
-    proc = run_cli("render", basic_blend, "-o", basic_clip, "--frames", "2:4", "--hr-size", "64x36", *FAST)
-    assert proc.returncode == 2 and "different clip" in proc.stderr
+@pytest.mark.parametrize("case,args,needle", [
+    ("missing", ["render", "/nonexistent/x.blend"], "not found"),
+    ("notblend", ["render", "{txt}"], "not a .blend"),
+    ("badsize", ["render", "{basic}", "--hr-size", "65x36"], "not divisible"),
+    ("buffer", ["render", "{basic}", "--buffers", "radiance,velocity"], "unknown buffer"),
+])
+def test_bad_input_one_line_exit_2(case, args, needle, basic_blend, tmp_path):
+    """Refusals before the scene loads, each a process of its own (``python -m gbuffer_export.cli``'s exit status);
+    those that need the scene loaded are in ``test_bad_scenes_one_line_exit_2``."""
+    files = {"basic": basic_blend, "txt": tmp_path / "scene.blend"}
+    (tmp_path / "scene.blend").write_text("hello")
+    args = [a.format(**{k: str(v) for k, v in files.items()}) for a in args]
+    _one_line_exit_2(run_cli(*args, "-o", tmp_path / "out", *FAST), needle)
+
+
+#: refusals once the scene is loaded: case -> (the scene fixture of tests/scenes.py, extra arguments, the words)
+SCENE_REFUSALS = {
+    "frames": ("basic", ["--frames", "5:40"], "outside the scene"),
+    "nocam": ("nocamera", [], "no camera"),
+    "empty": ("empty", [], "no geometry to render"),  # "empty" matched the file's name, not the reason
+    "ortho": ("ortho", [], "orthographic"),
+}
+
+
+def test_bad_scenes_one_line_exit_2(blends, basic_clip, tmp_path):
+    """Each refusal of ``SCENE_REFUSALS`` is one line and exit 2, and an output folder holding another clip (the
+    module's, 128x72) is refused without touching it: the commands in one process (``cli_batch``), each opening
+    its own scene."""
+    basic_blend = blends["basic"]
+    cases = list(SCENE_REFUSALS.items())
+    argvs = [["render", blends[kind], *extra, "-o", tmp_path / f"out_{case}", *FAST]
+             for case, (kind, extra, _) in cases]
+    argvs.append(["render", basic_blend, "-o", basic_clip, "--frames", "2:4", "--hr-size", "64x36", *FAST])
+    procs = run_cli_batch(*argvs)
+    for (case, (kind, _, needle)), proc in zip(cases, procs):
+        _one_line_exit_2(proc, needle)
+        assert not (tmp_path / f"out_{case}" / "manifest.json").exists(), case
+    other = procs[-1]
+    assert other.returncode == 2 and "different clip" in other.stderr, other.stderr[-2000:]
     assert json.loads((basic_clip / "manifest.json").read_text())["levels"]["hr"]["width"] == 128

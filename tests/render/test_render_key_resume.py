@@ -21,17 +21,27 @@ from gbuffer_export.blender.render import render_clip
 class WithScratchKey(RenderConfig):
     trial_gain: str = option("auto", choices=("auto", "bright"), help="a scratch key (test only)")
 
-kind, kw = sys.argv[1], json.loads(sys.argv[2])
-cls = RenderConfig if kind == "before" else WithScratchKey
-render_clip(cls(**kw))
+results = []
+for kind, kw in json.loads(sys.argv[1]):  # several renders in one process, each its own clip and config
+    cls = RenderConfig if kind == "before" else WithScratchKey
+    try:
+        render_clip(cls(**kw))
+        results.append(None)
+    except Exception as exc:  # the refusal of a render, as the CLI's one line would name it
+        results.append(f"{type(exc).__name__}: {exc}")
+print("RESULTS " + json.dumps(results))
 """
 
 TINY = dict(hr_size=(32, 16), hr_spp=1, lr_spp=1, gbuffer_spp=1, threads=1, progress=False, frames=(1, 2))
 
 
-def _render(kind: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", SCRIPT, kind, json.dumps({**TINY, **kw})], cwd=REPO, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+def _render(*runs: tuple[str, dict]) -> list[str | None]:
+    """Render each (kind, keys) of ``runs`` in order in one process; None for a clip written, else the error."""
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps([(kind, {**TINY, **kw}) for kind, kw in runs])],
+                          cwd=REPO, env=ENV, capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS ")]
+    assert proc.returncode == 0 and lines, proc.stderr[-2000:]
+    return json.loads(lines[-1][len("RESULTS "):])
 
 
 def test_every_key_of_render_config_is_by_hand_or_recorded_from_its_rule():
@@ -43,19 +53,19 @@ def test_every_key_of_render_config_is_by_hand_or_recorded_from_its_rule():
 @pytest.mark.skipif(not HAVE_BPY, reason="needs bpy")
 def test_a_clip_rendered_before_a_new_key_resumes_with_it(tmp_path):
     clip = tmp_path / "clip"
-    before = _render("before", output=str(clip), only_frames=[1])
-    assert before.returncode == 0, before.stderr[-2000:]
+    assert _render(("before", dict(output=str(clip), only_frames=[1]))) == [None]
     old = json.loads((clip / "manifest.json").read_text())
     assert "settings" not in old
-    # the key at the value older clips were made with: the same clip, resumed (frame 2 rendered)
-    after = _render("after", output=str(clip))
-    assert after.returncode == 0, after.stderr[-2000:]
+    # the key at the value older clips were made with: the same clip, resumed (frame 2 rendered); another value of
+    # the key is another clip: refused where the old one lies, recorded under "settings" in a folder of its own
+    other = tmp_path / "bright"
+    after, bright, bright_new = _render(("after", dict(output=str(clip))),
+                                        ("after", dict(output=str(clip), trial_gain="bright")),
+                                        ("after", dict(output=str(other), trial_gain="bright", only_frames=[1])))
+    assert after is None, after
     new = json.loads((clip / "manifest.json").read_text())
     assert new["identity"] == old["identity"]
     assert (clip / "frames" / "000002.json").is_file()
-    # another value of the key is another clip: recorded under "settings", and refused where the old one lies
-    bright = _render("after", output=str(clip), trial_gain="bright")
-    assert bright.returncode != 0 and "holds a different clip" in bright.stderr
-    other = tmp_path / "bright"
-    assert _render("after", output=str(other), trial_gain="bright", only_frames=[1]).returncode == 0
+    assert bright is not None and "holds a different clip" in bright, bright
+    assert bright_new is None, bright_new
     assert json.loads((other / "manifest.json").read_text())["settings"] == {"trial_gain": "bright"}

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import requires_bpy, run_cli, shared_or_skip
+from tests.render.cli_batch import run_cli_batch
 from gbuffer_export import open_clip
 from gbuffer_export.conventions import Flag
 from gbuffer_export.validate import validate_clip
@@ -17,10 +18,10 @@ def test_robot_expressive_old_blend(tmp_path):
     """An old file: own view-layer name, interleaved-EXR setting, armatures, no camera."""
     scene = shared_or_skip("scenes/blend/RobotExpressive.blend")
     out = tmp_path / "robot"
-    proc = run_cli("render", scene, "-o", out, "--frames", "2:3", "--hr-size", "96x64", "--buffers", "all", *FAST)
+    args = ["render", scene, "-o", out, "--frames", "2:3", "--hr-size", "96x64", "--buffers", "all", *FAST]
+    proc, orbit = run_cli_batch(args, [*args, "--camera-path", "orbit"])  # one process (cli_batch)
     assert proc.returncode == 2 and "no camera" in proc.stderr
-    run_cli("render", scene, "-o", out, "--frames", "2:3", "--hr-size", "96x64", "--buffers", "all",
-            "--camera-path", "orbit", *FAST, check=True)
+    assert orbit.returncode == 0, orbit.stderr[-3000:]
     rep = validate_clip(out)
     assert rep.ok, [f.line() for f in rep.errors]
     clip = open_clip(out)

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import make_blend, requires_bpy, run_cli
+from tests.conftest import requires_bpy, run_cli
+from tests.render.cli_batch import make_blends, run_cli_batch
 from gbuffer_export import open_clip
 from gbuffer_export.conventions import Flag
 from gbuffer_export.validate import validate_clip
@@ -14,13 +15,27 @@ FAST = ["--hr-spp", "4", "--lr-spp", "2", "--gbuffer-spp", "1", "--no-progress"]
 LEVELS = {"hr": (80, 40), "lr": (40, 20), "lr_x2.5": (32, 16), "lr_x4": (20, 10)}
 
 
-def test_scales_render_validates_at_every_level(blend_dir, tmp_path):
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """The basic scene (frames 2:3) and the furnace (frame 1, 32 spp, no jitter) at 80x40 with --scales 2,2.5,4:
+    scenes built in one process, clips rendered in another (``cli_batch``)."""
+    d = tmp_path_factory.mktemp("scales")
+    blends = make_blends(["basic", "furnace"], d)
+    procs = run_cli_batch(
+        ["render", blends["basic"], "-o", d / "basic", "--frames", "2:3", "--hr-size", "80x40", "--scales", "2,2.5,4",
+         *FAST],
+        ["render", blends["furnace"], "-o", d / "furnace", "--frames", "1:1", "--hr-size", "80x40", "--scales",
+         "2,2.5,4", "--hr-spp", "32", "--lr-spp", "32", "--jitter", "none", "--buffers",
+         "radiance,emission,fbeta,flags", "--no-progress"])
+    for proc in procs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return {"basic": d / "basic", "furnace": d / "furnace"}
+
+
+def test_scales_render_validates_at_every_level(clips):
     """--scales 2,2.5,4 at 80x40: one clip with four levels, each with its own size, intrinsics, jitter, seed and
     timings; motion agrees with reprojection at every level."""
-    scene = make_blend("basic", blend_dir / "basic.blend")
-    out = tmp_path / "clip"
-    run_cli("render", scene, "-o", out, "--frames", "2:3", "--hr-size", "80x40", "--scales", "2,2.5,4", *FAST,
-            check=True)
+    out = clips["basic"]
     clip = open_clip(out)
     assert clip.complete and clip.scales == [2.0, 2.5, 4.0] and clip.scale == 2 and clip.sizes == LEVELS
     for f in clip.frames:
@@ -47,14 +62,9 @@ def test_scales_render_validates_at_every_level(blend_dir, tmp_path):
     assert np.array_equal(v.read(2, "lr/depth"), clip.read(2, "lr_x2.5/depth"))
 
 
-def test_white_furnace_at_every_level(blend_dir, tmp_path):
+def test_white_furnace_at_every_level(clips):
     """Objects invisible to secondary rays under a uniform white world: radiance / fbeta = 1 at every level."""
-    scene = make_blend("furnace", blend_dir / "furnace.blend")
-    out = tmp_path / "furnace"
-    run_cli("render", scene, "-o", out, "--frames", "1:1", "--hr-size", "80x40", "--scales", "2,2.5,4",
-            "--hr-spp", "32", "--lr-spp", "32", "--jitter", "none", "--buffers", "radiance,emission,fbeta,flags",
-            "--no-progress", check=True)
-    clip = open_clip(out)
+    clip = open_clip(clips["furnace"])
     for lvl in LEVELS:
         rad, em, fb = (clip.read(1, f"{lvl}/{b}") for b in ("radiance", "emission", "fbeta"))
         surf = (clip.read(1, f"{lvl}/flags")[..., 0] & int(Flag.BACKGROUND)) == 0

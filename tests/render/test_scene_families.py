@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from gbuffer_export.dataset.families import BUILTIN_FAMILIES
-from tests.conftest import requires_bpy, run_cli
+from tests.conftest import requires_bpy
+from tests.render.cli_batch import run_cli_batch
 from tests.render.test_scene_default import run_probe
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
@@ -217,12 +218,12 @@ cameras = ["scene"]
 hdri = ["builtin:courtyard"]
 """)
     out = tmp_path / "ds"
-    proc = run_cli("dataset", spec, "-o", out, "--threads", "2", "--no-progress", timeout=900)
+    proc, val = run_cli_batch(["dataset", spec, "-o", out, "--threads", "2", "--no-progress"],
+                              ["validate", out, "--no-progress"])  # one process (cli_batch)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     man = json.loads((out / "clips" / "fam-s0003" / "manifest.json").read_text())
     assert {"Mover 1", "Mover 2"} <= set(man["moving_objects"])
     assert "Fog Volume" not in man["moving_objects"]
     families = set(man["scene"]["families"])
     assert {"motion:objects", "light:fog", "geometry:boolean", "geometry:displaced", "geometry:instanced"} <= families
-    proc = run_cli("validate", out, "--no-progress")
-    assert proc.returncode == 0 and "1/1 clips valid" in proc.stdout, proc.stdout + proc.stderr[-2000:]
+    assert val.returncode == 0 and "1/1 clips valid" in val.stdout, val.stdout + val.stderr[-2000:]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import requires_bpy, run_cli
+from tests.conftest import requires_bpy
 from gbuffer_export.scene_geometry import MAX_EXTENT_UNITS, GeometrySummary, geometry_problem
 
 
@@ -61,17 +61,29 @@ OBJ_CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def refusals(tmp_path_factory):
+    """Each case of ``OBJ_CASES`` written and rendered (``blendsr render``, the commands in one process:
+    ``cli_batch``); returns case -> (scene, output folder, completed process)."""
+    from tests.render.cli_batch import run_cli_batch
+    d = tmp_path_factory.mktemp("geometry")
+    scenes = {}
+    for case, (name, text, _) in OBJ_CASES.items():
+        scene = scenes[case] = d / case / name
+        scene.parent.mkdir()
+        scene.write_text(text) if isinstance(text, str) else text(scene)
+    procs = run_cli_batch(*[["render", scene, "-o", scene.parent / "out", "--camera-path", "orbit", "--light", "sky",
+                             "--hr-size", "32x32", "--frames", "1:1", "--hr-spp", "1", "--lr-spp", "1", "--threads",
+                             "1", "--no-progress"] for scene in scenes.values()], timeout=300)
+    return {case: (scene, scene.parent / "out", proc) for (case, scene), proc in zip(scenes.items(), procs)}
+
+
 @requires_bpy
 @pytest.mark.bpy
 @pytest.mark.parametrize("case", sorted(OBJ_CASES))
-def test_render_refuses_a_scene_with_nothing_to_render_before_rendering(tmp_path, case):
-    name, text, words = OBJ_CASES[case]
-    scene = tmp_path / name
-    scene.write_text(text) if isinstance(text, str) else text(scene)
-    out = tmp_path / "out"
-    proc = run_cli("render", scene, "-o", out, "--camera-path", "orbit", "--light", "sky", "--hr-size", "32x32",
-                   "--frames", "1:1", "--hr-spp", "1", "--lr-spp", "1", "--threads", "1", "--no-progress",
-                   timeout=300)
+def test_render_refuses_a_scene_with_nothing_to_render_before_rendering(refusals, case):
+    scene, out, proc = refusals[case]
+    words = OBJ_CASES[case][2]
     assert proc.returncode == 2, proc.stderr[-2000:]
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.startswith("blendsr: error")]
     assert len(lines) == 1 and lines[0].startswith(f"blendsr: error: {scene}: ") and words in lines[0], proc.stderr

@@ -62,14 +62,14 @@ def test_script_renders_a_clip(tmp_path):
     fox = shared_or_skip(MODELS["Fox"])
     out = tmp_path / "fox"
     proc = subprocess.run([sys.executable, str(REPO / "examples" / "render_gltf.py"), str(fox), "-o", str(out),
-                           "--frames", "1:2", "--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1",
+                           "--frames", "1:1", "--hr-size", "64x36", "--hr-spp", "2", "--lr-spp", "1",
                            "--gbuffer-spp", "1", "--no-progress"], cwd=REPO, env=ENV, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "fox.blend").is_file()
     from gbuffer_export import open_clip
     clip = open_clip(out)
-    assert list(clip.frames) == [1, 2]
-    depth = clip.read(2, "hr/depth")[..., 0]
+    assert list(clip.frames) == [1]  # one frame: a render's cost here is its Cycles calls under the HDRI world
+    depth = clip.read(1, "hr/depth")[..., 0]
     assert depth.shape == (36, 64)
     assert np.isfinite(depth).mean() > 0.3   # the orbit camera sees the fox and the ground
