@@ -49,8 +49,9 @@ $(DEMO_STAMP): pyproject.toml Makefile
 	@echo "== setup done: $(VENV)"
 
 # make test: the suite without the campaigns and slowest end-to-end cases (marked heavy); make test-heavy: those. CI runs both.
+# --dist loadfile: a test module runs on one worker, so its module-scoped fixtures (shared renders) are made once.
 test: setup
-	$(VPY) -m pytest -q -n 2 --timeout 1200 --durations=15 -m "not heavy"
+	$(VPY) -m pytest -q -n 2 --dist loadfile --timeout 1200 --durations=15 -m "not heavy"
 
 test-heavy: setup
 	$(VPY) -m pytest -q -n 2 --timeout 2400 --durations=15 -m heavy
