@@ -22,7 +22,7 @@ from training.models import MODELS  # noqa: E402
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 5), hr_size=(128, 72), scale=4)
+    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 5), hr_size=(64, 36), scale=4)
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +180,7 @@ def test_upscale_frame_api_and_upscale_command(clip, checkpoint, tmp_path):
     c = open_clip(clip)
     model = load_model("demod-bilinear", 4)
     out = upscale_frame(model, clip, 3)
-    assert set(out) == {"sr", "bilinear", "ms", "reference"} and out["sr"].shape == (72, 128, 3)
+    assert set(out) == {"sr", "bilinear", "ms", "reference"} and out["sr"].shape == (36, 64, 3)
     assert out["sr"].dtype == np.float32 and out["ms"] > 0
     np.testing.assert_array_equal(out["reference"], c.read(3, "hr/radiance"))
     irr, fbu_lr = np_demod.demodulate(c.read(3, "lr/radiance"), c.read(3, "lr/emission"), c.read(3, "lr/fbeta"),
@@ -282,7 +282,7 @@ def test_bench_models_table_macs_and_pareto_plot(clip, checkpoint, tmp_path):
         model.module({k: torch.from_numpy(v) for k, v in inputs.items() if k in model.module.needs()})
     for h in hs:
         h.remove()
-    assert rows[2]["macs_per_px"] == pytest.approx(sum(total) / (128 * 72), rel=1e-6)
+    assert rows[2]["macs_per_px"] == pytest.approx(sum(total) / (64 * 36), rel=1e-6)
     assert bench.pareto_front([(1, 10), (2, 9), (3, 12), (0.5, 8)]) == [3, 0, 2]
     with pytest.raises(ValueError, match="learned"):
         bench.parse_models("fusesr")
@@ -304,8 +304,8 @@ def test_training_demo_writes_table_plot_and_side_by_side(tmp_path, monkeypatch)
     from training import pretrained
     from training.commands.demo import _prepare_run, run_training_demo
     from training.release import release
-    a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
-    b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    a = make_synthetic_clip(tmp_path / "train", frames=range(1, 4), hr_size=(48, 32), scale=4)
+    b = make_synthetic_clip(tmp_path / "test", frames=range(1, 3), hr_size=(48, 32), scale=4)
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")  # no shipped weights: train from scratch
     s = run_training_demo([a], [b], tmp_path / "demo", steps=3, model="fusesr-l", threads=1)
     assert s["train"]["step"] == 3 and s["train"]["stopped_by"] == "max_steps" and s["train"]["elapsed_s"] > 0
@@ -361,8 +361,8 @@ def test_training_demo_stopped_by_sigterm_records_the_steps_run_and_a_rerun_cont
     from tests.conftest import ENV, REPO
     from training import pretrained
     from training.commands.demo import run_training_demo
-    a = make_synthetic_clip(tmp_path / "train", frames=range(1, 5), hr_size=(64, 36), scale=4)
-    b = make_synthetic_clip(tmp_path / "test", frames=range(1, 4), hr_size=(64, 36), scale=4)
+    a = make_synthetic_clip(tmp_path / "train", frames=range(1, 4), hr_size=(48, 32), scale=4)
+    b = make_synthetic_clip(tmp_path / "test", frames=range(1, 3), hr_size=(48, 32), scale=4)
     out, run = tmp_path / "demo", tmp_path / "demo" / "run_fusesr_l"
     proc = subprocess.Popen([sys.executable, "-c", _DEMO_SCRIPT, str(a), str(b), str(out), str(tmp_path / "w")],
                             cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -24,12 +24,13 @@ def _cases(marks: str) -> None:
 
 def test_fused_hr_stage_cases_in_a_process_of_their_own():
     """The quick cases: every guided model's fused stage eager against the reference, bf16 weights of the small
-    networks, the path's refusals, the sm_90 compile."""
+    networks, the path's refusals, the sm_90 compile, one Triton kernel launch under the interpreter."""
     _cases("not heavy")
 
 
 @pytest.mark.heavy
 def test_fused_hr_stage_heavy_cases_in_a_process_of_their_own():
-    """The cases over a minute (``hr_stage_cases.heavy``): compiled stages, the Triton interpreter, the shipped
-    networks, the bench's paths side by side (``make test-heavy``)."""
+    """The cases over a minute (``hr_stage_cases.heavy``): compiled stages (bf16 weights with the compiled stage
+    included), the Triton interpreter on every spec, the shipped networks, the bench's paths side by side
+    (``make test-heavy``)."""
     _cases("heavy")

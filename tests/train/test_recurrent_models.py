@@ -61,7 +61,8 @@ def small(name):
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 7), hr_size=(64, 40), scale=4,
+    """Four frames (a training window of 3, the export's 3 frames, a lead-in before frames 3 and 4), LR 12 x 8."""
+    return make_synthetic_clip(tmp_path_factory.mktemp("clip") / "c", frames=range(1, 5), hr_size=(48, 32), scale=4,
                                jitter=True)
 
 
@@ -137,9 +138,9 @@ def test_evaluation_runs_the_clip_in_order_from_its_start(clip, checkpoint):
     from training.evaluate import EvalOptions, evaluate_model
     from training.inference.loading import ClipFrames, load_model
     model = load_model(str(checkpoint), 4)
-    ref = _manual(model, clip, [1, 2, 3, 4, 5, 6])
+    ref = _manual(model, clip, [1, 2, 3, 4])
     src = ClipFrames(clip)
-    for frames in ([1, 2, 3, 4, 5, 6], [4, 5, 6]):  # scored frames starting later: the earlier ones run first
+    for frames in ([1, 2, 3, 4], [3, 4]):  # scored frames starting later: the earlier ones run first
         res = evaluate_model(model, [clip], EvalOptions(frames={str(clip): frames}, flip=False, warmup=1))
         assert [r["frame"] for r in res["per_frame"]] == frames
         for row in res["per_frame"]:
@@ -172,9 +173,9 @@ def test_onnx_export_carries_the_state_over_three_frames(name, clip, checkpoint,
     if name == "nsrd":
         assert "lr_motion_next" in report["inputs"]
     if name == "nsrr-fec":  # the feature cache as state; the HR G-buffers as inputs
-        assert report["state"] == {f"state_{i}": [1, 12, 40, 64] for i in range(4)}
+        assert report["state"] == {f"state_{i}": [1, 12, 32, 48] for i in range(4)}
         assert {"hr_albedo", "hr_metallic", "hr_normal", "hr_roughness", "hr_specular"} <= set(report["inputs"])
-        assert report["inputs"]["hr_metallic"] == [1, 1, 1, 40, 64]
+        assert report["inputs"]["hr_metallic"] == [1, 1, 1, 32, 48]
 
 
 def test_bench_models_row(name, clip, checkpoint, tmp_path):
@@ -183,7 +184,7 @@ def test_bench_models_row(name, clip, checkpoint, tmp_path):
     flip = name == "nsrr-fec"  # FLIP (the slow metric) and a baseline row beside the checkpoint, each for one model
     baseline = [("bicubic", "bicubic")] if name == "rdg-s" else []
     res = benchmark(load_models([(f"{name} (x)", str(checkpoint)), *baseline], 4), [str(clip)], tmp_path / "b",
-                    BenchOptions(flip=flip, log=lambda m: None))
+                    BenchOptions(flip=flip, warmup=0, log=lambda m: None))
     row = res["rows"][0]
     assert row["params"] == n_params(load_model(str(checkpoint), 4).module)
     assert row["params"] == n_params(build_model(load_config(None, small(name)).model, 4))
