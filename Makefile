@@ -14,6 +14,8 @@ setup: $(STAMP)
 # torch's package index: empty uses pip's configuration (PyPI: on Linux its torch is the CUDA build, about 5.7 GB);
 # CPU-only machines: make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu (about 200 MB).
 TORCH_INDEX ?=
+# The torch every install pins (installed first; pinned again beside [dev], whose torchvision would pull the newest).
+TORCH_VERSION := 2.13.0
 PIP := $(VPY) -m pip install --disable-pip-version-check --progress-bar on
 
 # The demo's install: blendsr[demo] (render and train: no test tools, no Triton); 'make setup'/'make test' install
@@ -27,9 +29,9 @@ define venv_torch
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
 	@echo "== setup 2/4: pip"
 	$(PIP) --quiet --upgrade pip
-	@echo "== setup 3/4: torch 2.13.0$(if $(TORCH_INDEX), from $(TORCH_INDEX))"
+	@echo "== setup 3/4: torch $(TORCH_VERSION)$(if $(TORCH_INDEX), from $(TORCH_INDEX))"
 	# torch first; blendsr's own range (torch>=2.5) is then already satisfied and nothing pulls another build.
-	$(PIP) $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "torch==2.13.0"
+	$(PIP) $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "torch==$(TORCH_VERSION)"
 endef
 
 # Re-runs only when pyproject.toml or this Makefile changed; otherwise 'make setup' is a no-op.
@@ -37,7 +39,7 @@ $(STAMP): pyproject.toml Makefile
 	$(venv_torch)
 	@echo "== setup 4/4: blendsr[dev] (bpy is about 820 MB)"
 	# torch again: cvvdp's torchvision would otherwise be the newest, pinning (and installing) the newest torch
-	$(PIP) -e ".[dev]" "torch==2.13.0"
+	$(PIP) -e ".[dev]" "torch==$(TORCH_VERSION)"
 	@touch $(STAMP) $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
@@ -48,7 +50,8 @@ $(DEMO_STAMP): pyproject.toml Makefile
 	@touch $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
-# make test: the suite without the campaigns and slowest end-to-end cases (marked heavy); make test-heavy: those. CI runs both.
+# make test: the suite without the campaigns and slowest end-to-end cases (marked heavy);
+# make test-heavy: those. CI runs both.
 # --dist loadfile: a test module runs on one worker, so its module-scoped fixtures (shared renders) are made once.
 test: setup
 	$(VPY) -m pytest -q -n 2 --dist loadfile --timeout 1200 --durations=15 -m "not heavy"

@@ -58,7 +58,7 @@ if [ -z "${NGMG_REPO:-}" ]; then
   [ -d "$NGMG_REPO" ] || git clone -q --depth 1 https://github.com/arm/neural-graphics-model-gym "$NGMG_REPO"
 fi
 
-[ -e "$VENV/reuse-site" ] && export PYTHONPATH=$REPO/benchmarks/ngmg_stubs
+{ [ -e "$VENV/reuse-site" ] || [ -d "$VENV/stubs" ]; } && export PYTHONPATH=$REPO/benchmarks/ngmg_stubs  # stubs/: an older venv
 EXPORT=${1:-}
 if [ -z "$EXPORT" ]; then
   (cd "$REPO" && PYTHONPATH=$REPO "$BLENDSR_PY" -m gbuffer_export.cli render -o "$WORK/clip" --hr-size 64x36 \

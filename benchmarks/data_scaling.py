@@ -116,14 +116,9 @@ def main(argv=None) -> int:
             print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
+                                             "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "command": " ".join(sys.argv)})
-    lines = [f"| training data | {a.by}s | clips | steps | test PSNR (dB) | test SSIM | per test clip (dB) |",
-             "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
-        lines.append(f"| {r['model']} | {r.get(a.by + 's', '-')} | {r['clips'] or '-'} | {r['steps'] or '-'} | "
-                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {per} |")
-    (out / "scaling.md").write_text("\n".join(lines) + "\n")
+    (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels))
 
     import matplotlib
     matplotlib.use("Agg")
@@ -148,6 +143,21 @@ def main(argv=None) -> int:
     fig.savefig(out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
+
+
+def report_table(rows: list[dict], by: str, unit: float) -> str:
+    """scaling.md: per run its size (groups, clips, HR pixels as multiples of ``unit``), steps, test PSNR and SSIM,
+    the margin over demod-jbu per family group, and the per-clip PSNR."""
+    lines = [f"| training data | {by}s | clips | x (HR pixels) | steps | test PSNR (dB) | test SSIM | margin in-family |"
+             " margin held-out | per test clip (dB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
+        m = r.get("margin_by_family", {})
+        cell = lambda g: f"{m[g]:+.2f}" if g in m else "-"  # noqa: E731
+        x = f"{r['hr_pixels'] / unit:.2f}" if r.get("hr_pixels") else "-"
+        lines.append(f"| {r['model']} | {r.get(by + 's', '-')} | {r['clips'] or '-'} | {x} | {r['steps'] or '-'} | "
+                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {cell('in-family')} | {cell('held-out')} | {per} |")
+    return "\n".join(lines) + "\n"
 
 
 def family_groups(dataset: Path) -> dict[str, str]:

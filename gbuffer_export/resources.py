@@ -183,19 +183,31 @@ def default_threads(root: Path | None = None) -> int:
 IDLE_SAMPLE_S = 0.5
 
 
+def _affinity() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return list(range(os.cpu_count() or 1))
+
+
 def idle_cores(sample_s: float = IDLE_SAMPLE_S, root: Path | None = None) -> tuple[int, float]:
-    """(threads to use, cores other work keeps busy): the cores this process may use (``usable_cores``) less those
-    the rest of the machine kept busy over ``sample_s`` seconds (psutil's system-wide CPU use, rounded), at least 1.
-    On a 2-core machine with two busy processes beside it, the demo's fine-tune ran 0.18 steps/s with 2 threads and
-    1.43 with 1 (idle: 3.35 and 2.38; ``benchmarks/demo_speed.py``, docs/bench/demo_speed): torch's threads wait
-    for each other when another process holds a core. Without psutil: all usable cores, 0 busy."""
-    cores = usable_cores(root)
+    """(threads to use, cores other work keeps busy): ``OMP_NUM_THREADS`` where set (``default_threads``); else the
+    CPUs of this process's affinity that stayed idle over ``sample_s`` seconds (psutil's per-CPU use, rounded),
+    within [1, ``usable_cores``] (so a container's 2-core quota on a busy 64-core host still gets its 2). On a 2-core
+    machine with two busy processes beside it, the demo's fine-tune ran 0.18 steps/s with 2 threads and 1.43 with 1
+    (idle: 3.35 and 2.38; ``benchmarks/demo_speed.py``, docs/bench/demo_speed): torch's threads wait for each other
+    when another process holds a core. Without psutil: all usable cores, 0 busy."""
+    cores = default_threads(root)
+    if os.environ.get("OMP_NUM_THREADS", "").strip().isdigit() and cores > 0:
+        return cores, 0.0
     try:
         import psutil
     except ImportError:
         return cores, 0.0
-    busy = psutil.cpu_percent(interval=sample_s) / 100.0 * (psutil.cpu_count() or cores)
-    return max(1, min(cores, cores - int(round(busy)))), busy
+    per_cpu = psutil.cpu_percent(interval=sample_s, percpu=True)
+    mine = [per_cpu[i] for i in _affinity() if i < len(per_cpu)] or per_cpu
+    busy = sum(mine) / 100.0
+    return max(1, min(cores, int(round(len(mine) - busy)))), busy
 
 
 def free_disk(path: Path) -> int | None:

@@ -55,8 +55,12 @@ def _run_one(argv: list[str], folder: Path, k: int) -> dict:
         os.dup2(out.fileno(), 1), os.dup2(err.fileno(), 2)
         try:
             rc = main(argv)
-        except SystemExit as exc:  # argparse's refusals
-            rc = exc.code if isinstance(exc.code, int) else 1
+        except SystemExit as exc:  # argparse's refusals; as the interpreter: None is 0, a message goes to stderr
+            if exc.code is None or isinstance(exc.code, int):
+                rc = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+                rc = 1
         finally:
             sys.stdout.flush(), sys.stderr.flush()
             os.dup2(saved[0], 1), os.dup2(saved[1], 2)

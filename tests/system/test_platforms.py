@@ -72,14 +72,24 @@ def test_usable_cores_are_the_affinity_capped_by_the_cgroup_quota(tmp_path, monk
 
 
 def test_idle_cores_leave_out_the_cores_other_work_keeps_busy(tmp_path, monkeypatch):
-    """Issue 57 item 2: the demo's default threads are the usable cores less those other processes keep busy."""
+    """Issue 57 item 2: the demo's default threads are the idle CPUs of this process's affinity, within the usable
+    cores; OMP_NUM_THREADS, where set, is taken as it is."""
     from gbuffer_export import resources
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(resources, "usable_cores", lambda root=None: 4)
-    monkeypatch.setattr(psutil, "cpu_count", lambda logical=True: 4)
-    for percent, want in ((0.0, 4), (20.0, 3), (50.0, 2), (100.0, 1)):  # 0.8 busy cores round to 1
-        monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, p=percent: p)
+    monkeypatch.setattr(resources, "_affinity", lambda: [0, 1, 2, 3])
+    for per_cpu, want in (([0, 0, 0, 0], 4), ([80, 0, 0, 0], 3), ([100, 100, 0, 0], 2), ([100] * 4, 1)):
+        monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, percpu=False, p=per_cpu: p)
         assert resources.idle_cores(0.0)[0] == want
+    # a 2-core quota in a container on a 64-core host at 20 %: its 2 cores, not 64 less the host's 12.8 busy
+    monkeypatch.setattr(resources, "usable_cores", lambda root=None: 2)
+    monkeypatch.setattr(resources, "_affinity", lambda: list(range(64)))
+    monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, percpu=False: [20.0] * 64)
+    assert resources.idle_cores(0.0) == (2, 12.8)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert resources.idle_cores(0.0) == (3, 0.0)
     monkeypatch.undo()
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)]
     try:  # every core busy beside it: one thread, whatever this machine has
         time.sleep(0.5)
