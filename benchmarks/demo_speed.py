@@ -21,7 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 WARM_STEPS = 5
-BUSY = "import os\nwhile True:\n    pass\n"
+BUSY = "while True:\n    pass\n"
 
 
 def step_times(run_dir: Path) -> dict[int, float]:

@@ -173,10 +173,13 @@ def default_threads(root: Path | None = None) -> int:
     """The thread count of training, evaluation and the benchmarks when none is given: ``OMP_NUM_THREADS`` where it
     is set to a positive whole number (the usual way to cap a process's threads, which torch's own default reads
     too; e.g. the test suite's workers, or two jobs side by side on one machine), else ``usable_cores``."""
+    return omp_threads() or usable_cores(root)
+
+
+def omp_threads() -> int | None:
+    """``OMP_NUM_THREADS`` when it is a positive whole number, else None."""
     v = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if v.isdigit() and int(v) > 0:
-        return int(v)
-    return usable_cores(root)
+    return int(v) if v.isdigit() and int(v) > 0 else None
 
 
 #: How long ``idle_cores`` watches the machine before deciding, seconds.
@@ -191,15 +194,15 @@ def _affinity() -> list[int]:
 
 
 def idle_cores(sample_s: float = IDLE_SAMPLE_S, root: Path | None = None) -> tuple[int, float]:
-    """(threads to use, cores other work keeps busy): ``OMP_NUM_THREADS`` where set (``default_threads``); else the
+    """(threads to use, cores other work keeps busy): ``OMP_NUM_THREADS`` where set (``omp_threads``); else the
     CPUs of this process's affinity that stayed idle over ``sample_s`` seconds (psutil's per-CPU use, rounded),
     within [1, ``usable_cores``] (so a container's 2-core quota on a busy 64-core host still gets its 2). On a 2-core
     machine with two busy processes beside it, the demo's fine-tune ran 0.18 steps/s with 2 threads and 1.43 with 1
     (idle: 3.35 and 2.38; ``benchmarks/demo_speed.py``, docs/bench/demo_speed): torch's threads wait for each other
     when another process holds a core. Without psutil: all usable cores, 0 busy."""
-    cores = default_threads(root)
-    if os.environ.get("OMP_NUM_THREADS", "").strip().isdigit() and cores > 0:
-        return cores, 0.0
+    if omp_threads():
+        return omp_threads(), 0.0
+    cores = usable_cores(root)
     try:
         import psutil
     except ImportError:

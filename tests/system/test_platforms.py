@@ -88,6 +88,8 @@ def test_idle_cores_leave_out_the_cores_other_work_keeps_busy(tmp_path, monkeypa
     assert resources.idle_cores(0.0) == (2, 12.8)
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert resources.idle_cores(0.0) == (3, 0.0)
+    monkeypatch.setenv("OMP_NUM_THREADS", "0")  # not a count: measured as without it
+    assert resources.idle_cores(0.0) == (2, 12.8)
     monkeypatch.undo()
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)]
