@@ -220,16 +220,6 @@ def sky_fraction(geom: LevelGeometry, eyes: np.ndarray, n: int = 128) -> np.ndar
 # Floors and free space
 # ----------------------------------------------------------------------------------------------
 
-def floors_below(geom: LevelGeometry, xy: np.ndarray, z_top: float) -> np.ndarray:
-    """Heights of the walkable surfaces (normal within 45 degrees of vertical, either side) under (x, y), from
-    top to bottom."""
-    d, tri = geom.all_hits(np.array([xy[0], xy[1], z_top]), -UP)
-    if len(d) == 0:
-        return np.zeros(0)
-    flat = np.abs(geom.normals[tri][:, 2]) > WALKABLE_COS
-    return z_top - d[flat]
-
-
 def floor_under(geom: LevelGeometry, p: np.ndarray, reach: float) -> float | None:
     """Height of the first surface below ``p`` within ``reach`` if it is walkable, else None."""
     dist, tri = geom.first_hits(p[None], -UP[None])
