@@ -7,7 +7,7 @@ STAMP := $(VENV)/.setup-stamp
 export MALLOC_MMAP_THRESHOLD_ := 4294967296
 export MALLOC_TRIM_THRESHOLD_ := 68719476736
 
-.PHONY: setup test test-heavy demo addon bench clean generate
+.PHONY: setup test test-heavy demo addon bench clean generate constraints
 
 setup: $(STAMP)
 
@@ -17,6 +17,8 @@ TORCH_INDEX ?=
 # The torch every install pins (installed first; pinned again beside [dev], whose torchvision would pull the newest).
 TORCH_VERSION := 2.13.0
 PIP := $(VPY) -m pip install --disable-pip-version-check --progress-bar on
+# The tested versions of everything else (constraints.txt): the install resolves at once, the same on every machine.
+CONSTRAINTS := -c constraints.txt
 
 # The demo's install: blendsr[demo] (render and train: no test tools, no Triton); 'make setup'/'make test' install
 # blendsr[dev] (everything, the test tools and Triton), which the demo then finds in place.
@@ -35,18 +37,18 @@ define venv_torch
 endef
 
 # Re-runs only when pyproject.toml or this Makefile changed; otherwise 'make setup' is a no-op.
-$(STAMP): pyproject.toml Makefile
+$(STAMP): pyproject.toml Makefile constraints.txt
 	$(venv_torch)
 	@echo "== setup 4/4: blendsr[dev] (bpy is about 820 MB)"
 	# torch again: cvvdp's torchvision would otherwise be the newest, pinning (and installing) the newest torch
-	$(PIP) -e ".[dev]" "torch==$(TORCH_VERSION)"
+	$(PIP) $(CONSTRAINTS) -e ".[dev]" "torch==$(TORCH_VERSION)"
 	@touch $(STAMP) $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
-$(DEMO_STAMP): pyproject.toml Makefile
+$(DEMO_STAMP): pyproject.toml Makefile constraints.txt
 	$(venv_torch)
 	@echo "== setup 4/4: blendsr[demo] (bpy is about 820 MB; no test tools)"
-	$(PIP) -e ".[demo]"
+	$(PIP) $(CONSTRAINTS) -e ".[demo]" "torch==$(TORCH_VERSION)"
 	@touch $(DEMO_STAMP)
 	@echo "== setup done: $(VENV)"
 
@@ -70,6 +72,12 @@ generate: setup
 
 bench: setup
 	$(VPY) -m gbuffer_export.cli bench render
+
+# constraints.txt again from this .venv (after changing a dependency and checking make test): its comment lines kept;
+# torch, triton and nvidia-* left out (the Makefile pins torch; the others follow its build).
+constraints: setup
+	{ grep '^#' constraints.txt; $(VPY) -m pip freeze --exclude-editable --disable-pip-version-check \
+	  | grep -v -E '^(torch|triton)==|^nvidia-'; } > constraints.txt.tmp && mv constraints.txt.tmp constraints.txt
 
 clean:
 	rm -rf $(VENV) demo_out dist
