@@ -48,6 +48,11 @@ def register(subparsers) -> None:
                         "(import and plan, no render: the path it would take, or why it has none and a fix) and "
                         "exit; 1 when a clip has no path")
     p.add_argument("--no-plan", action="store_true", help="with --dry-run: print the clips only, plan nothing")
+    p.add_argument("--status", action="store_true",
+                   help="render nothing: print, per source and split, the clips and frames done and planned, the "
+                        "render hours so far and the median seconds per frame (measured from the finished frames' "
+                        "records, clip setup excluded), and the hours left at those rates for one worker")
+    p.add_argument("--json", action="store_true", help="with --status: the report as one JSON object on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
 
@@ -57,6 +62,8 @@ def run(args) -> int:
     from ..dataset.spec import expand, load_spec, plan_totals
 
     spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
+    if args.status:
+        return _status(args.output, args.json)
     if args.dry_run:
         from ..format_limits import formats_report
         jobs = expand(spec)
@@ -85,6 +92,14 @@ def run(args) -> int:
     for c in invalid:  # rendered to the end, but blendsr validate refuses it (checked as each clip finished)
         print(f"INVALID {c['id']}: {c['invalid']} (blendsr validate {args.output / 'clips' / c['id']})")
     return 1 if failed or invalid else 0
+
+
+def _status(root: Path, as_json: bool) -> int:
+    import json
+    from ..dataset.cost import dataset_status, status_lines
+    report = dataset_status(root)
+    print(json.dumps(report, indent=1) if as_json else "\n".join(status_lines(report)))
+    return 0
 
 
 def _dry_run_plan(jobs, skip: bool) -> int:
