@@ -11,6 +11,11 @@ level region, with all their clips) ordered by a stable hash of their ids, the f
 plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
 OUT/scaling.md and OUT/scaling.png.
 
+The subsets are taken from the planned train split, so they do not change while a dataset renders: a run trains
+once all its clips are rendered (and valid), and the scores wait until every run is trained and the test split is
+whole (exit 3 until then; rerun the same command). ``blendsr dataset ... --order mixed`` renders in the same order,
+so the smallest subsets are ready first.
+
 ``--multiples 1,3,10`` sizes the nested subsets by HR pixels instead: the smallest prefix of the ordered groups
 whose HR pixels (frames x width x height, from the index) reach each multiple of ``--unit-pixels`` (default: the
 train split of examples/dataset_wide.toml, 13.9 million, what the shipped weights saw); a multiple the train split
@@ -66,8 +71,6 @@ def main(argv=None) -> int:
     from training.train import train
 
     test_clips = [str(c) for c in split_clips(a.dataset, "test")]
-    if not test_clips:
-        raise SystemExit(f"{a.dataset}: no finished test clips")
     groups = training_groups(a.dataset, a.by)
     if a.multiples:
         sized = pixel_prefixes(a.dataset, groups, [float(m) for m in a.multiples.split(",")], a.unit_pixels)
@@ -89,31 +92,45 @@ def main(argv=None) -> int:
         by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family}
 
+    done_train = set(split_clips(a.dataset, "train"))
+    test_ready = len(test_clips) == len(split_clips(a.dataset, "test", done_only=False))
+
+    def fit(n: int, steps: int) -> tuple[list[Path], dict | None, Path]:
+        """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered."""
+        clips = [c for g in groups[:n] for c in g[1]]
+        run = runs / (f"{a.model}_{n:03d}{a.by}s" + (f"_{steps}steps" if len(budgets) > 1 or a.by != "clip" else ""))
+        waiting = [c for c in clips if c not in done_train]
+        if waiting:
+            print(f"data_scaling: {run.name}: {len(waiting)} of its {len(clips)} clips are not rendered (or not "
+                  f"valid) yet; it trains once they are (blendsr dataset ... --order mixed renders them first)")
+            return clips, None, run
+        overrides = [f'model.name="{a.model}"', f"run.max_steps={steps}", "run.minutes=0"]
+        if a.threads:
+            overrides.append(f"run.threads={a.threads}")
+        cfg = load_config(a.config, overrides)
+        cfg.data.clips = [str(c) for c in clips]
+        done = run / "summary.json"
+        if done.is_file() and json.loads(done.read_text()).get("step") == steps:
+            return clips, json.loads(done.read_text()), run  # finished earlier: score it only
+        return clips, train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file()), run
+
+    fitted = [(n, steps, *fit(n, steps)) for steps in budgets for n in counts]
+    if not test_ready or any(summary is None for *_, summary, _ in fitted):
+        print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
+              f"{len(test_clips)} of {len(split_clips(a.dataset, 'test', done_only=False))} clips rendered: no "
+              f"scores until every run is trained and the test split is whole (rerun the same command)")
+        return 3
     rows = []
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
     base = rows[-1]["by_family"]
-    for steps in budgets:
-        for n in counts:
-            clips = [c for g in groups[:n] for c in g[1]]
-            run = runs / (f"{a.model}_{n:03d}{a.by}s" + (f"_{steps}steps" if len(budgets) > 1 or a.by != "clip" else ""))
-            overrides = [f'model.name="{a.model}"', f"run.max_steps={steps}", "run.minutes=0"]
-            if a.threads:
-                overrides.append(f"run.threads={a.threads}")
-            cfg = load_config(a.config, overrides)
-            cfg.data.clips = [str(c) for c in clips]
-            ck = run / "checkpoints" / "last.pt"
-            done = run / "summary.json"
-            if done.is_file() and json.loads(done.read_text()).get("step") == steps:
-                summary = json.loads(done.read_text())  # finished earlier: score it only
-            else:
-                summary = train(cfg, run, resume=ck.is_file())
-            rows.append({"model": a.model, "clips": len(clips), a.by + "s": n, "steps": summary["step"],
-                         "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
-                         "hr_pixels": hr_pixels(a.dataset, clips), **score(str(ck))})
-            rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
-            print(json.dumps(rows[-1]), flush=True)
+    for n, steps, clips, summary, run in fitted:
+        rows.append({"model": a.model, "clips": len(clips), a.by + "s": n, "steps": summary["step"],
+                     "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
+                     "hr_pixels": hr_pixels(a.dataset, clips), **score(str(run / "checkpoints" / "last.pt"))})
+        rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
+        print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
@@ -169,12 +186,13 @@ def family_groups(dataset: Path) -> dict[str, str]:
 @functools.lru_cache(maxsize=4)
 def _pixels_of(dataset: Path) -> dict[str, int]:
     from gbuffer_export.dataset.build import read_index
-    return {Path(c["path"]).name: int(c.get("frames_done") or c["render"]["frames"]) * c["render"]["hr_size"][0]
-            * c["render"]["hr_size"][1] for c in read_index(dataset)["clips"]}
+    return {Path(c["path"]).name: int(c["render"]["frames"]) * c["render"]["hr_size"][0] * c["render"]["hr_size"][1]
+            for c in read_index(dataset)["clips"]}
 
 
 def hr_pixels(dataset: Path, clips) -> int:
-    """HR pixels of ``clips`` (folders of ``dataset``): frames done x width x height, from the index."""
+    """HR pixels of ``clips`` (folders of ``dataset``): frames planned x width x height, from the index (a subset is
+    sized before it is rendered)."""
     pixels = _pixels_of(Path(dataset))
     return sum(pixels.get(Path(c).name, 0) for c in clips)
 
@@ -197,11 +215,12 @@ def pixel_prefixes(dataset: Path, groups, multiples, unit: float) -> list[tuple[
 
 
 def training_groups(dataset: Path, by: str) -> list[tuple[str, list[Path]]]:
-    """The train split as (id, clips) groups ordered by a stable hash of the id: one group per clip, or per scene id
-    of the index (``by="scene"``)."""
+    """The planned train split (rendered or not) as (id, clips) groups in the mixed order of their ids
+    (``spec.mixed_rank``, the order ``blendsr dataset --order mixed`` renders in): one group per clip, or per scene
+    id of the index (``by="scene"``)."""
     from gbuffer_export.dataset.build import read_index, split_clips
-    from gbuffer_export.dataset.spec import stable_hash
-    clips = split_clips(dataset, "train")
+    from gbuffer_export.dataset.spec import mixed_rank
+    clips = split_clips(dataset, "train", done_only=False)
     if by == "clip":
         keyed = {c.name: [c] for c in clips}
     else:
@@ -210,7 +229,7 @@ def training_groups(dataset: Path, by: str) -> list[tuple[str, list[Path]]]:
         keyed = {}
         for c in clips:
             keyed.setdefault(scene_of.get(c.name, c.name), []).append(c)
-    return sorted(keyed.items(), key=lambda kv: stable_hash("subset", kv[0]))
+    return sorted(keyed.items(), key=lambda kv: mixed_rank(kv[0]))
 
 
 if __name__ == "__main__":

@@ -40,6 +40,12 @@ def register(subparsers) -> None:
                    help=f"render what these export formats ({names_text()}) need, besides the spec's [dataset] "
                         f"for_formats: {needs_text()}")
     p.add_argument("--limit", type=int, default=None, help="render at most N clips in this run")
+    from ..dataset.build import ORDERS
+    p.add_argument("--order", default=ORDERS[0], choices=ORDERS,
+                   help="the order clips render in: the spec's (source by source), or mixed: a fixed pseudo-random "
+                        "order of the clip ids (the same on every run and machine), so that the clips finished at "
+                        "any moment are a sample of every source and split, and benchmarks/data_scaling.py's nested "
+                        "training subsets, taken in the same order, are rendered smallest first")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"),
                    help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
                         "(recorded in each clip's manifest)")
@@ -82,7 +88,8 @@ def run(args) -> int:
     require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
-                      buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device)
+                      buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device,
+                      order=args.order)
     index = build_dataset(spec, args.output, opts)
     print(f"blendsr: {args.output}: {summary(index)}")
     failed = [c for c in index["clips"] if c["state"] == "failed"]

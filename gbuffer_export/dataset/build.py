@@ -35,7 +35,7 @@ from pathlib import Path
 from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from ..errors import BlendSRError
 from ..locks import FolderLock
-from .spec import LEGACY_RENDER_KEYS, SPLITS, ClipJob, DatasetSpec, SpecError, expand
+from .spec import LEGACY_RENDER_KEYS, SPLITS, ClipJob, DatasetSpec, SpecError, expand, mixed_rank
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,8 @@ SCHEMA = "blendsr-dataset"
 SCHEMA_VERSION = 1
 STATES = ("pending", "partial", "done", "failed")
 EXECUTORS = ("local", "ray")
+#: The orders a run renders its clips in (RunOptions.order, --order).
+ORDERS = ("spec", "mixed")
 #: Seconds a clip process has to stop after Ctrl-C before it is killed (``ChildProcesses.stop``).
 STOP_GRACE_S = 4.0
 
@@ -65,12 +67,15 @@ class RunOptions:
     buffers_for: tuple[str, ...] = ()  # --for-models: the models whose buffers are rendered (recorded)
     progress: bool = True
     limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
+    order: str = "spec"             # the order clips render in: the spec's, or "mixed" (spec.mixed_rank)
     device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
     blender: str = ""               # a Blender executable to render each clip with (local executor; see job_command)
 
     def validate(self) -> None:
         if self.executor not in EXECUTORS:
             raise SpecError(f"--executor {self.executor!r}: choose one of {', '.join(EXECUTORS)}")
+        if self.order not in ORDERS:
+            raise SpecError(f"--order {self.order!r}: choose one of {', '.join(ORDERS)}")
         if self.workers < 1:
             raise SpecError(f"--workers {self.workers}: must be at least 1")
         if self.threads < 0:
@@ -518,6 +523,15 @@ def _legacy_render_keys(clip: dict) -> dict:
     return clip
 
 
+def clips_to_render(jobs: list[ClipJob], index: dict, opts: RunOptions) -> list[ClipJob]:
+    """The jobs whose clip is not done, in ``opts.order`` (the spec's, or ``spec.mixed_rank``'s), the first
+    ``opts.limit`` of them."""
+    todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
+    if opts.order == "mixed":
+        todo.sort(key=lambda j: mixed_rank(j.id))
+    return todo if opts.limit is None else todo[:opts.limit]
+
+
 def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = RunOptions()) -> dict:
     """Render every missing or partial clip of ``spec`` into ``out`` and return the final index."""
     opts.validate()
@@ -537,9 +551,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                 write_json_atomic(jp, j.to_json())
         index = make_index(spec, jobs, root, old, opts)
         write_json_atomic(root / INDEX, index)
-        todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
-        if opts.limit is not None:
-            todo = todo[:opts.limit]
+        todo = clips_to_render(jobs, index, opts)
         threads = opts.clip_threads()
         n_done = len(jobs) - len([e for e in index["clips"] if e["state"] != "done"])
         log.info(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "

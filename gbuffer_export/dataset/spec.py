@@ -490,6 +490,13 @@ def stable_hash(*parts) -> int:
     return int.from_bytes(h[:8], "big") >> 1
 
 
+def mixed_rank(clip_id: str) -> int:
+    """A clip's place in the mixed order: ``blendsr dataset --order mixed`` renders in it, and
+    ``benchmarks/data_scaling.py`` takes its nested training subsets in it, so the clips rendered first are the first
+    subsets trained, and the clips finished at any moment are a sample of every source and split."""
+    return stable_hash("subset", clip_id)
+
+
 def assign_split(scene_id: str, splits: Splits, forced: str | None, dataset_seed: int, *, spec_path=None,
                  source: str | None = None, family: str | None = None) -> str:
     """The split of one scene: the source's forced split, an explicit list or the held-out family the scene is

@@ -37,3 +37,33 @@ def test_multiples_take_the_smallest_prefix_that_reaches_them(tmp_path):
     assert data_scaling.family_groups(tmp_path / "ds") == {"c0": "in-family", "c1": "in-family", "c2": "in-family",
                                                            "c3": "in-family", "t": "held-out"}
 
+
+
+def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
+    """The subsets come from the planned train split (nothing rendered here), in the order `--order mixed` renders."""
+    from gbuffer_export.dataset.build import RunOptions, clips_to_render
+    from gbuffer_export.dataset.spec import expand, load_spec
+    from tests.conftest import builtin_spec
+    jobs = expand(load_spec(builtin_spec(tmp_path / "spec.toml", seeds="0:24")))
+    root = tmp_path / "ds"
+    root.mkdir()
+    clips = [{"id": j.id, "path": f"clips/{j.id}", "split": j.split, "state": "partial", "frames_done": 0,
+              "render": {"frames": 4, "hr_size": [64, 36]}} for j in jobs]
+    (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
+    groups = [g for g, _ in data_scaling.training_groups(root, "clip")]
+    assert len(groups) == sum(j.split == "train" for j in jobs) > 5
+    index = {"clips": clips}
+    mixed = [j.id for j in clips_to_render(jobs, index, RunOptions(order="mixed"))]
+    assert [i for i in mixed if i in groups] == groups and mixed != [j.id for j in jobs]
+    assert [j.id for j in clips_to_render(jobs, index, RunOptions())] == [j.id for j in jobs]
+    assert [j.id for j in clips_to_render(jobs, index, RunOptions(order="mixed", limit=3))] == mixed[:3]
+
+
+def test_runs_wait_for_their_clips_and_scores_for_the_whole_test_split(tmp_path, capsys):
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)] * 3)
+    rc = data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--multiples", "1", "--unit-pixels", "200",
+                            "--steps", "2"])
+    out = capsys.readouterr().out
+    assert rc == 3 and "are not rendered (or not valid) yet" in out and "0 of 1 runs trained" in out, out
+    assert "test split 0 of 1 clips rendered" in out and not (tmp_path / "out" / "scaling.json").exists()
