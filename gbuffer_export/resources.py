@@ -176,6 +176,13 @@ def default_threads(root: Path | None = None) -> int:
     return omp_threads() or usable_cores(root)
 
 
+def render_threads(requested: int) -> int:
+    """Cycles threads of a render: ``requested`` when positive, else ``OMP_NUM_THREADS`` where set (the rule of
+    ``default_threads``: two renders side by side, or the test suite's workers, each take their share), else 0,
+    Blender's automatic count (all cores)."""
+    return requested if requested > 0 else (omp_threads() or 0)
+
+
 def omp_threads() -> int | None:
     """``OMP_NUM_THREADS`` when it is a positive whole number, else None."""
     v = os.environ.get("OMP_NUM_THREADS", "").strip()

@@ -437,8 +437,10 @@ def probe_render(scene, cam, frames: list[int], size: tuple[int, int], device: s
     from .convert import read_passes
     from .fds import captured
     from .scene_setup import select_device
+    from ..resources import render_threads
     r, c = scene.render, scene.cycles
     select_device(scene, device)
+    threads = render_threads(threads)
     pairs = [(r, "engine", "CYCLES"), (r, "resolution_x", size[0]), (r, "resolution_y", size[1]),
              (r, "resolution_percentage", 100), (r, "use_border", False), (r, "film_transparent", False),
              (r, "use_compositing", False), (r, "use_sequencer", False), (r, "use_persistent_data", False),

@@ -37,7 +37,7 @@ from ..conventions import exposure_header, halton_jitter, intrinsics_from_projec
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
 from ..regions import dilate
-from ..resources import TEMP_EXR_CHANNELS, check_render_resources
+from ..resources import TEMP_EXR_CHANNELS, check_render_resources, render_threads
 from . import materials as mats
 from .convert import BACKGROUND_DEPTH, PASSES, LevelCameras, PassPlan, colour_sum, convert, reactive_mask, read_passes
 from .render_setup import ResolvedRender, renderable_meshes, resolve_render
@@ -113,9 +113,10 @@ def base_settings(scene, view_layer, cfg: RenderConfig) -> dict:
     r.use_sequencer = False
     r.use_persistent_data = True
     r.use_file_extension = False
-    if cfg.threads:
+    threads = render_threads(cfg.threads)
+    if threads:
         r.threads_mode = "FIXED"
-        r.threads = cfg.threads
+        r.threads = threads
     else:
         r.threads_mode = "AUTO"
     s = r.image_settings
