@@ -9,7 +9,8 @@ The subsets are nested: the training clips (``--by scene``: the index's scene id
 level region, with all their clips) ordered by a stable hash of their ids, the first N of them. Each run is a plain
 ``blendsr train`` run in RUNS (default OUT; resumed when its folder exists, reused when finished) and each score a
 plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
-OUT/scaling.md and OUT/scaling.png.
+OUT/scaling.md (the table, and per family group the margin's fit ``a + b log10(x)`` with what it predicts at 100x:
+``extrapolation_lines``) and OUT/scaling.png.
 
 The subsets are taken from the planned train split, so they do not change while a dataset renders: a run trains
 once all its clips are rendered (and valid), and the scores wait until every run is trained and the test split is
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import json
 import sys
 from pathlib import Path
@@ -135,7 +137,8 @@ def main(argv=None) -> int:
                                              "by": a.by, "steps": budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "command": " ".join(sys.argv)})
-    (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels))
+    (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
+                                    + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
 
     import matplotlib
     matplotlib.use("Agg")
@@ -160,6 +163,35 @@ def main(argv=None) -> int:
     fig.savefig(out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
+
+
+def log_fit(xs: list[float], ys: list[float]) -> tuple[float, float] | None:
+    """Least-squares ``y = a + b log10(x)`` through the points: (a, b), or None with fewer than two distinct x. The
+    usual form of a data-scaling curve over a decade or two (quality gains a constant amount per tenfold data); what
+    it says about 100x is an extrapolation, a guess to be checked, not a measurement."""
+    import numpy as np
+    if len(set(xs)) < 2:
+        return None
+    b, a = np.polyfit(np.log10(np.asarray(xs, float)), np.asarray(ys, float), 1)
+    return float(a), float(b)
+
+
+def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> list[str]:
+    """Per family group: the fit of the margin over demod-jbu against the data size (multiples of ``unit``), its
+    gain per tenfold data, and what it predicts at ``at`` x."""
+    learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
+    out = []
+    for group in sorted({g for r in learned for g in r["margin_by_family"]}):
+        pts = [(r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
+               if group in r["margin_by_family"]]
+        fit = log_fit([x for x, _ in pts], [y for _, y in pts])
+        if fit is None:
+            continue
+        a, b = (round(v, 6) + 0.0 for v in fit)  # no "-0.00"
+        out.append(f"- {group}: margin = {a:+.2f} {b:+.2f} log10(x) dB over {len(pts)} sizes "
+                   f"({min(x for x, _ in pts):.1f}x to {max(x for x, _ in pts):.1f}x): {b:+.2f} dB per tenfold data; "
+                   f"at {at:g}x it predicts {a + b * math.log10(at):+.2f} dB (an extrapolation)")
+    return out
 
 
 def report_table(rows: list[dict], by: str, unit: float) -> str:

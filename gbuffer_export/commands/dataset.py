@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..errors import BlendSRError
 from ..extras import HelpFormatter as _Formatter
 
 HELP = """Render a dataset: many clips from one spec (built-in scene seeds, folders of glTF/GLB/.blend assets in
@@ -67,6 +68,8 @@ def run(args) -> int:
     from ..dataset.build import RunOptions, build_dataset, summary
     from ..dataset.spec import expand, load_spec, plan_totals
 
+    if args.json and not args.status:
+        raise BlendSRError("--json: only with --status (a render reports on stderr and in DATASET/dataset.json)")
     spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
     if args.status:
         return _status(args.output, args.json)
@@ -116,7 +119,6 @@ def _dry_run_plan(jobs, skip: bool) -> int:
     todo = [j for j in jobs if j.kind == "scene" and j.camera in ("walk", "fly")]
     if skip or not todo:
         return 0
-    from ..errors import BlendSRError
     from ..extras import require
     try:
         require("blendsr dataset --dry-run's planner", "render")

@@ -67,3 +67,17 @@ def test_runs_wait_for_their_clips_and_scores_for_the_whole_test_split(tmp_path,
     out = capsys.readouterr().out
     assert rc == 3 and "are not rendered (or not valid) yet" in out and "0 of 1 runs trained" in out, out
     assert "test split 0 of 1 clips rendered" in out and not (tmp_path / "out" / "scaling.json").exists()
+
+
+def test_the_curve_is_fitted_per_family_group_and_extrapolated_to_100x():
+    unit = 1000.0
+    rows = [{"model": "demod-jbu", "clips": 0, "hr_pixels": None},
+            *({"model": "fusesr", "hr_pixels": x * unit, "margin_by_family": {"held-out": 1.0 + 0.5 * lg,
+                                                                              "in-family": 2.0}}
+              for x, lg in ((1, 0.0), (10, 1.0), (3.1622776601683795, 0.5)))]
+    a, b = data_scaling.log_fit([1, 10, 100], [1.0, 1.5, 2.0])
+    assert abs(a - 1.0) < 1e-9 and abs(b - 0.5) < 1e-9
+    assert data_scaling.log_fit([3, 3], [1.0, 2.0]) is None
+    lines = data_scaling.extrapolation_lines(rows, unit)
+    assert lines[0].startswith("- held-out: margin = +1.00 +0.50 log10(x)") and "predicts +2.00 dB" in lines[0]
+    assert lines[1].startswith("- in-family") and "+0.00 dB per tenfold" in lines[1], lines

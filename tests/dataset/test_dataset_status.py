@@ -62,3 +62,5 @@ def test_the_cli_prints_the_report_and_renders_nothing(dataset, tmp_path):
     assert sorted(p.name for p in (dataset / "clips").iterdir()) == ["a0", "a1", "b0"]  # nothing rendered
     proc = run_cli("dataset", str(spec), "-o", str(tmp_path / "none"), "--status")
     assert proc.returncode == 2 and "no dataset index" in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
+    proc = run_cli("dataset", str(spec), "-o", str(dataset), "--json")
+    assert proc.returncode == 2 and "--json: only with --status" in proc.stderr, proc.stderr
