@@ -27,7 +27,8 @@ The schedule rule of issue 54's scaling curve (written 2026-11-29, before any of
 ``benchmarks/pretrain.toml`` (batch 8, LR crop 32, lr 5e-4, cosine to 2 %, 50 warm-up steps, seed 0), the same
 step budget for 1x, 3x and 10x (``--steps 6000``: equal compute, so the curve measures the data, not the
 optimisation), the last checkpoint scored (no choice per size), on the test split of examples/dataset_scale.toml
-by family group; FuseSR and FuseSR-l, one thread each, two runs side by side:
+by family group, at 4x (``--scale 4``: the set also holds a 2x level); FuseSR and FuseSR-l, one thread each, two
+runs side by side:
 
     .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr \
         --multiples 1,3,10 --steps 6000 --model fusesr --threads 1
@@ -62,6 +63,9 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="fusesr")
     p.add_argument("--config", default=str(REPO / "benchmarks" / "pretrain.toml"))
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the config's)")
+    p.add_argument("--scale", type=int, default=4,
+                   help="the upscaling factor every run trains on and is scored at (a dataset may hold several LR "
+                        "levels: examples/dataset_scale.toml renders 4x and 2x)")
     a = p.parse_args(argv)
 
     import torch
@@ -88,8 +92,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
 
     def score(spec: str) -> dict:
-        model = load_model(spec, 4)
-        r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=4))
+        model = load_model(spec, a.scale)
+        r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=a.scale))
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family}
@@ -106,7 +110,7 @@ def main(argv=None) -> int:
             print(f"data_scaling: {run.name}: {len(waiting)} of its {len(clips)} clips are not rendered (or not "
                   f"valid) yet; it trains once they are (blendsr dataset ... --order mixed renders them first)")
             return clips, None, run
-        overrides = [f'model.name="{a.model}"', f"run.max_steps={steps}", "run.minutes=0"]
+        overrides = [f'model.name="{a.model}"', f"model.scale={a.scale}", f"run.max_steps={steps}", "run.minutes=0"]
         if a.threads:
             overrides.append(f"run.threads={a.threads}")
         cfg = load_config(a.config, overrides)
