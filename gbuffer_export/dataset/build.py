@@ -32,7 +32,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..clip import ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
+from ..clip import Clip, ClipError, check_no_links, open_clip, open_nofollow, resolve_inside, write_json_atomic
 from ..errors import BlendSRError
 from ..locks import FolderLock
 from .spec import LEGACY_RENDER_KEYS, SPLITS, ClipJob, DatasetSpec, SpecError, expand, mixed_rank
@@ -106,16 +106,22 @@ class RunOptions:
 
 def clip_state(path: Path, planned: int) -> tuple[str, int]:
     """(state, finished frames) of a clip folder: pending (nothing finished), partial, or done."""
+    state, n, _ = opened_state(path, planned)
+    return state, n
+
+
+def opened_state(path: Path, planned: int) -> tuple[str, int, Clip | None]:
+    """``clip_state`` and the opened clip (None when there is no readable manifest), for readers of its frames."""
     if not (path / "manifest.json").is_file():
-        return "pending", 0
+        return "pending", 0, None
     try:
         clip = open_clip(path)
     except ClipError:
-        return "partial", 0
+        return "partial", 0, None
     n = len(clip.frames)
     if clip.complete and n >= planned:
-        return "done", n
-    return ("partial" if n else "pending"), n
+        return "done", n, clip
+    return ("partial" if n else "pending"), n, clip
 
 
 def quick_check(clip_dir: Path) -> str:

@@ -1,6 +1,7 @@
 """What a dataset render has done and what it costs, measured from its own records (``blendsr dataset --status``).
 
-The cost of a frame is its ``seconds_total`` in ``CLIP/frames/NNNNNN.json``: the wall time of the frame's every
+The cost of a frame is its record's ``seconds_total`` (``CLIP/frames/NNNNNN.json``, merged into the manifest's
+``frame_data``; read through ``open_clip``, as every reader of a clip does): the wall time of the frame's every
 level and pass (G-buffers, LR and HR radiance, conversion, writing), from the start of the frame to its commit. A
 clip's setup (import, camera planning, BVH build) is not in it, so the sum is the rendering proper; the remaining
 time is estimated per source (``levels``, ``builtin``, ``assets``...) as its unrendered frames times the median of its
@@ -9,66 +10,58 @@ load the finished frames were rendered on. No bpy: the numpy core's layer.
 """
 from __future__ import annotations
 
-import json
 import statistics
+from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import BlendSRError
+import numpy as np
+
+from .build import clip_dir, opened_state, read_index
 
 
-def frame_seconds(clip_dir: Path) -> list[float]:
-    """``seconds_total`` of every committed frame record of ``clip_dir`` (frames rendered before the field existed, or
-    unreadable records, are skipped)."""
-    out = []
-    for rec in sorted((clip_dir / "frames").glob("*.json")):
-        try:
-            s = json.loads(rec.read_text()).get("seconds_total")
-        except (OSError, json.JSONDecodeError):
-            continue
-        if isinstance(s, (int, float)) and s >= 0:
-            out.append(float(s))
-    return out
+@dataclass(frozen=True)
+class ClipCost:
+    """One index entry as its folder says: finished or not, frames finished and planned, HR pixels of the finished
+    frames, and the seconds of each finished frame that recorded them."""
+    done: bool
+    frames_done: int
+    frames_planned: int
+    hr_pixels_done: int
+    seconds: tuple[float, ...]
 
 
-def _group(clips: list[dict], root: Path) -> dict:
-    seconds = [s for c in clips for s in frame_seconds(root / c["path"])]
-    planned = sum(int(c["frames_planned"]) for c in clips)
-    done = sum(int(c["frames_done"]) for c in clips)
-    return {"clips": len(clips), "clips_done": sum(c["state"] == "done" for c in clips),
-            "frames_planned": planned, "frames_done": done, "frames_timed": len(seconds),
-            "render_s": sum(seconds), "median_s_per_frame": statistics.median(seconds) if seconds else None,
-            "p90_s_per_frame": _quantile(seconds, 0.9),
-            "hr_pixels_done": sum(int(c["frames_done"]) * _hr_pixels(c) for c in clips)}
+def clip_cost(root: Path, entry: dict) -> ClipCost:
+    """The cost of ``entry``'s clip, its folder found by ``build.clip_dir`` (inside the dataset, no links) and read by
+    ``open_clip``; a frame rendered before ``seconds_total`` existed counts as finished but not timed."""
+    planned = int(entry["frames_planned"])
+    state, n, clip = opened_state(clip_dir(root, entry), planned)
+    if clip is None:
+        return ClipCost(False, 0, planned, 0, ())
+    w, h = clip.sizes["hr"]
+    seconds = tuple(float(s) for s in (clip.record(f).get("seconds_total") for f in clip.frames)
+                    if isinstance(s, (int, float)) and not isinstance(s, bool) and s >= 0)
+    return ClipCost(state == "done", n, planned, n * w * h, seconds)
 
 
-def _hr_pixels(clip: dict) -> int:
-    w, h = clip["render"]["hr_size"]
-    return int(w) * int(h)
-
-
-def _quantile(xs: list[float], q: float) -> float | None:
-    if not xs:
-        return None
-    xs = sorted(xs)
-    return xs[min(len(xs) - 1, int(round(q * (len(xs) - 1))))]
+def _group(costs: list[ClipCost]) -> dict:
+    seconds = [s for c in costs for s in c.seconds]
+    return {"clips": len(costs), "clips_done": sum(c.done for c in costs),
+            "frames_planned": sum(c.frames_planned for c in costs), "frames_done": sum(c.frames_done for c in costs),
+            "frames_timed": len(seconds), "render_s": sum(seconds),
+            "median_s_per_frame": statistics.median(seconds) if seconds else None,
+            "p90_s_per_frame": float(np.quantile(seconds, 0.9)) if seconds else None,
+            "hr_pixels_done": sum(c.hr_pixels_done for c in costs)}
 
 
 def dataset_status(root: Path) -> dict:
     """Per source, per split and in all: clips and frames planned and done, render seconds, median and p90 seconds
     per frame, and the estimated seconds left (one worker, see the module's docstring)."""
-    index_file = Path(root) / "dataset.json"
-    try:
-        index = json.loads(index_file.read_text())
-        clips = index["clips"]
-    except FileNotFoundError:
-        raise BlendSRError(f"{index_file}: no dataset index (render the dataset first: blendsr dataset SPEC -o "
-                           f"{root})") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise BlendSRError(f"{index_file}: not a dataset index ({exc})") from None
-    report = {"dataset": index.get("name"), "all": _group(clips, root), "by_source": {}, "by_split": {}}
+    index = read_index(root)  # one-line errors for a missing or malformed index
+    clips = [(c, clip_cost(Path(root), c)) for c in index["clips"]]
+    report = {"dataset": index.get("name"), "all": _group([k for _, k in clips]), "by_source": {}, "by_split": {}}
     for key, field in (("by_source", "source"), ("by_split", "split")):
-        for value in sorted({c[field] for c in clips}):
-            report[key][value] = _group([c for c in clips if c[field] == value], root)
+        for value in sorted({str(c.get(field)) for c, _ in clips}):
+            report[key][value] = _group([k for c, k in clips if str(c.get(field)) == value])
     fallback = report["all"]["median_s_per_frame"]
     left = 0.0
     for g in report["by_source"].values():
