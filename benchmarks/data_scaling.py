@@ -99,7 +99,7 @@ def main(argv=None) -> int:
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family}
 
     done_train = set(split_clips(a.dataset, "train"))
-    test_ready = len(test_clips) == len(split_clips(a.dataset, "test", done_only=False))
+    test_planned = len(split_clips(a.dataset, "test", done_only=False))
 
     def fit(n: int, steps: int) -> tuple[list[Path], dict | None, Path]:
         """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered."""
@@ -121,9 +121,9 @@ def main(argv=None) -> int:
         return clips, train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file()), run
 
     fitted = [(n, steps, *fit(n, steps)) for steps in budgets for n in counts]
-    if not test_ready or any(summary is None for *_, summary, _ in fitted):
+    if len(test_clips) < test_planned or any(summary is None for *_, summary, _ in fitted):
         print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
-              f"{len(test_clips)} of {len(split_clips(a.dataset, 'test', done_only=False))} clips rendered: no "
+              f"{len(test_clips)} of {test_planned} clips rendered: no "
               f"scores until every run is trained and the test split is whole (rerun the same command)")
         return 3
     rows = []

@@ -215,7 +215,8 @@ class RenderConfig:
                                      metavar="auto|M|UNIT", help=(
         "the level's unit for walk and fly cameras (eye height, speeds, clearance): auto (detected from the "
         "geometry: docs/rendering.md, \"A level's unit\"), metres per scene unit (e.g. 0.01), or m, cm, mm, in, ft"))
-    threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL), help="render threads (0 = OMP_NUM_THREADS where set, else all cores)")
+    threads: int = option(0, lo=0, shells=(CLI, SPEC, CLIP_PANEL),
+                          help="render threads (0 = OMP_NUM_THREADS where set, else all cores)")
     allow_read: tuple[str, ...] = option((), shells=(SPEC,), help=(
         "folders besides the scene's own that its files may read (textures, buffers, libraries); the files read "
         "there are listed in the manifest (docs/rendering.md, \"What a scene file may read\")"))

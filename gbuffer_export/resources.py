@@ -207,8 +207,9 @@ def idle_cores(sample_s: float = IDLE_SAMPLE_S, root: Path | None = None) -> tup
     machine with two busy processes beside it, the demo's fine-tune ran 0.18 steps/s with 2 threads and 1.43 with 1
     (idle: 3.35 and 2.38; ``benchmarks/demo_speed.py``, docs/bench/demo_speed): torch's threads wait for each other
     when another process holds a core. Without psutil: all usable cores, 0 busy."""
-    if omp_threads():
-        return omp_threads(), 0.0
+    capped = omp_threads()
+    if capped:
+        return capped, 0.0
     cores = usable_cores(root)
     try:
         import psutil

@@ -49,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--docs", type=Path, default=None, metavar="FILE.md",
                    help="also replace the results block of this markdown file (the project's is docs/brdf.md); "
                         "default: no file is rewritten")
-    p.add_argument("--threads", type=int, default=0, help="render threads (0 = OMP_NUM_THREADS where set, else all cores)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="render threads (0 = OMP_NUM_THREADS where set, else all cores)")
 
 
 # ----------------------------------------------------------------------------------------------
