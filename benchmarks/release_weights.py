@@ -11,6 +11,9 @@ the scenes that choose between trainings, while the test assets only report) and
 With a val split, a run replaces the shipped weights of its name only when ``training.selection.choose`` says so
 (the worst-case rule: the smallest per-clip margin over demod-jbu does not fall, artifact pixels do not rise, mean
 PSNR, SSIM and tPSNR do not fall, all on val); ``--force`` writes them anyway (the JSON records the verdict).
+The val clips the rule reads are the held-out-family ones when the index has any (``--val-group auto``, issue 54:
+a network is chosen by what it does on families it never trained on), else all of them; ``--val-group all`` or
+``held-out`` forces one. The JSON records which (``val_group``).
 """
 from __future__ import annotations
 
@@ -107,6 +110,30 @@ def summary(r: dict) -> dict:
             "artifact_pixels": m.get("artifact_pixels")}
 
 
+#: ``--val-group`` choices: ``auto`` = ``held-out`` when the val split has held-out-family clips, else ``all``.
+VAL_GROUPS = ("auto", "all", "held-out")
+
+
+def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str], str]:
+    """The val clips the val rule reads and the group they are (``all`` or ``held-out``): ``val`` filtered by each
+    clip's ``family_group`` in the dataset's index. ValueError (one line) when ``held-out`` is asked and the val
+    split has none."""
+    from gbuffer_export.dataset.families import HELD_OUT
+    from gbuffer_export.dataset.family_gap import index_groups
+    if group not in VAL_GROUPS:
+        raise ValueError(f"--val-group {group!r}: choose one of {', '.join(VAL_GROUPS)}")
+    if group == "all":
+        return list(val), "all"
+    groups = index_groups(dataset)
+    held = [c for c in val if groups.get(Path(c).name) == HELD_OUT]
+    if held:
+        return held, HELD_OUT
+    if group == HELD_OUT:
+        raise ValueError(f"{dataset}: --val-group held-out, but no finished val clip of the index is held-out-family "
+                         "(declare val_families in the spec's [splits])")
+    return list(val), "all"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
@@ -118,6 +145,8 @@ def main(argv=None) -> int:
     p.add_argument("--force", action="store_true", help="write the weights even when the val rule keeps the shipped ones")
     p.add_argument("--attach", action="append", default=[], metavar="KEY=FILE",
                    help="a JSON file put under KEY in every weight file's JSON (e.g. scale curves)")
+    p.add_argument("--val-group", choices=VAL_GROUPS, default="auto",
+                   help="the val clips the val rule reads: held-out-family ones (auto: when there are any), or all")
     a = p.parse_args(argv)
 
     from gbuffer_export.clip import write_json_atomic
@@ -127,7 +156,11 @@ def main(argv=None) -> int:
     from training.release import release
 
     test = [str(c) for c in split_clips(a.dataset, "test")]
-    val = [str(c) for c in split_clips(a.dataset, "val")]
+    try:
+        val, val_group = rule_val_clips(a.dataset, [str(c) for c in split_clips(a.dataset, "val")], a.val_group)
+    except ValueError as exc:
+        print(f"blendsr: {exc}", file=sys.stderr)
+        return 2
     train = [c.name for c in split_clips(a.dataset, "train")]
     index = read_index(a.dataset)
 
@@ -139,7 +172,7 @@ def main(argv=None) -> int:
     val_baselines = {m: score(m, val) for m in ("demod-bilinear", "demod-jbu")} if val else {}
     out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
            "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
-           "baselines": baselines, "val_baselines": val_baselines, "models": {}}
+           "val_group": val_group, "baselines": baselines, "val_baselines": val_baselines, "models": {}}
     for name in a.models.split(","):
         if name not in PRETRAINED:
             print(f"--models: {name!r} is not in training.pretrained.PRETRAINED", file=sys.stderr)
@@ -169,7 +202,8 @@ def main(argv=None) -> int:
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
         }
         if val:
-            meta["scores_on_val_split"] = {"metric": METRIC, name: summary(cand_val), **val_baselines}
+            meta["scores_on_val_split"] = {"metric": METRIC, "val_group": val_group, name: summary(cand_val),
+                                           **val_baselines}
         if verdict is not None:
             meta["val_rule"] = verdict.record(a.force)
         origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)

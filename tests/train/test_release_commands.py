@@ -96,3 +96,26 @@ def test_two_pretrain_runs_side_by_side_take_turns_on_the_dataset(tmp_path):
     for p, out in zip(procs, outs):
         assert p.returncode == 0, out
         assert "dataset-done" in out and "train" in out.split("dataset-done")[1], out
+
+
+def _val_index(root: Path, groups: list[str]) -> list[str]:
+    """An index of val clips of the given family groups; their folders, in order."""
+    import json
+    from gbuffer_export.dataset.build import INDEX, SCHEMA, SCHEMA_VERSION
+    clips = [{"id": f"v{i}", "path": f"clips/v{i}", "split": "val", "state": "done", "family_group": g}
+             for i, g in enumerate(groups)]
+    root.mkdir()
+    (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
+    return [str(root / c["path"]) for c in clips]
+
+
+def test_the_val_rule_reads_the_held_out_family_val_clips_when_there_are_any(tmp_path):
+    rw = _module()
+    val = _val_index(tmp_path / "ds", ["in-family", "held-out", "in-family", "held-out"])
+    assert rw.rule_val_clips(tmp_path / "ds", val, "auto") == ([val[1], val[3]], "held-out")
+    assert rw.rule_val_clips(tmp_path / "ds", val, "held-out") == ([val[1], val[3]], "held-out")
+    assert rw.rule_val_clips(tmp_path / "ds", val, "all") == (val, "all")
+    plain = _val_index(tmp_path / "plain", ["in-family", "in-family"])  # a dataset without held-out families
+    assert rw.rule_val_clips(tmp_path / "plain", plain, "auto") == (plain, "all")
+    with pytest.raises(ValueError, match="no finished val clip of the index is held-out-family"):
+        rw.rule_val_clips(tmp_path / "plain", plain, "held-out")
