@@ -6,6 +6,7 @@ frames and clips every ``run.eval_every`` steps and at the end). A hook has ``on
 from __future__ import annotations
 
 import csv
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +54,24 @@ def peak_memory_mb(device: torch.device) -> float:
     return peak / 2**20 if peak is not None else 0.0
 
 
+def drop_rows_after(path: Path, step: int) -> list[str]:
+    """A resumed run's log.csv without the rows logged after ``step`` (the checkpoint it resumes from: those steps
+    run again and are logged again), rewritten atomically when any is dropped; returns its header row."""
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return []
+    header, body = rows[0], rows[1:]
+    col = header.index("step") if "step" in header else None
+    keep = [r for r in body if col is None or len(r) <= col or not r[col].isdigit() or int(r[col]) <= step]
+    if len(keep) < len(body):
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "w", newline="") as f:
+            csv.writer(f).writerows([header, *keep])
+        os.replace(tmp, path)
+    return header
+
+
 class RunLog:
     """log.csv every ``run.log_every`` steps (and the last), TensorBoard scalars when it is installed, the tqdm
     bar with ``run.progress``; ``mem_peak`` is the largest logged memory (MiB)."""
@@ -66,8 +85,7 @@ class RunLog:
             path = self.path = run_dir / "log.csv"
             header = []
             if path.exists():  # a resumed run keeps the columns its log started with (an older version's, too)
-                with open(path, newline="") as f:
-                    header = next(csv.reader(f), [])
+                header = drop_rows_after(path, trainer.step_no)
             if header:
                 self.columns = tuple(header)
             self.logf = open(path, "a", newline="")

@@ -68,6 +68,9 @@ def test_resume_is_bit_identical(clip, tmp_path):
     old = list(csv.reader(open(split / "log.csv")))
     drop = old[0].index("baseline")
     (split / "log.csv").write_text("".join(",".join(r[:drop] + r[drop + 1:]) + "\n" for r in old))
+    # a step logged after the last checkpoint (the run was killed there) is run and logged again, once
+    with open(split / "log.csv", "a") as f:
+        f.write(",".join(["3"] + ["9"] * (len(old[0]) - 2)) + "\n")
     half = load_checkpoint(split / "checkpoints" / "last.pt")
     assert half["step"] == 2
     assert main(["train", "-o", str(split), "--resume"]) == 0
