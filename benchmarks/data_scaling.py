@@ -96,7 +96,8 @@ def main(argv=None) -> int:
         r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=a.scale))
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
-        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family}
+        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
+                "artifact_pixels": r["mean"].get("artifact_pixels")}
 
     done_train = set(split_clips(a.dataset, "train"))
     test_planned = len(split_clips(a.dataset, "test", done_only=False))
@@ -136,6 +137,7 @@ def main(argv=None) -> int:
                      "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
                      "hr_pixels": hr_pixels(a.dataset, clips), **score(str(run / "checkpoints" / "last.pt"))})
         rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
+        rows[-1]["margin_min_by_family"] = smallest_margins(rows[-1]["per_clip"], rows[1]["per_clip"], family_of)
         print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
@@ -200,17 +202,28 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
 
 def report_table(rows: list[dict], by: str, unit: float) -> str:
     """scaling.md: per run its size (groups, clips, HR pixels as multiples of ``unit``), steps, test PSNR and SSIM,
-    the margin over demod-jbu per family group, and the per-clip PSNR."""
-    lines = [f"| training data | {by}s | clips | x (HR pixels) | steps | test PSNR (dB) | test SSIM | margin in-family |"
-             " margin held-out | per test clip (dB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    the margin over demod-jbu per family group (mean, and its smallest clip), and the per-clip PSNR."""
+    lines = [f"| training data | {by}s | clips | x (HR pixels) | steps | test PSNR (dB) | test SSIM | margin in-family "
+             "(smallest) | margin held-out (smallest) | per test clip (dB) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
-        m = r.get("margin_by_family", {})
-        cell = lambda g: f"{m[g]:+.2f}" if g in m else "-"  # noqa: E731
+        m, lo = r.get("margin_by_family", {}), r.get("margin_min_by_family", {})
+        cell = lambda g: (f"{m[g]:+.2f}" + (f" ({lo[g]:+.2f})" if g in lo else "")) if g in m else "-"  # noqa: E731
         x = f"{r['hr_pixels'] / unit:.2f}" if r.get("hr_pixels") else "-"
         lines.append(f"| {r['model']} | {r.get(by + 's', '-')} | {r['clips'] or '-'} | {x} | {r['steps'] or '-'} | "
                      f"{r['psnr']:.2f} | {r['ssim']:.4f} | {cell('in-family')} | {cell('held-out')} | {per} |")
     return "\n".join(lines) + "\n"
+
+
+def smallest_margins(per_clip: dict[str, float], base: dict[str, float], family_of: dict[str, str]) -> dict:
+    """{family group: the smallest per-clip margin (clip PSNR minus the baseline's on the same clip)}: the worst case
+    beside each group's mean margin."""
+    out: dict[str, float] = {}
+    for clip, v in per_clip.items():
+        if clip in base:
+            g = family_of.get(clip, "in-family")
+            out[g] = min(out.get(g, math.inf), v - base[clip])
+    return out
 
 
 def family_groups(dataset: Path) -> dict[str, str]:

@@ -81,3 +81,15 @@ def test_the_curve_is_fitted_per_family_group_and_extrapolated_to_100x():
     lines = data_scaling.extrapolation_lines(rows, unit)
     assert lines[0].startswith("- held-out: margin = +1.00 +0.50 log10(x)") and "predicts +2.00 dB" in lines[0]
     assert lines[1].startswith("- in-family") and "+0.00 dB per tenfold" in lines[1], lines
+
+
+def test_each_family_group_reports_its_worst_clip_beside_its_mean():
+    per = {"a": 30.0, "b": 25.0, "c": 28.0, "d": 20.0}
+    base = {"a": 29.0, "b": 26.0, "c": 27.5, "d": 19.0}
+    family = {"a": "in-family", "b": "in-family", "c": "held-out", "d": "held-out"}
+    assert data_scaling.smallest_margins(per, base, family) == {"in-family": -1.0, "held-out": 0.5}
+    row = {"model": "fusesr", "clips": 2, "hr_pixels": 100, "steps": 10, "psnr": 25.75, "ssim": 0.9,
+           "per_clip": per, "margin_by_family": {"in-family": 0.0, "held-out": 0.75},
+           "margin_min_by_family": {"in-family": -1.0, "held-out": 0.5}}
+    table = data_scaling.report_table([row], "clip", 100.0)
+    assert "| +0.00 (-1.00) | +0.75 (+0.50) |" in table
