@@ -28,10 +28,17 @@ The schedule rule of issue 54's scaling curve (written 2026-11-29, before any of
 step budget for 1x, 3x and 10x (``--steps 6000``: equal compute, so the curve measures the data, not the
 optimisation), the last checkpoint scored (no choice per size), on the test split of examples/dataset_scale.toml
 by family group, at 4x (``--scale 4``: the set also holds a 2x level); FuseSR and FuseSR-l, one thread each, two
-runs side by side:
+runs side by side. Each run is scored twice (added 2026-11-29, before any score): as trained, and with the bound the
+shipped weights of its name run with (``--score-options``: an inference option over the same weights, one more
+curve), since the shipped networks are what a scaled training would replace:
 
     .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr \
-        --multiples 1,3,10 --steps 6000 --model fusesr --threads 1
+        --multiples 1,3,10 --steps 6000 --model fusesr --threads 1 --score-options residual_clamp=lr-guided
+    .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr-l \
+        --multiples 1,3,10 --steps 6000 --model fusesr-l --threads 1 --score-options residual_clamp=lr-range
+
+Each family group's margin is given as its mean and its smallest clip; ``--score-options`` is checked before
+any training.
 """
 from __future__ import annotations
 
@@ -63,6 +70,10 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="fusesr")
     p.add_argument("--config", default=str(REPO / "benchmarks" / "pretrain.toml"))
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: the config's)")
+    p.add_argument("--score-options", default="",
+                   help="inference options each run is also scored with, ';'-separated variants of "
+                        "KEY=VALUE[&KEY=VALUE] (e.g. residual_clamp=lr-guided, the shipped FuseSR's bound): one more "
+                        "row per run and variant, its own curve")
     p.add_argument("--scale", type=int, default=4,
                    help="the upscaling factor every run trains on and is scored at (a dataset may hold several LR "
                         "levels: examples/dataset_scale.toml renders 4x and 2x)")
@@ -76,6 +87,11 @@ def main(argv=None) -> int:
     from training.inference.loading import load_model
     from training.train import train
 
+    try:
+        variants = ["", *score_variants(a.score_options)]
+    except ValueError as exc:
+        print(f"data_scaling: {exc}", file=sys.stderr)
+        return 2
     test_clips = [str(c) for c in split_clips(a.dataset, "test")]
     groups = training_groups(a.dataset, a.by)
     if a.multiples:
@@ -132,16 +148,19 @@ def main(argv=None) -> int:
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
     base = rows[-1]["by_family"]
-    for n, steps, clips, summary, run in fitted:
-        rows.append({"model": a.model, "clips": len(clips), a.by + "s": n, "steps": summary["step"],
-                     "train_clips": [c.name for c in clips], "elapsed_s": round(summary.get("elapsed_s", 0.0), 1),
-                     "hr_pixels": hr_pixels(a.dataset, clips), **score(str(run / "checkpoints" / "last.pt"))})
+    for (n, steps, clips, summary, run), opts in ((f, o) for f in fitted for o in variants):
+        spec = str(run / "checkpoints" / "last.pt") + (f"?{opts}" if opts else "")
+        rows.append({"model": a.model + (f"?{opts}" if opts else ""), "clips": len(clips), a.by + "s": n,
+                     "steps": summary["step"], "train_clips": [c.name for c in clips],
+                     "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), "hr_pixels": hr_pixels(a.dataset, clips),
+                     **score(spec)})
         rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
         rows[-1]["margin_min_by_family"] = smallest_margins(rows[-1]["per_clip"], rows[1]["per_clip"], family_of)
         print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
+                                             "score_options": variants[1:],
                                              "command": " ".join(sys.argv)})
     (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
                                     + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
@@ -152,10 +171,11 @@ def main(argv=None) -> int:
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     learned = [r for r in rows if r["clips"]]
     x = "steps" if len(counts) == 1 and len(budgets) > 1 else a.by + "s"
-    for steps in (budgets if x != "steps" else [None]):
-        pts = [r for r in learned if steps is None or r["steps"] == steps]
-        ax.plot([r[x] for r in pts], [r["psnr"] for r in pts], "o-",
-                label=f"{a.model}" + (f" ({steps} steps)" if steps else f" ({counts[0]} {a.by}s)"))
+    for label in dict.fromkeys(r["model"] for r in learned):
+        for steps in (budgets if x != "steps" else [None]):
+            pts = [r for r in learned if r["model"] == label and (steps is None or r["steps"] == steps)]
+            ax.plot([r[x] for r in pts], [r["psnr"] for r in pts], "o-",
+                    label=label + (f" ({steps} steps)" if steps else f" ({counts[0]} {a.by}s)"))
     for r, style in zip([r for r in rows if not r["clips"]], ("--", ":")):
         ax.axhline(r["psnr"], linestyle=style, color="grey", label=r["model"])
     ax.set_xscale("log")
@@ -183,18 +203,21 @@ def log_fit(xs: list[float], ys: list[float]) -> tuple[float, float] | None:
 
 
 def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> list[str]:
-    """Per family group: the fit of the margin over demod-jbu against the data size (multiples of ``unit``), its
-    gain per tenfold data, and what it predicts at ``at`` x."""
+    """Per model (a scored variant is its own: ``MODEL?OPTIONS``) and family group: the fit of the margin over
+    demod-jbu against the data size (multiples of ``unit``), its gain per tenfold data, and what it predicts at
+    ``at`` x. The lines name the model only when there are several."""
     learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
+    labels = list(dict.fromkeys(r["model"] for r in learned))
     out = []
-    for group in sorted({g for r in learned for g in r["margin_by_family"]}):
+    for label, group in ((m, g) for m in labels for g in sorted({g for r in learned for g in r["margin_by_family"]})):
         pts = [(r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
-               if group in r["margin_by_family"]]
+               if r["model"] == label and group in r["margin_by_family"]]
         fit = log_fit([x for x, _ in pts], [y for _, y in pts])
         if fit is None:
             continue
         a, b = (round(v, 6) + 0.0 for v in fit)  # no "-0.00"
-        out.append(f"- {group}: margin = {a:+.2f} {b:+.2f} log10(x) dB over {len(pts)} sizes "
+        name = f"`{label}` {group}" if len(labels) > 1 else group
+        out.append(f"- {name}: margin = {a:+.2f} {b:+.2f} log10(x) dB over {len(pts)} sizes "
                    f"({min(x for x, _ in pts):.1f}x to {max(x for x, _ in pts):.1f}x): {b:+.2f} dB per tenfold data; "
                    f"at {at:g}x it predicts {a + b * math.log10(at):+.2f} dB (an extrapolation)")
     return out
@@ -213,6 +236,25 @@ def report_table(rows: list[dict], by: str, unit: float) -> str:
         lines.append(f"| {r['model']} | {r.get(by + 's', '-')} | {r['clips'] or '-'} | {x} | {r['steps'] or '-'} | "
                      f"{r['psnr']:.2f} | {r['ssim']:.4f} | {cell('in-family')} | {cell('held-out')} | {per} |")
     return "\n".join(lines) + "\n"
+
+
+def score_variants(text: str) -> list[str]:
+    """``--score-options``: the ';'-separated variants, each checked before any training (a typo must not wait for
+    hours of it): KEY=VALUE pairs joined by '&', every KEY an inference option (``INFERENCE_OPTIONS``)."""
+    from training.inference.loading import split_spec
+    from training.models.options import INFERENCE_OPTIONS
+    out = []
+    for v in (v.strip() for v in text.split(";") if v.strip()):
+        try:
+            _, items = split_spec(f"run?{v}")
+        except Exception as exc:  # BlendSRError: one line
+            raise ValueError(f"--score-options {v!r}: {exc}") from None
+        bad = [i.partition("=")[0].strip() for i in items if i.partition("=")[0].strip() not in INFERENCE_OPTIONS]
+        if bad:
+            raise ValueError(f"--score-options {v!r}: {', '.join(bad)} is not an inference option (choose from "
+                             f"{', '.join(INFERENCE_OPTIONS)})")
+        out.append(v)
+    return out
 
 
 def smallest_margins(per_clip: dict[str, float], base: dict[str, float], family_of: dict[str, str]) -> dict:

@@ -93,3 +93,22 @@ def test_each_family_group_reports_its_worst_clip_beside_its_mean():
            "margin_min_by_family": {"in-family": -1.0, "held-out": 0.5}}
     table = data_scaling.report_table([row], "clip", 100.0)
     assert "| +0.00 (-1.00) | +0.75 (+0.50) |" in table
+
+
+def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tmp_path):
+    assert data_scaling.score_variants("residual_clamp=lr-guided; ;residual_clamp=lr-range&residual_clamp_margin=0.5") \
+        == ["residual_clamp=lr-guided", "residual_clamp=lr-range&residual_clamp_margin=0.5"]
+    with pytest.raises(ValueError, match="width is not an inference option"):
+        data_scaling.score_variants("width=3")
+    with pytest.raises(ValueError, match="expected MODEL"):
+        data_scaling.score_variants("residual_clamp")
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)])
+    assert data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--score-options", "lr=1"]) == 2
+    unit = 1.0
+    rows = [{"model": m, "hr_pixels": x, "margin_by_family": {"held-out": y}}
+            for m, pts in (("fusesr", ((1, 1.0), (10, 2.0))), ("fusesr?residual_clamp=lr-guided", ((1, 1.5), (10, 1.5))))
+            for x, y in pts]
+    lines = data_scaling.extrapolation_lines(rows, unit)
+    assert lines[0].startswith("- `fusesr` held-out: margin = +1.00 +1.00 log10(x)"), lines
+    assert lines[1].startswith("- `fusesr?residual_clamp=lr-guided` held-out: margin = +1.50 +0.00"), lines
