@@ -14,6 +14,10 @@ PSNR, SSIM and tPSNR do not fall, all on val); ``--force`` writes them anyway (t
 The val clips the rule reads are the held-out-family ones when the index has any (``--val-group auto``, issue 54:
 a network is chosen by what it does on families it never trained on), else all of them; ``--val-group all`` or
 ``held-out`` forces one. The JSON records which (``val_group``).
+
+``--options MODEL?KEY=VALUE[&...]`` scores a run with inference options (``INFERENCE_OPTIONS``, e.g.
+``fusesr?residual_clamp=lr-guided``: a bound over the same weights) and writes them into the released weights'
+configuration, so what the val rule chose is what ships.
 """
 from __future__ import annotations
 
@@ -134,6 +138,28 @@ def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str]
     return list(val), "all"
 
 
+def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
+    """``--options`` values 'MODEL?KEY=VALUE&...' -> {MODEL: ['KEY=VALUE', ...]}; ValueError (one line) for a model
+    not in ``models`` or a key that is not an inference option."""
+    from training.inference.loading import split_spec
+    from training.models.options import INFERENCE_OPTIONS
+    out: dict[str, list[str]] = {}
+    for item in items:
+        try:
+            name, opts = split_spec(item)
+        except Exception as exc:  # BlendSRError: one line
+            raise ValueError(f"--options {item!r}: {exc}") from None
+        if name not in models or not opts:
+            raise ValueError(f"--options {item!r}: expected MODEL?KEY=VALUE with MODEL one of --models "
+                             f"({', '.join(models)})")
+        bad = [o.partition("=")[0] for o in opts if o.partition("=")[0].strip() not in INFERENCE_OPTIONS]
+        if bad:
+            raise ValueError(f"--options {item!r}: {', '.join(bad)} is not an inference option "
+                             f"({', '.join(INFERENCE_OPTIONS)})")
+        out.setdefault(name, []).extend(opts)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
@@ -145,6 +171,8 @@ def main(argv=None) -> int:
     p.add_argument("--force", action="store_true", help="write the weights even when the val rule keeps the shipped ones")
     p.add_argument("--attach", action="append", default=[], metavar="KEY=FILE",
                    help="a JSON file put under KEY in every weight file's JSON (e.g. scale curves)")
+    p.add_argument("--options", action="append", default=[], metavar="MODEL?KEY=VALUE[&...]",
+                   help="inference options a run is scored and released with (e.g. fusesr?residual_clamp=lr-guided)")
     p.add_argument("--val-group", choices=VAL_GROUPS, default="auto",
                    help="the val clips the val rule reads: held-out-family ones (auto: when there are any), or all")
     a = p.parse_args(argv)
@@ -157,6 +185,7 @@ def main(argv=None) -> int:
 
     test = [str(c) for c in split_clips(a.dataset, "test")]
     try:
+        options = model_options(a.options, a.models.split(","))
         val, val_group = rule_val_clips(a.dataset, [str(c) for c in split_clips(a.dataset, "val")], a.val_group)
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
@@ -180,17 +209,19 @@ def main(argv=None) -> int:
         file = PRETRAINED[name]
         run = a.runs / name.replace("-", "_")
         ck = run / "checkpoints" / "last.pt"
+        cand = str(ck) + ("?" + "&".join(options[name]) if name in options else "")  # the run as scored and shipped
         if not ck.is_file():
             print(f"skip {name}: {ck} not found", file=sys.stderr)
             continue
-        verdict, cand_val = None, score(str(ck), val, full=True) if val else None  # scored once, used twice
+        verdict, cand_val = None, score(cand, val, full=True) if val else None  # scored once, used twice
         if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose
             verdict = choose(cand_val, score(f"pretrained:{name}", val, full=True))
             print(verdict.line(name), file=sys.stderr)
             if not verdict.replace and not a.force:
                 continue
-        s = {**score(str(ck)), "steps": int(load_checkpoint(ck)["step"])}
+        loaded = load_checkpoint(ck)
+        s = {**score(cand), "steps": int(loaded["step"])}
         meta = {
             "model": name, "scale": 4, "date": out["date"],
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
@@ -212,7 +243,11 @@ def main(argv=None) -> int:
         for item in a.attach:
             key, _, path = item.partition("=")
             meta[key] = json.loads(Path(path).read_text())
-        meta = release(ck, WEIGHTS_DIR / file, meta)
+        if name in options:  # the options become the shipped configuration's
+            from training.inference.loading import with_inference_options
+            loaded["config"] = with_inference_options(loaded["config"], options[name], cand)
+            meta["inference_options"] = options[name]
+        meta = release(loaded, WEIGHTS_DIR / file, meta)
         out["models"][name] = meta
         print(f"{name}: test PSNR {s['psnr']:.2f} dB (demod-jbu {baselines['demod-jbu']['psnr']:.2f}, "
               f"{meta['gain_over_demod_jbu_db']:+.2f} dB), {meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")

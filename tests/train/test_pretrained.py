@@ -17,6 +17,7 @@ from training.inference.loading import ClipFrames, load_model, upscale_frame  # 
 from training.checkpoint import load_checkpoint  # noqa: E402
 from training.trainer import param_digest  # noqa: E402
 from training.train import train  # noqa: E402
+from tests.conftest import REPO  # noqa: E402
 
 SMALL = ["data.crop=8", "data.batch_size=2", "model.width=16", "model.blocks=1", "run.progress=false",
          "run.amp=\"none\"", "run.threads=0"]
@@ -199,3 +200,32 @@ def test_bench_models_scores_an_any_scale_network_at_the_clips_lr_level_only(tmp
     row = next(r for r in out["rows"] if r["model"] == "pretrained:fourier-sr")
     assert set(per_scale) == {"2", "4"} and per_scale["2"]["psnr"] != per_scale["4"]["psnr"]
     assert row["psnr"] == pytest.approx(per_scale["4"]["psnr"], abs=1e-3)
+
+
+def test_inference_options_chosen_by_the_val_rule_are_written_into_the_released_weights(run, clip, tmp_path):
+    """benchmarks/release_weights.py --options: the run is scored with a bound over its weights and released with
+    it, so the shipped file runs as it was chosen (the same output as the checkpoint with '?OPTIONS')."""
+    import importlib.util
+
+    from training.checkpoint import load_checkpoint
+    from training.inference.loading import with_inference_options
+    from training.release import release
+    spec = importlib.util.spec_from_file_location("release_weights", REPO / "benchmarks" / "release_weights.py")
+    rw = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rw)
+    opts = rw.model_options(["fusesr-l?residual_clamp=lr-range"], ["fusesr", "fusesr-l"])
+    assert opts == {"fusesr-l": ["residual_clamp=lr-range"]}
+    for bad, why in (("fusesr-l?width=3", "width is not an inference option"), ("nsrd?residual_clamp=lr-range",
+                     "MODEL one of --models"), ("fusesr-l", "MODEL one of --models")):
+        with pytest.raises(ValueError, match=why):
+            rw.model_options([bad], ["fusesr", "fusesr-l"])
+    ck = run / "checkpoints" / "last.pt"
+    loaded = load_checkpoint(ck)
+    loaded["config"] = with_inference_options(loaded["config"], opts["fusesr-l"], str(ck))
+    release(loaded, tmp_path / "w.safetensors", {"model": "fusesr-l"})
+    shipped = load_model(str(tmp_path / "w.safetensors"), 4)
+    assert shipped.config.model.options.residual_clamp == "lr-range"
+    src = ClipFrames(str(clip))
+    a = upscale_frame(load_model(f"{ck}?residual_clamp=lr-range", 4), src, 2)["sr"]
+    b = upscale_frame(shipped, src, 2)["sr"]
+    assert np.abs(a - b).max() <= 2e-3 * max(1.0, float(np.abs(a).max()))  # fp16 weights
