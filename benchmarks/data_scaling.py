@@ -38,7 +38,11 @@ curve), since the shipped networks are what a scaled training would replace:
         --multiples 1,3,10 --steps 6000 --model fusesr-l --threads 1 --score-options residual_clamp=lr-range
 
 Each family group's margin is given as its mean and its smallest clip; ``--score-options`` is checked before
-any training.
+any training. With ``--multiples`` the plot is the margin over demod-jbu per family group against the data size;
+``--combine A/scaling.json B/scaling.json -o OUT`` puts both models' curves in one table and one plot (results page):
+
+    .venv/bin/python benchmarks/data_scaling.py - -o docs/bench/scaling-families --combine \
+        docs/bench/scaling-families/fusesr/scaling.json docs/bench/scaling-families/fusesr-l/scaling.json
 """
 from __future__ import annotations
 
@@ -77,7 +81,11 @@ def main(argv=None) -> int:
     p.add_argument("--scale", type=int, default=4,
                    help="the upscaling factor every run trains on and is scored at (a dataset may hold several LR "
                         "levels: examples/dataset_scale.toml renders 4x and 2x)")
+    p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
+                   help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
     a = p.parse_args(argv)
+    if a.combine:
+        return combine(a.combine, a.output)
 
     import torch
     from gbuffer_export.clip import write_json_atomic
@@ -165,6 +173,10 @@ def main(argv=None) -> int:
     (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
                                     + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
 
+    if a.multiples:  # sized by HR pixels: the margins per family group against the data size
+        plot_margins(rows, a.unit_pixels, out / "scaling.png")
+        print((out / "scaling.md").read_text())
+        return 0
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -187,6 +199,74 @@ def main(argv=None) -> int:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(out / "scaling.png")
+    print((out / "scaling.md").read_text())
+    return 0
+
+
+def margin_series(rows: list[dict], unit: float) -> list[tuple[str, str, list[float], list[float]]]:
+    """(model, family group, data sizes as multiples of ``unit``, margins over demod-jbu in dB) per curve of
+    ``rows`` (those with HR pixels and margins), each sorted by size."""
+    learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
+    out = []
+    for label in dict.fromkeys(r["model"] for r in learned):
+        for group in sorted({g for r in learned for g in r["margin_by_family"]}):
+            pts = sorted((r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
+                         if r["model"] == label and group in r["margin_by_family"])
+            if pts:
+                out.append((label, group, [x for x, _ in pts], [y for _, y in pts]))
+    return out
+
+
+def plot_margins(rows: list[dict], unit: float, path: Path) -> list[tuple[str, str, list[float], list[float]]]:
+    """The scaling plot: per model and family group, the mean margin over demod-jbu (dB; demod-jbu is the 0 line)
+    against the training data in multiples of ``unit`` HR pixels, log x; held-out families solid, in-family dashed.
+    Returns the series drawn (``margin_series``)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    series = margin_series(rows, unit)
+    fig, ax = plt.subplots(figsize=(5.5, 3.4), dpi=120)
+    colors = {}
+    for label, group, xs, ys in series:
+        color = colors.setdefault(label, f"C{len(colors)}")
+        ax.plot(xs, ys, "o-" if group != "in-family" else "s--", color=color, label=f"{label}, {group}")
+    ax.axhline(0.0, color="grey", linestyle=":", label="demod-jbu")
+    ax.set_xscale("log")
+    ticks = sorted({x for _, _, xs, _ in series for x in xs})
+    ax.set_xticks(ticks, [f"{x:.1f}x" for x in ticks])
+    ax.minorticks_off()
+    ax.set_xlabel(f"training data (x {unit / 1e6:.1f} M HR pixels)")
+    ax.set_ylabel("margin over demod-jbu, test (dB)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+    return series
+
+
+def combine(records: list[Path], out: Path) -> int:
+    """``--combine``: one table, one set of fits and one plot from several scaling.json (FuseSR's and FuseSR-l's
+    curves side by side; the baselines' rows once) into OUT/scaling.md and OUT/scaling.png."""
+    rows, seen, unit, by = [], set(), None, "clip"
+    for rec in records:
+        try:
+            data = json.loads(Path(rec).read_text())
+            unit = unit or float(data["unit_pixels"])
+            by = data.get("by", by)
+            new = [r for r in data["rows"] if r["clips"] or r["model"] not in seen]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            print(f"data_scaling: {rec}: not a scaling.json of data_scaling.py --multiples ({exc})", file=sys.stderr)
+            return 2
+        seen |= {r["model"] for r in new if not r["clips"]}
+        rows += new
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scaling.md").write_text(report_table(rows, by, unit) + "\n" + "\n".join(extrapolation_lines(rows, unit))
+                                    + "\n")
+    plot_margins(rows, unit, out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
 

@@ -112,3 +112,27 @@ def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tm
     lines = data_scaling.extrapolation_lines(rows, unit)
     assert lines[0].startswith("- `fusesr` held-out: margin = +1.00 +1.00 log10(x)"), lines
     assert lines[1].startswith("- `fusesr?residual_clamp=lr-guided` held-out: margin = +1.50 +0.00"), lines
+
+
+def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_path):
+    base = [{"model": "demod-bilinear", "clips": 0, "steps": 0, "psnr": 20.0, "ssim": 0.5, "per_clip": {}},
+            {"model": "demod-jbu", "clips": 0, "steps": 0, "psnr": 21.0, "ssim": 0.6, "per_clip": {}}]
+
+    def run(model, x, held, fam):
+        return {"model": model, "clips": 3, "steps": 10, "psnr": 22.0, "ssim": 0.7, "per_clip": {},
+                "hr_pixels": x * 100, "margin_by_family": {"held-out": held, "in-family": fam}}
+    for name, rows in (("a", [run("fusesr", 10, 2.0, 3.0), run("fusesr", 1, 1.0, 2.5)]),
+                       ("b", [run("fusesr-l", 1, 0.5, 1.0), run("fusesr-l", 10, 0.7, 1.5)])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "scaling.json").write_text(json.dumps({"rows": base + rows, "unit_pixels": 100.0}))
+    out = tmp_path / "both"
+    assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "a/scaling.json"),
+                              str(tmp_path / "b/scaling.json")]) == 0
+    table = (out / "scaling.md").read_text()
+    assert table.count("| demod-jbu |") == 1 and table.count("| fusesr |") == 2 and table.count("| fusesr-l |") == 2
+    assert "`fusesr-l` held-out: margin = +0.50 +0.20 log10(x)" in table, table
+    assert (out / "scaling.png").stat().st_size > 1000
+    series = data_scaling.margin_series(json.loads((tmp_path / "a/scaling.json").read_text())["rows"], 100.0)
+    assert series == [("fusesr", "held-out", [1.0, 10.0], [1.0, 2.0]), ("fusesr", "in-family", [1.0, 10.0], [2.5, 3.0])]
+    (tmp_path / "bad.json").write_text("{}")
+    assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "bad.json")]) == 2
