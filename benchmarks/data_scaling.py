@@ -50,6 +50,7 @@ import argparse
 import functools
 import math
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -64,12 +65,15 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True)
-    p.add_argument("--counts", default="1,4,16,all", help="numbers of training clips or scenes ('all' = the whole split)")
-    p.add_argument("--multiples", default="", help="sizes as multiples of --unit-pixels HR pixels instead of --counts")
+    p.add_argument("--counts", default="1,4,16,all",
+                   help="numbers of training clips or scenes ('all' = the whole split)")
+    p.add_argument("--multiples", default="",
+                   help="sizes as multiples of --unit-pixels HR pixels instead of --counts")
     p.add_argument("--unit-pixels", type=float, default=WIDE_TRAIN_HR_PIXELS,
                    help="HR pixels of one multiple (default: the wide set's train split, %(default)d)")
     p.add_argument("--by", choices=("clip", "scene"), default="clip", help="what --counts counts")
-    p.add_argument("--steps", default="500", help="optimiser steps of every run; a comma list trains one run per budget")
+    p.add_argument("--steps", default="500",
+                   help="optimiser steps of every run; a comma list trains one run per budget")
     p.add_argument("--runs", type=Path, help="folder of the training runs (default: OUT)")
     p.add_argument("--model", default="fusesr")
     p.add_argument("--config", default=str(REPO / "benchmarks" / "pretrain.toml"))
@@ -140,6 +144,7 @@ def main(argv=None) -> int:
             overrides.append(f"run.threads={a.threads}")
         cfg = load_config(a.config, overrides)
         cfg.data.clips = [str(c) for c in clips]
+        write_command(run, argv)
         done = run / "summary.json"
         if done.is_file() and json.loads(done.read_text()).get("step") == steps:
             return clips, json.loads(done.read_text()), run  # finished earlier: score it only
@@ -307,7 +312,8 @@ def report_table(rows: list[dict], by: str, unit: float) -> str:
     """scaling.md: per run its size (groups, clips, HR pixels as multiples of ``unit``), steps, test PSNR and SSIM,
     the margin over demod-jbu per family group (mean, and its smallest clip), and the per-clip PSNR."""
     lines = [f"| training data | {by}s | clips | x (HR pixels) | steps | test PSNR (dB) | test SSIM | margin in-family "
-             "(smallest) | margin held-out (smallest) | per test clip (dB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "(smallest) | margin held-out (smallest) | per test clip (dB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
         m, lo = r.get("margin_by_family", {}), r.get("margin_min_by_family", {})
@@ -316,6 +322,17 @@ def report_table(rows: list[dict], by: str, unit: float) -> str:
         lines.append(f"| {r['model']} | {r.get(by + 's', '-')} | {r['clips'] or '-'} | {x} | {r['steps'] or '-'} | "
                      f"{r['psnr']:.2f} | {r['ssim']:.4f} | {cell('in-family')} | {cell('held-out')} | {per} |")
     return "\n".join(lines) + "\n"
+
+
+def write_command(run: Path, argv) -> None:
+    """RUN/command.txt: the command that trains the run (this script's, which also sizes its subset), for
+    benchmarks/release_weights.py (``--run MODEL=RUN --script ''``); kept when the run resumes."""
+    from training.run import write_text_atomic
+    path = run / "command.txt"
+    if not path.is_file():
+        run.mkdir(parents=True, exist_ok=True)
+        words = list(sys.argv[1:] if argv is None else argv)
+        write_text_atomic(path, shlex.join([".venv/bin/python", "benchmarks/data_scaling.py", *words]) + "\n")
 
 
 def score_variants(text: str) -> list[str]:

@@ -34,9 +34,12 @@ sys.path.insert(0, str(REPO))
 
 
 def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
-    """The commands that remake the weights of ``name``: the script's, then the training command (the run's
+    """The commands that remake the weights of ``name``: the script's (none with ``--script ''``: the run's
+    command.txt is the whole command, as benchmarks/data_scaling.py writes it), then the training command (the run's
     command.txt, written by benchmarks/zoo.sh, else benchmarks/pretrain.sh's form)."""
     cmd = run / "command.txt"
+    if not a.script and cmd.is_file():
+        return [*earlier_stages(run), cmd.read_text().strip()]
     if a.script == "benchmarks/pretrain.sh":
         spec = "" if "SPEC=" in (a.env or "") else f"SPEC={index['spec']['file']} "  # --env may name it already
         script = f"{spec}{a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
@@ -138,6 +141,27 @@ def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str]
     return list(val), "all"
 
 
+def named_runs(items: list[str], models: list[str]) -> dict[str, Path]:
+    """``--run MODEL=DIR`` values -> {MODEL: DIR}; ValueError (one line) for another model or a folder without
+    checkpoints/last.pt."""
+    out = {}
+    for item in items:
+        name, sep, folder = item.partition("=")
+        if not sep or name not in models:
+            raise ValueError(f"--run {item!r}: expected MODEL=DIR with MODEL one of --models ({', '.join(models)})")
+        if not (Path(folder) / "checkpoints" / "last.pt").is_file():
+            raise ValueError(f"--run {item!r}: {folder} holds no checkpoints/last.pt")
+        out[name] = Path(folder)
+    return out
+
+
+def trained_on(ck: dict, split: list[str]) -> list[str]:
+    """The clip names a run trained on: its configuration's ``data.clips`` (a subset such as a scaling run's), else
+    the dataset's train split ``split``."""
+    clips = (ck.get("config") or {}).get("data", {}).get("clips") or []
+    return [Path(c).name for c in clips] or split
+
+
 def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
     """``--options`` values 'MODEL?KEY=VALUE&...' -> {MODEL: ['KEY=VALUE', ...]}; ValueError (one line) for a model
     not in ``models`` or a key that is not an inference option."""
@@ -168,11 +192,15 @@ def main(argv=None) -> int:
     p.add_argument("--script", default="benchmarks/pretrain.sh", help="the script that made RUNS (for the JSON)")
     p.add_argument("--env", default="", help="the variables the script ran with, as written before it in the "
                                              "JSON's command (e.g. \"INIT='pretrained:<M>' LR=2e-4\")")
-    p.add_argument("--force", action="store_true", help="write the weights even when the val rule keeps the shipped ones")
+    p.add_argument("--force", action="store_true",
+                   help="write the weights even when the val rule keeps the shipped ones")
     p.add_argument("--attach", action="append", default=[], metavar="KEY=FILE",
                    help="a JSON file put under KEY in every weight file's JSON (e.g. scale curves)")
     p.add_argument("--options", action="append", default=[], metavar="MODEL?KEY=VALUE[&...]",
                    help="inference options a run is scored and released with (e.g. fusesr?residual_clamp=lr-guided)")
+    p.add_argument("--run", action="append", default=[], metavar="MODEL=DIR",
+                   help="the run of MODEL (default RUNS/<MODEL with _ for ->), e.g. one of "
+                        "benchmarks/data_scaling.py")
     p.add_argument("--val-group", choices=VAL_GROUPS, default="auto",
                    help="the val clips the val rule reads: held-out-family ones (auto: when there are any), or all")
     a = p.parse_args(argv)
@@ -186,6 +214,7 @@ def main(argv=None) -> int:
     test = [str(c) for c in split_clips(a.dataset, "test")]
     try:
         options = model_options(a.options, a.models.split(","))
+        run_dirs = named_runs(a.run, a.models.split(","))
         val, val_group = rule_val_clips(a.dataset, [str(c) for c in split_clips(a.dataset, "val")], a.val_group)
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
@@ -207,7 +236,7 @@ def main(argv=None) -> int:
             print(f"--models: {name!r} is not in training.pretrained.PRETRAINED", file=sys.stderr)
             return 2
         file = PRETRAINED[name]
-        run = a.runs / name.replace("-", "_")
+        run = run_dirs.get(name, a.runs / name.replace("-", "_"))
         ck = run / "checkpoints" / "last.pt"
         cand = str(ck) + ("?" + "&".join(options[name]) if name in options else "")  # the run as scored and shipped
         if not ck.is_file():
@@ -225,7 +254,7 @@ def main(argv=None) -> int:
         meta = {
             "model": name, "scale": 4, "date": out["date"],
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
-                        "name": index["name"], "train_clips": train, "val_clips": out["val_clips"],
+                        "name": index["name"], "train_clips": trained_on(loaded, train), "val_clips": out["val_clips"],
                         "test_clips": out["test_clips"]},
             "commands": commands(a, index, name, run, s["steps"]),
             "config": config_of(run),

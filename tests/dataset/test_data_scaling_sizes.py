@@ -107,7 +107,8 @@ def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tm
     assert data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--score-options", "lr=1"]) == 2
     unit = 1.0
     rows = [{"model": m, "hr_pixels": x, "margin_by_family": {"held-out": y}}
-            for m, pts in (("fusesr", ((1, 1.0), (10, 2.0))), ("fusesr?residual_clamp=lr-guided", ((1, 1.5), (10, 1.5))))
+            for m, pts in (("fusesr", ((1, 1.0), (10, 2.0))),
+                           ("fusesr?residual_clamp=lr-guided", ((1, 1.5), (10, 1.5))))
             for x, y in pts]
     lines = data_scaling.extrapolation_lines(rows, unit)
     assert lines[0].startswith("- `fusesr` held-out: margin = +1.00 +1.00 log10(x)"), lines

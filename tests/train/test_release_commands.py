@@ -119,3 +119,29 @@ def test_the_val_rule_reads_the_held_out_family_val_clips_when_there_are_any(tmp
     assert rw.rule_val_clips(tmp_path / "plain", plain, "auto") == (plain, "all")
     with pytest.raises(ValueError, match="no finished val clip of the index is held-out-family"):
         rw.rule_val_clips(tmp_path / "plain", plain, "held-out")
+
+
+def test_a_scaling_run_is_released_from_its_own_folder_with_its_own_command_and_clips(tmp_path):
+    """release_weights --run MODEL=DIR --script '': a run of benchmarks/data_scaling.py (its command.txt, written
+    there, is the whole command) trained on a subset: the JSON lists the subset, not the whole train split."""
+    import sys
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import data_scaling
+    rw = _module()
+    run = tmp_path / "fusesr_470clips"
+    data_scaling.write_command(run, ["datasets/scale", "-o", "out dir", "--model", "fusesr"])
+    data_scaling.write_command(run, ["other"])  # kept when the run resumes
+    text = (run / "command.txt").read_text()
+    assert text == ".venv/bin/python benchmarks/data_scaling.py datasets/scale -o 'out dir' --model fusesr\n"
+    args = SimpleNamespace(script="", env="", dataset="ds", runs=tmp_path)
+    assert rw.commands(args, {"spec": {"file": "s.toml"}}, "fusesr", run, 10) == [text.strip()]
+    with pytest.raises(ValueError, match="holds no checkpoints/last.pt"):
+        rw.named_runs([f"fusesr={run}"], ["fusesr"])
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "last.pt").write_bytes(b"")
+    assert rw.named_runs([f"fusesr={run}"], ["fusesr", "fusesr-l"]) == {"fusesr": run}
+    with pytest.raises(ValueError, match="MODEL one of --models"):
+        rw.named_runs([f"nsrd={run}"], ["fusesr"])
+    ck = {"config": {"data": {"clips": ["/d/clips/a", "/d/clips/b"]}}}
+    assert rw.trained_on(ck, ["a", "b", "c"]) == ["a", "b"]
+    assert rw.trained_on({"config": {"data": {}}}, ["a", "b", "c"]) == ["a", "b", "c"]
