@@ -14,8 +14,9 @@ OUT/scaling.md (the table, and per family group the margin's fit ``a + b log10(x
 
 The subsets are taken from the planned train split, so they do not change while a dataset renders: a run trains
 once all its clips are rendered (and valid), and the scores wait until every run is trained and the test split is
-whole (exit 3 until then; rerun the same command). ``blendsr dataset ... --order mixed`` renders in the same order,
-so the smallest subsets are ready first.
+whole (exit 3 until then; rerun the same command, or pass ``--wait MINUTES`` to look again every MINUTES beside the
+render: each run then trains as soon as its clips are). ``blendsr dataset ... --order mixed`` renders in the same
+order, so the smallest subsets are ready first.
 
 ``--multiples 1,3,10`` sizes the nested subsets by HR pixels instead: the smallest prefix of the ordered groups
 whose HR pixels (frames x width x height, from the index) reach each multiple of ``--unit-pixels`` (default: the
@@ -33,9 +34,9 @@ shipped weights of its name run with (``--score-options``: an inference option o
 curve), since the shipped networks are what a scaled training would replace:
 
     .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr \
-        --multiples 1,3,10 --steps 6000 --model fusesr --threads 1 --score-options residual_clamp=lr-guided
+        --multiples 1,3,10 --steps 6000 --model fusesr --threads 1 --score-options residual_clamp=lr-guided --wait 10
     .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr-l \
-        --multiples 1,3,10 --steps 6000 --model fusesr-l --threads 1 --score-options residual_clamp=lr-range
+        --multiples 1,3,10 --steps 6000 --model fusesr-l --threads 1 --score-options residual_clamp=lr-range --wait 10
 
 Each family group's margin is given as its mean and its smallest clip; ``--score-options`` is checked before
 any training. With ``--multiples`` the plot is the margin over demod-jbu per family group against the data size;
@@ -52,6 +53,7 @@ import math
 import json
 import shlex
 import sys
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -85,6 +87,9 @@ def main(argv=None) -> int:
     p.add_argument("--scale", type=int, default=4,
                    help="the upscaling factor every run trains on and is scored at (a dataset may hold several LR "
                         "levels: examples/dataset_scale.toml renders 4x and 2x)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="MINUTES",
+                   help="while runs wait for clips or the test split is not whole: look again every MINUTES (a "
+                        "run trains as soon as its clips are rendered) instead of exiting 3; 0: exit")
     p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
                    help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
     a = p.parse_args(argv)
@@ -127,7 +132,7 @@ def main(argv=None) -> int:
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
                 "artifact_pixels": r["mean"].get("artifact_pixels")}
 
-    done_train = set(split_clips(a.dataset, "train"))
+    done_train: set[Path] = set()  # what fit() may train on, read again on every pass
     test_planned = len(split_clips(a.dataset, "test", done_only=False))
 
     def fit(n: int, steps: int) -> tuple[list[Path], dict | None, Path]:
@@ -150,12 +155,20 @@ def main(argv=None) -> int:
             return clips, json.loads(done.read_text()), run  # finished earlier: score it only
         return clips, train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file()), run
 
-    fitted = [(n, steps, *fit(n, steps)) for steps in budgets for n in counts]
-    if len(test_clips) < test_planned or any(summary is None for *_, summary, _ in fitted):
+    while True:  # with --wait: train each run as soon as its clips are rendered, score when all are
+        done_train.clear()
+        done_train.update(split_clips(a.dataset, "train"))
+        test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
+        fitted = [(n, steps, *fit(n, steps)) for steps in budgets for n in counts]
+        if len(test_clips) == test_planned and all(summary is not None for *_, summary, _ in fitted):
+            break
         print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
-              f"{len(test_clips)} of {test_planned} clips rendered: no "
-              f"scores until every run is trained and the test split is whole (rerun the same command)")
-        return 3
+              f"{len(test_clips)} of {test_planned} clips rendered: no scores until every run is trained and the "
+              f"test split is whole ({f'again in {a.wait:g} min' if a.wait else 'rerun the same command'})",
+              flush=True)
+        if not a.wait:
+            return 3
+        time.sleep(a.wait * 60)
     rows = []
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})

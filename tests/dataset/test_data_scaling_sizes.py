@@ -137,3 +137,23 @@ def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_p
     assert series == [("fusesr", "held-out", [1.0, 10.0], [1.0, 2.0]), ("fusesr", "in-family", [1.0, 10.0], [2.5, 3.0])]
     (tmp_path / "bad.json").write_text("{}")
     assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "bad.json")]) == 2
+
+
+def test_wait_looks_again_until_the_runs_can_train(tmp_path, capsys, monkeypatch):
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)] * 3)
+    naps = []
+
+    class Stop(Exception):
+        pass
+
+    def nap(seconds):
+        naps.append(seconds)
+        if len(naps) == 2:
+            raise Stop
+    monkeypatch.setattr(data_scaling.time, "sleep", nap)
+    with pytest.raises(Stop):
+        data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--multiples", "1", "--unit-pixels", "200",
+                           "--steps", "2", "--wait", "0.5"])
+    out = capsys.readouterr().out
+    assert naps == [30.0, 30.0] and out.count("0 of 1 runs trained") == 2 and "again in 0.5 min" in out, out
