@@ -104,8 +104,12 @@ def main(argv=None) -> int:
     from training.inference.loading import load_model
     from training.train import train
 
+    if a.wait < 0:
+        print(f"data_scaling: --wait {a.wait:g}: minutes must be 0 (exit 3 while waiting) or more", file=sys.stderr)
+        return 2
     try:
-        variants = ["", *score_variants(a.score_options)]
+        trained_as = load_config(a.config, [f'model.name="{a.model}"', f"model.scale={a.scale}"]).to_dict()
+        variants = ["", *score_variants(a.score_options, trained_as)]
     except ValueError as exc:
         print(f"data_scaling: {exc}", file=sys.stderr)
         return 2
@@ -153,9 +157,21 @@ def main(argv=None) -> int:
         done = run / "summary.json"
         if done.is_file() and json.loads(done.read_text()).get("step") == steps:
             return clips, json.loads(done.read_text()), run  # finished earlier: score it only
-        return clips, train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file()), run
+        summary = train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file())
+        if summary.get("step") != steps:  # stopped early (a signal): not a point of the equal-compute curve
+            raise SystemExit(f"data_scaling: {run.name} stopped at step {summary.get('step')} of {steps} "
+                             f"({summary.get('stopped_by')}); rerun the same command to resume it")
+        return clips, summary, run
 
+    needed = {c.name for g in groups[:max(counts)] for c in g[1]} | {
+        c.name for c in split_clips(a.dataset, "test", done_only=False)}
     while True:  # with --wait: train each run as soon as its clips are rendered, score when all are
+        never = never_ready(a.dataset, needed)
+        if never:
+            print(f"data_scaling: {a.dataset}: {len(never)} clips the curve needs are marked invalid in the index "
+                  f"({', '.join(never[:5])}{', ...' if len(never) > 5 else ''}); they never become ready: render "
+                  "them again (blendsr validate says why) or take them out of the spec", file=sys.stderr)
+            return 3
         done_train.clear()
         done_train.update(split_clips(a.dataset, "train"))
         test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
@@ -173,7 +189,8 @@ def main(argv=None) -> int:
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
-    base = rows[-1]["by_family"]
+    jbu = rows[-1]
+    base = jbu["by_family"]
     for (n, steps, clips, summary, run), opts in ((f, o) for f in fitted for o in variants):
         spec = str(run / "checkpoints" / "last.pt") + (f"?{opts}" if opts else "")
         rows.append({"model": a.model + (f"?{opts}" if opts else ""), "clips": len(clips), a.by + "s": n,
@@ -181,13 +198,13 @@ def main(argv=None) -> int:
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), "hr_pixels": hr_pixels(a.dataset, clips),
                      **score(spec)})
         rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
-        rows[-1]["margin_min_by_family"] = smallest_margins(rows[-1]["per_clip"], rows[1]["per_clip"], family_of)
+        rows[-1]["margin_min_by_family"] = smallest_margins(rows[-1]["per_clip"], jbu["per_clip"], family_of)
         print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "score_options": variants[1:],
-                                             "command": " ".join(sys.argv)})
+                                             "command": command_line(argv)})
     (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
                                     + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
 
@@ -269,7 +286,7 @@ def plot_margins(rows: list[dict], unit: float, path: Path) -> list[tuple[str, s
 def combine(records: list[Path], out: Path) -> int:
     """``--combine``: one table, one set of fits and one plot from several scaling.json (FuseSR's and FuseSR-l's
     curves side by side; the baselines' rows once) into OUT/scaling.md and OUT/scaling.png."""
-    rows, seen, unit, by = [], set(), None, "clip"
+    rows, seen, unit, by, first = [], set(), None, "clip", None
     for rec in records:
         try:
             data = json.loads(Path(rec).read_text())
@@ -278,6 +295,13 @@ def combine(records: list[Path], out: Path) -> int:
             new = [r for r in data["rows"] if r["clips"] or r["model"] not in seen]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             print(f"data_scaling: {rec}: not a scaling.json of data_scaling.py --multiples ({exc})", file=sys.stderr)
+            return 2
+        same = {k: data.get(k) for k in ("dataset", "test_clips", "unit_pixels", "by")}
+        first = first or (rec, same)
+        differ = [k for k in same if same[k] != first[1][k]]
+        if differ:
+            print(f"data_scaling: {rec}: its {', '.join(differ)} differ from {first[0]}'s: the curves are not "
+                  "comparable", file=sys.stderr)
             return 2
         seen |= {r["model"] for r in new if not r["clips"]}
         rows += new
@@ -337,6 +361,14 @@ def report_table(rows: list[dict], by: str, unit: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def never_ready(dataset: Path, needed: set[str]) -> list[str]:
+    """The clips of ``needed`` (folder names) that the index marks ``invalid``: ``split_clips`` leaves them out for
+    good, so a run or the test split waiting for them would wait forever."""
+    from gbuffer_export.dataset.build import read_index
+    return sorted(Path(c["path"]).name for c in read_index(dataset)["clips"]
+                  if c.get("invalid") and Path(c["path"]).name in needed)
+
+
 def write_command(run: Path, argv) -> None:
     """RUN/command.txt: the command that trains the run (this script's, which also sizes its subset), for
     benchmarks/release_weights.py (``--run MODEL=RUN --script ''``); kept when the run resumes."""
@@ -344,14 +376,21 @@ def write_command(run: Path, argv) -> None:
     path = run / "command.txt"
     if not path.is_file():
         run.mkdir(parents=True, exist_ok=True)
-        words = list(sys.argv[1:] if argv is None else argv)
-        write_text_atomic(path, shlex.join([".venv/bin/python", "benchmarks/data_scaling.py", *words]) + "\n")
+        write_text_atomic(path, command_line(argv) + "\n")
 
 
-def score_variants(text: str) -> list[str]:
+def command_line(argv) -> str:
+    """This script's command line as a shell would take it (``argv``: its arguments; None: ``sys.argv``'s)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    return shlex.join([".venv/bin/python", "benchmarks/data_scaling.py", *words])
+
+
+def score_variants(text: str, config: dict | None = None) -> list[str]:
     """``--score-options``: the ';'-separated variants, each checked before any training (a typo must not wait for
-    hours of it): KEY=VALUE pairs joined by '&', every KEY an inference option (``INFERENCE_OPTIONS``)."""
-    from training.inference.loading import split_spec
+    hours of it): KEY=VALUE pairs joined by '&', every KEY an inference option (``INFERENCE_OPTIONS``), and with
+    ``config`` (the runs' configuration as a dict) every value and combination as loading the weights will check
+    them (``checked_inference_options``)."""
+    from training.inference.loading import checked_inference_options, split_spec
     from training.models.options import INFERENCE_OPTIONS
     out = []
     for v in (v.strip() for v in text.split(";") if v.strip()):
@@ -363,6 +402,11 @@ def score_variants(text: str) -> list[str]:
         if bad:
             raise ValueError(f"--score-options {v!r}: {', '.join(bad)} is not an inference option (choose from "
                              f"{', '.join(INFERENCE_OPTIONS)})")
+        if config is not None:
+            try:
+                checked_inference_options(config, items, f"--score-options {v!r}")
+            except Exception as exc:  # ConfigError, BlendSRError: one line
+                raise ValueError(str(exc)) from None
         out.append(v)
     return out
 

@@ -38,8 +38,10 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     command.txt is the whole command, as benchmarks/data_scaling.py writes it), then the training command (the run's
     command.txt, written by benchmarks/zoo.sh, else benchmarks/pretrain.sh's form)."""
     cmd = run / "command.txt"
-    if not a.script and cmd.is_file():
-        return [*earlier_stages(run), cmd.read_text().strip()]
+    generic = (f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
+               f"--max-steps {steps} --set run.threads=1")
+    if not a.script:
+        return [*earlier_stages(run), cmd.read_text().strip()] if cmd.is_file() else [generic]
     if a.script == "benchmarks/pretrain.sh":
         spec = "" if "SPEC=" in (a.env or "") else f"SPEC={index['spec']['file']} "  # --env may name it already
         script = f"{spec}{a.env + ' ' if a.env else ''}benchmarks/pretrain.sh {a.dataset} {a.runs}"
@@ -49,8 +51,7 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
         script = f"{a.env + ' ' if a.env else ''}{a.script} {a.dataset} {a.runs}"
     if cmd.is_file():
         return [script, *earlier_stages(run), cmd.read_text().strip()]
-    return [script, f"blendsr train --model {name} --data {a.dataset} -o {run} --config benchmarks/pretrain.toml "
-                    f"--max-steps {steps} --set run.threads=1"]
+    return [script, generic]
 
 
 def init_of(run: Path) -> str:
@@ -122,21 +123,26 @@ VAL_GROUPS = ("auto", "all", "held-out")
 
 
 def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str], str]:
-    """The val clips the val rule reads and the group they are (``all`` or ``held-out``): ``val`` filtered by each
-    clip's ``family_group`` in the dataset's index. ValueError (one line) when ``held-out`` is asked and the val
-    split has none."""
+    """The val clips the val rule reads and the group they are (``all`` or ``held-out``): ``val`` (the finished val
+    clips) filtered by each clip's ``family_group`` in the dataset's index. The group follows the planned split, not
+    what is finished: ValueError (one line) when a planned held-out-family val clip is not finished (the rule would
+    read a part of them, or fall back to in-family clips), or when ``held-out`` is asked and the split plans none."""
+    from gbuffer_export.dataset.build import read_index
     from gbuffer_export.dataset.families import HELD_OUT
-    from gbuffer_export.dataset.family_gap import index_groups
     if group not in VAL_GROUPS:
         raise ValueError(f"--val-group {group!r}: choose one of {', '.join(VAL_GROUPS)}")
     if group == "all":
         return list(val), "all"
-    groups = index_groups(dataset)
-    held = [c for c in val if groups.get(Path(c).name) == HELD_OUT]
+    planned = {Path(c["path"]).name for c in read_index(dataset)["clips"]
+               if c.get("split") == "val" and c.get("family_group") == HELD_OUT}
+    held = [c for c in val if Path(c).name in planned]
+    if planned and len(held) < len(planned):
+        raise ValueError(f"{dataset}: {len(planned) - len(held)} of its {len(planned)} held-out-family val clips are "
+                         "not finished (or not valid): wait for the render, or pass --val-group all")
     if held:
         return held, HELD_OUT
     if group == HELD_OUT:
-        raise ValueError(f"{dataset}: --val-group held-out, but no finished val clip of the index is held-out-family "
+        raise ValueError(f"{dataset}: --val-group held-out, but the index plans no held-out-family val clip "
                          "(declare val_families in the spec's [splits])")
     return list(val), "all"
 
@@ -149,6 +155,8 @@ def named_runs(items: list[str], models: list[str]) -> dict[str, Path]:
         name, sep, folder = item.partition("=")
         if not sep or name not in models:
             raise ValueError(f"--run {item!r}: expected MODEL=DIR with MODEL one of --models ({', '.join(models)})")
+        if name in out:
+            raise ValueError(f"--run {item!r}: {name} is given twice")
         if not (Path(folder) / "checkpoints" / "last.pt").is_file():
             raise ValueError(f"--run {item!r}: {folder} holds no checkpoints/last.pt")
         out[name] = Path(folder)
@@ -160,6 +168,27 @@ def trained_on(ck: dict, split: list[str]) -> list[str]:
     the dataset's train split ``split``."""
     clips = (ck.get("config") or {}).get("data", {}).get("clips") or []
     return [Path(c).name for c in clips] or split
+
+
+def option_note(candidate: dict, incumbent: dict, name: str) -> str | None:
+    """A line when the candidate's inference options (``INFERENCE_OPTIONS`` of its ``[model.NAME]``, configurations
+    as dicts) differ from the shipped weights' (say a run released without the bound the shipped network runs
+    with: ``--options``); None when they agree."""
+    from training.models.options import INFERENCE_OPTIONS
+    c, i = (((d.get("model") or {}).get(name) or {}) for d in (candidate, incumbent))
+    diff = [f"{k} {c.get(k)!r} (shipped: {i.get(k)!r})" for k in INFERENCE_OPTIONS if c.get(k) != i.get(k)]
+    return f"note: {name}: the candidate runs with {', '.join(diff)}; --options sets them" if diff else None
+
+
+def check_options(options: dict[str, list[str]], runs: dict[str, Path]) -> None:
+    """Every model's ``--options`` against its run's configuration, before anything is scored or written: a value or
+    a combination the model refuses is a ValueError (one line) now, not after the first model's weights shipped."""
+    from training.checkpoint import load_checkpoint
+    from training.inference.loading import checked_inference_options
+    for name, opts in options.items():
+        ck = runs[name] / "checkpoints" / "last.pt"
+        if ck.is_file():
+            checked_inference_options(load_checkpoint(ck)["config"], opts, f"--options {name}?{'&'.join(opts)}")
 
 
 def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
@@ -215,6 +244,7 @@ def main(argv=None) -> int:
     try:
         options = model_options(a.options, a.models.split(","))
         run_dirs = named_runs(a.run, a.models.split(","))
+        check_options(options, {m: run_dirs.get(m, a.runs / m.replace("-", "_")) for m in options})
         val, val_group = rule_val_clips(a.dataset, [str(c) for c in split_clips(a.dataset, "val")], a.val_group)
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
@@ -242,6 +272,14 @@ def main(argv=None) -> int:
         if not ck.is_file():
             print(f"skip {name}: {ck} not found", file=sys.stderr)
             continue
+        loaded = load_checkpoint(ck)
+        if name in options:  # the options become the shipped configuration's
+            from training.inference.loading import with_inference_options
+            loaded["config"] = with_inference_options(loaded["config"], options[name], cand)
+        if (WEIGHTS_DIR / file).is_file():
+            note = option_note(loaded["config"], load_checkpoint(WEIGHTS_DIR / file)["config"], name)
+            if note:
+                print(note, file=sys.stderr)
         verdict, cand_val = None, score(cand, val, full=True) if val else None  # scored once, used twice
         if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose
@@ -249,7 +287,6 @@ def main(argv=None) -> int:
             print(verdict.line(name), file=sys.stderr)
             if not verdict.replace and not a.force:
                 continue
-        loaded = load_checkpoint(ck)
         s = {**score(cand), "steps": int(loaded["step"])}
         meta = {
             "model": name, "scale": 4, "date": out["date"],
@@ -272,9 +309,7 @@ def main(argv=None) -> int:
         for item in a.attach:
             key, _, path = item.partition("=")
             meta[key] = json.loads(Path(path).read_text())
-        if name in options:  # the options become the shipped configuration's
-            from training.inference.loading import with_inference_options
-            loaded["config"] = with_inference_options(loaded["config"], options[name], cand)
+        if name in options:
             meta["inference_options"] = options[name]
         meta = release(loaded, WEIGHTS_DIR / file, meta)
         out["models"][name] = meta

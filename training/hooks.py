@@ -56,14 +56,18 @@ def peak_memory_mb(device: torch.device) -> float:
 
 def drop_rows_after(path: Path, step: int) -> list[str]:
     """A resumed run's log.csv without the rows logged after ``step`` (the checkpoint it resumes from: those steps
-    run again and are logged again), rewritten atomically when any is dropped; returns its header row."""
+    run again and are logged again) and without a last row cut short by a kill (no newline at its end), rewritten
+    atomically when any is dropped; returns its header row."""
     with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+        text = f.read()
+    rows = list(csv.reader(text.splitlines()))
     if not rows:
         return []
     header, body = rows[0], rows[1:]
+    torn = len(rows) > 1 and not text.endswith("\n")
     col = header.index("step") if "step" in header else None
-    keep = [r for r in body if col is None or len(r) <= col or not r[col].isdigit() or int(r[col]) <= step]
+    keep = [r for r in body[:len(body) - torn]
+            if col is None or len(r) <= col or not r[col].isdigit() or int(r[col]) <= step]
     if len(keep) < len(body):
         tmp = path.with_name(path.name + ".tmp")
         with open(tmp, "w", newline="") as f:
@@ -94,7 +98,9 @@ class RunLog:
                 self.writer.writerow(self.columns)
             try:
                 from torch.utils.tensorboard import SummaryWriter
-                self.tb = SummaryWriter(str(run_dir / "tensorboard"))
+                # a resumed run hides the events logged after its checkpoint, as log.csv drops their rows
+                purge = trainer.step_no + 1 if header else None
+                self.tb = SummaryWriter(str(run_dir / "tensorboard"), purge_step=purge)
             except ImportError:
                 self.tb = None
         if cfg.run.progress and main:

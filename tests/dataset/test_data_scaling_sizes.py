@@ -102,6 +102,11 @@ def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tm
         data_scaling.score_variants("width=3")
     with pytest.raises(ValueError, match="expected MODEL"):
         data_scaling.score_variants("residual_clamp")
+    from training.config import load_config
+    fusesr = load_config(str(REPO / "benchmarks/pretrain.toml"), ['model.name="fusesr"']).to_dict()
+    assert data_scaling.score_variants("residual_clamp=lr-guided", fusesr) == ["residual_clamp=lr-guided"]
+    with pytest.raises(ValueError, match="'lr-guidd': choose one of none, lr-range, lr-guided"):
+        data_scaling.score_variants("residual_clamp=lr-guidd", fusesr)
     root = tmp_path / "ds"
     _dataset(root, [(2, 10, 10)])
     assert data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--score-options", "lr=1"]) == 2
@@ -139,21 +144,67 @@ def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_p
     assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "bad.json")]) == 2
 
 
-def test_wait_looks_again_until_the_runs_can_train(tmp_path, capsys, monkeypatch):
+def test_wait_trains_each_run_as_soon_as_its_clips_are_rendered(tmp_path, capsys, monkeypatch):
+    """--wait: the clips are read again on every pass; a run trains on the pass its clips are ready, and the loop goes
+    on while the test split is not whole."""
+    from gbuffer_export.dataset import build
     root = tmp_path / "ds"
     _dataset(root, [(2, 10, 10)] * 3)
-    naps = []
+    naps, trained = [], []
 
     class Stop(Exception):
         pass
 
     def nap(seconds):
         naps.append(seconds)
-        if len(naps) == 2:
+        if len(naps) == 3:
             raise Stop
+    real = build.split_clips
+    # the train clips are rendered after the first pass; the test clip never is
+    monkeypatch.setattr(build, "split_clips", lambda root, split, done_only=True: real(
+        root, split, done_only=done_only and not (split == "train" and naps)))
+    def train(cfg, run, resume=False):  # as train() ends a run: its summary.json
+        trained.append(run)
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "summary.json").write_text('{"step": 2}')
+        return {"step": 2}
+    monkeypatch.setattr("training.train.train", train)
     monkeypatch.setattr(data_scaling.time, "sleep", nap)
     with pytest.raises(Stop):
         data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--multiples", "1", "--unit-pixels", "200",
                            "--steps", "2", "--wait", "0.5"])
     out = capsys.readouterr().out
-    assert naps == [30.0, 30.0] and out.count("0 of 1 runs trained") == 2 and "again in 0.5 min" in out, out
+    assert naps == [30.0] * 3 and "0 of 1 runs trained" in out and "again in 0.5 min" in out, out
+    assert out.count("1 of 1 runs trained") == 2 and len(trained) == 1, out  # trained once, then reused
+    assert (trained[0] / "command.txt").read_text().startswith(".venv/bin/python benchmarks/data_scaling.py")
+
+
+def test_the_wait_ends_on_clips_that_never_come_and_a_run_stopped_early_stops_the_script(tmp_path, capsys,
+                                                                                         monkeypatch):
+    from gbuffer_export.dataset import build
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)] * 3)
+    index = json.loads((root / INDEX).read_text())
+    index["clips"][-1]["invalid"] = "black frames"  # the test clip: split_clips leaves it out for good
+    (root / INDEX).write_text(json.dumps(index))
+    argv = [str(root), "-o", str(tmp_path / "out"), "--multiples", "1", "--unit-pixels", "200", "--steps", "2"]
+    assert data_scaling.main(argv + ["--wait", "5"]) == 3
+    assert "1 clips the curve needs are marked invalid in the index (t)" in capsys.readouterr().err
+    assert data_scaling.main(argv + ["--wait", "-1"]) == 2
+    # a run cut short (SIGTERM: train() saves and returns early) is not a point of the curve: the script stops
+    other = tmp_path / "ds2"
+    _dataset(other, [(2, 10, 10)] * 3)
+    real = build.split_clips
+    monkeypatch.setattr(build, "split_clips", lambda root, split, done_only=True: real(root, split, done_only=False))
+    monkeypatch.setattr("training.train.train", lambda cfg, run, resume=False: {"step": 1, "stopped_by": "signal"})
+    with pytest.raises(SystemExit, match="stopped at step 1 of 2 \\(signal\\); rerun the same command"):
+        data_scaling.main([str(other)] + argv[1:])
+
+
+def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys):
+    for name, clips in (("a", ["t1", "t2"]), ("b", ["t1"])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "scaling.json").write_text(json.dumps({"rows": [], "unit_pixels": 1.0, "test_clips": clips}))
+    assert data_scaling.main(["-", "-o", str(tmp_path / "o"), "--combine", str(tmp_path / "a/scaling.json"),
+                              str(tmp_path / "b/scaling.json")]) == 2
+    assert "its test_clips differ from" in capsys.readouterr().err

@@ -2,6 +2,7 @@
 ``pretrained:NAME`` everywhere a checkpoint goes, fine-tuning from weights (``run.init_from``), and the installed
 weights against their own metadata (size, sha256, parameter digest)."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,30 +203,58 @@ def test_bench_models_scores_an_any_scale_network_at_the_clips_lr_level_only(tmp
     assert row["psnr"] == pytest.approx(per_scale["4"]["psnr"], abs=1e-3)
 
 
-def test_inference_options_chosen_by_the_val_rule_are_written_into_the_released_weights(run, clip, tmp_path):
-    """benchmarks/release_weights.py --options: the run is scored with a bound over its weights and released with
-    it, so the shipped file runs as it was chosen (the same output as the checkpoint with '?OPTIONS')."""
+def test_release_weights_scores_the_run_with_its_options_on_held_out_val_and_ships_them(run, clip, tmp_path,
+                                                                                        monkeypatch, capsys):
+    """benchmarks/release_weights.py end to end, its scores stubbed: ``--run`` names the run, ``--options`` is what the
+    val rule (on the held-out-family val clips only) and the test scores read and what the released file runs with;
+    the JSON names the clips the run trained on."""
     import importlib.util
 
-    from training.checkpoint import load_checkpoint
-    from training.inference.loading import with_inference_options
+    from gbuffer_export.dataset import build
     from training.release import release
     spec = importlib.util.spec_from_file_location("release_weights", REPO / "benchmarks" / "release_weights.py")
     rw = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(rw)
-    opts = rw.model_options(["fusesr-l?residual_clamp=lr-range"], ["fusesr", "fusesr-l"])
-    assert opts == {"fusesr-l": ["residual_clamp=lr-range"]}
-    for bad, why in (("fusesr-l?width=3", "width is not an inference option"), ("nsrd?residual_clamp=lr-range",
-                     "MODEL one of --models"), ("fusesr-l", "MODEL one of --models")):
-        with pytest.raises(ValueError, match=why):
-            rw.model_options([bad], ["fusesr", "fusesr-l"])
-    ck = run / "checkpoints" / "last.pt"
-    loaded = load_checkpoint(ck)
-    loaded["config"] = with_inference_options(loaded["config"], opts["fusesr-l"], str(ck))
-    release(loaded, tmp_path / "w.safetensors", {"model": "fusesr-l"})
-    shipped = load_model(str(tmp_path / "w.safetensors"), 4)
-    assert shipped.config.model.options.residual_clamp == "lr-range"
-    src = ClipFrames(str(clip))
-    a = upscale_frame(load_model(f"{ck}?residual_clamp=lr-range", 4), src, 2)["sr"]
-    b = upscale_frame(shipped, src, 2)["sr"]
-    assert np.abs(a - b).max() <= 2e-3 * max(1.0, float(np.abs(a).max()))  # fp16 weights
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    splits = {"val": ["vh", "vi"], "test": ["t"], "train": ["a"]}
+    groups = {"vh": "held-out"}
+    (ds / build.INDEX).write_text(json.dumps({
+        "schema": build.SCHEMA, "schema_version": build.SCHEMA_VERSION, "name": "ds",
+        "spec": {"file": "spec.toml", "sha256": "abc"},
+        "clips": [{"id": n, "path": f"clips/{n}", "split": sp, "family_group": groups.get(n, "in-family")}
+                  for sp, names in splits.items() for n in names]}))
+    monkeypatch.setattr(build, "split_clips", lambda root, split, done_only=True: [
+        Path(root) / "clips" / n for n in splits[split]])
+    asked = []
+
+    def evaluate(model, clips):  # the candidate beats the shipped weights on every line of the rule
+        asked.append((model, [Path(c).name for c in clips]))
+        better = "last.pt" in model
+        return {"mean": {"psnr": 30.0 + better, "ssim": 0.9, "psnr_hdr": 30.0, "tpsnr": 30.0 + better, "frames": 1,
+                         "margin_min": 0.5 + better, "artifact_pixels": 0},
+                "per_frame": [{"clip": c, "psnr": 30.0} for c in clips]}
+    monkeypatch.setattr(rw, "evaluate", evaluate)
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", weights)
+    file = pretrained.PRETRAINED["fusesr-l"]
+    release(run / "checkpoints" / "last.pt", weights / file, {"model": "fusesr-l"})  # the incumbent: no bound
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    base = [str(ds), str(runs), "--models", "fusesr-l", "--run", f"fusesr-l={run}", "--script", ""]
+    assert rw.main(base + ["--options", "fusesr-l?residual_clamp=lr-guidd"]) == 2  # checked before any score
+    assert "'lr-guidd': choose one of" in capsys.readouterr().err and not asked
+    assert rw.main(base + ["--options", "fusesr-l?residual_clamp=lr-range"]) == 0
+    err = capsys.readouterr().err
+    assert "the candidate runs with residual_clamp 'lr-range' (shipped: 'none')" in err, err
+    assert "fusesr-l: val rule replaces the shipped weights" in err, err
+    cand = f"{run / 'checkpoints' / 'last.pt'}?residual_clamp=lr-range"
+    assert (cand, ["vh"]) in asked and ("pretrained:fusesr-l", ["vh"]) in asked and (cand, ["t"]) in asked
+    assert not any(m.endswith("last.pt") for m, _ in asked)  # never scored without its options
+    meta = json.loads((weights / file).with_suffix(".json").read_text())
+    assert meta["inference_options"] == ["residual_clamp=lr-range"] and meta["val_rule"]["replace"]
+    assert meta["dataset"]["val_clips"] == ["vh"] and meta["scores_on_val_split"]["val_group"] == "held-out"
+    assert meta["dataset"]["train_clips"] == [clip.name]  # the run's own clips, not the split's "a"
+    assert load_model(str(weights / file), 4).config.model.options.residual_clamp == "lr-range"
+    assert json.loads((runs / "release.json").read_text())["val_group"] == "held-out"

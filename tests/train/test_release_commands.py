@@ -115,9 +115,14 @@ def test_the_val_rule_reads_the_held_out_family_val_clips_when_there_are_any(tmp
     assert rw.rule_val_clips(tmp_path / "ds", val, "auto") == ([val[1], val[3]], "held-out")
     assert rw.rule_val_clips(tmp_path / "ds", val, "held-out") == ([val[1], val[3]], "held-out")
     assert rw.rule_val_clips(tmp_path / "ds", val, "all") == (val, "all")
+    # a planned held-out clip not finished yet: refused, not read in part nor replaced by the in-family ones
+    for finished in (val[:3], [val[0], val[2]]):
+        with pytest.raises(ValueError, match="of its 2 held-out-family val clips are not finished"):
+            rw.rule_val_clips(tmp_path / "ds", finished, "auto")
+    assert rw.rule_val_clips(tmp_path / "ds", [val[0], val[2]], "all") == ([val[0], val[2]], "all")
     plain = _val_index(tmp_path / "plain", ["in-family", "in-family"])  # a dataset without held-out families
     assert rw.rule_val_clips(tmp_path / "plain", plain, "auto") == (plain, "all")
-    with pytest.raises(ValueError, match="no finished val clip of the index is held-out-family"):
+    with pytest.raises(ValueError, match="the index plans no held-out-family val clip"):
         rw.rule_val_clips(tmp_path / "plain", plain, "held-out")
 
 
@@ -142,6 +147,13 @@ def test_a_scaling_run_is_released_from_its_own_folder_with_its_own_command_and_
     assert rw.named_runs([f"fusesr={run}"], ["fusesr", "fusesr-l"]) == {"fusesr": run}
     with pytest.raises(ValueError, match="MODEL one of --models"):
         rw.named_runs([f"nsrd={run}"], ["fusesr"])
+    with pytest.raises(ValueError, match="fusesr is given twice"):
+        rw.named_runs([f"fusesr={run}", f"fusesr={run}"], ["fusesr"])
+    # --script '' with no command.txt: the training command alone, not an empty script line
+    bare = tmp_path / "bare"
+    assert rw.commands(args, {"spec": {"file": "s.toml"}}, "fusesr", bare, 10) == [
+        f"blendsr train --model fusesr --data ds -o {bare} --config benchmarks/pretrain.toml --max-steps 10 "
+        "--set run.threads=1"]
     ck = {"config": {"data": {"clips": ["/d/clips/a", "/d/clips/b"]}}}
     assert rw.trained_on(ck, ["a", "b", "c"]) == ["a", "b"]
     assert rw.trained_on({"config": {"data": {}}}, ["a", "b", "c"]) == ["a", "b", "c"]

@@ -275,3 +275,18 @@ def test_the_users_configuration_is_never_rewritten_and_the_resolved_run_round_t
     assert ResolvedRun.from_dict(ck["resolved"]) == run and ck["user_config"] == before
     other = ResolvedRun.from_dict({**run.to_dict(), "crop": 8})
     assert other.differs(run) == "crop 9 -> 8" and run.differs(run) is None
+
+
+def test_a_resumed_log_drops_the_rows_after_its_checkpoint_and_a_torn_last_row(tmp_path):
+    from training.hooks import drop_rows_after
+    log = tmp_path / "log.csv"
+    log.write_text("step,loss\n10,0.5\n20,0.4\n30,0.3\n")
+    assert drop_rows_after(log, 20) == ["step", "loss"]
+    assert log.read_text() == "step,loss\n10,0.5\n20,0.4\n"
+    log.write_text("step,loss\n10,0.5\n20,0.")  # killed while writing its last row
+    drop_rows_after(log, 20)
+    assert log.read_text() == "step,loss\n10,0.5\n"
+    log.write_text("step,loss\n10,0.5\n")
+    before = log.stat().st_mtime_ns
+    drop_rows_after(log, 20)  # nothing to drop: not rewritten
+    assert log.read_text() == "step,loss\n10,0.5\n" and log.stat().st_mtime_ns == before

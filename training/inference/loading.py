@@ -124,6 +124,16 @@ def _load_checkpoint_model(spec: str, label: str, scale, overrides: list[str], f
     return _prepared(model, fast)
 
 
+def checked_inference_options(config: dict, overrides: list[str], label: str) -> dict:
+    """``with_inference_options`` and the configuration built from the result, so a value or a combination the model
+    refuses (``residual_clamp = "lr-guidd"``, a bound without ``residual``) fails now, in one line (ConfigError or
+    BlendSRError), not when the weights are loaded hours later; returns the configuration's dict."""
+    from training.config import config_from_checkpoint
+    data = with_inference_options(config, overrides, label)
+    config_from_checkpoint(data, source=f"{label} with {', '.join(overrides)}")
+    return data
+
+
 def with_inference_options(config: dict, overrides: list[str], label: str) -> dict:
     """A copy of a checkpoint's saved configuration with ``overrides`` (``_load_checkpoint_model``) set in its
     ``[model.NAME]`` table; BlendSRError (one line) for any other key."""
