@@ -47,10 +47,10 @@ def test_a_1e7_m_level_gives_paths_blender_moves_as_planned_or_none(kind):
 @pytest.mark.parametrize("kind", ["walk", "fly"])
 def test_a_level_far_from_the_origin_is_refused_at_once(kind):
     geom = _scaled(1.0, shift=1e7)  # a 12 m room 10 000 km from the origin: float32 positions 1 m apart
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # this process's CPU: other work on the machine does not count
     with pytest.raises(PathError, match=r"from the scene's origin.*32-bit positions are 1 m apart"):
         plan_level_path(geom, kind, 12, FPS, 0, (HFOV, VFOV))
-    assert time.perf_counter() - t0 < 2
+    assert time.process_time() - t0 < 2
 
 
 def test_a_large_level_near_the_origin_plans_exactly():
