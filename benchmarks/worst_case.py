@@ -130,11 +130,16 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.record and a.split != "val":
         p.error("--record takes the val split only (the test split never chooses or marks)")
+    from gbuffer_export.errors import BlendSRError
     from training.bench import parse_models
-    if a.scores:
-        result = json.loads(a.scores.read_text())
-    else:
-        result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
+    try:
+        if a.scores:
+            result = json.loads(a.scores.read_text())
+        else:
+            result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
+    except (BlendSRError, OSError) as exc:  # bad models, datasets or files: one line, exit 2
+        print(f"blendsr: error: {exc}", file=sys.stderr)
+        return 2
     text = table(result)
     print(text)
     if a.out:

@@ -125,3 +125,18 @@ def test_bench_models_leaves_out_a_model_whose_buffers_a_clip_lacks(clips, tmp_p
     with pytest.raises(ValueError, match="no model could be scored"):
         bench_models.run(p.parse_args(["--data", str(clip), "--models", "pretrained:nsrd", "--warmup", "0",
                                        "--no-progress"]))
+
+
+def test_worst_case_refuses_an_unknown_model_in_one_line(tmp_path, capsys):
+    import importlib.util
+
+    from tests.conftest import REPO
+    spec = importlib.util.spec_from_file_location("worst_case", REPO / "benchmarks" / "worst_case.py")
+    wc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(wc)
+    assert wc.main([str(tmp_path), "--split", "val", "--models", "demod-jbu,nope:x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown model 'nope'" in err[0], err
+    assert wc.main([str(tmp_path), "--split", "val", "--models", "demod-jbu"]) == 2  # not a dataset
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path) in err[0] and "not a BlendSR dataset" in err[0], err
