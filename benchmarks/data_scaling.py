@@ -133,8 +133,10 @@ def main(argv=None) -> int:
         r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=a.scale))
         per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
         by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
+        margins = {Path(c["clip"]).name: c["margin"] for c in r["per_clip"] if c.get("margin") is not None}
         return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
-                "artifact_pixels": r["mean"].get("artifact_pixels")}
+                "artifact_pixels": r["mean"].get("artifact_pixels"),  # margins: over demod-jbu, evaluate's baseline
+                "margin_min_by_family": smallest_margins(margins, family_of)}
 
     done_train: set[Path] = set()  # what fit() may train on, read again on every pass
     test_planned = len(split_clips(a.dataset, "test", done_only=False))
@@ -189,8 +191,7 @@ def main(argv=None) -> int:
     for name in ("demod-bilinear", "demod-jbu"):
         rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
         print(json.dumps(rows[-1]), flush=True)
-    jbu = rows[-1]
-    base = jbu["by_family"]
+    base = rows[-1]["by_family"]
     for (n, steps, clips, summary, run), opts in ((f, o) for f in fitted for o in variants):
         spec = str(run / "checkpoints" / "last.pt") + (f"?{opts}" if opts else "")
         rows.append({"model": a.model + (f"?{opts}" if opts else ""), "clips": len(clips), a.by + "s": n,
@@ -198,7 +199,6 @@ def main(argv=None) -> int:
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), "hr_pixels": hr_pixels(a.dataset, clips),
                      **score(spec)})
         rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
-        rows[-1]["margin_min_by_family"] = smallest_margins(rows[-1]["per_clip"], jbu["per_clip"], family_of)
         print(json.dumps(rows[-1]), flush=True)
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
@@ -385,40 +385,29 @@ def command_line(argv) -> str:
     return shlex.join([".venv/bin/python", "benchmarks/data_scaling.py", *words])
 
 
-def score_variants(text: str, config: dict | None = None) -> list[str]:
-    """``--score-options``: the ';'-separated variants, each checked before any training (a typo must not wait for
-    hours of it): KEY=VALUE pairs joined by '&', every KEY an inference option (``INFERENCE_OPTIONS``), and with
-    ``config`` (the runs' configuration as a dict) every value and combination as loading the weights will check
-    them (``checked_inference_options``)."""
+def score_variants(text: str, config: dict) -> list[str]:
+    """``--score-options``: the ';'-separated variants (KEY=VALUE pairs joined by '&'), each checked before any
+    training (a typo must not wait for hours of it) as loading the weights will check it: against ``config``, the
+    runs' configuration as a dict (``checked_inference_options``: inference options only, valid values)."""
     from training.inference.loading import checked_inference_options, split_spec
-    from training.models.options import INFERENCE_OPTIONS
     out = []
     for v in (v.strip() for v in text.split(";") if v.strip()):
         try:
             _, items = split_spec(f"run?{v}")
-        except Exception as exc:  # BlendSRError: one line
+            checked_inference_options(config, items, f"--score-options {v!r}")
+        except ValueError as exc:  # BlendSRError, ConfigError: one line
             raise ValueError(f"--score-options {v!r}: {exc}") from None
-        bad = [i.partition("=")[0].strip() for i in items if i.partition("=")[0].strip() not in INFERENCE_OPTIONS]
-        if bad:
-            raise ValueError(f"--score-options {v!r}: {', '.join(bad)} is not an inference option (choose from "
-                             f"{', '.join(INFERENCE_OPTIONS)})")
-        if config is not None:
-            try:
-                checked_inference_options(config, items, f"--score-options {v!r}")
-            except Exception as exc:  # ConfigError, BlendSRError: one line
-                raise ValueError(str(exc)) from None
         out.append(v)
     return out
 
 
-def smallest_margins(per_clip: dict[str, float], base: dict[str, float], family_of: dict[str, str]) -> dict:
-    """{family group: the smallest per-clip margin (clip PSNR minus the baseline's on the same clip)}: the worst case
-    beside each group's mean margin."""
+def smallest_margins(margins: dict[str, float], family_of: dict[str, str]) -> dict:
+    """{family group: the smallest of its clips' margins over demod-jbu} (``margins``: clip name -> dB, as
+    ``evaluate_model`` gives them): the worst case beside each group's mean margin."""
     out: dict[str, float] = {}
-    for clip, v in per_clip.items():
-        if clip in base:
-            g = family_of.get(clip, "in-family")
-            out[g] = min(out.get(g, math.inf), v - base[clip])
+    for clip, m in margins.items():
+        g = family_of.get(clip)
+        out[g] = min(out.get(g, math.inf), m)
     return out
 
 

@@ -193,9 +193,8 @@ def check_options(options: dict[str, list[str]], runs: dict[str, Path]) -> None:
 
 def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
     """``--options`` values 'MODEL?KEY=VALUE&...' -> {MODEL: ['KEY=VALUE', ...]}; ValueError (one line) for a model
-    not in ``models`` or a key that is not an inference option."""
+    not in ``models`` (the keys and values: ``check_options``)."""
     from training.inference.loading import split_spec
-    from training.models.options import INFERENCE_OPTIONS
     out: dict[str, list[str]] = {}
     for item in items:
         try:
@@ -205,10 +204,6 @@ def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
         if name not in models or not opts:
             raise ValueError(f"--options {item!r}: expected MODEL?KEY=VALUE with MODEL one of --models "
                              f"({', '.join(models)})")
-        bad = [o.partition("=")[0] for o in opts if o.partition("=")[0].strip() not in INFERENCE_OPTIONS]
-        if bad:
-            raise ValueError(f"--options {item!r}: {', '.join(bad)} is not an inference option "
-                             f"({', '.join(INFERENCE_OPTIONS)})")
         out.setdefault(name, []).extend(opts)
     return out
 

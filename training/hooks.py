@@ -6,7 +6,7 @@ frames and clips every ``run.eval_every`` steps and at the end). A hook has ``on
 from __future__ import annotations
 
 import csv
-import os
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,10 +69,10 @@ def drop_rows_after(path: Path, step: int) -> list[str]:
     keep = [r for r in body[:len(body) - torn]
             if col is None or len(r) <= col or not r[col].isdigit() or int(r[col]) <= step]
     if len(keep) < len(body):
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "w", newline="") as f:
-            csv.writer(f).writerows([header, *keep])
-        os.replace(tmp, path)
+        from training.run import write_text_atomic
+        text = io.StringIO()
+        csv.writer(text).writerows([header, *keep])
+        write_text_atomic(path, text.getvalue(), newline="")
     return header
 
 

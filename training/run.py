@@ -199,13 +199,15 @@ def run_config_toml(user: TrainConfig, run: ResolvedRun) -> str:
     return "\n".join(lines) + user.to_toml()
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and a rename (no half-written file after a crash)."""
+def write_text_atomic(path: Path, text: str, newline: str | None = None) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename (no half-written file after a crash);
+    ``newline`` as ``open``'s ('' for csv text, whose line ends are its own)."""
     from gbuffer_export.clip import open_nofollow
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     tmp.unlink(missing_ok=True)  # a leftover (or a planted link) is never written through
     try:
-        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w", encoding="utf-8") as f:
+        with os.fdopen(open_nofollow(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL), "w", encoding="utf-8",
+                       newline=newline) as f:
             f.write(text)
         os.replace(tmp, path)
     except BaseException:

@@ -87,7 +87,8 @@ def test_each_family_group_reports_its_worst_clip_beside_its_mean():
     per = {"a": 30.0, "b": 25.0, "c": 28.0, "d": 20.0}
     base = {"a": 29.0, "b": 26.0, "c": 27.5, "d": 19.0}
     family = {"a": "in-family", "b": "in-family", "c": "held-out", "d": "held-out"}
-    assert data_scaling.smallest_margins(per, base, family) == {"in-family": -1.0, "held-out": 0.5}
+    margins = {c: per[c] - base[c] for c in per}  # as evaluate_model gives them, over demod-jbu
+    assert data_scaling.smallest_margins(margins, family) == {"in-family": -1.0, "held-out": 0.5}
     row = {"model": "fusesr", "clips": 2, "hr_pixels": 100, "steps": 10, "psnr": 25.75, "ssim": 0.9,
            "per_clip": per, "margin_by_family": {"in-family": 0.0, "held-out": 0.75},
            "margin_min_by_family": {"in-family": -1.0, "held-out": 0.5}}
@@ -96,15 +97,15 @@ def test_each_family_group_reports_its_worst_clip_beside_its_mean():
 
 
 def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tmp_path):
-    assert data_scaling.score_variants("residual_clamp=lr-guided; ;residual_clamp=lr-range&residual_clamp_margin=0.5") \
-        == ["residual_clamp=lr-guided", "residual_clamp=lr-range&residual_clamp_margin=0.5"]
-    with pytest.raises(ValueError, match="width is not an inference option"):
-        data_scaling.score_variants("width=3")
-    with pytest.raises(ValueError, match="expected MODEL"):
-        data_scaling.score_variants("residual_clamp")
     from training.config import load_config
     fusesr = load_config(str(REPO / "benchmarks/pretrain.toml"), ['model.name="fusesr"']).to_dict()
-    assert data_scaling.score_variants("residual_clamp=lr-guided", fusesr) == ["residual_clamp=lr-guided"]
+    assert data_scaling.score_variants("residual_clamp=lr-guided; ;residual_clamp=lr-range&residual_clamp_margin=0.5",
+                                       fusesr) == ["residual_clamp=lr-guided",
+                                                   "residual_clamp=lr-range&residual_clamp_margin=0.5"]
+    with pytest.raises(ValueError, match="configuration is fixed except its inference options"):
+        data_scaling.score_variants("width=3", fusesr)
+    with pytest.raises(ValueError, match="expected MODEL"):
+        data_scaling.score_variants("residual_clamp", fusesr)
     with pytest.raises(ValueError, match="'lr-guidd': choose one of none, lr-range, lr-guided"):
         data_scaling.score_variants("residual_clamp=lr-guidd", fusesr)
     root = tmp_path / "ds"
