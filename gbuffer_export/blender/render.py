@@ -429,13 +429,16 @@ def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
     bar = _progress(todo, ctx.cfg)
     for f in bar:
         check_interrupt()  # Ctrl-C (render_clip, dataset_job: gbuffer_export.interrupt)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             rec = render_frame(ctx, f)
         except KeyboardInterrupt:
             ctx.writer.discard_frame(f)  # the partial frame is never committed
             raise
+        # wall seconds (what the frame took on this machine and load) and this process's CPU seconds, all threads
+        # (Cycles renders in this process): the load-independent cost, summed over the threads it used
         rec["seconds_total"] = time.perf_counter() - t0
+        rec["cpu_seconds_total"] = time.process_time() - c0
         ctx.writer.commit_frame(f, rec)
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")

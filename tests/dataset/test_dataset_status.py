@@ -17,12 +17,13 @@ HR = (16, 8)
 
 
 def _clip(root: Path, cid: str, source: str, split: str, seconds: list[float], planned: int = 4) -> dict:
-    """An index entry; with ``seconds``, a real clip of that many frames whose records carry those timings."""
+    """An index entry; with ``seconds``, a real clip of that many frames whose records carry those wall timings and
+    half of each in CPU seconds."""
     if seconds:
         clip = make_synthetic_clip(root / "clips" / cid, frames=range(1, len(seconds) + 1), hr_size=HR,
                                    buffers=("radiance", "depth"))
         for f, s in enumerate(seconds, 1):
-            edit_record(clip, f, lambda r, s=s: r.update(seconds_total=s))
+            edit_record(clip, f, lambda r, s=s: r.update(seconds_total=s, cpu_seconds_total=s / 2))
         # the manifest plans what the index plans: a shorter clip is a partial one
         edit_manifest(clip, lambda m: m.update(frames=list(range(1, planned + 1))))
     return {"id": cid, "source": source, "split": split, "path": f"clips/{cid}", "frames_planned": planned,
@@ -54,6 +55,10 @@ def test_the_cost_is_the_finished_frames_own_times_and_the_rest_is_estimated_at_
     assert bt["median_s_per_frame"] is None and bt["estimate_left_s"] == 4 * 30 and bt["estimate_from"] == "all"
     assert every["estimate_left_s"] == 7 * 30 and every["frames_done"] == 5
     assert r["by_split"]["train"]["clips"] == 2 and r["by_split"]["test"]["frames_done"] == 1
+    # the CPU seconds are summed and estimated the same way, apart from the wall times
+    assert lv["cpu_s"] == 75 and lv["median_cpu_s_per_frame"] == 15 and lv["estimate_left_cpu_s"] == 3 * 15
+    assert bt["estimate_left_cpu_s"] == 4 * 15 and bt["estimate_cpu_from"] == "all"
+    assert every["estimate_left_cpu_s"] == 7 * 15 and every["frames_cpu_timed"] == 5
     lines = status_lines(r)
     assert any(line.startswith("builtin") and line.rstrip().endswith("*") for line in lines), lines
 
@@ -62,6 +67,17 @@ def test_a_frame_without_a_timing_counts_as_done_but_not_timed(dataset):
     edit_record(dataset / "clips" / "a1", 1, lambda rec: rec.pop("seconds_total"))
     t = dataset_status(dataset)["by_split"]["test"]
     assert (t["frames_done"], t["frames_timed"], t["render_s"]) == (1, 0, 0)
+    assert (t["frames_cpu_timed"], t["cpu_s"]) == (1, 25)  # its CPU time still counts
+
+
+def test_frames_from_before_cpu_timings_leave_the_cpu_figures_empty_not_zero(dataset):
+    for cid, frames in (("a0", 4), ("a1", 1)):
+        for f in range(1, frames + 1):
+            edit_record(dataset / "clips" / cid, f, lambda rec: rec.pop("cpu_seconds_total"))
+    r = dataset_status(dataset)
+    assert r["all"]["median_cpu_s_per_frame"] is None and r["all"]["estimate_left_cpu_s"] is None
+    assert r["all"]["estimate_left_s"] == 7 * 30  # the wall estimate is unchanged
+    assert any(line.startswith("all") and line.rstrip().endswith("-") for line in status_lines(r))
 
 
 def test_a_missing_or_broken_index_is_one_line_naming_the_file(tmp_path):

@@ -42,6 +42,8 @@ def test_scales_render_validates_at_every_level(clips):
         rec = clip.record(f)
         seeds = {rec[lvl]["seed"] for lvl in LEVELS}
         assert len(seeds) == 4  # hr ground truth and three LR renders, each its own Cycles seed
+        # the frame's cost: wall seconds and the render process's CPU seconds (Cycles renders in it), both spent
+        assert rec["seconds_total"] > 0 and rec["cpu_seconds_total"] > 0
         for lvl, (w, h) in LEVELS.items():
             assert clip.read(f, f"{lvl}/radiance").shape == (h, w, 3)
             assert rec[lvl]["seconds"]["radiance"] > 0
