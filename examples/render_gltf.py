@@ -60,6 +60,7 @@ def build_gltf_scene(gltf_path, hdri=None, frames: tuple[int, int] = (1, 24),
     import bpy
     import numpy as np
     from gbuffer_export.blender.camera_paths import make_camera_path, object_boxes
+    from gbuffer_export.blender.gltf_import import import_gltf
 
     gltf_path = Path(gltf_path).resolve()
     if not gltf_path.is_file():
@@ -70,7 +71,7 @@ def build_gltf_scene(gltf_path, hdri=None, frames: tuple[int, int] = (1, 24),
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     before = set(bpy.data.objects)
-    result = bpy.ops.import_scene.gltf(filepath=str(gltf_path))
+    result = import_gltf(gltf_path)  # Blender's importer, plus the material extensions BlendSR applies
     if "FINISHED" not in result:
         raise ValueError(f"{gltf_path}: the glTF importer failed ({result})")
     imported = [ob for ob in bpy.data.objects if ob not in before]

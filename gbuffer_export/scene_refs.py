@@ -99,7 +99,8 @@ def resolve_ref(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what
 
 
 # ---------------------------------------------------------------------------------------------------- glTF
-def _gltf_json(path: Path) -> dict:
+def gltf_json(path: Path) -> dict:
+    """The JSON of a .gltf or of a .glb's first chunk; SceneRefError (one line naming the file) if it is not glTF."""
     data = path.read_bytes() if path.suffix.lower() == ".gltf" else None
     if data is None:
         with open(path, "rb") as f:
@@ -197,7 +198,7 @@ def _check_accessors(path: Path, doc: dict) -> None:
 
 
 def _gltf_refs(path: Path, roots, outside: list) -> None:
-    doc = _gltf_json(path)
+    doc = gltf_json(path)
     _uri_refs(path, doc, roots, outside)
     _check_accessors(path, doc)
 
@@ -295,4 +296,4 @@ def check_scene_refs(scene: Path, allow_read=()) -> list[str]:
     return sorted(set(outside))
 
 
-__all__ = ["SceneRefError", "check_scene_file", "check_scene_refs", "read_roots", "resolve_ref"]
+__all__ = ["SceneRefError", "check_scene_file", "check_scene_refs", "gltf_json", "read_roots", "resolve_ref"]

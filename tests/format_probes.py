@@ -10,6 +10,9 @@ gltf_missing  export a glTF with separate colour, roughness and normal textures,
            report what its Principled BSDF reads
 refusals   the one-line errors of a format whose add-on or operator this Blender lacks
 units      load each level of a list and detect its unit (``level_scale.detect_unit_scale``)
+gltf_iridescence  import each glTF as a level (``load_level``) and as a dataset asset (``import_asset``) and report
+           each material's Principled thin film: IOR, thickness, and the nodes that compute a textured one; and
+           what Blender's importer says of the file on its own
 """
 from __future__ import annotations
 
@@ -154,7 +157,53 @@ def units(args: dict) -> dict:
     return out
 
 
+def _film_inputs(socket) -> dict:
+    """The node chain feeding a socket, depth first: [type, operation, constant inputs] per node."""
+    chain, todo = [], [l.from_node for l in socket.links]
+    while todo:
+        node = todo.pop(0)
+        consts = [float(i.default_value) for i in node.inputs if not i.is_linked and i.type == "VALUE"]
+        chain.append([node.type, getattr(node, "operation", None), consts,
+                      [list(node.image.pixels[:]) if node.type == "TEX_IMAGE" else None][0]])
+        todo += [l.from_node for i in node.inputs for l in i.links]
+    return {"chain": chain}
+
+
+def _films() -> dict:
+    out = {}
+    for mat in bpy.data.materials:
+        if mat.node_tree is None:
+            continue
+        for n in mat.node_tree.nodes:
+            if n.type == "BSDF_PRINCIPLED":
+                t = n.inputs["Thin Film Thickness"]
+                out[mat.name] = {"ior": n.inputs["Thin Film IOR"].default_value, "thickness": t.default_value,
+                                 "linked": t.is_linked, **_film_inputs(t), "props": list(mat.keys()),
+                                 "packed": [i.packed_file is not None for i in bpy.data.images]}
+    return out
+
+
+def gltf_iridescence(args: dict) -> dict:
+    from gbuffer_export.blender.assets import import_asset
+    out = {}
+    for p in args["files"]:
+        rec = {}
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        try:
+            bpy.ops.import_scene.gltf(filepath=p)
+            rec["blender_alone"] = "imported"
+        except RuntimeError as exc:
+            rec["blender_alone"] = str(exc).strip().splitlines()[-1]
+        scene, report = load_level(Path(p))
+        rec["level"], rec["report"] = _films(), report
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        import_asset(bpy.context.scene, Path(p))
+        rec["asset"] = _films()
+        out[p] = rec
+    return out
+
+
 if __name__ == "__main__":
     result = {"roundtrip": roundtrip, "missing": missing, "refusals": refusals, "units": units,
-              "gltf_missing": gltf_missing}[sys.argv[1]](json.loads(sys.argv[2]))
+              "gltf_missing": gltf_missing, "gltf_iridescence": gltf_iridescence}[sys.argv[1]](json.loads(sys.argv[2]))
     print("PROBE-RESULT " + json.dumps(result, default=lambda o: np.asarray(o).tolist()))

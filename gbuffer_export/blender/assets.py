@@ -1,7 +1,7 @@
 """Third-party assets in a generated environment (bpy layer): import, normalise, ground, HDRI, clutter, and a
 camera path that keeps its distance from the geometry.
 
-- :func:`import_asset` brings a glTF/GLB (Blender's importer) or the objects of a .blend (appended) into the scene.
+- :func:`import_asset` brings a glTF/GLB (Blender's importer, with the extensions ``gltf_import`` adds) or the objects of a .blend (appended) into the scene.
 - :func:`normalise` scales the asset so that its largest side is ``target_size_m`` and stands it on z = 0 at the
   origin (assets range from 7 cm toys to a 100 m fox).
 - :func:`scene_mesh` collects the evaluated triangles of every renderable object into one ``trimesh.Trimesh``
@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import BlendSRError
 from .camera_paths import GROUND_PROPERTY, GEOMETRY_TYPES, make_camera_path, object_boxes
 from .default_scene import hdri_path, make_world
+from .gltf_import import import_gltf
 
 GROUND_SIZE_FACTOR = 8.0      # ground side = max(10 m, 8 x target size)
 CAMERA_TRIES = 8
@@ -51,7 +52,7 @@ def import_asset(scene, path: Path) -> list:
     suffix = path.suffix.lower()
     if suffix in (".gltf", ".glb"):
         try:
-            result = bpy.ops.import_scene.gltf(filepath=str(path))
+            result = import_gltf(path)
         except RuntimeError as exc:
             raise AssetError(f"{path}: the glTF importer failed ({str(exc).splitlines()[0]})") from None
         if "FINISHED" not in result:

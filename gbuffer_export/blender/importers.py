@@ -20,6 +20,7 @@ import bpy
 
 from ..config import ConfigError
 from ..scene_formats import SCENE_FORMATS, SceneFormat, formats_text, scene_format
+from .gltf_import import import_gltf
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,10 @@ def import_level(path: Path, allow_read=()) -> dict:
         fix = _fbx_light_fix() if fmt.name == "FBX" else contextlib.nullcontext()
         try:
             with _importer_output(fmt.name), fix:  # missing images are named once below
-                result = op(filepath=str(path), **dict(fmt.options))
+                if fmt.operator == "import_scene.gltf":  # with the extensions BlendSR adds (gltf_import)
+                    result = import_gltf(path, op, **dict(fmt.options))
+                else:
+                    result = op(filepath=str(path), **dict(fmt.options))
         except RuntimeError as exc:
             raise ConfigError(f"{path}: the {fmt.name} importer failed ({_importer_error(exc)})") from None
         if "FINISHED" not in result:

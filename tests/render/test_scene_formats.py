@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from tests.conftest import ENV, REPO, requires_bpy
+from tests.conftest import ENV, REPO, SHARED, requires_bpy
 from gbuffer_export.config import RenderConfig
 from gbuffer_export.dataset.spec import find_assets
 from gbuffer_export.scene_formats import SCENE_FORMATS, SCENE_SUFFIXES, scene_format
@@ -205,3 +205,34 @@ def test_a_level_with_missing_textures_renders_grey_and_its_manifest_lists_them(
         grey = np.all(np.abs(albedo[fg] - 0.5) < 1e-3, axis=-1)  # the floor: 0.5 grey, no magenta
         assert grey.mean() > 0.3 and magenta_fraction(albedo) == 0.0
         assert magenta_fraction(clip.read(f, "hr/radiance")) < 0.01
+
+
+@requires_bpy
+@pytest.mark.bpy
+def test_gltf_iridescence_becomes_the_principled_thin_film_where_blender_alone_refuses_the_file(tmp_path):
+    """KHR_materials_iridescence (required) in a .glb with an embedded texture, a .gltf beside its files and the real
+    IridescenceSuzanne: Blender 5.0.1's importer alone refuses each; through load_level (a scene) and import_asset
+    (a dataset asset) each material gets Thin Film IOR and Thickness = factor x mix(min, max, texture G) nm."""
+    from tests.gltf_fixtures import TEXELS_G, write_glb, write_gltf
+    files = [write_glb(tmp_path / "a" / "film.glb"), write_gltf(tmp_path / "b" / "film.gltf")]
+    suzanne = SHARED / "scenes/gltf_more/IridescenceSuzanne/glTF-Binary/IridescenceSuzanne.glb"
+    if suzanne.is_file():
+        files.append(suzanne)
+    res, _ = run_probe("gltf_iridescence", {"files": [str(p) for p in files]})
+    for path in files[:2]:
+        rec = res[str(path)]
+        assert "KHR_materials_iridescence is not available" in rec["blender_alone"]
+        for films in (rec["level"], rec["asset"]):
+            plain, textured = films["FilmPlain"], films["FilmTextured"]
+            assert plain["ior"] == pytest.approx(1.3) and plain["thickness"] == 250 and not plain["linked"]
+            assert textured["ior"] == 1.5 and textured["linked"] and textured["props"] == ["kept"]
+            kinds = [(c[0], c[1]) for c in textured["chain"]]
+            assert kinds == [("MATH", "MULTIPLY"), ("MATH", "ADD"), ("MATH", "MULTIPLY"), ("SEPARATE_COLOR", None),
+                             ("TEX_IMAGE", None)]
+            assert [c[2][0] for c in textured["chain"][:3]] == [1.0, 200.0, 400.0]  # factor, min, max - min
+            green = sorted(round(v * 255) for v in textured["chain"][4][3][1::4])
+            assert green == sorted(TEXELS_G) and all(textured["packed"])
+    if len(files) == 3:
+        films = res[str(suzanne)]["asset"]
+        assert sorted((round(f["ior"], 2), f["thickness"] if not f["linked"] else "texture")
+                      for f in films.values()) == [(1.33, 400.0), (1.33, 400.0), (1.8, "texture")]

@@ -1,0 +1,95 @@
+"""gbuffer_export.gltf_extensions: the copy of a glTF whose KHR_materials_iridescence BlendSR applies (no bpy)."""
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+from urllib.parse import unquote
+
+import pytest
+
+from gbuffer_export.gltf_extensions import EXTRAS_KEY, _glb_chunks, prepare_gltf
+from gbuffer_export.scene_refs import SceneRefError, check_scene_refs, gltf_json
+from tests.gltf_fixtures import png_bytes, write_glb, write_gltf
+
+
+def _film(doc: dict) -> list[dict]:
+    return [m["extras"][EXTRAS_KEY] for m in doc["materials"]]
+
+
+def test_a_glb_requiring_iridescence_is_copied_with_the_film_in_extras_and_the_requirement_dropped(tmp_path):
+    src = write_glb(tmp_path / "asset" / "film.glb")
+    out = tmp_path / "scratch"
+    out.mkdir()
+    copy, names = prepare_gltf(src, out)
+    assert copy.parent == out and copy.suffix == ".glb" and names == ["FilmTextured", "FilmPlain"]
+    doc = gltf_json(copy)
+    assert "extensionsRequired" not in doc and "KHR_materials_iridescence" in doc["extensionsUsed"]
+    textured, plain = _film(doc)
+    assert doc["materials"][0]["extras"]["kept"] == 1  # the material's own extras stay
+    assert {k: textured[k] for k in ("factor", "ior", "thickness_min", "thickness_max")} == {
+        "factor": 1.0, "ior": 1.5, "thickness_min": 200.0, "thickness_max": 600.0}
+    # the embedded PNG is written out byte for byte, with its UV set
+    assert Path(textured["thickness_texture"]["path"]).read_bytes() == png_bytes()
+    assert textured["thickness_texture"]["uv"] == 0 and Path(textured["thickness_texture"]["path"]).parent == out
+    # the extension's defaults: film IOR 1.3, thickness from 100 nm; no texture, no texture key
+    assert plain == {"factor": 0.5, "ior": 1.3, "thickness_min": 100.0, "thickness_max": 500.0}
+    # the binary chunk is kept: same geometry bytes, and the copy is a well-formed .glb
+    data = copy.read_bytes()
+    assert struct.unpack_from("<I", data, 8)[0] == len(data)
+    assert _glb_chunks(copy)[1] == _glb_chunks(src)[1] and len(_glb_chunks(src)[1]) > 100
+    assert check_scene_refs(copy) == []
+
+
+def test_a_gltf_copy_elsewhere_points_at_the_assets_own_files(tmp_path):
+    src = write_gltf(tmp_path / "asset" / "film.gltf", required=False)
+    out = tmp_path / "scratch"
+    out.mkdir()
+    copy, _ = prepare_gltf(src, out)
+    doc = json.loads(copy.read_text())
+    assert "extensionsRequired" not in doc
+    uris = [unquote(doc["buffers"][0]["uri"]), unquote(doc["images"][0]["uri"])]
+    assert uris == [str((src.parent / "geometry.bin").resolve().as_posix()),
+                    str((src.parent / "film thickness.png").resolve().as_posix())]
+    tex = _film(doc)[0]["thickness_texture"]
+    assert tex["path"] == str((src.parent / "film thickness.png").resolve())  # read in place, not copied
+    assert not any(p.suffix == ".png" for p in out.iterdir())
+
+
+def test_a_data_uri_texture_is_decoded_and_a_missing_image_leaves_the_film_untextured(tmp_path):
+    out = tmp_path / "scratch"
+    out.mkdir()
+    copy, _ = prepare_gltf(write_gltf(tmp_path / "a" / "film.gltf", data_uri_image=True), out)
+    assert Path(_film(json.loads(copy.read_text()))[0]["thickness_texture"]["path"]).read_bytes() == png_bytes()
+    src = write_gltf(tmp_path / "b" / "film.gltf")
+    (src.parent / "film thickness.png").unlink()
+    copy, _ = prepare_gltf(src, out)
+    assert "thickness_texture" not in _film(json.loads(copy.read_text()))[0]
+
+
+def test_other_required_extensions_stay_required_and_files_without_iridescence_are_imported_as_they_are(tmp_path):
+    src = write_gltf(tmp_path / "a" / "film.gltf")
+    doc = json.loads(src.read_text())
+    doc["extensionsUsed"].append("EXT_meshopt_compression")
+    doc["extensionsRequired"].append("EXT_meshopt_compression")
+    src.write_text(json.dumps(doc))
+    out = tmp_path / "scratch"
+    out.mkdir()
+    copy, _ = prepare_gltf(src, out)
+    assert json.loads(copy.read_text())["extensionsRequired"] == ["EXT_meshopt_compression"]
+    for m in doc["materials"]:
+        m.pop("extensions")
+    doc["extensionsUsed"] = ["KHR_materials_ior"]
+    doc.pop("extensionsRequired")
+    src.write_text(json.dumps(doc))
+    assert prepare_gltf(src, out) is None
+
+
+@pytest.mark.parametrize("bad", [{"iridescenceIor": "1.3"}, {"iridescenceThicknessTexture": 0}, "film"])
+def test_a_malformed_iridescence_is_one_line_naming_the_file(tmp_path, bad):
+    src = write_gltf(tmp_path / "a" / "film.gltf")
+    doc = json.loads(src.read_text())
+    doc["materials"][1]["extensions"]["KHR_materials_iridescence"] = bad
+    src.write_text(json.dumps(doc))
+    with pytest.raises(SceneRefError, match=r"film\.gltf: glTF KHR_materials_iridescence"):
+        prepare_gltf(src, tmp_path)
