@@ -122,16 +122,24 @@ def gltf_json(path: Path) -> dict:
     return doc
 
 
-def _items(doc: dict, key: str, path: Path) -> list:
+def gltf_items(doc: dict, key: str, path: Path) -> list:
+    """``doc[key]`` as a list of objects (empty when absent); SceneRefError naming the file otherwise."""
     items = doc.get(key, [])
     if not isinstance(items, list) or not all(isinstance(x, dict) for x in items):
         raise SceneRefError(f"{path}: not a valid glTF file ({key} is not a list of objects)")
     return items
 
 
+def uri_path(uri: str) -> str:
+    """A glTF URI as the relative file path Blender's importer reads (``io_scene_gltf2``'s ``uri_to_path``):
+    backslashes are separators, then percent-decoding. Every reader of a glTF URI here uses it, so what is checked
+    is what the importer opens (``..\\x.bin`` is ``../x.bin``)."""
+    return unquote(uri.replace("\\", "/"))
+
+
 def _uri_refs(path: Path, doc: dict, roots, outside: list) -> None:
     for key in ("buffers", "images"):
-        for i, item in enumerate(_items(doc, key, path)):
+        for i, item in enumerate(gltf_items(doc, key, path)):
             uri = item.get("uri")
             if uri is None:
                 continue
@@ -142,7 +150,7 @@ def _uri_refs(path: Path, doc: dict, roots, outside: list) -> None:
             if re.match(r"^[A-Za-z][A-Za-z0-9+.-]+:", uri):
                 raise SceneRefError(f"{path}: glTF {key}[{i}].uri {uri!r} is not a file in the scene's folder "
                                     "(a URL); it is not read")
-            real = resolve_ref(path, unquote(uri), path.parent, roots, f"glTF {key}[{i}].uri", uri,
+            real = resolve_ref(path, uri_path(uri), path.parent, roots, f"glTF {key}[{i}].uri", uri,
                                missing_ok=key == "images")
             if real is not None:
                 outside.append(str(real))
@@ -162,8 +170,8 @@ def _int(v) -> bool:
 
 def _check_accessors(path: Path, doc: dict) -> None:
     """Each accessor's count fits its buffer view (or the zeros cap); its view fits its buffer."""
-    views = _items(doc, "bufferViews", path)
-    buffers = _items(doc, "buffers", path)
+    views = gltf_items(doc, "bufferViews", path)
+    buffers = gltf_items(doc, "buffers", path)
     for i, v in enumerate(views):
         b, off, n = v.get("buffer"), v.get("byteOffset", 0), v.get("byteLength")
         if not (_int(b) and _int(off) and _int(n)) or b >= len(buffers):
@@ -172,7 +180,7 @@ def _check_accessors(path: Path, doc: dict) -> None:
         if not _int(blen) or off + n > blen:
             raise SceneRefError(f"{path}: glTF bufferViews[{i}] (bytes {off}..{off + n}) lies outside buffers[{b}] "
                                 f"({blen} bytes): a corrupt glTF file")
-    for i, acc in enumerate(_items(doc, "accessors", path)):
+    for i, acc in enumerate(gltf_items(doc, "accessors", path)):
         count = acc.get("count")
         if not _int(count) or acc.get("componentType") not in COMPONENT_BYTES or acc.get("type") not in \
                 TYPE_COMPONENTS:
@@ -296,4 +304,5 @@ def check_scene_refs(scene: Path, allow_read=()) -> list[str]:
     return sorted(set(outside))
 
 
-__all__ = ["SceneRefError", "check_scene_file", "check_scene_refs", "gltf_json", "read_roots", "resolve_ref"]
+__all__ = ["SceneRefError", "check_scene_file", "check_scene_refs", "gltf_items", "gltf_json", "read_roots",
+           "resolve_ref", "uri_path"]

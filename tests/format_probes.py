@@ -177,7 +177,10 @@ def _films() -> dict:
         for n in mat.node_tree.nodes:
             if n.type == "BSDF_PRINCIPLED":
                 t = n.inputs["Thin Film Thickness"]
+                base = [l.from_node for l in n.inputs["Base Color"].links]
                 out[mat.name] = {"ior": n.inputs["Thin Film IOR"].default_value, "thickness": t.default_value,
+                                 "base_colour_space": [b.image.colorspace_settings.name for b in base
+                                                       if b.type == "TEX_IMAGE"],
                                  "linked": t.is_linked, **_film_inputs(t), "props": list(mat.keys()),
                                  "packed": [i.packed_file is not None for i in bpy.data.images]}
     return out

@@ -81,8 +81,9 @@ def write_glb(path: Path, required: bool = True) -> Path:
 
 def write_gltf(path: Path, required: bool = True, data_uri_image: bool = False) -> Path:
     """A .gltf beside its ``geometry.bin`` and ``film thickness.png`` (a name that needs URI quoting), or with the
-    image as a data: URI."""
+    image as a data: URI. The textured material also samples that image as its base colour (sRGB)."""
     doc, blob = iridescent_doc(required)
+    doc["materials"][0]["pbrMetallicRoughness"] = {"baseColorTexture": {"index": 0}}
     path.parent.mkdir(parents=True, exist_ok=True)
     (path.parent / "geometry.bin").write_bytes(blob)
     doc["buffers"][0]["uri"] = "geometry.bin"

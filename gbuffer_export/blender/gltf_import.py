@@ -20,10 +20,15 @@ from ..gltf_extensions import EXTRAS_KEY, IRIDESCENCE, prepare_gltf
 log = logging.getLogger(__name__)
 
 
-def _image_channel(nt, tex: dict, channel: str):
-    """The ``channel`` output of the texture ``tex`` ({"path", "uv"}) sampled in node tree ``nt``."""
-    image = bpy.data.images.load(tex["path"], check_existing=True)
-    image.colorspace_settings.name = "Non-Color"
+def _image_channel(nt, tex: dict, channel: str, loaded: dict):
+    """The ``channel`` output of the texture ``tex`` ({"path", "uv"}) sampled in node tree ``nt``; ``loaded`` holds
+    the images this import loaded (one per file)."""
+    # a datablock of its own: the importer's image of the same file may be a colour texture (sRGB), which setting
+    # Non-Color here would change for every material that samples it
+    image = loaded.get(tex["path"])
+    if image is None:
+        image = loaded[tex["path"]] = bpy.data.images.load(tex["path"], check_existing=False)
+        image.colorspace_settings.name = "Non-Color"
     if image.packed_file is None:
         image.pack()  # as the importer packs its images; the scratch folder is removed after the import
     node = nt.nodes.new("ShaderNodeTexImage")
@@ -48,9 +53,9 @@ def _math(nt, a, b, operation: str = "MULTIPLY"):
     return node.outputs[0]
 
 
-def apply_iridescence(mat, spec: dict) -> None:
+def apply_iridescence(mat, spec: dict, loaded: dict | None = None) -> None:
     """Thin film on every Principled BSDF of ``mat`` from a resolved KHR_materials_iridescence ``spec``."""
-    nt = mat.node_tree
+    nt, loaded = mat.node_tree, {} if loaded is None else loaded
     for bsdf in [n for n in nt.nodes if n.type == "BSDF_PRINCIPLED"]:
         bsdf.inputs["Thin Film IOR"].default_value = spec["ior"]
         socket = bsdf.inputs["Thin Film Thickness"]
@@ -59,14 +64,14 @@ def apply_iridescence(mat, spec: dict) -> None:
             socket.default_value = spec["factor"] * spec["thickness_max"]
             continue
         if thick_tex is not None:  # thickness = mix(min, max, texture G)
-            span = _math(nt, _image_channel(nt, thick_tex, "Green"),
+            span = _math(nt, _image_channel(nt, thick_tex, "Green", loaded),
                          spec["thickness_max"] - spec["thickness_min"])
             value = _math(nt, span, spec["thickness_min"], "ADD")
         else:
             value = spec["thickness_max"]
         value = _math(nt, value, spec["factor"])
         if factor_tex is not None:
-            value = _math(nt, value, _image_channel(nt, factor_tex, "Red"))
+            value = _math(nt, value, _image_channel(nt, factor_tex, "Red", loaded))
         nt.links.new(value, socket)
 
 
@@ -80,11 +85,11 @@ def import_gltf(path: Path, op=None, **options) -> set:
             return op(filepath=str(path), **options)
         before = set(bpy.data.materials)
         result = op(filepath=str(prepared[0]), **options)
-        done = 0
+        done, loaded = 0, {}
         for mat in [m for m in bpy.data.materials if m not in before]:
             spec = mat.get(EXTRAS_KEY)
             if spec is not None and mat.node_tree is not None:
-                apply_iridescence(mat, spec.to_dict())
+                apply_iridescence(mat, spec.to_dict(), loaded)
                 del mat[EXTRAS_KEY]
                 done += 1
         log.info("%s: %s applied as Principled thin film on %d material(s) (%s)", path, IRIDESCENCE, done,

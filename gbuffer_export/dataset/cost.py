@@ -5,7 +5,8 @@ The cost of a frame is its record's ``seconds_total`` (``CLIP/frames/NNNNNN.json
 level and pass (G-buffers, LR and HR radiance, conversion, writing), from the start of the frame to its commit, and
 its ``cpu_seconds_total``: the render process's CPU seconds over the same span, every thread together. The wall time
 is what the frame took on that machine under that load (a render beside a training waits for the CPU); the CPU time
-is the load-independent cost, and with one Cycles thread it is the wall time of an unloaded worker. A clip's setup
+is the load-independent cost of a CPU render (on a GPU it is only the host's share), and with one Cycles thread it
+is the wall time of an unloaded worker. A clip's setup
 (import, camera planning, BVH build) is in neither, so the sums are the rendering proper. The remaining time is
 estimated per source (``levels``, ``builtin``, ``assets``...) as its unrendered frames times the median of its
 finished ones (the median over all sources where a source has none finished yet): in wall seconds for one worker on

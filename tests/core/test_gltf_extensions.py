@@ -85,11 +85,87 @@ def test_other_required_extensions_stay_required_and_files_without_iridescence_a
     assert prepare_gltf(src, out) is None
 
 
-@pytest.mark.parametrize("bad", [{"iridescenceIor": "1.3"}, {"iridescenceThicknessTexture": 0}, "film"])
-def test_a_malformed_iridescence_is_one_line_naming_the_file(tmp_path, bad):
+IRI = "KHR_materials_iridescence"
+
+
+def _set_film(doc, value):
+    doc["materials"][0]["extensions"][IRI] = value
+
+
+def _set_tex(doc, **info):
+    doc["materials"][0]["extensions"][IRI]["iridescenceThicknessTexture"] = info
+
+
+#: (what to break in the .gltf fixture, the words of the one-line error)
+MALFORMED = {
+    "ior as a string": (lambda d: _set_film(d, {"iridescenceIor": "1.3"}), "iridescenceIor is '1.3'"),
+    "film not an object": (lambda d: _set_film(d, "film"), "of a material is not an object"),
+    "texture not an object": (lambda d: _set_film(d, {"iridescenceThicknessTexture": 0}), "not a textureInfo"),
+    "infinite thickness": (lambda d: _set_film(d, {"iridescenceThicknessMaximum": float("inf")}),
+                           "iridescenceThicknessMaximum is inf"),
+    "huge thickness": (lambda d: _set_film(d, {"iridescenceThicknessMaximum": 10 ** 400}), "not a number in"),
+    "negative thickness": (lambda d: _set_film(d, {"iridescenceThicknessMinimum": -5}), "[0, inf]"),
+    "factor above 1": (lambda d: _set_film(d, {"iridescenceFactor": 1.5}), "iridescenceFactor is 1.5"),
+    "ior below 1": (lambda d: _set_film(d, {"iridescenceIor": 0.5}), "iridescenceIor is 0.5"),
+    "texture index out of range": (lambda d: _set_tex(d, index=3), "index is 3: not an index below 1"),
+    "negative texture index": (lambda d: _set_tex(d, index=-1), "index is -1"),
+    "boolean texture index": (lambda d: _set_tex(d, index=True), "index is True"),
+    "texCoord a string": (lambda d: _set_tex(d, index=0, texCoord="a"), "texCoord is 'a'"),
+    "negative texCoord": (lambda d: _set_tex(d, index=0, texCoord=-1), "texCoord is -1"),
+    "textures not a list": (lambda d: d.update(textures={"0": {}}), "textures is not a list of objects"),
+    "image source out of range": (lambda d: d["textures"][0].update(source=7), "textures[0].source is 7"),
+    "image without data": (lambda d: d["images"][0].pop("uri"), "images[0] has neither a uri nor a bufferView"),
+    "image view out of range": (lambda d: d["images"][0].update(uri=None, bufferView=9),
+                                "images[0].bufferView is 9"),
+    "image view too long": (lambda d: (d["images"][0].pop("uri"), d["images"][0].update(bufferView=0),
+                                       d["bufferViews"][0].update(byteLength=10 ** 6)), "does not fit its buffer"),
+    "data URI without data": (lambda d: d["images"][0].update(uri="data:image/png;base64"), "without data"),
+    "data URI bad base64": (lambda d: d["images"][0].update(uri="data:image/png;base64,@@@"), "base64 is malformed"),
+    "extensions a list": (lambda d: d["materials"][1].update(extensions=[]), "materials[1].extensions is not"),
+    "material not an object": (lambda d: d["materials"].append(3), "materials is not a list of objects"),
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_a_malformed_iridescence_is_one_line_naming_the_file(tmp_path, case):
+    """Every malformed value or reference of the extension: SceneRefError naming the file, never a traceback of
+    another kind and never a film silently dropped."""
     src = write_gltf(tmp_path / "a" / "film.gltf")
     doc = json.loads(src.read_text())
-    doc["materials"][1]["extensions"]["KHR_materials_iridescence"] = bad
+    breaks, words = MALFORMED[case]
+    breaks(doc)
     src.write_text(json.dumps(doc))
-    with pytest.raises(SceneRefError, match=r"film\.gltf: glTF KHR_materials_iridescence"):
+    with pytest.raises(SceneRefError) as e:
         prepare_gltf(src, tmp_path)
+    msg = str(e.value)
+    assert msg.startswith(f"{src}: ") and words in msg and "\n" not in msg, msg
+
+
+def test_a_buffer_file_that_cannot_be_read_and_a_truncated_glb_are_one_line(tmp_path):
+    src = write_gltf(tmp_path / "a" / "film.gltf")
+    doc = json.loads(src.read_text())
+    doc["images"][0] = {"bufferView": 0}
+    doc["buffers"][0]["uri"] = "gone.bin"
+    src.write_text(json.dumps(doc))
+    with pytest.raises(SceneRefError, match=r"film\.gltf: glTF buffers\[0\]\.uri 'gone\.bin' cannot be read"):
+        prepare_gltf(src, tmp_path)
+    glb = write_glb(tmp_path / "b" / "film.glb")
+    glb.write_bytes(glb.read_bytes()[:-40])
+    with pytest.raises(SceneRefError, match=r"film\.glb: truncated glTF binary"):
+        prepare_gltf(glb, tmp_path)
+
+
+def test_uris_are_read_as_the_importer_reads_them_backslashes_and_webp_sources_included(tmp_path):
+    src = write_gltf(tmp_path / "a" / "film.gltf")
+    (src.parent / "tex").mkdir()
+    (src.parent / "film thickness.png").rename(src.parent / "tex" / "t.png")
+    doc = json.loads(src.read_text())
+    doc["images"] = [{"uri": "data:image/png;base64,AAAA"}, {"uri": "tex\\t.png"}]
+    doc["textures"][0] = {"source": 0, "extensions": {"EXT_texture_webp": {"source": 1}}}
+    src.write_text(json.dumps(doc))
+    out = tmp_path / "scratch"
+    out.mkdir()
+    copy, _ = prepare_gltf(src, out)
+    tex = _film(json.loads(copy.read_text()))[0]["thickness_texture"]
+    assert tex["path"] == str((src.parent / "tex" / "t.png").resolve())
+    assert unquote(json.loads(copy.read_text())["images"][1]["uri"]) == (src.parent / "tex" / "t.png").as_posix()

@@ -38,14 +38,26 @@ def test_gltf_inside_and_data_uris_pass(tmp_path):
 
 
 @pytest.mark.parametrize("uri", ["../../../../etc/passwd", "/etc/passwd", "/dev/zero", "..%2F..%2Fsecret.bin",
-                                 "file:///etc/passwd"])
+                                 "file:///etc/passwd", "..\\..\\secret.bin"])
 def test_gltf_buffer_outside_is_refused_naming_file_and_reference(tmp_path, uri):
     p = _gltf(tmp_path / "a" / "lvl", uri)
     # a buffer is refused even when nothing is there (the import would fail anyway)
     with pytest.raises(SceneRefError) as e:
         check_scene_refs(p)
     msg = str(e.value)
-    assert str(p) in msg and "buffers[0]" in msg and uri in msg and "\n" not in msg
+    assert str(p) in msg and "buffers[0]" in msg and repr(uri)[1:-1] in msg and "\n" not in msg
+
+
+def test_a_backslash_uri_is_the_path_blenders_importer_opens(tmp_path):
+    """io_scene_gltf2 reads a URI's backslashes as separators: ``..\\secret.bin`` is the file beside the folder,
+    which is refused even when it exists (an unchecked name would let the importer read it)."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "secret.bin").write_bytes(b"\0" * 12)
+    with pytest.raises(SceneRefError, match="buffers\\[0\\]"):
+        check_scene_refs(_gltf(tmp_path / "a" / "lvl", "..\\secret.bin"))
+    (tmp_path / "a" / "lvl" / "sub").mkdir()
+    (tmp_path / "a" / "lvl" / "sub" / "b.bin").write_bytes(b"\0" * 12)
+    assert check_scene_refs(_gltf(tmp_path / "a" / "lvl", "sub\\b.bin")) == []
 
 
 def test_links_fifos_and_folders_are_refused(tmp_path):

@@ -232,6 +232,8 @@ def test_gltf_iridescence_becomes_the_principled_thin_film_where_blender_alone_r
             assert [c[2][0] for c in textured["chain"][:3]] == [1.0, 200.0, 400.0]  # factor, min, max - min
             green = sorted(round(v * 255) for v in textured["chain"][4][3][1::4])
             assert green == sorted(TEXELS_G) and all(textured["packed"])
+        # the .gltf's base colour samples the film's file: it stays sRGB (the film reads its own Non-Color copy)
+        assert rec["level"]["FilmTextured"]["base_colour_space"] == (["sRGB"] if path.suffix == ".gltf" else [])
     if len(files) == 3:
         films = res[str(suzanne)]["asset"]
         assert sorted((round(f["ior"], 2), f["thickness"] if not f["linked"] else "texture")
