@@ -1,7 +1,9 @@
 """``blendsr dataset --dry-run``'s planner (bpy layer): import each level of the spec once and plan every walk and
 fly clip's camera as its dataset job would (the same configuration, geometry without sky meshes, rules, unit and
 region: ``scene_setup.plan_scene_path``), without rendering. Per clip: the path it would take, or the reason it has
-none and a fix that works for it (``level_cameras.suggest_fix``)."""
+none and a fix that works for it (``level_cameras.suggest_fix``). Before that, every file the asset clips import
+(their assets and clutter) is imported once as their jobs import it (``check_assets``), so that a file Blender
+cannot import is found before the render, not hours into it."""
 from __future__ import annotations
 
 import logging
@@ -81,6 +83,43 @@ def plan_jobs(jobs) -> list[dict]:
             for j in group:
                 out.append(plan_job(j, cache, Path(tmp)))
     return out
+
+
+def asset_files(jobs) -> list[str]:
+    """Every file the ``kind = "assets"`` clips of ``jobs`` import (each one's asset and clutter), once, in order."""
+    seen: dict[str, None] = {}
+    for j in jobs:
+        if j.kind == "assets":
+            for path in (j.asset, *j.clutter):
+                if path:
+                    seen.setdefault(str(path), None)
+    return list(seen)
+
+
+def check_assets(files) -> list[dict]:
+    """Import each file into an empty scene as a clip's job does (``assets.import_asset``: reference check, the glTF
+    extensions BlendSR applies); per file ``{"asset", "ok", "objects"}`` or ``{"asset", "ok": False, "error"}``."""
+    import bpy
+    from .assets import import_asset
+    from .importers import _importer_output
+    out = []
+    for path in files:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        try:
+            with _importer_output(Path(path).name):
+                objects = import_asset(bpy.context.scene, Path(path))
+        except BlendSRError as exc:
+            out.append({"asset": path, "ok": False, "error": str(exc)})
+        else:
+            out.append({"asset": path, "ok": True, "objects": len(objects)})
+    return out
+
+
+def describe_asset(rec: dict) -> str:
+    """One line for an imported asset file."""
+    if not rec["ok"]:
+        return f"NO IMPORT {rec['asset']}: {rec['error']}"
+    return f"IMPORTS {rec['asset']}: {rec['objects']} top-level object(s)"
 
 
 def describe(rec: dict) -> str:

@@ -51,10 +51,12 @@ def register(subparsers) -> None:
                    help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
                         "(recorded in each clip's manifest)")
     p.add_argument("--dry-run", action="store_true",
-                   help="print the clips the spec expands to, plan every walk and fly clip's camera in its level "
-                        "(import and plan, no render: the path it would take, or why it has none and a fix) and "
-                        "exit; 1 when a clip has no path")
-    p.add_argument("--no-plan", action="store_true", help="with --dry-run: print the clips only, plan nothing")
+                   help="print the clips the spec expands to, import every asset file of the asset clips once (as "
+                        "their jobs import it), plan every walk and fly clip's camera in its level (import and plan, "
+                        "no render: the path it would take, or why it has none and a fix) and exit; 1 when a file "
+                        "does not import or a clip has no path")
+    p.add_argument("--no-plan", action="store_true",
+                   help="with --dry-run: print the clips only, import and plan nothing")
     p.add_argument("--status", action="store_true",
                    help="render nothing: print, per source and split, the clips and frames done and planned, the "
                         "render hours so far and the median seconds per frame (measured from the finished frames' "
@@ -112,25 +114,42 @@ def _status(root: Path, as_json: bool) -> int:
     return 0
 
 
+def _dry_run_assets(files: list[str]) -> int:
+    """Import each asset file once (``dry_run.check_assets``), one line each and a total; the number that fail."""
+    if not files:
+        return 0
+    from ..blender.dry_run import check_assets, describe_asset
+    checks = check_assets(files)
+    for rec in checks:
+        print(describe_asset(rec))
+    bad = sum(not r["ok"] for r in checks)
+    print(f"blendsr: imported {len(checks)} asset files: {len(checks) - bad} import, {bad} do not")
+    return bad
+
+
 def _dry_run_plan(jobs, skip: bool) -> int:
-    """Plan the walk and fly clips of ``jobs`` (``gbuffer_export.blender.dry_run``) and print one line each; 1 when
-    a clip has no path."""
+    """Import every asset file of ``jobs`` once and plan their walk and fly clips (``gbuffer_export.blender.dry_run``),
+    one line each; 1 when a file does not import or a clip has no path."""
     import logging
-    todo = [j for j in jobs if j.kind == "scene" and j.camera in ("walk", "fly")]
-    if skip or not todo:
+    from ..blender.dry_run import asset_files, plannable  # no bpy until a function below runs
+    files, todo = asset_files(jobs), [j for j in jobs if plannable(j)]
+    if skip or not (files or todo):
         return 0
     from ..extras import require
     try:
         require("blendsr dataset --dry-run's planner", "render")
     except BlendSRError as exc:
-        logging.getLogger(__name__).warning("blendsr: %s; the %d walk/fly clips are not planned", exc, len(todo))
+        logging.getLogger(__name__).warning("blendsr: %s; the %d asset files are not imported and the %d walk/fly "
+                                            "clips not planned", exc, len(files), len(todo))
         return 0
     from ..blender.dry_run import describe, plan_jobs
+    bad_files = _dry_run_assets(files)
     recs = plan_jobs(todo)
     for rec in recs:
         if not rec["ok"] and "orbit" in rec["fix"]:  # a single object: walk and fly cannot be planned on it
             logging.getLogger(__name__).warning("blendsr: %s: %s", rec["scene"], rec["fix"])
         print(describe(rec))
     bad = sum(not r["ok"] for r in recs)
-    print(f"blendsr: planned {len(recs)} walk/fly clips: {len(recs) - bad} have a path, {bad} none")
-    return 1 if bad else 0
+    if recs:
+        print(f"blendsr: planned {len(recs)} walk/fly clips: {len(recs) - bad} have a path, {bad} none")
+    return 1 if bad or bad_files else 0

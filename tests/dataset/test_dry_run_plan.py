@@ -1,15 +1,35 @@
 """``blendsr dataset --dry-run`` plans every walk and fly clip in its level (issue 55 item 1): import and plan only,
 no render; per clip the path it would take or the reason it has none with a fix that works, and a warning for a
-single object. Two small shared files (the garage level and a bottle), each imported once, in one process."""
+single object. Two small shared files (the garage level and a bottle), each imported once, and two hand-made asset
+files (one this Blender cannot import), in one process."""
 from __future__ import annotations
 
+import json
 import re
+from pathlib import Path
 
 import pytest
 
 from tests.conftest import requires_bpy, run_cli, shared_or_skip
+from tests.gltf_fixtures import write_glb
 
 pytestmark = [requires_bpy, pytest.mark.bpy, pytest.mark.shared]
+
+
+def _assets(folder: Path) -> None:
+    """Film.glb (requires KHR_materials_iridescence, which BlendSR applies) and Packed.glb (requires
+    EXT_meshopt_compression, which Blender 5.0.1's importer lacks)."""
+    write_glb(folder / "Film.glb")
+    bad = write_glb(folder / "Packed.glb", required=False)
+    data = bad.read_bytes()
+    n = int.from_bytes(data[12:16], "little")
+    doc = json.loads(data[20:20 + n])
+    doc["extensionsUsed"].append("EXT_meshopt_compression")
+    doc["extensionsRequired"] = ["EXT_meshopt_compression"]
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    body = len(text).to_bytes(4, "little") + b"JSON" + text + data[20 + n:]
+    bad.write_bytes(b"glTF" + (2).to_bytes(4, "little") + (12 + len(body)).to_bytes(4, "little") + body)
 
 
 @pytest.fixture(scope="module")
@@ -17,6 +37,7 @@ def dry_run(tmp_path_factory):
     garage = shared_or_skip("scenes/levels/garage/garage.blend")
     bottle = shared_or_skip("scenes/gltf/WaterBottle/glTF/WaterBottle.gltf")
     tmp = tmp_path_factory.mktemp("dry")
+    _assets(tmp / "assets")
     spec = tmp / "spec.toml"
     spec.write_text(f"""[dataset]
 name = "dry"
@@ -42,6 +63,13 @@ kind = "scene"
 paths = ["{bottle}"]
 cameras = ["walk"]
 clips_per_scene = 1
+
+[[source]]
+name = "a"
+kind = "assets"
+paths = ["{tmp / 'assets'}"]
+clips_per_asset = 2
+clutter = 1
 """)
     return run_cli("dataset", spec, "-o", tmp / "ds", "--dry-run", timeout=600), tmp
 
@@ -68,4 +96,21 @@ def test_no_plan_prints_the_clips_only(dry_run, tmp_path):
     lines = proc.stdout.splitlines()
     clips = [ln for ln in lines if not ln.startswith(("total ", "export "))]  # the totals and formats follow them
     assert proc.returncode == 0 and not any(ln.startswith(("PATH ", "NO PATH ")) for ln in lines)
-    assert len(clips) == 5, lines
+    assert len(clips) == 9, lines  # 5 level clips, 2 of each asset
+    assert not any(ln.startswith(("IMPORTS ", "NO IMPORT ")) for ln in lines)
+
+
+def test_every_asset_file_is_imported_once_before_the_render_and_one_that_cannot_be_is_named(dry_run):
+    """A glTF requiring an extension this Blender lacks fails every clip that imports it, as asset or clutter; the
+    dry run imports each asset file once, as the jobs do, and names it (the iridescent file imports: BlendSR applies
+    its extension)."""
+    proc, tmp = dry_run
+    out = proc.stdout.splitlines()
+    imports = [ln for ln in out if ln.startswith(("IMPORTS ", "NO IMPORT "))]
+    good, bad = tmp / "assets" / "Film.glb", tmp / "assets" / "Packed.glb"
+    assert len(imports) == 2, proc.stdout  # each file once, though each is a main asset and the other's clutter
+    assert f"IMPORTS {good}: 2 top-level object(s)" in imports
+    refused = [ln for ln in imports if ln.startswith(f"NO IMPORT {bad}: ")]
+    assert len(refused) == 1 and "EXT_meshopt_compression is not available" in refused[0], imports
+    assert "blendsr: imported 2 asset files: 1 import, 1 do not" in out
+
