@@ -16,7 +16,8 @@ The subsets are taken from the planned train split, so they do not change while 
 once all its clips are rendered (and valid), and the scores wait until every run is trained and the test split is
 whole (exit 3 until then; rerun the same command, or pass ``--wait MINUTES`` to look again every MINUTES beside the
 render: each run then trains as soon as its clips are). ``blendsr dataset ... --order mixed`` renders in the same
-order, so the smallest subsets are ready first.
+order, so the smallest subsets are ready first; ``--order train-first`` also finishes every subset before the
+val and test splits, so that the largest run starts while they render.
 
 ``--multiples 1,3,10`` sizes the nested subsets by HR pixels instead: the smallest prefix of the ordered groups
 whose HR pixels (frames x width x height, from the index) reach each multiple of ``--unit-pixels`` (default: the
@@ -148,7 +149,8 @@ def main(argv=None) -> int:
         waiting = [c for c in clips if c not in done_train]
         if waiting:
             print(f"data_scaling: {run.name}: {len(waiting)} of its {len(clips)} clips are not rendered (or not "
-                  f"valid) yet; it trains once they are (blendsr dataset ... --order mixed renders them first)")
+                  "valid) yet; it trains once they are (blendsr dataset ... --order mixed or train-first renders "
+                  "them first)")
             return clips, None, run
         overrides = [f'model.name="{a.model}"', f"model.scale={a.scale}", f"run.max_steps={steps}", "run.minutes=0"]
         if a.threads:

@@ -43,10 +43,12 @@ def register(subparsers) -> None:
     p.add_argument("--limit", type=int, default=None, help="render at most N clips in this run")
     from ..dataset.build import ORDERS
     p.add_argument("--order", default=ORDERS[0], choices=ORDERS,
-                   help="the order clips render in: the spec's (source by source), or mixed: a fixed pseudo-random "
+                   help="the order clips render in: the spec's (source by source); mixed: a fixed pseudo-random "
                         "order of the clip ids (the same on every run and machine), so that the clips finished at "
                         "any moment are a sample of every source and split, and benchmarks/data_scaling.py's nested "
-                        "training subsets, taken in the same order, are rendered smallest first")
+                        "training subsets, taken in the same order, are rendered smallest first; train-first: the "
+                        "train split in the mixed order, then val and test in it (every training subset is finished "
+                        "before the evaluation splits, so the largest run can start while they render)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda", "optix", "hip", "metal", "oneapi"),
                    help="Cycles device of every clip: auto uses a GPU when Cycles sees one, else the CPU "
                         "(recorded in each clip's manifest)")

@@ -45,7 +45,7 @@ SCHEMA_VERSION = 1
 STATES = ("pending", "partial", "done", "failed")
 EXECUTORS = ("local", "ray")
 #: The orders a run renders its clips in (RunOptions.order, --order).
-ORDERS = ("spec", "mixed")
+ORDERS = ("spec", "mixed", "train-first")
 #: Seconds a clip process has to stop after Ctrl-C before it is killed (``ChildProcesses.stop``).
 STOP_GRACE_S = 4.0
 
@@ -67,7 +67,7 @@ class RunOptions:
     buffers_for: tuple[str, ...] = ()  # --for-models: the models whose buffers are rendered (recorded)
     progress: bool = True
     limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
-    order: str = "spec"             # the order clips render in: the spec's, or "mixed" (spec.mixed_rank)
+    order: str = "spec"             # the order clips render in: the spec's, "mixed" (spec.mixed_rank), "train-first"
     device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
     blender: str = ""               # a Blender executable to render each clip with (local executor; see job_command)
 
@@ -530,11 +530,13 @@ def _legacy_render_keys(clip: dict) -> dict:
 
 
 def clips_to_render(jobs: list[ClipJob], index: dict, opts: RunOptions) -> list[ClipJob]:
-    """The jobs whose clip is not done, in ``opts.order`` (the spec's, or ``spec.mixed_rank``'s), the first
-    ``opts.limit`` of them."""
+    """The jobs whose clip is not done, in ``opts.order`` (the spec's; ``spec.mixed_rank``'s; or the train split's
+    in that order before the others'), the first ``opts.limit`` of them."""
     todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
     if opts.order == "mixed":
         todo.sort(key=lambda j: mixed_rank(j.id))
+    elif opts.order == "train-first":  # the train split in the mixed order, then val and test in it
+        todo.sort(key=lambda j: (j.split != "train", mixed_rank(j.id)))
     return todo if opts.limit is None else todo[:opts.limit]
 
 

@@ -2,6 +2,7 @@
 and every score is split by family group (benchmarks/data_scaling.py; no render: an index written in the test)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -45,6 +46,8 @@ def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
     from gbuffer_export.dataset.spec import expand, load_spec
     from tests.conftest import builtin_spec
     jobs = expand(load_spec(builtin_spec(tmp_path / "spec.toml", seeds="0:24")))
+    jobs = [dataclasses.replace(j, split="test" if k % 5 == 1 else "val" if k % 7 == 3 else j.split)
+            for k, j in enumerate(jobs)]  # built-in seeds all hash to train here: some evaluation clips
     root = tmp_path / "ds"
     root.mkdir()
     clips = [{"id": j.id, "path": f"clips/{j.id}", "split": j.split, "state": "partial", "frames_done": 0,
@@ -57,6 +60,12 @@ def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
     assert [i for i in mixed if i in groups] == groups and mixed != [j.id for j in jobs]
     assert [j.id for j in clips_to_render(jobs, index, RunOptions())] == [j.id for j in jobs]
     assert [j.id for j in clips_to_render(jobs, index, RunOptions(order="mixed", limit=3))] == mixed[:3]
+    # train-first: the train split in the mixed order (its subsets first), then val and test, still mixed
+    first = [j.id for j in clips_to_render(jobs, index, RunOptions(order="train-first"))]
+    split = {j.id: j.split for j in jobs}
+    n_train = len(groups)
+    assert first[:n_train] == groups and first[n_train:] == [i for i in mixed if split[i] != "train"]
+    assert {split[i] for i in first[n_train:]} == {"val", "test"}
 
 
 def test_runs_wait_for_their_clips_and_scores_for_the_whole_test_split(tmp_path, capsys):
