@@ -5,10 +5,11 @@ Blender 5.0.1's glTF importer ignores ``KHR_materials_iridescence`` and refuses 
 Cycles' Principled BSDF renders the same physics: a thin film of a given thickness (nm) and IOR on the base layer.
 So, before the importer sees such a file, :func:`prepare_gltf` writes a copy into a scratch folder in which
 
-- each material's extension is checked (a malformed value or reference is one line naming the file) and copied,
-  resolved, into the material's ``extras`` under :data:`EXTRAS_KEY` (the importer copies a material's extras onto
-  the Blender material as custom properties): factor, film IOR, thickness range in nm, and its textures as files
-  (the asset's own, or embedded bytes written to the scratch folder) with their UV set;
+- each material's extension is checked (a malformed value or reference is one line naming the file) and resolved:
+  factor, film IOR, thickness range in nm, and its textures as files (the asset's own, or embedded bytes written to
+  the scratch folder) with their UV set. The settings stay in Python; the material's ``extras`` carry only a token
+  under :data:`EXTRAS_KEY` (the importer copies a material's extras onto the Blender material as custom
+  properties), and whatever the file itself put under that key is removed;
 - the extensions BlendSR applies are removed from ``extensionsRequired`` (they stay in ``extensionsUsed``);
 - relative buffer and image URIs are made absolute (the copy is elsewhere); a .glb keeps its binary chunk. URIs
   are read as the importer reads them (``scene_refs.uri_path``: backslashes are separators), the same paths
@@ -32,6 +33,7 @@ import base64
 import binascii
 import json
 import math
+import secrets
 import struct
 from pathlib import Path
 from urllib.parse import quote, unquote_to_bytes
@@ -89,7 +91,7 @@ def _data_uri(uri: str, path: Path, what: str) -> tuple[bytes, str]:
         raise _bad(path, f"{what} is a data: URI without data")
     try:
         data = base64.b64decode(payload, validate=True) if head.endswith(";base64") else unquote_to_bytes(payload)
-    except binascii.Error:
+    except (binascii.Error, ValueError):  # ValueError: characters outside ASCII
         raise _bad(path, f"{what} is a data: URI whose base64 is malformed") from None
     return data, head[5:].split(";")[0]
 
@@ -153,8 +155,12 @@ def _texture_file(path: Path, doc: dict, info, glb_bin: bytes | None, out: Path,
     if uri is not None and not isinstance(uri, str):
         raise _bad(path, f"images[{src}].uri is not a string")
     if uri is not None and not uri.startswith("data:"):
-        file = (path.parent / uri_path(uri)).resolve()
-        return {"path": str(file), "uv": uv} if file.is_file() else None
+        try:
+            file = (path.parent / uri_path(uri)).resolve()
+            found = file.is_file()
+        except (ValueError, OSError):
+            raise _bad(path, f"images[{src}].uri {uri!r} is not a file name") from None
+        return {"path": str(file), "uv": uv} if found else None  # a missing image: no texture
     if uri is not None:
         data, mime = _data_uri(uri, path, f"images[{src}].uri")
     elif "bufferView" in img:
@@ -189,7 +195,10 @@ def _absolute_uris(path: Path, doc: dict) -> None:
         for item in gltf_items(doc, key, path):
             uri = item.get("uri")
             if isinstance(uri, str) and not uri.startswith("data:"):
-                item["uri"] = quote((path.parent / uri_path(uri)).resolve().as_posix())
+                try:
+                    item["uri"] = quote((path.parent / uri_path(uri)).resolve().as_posix())
+                except (ValueError, OSError):  # a NUL, a lone surrogate, a name too long: no file has it
+                    raise _bad(path, f"{key} uri {uri!r} is not a file name") from None
 
 
 def _write_glb(target: Path, doc: dict, glb_bin: bytes | None) -> None:
@@ -202,28 +211,39 @@ def _write_glb(target: Path, doc: dict, glb_bin: bytes | None) -> None:
     target.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
 
 
-def prepare_gltf(path: Path, out: Path) -> tuple[Path, list[str]] | None:
+def _list_of_strings(doc: dict, key: str, path: Path) -> list[str]:
+    value = doc.get(key) or []
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise _bad(path, f"{key} is not a list of names")
+    return value
+
+
+def prepare_gltf(path: Path, out: Path) -> tuple[Path, dict[str, dict]] | None:
     """For a glTF that uses an extension of :data:`APPLIED`: the copy to import (written into the folder ``out``)
-    and the names of the materials that carry it; None for any other file (import it as it is). One-line
-    SceneRefError naming the file for a malformed extension."""
+    and the films by token: each iridescent material's extras carry only its token under :data:`EXTRAS_KEY`
+    (``{token: {"material": name, **resolved}}``; the settings stay here, so a value the file itself puts under
+    that key is removed, never applied: it could name any file). None for any other file (import it as it is).
+    One-line SceneRefError naming the file for a malformed extension."""
     path, out = Path(path), Path(out)
     doc = gltf_json(path)
-    if not any(e in (doc.get("extensionsUsed") or []) for e in APPLIED):
+    if not any(e in _list_of_strings(doc, "extensionsUsed", path) for e in APPLIED):
         return None
     glb_bin = _glb_chunks(path)[1] if path.suffix.lower() == ".glb" else None
-    marked = []
+    nonce, films = secrets.token_hex(8), {}
     for i, mat in enumerate(gltf_items(doc, "materials", path)):
         exts = mat.get("extensions", {})
         if not isinstance(exts, dict):
             raise _bad(path, f"materials[{i}].extensions is not an object")
-        ext = exts.get(IRIDESCENCE)
-        if ext is None:
+        extras = mat.get("extras") if isinstance(mat.get("extras"), dict) else None
+        if extras is not None:
+            extras.pop(EXTRAS_KEY, None)
+        if exts.get(IRIDESCENCE) is None:
             continue
-        extras = mat.get("extras") if isinstance(mat.get("extras"), dict) else {}
-        extras[EXTRAS_KEY] = resolved_iridescence(path, doc, ext, glb_bin, out)
-        mat["extras"] = extras
-        marked.append(str(mat.get("name") or f"Material_{i}"))
-    required = [e for e in (doc.get("extensionsRequired") or []) if e not in APPLIED]
+        token = f"{nonce}-{i}"
+        films[token] = {"material": str(mat.get("name") or f"Material_{i}"),
+                        **resolved_iridescence(path, doc, exts[IRIDESCENCE], glb_bin, out)}
+        mat["extras"] = {**(extras or {}), EXTRAS_KEY: token}
+    required = [e for e in _list_of_strings(doc, "extensionsRequired", path) if e not in APPLIED]
     if required:
         doc["extensionsRequired"] = required
     else:
@@ -234,7 +254,7 @@ def prepare_gltf(path: Path, out: Path) -> tuple[Path, list[str]] | None:
         _write_glb(target, doc, glb_bin)
     else:
         target.write_text(json.dumps(doc))
-    return target, marked
+    return target, films
 
 
 __all__ = ["APPLIED", "EXTRAS_KEY", "IRIDESCENCE", "prepare_gltf", "resolved_iridescence"]

@@ -122,6 +122,38 @@ def _wait(proc: subprocess.Popen, limit_s: float, memory: int) -> str | None:
     return None
 
 
+def _run_child(cmd: list[str], cwd: Path, out_dir: Path, memory: int, limit_s: float) -> tuple[int, str, str | None]:
+    """Run ``cmd`` with the limits (module doc), its output in ``out_dir/import.log``: (exit code, output, why it
+    was killed or None)."""
+    env = dict(os.environ)
+    repo = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "") if env.get("PYTHONPATH") else repo
+    with open(out_dir / "import.log", "wb") as logf:
+        proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=logf,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        killed = _wait(proc, limit_s, memory)
+    return proc.returncode, (out_dir / "import.log").read_text(errors="replace").strip(), killed
+
+
+def _child_failure(scene: Path, what: str, kind: str, rc: int, said: str, killed: str | None, memory: int,
+                   limit_s: float) -> ImportSandboxError | None:
+    """The one-line error of a child that was killed, crashed or failed (None when it exited 0)."""
+    if killed == "time":
+        return ImportSandboxError(f"{scene}: the {what} took longer than {limit_s:g} s (the import time limit, "
+                                  "BLENDSR_IMPORT_TIME_S); stopped")
+    if killed == "memory":
+        return ImportSandboxError(f"{scene}: the {what} used more than {_gb(memory)} of memory (the import memory "
+                                  "limit, BLENDSR_IMPORT_MEMORY_GB); stopped")
+    if rc < 0:
+        return ImportSandboxError(f"{scene}: the {what} failed (it crashed: {_signal_name(rc)}): not a readable "
+                                  f"{kind} file, or it needs more than the import memory limit ({_gb(memory)}, "
+                                  "BLENDSR_IMPORT_MEMORY_GB)")
+    if rc != 0:
+        last = said.splitlines()[-1][:200] if said else "no output"
+        return ImportSandboxError(f"{scene}: the {what} failed (exit {rc}: {last})")
+    return None
+
+
 def import_in_child(scene: Path, fmt_name: str, allow_read, out_dir: Path) -> dict:
     """Import ``scene`` in a child process (module doc); returns its report (``level``: the saved .blend)."""
     scene, out_dir = Path(scene).absolute(), Path(out_dir)
@@ -131,33 +163,41 @@ def import_in_child(scene: Path, fmt_name: str, allow_read, out_dir: Path) -> di
            str(memory), "--parent", str(os.getpid())]
     for d in allow_read or ():
         cmd += ["--allow-read", str(Path(d).absolute())]
-    env = dict(os.environ)
-    repo = str(Path(__file__).resolve().parents[1])
-    env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "") if env.get("PYTHONPATH") else repo
-    with open(out_dir / "import.log", "wb") as logf:
-        proc = subprocess.Popen(cmd, cwd=scene.parent, env=env, stdin=subprocess.DEVNULL, stdout=logf,
-                                stderr=subprocess.STDOUT, start_new_session=True)
-        killed = _wait(proc, limit_s, memory)
-    said = (out_dir / "import.log").read_text(errors="replace").strip()
+    rc, said, killed = _run_child(cmd, scene.parent, out_dir, memory, limit_s)
     if said:
         log.debug("%s: the import process said:\n%s", scene.name, said[-4000:])
-    if killed == "time":
-        raise ImportSandboxError(f"{scene}: the {fmt_name} importer took longer than {limit_s:g} s (the import time "
-                                 "limit, BLENDSR_IMPORT_TIME_S); stopped")
-    if killed == "memory":
-        raise ImportSandboxError(f"{scene}: the {fmt_name} importer used more than {_gb(memory)} of memory (the "
-                                 "import memory limit, BLENDSR_IMPORT_MEMORY_GB); stopped")
-    report = json.loads(result.read_text()) if result.is_file() else None
+    report = json.loads(result.read_text()) if result.is_file() and not killed else None
     if report is not None and report.get("error"):
         raise ImportSandboxError(report["error"])
-    if proc.returncode < 0:
-        raise ImportSandboxError(f"{scene}: the {fmt_name} importer failed (it crashed: {_signal_name(proc.returncode)}): not a "
-                                 f"readable {fmt_name} file, or it needs more than the import memory limit "
-                                 f"({_gb(memory)}, BLENDSR_IMPORT_MEMORY_GB)")
-    if proc.returncode != 0 or report is None:
-        last = said.splitlines()[-1][:200] if said else "no output"
-        raise ImportSandboxError(f"{scene}: the {fmt_name} importer failed (exit {proc.returncode}: {last})")
+    failure = _child_failure(scene, f"{fmt_name} importer", fmt_name, rc, said, killed, memory, limit_s)
+    if failure is None and report is None:
+        failure = ImportSandboxError(f"{scene}: the {fmt_name} importer failed (exit 0 and no report)")
+    if failure is not None:
+        raise failure
     return report
 
 
-__all__ = ["ImportSandboxError", "import_in_child", "import_memory_limit", "import_time_limit", "set_memory_limit"]
+def check_asset_in_child(asset: Path, out_dir: Path) -> int:
+    """Import the dataset asset ``asset`` as a clip's job does (``assets.import_asset``) in a child process with the
+    import limits (``python -m gbuffer_export.blender.dry_run ASSET RESULT``); returns its top-level object count.
+    Its refusal, a crash, a limit or an unexpected error: one ImportSandboxError line naming the file."""
+    asset, out_dir = Path(asset).absolute(), Path(out_dir)
+    memory, limit_s = import_memory_limit(), import_time_limit()
+    result = out_dir / "result.json"
+    result.unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "gbuffer_export.blender.dry_run", str(asset), str(result), "--memory", str(memory)]
+    rc, said, killed = _run_child(cmd, asset.parent, out_dir, memory, limit_s)
+    report = json.loads(result.read_text()) if result.is_file() and not killed else None
+    if report is not None and report.get("error"):
+        raise ImportSandboxError(report["error"])
+    failure = _child_failure(asset, "asset import", asset.suffix.lstrip(".").upper() or "asset", rc, said, killed,
+                             memory, limit_s)
+    if failure is None and report is None:
+        failure = ImportSandboxError(f"{asset}: the asset import failed (exit 0 and no report)")
+    if failure is not None:
+        raise failure
+    return int(report["objects"])
+
+
+__all__ = ["ImportSandboxError", "check_asset_in_child", "import_in_child", "import_memory_limit", "import_time_limit",
+           "set_memory_limit"]

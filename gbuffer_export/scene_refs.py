@@ -80,6 +80,17 @@ def resolve_ref(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what
     importer, which finds it missing and renders it neutral grey (an author's absolute texture path in a downloaded
     scene), as before the resolver."""
     shown = ref if shown is None else shown
+    try:
+        return _resolve(scene, ref, base, roots, what, shown, missing_ok)
+    except SceneRefError:
+        raise
+    except (ValueError, OSError) as exc:  # a NUL or an unencodable character, a name too long for the system
+        raise SceneRefError(f"{scene}: {what} {shown!r} is not a file name this system can open "
+                            f"({type(exc).__name__})") from None
+
+
+def _resolve(scene: Path, ref: str, base: Path, roots: tuple[Path, ...], what: str, shown: str,
+             missing_ok: bool) -> Path | None:
     target = Path(ref) if os.path.isabs(ref) else Path(base) / ref
     real = Path(os.path.realpath(target))
     # an importer may apply '..' as text before following links (os.path.abspath), or follow links first
@@ -117,6 +128,8 @@ def gltf_json(path: Path) -> dict:
         doc = json.loads(data)
     except (ValueError, UnicodeDecodeError) as exc:
         raise SceneRefError(f"{path}: not a valid glTF file (JSON: {str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise SceneRefError(f"{path}: not a valid glTF file (its JSON is nested too deeply to read)") from None
     if not isinstance(doc, dict):
         raise SceneRefError(f"{path}: not a valid glTF file (its JSON is not an object)")
     return doc

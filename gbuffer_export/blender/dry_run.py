@@ -96,29 +96,57 @@ def asset_files(jobs) -> list[str]:
     return list(seen)
 
 
-def check_assets(files) -> list[dict]:
-    """Import each file into an empty scene as a clip's job does (``assets.import_asset``: reference check, the glTF
-    extensions BlendSR applies); per file ``{"asset", "ok", "objects"}`` or ``{"asset", "ok": False, "error"}``."""
-    import bpy
-    from .assets import import_asset
-    from .importers import _importer_output
+def check_assets(files, report=None) -> list[dict]:
+    """Import each file as a clip's job does (``assets.import_asset``: reference check, the glTF extensions BlendSR
+    applies), each in a child process with the import limits (``import_sandbox.check_asset_in_child``: a crash, a
+    hang or a hostile file stops that file only); per file ``{"asset", "ok", "objects"}`` or ``{"asset", "ok":
+    False, "error"}``, each passed to ``report`` as soon as it is known."""
+    from ..import_sandbox import check_asset_in_child
     out = []
-    for path in files:
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-        try:
-            with _importer_output(Path(path).name):
-                objects = import_asset(bpy.context.scene, Path(path))
-        except BlendSRError as exc:
-            out.append({"asset": path, "ok": False, "error": str(exc)})
-        else:
-            out.append({"asset": path, "ok": True, "objects": len(objects)})
+    with tempfile.TemporaryDirectory(prefix="blendsr-asset-check-") as tmp:
+        for path in files:
+            try:
+                rec = {"asset": path, "ok": True, "objects": check_asset_in_child(Path(path), Path(tmp))}
+            except BlendSRError as exc:
+                rec = {"asset": path, "ok": False, "error": str(exc).splitlines()[0]}
+            out.append(rec)
+            if report is not None:
+                report(rec)
     return out
+
+
+def _asset_child(asset: Path, result: Path, memory: int) -> int:
+    """The child of ``check_asset_in_child``: import ``asset`` into an empty scene, write ``{"objects": N}`` or
+    ``{"error": LINE}`` to ``result``."""
+    import json
+    import os
+    from ..import_sandbox import set_memory_limit
+    set_memory_limit(memory)
+    try:
+        import bpy
+        from .assets import import_asset
+        from .importers import _importer_output
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        with _importer_output(asset.name):
+            rec = {"objects": len(import_asset(bpy.context.scene, asset))}
+    except BlendSRError as exc:
+        rec = {"error": str(exc).splitlines()[0]}
+    except MemoryError:
+        rec = {"error": f"{asset}: the asset import ran out of its import memory limit (BLENDSR_IMPORT_MEMORY_GB)"}
+    except Exception as exc:  # noqa: BLE001 - a file that breaks the importer: one line naming it
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        rec = {"error": f"{asset}: the asset import failed ({type(exc).__name__}: {first})"}
+    tmp = result.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rec))
+    os.replace(tmp, result)
+    return 0 if "objects" in rec else 2
 
 
 def describe_asset(rec: dict) -> str:
     """One line for an imported asset file."""
     if not rec["ok"]:
-        return f"NO IMPORT {rec['asset']}: {rec['error']}"
+        error = rec["error"].removeprefix(f"{rec['asset']}: ")  # the error names the file too: once is enough
+        return f"NO IMPORT {rec['asset']}: {error}"
     return f"IMPORTS {rec['asset']}: {rec['objects']} top-level object(s)"
 
 
@@ -134,3 +162,14 @@ def describe(rec: dict) -> str:
         f"{rec['metres_per_unit']:g} m/unit"
     return (f"PATH {rec['id']}: {rec['camera']}{where}, {rec['frames']} eyes at {rec['speed_mps']:g} m/s, "
             f"median view depth {rec['median_depth_m']:g} m, unit {unit}")
+
+
+if __name__ == "__main__":  # python -m gbuffer_export.blender.dry_run ASSET RESULT --memory BYTES
+    import argparse
+    import sys
+    _p = argparse.ArgumentParser(prog="dry_run")
+    _p.add_argument("asset", type=Path)
+    _p.add_argument("result", type=Path)
+    _p.add_argument("--memory", type=int, required=True)
+    _a = _p.parse_args()
+    sys.exit(_asset_child(_a.asset, _a.result, _a.memory))

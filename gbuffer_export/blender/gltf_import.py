@@ -85,15 +85,17 @@ def import_gltf(path: Path, op=None, **options) -> set:
             return op(filepath=str(path), **options)
         before = set(bpy.data.materials)
         result = op(filepath=str(prepared[0]), **options)
-        done, loaded = 0, {}
+        films, done, loaded = prepared[1], 0, {}
         for mat in [m for m in bpy.data.materials if m not in before]:
-            spec = mat.get(EXTRAS_KEY)
-            if spec is not None and mat.node_tree is not None:
-                apply_iridescence(mat, spec.to_dict(), loaded)
-                del mat[EXTRAS_KEY]
+            token = mat.get(EXTRAS_KEY)
+            if token is None:
+                continue
+            del mat[EXTRAS_KEY]
+            if isinstance(token, str) and token in films and mat.node_tree is not None:
+                apply_iridescence(mat, films[token], loaded)
                 done += 1
         log.info("%s: %s applied as Principled thin film on %d material(s) (%s)", path, IRIDESCENCE, done,
-                 ", ".join(prepared[1]))
+                 ", ".join(f["material"] for f in films.values()))
         return result
 
 

@@ -117,13 +117,12 @@ def _status(root: Path, as_json: bool) -> int:
 
 
 def _dry_run_assets(files: list[str]) -> int:
-    """Import each asset file once (``dry_run.check_assets``), one line each and a total; the number that fail."""
+    """Import each asset file once (``dry_run.check_assets``, each in a child process), one line each as it is known
+    and a total; the number that fail."""
     if not files:
         return 0
     from ..blender.dry_run import check_assets, describe_asset
-    checks = check_assets(files)
-    for rec in checks:
-        print(describe_asset(rec))
+    checks = check_assets(files, report=lambda rec: print(describe_asset(rec), flush=True))
     bad = sum(not r["ok"] for r in checks)
     print(f"blendsr: imported {len(checks)} asset files: {len(checks) - bad} import, {bad} do not")
     return bad

@@ -596,7 +596,7 @@ def read_asset_licence(path: Path) -> dict:
         if meta.is_file():
             try:
                 legal = json.loads(meta.read_text()).get("legal", [])
-            except (ValueError, OSError, AttributeError):
+            except (ValueError, OSError, AttributeError, RecursionError):
                 legal = []
             if legal:
                 lic = sorted({e.get("spdx") or e.get("license") or "unknown" for e in legal})
@@ -606,9 +606,9 @@ def read_asset_licence(path: Path) -> dict:
     if path.suffix.lower() == ".gltf":
         try:
             asset = json.loads(path.read_text()).get("asset", {})
-        except (ValueError, OSError):
+        except (ValueError, OSError, AttributeError, RecursionError):  # unreadable: its import names the problem
             asset = {}
-        if asset.get("copyright"):
+        if isinstance(asset, dict) and isinstance(asset.get("copyright"), str) and asset["copyright"]:
             return {"licence": "unknown", "attribution": asset["copyright"], "licence_source": str(path)}
     return {"licence": "unknown", "attribution": "unknown", "licence_source": None}
 

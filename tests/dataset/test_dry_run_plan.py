@@ -17,8 +17,8 @@ pytestmark = [requires_bpy, pytest.mark.bpy, pytest.mark.shared]
 
 
 def _assets(folder: Path) -> None:
-    """Film.glb (requires KHR_materials_iridescence, which BlendSR applies) and Packed.glb (requires
-    EXT_meshopt_compression, which Blender 5.0.1's importer lacks)."""
+    """Film.glb (requires KHR_materials_iridescence, which BlendSR applies), Packed.glb (requires
+    EXT_meshopt_compression, which Blender 5.0.1's importer lacks) and Deep.gltf (JSON nested too deeply to read)."""
     write_glb(folder / "Film.glb")
     bad = write_glb(folder / "Packed.glb", required=False)
     data = bad.read_bytes()
@@ -30,6 +30,7 @@ def _assets(folder: Path) -> None:
     text += b" " * (-len(text) % 4)
     body = len(text).to_bytes(4, "little") + b"JSON" + text + data[20 + n:]
     bad.write_bytes(b"glTF" + (2).to_bytes(4, "little") + (12 + len(body)).to_bytes(4, "little") + body)
+    (folder / "Deep.gltf").write_text('{"asset": {"version": "2.0"}, "extras": ' + "[" * 100000 + "]" * 100000 + "}")
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +97,7 @@ def test_no_plan_prints_the_clips_only(dry_run, tmp_path):
     lines = proc.stdout.splitlines()
     clips = [ln for ln in lines if not ln.startswith(("total ", "export "))]  # the totals and formats follow them
     assert proc.returncode == 0 and not any(ln.startswith(("PATH ", "NO PATH ")) for ln in lines)
-    assert len(clips) == 9, lines  # 5 level clips, 2 of each asset
+    assert len(clips) == 11, lines  # 5 level clips, 2 of each asset
     assert not any(ln.startswith(("IMPORTS ", "NO IMPORT ")) for ln in lines)
 
 
@@ -108,9 +109,11 @@ def test_every_asset_file_is_imported_once_before_the_render_and_one_that_cannot
     out = proc.stdout.splitlines()
     imports = [ln for ln in out if ln.startswith(("IMPORTS ", "NO IMPORT "))]
     good, bad = tmp / "assets" / "Film.glb", tmp / "assets" / "Packed.glb"
-    assert len(imports) == 2, proc.stdout  # each file once, though each is a main asset and the other's clutter
+    assert len(imports) == 3, proc.stdout  # each file once, though each is also another's clutter
     assert f"IMPORTS {good}: 2 top-level object(s)" in imports
     refused = [ln for ln in imports if ln.startswith(f"NO IMPORT {bad}: ")]
     assert len(refused) == 1 and "EXT_meshopt_compression is not available" in refused[0], imports
-    assert "blendsr: imported 2 asset files: 1 import, 1 do not" in out
+    deep = [ln for ln in imports if ln.startswith(f"NO IMPORT {tmp / 'assets' / 'Deep.gltf'}: ")]
+    assert len(deep) == 1 and "nested too deeply" in deep[0], imports  # one file's failure stops no other
+    assert "blendsr: imported 3 asset files: 1 import, 2 do not" in out
 
