@@ -179,13 +179,15 @@ def import_in_child(scene: Path, fmt_name: str, allow_read, out_dir: Path) -> di
 
 def check_asset_in_child(asset: Path, out_dir: Path) -> int:
     """Import the dataset asset ``asset`` as a clip's job does (``assets.import_asset``) in a child process with the
-    import limits (``python -m gbuffer_export.blender.dry_run ASSET RESULT``); returns its top-level object count.
+    import limits (``python -m gbuffer_export.blender.import_job ASSET OUT_DIR --asset``); returns its top-level
+    object count.
     Its refusal, a crash, a limit or an unexpected error: one ImportSandboxError line naming the file."""
     asset, out_dir = Path(asset).absolute(), Path(out_dir)
     memory, limit_s = import_memory_limit(), import_time_limit()
     result = out_dir / "result.json"
     result.unlink(missing_ok=True)
-    cmd = [sys.executable, "-m", "gbuffer_export.blender.dry_run", str(asset), str(result), "--memory", str(memory)]
+    cmd = [sys.executable, "-m", "gbuffer_export.blender.import_job", str(asset), str(out_dir), "--memory",
+           str(memory), "--parent", str(os.getpid()), "--asset"]
     rc, said, killed = _run_child(cmd, asset.parent, out_dir, memory, limit_s)
     report = json.loads(result.read_text()) if result.is_file() and not killed else None
     if report is not None and report.get("error"):
@@ -196,7 +198,7 @@ def check_asset_in_child(asset: Path, out_dir: Path) -> int:
         failure = ImportSandboxError(f"{asset}: the asset import failed (exit 0 and no report)")
     if failure is not None:
         raise failure
-    return int(report["objects"])
+    return int(report["report"]["objects"])
 
 
 __all__ = ["ImportSandboxError", "check_asset_in_child", "import_in_child", "import_memory_limit", "import_time_limit",

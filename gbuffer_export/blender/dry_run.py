@@ -115,33 +115,6 @@ def check_assets(files, report=None) -> list[dict]:
     return out
 
 
-def _asset_child(asset: Path, result: Path, memory: int) -> int:
-    """The child of ``check_asset_in_child``: import ``asset`` into an empty scene, write ``{"objects": N}`` or
-    ``{"error": LINE}`` to ``result``."""
-    import json
-    import os
-    from ..import_sandbox import set_memory_limit
-    set_memory_limit(memory)
-    try:
-        import bpy
-        from .assets import import_asset
-        from .importers import _importer_output
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-        with _importer_output(asset.name):
-            rec = {"objects": len(import_asset(bpy.context.scene, asset))}
-    except BlendSRError as exc:
-        rec = {"error": str(exc).splitlines()[0]}
-    except MemoryError:
-        rec = {"error": f"{asset}: the asset import ran out of its import memory limit (BLENDSR_IMPORT_MEMORY_GB)"}
-    except Exception as exc:  # noqa: BLE001 - a file that breaks the importer: one line naming it
-        first = (str(exc).strip().splitlines() or [""])[0][:200]
-        rec = {"error": f"{asset}: the asset import failed ({type(exc).__name__}: {first})"}
-    tmp = result.with_suffix(".tmp")
-    tmp.write_text(json.dumps(rec))
-    os.replace(tmp, result)
-    return 0 if "objects" in rec else 2
-
-
 def describe_asset(rec: dict) -> str:
     """One line for an imported asset file."""
     if not rec["ok"]:
@@ -163,13 +136,3 @@ def describe(rec: dict) -> str:
     return (f"PATH {rec['id']}: {rec['camera']}{where}, {rec['frames']} eyes at {rec['speed_mps']:g} m/s, "
             f"median view depth {rec['median_depth_m']:g} m, unit {unit}")
 
-
-if __name__ == "__main__":  # python -m gbuffer_export.blender.dry_run ASSET RESULT --memory BYTES
-    import argparse
-    import sys
-    _p = argparse.ArgumentParser(prog="dry_run")
-    _p.add_argument("asset", type=Path)
-    _p.add_argument("result", type=Path)
-    _p.add_argument("--memory", type=int, required=True)
-    _a = _p.parse_args()
-    sys.exit(_asset_child(_a.asset, _a.result, _a.memory))

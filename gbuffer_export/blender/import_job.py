@@ -3,7 +3,8 @@
 Started by ``gbuffer_export.import_sandbox`` (read it for the limits): caps its own memory, dies with its parent,
 checks the scene's references (``scene_refs``), imports the scene (``importers.import_level``), makes its paths
 absolute and saves ``OUT_DIR/level.blend``; ``OUT_DIR/result.json`` holds the manifest's report, or the one-line
-error of a refusal (exit 2).
+error of a refusal (exit 2). With ``--asset`` it imports a dataset asset into an empty scene as a clip's job does
+(``assets.import_asset``), saves nothing and reports ``{"objects": N}`` (``blendsr dataset --dry-run``).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ def main(argv=None) -> int:
     p.add_argument("--memory", type=int, required=True)
     p.add_argument("--parent", type=int, required=True)
     p.add_argument("--allow-read", action="append", default=[])
+    p.add_argument("--asset", action="store_true", help="import a dataset asset, save nothing")
     a = p.parse_args(argv)
     from ..import_sandbox import set_memory_limit
     from ..locks import die_with_parent
@@ -34,14 +36,7 @@ def main(argv=None) -> int:
     set_memory_limit(a.memory)
     from ..errors import BlendSRError
     try:
-        from ..scene_refs import check_scene_refs
-        outside = check_scene_refs(a.scene, a.allow_read)
-        from .importers import import_level
-        report = import_level(a.scene, a.allow_read)
-        report["read_outside"] = sorted(set(outside) | set(report.get("read_outside", [])))
-        if not report["read_outside"]:
-            del report["read_outside"]
-        save_level(a.out_dir / "level.blend")
+        report = _import_asset(a.scene) if a.asset else _import_level(a.scene, a.out_dir, a.allow_read)
     except BlendSRError as exc:
         _write(a.out_dir, {"error": str(exc).splitlines()[0]})
         return 2
@@ -51,6 +46,28 @@ def main(argv=None) -> int:
         return 2
     _write(a.out_dir, {"report": report})
     return 0
+
+
+def _import_level(scene: Path, out_dir: Path, allow_read) -> dict:
+    from ..scene_refs import check_scene_refs
+    outside = check_scene_refs(scene, allow_read)
+    from .importers import import_level
+    report = import_level(scene, allow_read)
+    report["read_outside"] = sorted(set(outside) | set(report.get("read_outside", [])))
+    if not report["read_outside"]:
+        del report["read_outside"]
+    save_level(out_dir / "level.blend")
+    return report
+
+
+def _import_asset(asset: Path) -> dict:
+    """A dataset asset imported into an empty scene as a clip's job imports it (its references checked there)."""
+    import bpy
+    from .assets import import_asset
+    from .importers import _importer_output
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    with _importer_output(asset.name):
+        return {"objects": len(import_asset(bpy.context.scene, asset))}
 
 
 def save_level(path: Path) -> None:
