@@ -19,8 +19,8 @@ After the import, ``gbuffer_export.blender.gltf_import`` wires each marked mater
 ``iridescenceIor`` (default 1.3); Thin Film Thickness = ``factor x factor texture (R) x mix(min, max, thickness
 texture (G))`` nm (defaults 100 and 400 nm; without a thickness texture the film is ``max`` thick, as the extension
 says). The Principled BSDF has no film weight, so a factor below 1 thins the film instead of blending a filmless
-layer in: exact where the factor is 0 or 1, an approximation between (IridescenceAbalone's factor texture has 8 %
-of its texels strictly between). Not applied to the iridescence textures: ``KHR_texture_transform`` and the
+layer in: exact where the factor is 0 or 1, an approximation between (IridescenceAbalone's factor texture: 8.3 %
+of its texels between 0.05 and 0.95). Not applied to the iridescence textures: ``KHR_texture_transform`` and the
 texture's sampler (Blender's defaults: repeat, linear). An ``EXT_texture_webp`` source is read; a source only an
 unsupported extension gives (KTX2) leaves the film untextured.
 

@@ -4,7 +4,7 @@
 prepares when the file uses ``KHR_materials_iridescence`` (which the importer ignores, or refuses when required),
 and then wires each marked material's Principled BSDF thin film as that module's docstring says: Thin Film IOR, and
 Thin Film Thickness from the factor, the thickness range and the extension's textures (Image Texture, Non-Color,
-packed into the .blend; Separate Color; Map Range; Math). Every caller of the glTF importer goes through here:
+packed into the .blend; Separate Color; Math). Every caller of the glTF importer goes through here:
 ``assets.import_asset`` (dataset assets and clutter) and ``importers.import_level`` (a .gltf/.glb scene).
 """
 from __future__ import annotations
