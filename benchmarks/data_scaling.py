@@ -45,6 +45,14 @@ any training. With ``--multiples`` the plot is the margin over demod-jbu per fam
 
     .venv/bin/python benchmarks/data_scaling.py - -o docs/bench/scaling-families --combine \
         docs/bench/scaling-families/fusesr/scaling.json docs/bench/scaling-families/fusesr-l/scaling.json
+
+``--list-clips`` prints the largest subset's clips (no training), so that a render finishes them and then the test
+split before the rest of the set (the scores wait for nothing else):
+
+    .venv/bin/python benchmarks/data_scaling.py datasets/scale -o - --multiples 1,3,10 --list-clips > subset.txt
+    blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2 --clips @subset.txt --order mixed
+    blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2 --split test
+    blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2
 """
 from __future__ import annotations
 
@@ -91,6 +99,9 @@ def main(argv=None) -> int:
     p.add_argument("--wait", type=float, default=0.0, metavar="MINUTES",
                    help="while runs wait for clips or the test split is not whole: look again every MINUTES (a "
                         "run trains as soon as its clips are rendered) instead of exiting 3; 0: exit")
+    p.add_argument("--list-clips", action="store_true",
+                   help="no training: print the clip folders of the largest subset (nested: it holds the others), "
+                        "one per line, for blendsr dataset ... --clips @FILE")
     p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
                    help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
     a = p.parse_args(argv)
@@ -122,6 +133,9 @@ def main(argv=None) -> int:
     else:
         counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
         counts = sorted({min(c, len(groups)) for c in counts})
+    if a.list_clips:
+        print("\n".join(c.name for _, clips in groups[:max(counts)] for c in clips))
+        return 0
     family_of = family_groups(a.dataset)
     budgets = [int(s) for s in a.steps.split(",")]
     out, runs = a.output, a.runs or a.output

@@ -41,6 +41,14 @@ def register(subparsers) -> None:
                    help=f"render what these export formats ({names_text()}) need, besides the spec's [dataset] "
                         f"for_formats: {needs_text()}")
     p.add_argument("--limit", type=int, default=None, help="render at most N clips in this run")
+    p.add_argument("--clips", default=None, metavar="ID,PATTERN|@FILE",
+                   help="render only these clips: comma-separated clip ids or shell patterns ('bt_thin-*'), or "
+                        "@FILE with one per line ('#' starts a comment), e.g. benchmarks/data_scaling.py "
+                        "--list-clips; an entry that names no clip is refused. The index keeps every clip; a later "
+                        "run without --clips renders the rest (default: every clip)")
+    p.add_argument("--split", default=None, metavar="S1,S2",
+                   help="render only the clips of these splits (train, val, test; with --clips: both must hold) "
+                        "(default: every split)")
     from ..dataset.build import ORDERS
     p.add_argument("--order", default=ORDERS[0], choices=ORDERS,
                    help="the order clips render in: the spec's (source by source); mixed: a fixed pseudo-random "
@@ -74,6 +82,8 @@ def run(args) -> int:
 
     if args.json and not args.status:
         raise BlendSRError("--json: only with --status (a render reports on stderr and in DATASET/dataset.json)")
+    if (args.clips or args.split) and (args.status or args.dry_run):
+        raise BlendSRError("--clips/--split: they choose what a render renders (not with --status or --dry-run)")
     spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
     if args.status:
         return _status(args.output, args.json)
@@ -96,7 +106,7 @@ def run(args) -> int:
     models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
                       buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device,
-                      order=args.order)
+                      order=args.order, clips=_clip_selection(args.clips), splits=_names(args.split))
     index = build_dataset(spec, args.output, opts)
     print(f"blendsr: {args.output}: {summary(index)}")
     failed = [c for c in index["clips"] if c["state"] == "failed"]
@@ -106,6 +116,27 @@ def run(args) -> int:
     for c in invalid:  # rendered to the end, but blendsr validate refuses it (checked as each clip finished)
         print(f"INVALID {c['id']}: {c['invalid']} (blendsr validate {args.output / 'clips' / c['id']})")
     return 1 if failed or invalid else 0
+
+
+def _names(text: str | None) -> tuple[str, ...]:
+    """A comma-separated option as its non-empty entries."""
+    return tuple(t.strip() for t in (text or "").split(",") if t.strip())
+
+
+def _clip_selection(text: str | None) -> tuple[str, ...]:
+    """--clips: its comma-separated entries, or with @FILE the file's lines (blank lines and '#' comments
+    skipped). BlendSRError naming a file that cannot be read or holds no entry."""
+    if not text or not text.startswith("@"):
+        return _names(text)
+    path = Path(text[1:])
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BlendSRError(f"--clips {text}: cannot read {path} ({exc.__class__.__name__}: {exc})") from None
+    entries = tuple(e for e in (ln.split("#", 1)[0].strip() for ln in lines) if e)
+    if not entries:
+        raise BlendSRError(f"--clips {text}: {path} names no clip (one id or shell pattern per line)")
+    return entries
 
 
 def _status(root: Path, as_json: bool) -> int:

@@ -67,6 +67,8 @@ class RunOptions:
     buffers_for: tuple[str, ...] = ()  # --for-models: the models whose buffers are rendered (recorded)
     progress: bool = True
     limit: int | None = None        # render at most this many clips in this run (tests, smoke runs)
+    clips: tuple[str, ...] = ()     # --clips: render only the clips these ids or shell patterns name (all: empty)
+    splits: tuple[str, ...] = ()    # --split: render only the clips of these splits (all: empty)
     order: str = "spec"             # the order clips render in: the spec's, "mixed" (spec.mixed_rank), "train-first"
     device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
     blender: str = ""               # a Blender executable to render each clip with (local executor; see job_command)
@@ -76,6 +78,9 @@ class RunOptions:
             raise SpecError(f"--executor {self.executor!r}: choose one of {', '.join(EXECUTORS)}")
         if self.order not in ORDERS:
             raise SpecError(f"--order {self.order!r}: choose one of {', '.join(ORDERS)}")
+        bad = [s for s in self.splits if s not in SPLITS]
+        if bad:
+            raise SpecError(f"--split {bad[0]!r}: choose from {', '.join(SPLITS)}")
         if self.workers < 1:
             raise SpecError(f"--workers {self.workers}: must be at least 1")
         if self.threads < 0:
@@ -529,10 +534,27 @@ def _legacy_render_keys(clip: dict) -> dict:
     return clip
 
 
+def selected_jobs(jobs: list[ClipJob], opts: RunOptions) -> list[ClipJob]:
+    """The jobs of ``opts.splits`` (all when empty) whose id ``opts.clips`` names (an exact id or a shell pattern,
+    ``fnmatch``; all when empty). SpecError naming an entry that matches no clip of the spec (a typo would
+    otherwise render nothing and report success)."""
+    from fnmatch import fnmatchcase
+    if opts.clips:
+        ids = [j.id for j in jobs]
+        for pat in opts.clips:
+            if not any(fnmatchcase(i, pat) for i in ids):
+                raise SpecError(f"--clips {pat!r}: names no clip of the spec (blendsr dataset SPEC --dry-run "
+                                f"--no-plan lists the {len(ids)} clip ids)")
+        jobs = [j for j in jobs if any(fnmatchcase(j.id, pat) for pat in opts.clips)]
+    return [j for j in jobs if j.split in opts.splits] if opts.splits else jobs
+
+
 def clips_to_render(jobs: list[ClipJob], index: dict, opts: RunOptions) -> list[ClipJob]:
-    """The jobs whose clip is not done, in ``opts.order`` (the spec's; ``spec.mixed_rank``'s; or the train split's
-    in that order before the others'), the first ``opts.limit`` of them."""
-    todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done"]
+    """The jobs ``selected_jobs`` keeps whose clip is not done, in ``opts.order`` (the spec's;
+    ``spec.mixed_rank``'s; or the train split's in that order before the others'), the first ``opts.limit`` of
+    them."""
+    chosen = {j.id for j in selected_jobs(jobs, opts)}
+    todo = [j for j, e in zip(jobs, index["clips"]) if e["state"] != "done" and j.id in chosen]
     if opts.order == "mixed":
         todo.sort(key=lambda j: mixed_rank(j.id))
     elif opts.order == "train-first":  # the train split in the mixed order, then val and test in it
@@ -545,6 +567,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
     opts.validate()
     root = Path(out)
     jobs = planned_jobs(spec, opts)
+    chosen = selected_jobs(jobs, opts)  # a --clips entry that names no clip is refused before anything is written
     old = check_folder(root, spec, jobs)
     check_clip_resources(jobs, root, spec.path)
     root.mkdir(parents=True, exist_ok=True)
@@ -562,7 +585,8 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         todo = clips_to_render(jobs, index, opts)
         threads = opts.clip_threads()
         n_done = len(jobs) - len([e for e in index["clips"] if e["state"] != "done"])
-        log.info(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render "
+        picked = f" of the {len(chosen)} --clips/--split select" if len(chosen) < len(jobs) else ""
+        log.info(f"blendsr: dataset {spec.name!r}: {len(jobs)} clips, {n_done} done, {len(todo)} to render{picked} "
               f"({opts.executor}, " + (f"{opts.workers} workers, {threads} threads each)" if opts.executor == "local"
                                        else f"{threads} thread(s) and CPU(s) per task, as many tasks at once as "
                                             f"the cluster has CPUs)"))
@@ -613,7 +637,9 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
             if bar is not None:
                 bar.close()
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,
-                             "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1)}
+                             "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1),
+                             **({"clips": list(opts.clips)} if opts.clips else {}),
+                             **({"splits": list(opts.splits)} if opts.splits else {})}
         write_json_atomic(root / INDEX, index)
         return index
     finally:

@@ -221,3 +221,17 @@ def test_only_frames_picks_a_subset_of_the_range_and_of_the_shard(tmp_path):
     late = RenderConfig(output=tmp_path / "c", only_frames=(60,))  # the scene's range is known after loading it
     with pytest.raises(ConfigError, match="only_frames '60': frame 60 is outside the range 1:48"):
         late.check_frames_subset(range(1, 49))
+
+
+def test_dataset_clips_that_name_no_clip_are_refused_before_anything_is_written(tmp_path):
+    """``--clips``: a typo would render nothing and report success; it is one line naming the entry, exit 2, and
+    no dataset folder. ``--split`` names a split or is refused."""
+    spec = _spec(tmp_path, '[[source]]\nkind = "builtin"\nseeds = "0:2"\nframes = 2\n')
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--clips", "builtin-s0000,builtin-s9*", timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "--clips 'builtin-s9*': names no clip of the spec" in proc.stderr.strip().splitlines()[-1]
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--split", "train,tset", timeout=120)
+    assert proc.returncode == 2 and "--split 'tset': choose from train, val, test" in proc.stderr, proc.stderr
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--status", "--split", "test", timeout=120)
+    assert proc.returncode == 2 and "not with --status or --dry-run" in proc.stderr, proc.stderr
+    assert not (tmp_path / "ds").exists()

@@ -42,8 +42,9 @@ def test_multiples_take_the_smallest_prefix_that_reaches_them(tmp_path):
 
 def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
     """The subsets come from the planned train split (nothing rendered here), in the order `--order mixed` renders."""
-    from gbuffer_export.dataset.build import RunOptions, clips_to_render
-    from gbuffer_export.dataset.spec import expand, load_spec
+    from gbuffer_export.dataset.build import RunOptions, clips_to_render, selected_jobs
+    from gbuffer_export.dataset.spec import SpecError, expand, load_spec
+    from gbuffer_export.errors import BlendSRError
     from tests.conftest import builtin_spec
     jobs = expand(load_spec(builtin_spec(tmp_path / "spec.toml", seeds="0:24")))
     jobs = [dataclasses.replace(j, split="test" if k % 5 == 1 else "val" if k % 7 == 3 else j.split)
@@ -66,6 +67,35 @@ def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
     n_train = len(groups)
     assert first[:n_train] == groups and first[n_train:] == [i for i in mixed if split[i] != "train"]
     assert {split[i] for i in first[n_train:]} == {"val", "test"}
+    # --clips and --split choose what a run renders; the order still applies to what they keep
+    sub = groups[:4]
+    picked = clips_to_render(jobs, index, RunOptions(order="mixed", clips=(sub[2], sub[0], sub[1][:-1] + "*")))
+    assert [j.id for j in picked] == [i for i in mixed if i in (sub[0], sub[2]) or i.startswith(sub[1][:-1])]
+    tests = [j.id for j in clips_to_render(jobs, index, RunOptions(order="mixed", splits=("test",)))]
+    assert tests == [i for i in mixed if split[i] == "test"] and tests
+    both = clips_to_render(jobs, index, RunOptions(clips=(sub[0], tests[0]), splits=("test",)))
+    assert [j.id for j in both] == [tests[0]]
+    with pytest.raises(SpecError, match=r"--clips 'nope\*': names no clip of the spec"):
+        selected_jobs(jobs, RunOptions(clips=(sub[0], "nope*")))
+    with pytest.raises(SpecError, match="--split 'tets': choose from train, val, test"):
+        RunOptions(splits=("tets",)).validate()
+    # data_scaling --list-clips: the largest subset's clips (the nested subsets' union), in the mixed order
+    listed = tmp_path / "subset.txt"
+    import contextlib
+    import io
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert data_scaling.main([str(root), "-o", "-", "--counts", "2,5", "--list-clips"]) == 0
+    assert buf.getvalue().split() == groups[:5]
+    listed.write_text("# the 5x subset\n" + buf.getvalue() + "\n")
+    from gbuffer_export.commands.dataset import _clip_selection
+    assert _clip_selection(f"@{listed}") == tuple(groups[:5])
+    assert _clip_selection(" a, b*,") == ("a", "b*")
+    with pytest.raises(BlendSRError, match="cannot read .*missing.txt"):
+        _clip_selection(f"@{tmp_path / 'missing.txt'}")
+    (tmp_path / "empty.txt").write_text("# nothing\n\n")
+    with pytest.raises(BlendSRError, match="empty.txt names no clip"):
+        _clip_selection(f"@{tmp_path / 'empty.txt'}")
 
 
 def test_runs_wait_for_their_clips_and_scores_for_the_whole_test_split(tmp_path, capsys):
