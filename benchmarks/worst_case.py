@@ -41,17 +41,16 @@ def clip_groups(datasets: list[Path], split: str) -> dict[str, list[str]]:
 
 def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
     """``evaluate_model`` of every model on every group (the baseline scored once per group)."""
-    from training.bench import _lacking
+    from training.bench import _lacking, load_models
     from training.evaluate import Baseline, EvalOptions, evaluate_model
-    from training.inference.loading import load_model
+    loaded = load_models(models, 4)  # every model, before any score: a bad spec fails at once
     result: dict = {}
     for group, clips in groups.items():
         if not clips:
             continue
         base = Baseline("demod-jbu")
         result[group] = {"clips": [Path(c).name for c in clips], "models": {}, "notes": []}
-        for label, spec in models:
-            model = load_model(spec, 4)
+        for label, model in loaded:
             lack = _lacking(label, model, clips)
             if lack:
                 result[group]["notes"].append(lack)

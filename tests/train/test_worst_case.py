@@ -140,3 +140,22 @@ def test_worst_case_refuses_an_unknown_model_in_one_line(tmp_path, capsys):
     assert wc.main([str(tmp_path), "--split", "val", "--models", "demod-jbu"]) == 2  # not a dataset
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(tmp_path) in err[0] and "not a BlendSR dataset" in err[0], err
+
+
+def test_worst_case_loads_every_model_before_it_scores_any(clips, tmp_path, monkeypatch):
+    """A missing checkpoint listed after other models used to fail only after they were scored (minutes on a real
+    split); now every model loads first."""
+    import importlib.util
+
+    import training.evaluate
+    from tests.conftest import REPO
+    spec = importlib.util.spec_from_file_location("worst_case", REPO / "benchmarks" / "worst_case.py")
+    wc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(wc)
+
+    def never(*a, **k):
+        raise AssertionError("a model was scored before every model loaded")
+    monkeypatch.setattr(training.evaluate, "evaluate_model", never)
+    missing = tmp_path / "run" / "checkpoints" / "last.pt"
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        wc.score([("demod-jbu", "demod-jbu"), ("fusesr-l (run)", str(missing))], {"objects": [str(c) for c in clips]})
