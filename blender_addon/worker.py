@@ -71,7 +71,7 @@ def run_dataset(job: dict) -> dict:
     from gbuffer_export.dataset.check import validate_dataset
     from gbuffer_export.dataset.spec import load_spec
     d = job["dataset"]
-    opts = RunOptions(**{**d["options"], "buffers_for": tuple(d["options"].get("buffers_for", ()))})
+    opts = RunOptions(**d["options"])  # its lists become tuples (RunOptions.__post_init__)
     index = build_dataset(load_spec(d["spec"]), d["output"], opts)
     failed = [c for c in index["clips"] if c["state"] != "done"]
     result = {"ok": not failed, "output": d["output"], "summary": summary(index)}

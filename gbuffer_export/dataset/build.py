@@ -73,6 +73,11 @@ class RunOptions:
     device: str = "auto"            # Cycles device of every clip (auto: a GPU when Cycles sees one)
     blender: str = ""               # a Blender executable to render each clip with (local executor; see job_command)
 
+    def __post_init__(self) -> None:  # lists (a JSON job file's, the add-on worker's) as the tuples they stand for
+        for name in ("buffers_for", "clips", "splits"):
+            value = getattr(self, name)
+            object.__setattr__(self, name, (value,) if isinstance(value, str) else tuple(value))
+
     def validate(self) -> None:
         if self.executor not in EXECUTORS:
             raise SpecError(f"--executor {self.executor!r}: choose one of {', '.join(EXECUTORS)}")
