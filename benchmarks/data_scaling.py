@@ -54,8 +54,8 @@ any training. With ``--multiples`` the plot is the margin over demod-jbu per fam
 ``--list-clips`` prints the largest subset's clips (no training), so that a render finishes them and then the test
 split before the rest of the set (the scores wait for nothing else):
 
-    .venv/bin/python benchmarks/data_scaling.py datasets/scale -o - --multiples 1,3,10 --list-clips > subset.txt
-    blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2 --clips @subset.txt --order mixed
+    .venv/bin/python benchmarks/data_scaling.py datasets/scale -o - --multiples 1,3,10 --list-clips subset.txt
+    blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2 --clips '@subset.txt' --order mixed
     blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2 --split test
     blendsr dataset examples/dataset_scale.toml -o datasets/scale --workers 2
 """
@@ -104,14 +104,16 @@ def main(argv=None) -> int:
     p.add_argument("--wait", type=float, default=0.0, metavar="MINUTES",
                    help="while runs wait for clips or the test split is not whole: look again every MINUTES (a "
                         "run trains as soon as its clips are rendered) instead of exiting 3; 0: exit")
-    p.add_argument("--list-clips", action="store_true",
-                   help="no training: print the clip folders of the largest subset (nested: it holds the others), "
-                        "one per line, for blendsr dataset ... --clips @FILE")
+    p.add_argument("--list-clips", nargs="?", const="-", metavar="FILE",
+                   help="no training: write the clip ids of the largest subset (nested: it holds the others) to FILE "
+                        "(UTF-8, one per line; none or '-': print them), for blendsr dataset ... --clips @FILE")
     p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
                    help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
     a = p.parse_args(argv)
     if a.combine:
         return combine(a.combine, a.output)
+    if a.list_clips:
+        return list_clips(a)
 
     import torch
     from gbuffer_export.clip import write_json_atomic
@@ -131,16 +133,7 @@ def main(argv=None) -> int:
         print(f"data_scaling: {exc}", file=sys.stderr)
         return 2
     test_clips = [str(c) for c in split_clips(a.dataset, "test")]
-    groups = training_groups(a.dataset, a.by)
-    if a.multiples:
-        sized = pixel_prefixes(a.dataset, groups, [float(m) for m in a.multiples.split(",")], a.unit_pixels)
-        counts = sorted({n for _, n, _ in sized})
-    else:
-        counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
-        counts = sorted({min(c, len(groups)) for c in counts})
-    if a.list_clips:
-        print("\n".join(c.name for _, clips in groups[:max(counts)] for c in clips))
-        return 0
+    groups, counts = subsets(a)
     family_of = family_groups(a.dataset)
     budgets = [int(s) for s in a.steps.split(",")]
     out, runs = a.output, a.runs or a.output
@@ -256,6 +249,37 @@ def main(argv=None) -> int:
     fig.tight_layout()
     fig.savefig(out / "scaling.png")
     print((out / "scaling.md").read_text())
+    return 0
+
+
+def subsets(a) -> tuple[list[tuple[str, list[Path]]], list[int]]:
+    """The ordered training groups and the sorted subset sizes (groups taken) that ``--multiples`` or ``--counts``
+    ask for."""
+    groups = training_groups(a.dataset, a.by)
+    if a.multiples:
+        sized = pixel_prefixes(a.dataset, groups, [float(m) for m in a.multiples.split(",")], a.unit_pixels)
+        return groups, sorted({n for _, n, _ in sized})
+    counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
+    return groups, sorted({min(c, len(groups)) for c in counts})
+
+
+def list_clips(a) -> int:
+    """``--list-clips``: the largest subset's clip ids to FILE (atomically) or stdout; no torch. One line and exit 2
+    for a folder that is not a dataset (its index is written by ``blendsr dataset SPEC -o DATASET --limit 0``)."""
+    from gbuffer_export.errors import BlendSRError
+    try:
+        groups, counts = subsets(a)
+    except BlendSRError as exc:
+        print(f"data_scaling: {exc} (blendsr dataset SPEC -o DATASET --limit 0 writes the index, rendering nothing)",
+              file=sys.stderr)
+        return 2
+    text = "".join(f"{c.name}\n" for _, clips in groups[:max(counts, default=0)] for c in clips)
+    if a.list_clips == "-":
+        sys.stdout.write(text)
+        return 0
+    from gbuffer_export.clip import write_bytes_atomic
+    write_bytes_atomic(a.list_clips, text.encode("utf-8"))
+    print(f"data_scaling: {a.list_clips}: {text.count(chr(10))} clips", file=sys.stderr)
     return 0
 
 

@@ -222,9 +222,7 @@ def dataset_run_options(ds, blender: str = ""):
 def run_options_json(opts) -> dict:
     """``RunOptions`` as the worker's job file holds it (``worker.run_dataset`` reads it back)."""
     import dataclasses
-    d = dataclasses.asdict(opts)
-    d["buffers_for"] = list(opts.buffers_for)
-    return d
+    return dataclasses.asdict(opts)
 
 
 def dataset_output(ds) -> Path:

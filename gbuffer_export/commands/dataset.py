@@ -82,7 +82,7 @@ def run(args) -> int:
 
     if args.json and not args.status:
         raise BlendSRError("--json: only with --status (a render reports on stderr and in DATASET/dataset.json)")
-    if (args.clips or args.split) and (args.status or args.dry_run):
+    if (args.clips is not None or args.split is not None) and (args.status or args.dry_run):
         raise BlendSRError("--clips/--split: they choose what a render renders (not with --status or --dry-run)")
     spec = load_spec(args.spec, formats=tuple((args.for_formats or "").split(",")) if args.for_formats else ())
     if args.status:
@@ -103,40 +103,53 @@ def run(args) -> int:
         return _dry_run_plan(jobs, args.no_plan)
     from ..extras import require
     require("blendsr dataset", "render", *(("cluster",) if args.executor == "ray" else ()))
-    models = tuple(m.strip() for m in args.for_models.split(",") if m.strip()) if args.for_models else ()
     opts = RunOptions(executor=args.executor, workers=args.workers, threads=args.threads, address=args.address,
-                      buffers_for=models, progress=not args.no_progress, limit=args.limit, device=args.device,
-                      order=args.order, clips=_clip_selection(args.clips), splits=_names(args.split))
+                      buffers_for=_names(args.for_models), progress=not args.no_progress, limit=args.limit,
+                      device=args.device, order=args.order, clips=_clip_selection(args.clips),
+                      splits=_names(args.split, "--split"))
     index = build_dataset(spec, args.output, opts)
     print(f"blendsr: {args.output}: {summary(index)}")
-    failed = [c for c in index["clips"] if c["state"] == "failed"]
+    mine = _selected_ids(spec, opts)  # a selective run reports (and exits 1 for) its own clips only
+    failed = [c for c in index["clips"] if c["state"] == "failed" and c["id"] in mine]
     for c in failed:
         print(f"FAILED {c['id']}: {c.get('error', '')} (log: {args.output / 'logs' / (c['id'] + '.log')})")
-    invalid = [c for c in index["clips"] if c.get("invalid")]
+    invalid = [c for c in index["clips"] if c.get("invalid") and c["id"] in mine]
     for c in invalid:  # rendered to the end, but blendsr validate refuses it (checked as each clip finished)
         print(f"INVALID {c['id']}: {c['invalid']} (blendsr validate {args.output / 'clips' / c['id']})")
     return 1 if failed or invalid else 0
 
 
-def _names(text: str | None) -> tuple[str, ...]:
-    """A comma-separated option as its non-empty entries."""
-    return tuple(t.strip() for t in (text or "").split(",") if t.strip())
+def _names(text: str | None, option: str = "") -> tuple[str, ...]:
+    """A comma-separated option as its non-empty entries (None: not given, ()). With ``option``, a value given but
+    empty (``--split ''``, an empty shell variable) is a BlendSRError: it would otherwise mean "all"."""
+    names = tuple(t.strip() for t in (text or "").split(",") if t.strip())
+    if option and text is not None and not names:
+        raise BlendSRError(f"{option} {text!r}: names nothing (comma-separated names)")
+    return names
 
 
 def _clip_selection(text: str | None) -> tuple[str, ...]:
-    """--clips: its comma-separated entries, or with @FILE the file's lines (blank lines and '#' comments
-    skipped). BlendSRError naming a file that cannot be read or holds no entry."""
-    if not text or not text.startswith("@"):
-        return _names(text)
+    """--clips: its comma-separated entries, or with @FILE the file's lines (UTF-8 or, by its byte-order mark,
+    UTF-16 as Windows PowerShell's '>' writes it; blank lines and '#' comments skipped). BlendSRError naming a file
+    that cannot be read or a value or file that holds no entry."""
+    if text is None or not text.startswith("@"):
+        return _names(text, "--clips")
     path = Path(text[1:])
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        raw = path.read_bytes()
+        lines = raw.decode("utf-16" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise BlendSRError(f"--clips {text}: cannot read {path} ({exc.__class__.__name__}: {exc})") from None
     entries = tuple(e for e in (ln.split("#", 1)[0].strip() for ln in lines) if e)
     if not entries:
         raise BlendSRError(f"--clips {text}: {path} names no clip (one id or shell pattern per line)")
     return entries
+
+
+def _selected_ids(spec, opts) -> set[str]:
+    """The ids of the clips a run with ``opts`` chose (every clip without --clips or --split)."""
+    from ..dataset.build import planned_jobs, selected_jobs
+    return {j.id for j in selected_jobs(planned_jobs(spec, opts), opts)}
 
 
 def _status(root: Path, as_json: bool) -> int:

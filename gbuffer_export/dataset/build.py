@@ -76,7 +76,8 @@ class RunOptions:
     def __post_init__(self) -> None:  # lists (a JSON job file's, the add-on worker's) as the tuples they stand for
         for name in ("buffers_for", "clips", "splits"):
             value = getattr(self, name)
-            object.__setattr__(self, name, (value,) if isinstance(value, str) else tuple(value))
+            object.__setattr__(self, name, () if value is None else (value,) if isinstance(value, str)
+                               else tuple(value))
 
     def validate(self) -> None:
         if self.executor not in EXECUTORS:
@@ -541,17 +542,21 @@ def _legacy_render_keys(clip: dict) -> dict:
 
 def selected_jobs(jobs: list[ClipJob], opts: RunOptions) -> list[ClipJob]:
     """The jobs of ``opts.splits`` (all when empty) whose id ``opts.clips`` names (an exact id or a shell pattern,
-    ``fnmatch``; all when empty). SpecError naming an entry that matches no clip of the spec (a typo would
-    otherwise render nothing and report success)."""
+    ``fnmatch``; all when empty). SpecError naming an entry that matches no clip of the spec, or a selection that
+    keeps none (a typo would otherwise render nothing and report success); a selection whose clips are all done is
+    a finished resume, not an error."""
     from fnmatch import fnmatchcase
-    if opts.clips:
-        ids = [j.id for j in jobs]
-        for pat in opts.clips:
-            if not any(fnmatchcase(i, pat) for i in ids):
-                raise SpecError(f"--clips {pat!r}: names no clip of the spec (blendsr dataset SPEC --dry-run "
-                                f"--no-plan lists the {len(ids)} clip ids)")
-        jobs = [j for j in jobs if any(fnmatchcase(j.id, pat) for pat in opts.clips)]
-    return [j for j in jobs if j.split in opts.splits] if opts.splits else jobs
+    ids = [j.id for j in jobs]
+    hint = f"blendsr dataset SPEC -o DATASET --dry-run --no-plan lists the {len(ids)} clip ids"
+    for pat in opts.clips:
+        if not any(fnmatchcase(i, pat) for i in ids):
+            raise SpecError(f"--clips {pat!r}: names no clip of the spec ({hint})")
+    kept = [j for j in jobs if (not opts.clips or any(fnmatchcase(j.id, pat) for pat in opts.clips))
+            and (not opts.splits or j.split in opts.splits)]
+    if not kept and jobs:
+        what = "--clips and --split: no clip named is" if opts.clips else "--split: the spec has no clip"
+        raise SpecError(f"{what} in split {', '.join(opts.splits)} ({hint})")
+    return kept
 
 
 def clips_to_render(jobs: list[ClipJob], index: dict, opts: RunOptions) -> list[ClipJob]:
@@ -643,8 +648,8 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
                 bar.close()
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,
                              "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1),
-                             **({"clips": list(opts.clips)} if opts.clips else {}),
-                             **({"splits": list(opts.splits)} if opts.splits else {})}
+                             **({"selection": {"clips": list(opts.clips), "splits": list(opts.splits)}}
+                                if opts.clips or opts.splits else {})}
         write_json_atomic(root / INDEX, index)
         return index
     finally:

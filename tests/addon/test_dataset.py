@@ -84,7 +84,7 @@ def test_dataset_defaults_mapping_errors_and_subpanel(tmp_path):
     assert (d["frames"], d["hr_width"], d["hr_height"], d["scales"]) == (12, 256, 144, ["4"])
     assert d["cameras"] == ["fly", "walk"] and d["for_models"] == [] and d["buffers"] == "default"
     assert d["for_formats"] == [] and default.for_formats == ()
-    opts = RunOptions(**{**r["default_opts"], "buffers_for": tuple(r["default_opts"]["buffers_for"])})
+    opts = RunOptions(**r["default_opts"])
     assert opts == RunOptions(progress=False)
     assert d["output_dir"] == "//blendsr_dataset/" and d["light"] == "auto" and d["device"] == "auto"
 

@@ -177,3 +177,14 @@ def test_below_baseline_marks_follow_the_weights_json(tmp_path, monkeypatch):
                          {"pretrained:nsrd": "below demod-jbu on val"})
     assert [i[:2] for i in items] == [("pretrained:nsrd", "NSRD (pretrained, below demod-jbu on val)"),
                                       ("bicubic", "Bicubic")] and [i[3] for i in items] == [0, 1]
+
+
+def test_dataset_run_options_round_trip_through_the_worker_job_file():
+    """``mapping.run_options_json`` -> JSON -> ``RunOptions(**...)`` (worker.run_dataset's reading) is the same
+    options: the lists the JSON holds become the tuples they stand for (``RunOptions.__post_init__``)."""
+    from blender_addon import mapping
+    from gbuffer_export.dataset.build import RunOptions
+    opts = RunOptions(workers=2, threads=1, buffers_for=("fusesr", "nsrr"), clips=("a*", "b"), splits=("test",),
+                      progress=False, order="mixed")
+    back = RunOptions(**json.loads(json.dumps(mapping.run_options_json(opts))))
+    assert back == opts and isinstance(back.clips, tuple) and isinstance(back.buffers_for, tuple)

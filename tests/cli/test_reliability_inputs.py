@@ -225,13 +225,15 @@ def test_only_frames_picks_a_subset_of_the_range_and_of_the_shard(tmp_path):
 
 def test_dataset_clips_that_name_no_clip_are_refused_before_anything_is_written(tmp_path):
     """``--clips``: a typo would render nothing and report success; it is one line naming the entry, exit 2, and
-    no dataset folder. ``--split`` names a split or is refused."""
+    no dataset folder. ``--split`` names a split the spec has or is refused."""
     spec = _spec(tmp_path, '[[source]]\nkind = "builtin"\nseeds = "0:2"\nframes = 2\n')
     proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--clips", "builtin-s0000,builtin-s9*", timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "--clips 'builtin-s9*': names no clip of the spec" in proc.stderr.strip().splitlines()[-1]
     proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--split", "train,tset", timeout=120)
     assert proc.returncode == 2 and "--split 'tset': choose from train, val, test" in proc.stderr, proc.stderr
-    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--status", "--split", "test", timeout=120)
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--split", "test", timeout=120)  # no test clip
+    assert proc.returncode == 2 and "--split: the spec has no clip in split test" in proc.stderr, proc.stderr
+    proc = run_cli("dataset", spec, "-o", tmp_path / "ds", "--status", "--split", "", timeout=120)
     assert proc.returncode == 2 and "not with --status or --dry-run" in proc.stderr, proc.stderr
     assert not (tmp_path / "ds").exists()

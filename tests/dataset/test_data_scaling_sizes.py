@@ -79,6 +79,15 @@ def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
         selected_jobs(jobs, RunOptions(clips=(sub[0], "nope*")))
     with pytest.raises(SpecError, match="--split 'tets': choose from train, val, test"):
         RunOptions(splits=("tets",)).validate()
+    # a selection that keeps nothing is refused too (a finished one is not: it is the selection, not what is left)
+    with pytest.raises(SpecError, match="--clips and --split: no clip named is in split test"):
+        selected_jobs(jobs, RunOptions(clips=(sub[0],), splits=("test",)))
+    train_only = [j for j in jobs if j.split == "train"]
+    with pytest.raises(SpecError, match="--split: the spec has no clip in split val, test"):
+        selected_jobs(train_only, RunOptions(splits=("val", "test")))
+    done = {"clips": [{**c, "state": "done"} for c in clips]}
+    assert clips_to_render(jobs, done, RunOptions(splits=("test",))) == []
+    assert RunOptions(clips=None, splits="test") == RunOptions(splits=("test",))  # a job file's null, one string
     # data_scaling --list-clips: the largest subset's clips (the nested subsets' union), in the mixed order
     listed = tmp_path / "subset.txt"
     import contextlib
@@ -87,10 +96,22 @@ def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
     with contextlib.redirect_stdout(buf):
         assert data_scaling.main([str(root), "-o", "-", "--counts", "2,5", "--list-clips"]) == 0
     assert buf.getvalue().split() == groups[:5]
-    listed.write_text("# the 5x subset\n" + buf.getvalue() + "\n")
+    assert data_scaling.main([str(root), "-o", "-", "--counts", "2,5", "--list-clips", str(listed)]) == 0
+    assert listed.read_text(encoding="utf-8").split() == groups[:5]
     from gbuffer_export.commands.dataset import _clip_selection
     assert _clip_selection(f"@{listed}") == tuple(groups[:5])
     assert _clip_selection(" a, b*,") == ("a", "b*")
+    for encoding in ("utf-8-sig", "utf-16"):  # Notepad's BOM; Windows PowerShell 5.1's '>' (UTF-16 LE with BOM)
+        (tmp_path / "win.txt").write_bytes(f"# subset\r\n{groups[0]}\r\n{groups[1]}\r\n".encode(encoding))
+        assert _clip_selection(f"@{tmp_path / 'win.txt'}") == tuple(groups[:2]), encoding
+    for empty in ("", " , "):  # an empty shell variable would otherwise mean every clip
+        with pytest.raises(BlendSRError, match="--clips .*: names nothing"):
+            _clip_selection(empty)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert data_scaling.main([str(tmp_path / "new"), "-o", "-", "--list-clips"]) == 2
+    line, = err.getvalue().strip().splitlines()
+    assert str(tmp_path / "new") in line and "--limit 0 writes the index" in line
     with pytest.raises(BlendSRError, match="cannot read .*missing.txt"):
         _clip_selection(f"@{tmp_path / 'missing.txt'}")
     (tmp_path / "empty.txt").write_text("# nothing\n\n")
