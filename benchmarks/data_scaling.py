@@ -35,8 +35,8 @@ shipped weights of its name run with (``--score-options``: an inference option o
 curve), since the shipped networks are what a scaled training would replace. FuseSR-l's runs are also scored with
 ``lr-guided`` (added 2026-11-29, before any test score, chosen on the val split: on 41 val clips its 3x run gave
 +2.13 dB over demod-jbu on the 17 held-out-family clips with ``lr-guided`` against +1.86 with ``lr-range``, smallest
-clip +0.36 against +0.45, and +0.31 against +0.22 over all 41), so that the release can choose either bound by the val
-rule:
+clip +0.36 against +0.45, and +0.31 against +0.22 over all 41: docs/bench/scaling-families/val-bounds-fusesr-l.md),
+so that the release can choose either bound by the val rule:
 
     .venv/bin/python benchmarks/data_scaling.py datasets/scale -o docs/bench/scaling-families/fusesr \
         --multiples 1,3,10 --steps 6000 --model fusesr --threads 1 --score-options residual_clamp=lr-guided --wait 10
