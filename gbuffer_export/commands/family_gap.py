@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..dataset.family_gap import gap_table, index_groups, read_margins
+from ..dataset.family_gap import (gap_table, index_families, index_groups, lineage_families, read_margins,
+                                  seen_clips)
 from ..errors import BlendSRError
 
 
@@ -16,17 +17,33 @@ def main(argv=None) -> int:
     p.add_argument("margins", type=Path, nargs="+", help="worst_case.py -o JSON or evaluate --json files")
     p.add_argument("--data", type=Path, action="append", required=True,
                    help="dataset folder(s) whose index names each clip's family group")
+    p.add_argument("--seen-from", action="append", default=[], metavar="LABEL=WEIGHTS.json",
+                   help="a model trained outside the dataset (e.g. pretrained:fusesr=training/weights/fusesr_x4.json):"
+                        " its held-out clips whose held-out families its training lineage holds are left out of its "
+                        "held-out mean and reported apart")
+    p.add_argument("--repo", type=Path, default=Path("."), help="where the lineage's spec files are (default: .)")
     a = p.parse_args(argv)
     try:
         groups = {k: v for d in a.data for k, v in index_groups(d).items()}
+        held_out = {k: v for d in a.data for k, v in index_families(d)[0].items()}
         models: dict[str, dict[str, float]] = {}
         for m in a.margins:
             for label, rows in read_margins(m).items():
                 models.setdefault(label, {}).update(rows)
+        seen = {}
+        for item in a.seen_from:
+            label, sep, path = item.rpartition("=")  # a label may hold "=" (its options), a path does not
+            if not sep or label not in models:
+                raise ValueError(f"--seen-from {item!r}: expected LABEL=WEIGHTS.json with LABEL one of the margins' "
+                                 f"models ({', '.join(models)})")
+            trained, notes = lineage_families(Path(path), a.repo)
+            for note in notes:
+                print(f"note: {note}", file=sys.stderr)
+            seen[label] = seen_clips(held_out, trained)
     except (BlendSRError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(gap_table(models, groups))
+    print(gap_table(models, groups, seen))
     return 0
 
 
