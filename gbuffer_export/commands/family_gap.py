@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..dataset.family_gap import (gap_table, index_families, index_groups, lineage_families, read_margins,
-                                  seen_clips)
+from ..dataset.family_gap import (gap_table, index_families, index_groups, lineage_families, lineage_groups,
+                                  read_margins)
 from ..errors import BlendSRError
 
 
@@ -19,18 +19,19 @@ def main(argv=None) -> int:
                    help="dataset folder(s) whose index names each clip's family group")
     p.add_argument("--seen-from", action="append", default=[], metavar="LABEL=WEIGHTS.json",
                    help="a model trained outside the dataset (e.g. pretrained:fusesr=training/weights/fusesr_x4.json):"
-                        " its held-out clips whose held-out families its training lineage holds are left out of its "
-                        "held-out mean and reported apart")
-    p.add_argument("--repo", type=Path, default=Path("."), help="where the lineage's spec files are (default: .)")
+                        " its clips are grouped by its own training lineage (in-family: it trained on every family "
+                        "of the clip), not by the dataset's split")
+    p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
+                   help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
     a = p.parse_args(argv)
     try:
         groups = {k: v for d in a.data for k, v in index_groups(d).items()}
-        held_out = {k: v for d in a.data for k, v in index_families(d)[0].items()}
+        families = {k: v for d in a.data for k, v in index_families(d).items()}
         models: dict[str, dict[str, float]] = {}
         for m in a.margins:
             for label, rows in read_margins(m).items():
                 models.setdefault(label, {}).update(rows)
-        seen = {}
+        own = {}
         for item in a.seen_from:
             label, sep, path = item.rpartition("=")  # a label may hold "=" (its options), a path does not
             if not sep or label not in models:
@@ -39,11 +40,11 @@ def main(argv=None) -> int:
             trained, notes = lineage_families(Path(path), a.repo)
             for note in notes:
                 print(f"note: {note}", file=sys.stderr)
-            seen[label] = seen_clips(held_out, trained)
+            own[label] = lineage_groups(families, trained)
     except (BlendSRError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(gap_table(models, groups, seen))
+    print(gap_table(models, groups, own))
     return 0
 
 

@@ -7,16 +7,15 @@ dataset (each clip's ``family_group`` in its index, ``families.py``) side by sid
 prints one Markdown row per model: in-family mean (smallest, clips), held-out mean (smallest, clips), gap (dB).
 
 A held-out clip is held out from *this* dataset's train split, not from every network: a network trained elsewhere
-(the shipped weights: their JSON's training lineage) may have seen its families. ``--seen-from LABEL=WEIGHTS.json``
-counts, for that model, a held-out clip whose held-out families (those no train clip of the index has) were all in
-the lineage's training (``lineage_families``) as seen: it leaves the held-out mean and is reported on a line of its
-own.
+(the shipped weights: their JSON's training lineage) may have seen its families, and never seen an in-family one's.
+``--seen-from LABEL=WEIGHTS.json`` groups that model's clips by its own lineage (``lineage_families``): in-family
+when it trained on every family of the clip, held-out otherwise (``lineage_groups``); its row says so.
 """
 from __future__ import annotations
 
 import json
 import math
-import re
+import shlex
 from pathlib import Path
 
 from .build import read_index
@@ -50,19 +49,14 @@ def read_margins(path: Path) -> dict[str, dict[str, float]]:
     return out
 
 
-SEEN = "seen"  # a held-out clip whose held-out families were all in the model's own training (``--seen-from``)
-
-
-def family_gap(margins: dict[str, float], groups: dict[str, str], seen: frozenset = frozenset()) -> dict:
+def family_gap(margins: dict[str, float], groups: dict[str, str]) -> dict:
     """In-family and held-out-family mean, smallest margin and clip count, and the gap (in-family mean minus
     held-out mean: what training on the families bought that unseen families do not get). ``margins``: clip id ->
-    dB; ``groups``: clip id -> ``in-family`` / ``held-out`` (the dataset index); ``seen``: the held-out clips the
-    model saw the families of (``seen_clips``), counted under ``seen``, not held-out. Clips absent from ``groups``
-    are counted under ``unknown``."""
-    by: dict[str, list[float]] = {IN_FAMILY: [], HELD_OUT: [], SEEN: [], "unknown": []}
+    dB; ``groups``: clip id -> ``in-family`` / ``held-out`` (the dataset index, or ``lineage_groups``). Clips absent
+    from ``groups`` are counted under ``unknown``."""
+    by: dict[str, list[float]] = {IN_FAMILY: [], HELD_OUT: [], "unknown": []}
     for clip, m in margins.items():
-        g = groups.get(clip, "unknown")
-        by[SEEN if g == HELD_OUT and clip in seen else g].append(m)
+        by[groups.get(clip, "unknown")].append(m)
     out = {g: {"n": len(v), "mean": sum(v) / len(v) if v else math.nan, "min": min(v) if v else math.nan}
            for g, v in by.items()}
     out["gap"] = out[IN_FAMILY]["mean"] - out[HELD_OUT]["mean"]
@@ -75,59 +69,68 @@ def index_groups(dataset: Path) -> dict[str, str]:
     return {Path(c["path"]).name: c.get("family_group") or IN_FAMILY for c in read_index(dataset)["clips"]}
 
 
-def index_families(dataset: Path) -> tuple[dict[str, set[str]], set[str]]:
-    """(clip folder name -> its held-out families, the families of the train split) from ``DATASET/dataset.json``:
-    a clip's held-out families are those of its ``families`` that no train clip of the index has."""
-    clips = read_index(dataset)["clips"]
-    train = {f for c in clips if c.get("split") == "train" for f in c.get("families") or ()}
-    return {Path(c["path"]).name: set(c.get("families") or ()) - train for c in clips}, train
+def index_families(dataset: Path) -> dict[str, set[str]]:
+    """Clip folder name -> its ``families``, from ``DATASET/dataset.json``."""
+    return {Path(c["path"]).name: set(c.get("families") or ()) for c in read_index(dataset)["clips"]}
 
 
 def lineage_families(weights_json: Path, repo: Path) -> tuple[set[str], list[str]]:
-    """(the families a shipped network was trained on, notes on what its JSON leaves unrecorded). Its last stage:
-    the families of ``dataset.train_clips`` in ``dataset.spec_file`` (expanded as the spec renders them); the stage
-    it was initialised from (``init_from.commands``' ``SPEC=``): that spec's whole train split. Specs are paths
-    relative to ``repo``. ValueError (one line naming the file) for a JSON without them."""
-    from .spec import expand, load_spec
+    """(the families a shipped network was trained on, notes on what its JSON leaves unrecorded or unresolved). Its
+    last stage: the families of ``dataset.train_clips`` in ``dataset.spec_file`` (expanded as the spec renders them
+    today); the stage it was initialised from (``init_from.commands``' ``SPEC=``): that spec's whole train split.
+    Specs are paths relative to ``repo``. ValueError (one line naming the file) for a JSON without them or a spec
+    that does not load."""
+    from .spec import SpecError, expand, load_spec
     try:
         doc = json.loads(Path(weights_json).read_text())
         ds = doc["dataset"]
-        stages = [(ds["spec_file"], set(ds["train_clips"]))]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        stages = [(str(ds["spec_file"]), {str(i) for i in ds["train_clips"]})]
+        init = doc.get("init_from") or {}
+        init = init if isinstance(init, dict) else {}
+        commands = init.get("commands") or []
+        commands = [commands] if isinstance(commands, str) else commands
+        words = [w for c in commands for w in shlex.split(str(c))]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{weights_json}: no training lineage (dataset.spec_file and train_clips: {exc})") from None
-    init = doc.get("init_from") or {}
-    text = " ".join(init.get("commands") or []) if isinstance(init, dict) else ""
-    stages += [(m, None) for m in re.findall(r"\bSPEC=(\S+)", text)]
-    notes = [f"{Path(weights_json).name}: the stages before {init.get('weights', '?')!r} are not recorded"
-             ] if "pretrained:" in text else []
+    stages += [(w.split("=", 1)[1], None) for w in words if w.startswith("SPEC=")]
+    notes = []
+    if init and (len(stages) == 1 or any("pretrained:" in w for w in words)):
+        notes.append(f"{Path(weights_json).name}: a stage before {init.get('weights', 'its init_from')!r} is not "
+                     "recorded; the families seen there are not counted")
     seen: set[str] = set()
     for spec_file, ids in stages:
-        for job in expand(load_spec(repo / spec_file)):
-            if (job.id in ids) if ids is not None else job.split == "train":
-                seen.update(job.families or ())
+        try:
+            jobs = expand(load_spec(repo / spec_file))
+        except (SpecError, OSError, ValueError) as exc:
+            raise ValueError(f"{weights_json}: its spec {spec_file} (under {repo}): {exc}") from None
+        found = {j.id for j in jobs}
+        if ids is not None and ids - found:
+            notes.append(f"{Path(weights_json).name}: {len(ids - found)} train clip(s) not in {spec_file} as it "
+                         f"expands today (e.g. {sorted(ids - found)[0]}); their families are not counted")
+        seen.update(f for j in jobs if (j.id in ids if ids is not None else j.split == "train")
+                    for f in j.families or ())
     return seen, notes
 
 
-def seen_clips(held_out: dict[str, set[str]], trained: set[str]) -> frozenset:
-    """The clips (of ``index_families``) whose held-out families the model trained on, every one."""
-    return frozenset(c for c, fams in held_out.items() if fams and fams <= trained)
+def lineage_groups(families: dict[str, set[str]], trained: set[str]) -> dict[str, str]:
+    """Clip -> ``in-family`` when the model trained on every family of the clip, else ``held-out``."""
+    return {c: IN_FAMILY if fams <= trained else HELD_OUT for c, fams in families.items()}
 
 
 def gap_table(models: dict[str, dict[str, float]], groups: dict[str, str],
-              seen: dict[str, frozenset] | None = None) -> str:
-    """A Markdown table: per model, in-family and held-out margins (mean, smallest, clips) and the gap; ``seen``:
-    per model label, the held-out clips it saw the families of (``seen_clips``), left out of its held-out mean."""
+              own: dict[str, dict[str, str]] | None = None) -> str:
+    """A Markdown table: per model, in-family and held-out margins (mean, smallest, clips) and the gap; ``own``:
+    per model label, its own groups (``lineage_groups``), used instead of the index's and said in its row."""
     f = lambda x: "n/a" if math.isnan(x) else f"{x:+.2f}"  # noqa: E731
     lines = ["| model | in-family margin (smallest, clips) | held-out-family margin (smallest, clips) | gap (dB) |",
              "|---|---|---|---|"]
     for label, margins in models.items():
-        g = family_gap(margins, groups, (seen or {}).get(label, frozenset()))
+        mine = (own or {}).get(label)
+        g = family_gap(margins, mine if mine is not None else groups)
         a, b = g[IN_FAMILY], g[HELD_OUT]
-        lines.append(f"| `{label}` | {f(a['mean'])} ({f(a['min'])}, {a['n']}) | {f(b['mean'])} ({f(b['min'])}, "
+        name = f"`{label}`" + (" (by its training lineage)" if mine is not None else "")
+        lines.append(f"| {name} | {f(a['mean'])} ({f(a['min'])}, {a['n']}) | {f(b['mean'])} ({f(b['min'])}, "
                      f"{b['n']}) | {f(g['gap'])} |")
-        if g[SEEN]["n"]:
-            lines.append(f"| `{label}` | | {f(g[SEEN]['mean'])} ({f(g[SEEN]['min'])}, {g[SEEN]['n']}): held-out "
-                         "clips whose families it trained on, left out above | |")
         if g["unknown"]["n"]:
             lines.append(f"| `{label}` | {g['unknown']['n']} clips not in the datasets' indexes | | |")
     return "\n".join(lines)

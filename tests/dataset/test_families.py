@@ -170,11 +170,11 @@ def test_the_scale_spec_plans_ten_times_the_wide_set_with_held_out_families():
     assert {j.render["lr_spp"] for j in jobs} <= {4, 16, 32, 128} and {j.render["hr_spp"] for j in jobs} == {32}
 
 
-def test_held_out_clips_a_network_trained_on_are_reported_apart(tmp_path, capsys):
-    """A shipped network trained on another spec may have seen a held-out family of this dataset: with
-    ``--seen-from`` its held-out mean leaves out the clips whose held-out families its lineage holds (a weights
-    JSON naming a spec and one of its train clips; the families as the spec expands them)."""
-    from gbuffer_export.dataset.family_gap import index_families, lineage_families, seen_clips
+def test_a_network_trained_elsewhere_is_grouped_by_its_own_lineage(tmp_path, capsys):
+    """A shipped network trained on another spec may have seen a held-out family of this dataset, and never seen an
+    in-family one: with ``--seen-from`` its clips are grouped by its lineage (a weights JSON naming a spec and one of
+    its train clips; the families as the spec expands them): in-family when it trained on every family of the clip."""
+    from gbuffer_export.dataset.family_gap import index_families, lineage_families, lineage_groups
     spec = {"render": {"frames": 2, "hr_size": "32x16"},
             "source": [{"name": "b", "kind": "builtin", "seeds": "0:3", "split": "train"}]}
     (tmp_path / "s.toml").write_text(spec_to_toml(parse_spec(spec, tmp_path / "s.toml")))
@@ -182,33 +182,43 @@ def test_held_out_clips_a_network_trained_on_are_reported_apart(tmp_path, capsys
     fam = jobs[0].families[0]  # e.g. an HDRI family the network trained on
     ds = tmp_path / "ds"
     (ds / "clips").mkdir(parents=True)
-    clips = [("t", "train", "in-family", ["level:garage"]),
-             ("a", "test", "in-family", ["level:garage"]),
-             ("b", "test", "held-out", ["level:garage", fam]),       # held out by that family only
-             ("c", "test", "held-out", [fam, "asset:Lamp"])]         # the lamp too: still unseen
+    clips = [("a", "test", "in-family", [fam]),                     # in-family here, and seen by the network
+             ("n", "test", "in-family", ["level:garage"]),          # in-family here, never seen by the network
+             ("b", "test", "held-out", [fam]),                      # held out here, seen by the network
+             ("c", "test", "held-out", [fam, "asset:Lamp"])]        # the lamp: unseen either way
     (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
         {"id": k, "path": f"clips/{k}", "split": sp, "family_group": g, "families": f} for k, sp, g, f in clips]}))
-    held, train = index_families(ds)
-    assert held == {"t": set(), "a": set(), "b": {fam}, "c": {fam, "asset:Lamp"}} and train == {"level:garage"}
-    assert seen_clips(held, {fam}) == {"b"} and seen_clips(held, {fam, "asset:Lamp"}) == {"b", "c"}
+    families = index_families(ds)
+    assert families["c"] == {fam, "asset:Lamp"}
+    assert lineage_groups(families, {fam}) == {"a": "in-family", "n": "held-out", "b": "in-family", "c": "held-out"}
     (tmp_path / "w.json").write_text(json.dumps({"dataset": {"spec_file": "s.toml", "train_clips": [jobs[0].id]},
                                                  "init_from": {"weights": "x", "commands": ["INIT='pretrained:<M>'"]}}))
     trained, notes = lineage_families(tmp_path / "w.json", tmp_path)
-    assert trained == set(jobs[0].families) and len(notes) == 1 and "not recorded" in notes[0]
-    (tmp_path / "w2.json").write_text(json.dumps({"dataset": {"spec_file": "s.toml", "train_clips": []},
-                                                  "init_from": {"commands": ["SPEC=s.toml benchmarks/pretrain.sh"]}}))
-    assert lineage_families(tmp_path / "w2.json", tmp_path) == ({f for j in jobs for f in j.families}, [])
+    assert trained == set(jobs[0].families) and len(notes) == 1 and "is not recorded" in notes[0]
+    (tmp_path / "w2.json").write_text(json.dumps({"dataset": {"spec_file": "s.toml", "train_clips": ["gone"]},
+                                                  "init_from": {"commands": ['SPEC="s.toml" pretrain.sh']}}))
+    trained, notes = lineage_families(tmp_path / "w2.json", tmp_path)
+    assert trained == {f for j in jobs for f in j.families} and "1 train clip(s) not in s.toml" in notes[0]
     margins = {"m": {"models": {"pretrained:m": {"mean": {}, "per_clip": [
-        {"clip": "a", "margin": 2.0}, {"clip": "b", "margin": 4.0}, {"clip": "c", "margin": 1.0}]}}}}
+        {"clip": "a", "margin": 3.0}, {"clip": "n", "margin": 1.0}, {"clip": "b", "margin": 4.0},
+        {"clip": "c", "margin": 2.0}]}}}}
     (tmp_path / "m.json").write_text(json.dumps(margins))
     assert main([str(tmp_path / "m.json"), "--data", str(ds), "--repo", str(tmp_path),
                  "--seen-from", f"pretrained:m={tmp_path / 'w.json'}"]) == 0
     out = capsys.readouterr().out
-    assert "| `pretrained:m` | +2.00 (+2.00, 1) | +1.00 (+1.00, 1) | +1.00 |" in out
-    assert "+4.00 (+4.00, 1): held-out clips whose families it trained on" in out
-    assert main([str(tmp_path / "m.json"), "--data", str(ds)]) == 0  # without it: every held-out clip
-    assert "| `pretrained:m` | +2.00 (+2.00, 1) | +2.50 (+1.00, 2) | -0.50 |" in capsys.readouterr().out
+    assert "| `pretrained:m` (by its training lineage) | +3.50 (+3.00, 2) | +1.50 (+1.00, 2) | +2.00 |" in out
+    assert main([str(tmp_path / "m.json"), "--data", str(ds)]) == 0  # without it: the dataset's groups
+    assert "| `pretrained:m` | +2.00 (+1.00, 2) | +3.00 (+2.00, 2) | -1.00 |" in capsys.readouterr().out
     assert main([str(tmp_path / "m.json"), "--data", str(ds), "--seen-from", "nope=w.json"]) == 2
     assert "--seen-from 'nope=w.json': expected LABEL=WEIGHTS.json" in capsys.readouterr().err
-    assert main([str(tmp_path / "m.json"), "--data", str(ds), "--seen-from", f"pretrained:m={tmp_path}/x.json"]) == 2
-    assert "x.json: no training lineage" in capsys.readouterr().err
+    for bad, says in ((f"{tmp_path}/x.json", "x.json: no training lineage"),):
+        assert main([str(tmp_path / "m.json"), "--data", str(ds), "--seen-from", f"pretrained:m={bad}"]) == 2
+        assert says in capsys.readouterr().err
+    (tmp_path / "w3.json").write_text(json.dumps({"dataset": {"spec_file": 123, "train_clips": None}}))
+    assert main([str(tmp_path / "m.json"), "--data", str(ds), "--seen-from", f"pretrained:m={tmp_path}/w3.json"]) == 2
+    assert "w3.json: no training lineage" in capsys.readouterr().err
+    (tmp_path / "w4.json").write_text(json.dumps({"dataset": {"spec_file": "missing.toml", "train_clips": []}}))
+    assert main([str(tmp_path / "m.json"), "--data", str(ds), "--repo", str(tmp_path),
+                 "--seen-from", f"pretrained:m={tmp_path}/w4.json"]) == 2
+    line, = capsys.readouterr().err.strip().splitlines()
+    assert "w4.json: its spec missing.toml" in line
