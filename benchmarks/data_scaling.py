@@ -457,9 +457,10 @@ def smallest_margins(margins: dict[str, float], family_of: dict[str, str]) -> di
 
 
 def family_groups(dataset: Path) -> dict[str, str]:
-    """{clip folder name: its family group} from the index (``in-family`` where the index has none)."""
-    from gbuffer_export.dataset.build import read_index
-    return {Path(c["path"]).name: c.get("family_group", "in-family") for c in read_index(dataset)["clips"]}
+    """{clip folder name: its family group} from the index (``in-family`` where the index has none): the one reader,
+    ``family_gap.index_groups``."""
+    from gbuffer_export.dataset.family_gap import index_groups
+    return index_groups(dataset)
 
 
 @functools.lru_cache(maxsize=4)
