@@ -12,8 +12,10 @@ With a val split, a run replaces the shipped weights of its name only when ``tra
 (the worst-case rule: the smallest per-clip margin over demod-jbu does not fall, artifact pixels do not rise, mean
 PSNR, SSIM and tPSNR do not fall, all on val); ``--force`` writes them anyway (the JSON records the verdict).
 The val clips the rule reads are the held-out-family ones when the index has any (``--val-group auto``, issue 54:
-a network is chosen by what it does on families it never trained on), else all of them; ``--val-group all`` or
-``held-out`` forces one. The JSON records which (``val_group``).
+a network is chosen by what it does on families it never trained on), less those whose every family the shipped
+weights' recorded lineage holds (``unseen_val_clips``: they would favour the incumbent), else all of them;
+``--val-group all`` or ``held-out`` forces one. The JSON records which (``val_group``, ``val_clips``,
+``val_clips_seen_by_shipped``).
 
 ``--options MODEL?KEY=VALUE[&...]`` scores a run with inference options (``INFERENCE_OPTIONS``, e.g.
 ``fusesr?residual_clamp=lr-guided``: a bound over the same weights) and writes them into the released weights'
@@ -147,6 +149,31 @@ def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str]
     return list(val), "all"
 
 
+def unseen_val_clips(dataset: Path, val: list[str], group: str, weights_json: Path) -> tuple[list[str], list[str]]:
+    """(the rule's val clips that the shipped weights at ``weights_json`` never saw, the ones they did): with the
+    ``held-out`` group, a clip whose every family the shipped network's recorded training lineage holds
+    (``family_gap.lineage_families``; the wide set trained the shipped networks on the room level and most HDRIs)
+    would favour the incumbent, so the rule reads only the others. Other groups, no shipped weights or a JSON
+    without a lineage (said on stderr): all of ``val``. ValueError (one line) when no clip is left."""
+    if group != "held-out" or not weights_json.is_file():
+        return list(val), []
+    from gbuffer_export.dataset.family_gap import index_families, lineage_families
+    try:
+        seen, notes = lineage_families(weights_json, REPO)
+    except ValueError as exc:
+        print(f"note: {exc}; the rule reads every held-out-family val clip", file=sys.stderr)
+        return list(val), []
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    families = index_families(dataset)
+    known = [c for c in val if families.get(Path(c).name) and families[Path(c).name] <= seen]
+    kept = [c for c in val if c not in known]
+    if not kept:
+        raise ValueError(f"{dataset}: the shipped {weights_json.name} trained on every family of all "
+                         f"{len(val)} held-out-family val clips; the rule has no unseen clip (--val-group all)")
+    return kept, known
+
+
 def named_runs(items: list[str], models: list[str]) -> dict[str, Path]:
     """``--run MODEL=DIR`` values -> {MODEL: DIR}; ValueError (one line) for another model or a folder without
     checkpoints/last.pt."""
@@ -252,10 +279,16 @@ def main(argv=None) -> int:
         return r if full else summary(r)
 
     baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
-    val_baselines = {m: score(m, val) for m in ("demod-bilinear", "demod-jbu")} if val else {}
+    val_baselines_of: dict[tuple, dict] = {}  # per set of val clips: each model's rule may read its own
+
+    def val_baselines(clips: list[str]) -> dict:
+        if tuple(clips) not in val_baselines_of:
+            val_baselines_of[tuple(clips)] = {m: score(m, clips) for m in ("demod-bilinear", "demod-jbu")}
+        return val_baselines_of[tuple(clips)]
+
     out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
            "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
-           "val_group": val_group, "baselines": baselines, "val_baselines": val_baselines, "models": {}}
+           "val_group": val_group, "baselines": baselines, "models": {}}
     for name in a.models.split(","):
         if name not in PRETRAINED:
             print(f"--models: {name!r} is not in training.pretrained.PRETRAINED", file=sys.stderr)
@@ -275,10 +308,19 @@ def main(argv=None) -> int:
             note = option_note(loaded["config"], load_checkpoint(WEIGHTS_DIR / file)["config"], name)
             if note:
                 print(note, file=sys.stderr)
-        verdict, cand_val = None, score(cand, val, full=True) if val else None  # scored once, used twice
-        if val and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
+        try:
+            val_m, known = unseen_val_clips(a.dataset, val, val_group, (WEIGHTS_DIR / file).with_suffix(".json"))
+        except ValueError as exc:
+            print(f"blendsr: {exc}", file=sys.stderr)
+            return 2
+        if known:
+            print(f"{name}: {len(known)} of the {len(val)} held-out-family val clips hold only families the shipped "
+                  f"weights trained on (e.g. {Path(known[0]).name}); the rule reads the other {len(val_m)}",
+                  file=sys.stderr)
+        verdict, cand_val = None, score(cand, val_m, full=True) if val_m else None  # scored once, used twice
+        if val_m and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose
-            verdict = choose(cand_val, score(f"pretrained:{name}", val, full=True))
+            verdict = choose(cand_val, score(f"pretrained:{name}", val_m, full=True))
             print(verdict.line(name), file=sys.stderr)
             if not verdict.replace and not a.force:
                 continue
@@ -286,16 +328,18 @@ def main(argv=None) -> int:
         meta = {
             "model": name, "scale": 4, "date": out["date"],
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
-                        "name": index["name"], "train_clips": trained_on(loaded, train), "val_clips": out["val_clips"],
+                        "name": index["name"], "train_clips": trained_on(loaded, train),
+                        "val_clips": [Path(c).name for c in val_m],
+                        "val_clips_seen_by_shipped": [Path(c).name for c in known],
                         "test_clips": out["test_clips"]},
             "commands": commands(a, index, name, run, s["steps"]),
             "config": config_of(run),
             "scores_on_test_split": {"metric": METRIC, name: s, **baselines},
             "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
         }
-        if val:
+        if val_m:
             meta["scores_on_val_split"] = {"metric": METRIC, "val_group": val_group, name: summary(cand_val),
-                                           **val_baselines}
+                                           **val_baselines(val_m)}
         if verdict is not None:
             meta["val_rule"] = verdict.record(a.force)
         origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)

@@ -157,3 +157,39 @@ def test_a_scaling_run_is_released_from_its_own_folder_with_its_own_command_and_
     ck = {"config": {"data": {"clips": ["/d/clips/a", "/d/clips/b"]}}}
     assert rw.trained_on(ck, ["a", "b", "c"]) == ["a", "b"]
     assert rw.trained_on({"config": {"data": {}}}, ["a", "b", "c"]) == ["a", "b", "c"]
+
+
+def test_the_val_rule_leaves_out_held_out_clips_whose_families_the_shipped_weights_trained_on(tmp_path, monkeypatch,
+                                                                                               capsys):
+    """The shipped networks trained on the wide set, which holds families the scale set holds out of train (the room
+    level): such a val clip would favour the incumbent, so the rule reads only the clips neither network saw."""
+    import json
+
+    from gbuffer_export.dataset import family_gap
+    from gbuffer_export.dataset.build import INDEX, SCHEMA, SCHEMA_VERSION
+    rw = _module()
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    fams = {"room": ["level:room", "hdri:a"], "ship": ["asset:ship", "hdri:a"], "mixed": ["level:room", "hdri:b"]}
+    (ds / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": [
+        {"id": n, "path": f"clips/{n}", "split": "val", "family_group": "held-out", "families": f}
+        for n, f in fams.items()]}))
+    val = [str(ds / "clips" / n) for n in fams]
+    shipped = tmp_path / "fusesr_x4.json"
+    shipped.write_text("{}")
+    seen_by = {}
+    monkeypatch.setattr(family_gap, "lineage_families", lambda js, repo: (seen_by[Path(js).name], ["a note"]))
+    seen_by["fusesr_x4.json"] = {"level:room", "hdri:a"}
+    assert rw.unseen_val_clips(ds, val, "held-out", shipped) == ([val[1], val[2]], [val[0]])
+    assert "note: a note" in capsys.readouterr().err
+    assert rw.unseen_val_clips(ds, val, "all", shipped) == (val, [])  # only the held-out group is filtered
+    assert rw.unseen_val_clips(ds, val, "held-out", tmp_path / "none.json") == (val, [])  # nothing shipped yet
+    seen_by["fusesr_x4.json"] = {"level:room", "hdri:a", "hdri:b", "asset:ship"}
+    with pytest.raises(ValueError, match="trained on every family of all 3 held-out-family val clips"):
+        rw.unseen_val_clips(ds, val, "held-out", shipped)
+
+    def no_lineage(js, repo):
+        raise ValueError(f"{js}: no training lineage")
+    monkeypatch.setattr(family_gap, "lineage_families", no_lineage)
+    assert rw.unseen_val_clips(ds, val, "held-out", shipped) == (val, [])
+    assert "no training lineage; the rule reads every held-out-family val clip" in capsys.readouterr().err
