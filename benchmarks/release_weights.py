@@ -57,10 +57,18 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
 
 
 def init_of(run: Path) -> str:
-    """The ``run.init_from`` of the run's training command (command.txt), else ""."""
-    cmd = run / "command.txt"
+    """The ``run.init_from`` of the run's training command (command.txt), else of its configuration (config.toml,
+    which ``blendsr train`` writes in every run), else ""."""
+    import tomllib
+    cmd, cfg = run / "command.txt", run / "config.toml"
     words = shlex.split(cmd.read_text()) if cmd.is_file() else []
-    return next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
+    init = next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
+    if not init and cfg.is_file():
+        try:
+            init = str(tomllib.loads(cfg.read_text()).get("run", {}).get("init_from") or "")
+        except tomllib.TOMLDecodeError:
+            return ""
+    return init
 
 
 def earlier_stages(run: Path) -> list[str]:
@@ -80,7 +88,43 @@ def shipped_origin(runs: list[Path], weights_dir: Path) -> dict | None:
         return None
     old = json.loads(js.read_text())
     return {"weights": f"{init} as shipped before this release (sha256 below; git history of {js.name})",
-            "sha256": old.get("sha256"), "step": old.get("step"), "commands": old.get("commands")}
+            "sha256": old.get("sha256"), "step": old.get("step"), "commands": old.get("commands"),
+            # their own lineage, so that family_gap.lineage_stages reads every stage, not only the last two
+            **{k: old[k] for k in ("dataset", "init_from") if k in old}}
+
+
+def check_origin(run: Path, loaded: dict, weights_dir: Path) -> None:
+    """ValueError (one line) when the run started from ``pretrained:NAME`` weights other than those shipped now
+    (the checkpoint's ``init`` record, ``training.train.init_record``): a release made after it started replaced
+    them, so the JSON would name the wrong origin and lineage. Runs from before that record: nothing to check."""
+    from training.checkpoint import load_checkpoint
+    from training.pretrained import PRETRAINED
+    first = stage_runs(run)[0]
+    spec = init_of(first)
+    js = (weights_dir / PRETRAINED.get(spec.partition(":")[2], "-")).with_suffix(".json")
+    if not spec.startswith("pretrained:") or not js.is_file():
+        return
+    init = (loaded if first == run else load_checkpoint(first / "checkpoints" / "last.pt")).get("init") or {}
+    if init.get("sha256"):
+        shipped = json.loads(js.read_text()).get("sha256")
+        if shipped and shipped != init["sha256"]:
+            raise ValueError(f"{run}: it started from {spec} with sha256 {init['sha256'][:16]}..., but the shipped "
+                             f"{js.name} is now {shipped[:16]}... (released after it started): fine-tune again from "
+                             "the shipped weights")
+
+
+def own_families(dataset: Path, runs: list[Path], loaded: dict) -> set[str]:
+    """The families of the clips a candidate trained on in every stage of its own (``runs``, first stage first; the
+    last one's clips from its checkpoint ``loaded``), from the dataset's index; clips the index lacks add none."""
+    import tomllib
+
+    from gbuffer_export.dataset.family_gap import index_families
+    families, names = index_families(dataset), set(trained_on(loaded, []))
+    for r in runs[:-1]:
+        cfg = r / "config.toml"
+        clips = tomllib.loads(cfg.read_text()).get("data", {}).get("clips", []) if cfg.is_file() else []
+        names |= {Path(c).name for c in clips}
+    return {f for n in names for f in families.get(n, ())}
 
 
 def stage_runs(run: Path) -> list[Path]:
@@ -149,28 +193,31 @@ def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str]
     return list(val), "all"
 
 
-def unseen_val_clips(dataset: Path, val: list[str], group: str, weights_json: Path) -> tuple[list[str], list[str]]:
-    """(the rule's val clips that the shipped weights at ``weights_json`` never saw, the ones they did): with the
-    ``held-out`` group, a clip whose every family the shipped network's recorded training lineage holds
-    (``family_gap.lineage_families``; the wide set trained the shipped networks on the room level and most HDRIs)
-    would favour the incumbent, so the rule reads only the others. Other groups, no shipped weights or a JSON
-    without a lineage (said on stderr): all of ``val``. ValueError (one line) when no clip is left."""
+def unseen_val_clips(dataset: Path, val: list[str], group: str, weights_json: Path,
+                     own: set[str] = frozenset()) -> tuple[list[str], list[str]]:
+    """(the rule's val clips that neither network trained on, the others): with the ``held-out`` group, a clip whose
+    every family the shipped network's recorded training lineage (``family_gap.lineage_families``; the wide set
+    trained the shipped networks on the room level and most HDRIs) or the candidate's ``own`` families (its own
+    stages' clips: ``own_families``; the stage it started from is the shipped one, ``check_origin``) hold would
+    favour the network that saw it, so the rule reads only the others. Other groups, or no shipped weights: all of
+    ``val``; a JSON without a lineage (said on stderr): only ``own`` counts. ValueError (one line) when no clip is
+    left."""
     if group != "held-out" or not weights_json.is_file():
         return list(val), []
     from gbuffer_export.dataset.family_gap import index_families, lineage_families
     try:
         seen, notes = lineage_families(weights_json, REPO)
     except ValueError as exc:
-        print(f"note: {exc}; the rule reads every held-out-family val clip", file=sys.stderr)
-        return list(val), []
+        seen, notes = set(), [f"{exc}; only the candidate's own clips count"]
+    seen = seen | set(own)
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
     families = index_families(dataset)
     known = [c for c in val if families.get(Path(c).name) and families[Path(c).name] <= seen]
     kept = [c for c in val if c not in known]
     if not kept:
-        raise ValueError(f"{dataset}: the shipped {weights_json.name} trained on every family of all "
-                         f"{len(val)} held-out-family val clips; the rule has no unseen clip (--val-group all)")
+        raise ValueError(f"{dataset}: the shipped {weights_json.name} or the candidate trained on every family of "
+                         f"all {len(val)} held-out-family val clips; the rule has no unseen clip (--val-group all)")
     return kept, known
 
 
@@ -235,6 +282,30 @@ def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
     return out
 
 
+def rule_plans(a, run_dirs: dict[str, Path], val: list[str], val_group: str) -> dict[str, tuple[list, list]]:
+    """For every model of ``--models`` with a checkpoint, before anything is scored or written: the val clips its
+    rule reads and those it leaves out (``unseen_val_clips``). ValueError (one line) for a run without command.txt
+    under ``--script ''`` (the JSON would record a command that did not make it), a fine-tune of weights no longer
+    shipped (``check_origin``) or no clip left."""
+    from training.checkpoint import load_checkpoint
+    from training.pretrained import PRETRAINED, WEIGHTS_DIR
+    plans = {}
+    for name in a.models.split(","):
+        run = run_dirs.get(name, a.runs / name.replace("-", "_"))
+        ck = run / "checkpoints" / "last.pt"
+        if name not in PRETRAINED or not ck.is_file():
+            continue  # said in the loop
+        if not a.script and not (run / "command.txt").is_file():
+            raise ValueError(f"{run}: no command.txt, the command that trained it (--script '' records it in the "
+                             "JSON): write it there")
+        loaded = load_checkpoint(ck)
+        check_origin(run, loaded, WEIGHTS_DIR)
+        own = own_families(a.dataset, stage_runs(run), loaded)
+        plans[name] = unseen_val_clips(a.dataset, val, val_group,
+                                       (WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), own)
+    return plans
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
@@ -268,6 +339,7 @@ def main(argv=None) -> int:
         run_dirs = named_runs(a.run, a.models.split(","))
         check_options(options, {m: run_dirs.get(m, a.runs / m.replace("-", "_")) for m in options})
         val, val_group = rule_val_clips(a.dataset, [str(c) for c in split_clips(a.dataset, "val")], a.val_group)
+        plans = rule_plans(a, run_dirs, val, val_group)
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
         return 2
@@ -308,15 +380,11 @@ def main(argv=None) -> int:
             note = option_note(loaded["config"], load_checkpoint(WEIGHTS_DIR / file)["config"], name)
             if note:
                 print(note, file=sys.stderr)
-        try:
-            val_m, known = unseen_val_clips(a.dataset, val, val_group, (WEIGHTS_DIR / file).with_suffix(".json"))
-        except ValueError as exc:
-            print(f"blendsr: {exc}", file=sys.stderr)
-            return 2
+        val_m, known = plans[name]
         if known:
             print(f"{name}: {len(known)} of the {len(val)} held-out-family val clips hold only families the shipped "
-                  f"weights trained on (e.g. {Path(known[0]).name}); the rule reads the other {len(val_m)}",
-                  file=sys.stderr)
+                  f"weights or the candidate trained on (e.g. {Path(known[0]).name}); the rule reads the other "
+                  f"{len(val_m)}", file=sys.stderr)
         verdict, cand_val = None, score(cand, val_m, full=True) if val_m else None  # scored once, used twice
         if val_m and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
             from training.selection import choose

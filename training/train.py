@@ -105,6 +105,19 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')}){started}")
 
 
+def init_record(cfg: TrainConfig, ck: dict | None) -> dict | None:
+    """What ``run.init_from`` read when the run started: its spec and the sha256 of that file, kept in every
+    checkpoint (a resumed run keeps its first one), so that a release can tell whether the shipped weights it started
+    from are still the ones shipped; None without ``run.init_from``."""
+    if ck is not None:
+        return ck.get("init")
+    if not cfg.run.init_from:
+        return None
+    from training.checkpoint import file_sha256
+    from training.pretrained import resolve
+    return {"from": cfg.run.init_from, "sha256": file_sha256(resolve(cfg.run.init_from))}
+
+
 def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dist: Dist, baseline) -> dict:
     """The clips' caches of ``spec``'s buffers; a clip without one the model (or the baseline of
     ``loss.baseline_weight``) reads is a ClipError that says how to render it."""
@@ -188,7 +201,8 @@ def _train(user: TrainConfig, run: ResolvedRun, clips: dict, run_dir: Path, ck, 
                 f"(optim.decay_steps or run.max_steps) whatever the {cfg.run.minutes:g}-minute budget")
     trainer, caches = build_trainer(cfg, run, clips, dist, ck)
     record = {"model_name": cfg.model.name, "scale": run.scale, "scales": list(run.scales), "config": cfg.to_dict(),
-              "user_config": user.to_dict(), "resolved": run.to_dict(), "data": manifest_record(clips)}
+              "user_config": user.to_dict(), "resolved": run.to_dict(), "data": manifest_record(clips),
+              "init": init_record(cfg, ck)}
     if dist.main:
         write_text_atomic(run_dir / "config.toml", run_config_toml(user, run))
     checkpoints, evaluations = Checkpoints(trainer, run_dir, record), Evaluations(trainer, run_dir, caches)

@@ -74,29 +74,40 @@ def index_families(dataset: Path) -> dict[str, set[str]]:
     return {Path(c["path"]).name: set(c.get("families") or ()) for c in read_index(dataset)["clips"]}
 
 
+def lineage_stages(doc: dict, name: str) -> tuple[list[tuple[str, set[str] | None]], list[str]]:
+    """(every recorded training stage of a weights JSON ``doc``, newest first: (spec file, its train clip ids, or
+    None for the spec's whole train split); notes on what is unrecorded). A stage is the JSON's ``dataset``, then each
+    nested ``init_from`` that keeps its own ``dataset`` (``release_weights.shipped_origin`` does since issue 54), then,
+    for an ``init_from`` without one, the ``SPEC=`` of its commands (the older JSONs)."""
+    stages = [(str(doc["dataset"]["spec_file"]), {str(i) for i in doc["dataset"]["train_clips"]})]
+    notes, init = [], doc.get("init_from")
+    while isinstance(init, dict) and init:
+        ds = init.get("dataset")
+        if isinstance(ds, dict) and ds.get("spec_file") and ds.get("train_clips") is not None:
+            stages.append((str(ds["spec_file"]), {str(i) for i in ds["train_clips"]}))
+            init = init.get("init_from")
+            continue
+        commands = init.get("commands") or []
+        words = [w for c in ([commands] if isinstance(commands, str) else commands) for w in shlex.split(str(c))]
+        specs = [(w.split("=", 1)[1], None) for w in words if w.startswith("SPEC=")]
+        stages += specs
+        if not specs or any("pretrained:" in w for w in words):
+            notes.append(f"{name}: a stage before {init.get('weights', 'its init_from')!r} is not recorded; the "
+                         "families seen there are not counted")
+        break
+    return stages, notes
+
+
 def lineage_families(weights_json: Path, repo: Path) -> tuple[set[str], list[str]]:
-    """(the families a shipped network was trained on, notes on what its JSON leaves unrecorded or unresolved). Its
-    last stage: the families of ``dataset.train_clips`` in ``dataset.spec_file`` (expanded as the spec renders them
-    today); the stage it was initialised from (``init_from.commands``' ``SPEC=``): that spec's whole train split.
-    Specs are paths relative to ``repo``. ValueError (one line naming the file) for a JSON without them or a spec
-    that does not load."""
+    """(the families a shipped network was trained on, notes on what its JSON leaves unrecorded or unresolved): the
+    families of every stage of ``lineage_stages`` (its train clips as their spec expands them today, or the spec's
+    whole train split). Specs are paths relative to ``repo``. ValueError (one line naming the file) for a JSON
+    without them or a spec that does not load."""
     from .spec import SpecError, expand, load_spec
     try:
-        doc = json.loads(Path(weights_json).read_text())
-        ds = doc["dataset"]
-        stages = [(str(ds["spec_file"]), {str(i) for i in ds["train_clips"]})]
-        init = doc.get("init_from") or {}
-        init = init if isinstance(init, dict) else {}
-        commands = init.get("commands") or []
-        commands = [commands] if isinstance(commands, str) else commands
-        words = [w for c in commands for w in shlex.split(str(c))]
+        stages, notes = lineage_stages(json.loads(Path(weights_json).read_text()), Path(weights_json).name)
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{weights_json}: no training lineage (dataset.spec_file and train_clips: {exc})") from None
-    stages += [(w.split("=", 1)[1], None) for w in words if w.startswith("SPEC=")]
-    notes = []
-    if init and (len(stages) == 1 or any("pretrained:" in w for w in words)):
-        notes.append(f"{Path(weights_json).name}: a stage before {init.get('weights', 'its init_from')!r} is not "
-                     "recorded; the families seen there are not counted")
     seen: set[str] = set()
     for spec_file, ids in stages:
         try:

@@ -222,3 +222,19 @@ def test_a_network_trained_elsewhere_is_grouped_by_its_own_lineage(tmp_path, cap
                  "--seen-from", f"pretrained:m={tmp_path}/w4.json"]) == 2
     line, = capsys.readouterr().err.strip().splitlines()
     assert "w4.json: its spec missing.toml" in line
+
+
+def test_the_lineage_of_a_fine_tune_reaches_every_recorded_stage():
+    """A fine-tune's JSON keeps the shipped JSON it started from with that JSON's own dataset and init_from
+    (release_weights.shipped_origin): every stage is read, newest first; an older JSON's init stage comes from the
+    SPEC= of its commands, and a stage beyond what is recorded is said."""
+    from gbuffer_export.dataset.family_gap import lineage_stages
+    old = {"weights": "w", "commands": ["SPEC=examples/dataset_large.toml INIT='pretrained:<M>' pretrain.sh"]}
+    wide = {"weights": "pretrained:m as shipped", "dataset": {"spec_file": "wide.toml", "train_clips": ["a"]},
+            "init_from": old}
+    doc = {"dataset": {"spec_file": "scale.toml", "train_clips": ["s1", "s2"]}, "init_from": wide}
+    stages, notes = lineage_stages(doc, "m.json")
+    assert stages == [("scale.toml", {"s1", "s2"}), ("wide.toml", {"a"}), ("examples/dataset_large.toml", None)]
+    assert len(notes) == 1 and "a stage before 'w' is not recorded" in notes[0]
+    stages, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}}, "m.json")
+    assert stages == [("s.toml", set())] and notes == []

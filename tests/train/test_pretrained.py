@@ -2,6 +2,7 @@
 ``pretrained:NAME`` everywhere a checkpoint goes, fine-tuning from weights (``run.init_from``), and the installed
 weights against their own metadata (size, sha256, parameter digest)."""
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,10 @@ def test_init_from_starts_a_fresh_run_at_the_given_weights(run, clip, tmp_path):
     b = load_model(str(tmp_path / "ft" / "checkpoints" / "last.pt"), 4)
     for (k, x), (_, y) in zip(a.module.state_dict().items(), b.module.state_dict().items()):
         assert torch.allclose(x, y, atol=1e-6), k
+    from training.checkpoint import file_sha256  # what it started from, for release_weights.check_origin
+    assert load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt")["init"] == {
+        "from": str(run / "checkpoints" / "last.pt"), "sha256": file_sha256(run / "checkpoints" / "last.pt")}
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["init"] is None
     bad = load_config(None, SMALL + ['model.name="fusesr"', "run.max_steps=1",
                                      f'run.init_from="{run / "checkpoints" / "last.pt"}"'])
     bad.data.clips = [str(clip)]
@@ -217,13 +222,17 @@ def test_release_weights_scores_the_run_with_its_options_on_held_out_val_and_shi
     spec.loader.exec_module(rw)
     ds = tmp_path / "ds"
     ds.mkdir()
-    splits = {"val": ["vh", "vi"], "test": ["t"], "train": ["a"]}
-    groups = {"vh": "held-out"}
+    splits = {"val": ["vh", "vr", "vi"], "test": ["t"], "train": ["a"]}
+    groups = {"vh": "held-out", "vr": "held-out"}
     (ds / build.INDEX).write_text(json.dumps({
         "schema": build.SCHEMA, "schema_version": build.SCHEMA_VERSION, "name": "ds",
         "spec": {"file": "spec.toml", "sha256": "abc"},
-        "clips": [{"id": n, "path": f"clips/{n}", "split": sp, "family_group": groups.get(n, "in-family")}
-                  for sp, names in splits.items() for n in names]}))
+        "clips": [{"id": n, "path": f"clips/{n}", "split": sp, "family_group": groups.get(n, "in-family"),
+                   "families": [f"level:{n}"]} for sp, names in splits.items() for n in names]}))
+    from gbuffer_export.dataset import family_gap  # the shipped weights trained on vr's level (the wide set's room)
+    monkeypatch.setattr(family_gap, "lineage_families", lambda js, repo: ({"level:vr"}, []))
+    run = Path(shutil.copytree(run, tmp_path / "run"))
+    (run / "command.txt").write_text("blendsr train --model fusesr-l\n")
     monkeypatch.setattr(build, "split_clips", lambda root, split, done_only=True: [
         Path(root) / "clips" / n for n in splits[split]])
     asked = []
@@ -249,12 +258,18 @@ def test_release_weights_scores_the_run_with_its_options_on_held_out_val_and_shi
     err = capsys.readouterr().err
     assert "the candidate runs with residual_clamp 'lr-range' (shipped: 'none')" in err, err
     assert "fusesr-l: val rule replaces the shipped weights" in err, err
+    assert "fusesr-l: 1 of the 2 held-out-family val clips hold only families the shipped weights" in err, err
     cand = f"{run / 'checkpoints' / 'last.pt'}?residual_clamp=lr-range"
     assert (cand, ["vh"]) in asked and ("pretrained:fusesr-l", ["vh"]) in asked and (cand, ["t"]) in asked
+    assert ("demod-jbu", ["vh"]) in asked and not any("vr" in clips for _, clips in asked)
     assert not any(m.endswith("last.pt") for m, _ in asked)  # never scored without its options
     meta = json.loads((weights / file).with_suffix(".json").read_text())
     assert meta["inference_options"] == ["residual_clamp=lr-range"] and meta["val_rule"]["replace"]
     assert meta["dataset"]["val_clips"] == ["vh"] and meta["scores_on_val_split"]["val_group"] == "held-out"
+    assert meta["dataset"]["val_clips_seen_by_shipped"] == ["vr"]
+    (run / "command.txt").unlink()  # --script '': the command that made the run is required, before any score
+    asked.clear()
+    assert rw.main(base) == 2 and "no command.txt" in capsys.readouterr().err and not asked
     assert meta["dataset"]["train_clips"] == [clip.name]  # the run's own clips, not the split's "a"
     assert load_model(str(weights / file), 4).config.model.options.residual_clamp == "lr-range"
     assert json.loads((runs / "release.json").read_text())["val_group"] == "held-out"

@@ -162,7 +162,8 @@ def test_a_scaling_run_is_released_from_its_own_folder_with_its_own_command_and_
 def test_the_val_rule_leaves_out_held_out_clips_whose_families_the_shipped_weights_trained_on(tmp_path, monkeypatch,
                                                                                                capsys):
     """The shipped networks trained on the wide set, which holds families the scale set holds out of train (the room
-    level): such a val clip would favour the incumbent, so the rule reads only the clips neither network saw."""
+    level): such a val clip would favour the incumbent (and one the candidate's own stages saw, the candidate), so
+    the rule reads only the clips neither network trained on every family of."""
     import json
 
     from gbuffer_export.dataset import family_gap
@@ -192,4 +193,41 @@ def test_the_val_rule_leaves_out_held_out_clips_whose_families_the_shipped_weigh
         raise ValueError(f"{js}: no training lineage")
     monkeypatch.setattr(family_gap, "lineage_families", no_lineage)
     assert rw.unseen_val_clips(ds, val, "held-out", shipped) == (val, [])
-    assert "no training lineage; the rule reads every held-out-family val clip" in capsys.readouterr().err
+    assert "no training lineage; only the candidate's own clips count" in capsys.readouterr().err
+    # the candidate's own families count too: a run that trained on the ship and HDRI a leaves that clip out
+    assert rw.unseen_val_clips(ds, val, "held-out", shipped, {"asset:ship", "hdri:a"}) == ([val[0], val[2]], [val[1]])
+
+
+def test_a_fine_tune_names_what_it_started_from_and_is_refused_once_those_weights_are_no_longer_shipped(tmp_path):
+    """A run started from ``pretrained:NAME`` records the sha256 of the file it read (``training.train.init_record``,
+    in every checkpoint); released after another release replaced those weights, its JSON would name the wrong origin
+    and lineage, so release_weights refuses it. Its init is read from config.toml when there is no command.txt; its
+    own clips' families (every stage) come from the dataset's index."""
+    import json
+
+    from gbuffer_export.dataset.build import INDEX, SCHEMA, SCHEMA_VERSION
+    rw = _module()
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    (weights / "fusesr_l_x4.json").write_text(json.dumps({"sha256": "b" * 64, "dataset": {"spec_file": "w.toml",
+                                                          "train_clips": ["x"]}, "commands": ["SPEC=w.toml run"]}))
+    run = tmp_path / "ft"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.toml").write_text('[data]\nclips = ["/d/clips/a"]\n[run]\ninit_from = "pretrained:fusesr-l"\n')
+    assert rw.init_of(run) == "pretrained:fusesr-l"
+    rw.check_origin(run, {"init": {"from": "pretrained:fusesr-l", "sha256": "b" * 64}}, weights)  # still shipped
+    rw.check_origin(run, {}, weights)  # a run from before the record: nothing to check
+    with pytest.raises(ValueError, match="started from pretrained:fusesr-l with sha256 aaaa.*released after it started"):
+        rw.check_origin(run, {"init": {"from": "pretrained:fusesr-l", "sha256": "a" * 64}}, weights)
+    origin = rw.shipped_origin([run], weights)
+    assert origin["dataset"] == {"spec_file": "w.toml", "train_clips": ["x"]} and origin["sha256"] == "b" * 64
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": [
+        {"id": n, "path": f"clips/{n}", "split": "train", "families": [f"asset:{n}"]} for n in ("a", "b", "c")]}))
+    second = tmp_path / "ft2"
+    (second / "checkpoints").mkdir(parents=True)
+    (second / "command.txt").write_text(f"blendsr train --set run.init_from={run}/checkpoints/last.pt\n")
+    (run / "command.txt").write_text("blendsr train --set run.init_from=pretrained:fusesr-l\n")
+    loaded = {"config": {"data": {"clips": ["/d/clips/b"]}}}
+    assert rw.own_families(ds, rw.stage_runs(second), loaded) == {"asset:a", "asset:b"}
