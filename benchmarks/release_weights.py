@@ -13,9 +13,10 @@ With a val split, a run replaces the shipped weights of its name only when ``tra
 PSNR, SSIM and tPSNR do not fall, all on val); ``--force`` writes them anyway (the JSON records the verdict).
 The val clips the rule reads are the held-out-family ones when the index has any (``--val-group auto``, issue 54:
 a network is chosen by what it does on families it never trained on), less those whose every family the shipped
-weights' recorded lineage holds (``unseen_val_clips``: they would favour the incumbent), else all of them;
+weights' recorded lineage, or the candidate's, holds (``unseen_val_clips``: they would favour the network that saw
+them), else all of them;
 ``--val-group all`` or ``held-out`` forces one. The JSON records which (``val_group``, ``val_clips``,
-``val_clips_seen_by_shipped``).
+``val_clips_left_out``).
 
 ``--options MODEL?KEY=VALUE[&...]`` scores a run with inference options (``INFERENCE_OPTIONS``, e.g.
 ``fusesr?residual_clamp=lr-guided``: a bound over the same weights) and writes them into the released weights'
@@ -72,8 +73,11 @@ def init_of(run: Path) -> str:
 
 
 def earlier_stages(run: Path) -> list[str]:
-    """The training commands of the runs this one started from, first stage first (``stage_runs``)."""
-    return [(r / "command.txt").read_text().strip() for r in stage_runs(run)[:-1]]
+    """The training commands of the runs this one started from, first stage first (``stage_runs``); a stage without
+    command.txt is named by its configuration."""
+    return [(r / "command.txt").read_text().strip() if (r / "command.txt").is_file() else
+            f"blendsr train -o {r} --config {r / 'config.toml'}  # (no command.txt: the stage's configuration)"
+            for r in stage_runs(run)[:-1]]
 
 
 def shipped_origin(runs: list[Path], weights_dir: Path) -> dict | None:
@@ -93,10 +97,21 @@ def shipped_origin(runs: list[Path], weights_dir: Path) -> dict | None:
             **{k: old[k] for k in ("dataset", "init_from") if k in old}}
 
 
+def recorded_init(run: Path, loaded: dict) -> dict:
+    """What the run's first stage read through ``run.init_from`` (``training.train.init_record``, in every checkpoint
+    since 2026-11-29), else RUN/init.json (the same keys, written by hand for a run from before the record, with the
+    evidence), else {}."""
+    if loaded.get("init"):
+        return loaded["init"]
+    js = run / "init.json"
+    return json.loads(js.read_text()) if js.is_file() else {}
+
+
 def check_origin(run: Path, loaded: dict, weights_dir: Path) -> None:
     """ValueError (one line) when the run started from ``pretrained:NAME`` weights other than those shipped now
-    (the checkpoint's ``init`` record, ``training.train.init_record``): a release made after it started replaced
-    them, so the JSON would name the wrong origin and lineage. Runs from before that record: nothing to check."""
+    (``recorded_init``: neither their sha256 nor, the same tensors under another header, their ``param_digest``
+    agree): a release made after it started replaced them, so the JSON would name the wrong origin and lineage.
+    Nothing recorded: a note (the release assumes the weights shipped now)."""
     from training.checkpoint import load_checkpoint
     from training.pretrained import PRETRAINED
     first = stage_runs(run)[0]
@@ -104,34 +119,56 @@ def check_origin(run: Path, loaded: dict, weights_dir: Path) -> None:
     js = (weights_dir / PRETRAINED.get(spec.partition(":")[2], "-")).with_suffix(".json")
     if not spec.startswith("pretrained:") or not js.is_file():
         return
-    init = (loaded if first == run else load_checkpoint(first / "checkpoints" / "last.pt")).get("init") or {}
-    if init.get("sha256"):
-        shipped = json.loads(js.read_text()).get("sha256")
-        if shipped and shipped != init["sha256"]:
-            raise ValueError(f"{run}: it started from {spec} with sha256 {init['sha256'][:16]}..., but the shipped "
-                             f"{js.name} is now {shipped[:16]}... (released after it started): fine-tune again from "
-                             "the shipped weights")
+    init = recorded_init(first, loaded if first == run else load_checkpoint(first / "checkpoints" / "last.pt"))
+    shipped = json.loads(js.read_text())
+    if not init.get("sha256"):
+        print(f"note: {first}: what its {spec} was is not recorded (no init in its checkpoint, no init.json): the "
+              f"release takes it for the {js.name} shipped now", file=sys.stderr)
+    elif init["sha256"] != shipped.get("sha256") and (
+            not init.get("param_digest") or init["param_digest"] != shipped.get("param_digest")):
+        raise ValueError(f"{run}: it started from {spec} with sha256 {init['sha256'][:16]}..., but the shipped "
+                         f"{js.name} is now {str(shipped.get('sha256'))[:16]}... (a release after it started, or "
+                         "this run's own): fine-tune again from the shipped weights")
 
 
-def own_families(dataset: Path, runs: list[Path], loaded: dict) -> set[str]:
-    """The families of the clips a candidate trained on in every stage of its own (``runs``, first stage first; the
-    last one's clips from its checkpoint ``loaded``), from the dataset's index; clips the index lacks add none."""
+def candidate_families(dataset: Path, runs: list[Path], loaded: dict, weights_dir: Path) -> set[str]:
+    """The families a candidate trained on: those of the clips of every stage of its own (``runs``, first stage
+    first; the last one's clips from its checkpoint ``loaded``; each clip's families from the index of the dataset it
+    lies in, else ``dataset``'s), and, when its first stage started from ``pretrained:NAME``, that network's
+    recorded lineage (``family_gap.lineage_families``; ``check_origin`` makes sure it is the one shipped now)."""
     import tomllib
 
-    from gbuffer_export.dataset.family_gap import index_families
-    families, names = index_families(dataset), set(trained_on(loaded, []))
+    from gbuffer_export.dataset.family_gap import index_families, lineage_families
+    from training.pretrained import PRETRAINED
+    clips = list((loaded.get("config") or {}).get("data", {}).get("clips") or [])
     for r in runs[:-1]:
         cfg = r / "config.toml"
-        clips = tomllib.loads(cfg.read_text()).get("data", {}).get("clips", []) if cfg.is_file() else []
-        names |= {Path(c).name for c in clips}
-    return {f for n in names for f in families.get(n, ())}
+        try:
+            clips += tomllib.loads(cfg.read_text()).get("data", {}).get("clips", []) if cfg.is_file() else []
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{cfg}: not TOML ({exc})") from None
+    indexes: dict[Path, dict] = {}
+    out: set[str] = set()
+    for c in clips:
+        root = Path(c).parent.parent if (Path(c).parent.parent / "dataset.json").is_file() else dataset
+        families = indexes.setdefault(root, index_families(root))
+        out |= families.get(Path(c).name, set())
+    init = init_of(runs[0])
+    js = (weights_dir / PRETRAINED.get(init.partition(":")[2], "-")).with_suffix(".json")
+    if init.startswith("pretrained:") and js.is_file():
+        try:
+            out |= lineage_families(js, REPO)[0]
+        except ValueError as exc:
+            print(f"note: {exc}; the candidate's inherited lineage is not counted", file=sys.stderr)
+    return out
 
 
 def stage_runs(run: Path) -> list[Path]:
     """The run directories of a fine-tune in stages, first stage first, ending with ``run``."""
     init = init_of(run)
     prev = Path(init).parent.parent
-    if not init.endswith(".pt") or not (prev / "command.txt").is_file() or prev.resolve() == run.resolve():
+    if not init.endswith(".pt") or not any((prev / f).is_file() for f in ("command.txt", "config.toml")) \
+            or prev.resolve() == run.resolve():
         return [run]
     return [*stage_runs(prev), run]
 
@@ -194,26 +231,25 @@ def rule_val_clips(dataset: Path, val: list[str], group: str) -> tuple[list[str]
 
 
 def unseen_val_clips(dataset: Path, val: list[str], group: str, weights_json: Path,
-                     own: set[str] = frozenset()) -> tuple[list[str], list[str]]:
-    """(the rule's val clips that neither network trained on, the others): with the ``held-out`` group, a clip whose
-    every family the shipped network's recorded training lineage (``family_gap.lineage_families``; the wide set
-    trained the shipped networks on the room level and most HDRIs) or the candidate's ``own`` families (its own
-    stages' clips: ``own_families``; the stage it started from is the shipped one, ``check_origin``) hold would
-    favour the network that saw it, so the rule reads only the others. Other groups, or no shipped weights: all of
-    ``val``; a JSON without a lineage (said on stderr): only ``own`` counts. ValueError (one line) when no clip is
-    left."""
+                     candidate: set[str] = frozenset()) -> tuple[list[str], list[str]]:
+    """(the rule's val clips that neither network trained on every family of, the others): with the ``held-out``
+    group, a clip whose every family the shipped network's recorded training lineage (``family_gap.lineage_families``;
+    the wide set trained the shipped networks on the room level and most HDRIs) holds, or the ``candidate``'s
+    (``candidate_families``) holds, would favour the network that saw it, so the rule reads only the others. Other
+    groups, or no shipped weights: all of ``val``; a JSON without a lineage (said on stderr): only the candidate's
+    counts. ValueError (one line) when no clip is left."""
     if group != "held-out" or not weights_json.is_file():
         return list(val), []
     from gbuffer_export.dataset.family_gap import index_families, lineage_families
     try:
         seen, notes = lineage_families(weights_json, REPO)
     except ValueError as exc:
-        seen, notes = set(), [f"{exc}; only the candidate's own clips count"]
-    seen = seen | set(own)
+        seen, notes = set(), [f"{exc}; only the candidate's own lineage counts"]
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
     families = index_families(dataset)
-    known = [c for c in val if families.get(Path(c).name) and families[Path(c).name] <= seen]
+    known = [c for c in val if families.get(Path(c).name)
+             and (families[Path(c).name] <= seen or families[Path(c).name] <= set(candidate))]
     kept = [c for c in val if c not in known]
     if not kept:
         raise ValueError(f"{dataset}: the shipped {weights_json.name} or the candidate trained on every family of "
@@ -282,27 +318,48 @@ def model_options(items: list[str], models: list[str]) -> dict[str, list[str]]:
     return out
 
 
+def check_finished(run: Path, loaded: dict, force: bool) -> None:
+    """ValueError (one line) for a run still training or stopped by an interruption (its summary.json, written when
+    ``blendsr train`` ends, missing, of another step, or ``stopped_by`` neither max_steps nor minutes): the weights
+    scored would not be those shipped. ``--force`` releases it anyway."""
+    js = run / "summary.json"
+    summary = json.loads(js.read_text()) if js.is_file() else {}
+    if force or (summary.get("step") == loaded.get("step") and summary.get("stopped_by") in ("max_steps", "minutes")):
+        return
+    raise ValueError(f"{run}: its checkpoint is at step {loaded.get('step')}, and the run has not finished there "
+                     f"(summary.json: {summary.get('stopped_by', 'none')} at step {summary.get('step', '-')}): "
+                     "wait for it, or --force")
+
+
 def rule_plans(a, run_dirs: dict[str, Path], val: list[str], val_group: str) -> dict[str, tuple[list, list]]:
     """For every model of ``--models`` with a checkpoint, before anything is scored or written: the val clips its
     rule reads and those it leaves out (``unseen_val_clips``). ValueError (one line) for a run without command.txt
     under ``--script ''`` (the JSON would record a command that did not make it), a fine-tune of weights no longer
     shipped (``check_origin``) or no clip left."""
+    from gbuffer_export.errors import BlendSRError
     from training.checkpoint import load_checkpoint
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     plans = {}
     for name in a.models.split(","):
         run = run_dirs.get(name, a.runs / name.replace("-", "_"))
         ck = run / "checkpoints" / "last.pt"
-        if name not in PRETRAINED or not ck.is_file():
-            continue  # said in the loop
+        if name not in PRETRAINED:
+            raise ValueError(f"--models: {name!r} is not in training.pretrained.PRETRAINED "
+                             f"({', '.join(PRETRAINED)})")
+        if not ck.is_file():
+            continue  # skipped in the loop, with a line
         if not a.script and not (run / "command.txt").is_file():
             raise ValueError(f"{run}: no command.txt, the command that trained it (--script '' records it in the "
                              "JSON): write it there")
-        loaded = load_checkpoint(ck)
-        check_origin(run, loaded, WEIGHTS_DIR)
-        own = own_families(a.dataset, stage_runs(run), loaded)
+        try:
+            loaded = load_checkpoint(ck)
+            check_origin(run, loaded, WEIGHTS_DIR)
+        except (BlendSRError, OSError) as exc:
+            raise ValueError(str(exc)) from None
+        check_finished(run, loaded, a.force)
+        mine = candidate_families(a.dataset, stage_runs(run), loaded, WEIGHTS_DIR)
         plans[name] = unseen_val_clips(a.dataset, val, val_group,
-                                       (WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), own)
+                                       (WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), mine)
     return plans
 
 
@@ -398,7 +455,7 @@ def main(argv=None) -> int:
             "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
                         "name": index["name"], "train_clips": trained_on(loaded, train),
                         "val_clips": [Path(c).name for c in val_m],
-                        "val_clips_seen_by_shipped": [Path(c).name for c in known],
+                        "val_clips_left_out": [Path(c).name for c in known],
                         "test_clips": out["test_clips"]},
             "commands": commands(a, index, name, run, s["steps"]),
             "config": config_of(run),

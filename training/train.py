@@ -106,16 +106,23 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
 
 
 def init_record(cfg: TrainConfig, ck: dict | None) -> dict | None:
-    """What ``run.init_from`` read when the run started: its spec and the sha256 of that file, kept in every
-    checkpoint (a resumed run keeps its first one), so that a release can tell whether the shipped weights it started
-    from are still the ones shipped; None without ``run.init_from``."""
+    """What ``run.init_from`` read when the run started: its spec, the sha256 of that file and, for weights with a
+    JSON beside them, their ``param_digest``; kept in every checkpoint (a resumed run keeps its first one), so that a
+    release can tell whether the shipped weights it started from are still the ones shipped; None without
+    ``run.init_from``."""
     if ck is not None:
         return ck.get("init")
     if not cfg.run.init_from:
         return None
+    import json
+
     from training.checkpoint import file_sha256
     from training.pretrained import resolve
-    return {"from": cfg.run.init_from, "sha256": file_sha256(resolve(cfg.run.init_from))}
+    path = Path(resolve(cfg.run.init_from))
+    out = {"from": cfg.run.init_from, "sha256": file_sha256(path)}
+    if path.suffix == ".safetensors" and path.with_suffix(".json").is_file():  # the same tensors under a new header
+        out["param_digest"] = json.loads(path.with_suffix(".json").read_text()).get("param_digest")
+    return out
 
 
 def open_model_caches(cfg: TrainConfig, run: ResolvedRun, clips: dict, spec, dist: Dist, baseline) -> dict:

@@ -266,7 +266,7 @@ def test_release_weights_scores_the_run_with_its_options_on_held_out_val_and_shi
     meta = json.loads((weights / file).with_suffix(".json").read_text())
     assert meta["inference_options"] == ["residual_clamp=lr-range"] and meta["val_rule"]["replace"]
     assert meta["dataset"]["val_clips"] == ["vh"] and meta["scores_on_val_split"]["val_group"] == "held-out"
-    assert meta["dataset"]["val_clips_seen_by_shipped"] == ["vr"]
+    assert meta["dataset"]["val_clips_left_out"] == ["vr"]
     (run / "command.txt").unlink()  # --script '': the command that made the run is required, before any score
     asked.clear()
     assert rw.main(base) == 2 and "no command.txt" in capsys.readouterr().err and not asked

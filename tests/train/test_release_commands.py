@@ -193,12 +193,18 @@ def test_the_val_rule_leaves_out_held_out_clips_whose_families_the_shipped_weigh
         raise ValueError(f"{js}: no training lineage")
     monkeypatch.setattr(family_gap, "lineage_families", no_lineage)
     assert rw.unseen_val_clips(ds, val, "held-out", shipped) == (val, [])
-    assert "no training lineage; only the candidate's own clips count" in capsys.readouterr().err
-    # the candidate's own families count too: a run that trained on the ship and HDRI a leaves that clip out
-    assert rw.unseen_val_clips(ds, val, "held-out", shipped, {"asset:ship", "hdri:a"}) == ([val[0], val[2]], [val[1]])
+    assert "no training lineage; only the candidate's own lineage counts" in capsys.readouterr().err
+    # the candidate's lineage counts too: a run that trained on the ship and HDRI a leaves that clip out
+    seen_by["fusesr_x4.json"] = {"level:room", "hdri:a"}
+    monkeypatch.setattr(family_gap, "lineage_families", lambda js, repo: (seen_by[Path(js).name], []))
+    assert rw.unseen_val_clips(ds, val, "held-out", shipped, {"asset:ship", "hdri:a"}) == ([val[2]], [val[0], val[1]])
+    # either network alone, not the two together: "mixed" (the room seen by one, HDRI b by the other) stays
+    assert rw.unseen_val_clips(ds, val, "held-out", shipped, {"hdri:b"}) == ([val[1], val[2]], [val[0]])
 
 
-def test_a_fine_tune_names_what_it_started_from_and_is_refused_once_those_weights_are_no_longer_shipped(tmp_path):
+def test_a_fine_tune_names_what_it_started_from_and_is_refused_once_those_weights_are_no_longer_shipped(tmp_path,
+                                                                                                      monkeypatch,
+                                                                                                      capsys):
     """A run started from ``pretrained:NAME`` records the sha256 of the file it read (``training.train.init_record``,
     in every checkpoint); released after another release replaced those weights, its JSON would name the wrong origin
     and lineage, so release_weights refuses it. Its init is read from config.toml when there is no command.txt; its
@@ -216,9 +222,20 @@ def test_a_fine_tune_names_what_it_started_from_and_is_refused_once_those_weight
     (run / "config.toml").write_text('[data]\nclips = ["/d/clips/a"]\n[run]\ninit_from = "pretrained:fusesr-l"\n')
     assert rw.init_of(run) == "pretrained:fusesr-l"
     rw.check_origin(run, {"init": {"from": "pretrained:fusesr-l", "sha256": "b" * 64}}, weights)  # still shipped
-    rw.check_origin(run, {}, weights)  # a run from before the record: nothing to check
-    with pytest.raises(ValueError, match="started from pretrained:fusesr-l with sha256 aaaa.*released after it started"):
+    rw.check_origin(run, {}, weights)  # a run from before the record: a note, the weights shipped now assumed
+    assert "is not recorded (no init in its checkpoint, no init.json)" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="started from pretrained:fusesr-l with sha256 aaaa.*a release after it"):
         rw.check_origin(run, {"init": {"from": "pretrained:fusesr-l", "sha256": "a" * 64}}, weights)
+    (run / "init.json").write_text(json.dumps({"from": "pretrained:fusesr-l", "sha256": "a" * 64}))  # by hand
+    with pytest.raises(ValueError, match="a release after it started"):
+        rw.check_origin(run, {}, weights)
+    # the same tensors under a new header (benchmarks/ship_option.py): the parameter digest agrees
+    (weights / "fusesr_l_x4.json").write_text(json.dumps({"sha256": "b" * 64, "param_digest": "p1", "dataset": {
+        "spec_file": "w.toml", "train_clips": ["x"]}, "commands": ["SPEC=w.toml run"]}))
+    rw.check_origin(run, {"init": {"sha256": "a" * 64, "param_digest": "p1"}}, weights)
+    with pytest.raises(ValueError, match="a release after it started"):
+        rw.check_origin(run, {"init": {"sha256": "a" * 64, "param_digest": "p0"}}, weights)
+    (run / "init.json").unlink()
     origin = rw.shipped_origin([run], weights)
     assert origin["dataset"] == {"spec_file": "w.toml", "train_clips": ["x"]} and origin["sha256"] == "b" * 64
     ds = tmp_path / "ds"
@@ -230,4 +247,29 @@ def test_a_fine_tune_names_what_it_started_from_and_is_refused_once_those_weight
     (second / "command.txt").write_text(f"blendsr train --set run.init_from={run}/checkpoints/last.pt\n")
     (run / "command.txt").write_text("blendsr train --set run.init_from=pretrained:fusesr-l\n")
     loaded = {"config": {"data": {"clips": ["/d/clips/b"]}}}
-    assert rw.own_families(ds, rw.stage_runs(second), loaded) == {"asset:a", "asset:b"}
+    from gbuffer_export.dataset import family_gap  # the first stage started from the shipped weights: their lineage
+    monkeypatch.setattr(family_gap, "lineage_families", lambda js, repo: ({"level:room"}, []))
+    assert rw.candidate_families(ds, rw.stage_runs(second), loaded, weights) == {"asset:a", "asset:b", "level:room"}
+    scratch = tmp_path / "scratch"
+    (scratch / "checkpoints").mkdir(parents=True)
+    assert rw.candidate_families(ds, [scratch], {"config": {"data": {"clips": ["/d/clips/c"]}}}, weights) == {"asset:c"}
+    # a stage with no command.txt is still a stage (its config.toml), named by its configuration
+    (run / "command.txt").unlink()
+    assert rw.stage_runs(second) == [run, second]
+    assert "(no command.txt: the stage's configuration)" in rw.earlier_stages(second)[0]
+
+
+def test_a_run_that_has_not_finished_is_not_released(tmp_path):
+    """The weights scored must be those shipped: a run still training (or interrupted) is refused unless --force."""
+    import json
+    rw = _module()
+    run = tmp_path / "r"
+    run.mkdir()
+    with pytest.raises(ValueError, match="step 1200, and the run has not finished there .summary.json: none"):
+        rw.check_finished(run, {"step": 1200}, False)
+    rw.check_finished(run, {"step": 1200}, True)
+    (run / "summary.json").write_text(json.dumps({"step": 1000, "stopped_by": "interrupted"}))
+    with pytest.raises(ValueError, match="interrupted at step 1000"):
+        rw.check_finished(run, {"step": 1200}, False)
+    (run / "summary.json").write_text(json.dumps({"step": 1200, "stopped_by": "max_steps"}))
+    rw.check_finished(run, {"step": 1200}, False)
