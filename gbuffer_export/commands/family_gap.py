@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..dataset.family_gap import (gap_table, index_families, index_groups, lineage_families, lineage_groups,
-                                  read_margins)
+                                  read_margins, unseen_by_all, unseen_table)
 from ..errors import BlendSRError
 
 
@@ -21,6 +21,9 @@ def main(argv=None) -> int:
                    help="a model trained outside the dataset (e.g. pretrained:fusesr=training/weights/fusesr_x4.json):"
                         " its clips are grouped by its own training lineage (in-family: it trained on every family "
                         "of the clip), not by the dataset's split")
+    p.add_argument("--unseen-by-all", action="store_true",
+                   help="also a table of every model on the held-out clips that no --seen-from lineage trained on "
+                        "every family of: the one set on which all of them compare fairly")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
     a = p.parse_args(argv)
@@ -45,6 +48,10 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(gap_table(models, groups, own))
+    if a.unseen_by_all:
+        scored = set().union(*models.values())
+        clips = unseen_by_all({c: g for c, g in groups.items() if c in scored}, own)
+        print("\n" + unseen_table(models, clips))
     return 0
 
 

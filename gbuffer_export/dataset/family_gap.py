@@ -145,3 +145,19 @@ def gap_table(models: dict[str, dict[str, float]], groups: dict[str, str],
         if g["unknown"]["n"]:
             lines.append(f"| `{label}` | {g['unknown']['n']} clips not in the datasets' indexes | | |")
     return "\n".join(lines)
+
+
+def unseen_by_all(groups: dict[str, str], own: dict[str, dict[str, str]]) -> set[str]:
+    """The clips held out of the dataset's train split (``groups``) that every lineage of ``own`` holds out too: the
+    clips on which networks of different training can be compared fairly (none trained on every family of one)."""
+    return {c for c, g in groups.items() if g == HELD_OUT and all(o.get(c) == HELD_OUT for o in own.values())}
+
+
+def unseen_table(models: dict[str, dict[str, float]], clips: set[str]) -> str:
+    """A Markdown table: per model, its mean and smallest margin on ``clips`` (models that lack one: n/a)."""
+    lines = [f"| model | margin on the {len(clips)} clips no network trained on (smallest) |", "|---|---|"]
+    for label, margins in models.items():
+        v = [margins[c] for c in clips if c in margins]
+        cell = f"{sum(v) / len(v):+.2f} ({min(v):+.2f})" if v and len(v) == len(clips) else "n/a (clips missing)"
+        lines.append(f"| `{label}` | {cell} |")
+    return "\n".join(lines)

@@ -238,3 +238,17 @@ def test_the_lineage_of_a_fine_tune_reaches_every_recorded_stage():
     assert len(notes) == 1 and "a stage before 'w' is not recorded" in notes[0]
     stages, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}}, "m.json")
     assert stages == [("s.toml", set())] and notes == []
+
+
+def test_networks_of_different_training_compare_on_the_clips_none_of_them_saw():
+    """``--unseen-by-all``: the held-out clips that every --seen-from lineage holds out too; each model's mean and
+    smallest margin there, n/a for a model not scored on all of them."""
+    from gbuffer_export.dataset.family_gap import unseen_by_all, unseen_table
+    groups = {"a": "in-family", "r": "held-out", "x": "held-out", "y": "held-out"}
+    own = {"shipped": {"a": "in-family", "r": "in-family", "x": "held-out", "y": "held-out"},
+           "fine-tune": {"a": "in-family", "r": "in-family", "x": "in-family", "y": "held-out"}}
+    assert unseen_by_all(groups, own) == {"y"}
+    assert unseen_by_all(groups, {}) == {"r", "x", "y"}
+    table = unseen_table({"m": {"x": 1.0, "y": 3.0}, "short": {"x": 1.0}}, {"x", "y"})
+    assert "| `m` | +2.00 (+1.00) |" in table and "| `short` | n/a (clips missing) |" in table
+    assert "margin on the 2 clips no network trained on" in table
