@@ -363,7 +363,7 @@ def rule_plans(a, run_dirs: dict[str, Path], val: list[str], val_group: str) -> 
     return plans
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("runs", type=Path)
@@ -382,14 +382,117 @@ def main(argv=None) -> int:
                         "benchmarks/data_scaling.py")
     p.add_argument("--val-group", choices=VAL_GROUPS, default="auto",
                    help="the val clips the val rule reads: held-out-family ones (auto: when there are any), or all")
-    a = p.parse_args(argv)
+    return p
 
-    from gbuffer_export.clip import write_json_atomic
-    from gbuffer_export.dataset.build import read_index, split_clips
+
+class Round:
+    """One release: the arguments, what was checked before any score (options, runs, each model's val clips), the
+    dataset's splits and index, the baselines' scores and the RUNS/release.json being written. (A plain class: the
+    tests load this script without registering it as a module, which dataclasses need.)"""
+
+    def __init__(self, a, options: dict[str, list[str]], run_dirs: dict[str, Path],
+                 plans: dict[str, tuple[list, list]], val: list[str], val_group: str, splits: dict[str, list],
+                 index: dict):
+        self.a, self.options, self.run_dirs, self.plans = a, options, run_dirs, plans
+        self.val, self.val_group, self.test, self.train, self.index = \
+            val, val_group, splits["test"], splits["train"], index
+        self.baselines: dict = {}
+        self.out: dict = {}
+        self._val_baselines: dict = {}
+
+    def score(self, spec: str, clips: list[str] | None = None, full: bool = False) -> dict:
+        r = evaluate(spec, self.test if clips is None else clips)
+        return r if full else summary(r)
+
+    def val_baselines(self, clips: list[str]) -> dict:
+        """demod-bilinear's and demod-jbu's scores on ``clips`` (each model's rule may read its own)."""
+        if tuple(clips) not in self._val_baselines:
+            self._val_baselines[tuple(clips)] = {m: self.score(m, clips) for m in ("demod-bilinear", "demod-jbu")}
+        return self._val_baselines[tuple(clips)]
+
+    def run_of(self, name: str) -> Path:
+        return self.run_dirs.get(name, self.a.runs / name.replace("-", "_"))
+
+
+def release_model(r: Round, name: str) -> dict | None:
+    """Score the run of ``name``, apply the val rule against the shipped weights and release it when it passes (or
+    with --force); returns the released JSON, None when skipped or kept."""
     from training.checkpoint import load_checkpoint
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
     from training.release import release
+    file, run = PRETRAINED[name], r.run_of(name)
+    ck = run / "checkpoints" / "last.pt"
+    cand = str(ck) + ("?" + "&".join(r.options[name]) if name in r.options else "")  # as scored and shipped
+    if not ck.is_file():
+        print(f"skip {name}: {ck} not found", file=sys.stderr)
+        return None
+    loaded = load_checkpoint(ck)
+    if name in r.options:  # the options become the shipped configuration's
+        from training.inference.loading import with_inference_options
+        loaded["config"] = with_inference_options(loaded["config"], r.options[name], cand)
+    if (WEIGHTS_DIR / file).is_file():
+        note = option_note(loaded["config"], load_checkpoint(WEIGHTS_DIR / file)["config"], name)
+        if note:
+            print(note, file=sys.stderr)
+    val_m, known = r.plans[name]
+    if known:
+        print(f"{name}: {len(known)} of the {len(r.val)} held-out-family val clips hold only families the shipped "
+              f"weights or the candidate trained on (e.g. {Path(known[0]).name}); the rule reads the other "
+              f"{len(val_m)}", file=sys.stderr)
+    verdict, cand_val = None, r.score(cand, val_m, full=True) if val_m else None  # scored once, used twice
+    if val_m and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
+        from training.selection import choose
+        verdict = choose(cand_val, r.score(f"pretrained:{name}", val_m, full=True))
+        print(verdict.line(name), file=sys.stderr)
+        if not verdict.replace and not r.a.force:
+            return None
+    meta = candidate_meta(r, name, run, loaded, r.score(cand), (val_m, known, cand_val), verdict)
+    meta = release(loaded, WEIGHTS_DIR / file, meta)
+    print(f"{name}: test PSNR {meta['scores_on_test_split'][name]['psnr']:.2f} dB (demod-jbu "
+          f"{r.baselines['demod-jbu']['psnr']:.2f}, {meta['gain_over_demod_jbu_db']:+.2f} dB), "
+          f"{meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")
+    return meta
 
+
+def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dict, val_part: tuple,
+                   verdict) -> dict:
+    """The JSON beside released weights: dataset and clips, commands, scores on test (and val), the verdict, the
+    shipped weights it started from, attachments and inference options."""
+    from training.pretrained import WEIGHTS_DIR
+    val_m, known, cand_val = val_part
+    s = {**test_score, "steps": int(loaded["step"])}
+    index = r.index
+    meta = {
+        "model": name, "scale": 4, "date": r.out["date"],
+        "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
+                    "name": index["name"], "train_clips": trained_on(loaded, r.train),
+                    "val_clips": [Path(c).name for c in val_m], "val_clips_left_out": [Path(c).name for c in known],
+                    "test_clips": r.out["test_clips"]},
+        "commands": commands(r.a, index, name, run, s["steps"]),
+        "config": config_of(run),
+        "scores_on_test_split": {"metric": METRIC, name: s, **r.baselines},
+        "gain_over_demod_jbu_db": round(s["psnr"] - r.baselines["demod-jbu"]["psnr"], 3),
+    }
+    if val_m:
+        meta["scores_on_val_split"] = {"metric": METRIC, "val_group": r.val_group, name: summary(cand_val),
+                                       **r.val_baselines(val_m)}
+    if verdict is not None:
+        meta["val_rule"] = verdict.record(r.a.force)
+    origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)
+    if origin is not None:
+        meta["init_from"] = origin
+    for item in r.a.attach:
+        key, _, path = item.partition("=")
+        meta[key] = json.loads(Path(path).read_text())
+    if name in r.options:
+        meta["inference_options"] = r.options[name]
+    return meta
+
+
+def main(argv=None) -> int:
+    a = parser().parse_args(argv)
+    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.dataset.build import read_index, split_clips
     test = [str(c) for c in split_clips(a.dataset, "test")]
     try:
         options = model_options(a.options, a.models.split(","))
@@ -400,86 +503,17 @@ def main(argv=None) -> int:
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
         return 2
-    train = [c.name for c in split_clips(a.dataset, "train")]
-    index = read_index(a.dataset)
-
-    def score(spec: str, clips: list[str] = test, full: bool = False) -> dict:
-        r = evaluate(spec, clips)
-        return r if full else summary(r)
-
-    baselines = {m: score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
-    val_baselines_of: dict[tuple, dict] = {}  # per set of val clips: each model's rule may read its own
-
-    def val_baselines(clips: list[str]) -> dict:
-        if tuple(clips) not in val_baselines_of:
-            val_baselines_of[tuple(clips)] = {m: score(m, clips) for m in ("demod-bilinear", "demod-jbu")}
-        return val_baselines_of[tuple(clips)]
-
-    out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
-           "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
-           "val_group": val_group, "baselines": baselines, "models": {}}
+    r = Round(a, options, run_dirs, plans, val, val_group,
+              {"test": test, "train": [c.name for c in split_clips(a.dataset, "train")]}, read_index(a.dataset))
+    r.baselines = {m: r.score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
+    r.out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
+             "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
+             "val_group": val_group, "baselines": r.baselines, "models": {}}
     for name in a.models.split(","):
-        if name not in PRETRAINED:
-            print(f"--models: {name!r} is not in training.pretrained.PRETRAINED", file=sys.stderr)
-            return 2
-        file = PRETRAINED[name]
-        run = run_dirs.get(name, a.runs / name.replace("-", "_"))
-        ck = run / "checkpoints" / "last.pt"
-        cand = str(ck) + ("?" + "&".join(options[name]) if name in options else "")  # the run as scored and shipped
-        if not ck.is_file():
-            print(f"skip {name}: {ck} not found", file=sys.stderr)
-            continue
-        loaded = load_checkpoint(ck)
-        if name in options:  # the options become the shipped configuration's
-            from training.inference.loading import with_inference_options
-            loaded["config"] = with_inference_options(loaded["config"], options[name], cand)
-        if (WEIGHTS_DIR / file).is_file():
-            note = option_note(loaded["config"], load_checkpoint(WEIGHTS_DIR / file)["config"], name)
-            if note:
-                print(note, file=sys.stderr)
-        val_m, known = plans[name]
-        if known:
-            print(f"{name}: {len(known)} of the {len(val)} held-out-family val clips hold only families the shipped "
-                  f"weights or the candidate trained on (e.g. {Path(known[0]).name}); the rule reads the other "
-                  f"{len(val_m)}", file=sys.stderr)
-        verdict, cand_val = None, score(cand, val_m, full=True) if val_m else None  # scored once, used twice
-        if val_m and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
-            from training.selection import choose
-            verdict = choose(cand_val, score(f"pretrained:{name}", val_m, full=True))
-            print(verdict.line(name), file=sys.stderr)
-            if not verdict.replace and not a.force:
-                continue
-        s = {**score(cand), "steps": int(loaded["step"])}
-        meta = {
-            "model": name, "scale": 4, "date": out["date"],
-            "dataset": {"spec_file": index["spec"]["file"], "spec_sha256": index["spec"]["sha256"],
-                        "name": index["name"], "train_clips": trained_on(loaded, train),
-                        "val_clips": [Path(c).name for c in val_m],
-                        "val_clips_left_out": [Path(c).name for c in known],
-                        "test_clips": out["test_clips"]},
-            "commands": commands(a, index, name, run, s["steps"]),
-            "config": config_of(run),
-            "scores_on_test_split": {"metric": METRIC, name: s, **baselines},
-            "gain_over_demod_jbu_db": round(s["psnr"] - baselines["demod-jbu"]["psnr"], 3),
-        }
-        if val_m:
-            meta["scores_on_val_split"] = {"metric": METRIC, "val_group": val_group, name: summary(cand_val),
-                                           **val_baselines(val_m)}
-        if verdict is not None:
-            meta["val_rule"] = verdict.record(a.force)
-        origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)
-        if origin is not None:
-            meta["init_from"] = origin
-        for item in a.attach:
-            key, _, path = item.partition("=")
-            meta[key] = json.loads(Path(path).read_text())
-        if name in options:
-            meta["inference_options"] = options[name]
-        meta = release(loaded, WEIGHTS_DIR / file, meta)
-        out["models"][name] = meta
-        print(f"{name}: test PSNR {s['psnr']:.2f} dB (demod-jbu {baselines['demod-jbu']['psnr']:.2f}, "
-              f"{meta['gain_over_demod_jbu_db']:+.2f} dB), {meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")
-    write_json_atomic(a.runs / "release.json", out)
+        meta = release_model(r, name)
+        if meta is not None:
+            r.out["models"][name] = meta
+    write_json_atomic(a.runs / "release.json", r.out)
     return 0
 
 
