@@ -57,19 +57,33 @@ def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     return [script, generic]
 
 
-def init_of(run: Path) -> str:
-    """The ``run.init_from`` of the run's training command (command.txt), else of its configuration (config.toml,
-    which ``blendsr train`` writes in every run), else ""."""
+def run_config(run: Path) -> dict:
+    """RUN/config.toml (``blendsr train`` writes it in every run) as a dict; {} without one; ValueError (one line)
+    when it is not TOML."""
     import tomllib
-    cmd, cfg = run / "command.txt", run / "config.toml"
+    cfg = run / "config.toml"
+    try:
+        return tomllib.loads(cfg.read_text()) if cfg.is_file() else {}
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{cfg}: not TOML ({exc})") from None
+
+
+def shipped_json(spec: str, weights_dir: Path) -> Path | None:
+    """The JSON beside the shipped weights a ``pretrained:NAME[?options]`` spec names, when they are installed; None
+    for any other spec."""
+    from training.pretrained import PRETRAINED
+    name = spec.partition(":")[2].partition("?")[0]
+    js = (weights_dir / PRETRAINED.get(name, "-")).with_suffix(".json")
+    return js if spec.startswith("pretrained:") and js.is_file() else None
+
+
+def init_of(run: Path) -> str:
+    """The ``run.init_from`` of the run's training command (command.txt), else of its configuration (config.toml),
+    else ""."""
+    cmd = run / "command.txt"
     words = shlex.split(cmd.read_text()) if cmd.is_file() else []
     init = next((w.partition("=")[2].strip('"') for w in words if w.startswith("run.init_from=")), "")
-    if not init and cfg.is_file():
-        try:
-            init = str(tomllib.loads(cfg.read_text()).get("run", {}).get("init_from") or "")
-        except tomllib.TOMLDecodeError:
-            return ""
-    return init
+    return init or str(run_config(run).get("run", {}).get("init_from") or "")
 
 
 def earlier_stages(run: Path) -> list[str]:
@@ -84,11 +98,9 @@ def shipped_origin(runs: list[Path], weights_dir: Path) -> dict | None:
     """What the first stage of ``runs`` (first stage first) started from when that is shipped weights
     (``pretrained:NAME``): their sha256, step and commands, read from the JSON beside them before they are replaced,
     so the chain of fine-tunes stays on record; None otherwise."""
-    from training.pretrained import PRETRAINED
     init = init_of(runs[0])
-    name = init.partition(":")[2].partition("?")[0]
-    js = (weights_dir / PRETRAINED.get(name, "-")).with_suffix(".json")
-    if not init.startswith("pretrained:") or not js.is_file():
+    js = shipped_json(init, weights_dir)
+    if js is None:
         return None
     old = json.loads(js.read_text())
     return {"weights": f"{init} as shipped before this release (sha256 below; git history of {js.name})",
@@ -113,11 +125,10 @@ def check_origin(run: Path, loaded: dict, weights_dir: Path) -> None:
     agree): a release made after it started replaced them, so the JSON would name the wrong origin and lineage.
     Nothing recorded: a note (the release assumes the weights shipped now)."""
     from training.checkpoint import load_checkpoint
-    from training.pretrained import PRETRAINED
     first = stage_runs(run)[0]
     spec = init_of(first)
-    js = (weights_dir / PRETRAINED.get(spec.partition(":")[2], "-")).with_suffix(".json")
-    if not spec.startswith("pretrained:") or not js.is_file():
+    js = shipped_json(spec, weights_dir)
+    if js is None:
         return
     init = recorded_init(first, loaded if first == run else load_checkpoint(first / "checkpoints" / "last.pt"))
     shipped = json.loads(js.read_text())
@@ -136,26 +147,18 @@ def candidate_families(dataset: Path, runs: list[Path], loaded: dict, weights_di
     first; the last one's clips from its checkpoint ``loaded``; each clip's families from the index of the dataset it
     lies in, else ``dataset``'s), and, when its first stage started from ``pretrained:NAME``, that network's
     recorded lineage (``family_gap.lineage_families``; ``check_origin`` makes sure it is the one shipped now)."""
-    import tomllib
-
     from gbuffer_export.dataset.family_gap import index_families, lineage_families
-    from training.pretrained import PRETRAINED
     clips = list((loaded.get("config") or {}).get("data", {}).get("clips") or [])
     for r in runs[:-1]:
-        cfg = r / "config.toml"
-        try:
-            clips += tomllib.loads(cfg.read_text()).get("data", {}).get("clips", []) if cfg.is_file() else []
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{cfg}: not TOML ({exc})") from None
+        clips += run_config(r).get("data", {}).get("clips", [])
     indexes: dict[Path, dict] = {}
     out: set[str] = set()
     for c in clips:
         root = Path(c).parent.parent if (Path(c).parent.parent / "dataset.json").is_file() else dataset
         families = indexes.setdefault(root, index_families(root))
         out |= families.get(Path(c).name, set())
-    init = init_of(runs[0])
-    js = (weights_dir / PRETRAINED.get(init.partition(":")[2], "-")).with_suffix(".json")
-    if init.startswith("pretrained:") and js.is_file():
+    js = shipped_json(init_of(runs[0]), weights_dir)
+    if js is not None:
         try:
             out |= lineage_families(js, REPO)[0]
         except ValueError as exc:
