@@ -21,6 +21,11 @@ them), else all of them;
 ``--options MODEL?KEY=VALUE[&...]`` scores a run with inference options (``INFERENCE_OPTIONS``, e.g.
 ``fusesr?residual_clamp=lr-guided``: a bound over the same weights) and writes them into the released weights'
 configuration, so what the val rule chose is what ships.
+
+``--defer-test`` releases by the val rule without reading the test split: the JSON says so under ``test_split``
+(``TEST_DEFERRED``) and has no test scores. A round whose test split is read once, at its end (docs/training.md,
+"The scale set's round"), releases that way and later runs ``--record-test``: the shipped weights of ``--models`` and
+the baselines scored on the whole test split, written into their JSONs (the weights do not change).
 """
 from __future__ import annotations
 
@@ -204,6 +209,11 @@ def summary(r: dict) -> dict:
             "artifact_pixels": m.get("artifact_pixels")}
 
 
+#: What a weights JSON released with ``--defer-test`` says under ``test_split`` (until ``--record-test``).
+TEST_DEFERRED = ("deferred: released by the val rule before the test split was read; the test split is read once, "
+                 "at the end of the round (benchmarks/release_weights.py --record-test)")
+
+
 #: ``--val-group`` choices: ``auto`` = ``held-out`` when the val split has held-out-family clips, else ``all``.
 VAL_GROUPS = ("auto", "all", "held-out")
 
@@ -385,6 +395,12 @@ def parser() -> argparse.ArgumentParser:
                         "benchmarks/data_scaling.py")
     p.add_argument("--val-group", choices=VAL_GROUPS, default="auto",
                    help="the val clips the val rule reads: held-out-family ones (auto: when there are any), or all")
+    test = p.add_mutually_exclusive_group()
+    test.add_argument("--defer-test", action="store_true",
+                      help="release by the val rule without reading the test split (the JSON says so)")
+    test.add_argument("--record-test", action="store_true",
+                      help="release nothing: score the shipped weights of --models and the baselines on the whole "
+                           "test split and write the scores into their JSONs")
     return p
 
 
@@ -449,21 +465,22 @@ def release_model(r: Round, name: str) -> dict | None:
         print(verdict.line(name), file=sys.stderr)
         if not verdict.replace and not r.a.force:
             return None
-    meta = candidate_meta(r, name, run, loaded, r.score(cand), (val_m, known, cand_val), verdict)
+    test_score = None if r.a.defer_test else r.score(cand)
+    meta = candidate_meta(r, name, run, loaded, test_score, (val_m, known, cand_val), verdict)
     meta = release(loaded, WEIGHTS_DIR / file, meta)
-    print(f"{name}: test PSNR {meta['scores_on_test_split'][name]['psnr']:.2f} dB (demod-jbu "
-          f"{r.baselines['demod-jbu']['psnr']:.2f}, {meta['gain_over_demod_jbu_db']:+.2f} dB), "
-          f"{meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")
+    scored = (f"test PSNR {test_score['psnr']:.2f} dB (demod-jbu {r.baselines['demod-jbu']['psnr']:.2f}, "
+              f"{meta['gain_over_demod_jbu_db']:+.2f} dB)" if test_score else "test split not read (--defer-test)")
+    print(f"{name}: {scored}, {meta['bytes'] / 1e6:.2f} MB -> {WEIGHTS_DIR / file}")
     return meta
 
 
-def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dict, val_part: tuple,
+def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dict | None, val_part: tuple,
                    verdict) -> dict:
-    """The JSON beside released weights: dataset and clips, commands, scores on test (and val), the verdict, the
-    shipped weights it started from, attachments and inference options."""
+    """The JSON beside released weights: dataset and clips, commands, scores on test (``TEST_DEFERRED`` instead when
+    ``test_score`` is None) and val, the verdict, the shipped weights it started from, attachments and inference
+    options."""
     from training.pretrained import WEIGHTS_DIR
     val_m, known, cand_val = val_part
-    s = {**test_score, "steps": int(loaded["step"])}
     index = r.index
     meta = {
         "model": name, "scale": 4, "date": r.out["date"],
@@ -471,11 +488,13 @@ def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dic
                     "name": index["name"], "train_clips": trained_on(loaded, r.train),
                     "val_clips": [Path(c).name for c in val_m], "val_clips_left_out": [Path(c).name for c in known],
                     "test_clips": r.out["test_clips"]},
-        "commands": commands(r.a, index, name, run, s["steps"]),
+        "commands": commands(r.a, index, name, run, int(loaded["step"])),
         "config": config_of(run),
-        "scores_on_test_split": {"metric": METRIC, name: s, **r.baselines},
-        "gain_over_demod_jbu_db": round(s["psnr"] - r.baselines["demod-jbu"]["psnr"], 3),
     }
+    if test_score is None:
+        meta["test_split"] = TEST_DEFERRED
+    else:
+        meta.update(test_scores(name, {**test_score, "steps": int(loaded["step"])}, r.baselines))
     if val_m:
         meta["scores_on_val_split"] = {"metric": METRIC, "val_group": r.val_group, name: summary(cand_val),
                                        **r.val_baselines(val_m)}
@@ -492,11 +511,69 @@ def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dic
     return meta
 
 
+def test_scores(name: str, score: dict, baselines: dict) -> dict:
+    """The test-split keys of a weights JSON: the network's scores beside the baselines' and its gain."""
+    return {"scores_on_test_split": {"metric": METRIC, name: score, **baselines},
+            "gain_over_demod_jbu_db": round(score["psnr"] - baselines["demod-jbu"]["psnr"], 3)}
+
+
+def whole_test_split(dataset: Path) -> list[str]:
+    """Every planned test clip of ``dataset``, finished; ValueError (one line) when any is not (or not valid)."""
+    from gbuffer_export.dataset.build import read_index, split_clips
+    test = [str(c) for c in split_clips(dataset, "test")]
+    planned = sum(c.get("split") == "test" for c in read_index(dataset)["clips"])
+    if len(test) < planned:
+        raise ValueError(f"{dataset}: {planned - len(test)} of its {planned} test clips are not finished (or not "
+                         "valid): --record-test reads the whole test split")
+    return test
+
+
+def shipped_docs(models: list[str], spec_sha256: str) -> dict[str, dict]:
+    """{name: its shipped weights JSON} for ``--record-test``; ValueError (one line) for a name without shipped
+    weights or weights released from another dataset spec (their test split is another)."""
+    from training.pretrained import WEIGHTS_DIR
+    docs = {}
+    for name in models:
+        js = shipped_json(f"pretrained:{name}", WEIGHTS_DIR)
+        if js is None:
+            raise ValueError(f"--models: no shipped weights named {name!r}")
+        docs[name] = json.loads(js.read_text())
+        if docs[name].get("dataset", {}).get("spec_sha256") != spec_sha256:
+            raise ValueError(f"{js}: released from another dataset spec than this dataset's; its test split is not "
+                             "this one")
+    return docs
+
+
+def record_test(a) -> int:
+    """``--record-test``: each shipped network of ``--models`` and the baselines on the whole test split, written into
+    its JSON; the weights and their sha256 do not change."""
+    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.dataset.build import read_index
+    from training.pretrained import PRETRAINED, WEIGHTS_DIR
+    try:
+        test = whole_test_split(a.dataset)
+        docs = shipped_docs(a.models.split(","), read_index(a.dataset)["spec"]["sha256"])
+    except ValueError as exc:
+        print(f"blendsr: {exc}", file=sys.stderr)
+        return 2
+    baselines = {m: summary(evaluate(m, test)) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
+    for name, doc in docs.items():
+        doc.update(test_scores(name, summary(evaluate(f"pretrained:{name}", test)), baselines))
+        doc["dataset"]["test_clips"] = [Path(c).name for c in test]
+        doc["test_split"] = (f"recorded {datetime.date.today().isoformat()}: benchmarks/release_weights.py "
+                             f"{a.dataset} {a.runs} --models {name} --record-test")
+        write_json_atomic((WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), doc)
+        print(f"{name}: test margin {doc['gain_over_demod_jbu_db']:+.2f} dB over demod-jbu", file=sys.stderr)
+    return 0
+
+
 def main(argv=None) -> int:
     a = parser().parse_args(argv)
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index, split_clips
-    test = [str(c) for c in split_clips(a.dataset, "test")]
+    if a.record_test:
+        return record_test(a)
+    test = [] if a.defer_test else [str(c) for c in split_clips(a.dataset, "test")]
     try:
         options = model_options(a.options, a.models.split(","))
         run_dirs = named_runs(a.run, a.models.split(","))
@@ -508,7 +585,7 @@ def main(argv=None) -> int:
         return 2
     r = Round(a, options, run_dirs, plans, val, val_group,
               {"test": test, "train": [c.name for c in split_clips(a.dataset, "train")]}, read_index(a.dataset))
-    r.baselines = {m: r.score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
+    r.baselines = {} if a.defer_test else {m: r.score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
     r.out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
              "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
              "val_group": val_group, "baselines": r.baselines, "models": {}}

@@ -222,15 +222,17 @@ def card_text(stem: str, meta: dict, spec_text: str | None, readme: str | None, 
              f"`training/weights/{meta.get('file')}`: {meta.get('bytes', 0):,} bytes, sha256 `{meta.get('sha256')}`, "
              f"{meta.get('params', 0):,} parameters, step {meta.get('step')}, {meta.get('date')}."]
     lines += ["", "## Training data", "", *_data_lines(meta, spec_text, readme)]
+    test = meta.get("scores_on_test_split") or {}
     lines += ["", "## Margins (as recorded in the JSON)", "",
-              f"- Test split: {_margin(meta.get('scores_on_test_split') or {}, model)}.",
+              f"- Test split: {_margin(test, model) if test else meta.get('test_split', 'not recorded')}.",
               f"- Val split: {_margin(meta.get('scores_on_val_split') or {}, model)}."]
     if wc:
         groups = ", ".join(f"{g} {v:+.2f} dB" for g, v in (wc.get("per_group") or {}).items())
         lines.append(f"- Worst case on val ({wc.get('dataset')}, {wc.get('frames')} frames): margin "
                      f"{wc.get('margin', 0):+.2f} dB, smallest per clip {wc.get('margin_min', 0):+.2f} dB"
                      + (f"; by group {groups}" if groups else "") + ".")
-    lines += [f"- Metric: {(meta.get('scores_on_test_split') or {}).get('metric', '?')}; margin = PSNR minus "
+    metric = (test or meta.get("scores_on_val_split") or {}).get("metric", "?")
+    lines += [f"- Metric: {metric}; margin = PSNR minus "
               f"`{BASELINE}`'s on the same frames."]
     lines += ["", "## Speed", "", *speed_lines(model, int(meta.get("params") or 0), repo)]
     lines += ["", "## Limits", "", *_limit_lines(meta, model), ""]
