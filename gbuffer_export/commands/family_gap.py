@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..dataset.family_gap import (gap_table, index_families, index_groups, lineage_families, lineage_groups,
-                                  read_margins, unseen_by_all, unseen_table)
+from ..dataset.family_gap import (gap_table, index_families, index_groups, index_kinds, kind_table, lineage_families,
+                                  lineage_groups, read_margins, unseen_by_all, unseen_table)
 from ..errors import BlendSRError
 
 
@@ -24,6 +24,10 @@ def main(argv=None) -> int:
     p.add_argument("--unseen-by-all", action="store_true",
                    help="also a table of every model on the held-out clips that no --seen-from lineage trained on "
                         "every family of: the one set on which all of them compare fairly")
+    p.add_argument("--by-kind", action="store_true",
+                   help="also the gap within objects and within levels and the kind-matched gap (each held-out clip "
+                        "against in-family clips of its own kind: levels score higher margins than objects, and a "
+                        "split whose held-out clips are mostly objects has a larger plain gap by the mix alone)")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
     a = p.parse_args(argv)
@@ -48,6 +52,8 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(gap_table(models, groups, own))
+    if a.by_kind:
+        print("\n" + kind_table(models, groups, {k: v for d in a.data for k, v in index_kinds(d).items()}, own))
     if a.unseen_by_all:
         scored = set().union(*models.values())
         clips = unseen_by_all({c: g for c, g in groups.items() if c in scored}, own)

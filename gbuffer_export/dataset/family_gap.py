@@ -63,6 +63,29 @@ def family_gap(margins: dict[str, float], groups: dict[str, str]) -> dict:
     return out
 
 
+#: The kinds of clip ``kind_gap`` compares within (as ``benchmarks/worst_case.py`` groups them): a level is a clip of a
+#: source of kind ``scene`` (a level kept as it is), an object any other.
+KINDS = ("objects", "levels")
+
+
+def kind_gap(margins: dict[str, float], groups: dict[str, str], kinds: dict[str, str]) -> dict:
+    """``family_gap`` within each kind of clip (``kinds``: clip id -> one of ``KINDS``) and the kind-matched gap: the
+    per-kind gaps weighted by the held-out clips of each kind (kinds with both groups only). A plain gap mixes kinds:
+    where levels score higher margins than objects and the held-out clips are mostly objects, the plain gap grows by
+    the mix alone; the matched gap compares each held-out clip with in-family clips of its own kind."""
+    out = {k: family_gap({c: m for c, m in margins.items() if kinds.get(c) == k}, groups) for k in KINDS}
+    both = [k for k in KINDS if out[k][IN_FAMILY]["n"] and out[k][HELD_OUT]["n"]]
+    weight = sum(out[k][HELD_OUT]["n"] for k in both)
+    out["matched"] = sum(out[k]["gap"] * out[k][HELD_OUT]["n"] for k in both) / weight if weight else math.nan
+    return out
+
+
+def index_kinds(dataset: Path) -> dict[str, str]:
+    """Clip folder name -> ``levels`` (its source is of kind ``scene``) or ``objects``, from ``DATASET/dataset.json``."""
+    return {Path(c["path"]).name: "levels" if c.get("kind") == "scene" else "objects"
+            for c in read_index(dataset)["clips"]}
+
+
 def index_groups(dataset: Path) -> dict[str, str]:
     """Clip folder name -> family group, from ``DATASET/dataset.json`` (an index without families: every clip
     ``in-family``)."""
@@ -144,6 +167,23 @@ def gap_table(models: dict[str, dict[str, float]], groups: dict[str, str],
                      f"{b['n']}) | {f(g['gap'])} |")
         if g["unknown"]["n"]:
             lines.append(f"| `{label}` | {g['unknown']['n']} clips not in the datasets' indexes | | |")
+    return "\n".join(lines)
+
+
+def kind_table(models: dict[str, dict[str, float]], groups: dict[str, str], kinds: dict[str, str],
+               own: dict[str, dict[str, str]] | None = None) -> str:
+    """A Markdown table: per model, the gap within objects and within levels (in-family mean minus held-out mean,
+    clips of each) and the kind-matched gap (``kind_gap``); ``own`` as in ``gap_table``."""
+    f = lambda x: "n/a" if math.isnan(x) else f"{x:+.2f}"  # noqa: E731
+    lines = ["| model | objects: in-family / held-out (clips) | gap | levels: in-family / held-out (clips) | gap "
+             "| kind-matched gap (dB) |", "|---|---|---|---|---|---|"]
+    for label, margins in models.items():
+        mine = (own or {}).get(label)
+        g = kind_gap(margins, mine if mine is not None else groups, kinds)
+        cells = [f"{f(g[k][IN_FAMILY]['mean'])} / {f(g[k][HELD_OUT]['mean'])} ({g[k][IN_FAMILY]['n']} / "
+                 f"{g[k][HELD_OUT]['n']}) | {f(g[k]['gap'])}" for k in KINDS]
+        name = f"`{label}`" + (" (by its training lineage)" if mine is not None else "")
+        lines.append(f"| {name} | {' | '.join(cells)} | {f(g['matched'])} |")
     return "\n".join(lines)
 
 

@@ -252,3 +252,34 @@ def test_networks_of_different_training_compare_on_the_clips_none_of_them_saw():
     table = unseen_table({"m": {"x": 1.0, "y": 3.0}, "short": {"x": 1.0}}, {"x", "y"})
     assert "| `m` | +2.00 (+1.00) |" in table and "| `short` | n/a (clips missing) |" in table
     assert "margin on the 2 clips no network trained on" in table
+
+
+def test_the_kind_matched_gap_compares_each_held_out_clip_with_in_family_clips_of_its_own_kind(tmp_path, capsys):
+    """Levels score higher margins than objects; a split whose held-out clips are mostly objects has a plain gap
+    from the mix alone. Here no clip gains from being in-family within its kind: the plain gap is large, every
+    per-kind gap and the matched one are zero; then a per-kind gap, weighted by the held-out clips of each kind."""
+    from gbuffer_export.dataset.family_gap import kind_gap, kind_table
+    kinds = {"o1": "objects", "o2": "objects", "o3": "objects", "o4": "objects", "l1": "levels", "l2": "levels",
+             "l3": "levels"}
+    groups = {"o1": "in-family", "l1": "in-family", "l2": "in-family",
+              "o2": "held-out", "o3": "held-out", "o4": "held-out", "l3": "held-out"}
+    margins = {c: (3.0 if k == "levels" else 1.0) for c, k in kinds.items()}
+    assert family_gap(margins, groups)["gap"] == pytest.approx((1 + 3 + 3) / 3 - (1 + 1 + 1 + 3) / 4)  # 0.83
+    g = kind_gap(margins, groups, kinds)
+    assert g["objects"]["gap"] == g["levels"]["gap"] == g["matched"] == 0.0
+    margins.update(o1=2.0, l1=3.5, l2=3.5)  # in-family objects +1.0 above held-out ones, levels +0.5
+    g = kind_gap(margins, groups, kinds)
+    assert g["objects"]["gap"] == pytest.approx(1.0) and g["levels"]["gap"] == pytest.approx(0.5)
+    assert g["matched"] == pytest.approx((1.0 * 3 + 0.5 * 1) / 4)
+    assert kind_gap({"o1": 2.0, "o2": 1.0, "l3": 9.0}, groups, kinds)["matched"] == 1.0  # no in-family level
+    row = kind_table({"m": margins}, groups, kinds).splitlines()[2]
+    assert row == "| `m` | +2.00 / +1.00 (1 / 3) | +1.00 | +3.50 / +3.00 (2 / 1) | +0.50 | +0.88 |", row
+    ds = tmp_path / "ds"
+    (ds / "clips").mkdir(parents=True)
+    (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
+        {"id": c, "path": f"clips/{c}", "split": "test", "family_group": groups[c],
+         "kind": "scene" if k == "levels" else "asset"} for c, k in kinds.items()]}))
+    (tmp_path / "e.json").write_text(json.dumps({"model": "m", "per_clip": [
+        {"clip": f"x/{c}", "margin": m} for c, m in margins.items()]}))
+    assert main([str(tmp_path / "e.json"), "--data", str(ds), "--by-kind"]) == 0
+    assert "| +0.50 | +0.88 |" in capsys.readouterr().out
