@@ -210,8 +210,25 @@ def summary(r: dict) -> dict:
 
 
 #: What a weights JSON released with ``--defer-test`` says under ``test_split`` (until ``--record-test``).
-TEST_DEFERRED = ("deferred: released by the val rule before the test split was read; the test split is read once, "
-                 "at the end of the round (benchmarks/release_weights.py --record-test)")
+TEST_DEFERRED = ("deferred: released without reading the test split, which its round reads once, at its end "
+                 "(benchmarks/release_weights.py --record-test)")
+
+
+def deferred(doc: dict) -> bool:
+    """True when a weights JSON was released with ``--defer-test`` and its test scores are not recorded yet."""
+    return str(doc.get("test_split", "")).startswith("deferred")
+
+
+def check_round(a, name: str, spec_sha256: str) -> None:
+    """ValueError (one line) for a release that would read the test split of a round that defers it: the shipped
+    weights of ``name`` came from this dataset's spec with ``--defer-test`` (``--defer-test`` or ``--force`` pass)."""
+    from training.pretrained import WEIGHTS_DIR
+    js = shipped_json(f"pretrained:{name}", WEIGHTS_DIR)
+    doc = json.loads(js.read_text()) if js else {}
+    if (not a.defer_test and not a.force and deferred(doc)
+            and doc.get("dataset", {}).get("spec_sha256") == spec_sha256):
+        raise ValueError(f"{js}: its round defers the test split (released with --defer-test from this dataset's "
+                         "spec): pass --defer-test, or --record-test at the round's end")
 
 
 #: ``--val-group`` choices: ``auto`` = ``held-out`` when the val split has held-out-family clips, else ``all``.
@@ -351,8 +368,12 @@ def rule_plans(a, run_dirs: dict[str, Path], val: list[str], val_group: str) -> 
     shipped (``check_origin``) or no clip left."""
     from gbuffer_export.errors import BlendSRError
     from training.checkpoint import load_checkpoint
+    from gbuffer_export.dataset.build import read_index
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
-    plans = {}
+    plans, spec_sha256 = {}, read_index(a.dataset)["spec"]["sha256"]
+    if a.defer_test and not val:
+        raise ValueError(f"{a.dataset}: no finished val clip: --defer-test releases by the val rule alone, which "
+                         "would read nothing")
     for name in a.models.split(","):
         run = run_dirs.get(name, a.runs / name.replace("-", "_"))
         ck = run / "checkpoints" / "last.pt"
@@ -370,6 +391,7 @@ def rule_plans(a, run_dirs: dict[str, Path], val: list[str], val_group: str) -> 
         except (BlendSRError, OSError) as exc:
             raise ValueError(str(exc)) from None
         check_finished(run, loaded, a.force)
+        check_round(a, name, spec_sha256)
         mine = candidate_families(a.dataset, stage_runs(run), loaded, WEIGHTS_DIR)
         plans[name] = unseen_val_clips(a.dataset, val, val_group,
                                        (WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), mine)
@@ -518,10 +540,13 @@ def test_scores(name: str, score: dict, baselines: dict) -> dict:
 
 
 def whole_test_split(dataset: Path) -> list[str]:
-    """Every planned test clip of ``dataset``, finished; ValueError (one line) when any is not (or not valid)."""
+    """Every planned test clip of ``dataset``, finished and valid; ValueError (one line) when any is not, or when the
+    index plans none."""
     from gbuffer_export.dataset.build import read_index, split_clips
     test = [str(c) for c in split_clips(dataset, "test")]
     planned = sum(c.get("split") == "test" for c in read_index(dataset)["clips"])
+    if not planned:
+        raise ValueError(f"{dataset}: its index plans no test clip: nothing to record")
     if len(test) < planned:
         raise ValueError(f"{dataset}: {planned - len(test)} of its {planned} test clips are not finished (or not "
                          "valid): --record-test reads the whole test split")
@@ -529,39 +554,57 @@ def whole_test_split(dataset: Path) -> list[str]:
 
 
 def shipped_docs(models: list[str], spec_sha256: str) -> dict[str, dict]:
-    """{name: its shipped weights JSON} for ``--record-test``; ValueError (one line) for a name without shipped
-    weights or weights released from another dataset spec (their test split is another)."""
+    """{name: its shipped weights JSON} of the names of ``models`` released from this dataset's spec with their test
+    split deferred; a note on stderr for each other name (weights of another spec: their test split is another;
+    already recorded: the test split is read once); ValueError (one line) for a name without shipped weights, or
+    when no name is left."""
     from training.pretrained import WEIGHTS_DIR
     docs = {}
     for name in models:
         js = shipped_json(f"pretrained:{name}", WEIGHTS_DIR)
         if js is None:
             raise ValueError(f"--models: no shipped weights named {name!r}")
-        docs[name] = json.loads(js.read_text())
-        if docs[name].get("dataset", {}).get("spec_sha256") != spec_sha256:
-            raise ValueError(f"{js}: released from another dataset spec than this dataset's; its test split is not "
-                             "this one")
+        doc = json.loads(js.read_text())
+        if doc.get("dataset", {}).get("spec_sha256") != spec_sha256:
+            print(f"note: {js}: released from another dataset spec; its test split is not this one", file=sys.stderr)
+        elif not deferred(doc):
+            print(f"note: {js}: its test split is recorded already ({doc.get('test_split', 'at its release')})",
+                  file=sys.stderr)
+        else:
+            docs[name] = doc
+    if not docs:
+        raise ValueError(f"--models {','.join(models)}: no shipped weights of this dataset's spec with a deferred "
+                         "test split")
     return docs
 
 
+#: Flags ``--record-test`` would ignore: it scores the shipped weights as they are.
+NOT_RECORDED = ("options", "run", "attach", "force", "env")
+
+
 def record_test(a) -> int:
-    """``--record-test``: each shipped network of ``--models`` and the baselines on the whole test split, written into
-    its JSON; the weights and their sha256 do not change."""
+    """``--record-test``: each shipped network of ``--models`` whose test split its release deferred, and the
+    baselines, on the whole test split, written into its JSON; the weights and their sha256 do not change."""
     from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index
     from training.pretrained import PRETRAINED, WEIGHTS_DIR
+    extra = [f"--{k}" for k in NOT_RECORDED if getattr(a, k)]
     try:
+        if extra:
+            raise ValueError(f"--record-test scores the shipped weights as they are: {', '.join(extra)} would be "
+                             "ignored")
         test = whole_test_split(a.dataset)
         docs = shipped_docs(a.models.split(","), read_index(a.dataset)["spec"]["sha256"])
     except ValueError as exc:
         print(f"blendsr: {exc}", file=sys.stderr)
         return 2
     baselines = {m: summary(evaluate(m, test)) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
+    command = f"benchmarks/release_weights.py {a.dataset} {a.runs} --models {a.models} --record-test"
     for name, doc in docs.items():
-        doc.update(test_scores(name, summary(evaluate(f"pretrained:{name}", test)), baselines))
+        score = {**summary(evaluate(f"pretrained:{name}", test)), "steps": doc.get("step")}
+        doc.update(test_scores(name, score, baselines))
         doc["dataset"]["test_clips"] = [Path(c).name for c in test]
-        doc["test_split"] = (f"recorded {datetime.date.today().isoformat()}: benchmarks/release_weights.py "
-                             f"{a.dataset} {a.runs} --models {name} --record-test")
+        doc["test_split"] = f"recorded {datetime.date.today().isoformat()}: {command}"
         write_json_atomic((WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), doc)
         print(f"{name}: test margin {doc['gain_over_demod_jbu_db']:+.2f} dB over demod-jbu", file=sys.stderr)
     return 0

@@ -7,8 +7,8 @@ Only inference options (``training.models.options.INFERENCE_OPTIONS``: they leav
 set; the float16 tensors are copied bit for bit, so the parameter digest does not change. The JSON beside the weights
 keeps its training commands and training verdict (``val_rule``) and gains this command, the options set with this
 verdict and the val scores before them (``inference_options``), and the model's scores on the dataset's val and test
-splits with them. The test split is
-scored for the record only; it never enters the choice."""
+splits with them. The test split is scored for the record only; it never enters the choice. Weights released with
+``release_weights.py --defer-test`` keep their deferral: no test clip is read."""
 from __future__ import annotations
 
 import argparse
@@ -29,14 +29,28 @@ def _release_weights():
     return mod
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path, help="a dataset with val and test splits (blendsr dataset)")
     p.add_argument("name", help="a shipped network (training.pretrained.PRETRAINED)")
     p.add_argument("options", nargs="+", metavar="KEY=VALUE", help="inference options, TOML values")
     p.add_argument("--force", action="store_true", help="store the options even when the val rule keeps the weights")
-    a = p.parse_args(argv)
+    return p
 
+
+def test_record(rw, meta: dict, name: str, spec: str, test: list[str]) -> dict:
+    """The test-split keys of the JSON with the options: scored on ``test``, or none when the weights' release
+    deferred the test split (``rw.deferred``: its round reads it once, at its end; the deferral stays)."""
+    if rw.deferred(meta):
+        return {"dataset": {**meta.get("dataset", {}), "test_clips": []}}
+    scores = {m: rw.summary(rw.evaluate(m, test)) for m in (spec, "bicubic", "demod-bilinear", "demod-jbu")}
+    scores[name] = scores.pop(spec)
+    return {"dataset": {**meta.get("dataset", {}), "test_clips": [Path(c).name for c in test]},
+            **rw.test_scores(name, scores[name], {k: v for k, v in scores.items() if k != name})}
+
+
+def main(argv=None) -> int:
+    a = parser().parse_args(argv)
     from gbuffer_export.dataset.build import split_clips
     from training.checkpoint import load_checkpoint
     from training.inference.loading import with_inference_options
@@ -51,7 +65,6 @@ def main(argv=None) -> int:
     ck = load_checkpoint(file)
     ck = {**ck, "config": with_inference_options(ck["config"], a.options, str(file))}  # refuses other keys
     val = [str(c) for c in split_clips(a.dataset, "val")]
-    test = [str(c) for c in split_clips(a.dataset, "test")]
     spec = f"pretrained:{a.name}?{'&'.join(a.options)}"
     cand, inc = rw.evaluate(spec, val), rw.evaluate(f"pretrained:{a.name}", val)
     verdict = choose(cand, inc)
@@ -66,18 +79,14 @@ def main(argv=None) -> int:
     meta["inference_options"] = {"set": list(a.options), "command": command,
                                  "scores_on_val_split_before": rw.summary(inc),
                                  "val_rule": verdict.record(a.force)}
-    meta["dataset"] = {**meta.get("dataset", {}), "val_clips": [Path(c).name for c in val],
-                       "test_clips": [Path(c).name for c in test]}  # the splits as scored now
+    meta.update(test_record(rw, meta, a.name, spec, [str(c) for c in split_clips(a.dataset, "test")]))
+    meta["dataset"]["val_clips"] = [Path(c).name for c in val]  # the splits as scored now
     meta["scores_on_val_split"] = {"metric": rw.METRIC, a.name: rw.summary(cand),
                                    **{m: rw.summary(rw.evaluate(m, val)) for m in ("demod-bilinear", "demod-jbu")}}
-    meta["scores_on_test_split"] = {"metric": rw.METRIC, **{m: rw.summary(rw.evaluate(m, test)) for m in
-                                                         (spec, "bicubic", "demod-bilinear", "demod-jbu")}}
-    meta["scores_on_test_split"][a.name] = meta["scores_on_test_split"].pop(spec)
-    test_scores = meta["scores_on_test_split"][a.name]
-    meta["gain_over_demod_jbu_db"] = round(test_scores["psnr"] - meta["scores_on_test_split"]["demod-jbu"]["psnr"], 3)
     meta = release(ck, file, meta)
-    print(f"{a.name}: {', '.join(a.options)} stored with {file.name} (test PSNR {test_scores['psnr']:.2f} dB)",
-          file=sys.stderr)
+    test = (meta.get("scores_on_test_split") or {}).get(a.name)
+    print(f"{a.name}: {', '.join(a.options)} stored with {file.name} ("
+          + (f"test PSNR {test['psnr']:.2f} dB)" if test else "test split deferred)"), file=sys.stderr)
     return 0
 
 

@@ -1,5 +1,6 @@
 """``python -m gbuffer_export.commands.family_gap MARGINS.json ... --data DATASET``: the in-family and held-out-family
-margins over ``demod-jbu`` side by side, and their gap (the library: ``gbuffer_export.dataset.family_gap``)."""
+margins over ``demod-jbu`` side by side, and their gap; ``--by-kind`` within objects and levels too (the library:
+``gbuffer_export.dataset.family_gap``)."""
 from __future__ import annotations
 
 import argparse
@@ -11,7 +12,7 @@ from ..dataset.family_gap import (gap_table, index_families, index_groups, index
 from ..errors import BlendSRError
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m gbuffer_export.commands.family_gap",
                                 description="in-family vs held-out-family margins over demod-jbu, and the gap")
     p.add_argument("margins", type=Path, nargs="+", help="worst_case.py -o JSON or evaluate --json files")
@@ -30,7 +31,11 @@ def main(argv=None) -> int:
                         "split whose held-out clips are mostly objects has a larger plain gap by the mix alone)")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    a = parser().parse_args(argv)
     try:
         groups = {k: v for d in a.data for k, v in index_groups(d).items()}
         families = {k: v for d in a.data for k, v in index_families(d).items()}

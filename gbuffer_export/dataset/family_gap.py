@@ -10,6 +10,7 @@ A held-out clip is held out from *this* dataset's train split, not from every ne
 (the shipped weights: their JSON's training lineage) may have seen its families, and never seen an in-family one's.
 ``--seen-from LABEL=WEIGHTS.json`` groups that model's clips by its own lineage (``lineage_families``): in-family
 when it trained on every family of the clip, held-out otherwise (``lineage_groups``); its row says so.
+``--by-kind`` adds the gap within objects and within levels and the kind-matched gap (``kind_gap``).
 """
 from __future__ import annotations
 
@@ -70,13 +71,16 @@ KINDS = ("objects", "levels")
 
 def kind_gap(margins: dict[str, float], groups: dict[str, str], kinds: dict[str, str]) -> dict:
     """``family_gap`` within each kind of clip (``kinds``: clip id -> one of ``KINDS``) and the kind-matched gap: the
-    per-kind gaps weighted by the held-out clips of each kind (kinds with both groups only). A plain gap mixes kinds:
+    per-kind gaps weighted by the held-out clips of each kind (kinds with both groups only: ``matched_n`` of the
+    ``held_out_n`` held-out clips; ``unknown_n`` clips of no kind are left out). A plain gap mixes kinds:
     where levels score higher margins than objects and the held-out clips are mostly objects, the plain gap grows by
     the mix alone; the matched gap compares each held-out clip with in-family clips of its own kind."""
     out = {k: family_gap({c: m for c, m in margins.items() if kinds.get(c) == k}, groups) for k in KINDS}
     both = [k for k in KINDS if out[k][IN_FAMILY]["n"] and out[k][HELD_OUT]["n"]]
     weight = sum(out[k][HELD_OUT]["n"] for k in both)
     out["matched"] = sum(out[k]["gap"] * out[k][HELD_OUT]["n"] for k in both) / weight if weight else math.nan
+    out["matched_n"], out["held_out_n"] = weight, sum(out[k][HELD_OUT]["n"] for k in KINDS)
+    out["unknown_n"] = sum(kinds.get(c) not in KINDS for c in margins)
     return out
 
 
@@ -173,7 +177,8 @@ def gap_table(models: dict[str, dict[str, float]], groups: dict[str, str],
 def kind_table(models: dict[str, dict[str, float]], groups: dict[str, str], kinds: dict[str, str],
                own: dict[str, dict[str, str]] | None = None) -> str:
     """A Markdown table: per model, the gap within objects and within levels (in-family mean minus held-out mean,
-    clips of each) and the kind-matched gap (``kind_gap``); ``own`` as in ``gap_table``."""
+    clips of each) and the kind-matched gap (``kind_gap``; with the held-out clips it covers); ``own`` as in
+    ``gap_table``."""
     f = lambda x: "n/a" if math.isnan(x) else f"{x:+.2f}"  # noqa: E731
     lines = ["| model | objects: in-family / held-out (clips) | gap | levels: in-family / held-out (clips) | gap "
              "| kind-matched gap (dB) |", "|---|---|---|---|---|---|"]
@@ -183,7 +188,10 @@ def kind_table(models: dict[str, dict[str, float]], groups: dict[str, str], kind
         cells = [f"{f(g[k][IN_FAMILY]['mean'])} / {f(g[k][HELD_OUT]['mean'])} ({g[k][IN_FAMILY]['n']} / "
                  f"{g[k][HELD_OUT]['n']}) | {f(g[k]['gap'])}" for k in KINDS]
         name = f"`{label}`" + (" (by its training lineage)" if mine is not None else "")
-        lines.append(f"| {name} | {' | '.join(cells)} | {f(g['matched'])} |")
+        lines.append(f"| {name} | {' | '.join(cells)} | {f(g['matched'])} ({g['matched_n']} of {g['held_out_n']} "
+                     "held-out) |")
+        if g["unknown_n"]:
+            lines.append(f"| `{label}` | {g['unknown_n']} clips not in the datasets' indexes | | | | |")
     return "\n".join(lines)
 
 

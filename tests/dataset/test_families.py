@@ -273,7 +273,12 @@ def test_the_kind_matched_gap_compares_each_held_out_clip_with_in_family_clips_o
     assert g["matched"] == pytest.approx((1.0 * 3 + 0.5 * 1) / 4)
     assert kind_gap({"o1": 2.0, "o2": 1.0, "l3": 9.0}, groups, kinds)["matched"] == 1.0  # no in-family level
     row = kind_table({"m": margins}, groups, kinds).splitlines()[2]
-    assert row == "| `m` | +2.00 / +1.00 (1 / 3) | +1.00 | +3.50 / +3.00 (2 / 1) | +0.50 | +0.88 |", row
+    assert row == ("| `m` | +2.00 / +1.00 (1 / 3) | +1.00 | +3.50 / +3.00 (2 / 1) | +0.50 "
+                   "| +0.88 (4 of 4 held-out) |"), row
+    own = {"m": {c: "held-out" for c in kinds}}  # a lineage that saw none of them: nothing to match within a kind
+    row = kind_table({"m": {**margins, "zz": 1.0}}, groups, kinds, own).splitlines()[2:]
+    assert row[0].startswith("| `m` (by its training lineage) | n/a / +") and row[0].endswith("| n/a (0 of 7 held-out) |")
+    assert row[1] == "| `m` | 1 clips not in the datasets' indexes | | | | |"
     ds = tmp_path / "ds"
     (ds / "clips").mkdir(parents=True)
     (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
@@ -282,4 +287,4 @@ def test_the_kind_matched_gap_compares_each_held_out_clip_with_in_family_clips_o
     (tmp_path / "e.json").write_text(json.dumps({"model": "m", "per_clip": [
         {"clip": f"x/{c}", "margin": m} for c, m in margins.items()]}))
     assert main([str(tmp_path / "e.json"), "--data", str(ds), "--by-kind"]) == 0
-    assert "| +0.50 | +0.88 |" in capsys.readouterr().out
+    assert "| +0.50 | +0.88 (4 of 4 held-out) |" in capsys.readouterr().out

@@ -301,6 +301,11 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     from training.commands import model_cards
     o = _release_round(run, tmp_path, monkeypatch)
     base = [str(o.ds), str(o.runs), "--models", "fusesr-l", "--run", f"fusesr-l={o.run}", "--script", ""]
+    val = o.splits["val"]
+    o.splits["val"] = []  # no val clip: the val rule would read nothing, and no test clip either
+    assert o.rw.main(base + ["--defer-test", "--val-group", "all"]) == 2
+    assert "no finished val clip" in capsys.readouterr().err and not o.asked
+    o.splits["val"] = val
     assert o.rw.main(base + ["--defer-test"]) == 0
     assert "test split not read (--defer-test)" in capsys.readouterr().out
     assert o.asked and not any(c == ["t"] for _, c in o.asked)  # no test clip read
@@ -309,8 +314,13 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     assert meta["scores_on_val_split"]["fusesr-l"] and meta["val_rule"]["replace"]
     card = model_cards.card_text("fusesr_l_x4", meta, None, None, {})
     assert f"- Test split: {o.rw.TEST_DEFERRED}." in card and "- Metric: PSNR/SSIM" in card
+    assert "val and test clips not read yet (see Margins)" in card
     sha = file_sha256(o.file)
     o.asked.clear()
+    assert o.rw.main(base) == 2  # a release that would read the test split of a round that defers it
+    assert "its round defers the test split" in capsys.readouterr().err and not o.asked
+    assert o.rw.main(base[:4] + ["--record-test", "--options", "fusesr-l?residual_clamp=none"]) == 2
+    assert "--options would be ignored" in capsys.readouterr().err and not o.asked
     o.splits["test"] = []  # the test clip not finished: nothing is scored
     assert o.rw.main(base[:4] + ["--record-test"]) == 2
     assert "1 of its 1 test clips are not finished" in capsys.readouterr().err and not o.asked
@@ -319,10 +329,18 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     assert o.rw.main(base[:4] + ["--record-test"]) == 2  # released from another spec: its test split is another
     assert "released from another dataset spec" in capsys.readouterr().err and not o.asked
     (o.ds / build.INDEX).write_text((o.ds / build.INDEX).read_text().replace('"other"', '"abc"'))
-    assert o.rw.main(base[:4] + ["--record-test"]) == 0
+    wide = o.json.with_name(Path(pretrained.PRETRAINED["fusesr"]).with_suffix(".json").name)
+    wide.write_text(json.dumps({"dataset": {"spec_sha256": "wide"}}))  # fusesr kept weights of another spec
+    assert o.rw.main([str(o.ds), str(o.runs), "--models", "fusesr,fusesr-l", "--record-test"]) == 0
+    assert f"note: {wide}: released from another dataset spec" in capsys.readouterr().err
     assert {m for m, c in o.asked} == {"bicubic", "demod-bilinear", "demod-jbu", "pretrained:fusesr-l"}
     assert all(c == ["t"] for _, c in o.asked)
     meta = json.loads(o.json.read_text())
     assert meta["scores_on_test_split"]["fusesr-l"]["psnr"] == 30.0 and meta["gain_over_demod_jbu_db"] == 0.0
     assert meta["dataset"]["test_clips"] == ["t"] and meta["test_split"].startswith("recorded ")
+    assert meta["scores_on_test_split"]["fusesr-l"]["steps"] == meta["step"] and "fusesr,fusesr-l" in meta["test_split"]
     assert file_sha256(o.file) == sha == meta["sha256"]
+    o.asked.clear()
+    assert o.rw.main(base[:4] + ["--record-test"]) == 2  # read once
+    assert "its test split is recorded already" in capsys.readouterr().err and not o.asked
+    assert o.rw.main(base) == 0  # the round's end: a later release reads the test split again

@@ -141,7 +141,8 @@ def _data_lines(meta: dict, spec_text: str | None, readme: str | None) -> list[s
     clips = {s: ds.get(f"{s}_clips", []) for s in ("train", "val", "test")}
     out = [f"Dataset `{ds.get('name')}` from [{ds['spec_file']}](../../../{ds['spec_file']}) (sha256 "
            f"`{ds.get('spec_sha256', '?')[:12]}...`): {len(clips['train'])} train, {len(clips['val'])} val and "
-           f"{len(clips['test'])} test clips, split by scene, asset or level region (docs/dataset.md)."]
+           + ("test clips not read yet (see Margins)" if str(meta.get("test_split", "")).startswith("deferred")
+              else f"{len(clips['test'])} test clips") + ", split by scene, asset or level region (docs/dataset.md)."]
     if spec_text is None:
         return out + ["", "The spec file is not in this checkout: its sources cannot be listed."]
     if hashlib.sha256(spec_text.encode()).hexdigest() != ds.get("spec_sha256"):
