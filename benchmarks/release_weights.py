@@ -480,15 +480,18 @@ def release_model(r: Round, name: str) -> dict | None:
         print(f"{name}: {len(known)} of the {len(r.val)} held-out-family val clips hold only families the shipped "
               f"weights or the candidate trained on (e.g. {Path(known[0]).name}); the rule reads the other "
               f"{len(val_m)}", file=sys.stderr)
-    verdict, cand_val = None, r.score(cand, val_m, full=True) if val_m else None  # scored once, used twice
+    verdict, inc_val, cand_val = None, None, r.score(cand, val_m, full=True) if val_m else None  # scored once
     if val_m and (WEIGHTS_DIR / file).is_file():  # the val rule against the shipped weights of this name
         from training.selection import choose
-        verdict = choose(cand_val, r.score(f"pretrained:{name}", val_m, full=True))
+        inc_val = r.score(f"pretrained:{name}", val_m, full=True)
+        verdict = choose(cand_val, inc_val)
         print(verdict.line(name), file=sys.stderr)
+        r.out["val_rules"][name] = {**verdict.record(r.a.force), "candidate": summary(cand_val),
+                                    "shipped": summary(inc_val)}  # kept in RUNS/release.json either way
         if not verdict.replace and not r.a.force:
             return None
     test_score = None if r.a.defer_test else r.score(cand)
-    meta = candidate_meta(r, name, run, loaded, test_score, (val_m, known, cand_val), verdict)
+    meta = candidate_meta(r, name, run, loaded, test_score, (val_m, known, cand_val, inc_val), verdict)
     meta = release(loaded, WEIGHTS_DIR / file, meta)
     scored = (f"test PSNR {test_score['psnr']:.2f} dB (demod-jbu {r.baselines['demod-jbu']['psnr']:.2f}, "
               f"{meta['gain_over_demod_jbu_db']:+.2f} dB)" if test_score else "test split not read (--defer-test)")
@@ -499,10 +502,10 @@ def release_model(r: Round, name: str) -> dict | None:
 def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dict | None, val_part: tuple,
                    verdict) -> dict:
     """The JSON beside released weights: dataset and clips, commands, scores on test (``TEST_DEFERRED`` instead when
-    ``test_score`` is None) and val, the verdict, the shipped weights it started from, attachments and inference
-    options."""
+    ``test_score`` is None) and val, the verdict with the replaced weights' val scores, the shipped weights it started
+    from, attachments and inference options."""
     from training.pretrained import WEIGHTS_DIR
-    val_m, known, cand_val = val_part
+    val_m, known, cand_val, inc_val = val_part
     index = r.index
     meta = {
         "model": name, "scale": 4, "date": r.out["date"],
@@ -521,7 +524,7 @@ def candidate_meta(r: Round, name: str, run: Path, loaded: dict, test_score: dic
         meta["scores_on_val_split"] = {"metric": METRIC, "val_group": r.val_group, name: summary(cand_val),
                                        **r.val_baselines(val_m)}
     if verdict is not None:
-        meta["val_rule"] = verdict.record(r.a.force)
+        meta["val_rule"] = {**verdict.record(r.a.force), "shipped_before": summary(inc_val)}
     origin = shipped_origin(stage_runs(run), WEIGHTS_DIR)
     if origin is not None:
         meta["init_from"] = origin
@@ -631,7 +634,7 @@ def main(argv=None) -> int:
     r.baselines = {} if a.defer_test else {m: r.score(m) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
     r.out = {"date": datetime.date.today().isoformat(), "dataset": str(a.dataset),
              "test_clips": [Path(c).name for c in test], "val_clips": [Path(c).name for c in val],
-             "val_group": val_group, "baselines": r.baselines, "models": {}}
+             "val_group": val_group, "baselines": r.baselines, "val_rules": {}, "models": {}}
     for name in a.models.split(","):
         meta = release_model(r, name)
         if meta is not None:

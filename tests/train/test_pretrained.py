@@ -282,6 +282,9 @@ def test_release_weights_scores_the_run_with_its_options_on_held_out_val_and_shi
     assert meta["inference_options"] == ["residual_clamp=lr-range"] and meta["val_rule"]["replace"]
     assert meta["dataset"]["val_clips"] == ["vh"] and meta["scores_on_val_split"]["val_group"] == "held-out"
     assert meta["dataset"]["val_clips_left_out"] == ["vr"]
+    assert meta["val_rule"]["shipped_before"]["psnr"] == 30.0 and meta["scores_on_val_split"]["fusesr-l"]["psnr"] == 31.0
+    rules = json.loads((runs / "release.json").read_text())["val_rules"]["fusesr-l"]
+    assert rules["replace"] and rules["shipped"]["psnr"] == 30.0 and rules["candidate"]["psnr"] == 31.0
     (run / "command.txt").unlink()  # --script '': the command that made the run is required, before any score
     asked.clear()
     assert rw.main(base) == 2 and "no command.txt" in capsys.readouterr().err and not asked
