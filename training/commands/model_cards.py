@@ -199,6 +199,18 @@ def _limit_lines(meta: dict, model: str) -> list[str]:
     return out
 
 
+def _before_line(meta: dict, model: str) -> list[str]:
+    """The weights these replaced, on the same val clips (``val_rule.shipped_before``: release_weights.py records it)."""
+    before = (meta.get("val_rule") or {}).get("shipped_before") or {}
+    base = ((meta.get("scores_on_val_split") or {}).get(BASELINE) or {}).get("psnr")
+    if not before or base is None:
+        return []
+    return [f"- The weights these replaced, on the same val clips: PSNR {before['psnr']:.2f} dB, margin "
+            f"{before['psnr'] - base:+.2f} dB over `{BASELINE}`"
+            + (f" (smallest per clip {before['margin_min']:+.2f} dB)" if before.get("margin_min") is not None else "")
+            + "."]
+
+
 def card_text(stem: str, meta: dict, spec_text: str | None, readme: str | None, buffers: dict,
               repo: Path = REPO) -> str:
     """The markdown card of the weights ``stem`` (``training/weights/<stem>.json`` read as ``meta``)."""
@@ -227,6 +239,7 @@ def card_text(stem: str, meta: dict, spec_text: str | None, readme: str | None, 
     lines += ["", "## Margins (as recorded in the JSON)", "",
               f"- Test split: {_margin(test, model) if test else meta.get('test_split', 'not recorded')}.",
               f"- Val split: {_margin(meta.get('scores_on_val_split') or {}, model)}."]
+    lines += _before_line(meta, model)
     if wc:
         groups = ", ".join(f"{g} {v:+.2f} dB" for g, v in (wc.get("per_group") or {}).items())
         lines.append(f"- Worst case on val ({wc.get('dataset')}, {wc.get('frames')} frames): margin "
