@@ -49,3 +49,16 @@ def test_a_changed_record_or_licence_makes_the_card_stale(readme):
     relicensed = readme.replace("| CC0 + CC-BY 4.0 | Low poly fox", "| CC-BY 4.0 | Low poly fox")
     assert model_cards.card_text(stem, meta, spec, relicensed, buffers) != now
     assert "absent when generated" in model_cards.card_text(stem, meta, spec, None, buffers)
+
+
+def test_an_asset_of_a_source_over_several_folders_is_found_in_the_readme():
+    """``examples/dataset_scale.toml``'s objects scan gltf, gltf_extra and gltf_more: each asset's row is found by
+    its folder name or its file stem, only under the source's folders."""
+    rows = [{"path": "gltf/Fox/glTF-Binary/Fox.glb", "licence": "CC0", "attribution": "a"},
+            {"path": "gltf_more/DutchShip/dutch_ship_medium_1k.gltf", "licence": "CC0", "attribution": "b"},
+            {"path": "other/Lamp/Lamp.glb", "licence": "x", "attribution": "c"}]
+    folders = ["gltf", "gltf_more"]
+    assert model_cards.asset_row("Fox", folders, rows)["attribution"] == "a"
+    assert model_cards.asset_row("dutch_ship_medium_1k", folders, rows)["attribution"] == "b"
+    assert model_cards.asset_row("Lamp", folders, rows) is None and model_cards.asset_row("glTF-Binary", folders,
+                                                                                         rows) is None

@@ -76,19 +76,39 @@ def scenes_of(clips: dict[str, list[str]], spec: dict) -> list[dict]:
             key = (src_name, scene)
             row = rows.setdefault(key, {"source": src_name, "kind": src.get("kind", "not in the spec now"),
                                         "scene": scene, "file": _scene_file(src, scene), "splits": {},
+                                        "folders": _asset_folders(src),
                                         "hdri": [h for h in src.get("hdri", []) if isinstance(h, str)]})
             row["splits"][split] = row["splits"].get(split, 0) + 1
     return list(rows.values())
 
 
+def _asset_folders(src: dict) -> list[str]:
+    """The folders under shared/scenes an ``assets`` source scans (none for another kind)."""
+    rels = [r for r in map(_shared_rel, src.get("paths", [])) if r is not None]
+    return [r for r in rels if src.get("kind") == "assets" and not Path(r).suffix]
+
+
 def _scene_file(src: dict, scene: str) -> str | None:
-    """The scene's path under shared/scenes: the source's file of that stem, or its asset folder of that name."""
+    """The scene's path under shared/scenes: the source's file of that stem, or its asset folder of that name (one
+    folder; with several, ``asset_row`` finds it in the README)."""
     rels = [r for r in map(_shared_rel, src.get("paths", [])) if r is not None]
     named = [r for r in rels if Path(r).stem == scene or Path(r).name == scene]
     if named:
         return named[0]
-    folders = [r for r in rels if src.get("kind") == "assets" and not Path(r).suffix]
+    folders = _asset_folders(src)
     return f"{folders[0]}/{scene}" if len(folders) == 1 else None
+
+
+def asset_row(scene: str, folders: list[str], rows: list[dict]) -> dict | None:
+    """The README row of an asset an ``assets`` source over several folders found: a row under one of the folders
+    whose path has a folder of the asset's name ("gltf_more/ClearCoatTest/...") or whose file stem is its name
+    ("gltf_more/DutchShip/dutch_ship_medium_1k.gltf")."""
+    for row in rows:
+        p = Path(row["path"])
+        for f in folders:
+            if p.is_relative_to(f) and (p.relative_to(f).parts[0] == scene or p.stem == scene):
+                return row
+    return None
 
 
 def _margin(scores: dict, model: str) -> str:
@@ -157,8 +177,8 @@ def _data_lines(meta: dict, spec_text: str | None, readme: str | None) -> list[s
         if s["kind"] == "builtin":
             out.append(f"| {s['source']} (builtin) | seeds | {n} | MIT | {BUILTIN} |")
             continue
-        lic = licence_of(s["file"], rows) if s["file"] else None
-        where = f"`{s['file']}`" if s["file"] else s["scene"]
+        lic = licence_of(s["file"], rows) if s["file"] else asset_row(s["scene"], s["folders"], rows)
+        where = f"`{s['file'] or lic['path']}`" if s["file"] or lic else s["scene"]
         out.append(f"| {s['source']} ({s['kind']}) | {where} | {n} | "
                    + (f"{lic['licence']} | {lic['attribution']} |" if lic else
                       ("not listed in ../shared/scenes/README.md | |" if readme is not None else
