@@ -312,11 +312,13 @@ def trained_on(ck: dict, split: list[str]) -> list[str]:
 
 def option_note(candidate: dict, incumbent: dict, name: str) -> str | None:
     """A line when the candidate's inference options (``INFERENCE_OPTIONS`` of its ``[model.NAME]``, configurations
-    as dicts) differ from the shipped weights' (say a run released without the bound the shipped network runs
-    with: ``--options``); None when they agree."""
-    from training.models.options import INFERENCE_OPTIONS
+    as dicts; a key left out is its default) differ from the shipped weights' (say a run released without the bound
+    the shipped network runs with: ``--options``); None when they agree."""
+    from training.models.options import INFERENCE_OPTIONS, FuseSRFastOptions
     c, i = (((d.get("model") or {}).get(name) or {}) for d in (candidate, incumbent))
-    diff = [f"{k} {c.get(k)!r} (shipped: {i.get(k)!r})" for k in INFERENCE_OPTIONS if c.get(k) != i.get(k)]
+    default = {k: getattr(FuseSRFastOptions(), k) for k in INFERENCE_OPTIONS}  # a key left out has its default
+    diff = [f"{k} {c.get(k, default[k])!r} (shipped: {i.get(k, default[k])!r})" for k in INFERENCE_OPTIONS
+            if c.get(k, default[k]) != i.get(k, default[k])]
     return f"note: {name}: the candidate runs with {', '.join(diff)}; --options sets them" if diff else None
 
 

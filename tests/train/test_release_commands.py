@@ -273,3 +273,16 @@ def test_a_run_that_has_not_finished_is_not_released(tmp_path):
         rw.check_finished(run, {"step": 1200}, False)
     (run / "summary.json").write_text(json.dumps({"step": 1200, "stopped_by": "max_steps"}))
     rw.check_finished(run, {"step": 1200}, False)
+
+
+def test_an_inference_option_left_out_of_a_configuration_counts_as_its_default():
+    """An older shipped configuration without ``transmission_fallback`` runs it at its default (False): no note;
+    a bound that differs is named."""
+    rw = _module()
+    old = {"model": {"fusesr-l": {"residual_clamp": "lr-range"}}}
+    new = {"model": {"fusesr-l": {"residual_clamp": "lr-guided", "transmission_fallback": False}}}
+    assert rw.option_note(new, old, "fusesr-l") == ("note: fusesr-l: the candidate runs with residual_clamp "
+                                                    "'lr-guided' (shipped: 'lr-range'); --options sets them")
+    assert rw.option_note({"model": {"fusesr-l": {"transmission_fallback": False}}}, {"model": {}}, "fusesr-l") is None
+    assert "transmission_fallback True (shipped: False)" in rw.option_note(
+        {"model": {"fusesr-l": {"transmission_fallback": True}}}, {}, "fusesr-l")
