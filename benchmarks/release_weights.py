@@ -40,6 +40,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from training.pretrained import TEST_DEFERRED, test_deferred as deferred  # noqa: E402  (the weights JSON's keys)
+
 
 def commands(a, index: dict, name: str, run: Path, steps: int) -> list[str]:
     """The commands that remake the weights of ``name``: the script's (none with ``--script ''``: the run's
@@ -209,16 +211,6 @@ def summary(r: dict) -> dict:
             "artifact_pixels": m.get("artifact_pixels")}
 
 
-#: What a weights JSON released with ``--defer-test`` says under ``test_split`` (until ``--record-test``).
-TEST_DEFERRED = ("deferred: released without reading the test split, which its round reads once, at its end "
-                 "(benchmarks/release_weights.py --record-test)")
-
-
-def deferred(doc: dict) -> bool:
-    """True when a weights JSON was released with ``--defer-test`` and its test scores are not recorded yet."""
-    return str(doc.get("test_split", "")).startswith("deferred")
-
-
 def check_round(a, name: str, spec_sha256: str) -> None:
     """ValueError (one line) for a release that would read the test split of a round that defers it: the shipped
     weights of ``name`` came from this dataset's spec with ``--defer-test`` (``--defer-test`` or ``--force`` pass)."""
@@ -316,7 +308,8 @@ def option_note(candidate: dict, incumbent: dict, name: str) -> str | None:
     the shipped network runs with: ``--options``); None when they agree."""
     from training.models.options import INFERENCE_OPTIONS, FuseSRFastOptions
     c, i = (((d.get("model") or {}).get(name) or {}) for d in (candidate, incumbent))
-    default = {k: getattr(FuseSRFastOptions(), k) for k in INFERENCE_OPTIONS}  # a key left out has its default
+    defaults = FuseSRFastOptions()
+    default = {k: getattr(defaults, k) for k in INFERENCE_OPTIONS}  # a key left out has its default
     diff = [f"{k} {c.get(k, default[k])!r} (shipped: {i.get(k, default[k])!r})" for k in INFERENCE_OPTIONS
             if c.get(k, default[k]) != i.get(k, default[k])]
     return f"note: {name}: the candidate runs with {', '.join(diff)}; --options sets them" if diff else None

@@ -40,8 +40,10 @@ def parser() -> argparse.ArgumentParser:
 
 def test_record(rw, meta: dict, name: str, spec: str, test: list[str]) -> dict:
     """The test-split keys of the JSON with the options: scored on ``test``, or none when the weights' release
-    deferred the test split (``rw.deferred``: its round reads it once, at its end; the deferral stays)."""
-    if rw.deferred(meta):
+    deferred the test split (``training.pretrained.test_deferred``: its round reads it once, at its end; the deferral
+    stays)."""
+    from training.pretrained import test_deferred
+    if test_deferred(meta):
         return {"dataset": {**meta.get("dataset", {}), "test_clips": []}}
     scores = {m: rw.summary(rw.evaluate(m, test)) for m in (spec, "bicubic", "demod-bilinear", "demod-jbu")}
     scores[name] = scores.pop(spec)

@@ -25,17 +25,16 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-GROUPS = ("objects", "levels")
-
-
 def clip_groups(datasets: list[Path], split: str) -> dict[str, list[str]]:
-    """The split's finished clips of every dataset, as paths, by group (``GROUPS``)."""
-    from gbuffer_export.dataset.build import read_index, split_clips
-    out: dict[str, list[str]] = {g: [] for g in GROUPS}
+    """The split's finished clips of every dataset, as paths, by group (``family_gap.KINDS``, by
+    ``family_gap.index_kinds``: the one rule of what a level is)."""
+    from gbuffer_export.dataset.build import split_clips
+    from gbuffer_export.dataset.family_gap import KINDS, index_kinds
+    out: dict[str, list[str]] = {g: [] for g in KINDS}
     for ds in datasets:
-        kind = {Path(c["path"]).name: c.get("kind") for c in read_index(ds)["clips"]}
+        kind = index_kinds(ds)
         for clip in split_clips(ds, split):
-            out["levels" if kind.get(Path(clip).name) == "scene" else "objects"].append(str(clip))
+            out[kind.get(Path(clip).name, "objects")].append(str(clip))
     return out
 
 

@@ -61,6 +61,18 @@ def info(name: str) -> dict:
 BASELINE = "demod-jbu"
 
 
+#: What a weights JSON released without reading its test split says under ``test_split`` (``release_weights.py
+#: --defer-test``; ``--record-test`` replaces it with the test scores at the round's end).
+TEST_DEFERRED = ("deferred: released without reading the test split, which its round reads once, at its end "
+                 "(benchmarks/release_weights.py --record-test)")
+
+
+def test_deferred(doc: dict) -> bool:
+    """True when a weights JSON says its test split is deferred (``TEST_DEFERRED``) and its test scores are not
+    recorded yet."""
+    return str(doc.get("test_split", "")).startswith("deferred")
+
+
 #: The JSON key of a shipped network's scores on a wider val set than the one it was chosen on
 #: (``benchmarks/worst_case.py --record``): kept only while its ``sha256`` is the weights' own.
 WORST_CASE_VAL = "worst_case_val"

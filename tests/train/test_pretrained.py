@@ -158,7 +158,7 @@ def test_installed_weights_match_their_metadata(name):
     assert meta["commands"]
     ds = meta["dataset"]
     if "scores_on_test_split" not in meta:  # released by the val rule before its round read the test split
-        assert meta["test_split"].startswith("deferred: ") and not ds["test_clips"] and ds["val_clips"]
+        assert pretrained.test_deferred(meta) and not ds["test_clips"] and ds["val_clips"]
     else:
         scores = meta["scores_on_test_split"]
         assert ds["test_clips"] and scores[name]["psnr"] - scores["demod-jbu"]["psnr"] == pytest.approx(
@@ -313,10 +313,10 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     assert "test split not read (--defer-test)" in capsys.readouterr().out
     assert o.asked and not any(c == ["t"] for _, c in o.asked)  # no test clip read
     meta = json.loads(o.json.read_text())
-    assert "scores_on_test_split" not in meta and meta["test_split"] == o.rw.TEST_DEFERRED
+    assert "scores_on_test_split" not in meta and meta["test_split"] == pretrained.TEST_DEFERRED
     assert meta["scores_on_val_split"]["fusesr-l"] and meta["val_rule"]["replace"]
     card = model_cards.card_text("fusesr_l_x4", meta, None, None, {})
-    assert f"- Test split: {o.rw.TEST_DEFERRED}." in card and "- Metric: PSNR/SSIM" in card
+    assert f"- Test split: {pretrained.TEST_DEFERRED}." in card and "- Metric: PSNR/SSIM" in card
     assert "val and test clips not read yet (see Margins)" in card
     assert "- The weights these replaced, on the same val clips: PSNR 30.00 dB, margin +0.00 dB over `demod-jbu` " \
            "(smallest per clip +0.50 dB)." in card

@@ -79,9 +79,9 @@ def test_ship_option_end_to_end_stores_the_option_and_its_verdict(tmp_path, monk
     js = weights / src.with_suffix(".json").name
     for key in ("scores_on_test_split", "gain_over_demod_jbu_db"):
         meta.pop(key)
-    js.write_text(json.dumps({**meta, "test_split": "deferred: (test)"}))
+    js.write_text(json.dumps({**meta, "test_split": pretrained.TEST_DEFERRED}))
     assert ship.main([str(tmp_path), name, 'residual_clamp="lr-guided"', "--force"]) == 0
     assert "test split deferred" in capsys.readouterr().err
     meta = json.loads(js.read_text())
-    assert "scores_on_test_split" not in meta and meta["test_split"] == "deferred: (test)"
+    assert "scores_on_test_split" not in meta and meta["test_split"] == pretrained.TEST_DEFERRED
     assert meta["dataset"]["test_clips"] == [] and meta["dataset"]["val_clips"] == ["val"]

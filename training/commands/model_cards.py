@@ -19,7 +19,7 @@ import tomllib
 from pathlib import Path
 
 from training.models import MODELS
-from training.pretrained import PREFIX, PRETRAINED, WEIGHTS_DIR
+from training.pretrained import PREFIX, PRETRAINED, WEIGHTS_DIR, test_deferred
 
 REPO = Path(__file__).resolve().parents[2]
 CARDS_DIR = REPO / "docs" / "models" / "cards"
@@ -161,7 +161,7 @@ def _data_lines(meta: dict, spec_text: str | None, readme: str | None) -> list[s
     clips = {s: ds.get(f"{s}_clips", []) for s in ("train", "val", "test")}
     out = [f"Dataset `{ds.get('name')}` from [{ds['spec_file']}](../../../{ds['spec_file']}) (sha256 "
            f"`{ds.get('spec_sha256', '?')[:12]}...`): {len(clips['train'])} train, {len(clips['val'])} val and "
-           + ("test clips not read yet (see Margins)" if str(meta.get("test_split", "")).startswith("deferred")
+           + ("test clips not read yet (see Margins)" if test_deferred(meta)
               else f"{len(clips['test'])} test clips") + ", split by scene, asset or level region (docs/dataset.md)."]
     if spec_text is None:
         return out + ["", "The spec file is not in this checkout: its sources cannot be listed."]
@@ -219,7 +219,7 @@ def _limit_lines(meta: dict, model: str) -> list[str]:
     return out
 
 
-def _before_line(meta: dict, model: str) -> list[str]:
+def _before_line(meta: dict) -> list[str]:
     """The weights these replaced, on the same val clips (``val_rule.shipped_before``: release_weights.py records it)."""
     before = (meta.get("val_rule") or {}).get("shipped_before") or {}
     base = ((meta.get("scores_on_val_split") or {}).get(BASELINE) or {}).get("psnr")
@@ -259,7 +259,7 @@ def card_text(stem: str, meta: dict, spec_text: str | None, readme: str | None, 
     lines += ["", "## Margins (as recorded in the JSON)", "",
               f"- Test split: {_margin(test, model) if test else meta.get('test_split', 'not recorded')}.",
               f"- Val split: {_margin(meta.get('scores_on_val_split') or {}, model)}."]
-    lines += _before_line(meta, model)
+    lines += _before_line(meta)
     if wc:
         groups = ", ".join(f"{g} {v:+.2f} dB" for g, v in (wc.get("per_group") or {}).items())
         lines.append(f"- Worst case on val ({wc.get('dataset')}, {wc.get('frames')} frames): margin "
