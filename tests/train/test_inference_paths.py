@@ -68,6 +68,40 @@ def test_frame_graph_calls_the_function_without_cuda():
     assert calls == [1] and torch.equal(out, torch.full((2,), 2.0)) and state is None and len(g) == 0
 
 
+def test_frame_graph_keys_host_values_by_value():
+    """A CPU tensor among a graph's inputs (``batch['scale']``, read on the host) is part of its structure by value:
+    scale 2 and scale 4 of the same LR size are two graphs; a large CPU tensor is refused."""
+    from training.inference.frame_graph import _signature
+    from training.inference.model import host_scale
+    x = torch.ones(1, 3, 4, 4)
+    a, b = _signature([x, torch.tensor([2.0])]), _signature([x, torch.tensor([4.0])])
+    assert a != b and a == _signature([x, torch.tensor([2.0])])
+    with pytest.raises(ValueError, match="65 elements"):
+        _signature([torch.ones(65)])
+    batch = {"lr/radiance": x, "scale": torch.tensor([4.0])}
+    assert host_scale(batch) is batch  # on the CPU nothing moves
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+@pytest.mark.parametrize("name", ["bilinear", "fourier-sr"])
+def test_cuda_graph_path_reads_the_scale_on_the_host(name):
+    """The graph path of a model that reads ``batch['scale']`` (``ModelBase.batch_scale``: a host read, not allowed
+    while a graph is captured; found by the first H200 run of CHECK=graph) matches its eager output, one graph per
+    scale."""
+    import copy
+    ref, cpu_batch = _model(name)
+    assert "scale" in cpu_batch
+    batch = {k: v.cuda() for k, v in cpu_batch.items()}
+    eager = fastpath.prepare_inference(copy.deepcopy(ref), "cuda", path="fast")
+    graph = fastpath.prepare_inference(ref, "cuda", path="graph")
+    with torch.inference_mode():
+        want = fastpath.forward(eager, batch)
+        for _ in range(2):
+            got = fastpath.forward(graph, batch)
+    assert len(graph.settings["graphs"]["forward"]) == 1
+    assert torch.allclose(got.float(), want.float(), atol=1e-4, rtol=1e-3)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 def test_cuda_frame_graph_replays_a_recurrent_step():
     w = torch.randn(3, 3, device="cuda")

@@ -9,6 +9,9 @@ there, outside the capture), then captures one call into a ``torch.cuda.CUDAGrap
 inputs into those buffers, replays the graph and returns a copy of its outputs (so a recurrent model's state, a
 graph output, can be the next frame's input: it is copied into the input buffers before the replay). A recurrent
 model's first frame (state None) and its later frames (state given) are two structures, hence two graphs.
+A CPU tensor among the inputs is a host value the function reads on the host (``batch["scale"]``, which
+``ModelBase.batch_scale`` turns into a float: a device read is not allowed while a graph is captured): it is part of
+the structure by value (at most 64 elements), passed as it is, and baked into the graph.
 Without CUDA (on the CPU) it calls ``fn``: the code paths stay testable there.
 """
 from __future__ import annotations
@@ -20,9 +23,22 @@ import torch
 from torch.utils._pytree import tree_flatten, tree_unflatten
 
 
+HOST_VALUES_MAX = 64  # elements of a CPU tensor input, keyed by value (a host value, module doc)
+
+
+def _leaf_key(t) -> tuple:
+    if not torch.is_tensor(t):
+        return (type(t), t)
+    if t.is_cuda:
+        return (tuple(t.shape), t.dtype, t.stride(), t.device)
+    if t.numel() > HOST_VALUES_MAX:
+        raise ValueError(f"FrameGraph: a CPU tensor input of {t.numel()} elements: only host values of at most "
+                         f"{HOST_VALUES_MAX} (such as batch['scale']) may stay on the CPU; move the rest to CUDA")
+    return (tuple(t.shape), t.dtype, "host", tuple(t.reshape(-1).tolist()))
+
+
 def _signature(flat: list) -> tuple:
-    return tuple((tuple(t.shape), t.dtype, t.stride(), t.device) if torch.is_tensor(t) else (type(t), t)
-                 for t in flat)
+    return tuple(_leaf_key(t) for t in flat)
 
 
 class FrameGraph:
@@ -42,7 +58,7 @@ class FrameGraph:
             self.graphs[key] = self._capture(flat, spec)
         g, static, out, out_spec = self.graphs[key]
         for s, t in zip(static, flat):
-            if torch.is_tensor(s):
+            if torch.is_tensor(s) and s.is_cuda:
                 s.copy_(t)
         g.replay()
         return tree_unflatten([o.clone() if torch.is_tensor(o) else o for o in out], out_spec)

@@ -99,10 +99,10 @@ class InferenceModel:
         fn = self.module if fn is None else fn
 
         def call(b):
-            with autocast(next(iter(b.values())).device, dtype):
+            with autocast(_device(b), dtype):
                 return fn(b)
         if self.settings.get("frame_graph"):
-            return self._graph("forward", call)(batch)
+            return self._graph("forward", call)(host_scale(batch))
         return call(batch)
 
     def _graph(self, name: str, fn):
@@ -142,7 +142,7 @@ class InferenceModel:
 
         def one():
             if self.settings.get("frame_graph"):
-                return self._graph("step", call)(batch, state)
+                return self._graph("step", call)(host_scale(batch), state)
             return call(batch, state)
         auto = self.settings.get("auto")
         if hasattr(auto, "check"):
@@ -185,6 +185,19 @@ def channels_last_batch(batch: dict, levels: tuple[str, ...] = ("lr", "hr")) -> 
             v = v.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3)
         out[k] = v
     return out
+
+
+def _device(batch: dict) -> torch.device:
+    """The device of ``batch``: its first CUDA tensor's, else its first value's (``scale`` may be a host value)."""
+    return next((v.device for v in batch.values() if torch.is_tensor(v) and v.is_cuda), next(iter(batch.values())).device)
+
+
+def host_scale(batch: dict) -> dict:
+    """``batch`` with ``scale`` on the CPU, for one CUDA graph per frame (``FrameGraph``): models read the factor on the
+    host (``ModelBase.batch_scale``), which a graph capture does not allow on a CUDA tensor; on the CPU it is a host
+    value, keyed by value. One tiny copy per frame."""
+    s = batch.get("scale")
+    return {**batch, "scale": s.cpu()} if torch.is_tensor(s) and s.is_cuda else batch
 
 
 def _image(sr: torch.Tensor) -> np.ndarray:
