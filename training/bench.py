@@ -54,7 +54,7 @@ DEVICE_PEAKS = {
     "RTX 3090": (35.6, 71.0, 936.0),
 }
 SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
-                 "ratio", "kernels", "max_rel_err", "tolerance")
+                 "ratio", "kernels", "max_rel_err", "tolerance", "spread", "replays", "timing")
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:

@@ -220,3 +220,22 @@ def test_upscale_records_the_path_and_takes_the_default_from_the_environment(tmp
     assert json.loads((tmp_path / "b" / "upscale.json").read_text())["inference"]["path"] == "fast"  # the suite's
     bad = run_cli("upscale", "--model", "demod-jbu", "--clip", clip, "-o", tmp_path / "c", "--path", "quick")
     assert bad.returncode == 2 and "--path: invalid choice: 'quick'" in bad.stderr
+
+
+def test_speed_files_keep_the_graph_rows_timing(tmp_path):
+    """bench_speed.csv takes a graph variant's row (its replay spread, replays and timing): the first H200 run of
+    CHECK=graph timed every model and then failed writing the CSV ('dict contains fields not in fieldnames')."""
+    import csv
+
+    from training.bench import _speed_record, _write_speed
+    pk = {"tflops": 100.0, "gbs": 1000.0}
+    base = {"model": "bilinear", "params": 0, "macs": 0.0, "bytes": 2e6, "times": [0.3, 0.2]}
+    rows = [_speed_record({**base, "variant": "bf16"}, pk, 100, lambda m: None),
+            _speed_record({**base, "variant": "bf16 graph", "graph_timing": {"spread": 0.01, "n": 200}}, pk, 100,
+                          lambda m: None)]
+    meta = {"device": "cpu", "size": (16, 8), "scale": 4, "timing": "t", "repeats": 2, "warmup": 0,
+            "peaks": {"bf16": {"tflops": 100.0, "gbs": 1000.0, "source": "given"}}}
+    _write_speed(tmp_path, meta, rows, "table")
+    got = list(csv.DictReader(open(tmp_path / "bench_speed.csv")))
+    assert [r["variant"] for r in got] == ["bf16", "bf16 graph"]
+    assert got[0]["spread"] == "" and float(got[1]["spread"]) == 0.01 and got[1]["replays"] == "200"
