@@ -189,7 +189,8 @@ def channels_last_batch(batch: dict, levels: tuple[str, ...] = ("lr", "hr")) -> 
 
 def _device(batch: dict) -> torch.device:
     """The device of ``batch``: its first CUDA tensor's, else its first value's (``scale`` may be a host value)."""
-    return next((v.device for v in batch.values() if torch.is_tensor(v) and v.is_cuda), next(iter(batch.values())).device)
+    cuda = (v.device for v in batch.values() if torch.is_tensor(v) and v.is_cuda)
+    return next(cuda, next(iter(batch.values())).device)
 
 
 def host_scale(batch: dict) -> dict:
