@@ -6,27 +6,33 @@
 #      1,3,10: each list holds the one before), so that each scaling run trains while the larger subsets render;
 #   4. the test split (read once, at the round's end);
 #   5. the rest of the set.
-# Every step resumes (a killed run loses at most the frames in flight); rerun the same command on a new machine or
-# after a stop. The subset lists go to LISTS (default DATASET.lists), written before any render.
-# Usage: benchmarks/scale_render.sh [DATASET] [SPEC]   (defaults datasets/scale, examples/dataset_scale.toml)
-#   W (default 2): --workers; SUBSETS (default "1 1,3 1,3,10"): the --multiples of each list, in render order;
-#   UNIT: --unit-pixels of data_scaling.py (default: its own); DRY=1: print the commands, run only steps 1 and the
-#   lists.
+# `--order train-first` renders every train clip before val and `--order mixed` interleaves the splits; the release
+# rule needs val first and the scaling runs their subsets next, hence the lists. Every step resumes (a killed run
+# loses at most the frames in flight): rerun the same command after a stop or on a new machine. The subset lists go
+# to LISTS (default DATASET.lists), written before any render.
+# Usage: benchmarks/scale_render.sh [DATASET] [SPEC]   (defaults, in the repository: datasets/scale,
+#   examples/dataset_scale.toml; paths given are read from where the command runs)
+#   W (default 2): --workers; SUBSETS (default "1 1,3 1,3,10"): the --multiples of each list, in render order
+#   (empty: no lists); UNIT: --unit-pixels of data_scaling.py (default: its own); DRY=1: print the render commands,
+#   write only the index and the lists.
 set -euo pipefail
+here=$PWD
+abs() { case $1 in /*) echo "$1" ;; *) echo "$here/$1" ;; esac; }
 cd "$(dirname "$0")/.."
-DATA=${1:-datasets/scale}
-SPEC=${2:-examples/dataset_scale.toml}
+DATA=${1:+$(abs "$1")}; DATA=${DATA:-datasets/scale}
+SPEC=${2:+$(abs "$2")}; SPEC=${SPEC:-examples/dataset_scale.toml}
 W=${W:-2}
 LISTS=${LISTS:-$DATA.lists}
 PY=${PY:-.venv/bin/python}
 B=("$PY" -m gbuffer_export.cli dataset "$SPEC" -o "$DATA" --no-progress)
-run() { echo "+ $*"; [ -n "${DRY:-}" ] || "$@"; }
+run() { echo "+ $*"; [ "${DRY:-0}" = 1 ] || "$@"; }
 [ -f "$DATA/dataset.json" ] || "${B[@]}" --limit 0
 mkdir -p "$LISTS"
 lists=()
-for m in ${SUBSETS:-1 1,3 1,3,10}; do
+read -r -a multiples <<< "${SUBSETS-1 1,3 1,3,10}"
+for m in "${multiples[@]}"; do
   f="$LISTS/subset_${m//,/_}.txt"
-  PYTHONPATH=$PWD "$PY" benchmarks/data_scaling.py "$DATA" -o - --multiples "$m" ${UNIT:+--unit-pixels "$UNIT"} \
+  PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} "$PY" benchmarks/data_scaling.py "$DATA" -o - --multiples "$m" ${UNIT:+--unit-pixels "$UNIT"} \
       --list-clips "$f"
   lists+=("$f")
 done

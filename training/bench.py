@@ -53,8 +53,9 @@ DEVICE_PEAKS = {
     "RTX 4090": (82.6, 165.2, 1008.0),
     "RTX 3090": (35.6, 71.0, 936.0),
 }
+GRAPH_COLUMNS = ("spread", "replays", "timing")  # a graph variant's row: frame_graph.time_replays
 SPEED_COLUMNS = ("model", "variant", "params", "macs_per_px", "gmacs", "mbytes", "ms", "ms_min", "roofline_ms",
-                 "ratio", "kernels", "max_rel_err", "tolerance", "spread", "replays", "timing")
+                 "ratio", "kernels", "max_rel_err", "tolerance", *GRAPH_COLUMNS)
 
 
 def parse_models(text: str, need_checkpoints: bool = True) -> list[tuple[str, str]]:
@@ -521,8 +522,8 @@ def _speed_record(r: dict, pk: dict, pixels: int, log) -> dict:
            "roofline_ms": roof, "ratio": ms / roof,
            **{k: r[k] for k in ("kernels", "max_rel_err", "tolerance") if k in r}}
     if "graph_timing" in r:  # frame_graph.time_replays: the spread of its rounds and the replays per round
-        rec.update(spread=r["graph_timing"]["spread"], replays=r["graph_timing"]["n"],
-                   timing="CUDA graph replays between two CUDA events")
+        rec.update(zip(GRAPH_COLUMNS, (r["graph_timing"]["spread"], r["graph_timing"]["n"],
+                                       "CUDA graph replays between two CUDA events")))
     log(f"{r['model']:24s} {r['variant']:22s} {ms:10.3f} ms (min {rec['ms_min']:.3f}; roofline {roof:.4f} ms, "
         f"x{rec['ratio']:.0f})")
     return rec

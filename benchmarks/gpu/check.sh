@@ -17,7 +17,7 @@
 #   tests of the paths (FrameGraph against eager, recurrent state included), then the 1080p 4x table of every model
 #   with --path fast,fused,graph (bf16, eager): graph variants timed as N=200 replays between two CUDA events in 5
 #   rounds (median, spread), kernels per frame, ratio to the roofline, every output against the fp32 reference
-#   (bilinear's graph row on an H200: 0.067 ms, 12x its roofline: 20 kernels at 3.4 us each, a graph node's
+#   (bilinear's graph row on an H200: 0.067 ms, 12x its roofline: about 17 graph nodes at about 4 us, a node's
 #   floor). Step timeouts sum to 430 s (H200, 2026-11-29: 86 s of tests, about 100 s of table). Writes log.txt,
 #   speed_graph.json/.md; a second call on another machine:
 #   python3 benchmarks/gpu/compare.py A/speed_graph.json B/speed_graph.json (the spread between machines).

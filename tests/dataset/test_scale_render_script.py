@@ -21,8 +21,8 @@ def _spec(path):
 def test_the_round_renders_val_then_nested_subsets_then_test_then_the_rest(tmp_path):
     spec, data = _spec(tmp_path / "round.toml"), tmp_path / "ds"
     env = {**os.environ, "DRY": "1", "PY": sys.executable, "SUBSETS": "1 1,3", "UNIT": str(2 * 64 * 36)}
-    out = subprocess.run(["bash", str(REPO / "benchmarks/scale_render.sh"), str(data), str(spec)], env=env,
-                         capture_output=True, text=True, timeout=300)
+    out = subprocess.run(["bash", str(REPO / "benchmarks/scale_render.sh"), "ds", "round.toml"], env=env,
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)  # paths read from the caller's
     assert out.returncode == 0, out.stderr[-2000:]
     lists = [(tmp_path / "ds.lists" / f"subset_{m}.txt").read_text().split() for m in ("1", "1_3")]
     assert len(lists[0]) == 1 and len(lists[1]) == 3 and lists[1][:1] == lists[0]  # nested: a prefix

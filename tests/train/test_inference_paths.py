@@ -72,7 +72,7 @@ def test_frame_graph_keys_host_values_by_value():
     """A CPU tensor among a graph's inputs (``batch['scale']``, read on the host) is part of its structure by value:
     scale 2 and scale 4 of the same LR size are two graphs; a large CPU tensor is refused."""
     from training.inference.frame_graph import _signature
-    from training.inference.model import host_scale
+    from training.inference.model import _device, host_scale
     x = torch.ones(1, 3, 4, 4)
     a, b = _signature([x, torch.tensor([2.0])]), _signature([x, torch.tensor([4.0])])
     assert a != b and a == _signature([x, torch.tensor([2.0])])
@@ -80,26 +80,82 @@ def test_frame_graph_keys_host_values_by_value():
         _signature([torch.ones(65)])
     batch = {"lr/radiance": x, "scale": torch.tensor([4.0])}
     assert host_scale(batch) is batch  # on the CPU nothing moves
+    assert _device({"state": None, "x": x}) == torch.device("cpu") and _device({}) == torch.device("cpu")
+
+
+def test_run_and_step_keep_the_scale_on_the_host(monkeypatch):
+    """``InferenceModel.run`` and ``.step`` put every input on the device but ``scale``, which models read on the host
+    (so the graph path needs no copy back, which would wait for the queued work). The device here is ``meta``."""
+    import numpy as np
+    m, batch = _model("bilinear")
+    with monkeypatch.context() as mp:
+        mp.setattr(InferenceModel, "device", property(lambda self: torch.device("meta")))
+        moved = m._on_device({"scale": np.ones(1, np.float32), "lr/radiance": np.ones((1, 1, 3, 4, 4), np.float32)})
+    assert moved["scale"].device.type == "cpu" and moved["lr/radiance"].device.type == "meta"
+    sr, _ = m.run({k: v.numpy() for k, v in batch.items()})  # bilinear reads the host scale
+    assert sr.shape[:2] == tuple(4 * n for n in batch["lr/radiance"].shape[-2:])
+
+
+def test_frame_graph_keys_what_a_capture_bakes_in_and_bounds_the_graphs(monkeypatch):
+    """The pixel filter a model follows per clip (``follow_reference_filter``) is baked into a capture: it is part of
+    the key (``baked``), so a later clip with another filter captures its own graph; more structures than
+    ``max_graphs`` is refused. The capture itself is replaced here (no CUDA)."""
+    state = {"taps": (0.25, 0.5, 0.25)}
+    g = FrameGraph(lambda x: x * 2, baked=lambda: state["taps"], max_graphs=2)
+    captured = []
+
+    def fake_capture(flat, spec):
+        captured.append(flat[0].shape)
+        return _Replay(), [flat[0]], [flat[0] * 2], tree_spec
+    from torch.utils._pytree import tree_flatten
+    tree_spec = tree_flatten(torch.ones(1))[1]
+    monkeypatch.setattr(g, "_capture", fake_capture)
+    x = torch.Tensor._make_subclass(_CudaLike, torch.ones(2))
+    g(x)
+    g(x)
+    assert len(g) == 1
+    state["taps"] = (1.0,)
+    g(x)
+    assert len(g) == 2 and len(captured) == 2
+    state["taps"] = (0.5, 0.5)
+    with pytest.raises(RuntimeError, match="more than 2 input structures"):
+        g(x)
+
+
+class _Replay:
+    def replay(self):
+        pass
+
+
+class _CudaLike(torch.Tensor):
+    """A CPU tensor that says it is on CUDA, so that FrameGraph takes its capture path (replaced in the test)."""
+
+    @property
+    def is_cuda(self):
+        return True
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 @pytest.mark.parametrize("name", ["bilinear", "fourier-sr"])
 def test_cuda_graph_path_reads_the_scale_on_the_host(name):
     """The graph path of a model that reads ``batch['scale']`` (``ModelBase.batch_scale``: a host read, not allowed
-    while a graph is captured; found by the first H200 run of CHECK=graph) matches its eager output, one graph per
-    scale."""
+    while a graph is captured; found by the first H200 run of CHECK=graph) matches its eager output on two different
+    frames (a stale replay would repeat the first), and bilinear at scales 2 and 4 (two graphs)."""
     import copy
-    ref, cpu_batch = _model(name)
-    assert "scale" in cpu_batch
-    batch = {k: v.cuda() for k, v in cpu_batch.items()}
+    ref, _ = _model(name)
     eager = fastpath.prepare_inference(copy.deepcopy(ref), "cuda", path="fast")
     graph = fastpath.prepare_inference(ref, "cuda", path="graph")
-    with torch.inference_mode():
-        want = fastpath.forward(eager, batch)
-        for _ in range(2):
+    scales = (2.0, 4.0) if name == "bilinear" else (4.0,)
+    for seed, scale in [(s, sc) for sc in scales for s in (0, 1)]:
+        cpu_batch = {k: torch.from_numpy(v) for k, v in example_inputs(ref, None, (32, 16), seed=seed).items()}
+        batch = {k: v.cuda() for k, v in cpu_batch.items()}
+        batch["scale"] = torch.full_like(batch["scale"], scale)
+        with torch.inference_mode():
+            want = fastpath.forward(eager, batch)
             got = fastpath.forward(graph, batch)
-    assert len(graph.settings["graphs"]["forward"]) == 1
-    assert torch.allclose(got.float(), want.float(), atol=1e-4, rtol=1e-3)
+        assert got.shape[-1] == int(cpu_batch["lr/radiance"].shape[-1] * scale)
+        assert torch.allclose(got.float(), want.float(), atol=1e-4, rtol=1e-3), (seed, scale)
+    assert len(graph.settings["graphs"]["forward"]) == len(scales)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")

@@ -42,19 +42,26 @@ def _signature(flat: list) -> tuple:
 
 
 class FrameGraph:
-    """``fn`` replayed as one CUDA graph per input structure (module doc)."""
+    """``fn`` replayed as one CUDA graph per input structure (module doc). ``baked``: a function of no argument whose
+    value is part of every graph's key, for what ``fn`` reads besides its inputs and a capture bakes in (a model's
+    pixel filter, which ``follow_reference_filter`` sets per clip). More than ``max_graphs`` structures is refused:
+    a host value that changes every frame would otherwise capture a graph per frame."""
 
-    def __init__(self, fn: Callable, warmup: int = 2):
-        self.fn, self.warmup = fn, warmup
-        self.graphs: dict = {}  # signature -> (graph, static inputs (flat), static outputs, output spec)
+    def __init__(self, fn: Callable, warmup: int = 2, baked: Callable[[], object] = lambda: None,
+                 max_graphs: int = 32):
+        self.fn, self.warmup, self.baked, self.max_graphs = fn, warmup, baked, max_graphs
+        self.graphs: dict = {}  # key -> (graph, static inputs (flat), static outputs, output spec)
 
     def __call__(self, *args):
         flat, spec = tree_flatten(args)
         cuda = [t for t in flat if torch.is_tensor(t) and t.is_cuda]
         if not cuda:
             return self.fn(*args)
-        key = (spec, _signature(flat))
+        key = (spec, _signature(flat), self.baked())
         if key not in self.graphs:
+            if len(self.graphs) >= self.max_graphs:
+                raise RuntimeError(f"FrameGraph: more than {self.max_graphs} input structures (shapes, host values, "
+                                   f"baked state) captured; a host value that changes every frame? Keep it on CUDA")
             self.graphs[key] = self._capture(flat, spec)
         g, static, out, out_spec = self.graphs[key]
         for s, t in zip(static, flat):

@@ -105,12 +105,17 @@ class InferenceModel:
             return self._graph("forward", call)(host_scale(batch))
         return call(batch)
 
+    def _on_device(self, arrays: dict[str, np.ndarray]) -> dict:
+        """Tensors of ``arrays`` on the device; ``scale`` stays on the host (models read it there: ``host_scale``)."""
+        return {k: torch.from_numpy(v) if k == "scale" else torch.from_numpy(v).to(self.device)
+                for k, v in arrays.items()}
+
     def _graph(self, name: str, fn):
         """The ``FrameGraph`` (one CUDA graph per frame and input layout) of ``fn`` kept under ``name``."""
         from training.inference.frame_graph import FrameGraph
         graphs = self.settings.setdefault("graphs", {})
-        if name not in graphs:
-            graphs[name] = FrameGraph(fn)
+        if name not in graphs:  # a clip's pixel filter (follow_reference_filter) is baked into a capture: in the key
+            graphs[name] = FrameGraph(fn, baked=lambda: getattr(self.module, "remod_taps", None))
         return graphs[name]
 
     def run(self, inputs: dict[str, np.ndarray], amp: torch.dtype | None = None) -> tuple[np.ndarray, float]:
@@ -118,7 +123,7 @@ class InferenceModel:
         timed with the inputs on the device (GPU synchronised). ``amp`` overrides the prepared precision."""
         from training.data import BATCH_KEYS
         needs = set(self.module.needs()) | set(BATCH_KEYS)
-        batch = {k: torch.from_numpy(v).to(self.device) for k, v in inputs.items() if k in needs}
+        batch = self._on_device({k: v for k, v in inputs.items() if k in needs})
         sr, ms = self._timed(lambda: self.forward(batch, amp))
         return _image(sr), ms
 
@@ -131,8 +136,8 @@ class InferenceModel:
         if not self.recurrent:
             return self.run(inputs, amp)
         needs = set(self.module.needs())
-        batch = {k: torch.from_numpy(v[:, -1:] if v.ndim > 1 else v).to(self.device) for k, v in inputs.items()
-                 if k in needs or k == "scale"}  # 'scale' (B,): per batch element, no time axis
+        batch = self._on_device({k: v[:, -1:] if v.ndim > 1 else v for k, v in inputs.items()
+                                 if k in needs or k == "scale"})  # 'scale' (B,): per batch element, no time axis
         state = self.state.get(*at) if at is not None else None
         from training.device import autocast
 
@@ -188,15 +193,17 @@ def channels_last_batch(batch: dict, levels: tuple[str, ...] = ("lr", "hr")) -> 
 
 
 def _device(batch: dict) -> torch.device:
-    """The device of ``batch``: its first CUDA tensor's, else its first value's (``scale`` may be a host value)."""
-    cuda = (v.device for v in batch.values() if torch.is_tensor(v) and v.is_cuda)
-    return next(cuda, next(iter(batch.values())).device)
+    """The device of ``batch``: its first CUDA tensor's, else its first tensor's, else the CPU (``scale`` is a host
+    value)."""
+    devices = [v.device for v in batch.values() if torch.is_tensor(v)]
+    return next((d for d in devices if d.type == "cuda"), devices[0] if devices else torch.device("cpu"))
 
 
 def host_scale(batch: dict) -> dict:
     """``batch`` with ``scale`` on the CPU, for one CUDA graph per frame (``FrameGraph``): models read the factor on the
     host (``ModelBase.batch_scale``), which a graph capture does not allow on a CUDA tensor; on the CPU it is a host
-    value, keyed by value. One tiny copy per frame."""
+    value, keyed by value. ``run`` and ``step`` keep it there from the start; a batch given on the device (``bench
+    models``) pays one copy, which waits for the queued work."""
     s = batch.get("scale")
     return {**batch, "scale": s.cpu()} if torch.is_tensor(s) and s.is_cuda else batch
 

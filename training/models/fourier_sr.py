@@ -203,7 +203,10 @@ class FourierSR(SRModel):
         if s is None:
             return torch.full((b,), hr_w / lr_w, dtype=torch.float32, device=ref.device)
         if not s.is_cuda and ref.is_cuda:  # a host value (one CUDA graph per frame: FrameGraph): no copy to capture
-            return torch.full((b,), float(s.reshape(-1)[0]), dtype=torch.float32, device=ref.device)
+            factors = set(s.reshape(-1).tolist())
+            if len(factors) > 1:
+                raise ValueError(f"fourier-sr: batch['scale'] holds several factors {sorted(factors)}; one per batch")
+            return torch.full((b,), factors.pop(), dtype=torch.float32, device=ref.device)
         return s.reshape(-1).to(device=ref.device, dtype=torch.float32).expand(b)
 
     def state_shapes(self, hr_h: int, hr_w: int, batch: int = 1) -> list[tuple[int, ...]]:
