@@ -306,10 +306,11 @@ def option_note(candidate: dict, incumbent: dict, name: str) -> str | None:
     """A line when the candidate's inference options (``INFERENCE_OPTIONS`` of its ``[model.NAME]``, configurations
     as dicts; a key left out is its default) differ from the shipped weights' (say a run released without the bound
     the shipped network runs with: ``--options``); None when they agree."""
-    from training.models.options import INFERENCE_OPTIONS, FuseSRFastOptions
+    from training.models import MODELS
+    from training.models.options import INFERENCE_OPTIONS
     c, i = (((d.get("model") or {}).get(name) or {}) for d in (candidate, incumbent))
-    defaults = FuseSRFastOptions()
-    default = {k: getattr(defaults, k) for k in INFERENCE_OPTIONS}  # a key left out has its default
+    defaults = MODELS[name].options()  # the model's own [model.<name>] table: a key left out has its default
+    default = {k: getattr(defaults, k, None) for k in INFERENCE_OPTIONS}
     diff = [f"{k} {c.get(k, default[k])!r} (shipped: {i.get(k, default[k])!r})" for k in INFERENCE_OPTIONS
             if c.get(k, default[k]) != i.get(k, default[k])]
     return f"note: {name}: the candidate runs with {', '.join(diff)}; --options sets them" if diff else None

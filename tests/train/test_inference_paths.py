@@ -295,3 +295,14 @@ def test_speed_files_keep_the_graph_rows_timing(tmp_path):
     got = list(csv.DictReader(open(tmp_path / "bench_speed.csv")))
     assert [r["variant"] for r in got] == ["bf16", "bf16 graph"]
     assert got[0]["spread"] == "" and float(got[1]["spread"]) == 0.01 and got[1]["replays"] == "200"
+
+
+def test_a_batch_has_one_scale_factor():
+    """``batch['scale']`` is (B,) with one factor per batch (the samplers draw one): ``batch_factor`` reads it on the
+    host for every model and refuses a batch with several."""
+    from training.models.base import batch_factor
+    m, batch = _model("bilinear")
+    assert batch_factor(torch.tensor([2.5, 2.5])) == 2.5
+    assert m.module.batch_scale({"scale": torch.tensor([3.0])}) == 3.0
+    with pytest.raises(ValueError, match=r"holds \[2.0, 4.0\]: one factor per batch"):
+        m.module.batch_scale({"scale": torch.tensor([2.0, 4.0])})

@@ -19,6 +19,15 @@ from training.models.resample import upsample  # noqa: F401  (re-exported: model
 from training.transforms import forward_transform, normalize_depth
 
 
+def batch_factor(scale: torch.Tensor) -> float:
+    """The one upscaling factor of a batch's ``scale`` ((B,), equal within a batch: the samplers draw one per batch),
+    read on the host; ValueError (one line) for several."""
+    factors = set(scale.reshape(-1).tolist())
+    if len(factors) != 1:
+        raise ValueError(f"batch['scale'] holds {sorted(factors)}: one factor per batch")
+    return float(factors.pop())
+
+
 class SRModel(nn.Module):
     """A super-resolution model. Subclasses set ``learned``, ``history`` and implement ``needs`` and ``forward``.
 
@@ -97,7 +106,7 @@ class SRModel(nn.Module):
     def batch_scale(self, batch: dict) -> float:
         """The upscaling factor of ``batch``: ``batch['scale'][0]`` when the batch carries it, else ``self.scale``."""
         s = batch.get("scale")
-        return float(s.reshape(-1)[0]) if s is not None else self.scale
+        return batch_factor(s) if s is not None else self.scale
 
     def follow_reference_filter(self, manifest: dict) -> None:
         """With ``model.remod_filter = "REFERENCE"`` (non-learned models; training resolves it into the checkpoint),

@@ -57,7 +57,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from training.models.options import FourierSROptions
-from training.models.base import SRModel, backward_warp, conv, current, depth_features, zero_init
+from training.models.base import SRModel, backward_warp, batch_factor, conv, current, depth_features, zero_init
 from training.transforms import forward_transform, inverse_transform
 
 LR_CHANNELS = (32, 48, 48, 64)   # LR extractor widths after the 3-channel input
@@ -203,10 +203,7 @@ class FourierSR(SRModel):
         if s is None:
             return torch.full((b,), hr_w / lr_w, dtype=torch.float32, device=ref.device)
         if not s.is_cuda and ref.is_cuda:  # a host value (one CUDA graph per frame: FrameGraph): no copy to capture
-            factors = set(s.reshape(-1).tolist())
-            if len(factors) > 1:
-                raise ValueError(f"fourier-sr: batch['scale'] holds several factors {sorted(factors)}; one per batch")
-            return torch.full((b,), factors.pop(), dtype=torch.float32, device=ref.device)
+            return torch.full((b,), batch_factor(s), dtype=torch.float32, device=ref.device)
         return s.reshape(-1).to(device=ref.device, dtype=torch.float32).expand(b)
 
     def state_shapes(self, hr_h: int, hr_w: int, batch: int = 1) -> list[tuple[int, ...]]:
