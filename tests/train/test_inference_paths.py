@@ -176,6 +176,39 @@ def test_cuda_frame_graph_replays_a_recurrent_step():
     assert len(g) == 2  # the first frame (no state) and the following ones
 
 
+RECURRENT = ("rdg", "rdg-s", "nsrd", "nsrr-fec", "fourier-sr")
+
+
+def test_recurrent_list_is_every_recurrent_model():
+    """The CUDA test below covers every model with a state (``recurrent``), by the classes themselves."""
+    import importlib
+    from training.models import MODELS
+    got = {n for n, info in MODELS.items() if getattr(getattr(importlib.import_module(info.module), info.cls),
+                                                       "recurrent", False)}
+    assert got == set(RECURRENT)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+@pytest.mark.parametrize("name", RECURRENT)
+def test_cuda_graph_path_steps_a_recurrent_model(name):
+    """``InferenceModel.step`` on the graph path (one capture for the first frame of a clip, one for the frames with
+    a state) matches the eager path over four frames with different content, and a new clip starts from no state
+    (not from the graph's stale state buffers)."""
+    import copy
+    ref, _ = _model(name)
+    eager = fastpath.prepare_inference(copy.deepcopy(ref), "cuda", path="fast")
+    graph = fastpath.prepare_inference(ref, "cuda", path="graph")
+    frames = [("a", 0), ("a", 1), ("a", 2), ("b", 0)]
+    for seed, at in enumerate(frames):
+        inputs = example_inputs(ref, None, (32, 16), seed=seed)
+        with torch.inference_mode():
+            want, _ = eager.step(inputs, at=at)
+            got, _ = graph.step(inputs, at=at)
+        assert got.shape == want.shape
+        assert abs(got - want).max() <= 1e-3 * max(1.0, abs(want).max()), (name, at)
+    assert len(graph.settings["graphs"]["step"]) == 2
+
+
 def test_path_choices_and_default(monkeypatch):
     monkeypatch.delenv(fastpath.PATH_ENV, raising=False)
     assert fastpath.default_path() == "auto"
