@@ -36,6 +36,7 @@ from ..config import ConfigError, RenderConfig, recorded_keys
 from ..conventions import exposure_header, halton_jitter, intrinsics_from_projection, level_name, pass_seed
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
+from ..provenance import source_revision
 from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources, render_threads
 from . import materials as mats
@@ -439,6 +440,7 @@ def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
         # (Cycles renders in this process): the load-independent cost, summed over the threads it used
         rec["seconds_total"] = time.perf_counter() - t0
         rec["cpu_seconds_total"] = time.process_time() - c0
+        rec["source"] = source_revision()  # the commit that rendered this frame (gbuffer_export.provenance)
         ctx.writer.commit_frame(f, rec)
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")

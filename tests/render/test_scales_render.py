@@ -1,6 +1,9 @@
 """``blendsr render --scales``: one LR render per level (Cycles in a subprocess), every level validated."""
 from __future__ import annotations
 
+import subprocess
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,6 +12,18 @@ from tests.render.cli_batch import make_blends, run_cli_batch
 from gbuffer_export import open_clip
 from gbuffer_export.conventions import Flag
 from gbuffer_export.validate import validate_clip
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _head() -> str:
+    """This checkout's commit by ``git rev-parse HEAD``; "" where there is no git or no checkout."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=30)
+    except OSError:
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 FAST = ["--hr-spp", "4", "--lr-spp", "2", "--gbuffer-spp", "1", "--no-progress"]
@@ -44,6 +59,8 @@ def test_scales_render_validates_at_every_level(clips):
         assert len(seeds) == 4  # hr ground truth and three LR renders, each its own Cycles seed
         # the frame's cost: wall seconds and the render process's CPU seconds (Cycles renders in it), both spent
         assert rec["seconds_total"] > 0 and rec["cpu_seconds_total"] > 0
+        # the commit that rendered it: this checkout's HEAD (None outside a git checkout)
+        assert (rec["source"] or "").removesuffix("-dirty") == _head()
         for lvl, (w, h) in LEVELS.items():
             assert clip.read(f, f"{lvl}/radiance").shape == (h, w, 3)
             assert rec[lvl]["seconds"]["radiance"] > 0
