@@ -11,11 +11,14 @@ is the wall time of an unloaded worker. A clip's setup
 estimated per source (``levels``, ``builtin``, ``assets``...) as its unrendered frames times the median of its
 finished ones (the median over all sources where a source has none finished yet): in wall seconds for one worker on
 the machine and load the finished frames saw, and in CPU seconds. Frames rendered before ``cpu_seconds_total``
-existed count in the wall figures only. No bpy: the numpy core's layer.
+existed count in the wall figures only. Each finished frame's record names the commit that rendered it
+(``source``); the report counts frames per commit, so a dataset resumed across code changes says so. No bpy: the
+numpy core's layer.
 """
 from __future__ import annotations
 
 import statistics
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +37,7 @@ class ClipCost:
     hr_pixels_done: int
     seconds: tuple[float, ...]
     cpu_seconds: tuple[float, ...] = ()
+    commits: tuple[str, ...] = ()  # per finished frame, the commit its record names ("unrecorded": none)
 
 
 def _timings(clip, key: str) -> tuple[float, ...]:
@@ -52,7 +56,13 @@ def clip_cost(root: Path, entry: dict) -> ClipCost:
         return ClipCost(False, 0, planned, 0, ())
     w, h = clip.sizes["hr"]
     return ClipCost(state == "done", n, planned, n * w * h, _timings(clip, "seconds_total"),
-                    _timings(clip, "cpu_seconds_total"))
+                    _timings(clip, "cpu_seconds_total"), _commits(clip))
+
+
+def _commits(clip) -> tuple[str, ...]:
+    """Per finished frame, the commit that rendered it (its record's ``source``: gbuffer_export.provenance);
+    "unrecorded" for a frame rendered before the key or outside a git checkout."""
+    return tuple(str(clip.record(f).get("source") or "unrecorded") for f in clip.frames)
 
 
 def _group(costs: list[ClipCost]) -> dict:
@@ -65,7 +75,8 @@ def _group(costs: list[ClipCost]) -> dict:
             "p90_s_per_frame": float(np.quantile(seconds, 0.9)) if seconds else None,
             "frames_cpu_timed": len(cpu), "cpu_s": sum(cpu),
             "median_cpu_s_per_frame": statistics.median(cpu) if cpu else None,
-            "hr_pixels_done": sum(c.hr_pixels_done for c in costs)}
+            "hr_pixels_done": sum(c.hr_pixels_done for c in costs),
+            "frames_by_commit": dict(Counter(k for c in costs for k in c.commits).most_common())}
 
 
 def _estimate(report: dict, median: str, out: str, origin: str) -> None:
@@ -111,7 +122,9 @@ def status_lines(report: dict) -> list[str]:
     rows = [line(k, g) for k, g in report["by_source"].items()] + [line("all", report["all"])]
     splits = ", ".join(f"{k} {g['clips_done']}/{g['clips']} clips ({g['hr_pixels_done'] / 1e6:.1f} M HR px)"
                        for k, g in report["by_split"].items())
-    return [head, *rows, f"splits: {splits}",
+    commits = report["all"].get("frames_by_commit", {})
+    made = ", ".join(f"{k[:12]} {n}" for k, n in commits.items())
+    return [head, *rows, f"splits: {splits}", f"frames by the commit that rendered them: {made or '-'}",
             "s/frame: median wall time of a finished frame (all levels and passes, no clip setup); h left: the "
             "unrendered frames at that median, one worker (*: a source with no finished frame, at the median of all); "
             "CPU: the same in the render's CPU seconds, every thread together (frames that recorded them)"]
