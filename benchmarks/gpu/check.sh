@@ -14,11 +14,13 @@
 #   fusesr-l and fusesr-fast with residual_clamp none, lr-range and lr-guided (bf16, fused path). Writes log.txt,
 #   speed_clamp.json/.md.
 # CHECK=graph (issue 58: one CUDA graph per frame, the replay timer; docs/evaluation.md "Inference paths"): the CUDA
-#   tests of the paths (FrameGraph against eager, recurrent state included), then the 1080p 4x table of every model
+#   tests of the paths (FrameGraph against eager; InferenceModel.step of every recurrent model, output and state,
+#   graph against the same prepared model run eagerly), then the 1080p 4x table of every model
 #   with --path fast,fused,graph (bf16, eager): graph variants timed as N=200 replays between two CUDA events in 5
 #   rounds (median, spread), kernels per frame, ratio to the roofline, every output against the fp32 reference
 #   (bilinear's graph row on an H200: 0.067 ms, 12x its roofline: about 17 graph nodes at about 4 us, a node's
-#   floor). Step timeouts sum to 430 s (H200, 2026-11-29: 86 s of tests, about 100 s of table). Writes log.txt,
+#   floor). Step timeouts sum to 500 s (H200, 2026-11-29: 86 s of tests before the five recurrent cases, about 100 s
+#   of table). Writes log.txt,
 #   speed_graph.json/.md; a second call on another machine:
 #   python3 benchmarks/gpu/compare.py A/speed_graph.json B/speed_graph.json (the spread between machines).
 # CHECK=nss (issue 57 item 4): one optimizer step of Arm's NSS-v1 model by the model gym's Trainer on a BlendSR
@@ -57,8 +59,8 @@ if [ "$CHECK" = clamp ]; then  # the residual clamps' CUDA tests and their cost 
   cp "$W/clamp/bench_speed.json" "$OUT/speed_clamp.json" && cp "$W/clamp/bench_speed.md" "$OUT/speed_clamp.md"
   exit 0
 fi
-if [ "$CHECK" = graph ]; then  # issue 58: one CUDA graph per frame, every model (about 430 s of step timeouts)
-  [ "$DEV" = cuda ] && step "CUDA tests of the inference paths and the fused HR stage" 130 python3 -m pytest -v \
+if [ "$CHECK" = graph ]; then  # issue 58: one CUDA graph per frame, every model (about 500 s of step timeouts)
+  [ "$DEV" = cuda ] && step "CUDA tests of the inference paths and the fused HR stage" 200 python3 -m pytest -v \
       -p no:cacheprovider --durations=0 -k cuda tests/train/test_inference_paths.py tests/train/hr_stage_cases.py
   step "speed table, fast / fused / graph (bf16; graph: CUDA graph replays)" 300 "${bench[@]}" --precision bf16 \
       --compile off --path fast,fused,graph --repeats 200 -o "$W/graph" \

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import logging
 import os
 import sys
@@ -36,7 +37,7 @@ from ..config import ConfigError, RenderConfig, recorded_keys
 from ..conventions import exposure_header, halton_jitter, intrinsics_from_projection, level_name, pass_seed
 from ..interrupt import check_interrupt, stop_on_sigint
 from ..pixel_filter import HR_REFERENCE_FILTER, POINT_FILTER, footprint_fbeta
-from ..provenance import source_revision
+from ..provenance import other_code, short_revision, source_revision
 from ..regions import dilate
 from ..resources import TEMP_EXR_CHANNELS, check_render_resources, render_threads
 from . import materials as mats
@@ -328,6 +329,7 @@ class RenderContext:
     light_paths: dict
     tmpdir: Path
     writer: ClipWriter
+    commit: str | None = None  # the code that renders (gbuffer_export.provenance), taken before the first frame
 
 
 def _manifest_header(cfg: RenderConfig, scene, scene_info: dict, r: ResolvedRender, device: dict,
@@ -409,12 +411,15 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
     writer = ClipWriter(cfg.output, _manifest_header(cfg, scene, scene_info, r, device, light_paths))
     todo = [f for f in r.my_frames if not writer.is_frame_done(f)]  # one writer per clip: held until close() below
     skipped = len(r.my_frames) - len(todo)
+    commit = source_revision()
     if skipped:
         log.info("blendsr: resuming %s: %d of %d frames already done", cfg.output, skipped, len(r.my_frames))
+        _warn_other_code(writer, [f for f in r.my_frames if f not in todo], commit)
     remove_stale_scratch(cfg.output)
     tmpdir = Path(tempfile.mkdtemp(prefix=f".render-{os.getpid()}-", dir=cfg.output))
     try:
-        ctx = RenderContext(cfg=cfg, scene=scene, resolved=r, light_paths=light_paths, tmpdir=tmpdir, writer=writer)
+        ctx = RenderContext(cfg=cfg, scene=scene, resolved=r, light_paths=light_paths, tmpdir=tmpdir, writer=writer,
+                            commit=commit)
         _render_frames(ctx, todo)
         writer.merge()
     finally:
@@ -423,6 +428,21 @@ def render_loaded_scene(cfg: RenderConfig, scene, scene_info: dict) -> Path:
         tmpdir.rmdir()
         writer.close()
     return cfg.output
+
+
+def _warn_other_code(writer: ClipWriter, done: list[int], commit: str | None) -> None:
+    """A warning when finished frames of the clip being resumed name other code than this render's
+    (``provenance.other_code``): the clip will hold frames of two code versions."""
+    records = {}
+    for f in done:
+        try:
+            records[f] = json.loads(writer.record_path(f).read_text())
+        except (OSError, ValueError):
+            continue  # is_frame_done read it a moment ago; a record gone since is rendered again
+    made = other_code(records, commit)
+    if made:
+        log.warning("blendsr: %s: resuming a clip begun by other code (%s); this render is %s", writer.path, made,
+                    short_revision(commit) if commit else "of unrecorded code")
 
 
 def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
@@ -440,7 +460,7 @@ def _render_frames(ctx: RenderContext, todo: list[int]) -> None:
         # (Cycles renders in this process): the load-independent cost, summed over the threads it used
         rec["seconds_total"] = time.perf_counter() - t0
         rec["cpu_seconds_total"] = time.process_time() - c0
-        rec["source"] = source_revision()  # the commit that rendered this frame (gbuffer_export.provenance)
+        rec["commit"] = ctx.commit  # the code that rendered this frame (gbuffer_export.provenance)
         ctx.writer.commit_frame(f, rec)
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(gt=f"{rec['hr']['seconds'].get('radiance', 0):.1f}s")

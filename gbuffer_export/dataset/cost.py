@@ -12,7 +12,7 @@ estimated per source (``levels``, ``builtin``, ``assets``...) as its unrendered 
 finished ones (the median over all sources where a source has none finished yet): in wall seconds for one worker on
 the machine and load the finished frames saw, and in CPU seconds. Frames rendered before ``cpu_seconds_total``
 existed count in the wall figures only. Each finished frame's record names the commit that rendered it
-(``source``); the report counts frames per commit, so a dataset resumed across code changes says so. No bpy: the
+(``commit``); the report counts frames per commit, so a dataset resumed across code changes says so. No bpy: the
 numpy core's layer.
 """
 from __future__ import annotations
@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..provenance import short_revision
 from .build import clip_dir, opened_state, read_index
 
 
@@ -60,9 +61,9 @@ def clip_cost(root: Path, entry: dict) -> ClipCost:
 
 
 def _commits(clip) -> tuple[str, ...]:
-    """Per finished frame, the commit that rendered it (its record's ``source``: gbuffer_export.provenance);
-    "unrecorded" for a frame rendered before the key or outside a git checkout."""
-    return tuple(str(clip.record(f).get("source") or "unrecorded") for f in clip.frames)
+    """Per finished frame, the commit that rendered it (its record's ``commit``: gbuffer_export.provenance);
+    "unrecorded" for a frame rendered before the key or where git could not say."""
+    return tuple(str(clip.record(f).get("commit") or "unrecorded") for f in clip.frames)
 
 
 def _group(costs: list[ClipCost]) -> dict:
@@ -123,7 +124,7 @@ def status_lines(report: dict) -> list[str]:
     splits = ", ".join(f"{k} {g['clips_done']}/{g['clips']} clips ({g['hr_pixels_done'] / 1e6:.1f} M HR px)"
                        for k, g in report["by_split"].items())
     commits = report["all"].get("frames_by_commit", {})
-    made = ", ".join(f"{k[:12]} {n}" for k, n in commits.items())
+    made = ", ".join(f"{k if k == 'unrecorded' else short_revision(k)} {n}" for k, n in commits.items())
     return [head, *rows, f"splits: {splits}", f"frames by the commit that rendered them: {made or '-'}",
             "s/frame: median wall time of a finished frame (all levels and passes, no clip setup); h left: the "
             "unrendered frames at that median, one worker (*: a source with no finished frame, at the median of all); "

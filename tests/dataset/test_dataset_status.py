@@ -64,15 +64,16 @@ def test_the_cost_is_the_finished_frames_own_times_and_the_rest_is_estimated_at_
 
 
 def test_the_frames_are_counted_by_the_commit_that_rendered_them(dataset):
-    """A dataset resumed across code changes says so: each frame record's ``source`` (gbuffer_export.provenance)."""
+    """A dataset resumed across code changes says so: each frame record's ``commit`` (gbuffer_export.provenance); a
+    render of a commit with local changes is its own entry."""
     old, new = "a" * 40, "b" * 40 + "-dirty"
     for f in (1, 2, 3):
-        edit_record(dataset / "clips" / "a0", f, lambda rec: rec.update(source=old))
-    edit_record(dataset / "clips" / "a1", 1, lambda rec: rec.update(source=new))
+        edit_record(dataset / "clips" / "a0", f, lambda rec: rec.update(commit=old))
+    edit_record(dataset / "clips" / "a1", 1, lambda rec: rec.update(commit=new))
     r = dataset_status(dataset)
     assert r["all"]["frames_by_commit"] == {old: 3, new: 1, "unrecorded": 1}
     assert r["by_split"]["test"]["frames_by_commit"] == {new: 1}
-    assert ("frames by the commit that rendered them: aaaaaaaaaaaa 3, unrecorded 1, bbbbbbbbbbbb 1") in status_lines(r)
+    assert ("frames by the commit that rendered them: aaaaaaaaaaaa 3, unrecorded 1, bbbbbbbbbbbb-dirty 1") in status_lines(r)
 
 
 def test_a_frame_without_a_timing_counts_as_done_but_not_timed(dataset):

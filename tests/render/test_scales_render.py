@@ -16,13 +16,18 @@ from gbuffer_export.validate import validate_clip
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _head() -> str:
-    """This checkout's commit by ``git rev-parse HEAD``; "" where there is no git or no checkout."""
+def _revision() -> str | None:
+    """This checkout's commit by git itself (``rev-parse HEAD``, ``-dirty`` when ``status`` lists a tracked file);
+    None where there is no git or no checkout."""
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, timeout=60)
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=30)
-    except OSError:
-        return ""
-    return out.stdout.strip() if out.returncode == 0 else ""
+        head, status = git("rev-parse", "HEAD"), git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode or status.returncode:
+        return None
+    return head.stdout.strip() + ("-dirty" if status.stdout.strip() else "")
 
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
@@ -59,8 +64,10 @@ def test_scales_render_validates_at_every_level(clips):
         assert len(seeds) == 4  # hr ground truth and three LR renders, each its own Cycles seed
         # the frame's cost: wall seconds and the render process's CPU seconds (Cycles renders in it), both spent
         assert rec["seconds_total"] > 0 and rec["cpu_seconds_total"] > 0
-        # the commit that rendered it: this checkout's HEAD (None outside a git checkout)
-        assert (rec["source"] or "").removesuffix("-dirty") == _head()
+        # the code that rendered it: this checkout's commit (None outside a git checkout); the dirty mark is
+        # tests/core/test_provenance.py's (here another test may write a tracked file while this one renders)
+        want = _revision()
+        assert (rec["commit"] and rec["commit"].removesuffix("-dirty")) == (want and want.removesuffix("-dirty"))
         for lvl, (w, h) in LEVELS.items():
             assert clip.read(f, f"{lvl}/radiance").shape == (h, w, 3)
             assert rec[lvl]["seconds"]["radiance"] > 0
