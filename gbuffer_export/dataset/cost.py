@@ -124,7 +124,7 @@ def status_lines(report: dict) -> list[str]:
     splits = ", ".join(f"{k} {g['clips_done']}/{g['clips']} clips ({g['hr_pixels_done'] / 1e6:.1f} M HR px)"
                        for k, g in report["by_split"].items())
     commits = report["all"].get("frames_by_commit", {})
-    made = ", ".join(f"{k if k == 'unrecorded' else short_revision(k)} {n}" for k, n in commits.items())
+    made = ", ".join(f"{short_revision(k)} {n}" for k, n in commits.items())  # "unrecorded" is kept whole
     return [head, *rows, f"splits: {splits}", f"frames by the commit that rendered them: {made or '-'}",
             "s/frame: median wall time of a finished frame (all levels and passes, no clip setup); h left: the "
             "unrendered frames at that median, one worker (*: a source with no finished frame, at the median of all); "
