@@ -10,7 +10,7 @@ level region, with all their clips) ordered by a stable hash of their ids, the f
 ``blendsr train`` run in RUNS (default OUT; resumed when its folder exists, reused when finished) and each score a
 plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
 OUT/scaling.md (the table, and per family group the margin's fit ``a + b log10(x)`` with what it predicts at 100x:
-``extrapolation_lines``) and OUT/scaling.png.
+``extrapolation_lines``; the fits are also in the JSON: ``fits``) and OUT/scaling.png.
 
 The subsets are taken from the planned train split, so they do not change while a dataset renders: a run trains
 once all its clips are rendered (and valid), and the scores wait until every run is trained and the test split is
@@ -46,7 +46,8 @@ so that the release can choose either bound by the val rule:
 
 Each family group's margin is given as its mean and its smallest clip; ``--score-options`` is checked before
 any training. With ``--multiples`` the plot is the margin over demod-jbu per family group against the data size;
-``--combine A/scaling.json B/scaling.json -o OUT`` puts both models' curves in one table and one plot (results page):
+``--combine A/scaling.json B/scaling.json -o OUT`` puts both models' curves in one table and one plot, and writes
+OUT/scaling.json with each fit and its 100x prediction (``fits``), the record the results page reads:
 
     .venv/bin/python benchmarks/data_scaling.py - -o docs/bench/scaling-families --combine \
         docs/bench/scaling-families/fusesr/scaling.json docs/bench/scaling-families/fusesr-l/scaling.json
@@ -111,7 +112,7 @@ def main(argv=None) -> int:
                    help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
     a = p.parse_args(argv)
     if a.combine:
-        return combine(a.combine, a.output)
+        return combine(a.combine, a.output, argv)
     if a.list_clips:
         return list_clips(a)
 
@@ -217,7 +218,7 @@ def main(argv=None) -> int:
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
                                              "by": a.by, "steps": budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
-                                             "score_options": variants[1:],
+                                             "score_options": variants[1:], "fits": fits(rows, a.unit_pixels),
                                              "command": command_line(argv)})
     (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
                                     + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
@@ -328,9 +329,10 @@ def plot_margins(rows: list[dict], unit: float, path: Path) -> list[tuple[str, s
     return series
 
 
-def combine(records: list[Path], out: Path) -> int:
+def combine(records: list[Path], out: Path, argv=None) -> int:
     """``--combine``: one table, one set of fits and one plot from several scaling.json (FuseSR's and FuseSR-l's
-    curves side by side; the baselines' rows once) into OUT/scaling.md and OUT/scaling.png."""
+    curves side by side; the baselines' rows once) into OUT/scaling.md, OUT/scaling.png and OUT/scaling.json (the
+    rows, each run's size ``x`` in multiples of the unit, and ``fits``: the records the results page reads)."""
     rows, seen, unit, by, first = [], set(), None, "clip", None
     for rec in records:
         try:
@@ -353,6 +355,10 @@ def combine(records: list[Path], out: Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "scaling.md").write_text(report_table(rows, by, unit) + "\n" + "\n".join(extrapolation_lines(rows, unit))
                                     + "\n")
+    from gbuffer_export.clip import write_json_atomic
+    sized = [{**r, "x": r["hr_pixels"] / unit} if r.get("hr_pixels") else r for r in rows]
+    write_json_atomic(out / "scaling.json", {**first[1], "sources": [str(r) for r in records], "rows": sized,
+                                             "fits": fits(rows, unit), "command": command_line(argv)})
     plot_margins(rows, unit, out / "scaling.png")
     print((out / "scaling.md").read_text())
     return 0
@@ -369,25 +375,38 @@ def log_fit(xs: list[float], ys: list[float]) -> tuple[float, float] | None:
     return float(a), float(b)
 
 
-def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> list[str]:
-    """Per model (a scored variant is its own: ``MODEL?OPTIONS``) and family group: the fit of the margin over
-    demod-jbu against the data size (multiples of ``unit``), its gain per tenfold data, and what it predicts at
-    ``at`` x. The lines name the model only when there are several."""
+def fits(rows: list[dict], unit: float, at: float = 100.0) -> list[dict]:
+    """Per model (a scored variant is its own: ``MODEL?OPTIONS``) and family group with two or more sizes: the fit
+    ``margin = a + b log10(x)`` of the margin over demod-jbu (dB) against the data size ``x`` (multiples of
+    ``unit``), the sizes it spans and what it predicts at ``at`` x (an extrapolation). The records behind
+    ``extrapolation_lines`` and the results page."""
     learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
-    labels = list(dict.fromkeys(r["model"] for r in learned))
     out = []
-    for label, group in ((m, g) for m in labels for g in sorted({g for r in learned for g in r["margin_by_family"]})):
+    for label, group in ((m, g) for m in dict.fromkeys(r["model"] for r in learned)
+                         for g in sorted({g for r in learned for g in r["margin_by_family"]})):
         pts = [(r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
                if r["model"] == label and group in r["margin_by_family"]]
         fit = log_fit([x for x, _ in pts], [y for _, y in pts])
         if fit is None:
             continue
         a, b = (round(v, 6) + 0.0 for v in fit)  # no "-0.00"
-        name = f"`{label}` {group}" if len(labels) > 1 else group
-        out.append(f"- {name}: margin = {a:+.2f} {b:+.2f} log10(x) dB over {len(pts)} sizes "
-                   f"({min(x for x, _ in pts):.1f}x to {max(x for x, _ in pts):.1f}x): {b:+.2f} dB per tenfold data; "
-                   f"at {at:g}x it predicts {a + b * math.log10(at):+.2f} dB (an extrapolation)")
+        out.append({"model": label, "group": group, "a": a, "b": b, "sizes": len(pts),
+                    "x_min": min(x for x, _ in pts), "x_max": max(x for x, _ in pts), "at": at,
+                    "predicted": a + b * math.log10(at)})
     return out
+
+
+def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> list[str]:
+    """``fits`` in words: per model and family group, the fit, its gain per tenfold data and what it predicts at
+    ``at`` x. The lines name the model only when there are several."""
+    labels = {r["model"] for r in rows if r.get("hr_pixels") and r.get("margin_by_family")}
+    lines = []
+    for f in fits(rows, unit, at):
+        name = f"`{f['model']}` {f['group']}" if len(labels) > 1 else f["group"]
+        lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "
+                     f"({f['x_min']:.1f}x to {f['x_max']:.1f}x): {f['b']:+.2f} dB per tenfold data; at {at:g}x it "
+                     f"predicts {f['predicted']:+.2f} dB (an extrapolation)")
+    return lines
 
 
 def report_table(rows: list[dict], by: str, unit: float) -> str:

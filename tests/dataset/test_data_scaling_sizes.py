@@ -199,6 +199,18 @@ def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_p
     assert table.count("| demod-jbu |") == 1 and table.count("| fusesr |") == 2 and table.count("| fusesr-l |") == 2
     assert "`fusesr-l` held-out: margin = +0.50 +0.20 log10(x)" in table, table
     assert (out / "scaling.png").stat().st_size > 1000
+    record = json.loads((out / "scaling.json").read_text())  # what the results page reads
+    assert [r["model"] for r in record["rows"]] == ["demod-bilinear", "demod-jbu"] + ["fusesr"] * 2 + ["fusesr-l"] * 2
+    assert [r.get("x") for r in record["rows"]] == [None, None, 10.0, 1.0, 1.0, 10.0]
+    fit = {(f["model"], f["group"]): f for f in record["fits"]}
+    # two sizes a decade apart: the line through them, b = the gain per decade, a = the margin at 1x
+    for key, (at1, at10) in {("fusesr", "held-out"): (1.0, 2.0), ("fusesr-l", "in-family"): (1.0, 1.5)}.items():
+        f = fit[key]
+        assert abs(f["a"] - at1) < 1e-6 and abs(f["b"] - (at10 - at1)) < 1e-6 and f["at"] == 100.0
+        assert abs(f["predicted"] - (at1 + 2 * (at10 - at1))) < 1e-6 and (f["x_min"], f["x_max"], f["sizes"]) == (
+            1.0, 10.0, 2)
+    assert len(fit) == 4 and record["sources"] == [str(tmp_path / "a/scaling.json"), str(tmp_path / "b/scaling.json")]
+    assert record["command"].startswith(".venv/bin/python benchmarks/data_scaling.py - -o ")
     series = data_scaling.margin_series(json.loads((tmp_path / "a/scaling.json").read_text())["rows"], 100.0)
     assert series == [("fusesr", "held-out", [1.0, 10.0], [1.0, 2.0]), ("fusesr", "in-family", [1.0, 10.0], [2.5, 3.0])]
     (tmp_path / "bad.json").write_text("{}")

@@ -63,6 +63,16 @@ def test_pivoted_rows_and_significant_digits(tmp_path, monkeypatch):
                                   "| b | 2.41 |  |"]
 
 
+def test_a_dotted_column_reads_a_nested_value(tmp_path, monkeypatch):
+    rows = [{"model": "fusesr", "x": 3.04, "margin_by_family": {"held-out": 1.234, "in-family": 2.0}},
+            {"model": "demod-jbu", "x": None}]
+    (tmp_path / "r.json").write_text(json.dumps({"rows": rows}))
+    monkeypatch.setattr(results_page, "REPO", tmp_path)
+    table = results_page.rows_table({"record": "r.json", "columns": [
+        ["model", "model"], ["x", "x", "{:.1f}"], ["held-out", "margin_by_family.held-out", "{:+.2f}"]]}, "t")
+    assert table.splitlines()[2:] == ["| fusesr | 3.0 | +1.23 |", "| demod-jbu |  |  |"]
+
+
 def test_generate_check_finds_every_derived_file_current():
     from training.commands.generate import main
     assert main(["--check"]) == 0
