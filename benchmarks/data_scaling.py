@@ -63,6 +63,7 @@ split before the rest of the set (the scores wait for nothing else):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import math
 import json
@@ -78,7 +79,7 @@ sys.path.insert(0, str(REPO))
 WIDE_TRAIN_HR_PIXELS = 47 * 8 * 256 * 144
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True)
@@ -110,126 +111,185 @@ def main(argv=None) -> int:
                         "(UTF-8, one per line; none or '-': print them), for blendsr dataset ... --clips @FILE")
     p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
                    help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
-    a = p.parse_args(argv)
+    return p
+
+
+@dataclasses.dataclass
+class Curve:
+    """One curve's plan and what it has found so far: the arguments, the ordered training groups and the subset
+    sizes (groups taken), the step budgets, the score variants (``""``: as trained), each clip's family group, and
+    the train clips rendered and the test clips, read again on every pass of the wait."""
+    a: argparse.Namespace
+    groups: list[tuple[str, list[Path]]]
+    counts: list[int]
+    budgets: list[int]
+    variants: list[str]
+    family_of: dict[str, str]
+    test_planned: int
+    test_clips: list[str] = dataclasses.field(default_factory=list)
+    done_train: set[Path] = dataclasses.field(default_factory=set)
+
+    @property
+    def runs(self) -> Path:
+        return self.a.runs or self.a.output
+
+
+def main(argv=None) -> int:
+    a = build_parser().parse_args(argv)
     if a.combine:
         return combine(a.combine, a.output, argv)
     if a.list_clips:
         return list_clips(a)
-
-    import torch
-    from gbuffer_export.clip import write_json_atomic
-    from gbuffer_export.dataset.build import split_clips
-    from training.config import load_config
-    from training.evaluate import EvalOptions, evaluate_model, group_means
-    from training.inference.loading import load_model
-    from training.train import train
-
     if a.wait < 0:
         print(f"data_scaling: --wait {a.wait:g}: minutes must be 0 (exit 3 while waiting) or more", file=sys.stderr)
         return 2
     try:
-        trained_as = load_config(a.config, [f'model.name="{a.model}"', f"model.scale={a.scale}"]).to_dict()
-        variants = ["", *score_variants(a.score_options, trained_as)]
+        curve = plan(a)
     except ValueError as exc:
         print(f"data_scaling: {exc}", file=sys.stderr)
         return 2
-    test_clips = [str(c) for c in split_clips(a.dataset, "test")]
-    groups, counts = subsets(a)
-    family_of = family_groups(a.dataset)
-    budgets = [int(s) for s in a.steps.split(",")]
-    out, runs = a.output, a.runs or a.output
-    out.mkdir(parents=True, exist_ok=True)
+    a.output.mkdir(parents=True, exist_ok=True)
     if a.threads:
+        import torch
         torch.set_num_threads(a.threads)
+    fitted = wait_for_runs(curve, argv)
+    if fitted is None:
+        return 3
+    rows = score_rows(curve, fitted)
+    write_records(curve, rows, argv)
+    print((a.output / "scaling.md").read_text())
+    return 0
 
-    def score(spec: str) -> dict:
-        model = load_model(spec, a.scale)
-        r = evaluate_model(model, test_clips, EvalOptions(flip=False, scale=a.scale))
-        per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
-        by_family = {g: v["psnr"] for g, v in group_means(r, family_of.get, metrics=("psnr",)).items()}
-        margins = {Path(c["clip"]).name: c["margin"] for c in r["per_clip"] if c.get("margin") is not None}
-        return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
-                "artifact_pixels": r["mean"].get("artifact_pixels"),  # margins: over demod-jbu, evaluate's baseline
-                "margin_min_by_family": smallest_margins(margins, family_of)}
 
-    done_train: set[Path] = set()  # what fit() may train on, read again on every pass
-    test_planned = len(split_clips(a.dataset, "test", done_only=False))
+def plan(a: argparse.Namespace) -> Curve:
+    """The curve ``a`` asks for (ValueError: a score variant the model does not take, checked before any training)."""
+    from gbuffer_export.dataset.build import split_clips
+    from training.config import load_config
+    trained_as = load_config(a.config, [f'model.name="{a.model}"', f"model.scale={a.scale}"]).to_dict()
+    variants = ["", *score_variants(a.score_options, trained_as)]
+    groups, counts = subsets(a)
+    return Curve(a, groups, counts, [int(s) for s in a.steps.split(",")], variants, family_groups(a.dataset),
+                 len(split_clips(a.dataset, "test", done_only=False)),
+                 [str(c) for c in split_clips(a.dataset, "test")])
 
-    def fit(n: int, steps: int) -> tuple[list[Path], dict | None, Path]:
-        """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered."""
-        clips = [c for g in groups[:n] for c in g[1]]
-        run = runs / (f"{a.model}_{n:03d}{a.by}s" + (f"_{steps}steps" if len(budgets) > 1 or a.by != "clip" else ""))
-        waiting = [c for c in clips if c not in done_train]
-        if waiting:
-            print(f"data_scaling: {run.name}: {len(waiting)} of its {len(clips)} clips are not rendered (or not "
-                  "valid) yet; it trains once they are (blendsr dataset ... --clips @FILE, FILE from this script's "
-                  "--list-clips, renders them first)")
-            return clips, None, run
-        overrides = [f'model.name="{a.model}"', f"model.scale={a.scale}", f"run.max_steps={steps}", "run.minutes=0"]
-        if a.threads:
-            overrides.append(f"run.threads={a.threads}")
-        cfg = load_config(a.config, overrides)
-        cfg.data.clips = [str(c) for c in clips]
-        write_command(run, argv)
-        done = run / "summary.json"
-        if done.is_file() and json.loads(done.read_text()).get("step") == steps:
-            return clips, json.loads(done.read_text()), run  # finished earlier: score it only
-        summary = train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file())
-        if summary.get("step") != steps:  # stopped early (a signal): not a point of the equal-compute curve
-            raise SystemExit(f"data_scaling: {run.name} stopped at step {summary.get('step')} of {steps} "
-                             f"({summary.get('stopped_by')}); rerun the same command to resume it")
-        return clips, summary, run
 
-    needed = {c.name for g in groups[:max(counts)] for c in g[1]} | {
+def score(curve: Curve, spec: str) -> dict:
+    """``spec`` (a baseline, or a checkpoint with options) on the test split: PSNR, SSIM, per clip and per family
+    group, artifact pixels, and each group's smallest margin over demod-jbu (evaluate's baseline)."""
+    from training.evaluate import EvalOptions, evaluate_model, group_means
+    from training.inference.loading import load_model
+    a = curve.a
+    r = evaluate_model(load_model(spec, a.scale), curve.test_clips, EvalOptions(flip=False, scale=a.scale))
+    per_clip = {c: round(v["psnr"], 3) for c, v in group_means(r, metrics=("psnr",)).items()}
+    by_family = {g: v["psnr"] for g, v in group_means(r, curve.family_of.get, metrics=("psnr",)).items()}
+    margins = {Path(c["clip"]).name: c["margin"] for c in r["per_clip"] if c.get("margin") is not None}
+    return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
+            "artifact_pixels": r["mean"].get("artifact_pixels"),
+            "margin_min_by_family": smallest_margins(margins, curve.family_of)}
+
+
+def fit(curve: Curve, n: int, steps: int, argv) -> tuple[list[Path], dict | None, Path]:
+    """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered."""
+    from training.config import load_config
+    from training.train import train
+    a = curve.a
+    clips = [c for g in curve.groups[:n] for c in g[1]]
+    run = curve.runs / (f"{a.model}_{n:03d}{a.by}s"
+                        + (f"_{steps}steps" if len(curve.budgets) > 1 or a.by != "clip" else ""))
+    waiting = [c for c in clips if c not in curve.done_train]
+    if waiting:
+        print(f"data_scaling: {run.name}: {len(waiting)} of its {len(clips)} clips are not rendered (or not "
+              "valid) yet; it trains once they are (blendsr dataset ... --clips @FILE, FILE from this script's "
+              "--list-clips, renders them first)")
+        return clips, None, run
+    overrides = [f'model.name="{a.model}"', f"model.scale={a.scale}", f"run.max_steps={steps}", "run.minutes=0"]
+    if a.threads:
+        overrides.append(f"run.threads={a.threads}")
+    cfg = load_config(a.config, overrides)
+    cfg.data.clips = [str(c) for c in clips]
+    write_command(run, argv)
+    done = run / "summary.json"
+    if done.is_file() and json.loads(done.read_text()).get("step") == steps:
+        return clips, json.loads(done.read_text()), run  # finished earlier: score it only
+    summary = train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file())
+    if summary.get("step") != steps:  # stopped early (a signal): not a point of the equal-compute curve
+        raise SystemExit(f"data_scaling: {run.name} stopped at step {summary.get('step')} of {steps} "
+                         f"({summary.get('stopped_by')}); rerun the same command to resume it")
+    return clips, summary, run
+
+
+def wait_for_runs(curve: Curve, argv) -> list | None:
+    """Train each run as soon as its clips are rendered; (n, steps, clips, summary, run) per run once every run is
+    trained and the test split is whole; None while not (without --wait) or when a needed clip is marked invalid."""
+    from gbuffer_export.dataset.build import split_clips
+    a = curve.a
+    needed = {c.name for g in curve.groups[:max(curve.counts)] for c in g[1]} | {
         c.name for c in split_clips(a.dataset, "test", done_only=False)}
-    while True:  # with --wait: train each run as soon as its clips are rendered, score when all are
+    while True:
         never = never_ready(a.dataset, needed)
         if never:
             print(f"data_scaling: {a.dataset}: {len(never)} clips the curve needs are marked invalid in the index "
                   f"({', '.join(never[:5])}{', ...' if len(never) > 5 else ''}); they never become ready: render "
                   "them again (blendsr validate says why) or take them out of the spec", file=sys.stderr)
-            return 3
-        done_train.clear()
-        done_train.update(split_clips(a.dataset, "train"))
-        test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
-        fitted = [(n, steps, *fit(n, steps)) for steps in budgets for n in counts]
-        if len(test_clips) == test_planned and all(summary is not None for *_, summary, _ in fitted):
-            break
+            return None
+        curve.done_train.clear()
+        curve.done_train.update(split_clips(a.dataset, "train"))
+        curve.test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
+        fitted = [(n, steps, *fit(curve, n, steps, argv)) for steps in curve.budgets for n in curve.counts]
+        if len(curve.test_clips) == curve.test_planned and all(summary is not None for *_, summary, _ in fitted):
+            return fitted
         print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
-              f"{len(test_clips)} of {test_planned} clips rendered: no scores until every run is trained and the "
-              f"test split is whole ({f'again in {a.wait:g} min' if a.wait else 'rerun the same command'})",
+              f"{len(curve.test_clips)} of {curve.test_planned} clips rendered: no scores until every run is trained "
+              f"and the test split is whole ({f'again in {a.wait:g} min' if a.wait else 'rerun the same command'})",
               flush=True)
         if not a.wait:
-            return 3
+            return None
         time.sleep(a.wait * 60)
+
+
+def score_rows(curve: Curve, fitted: list) -> list[dict]:
+    """The baselines' rows, then one row per run and score variant, each with its margin over demod-jbu per family
+    group; printed as they come (JSON lines)."""
+    a = curve.a
     rows = []
     for name in ("demod-bilinear", "demod-jbu"):
-        rows.append({"model": name, "clips": 0, "steps": 0, **score(name)})
+        rows.append({"model": name, "clips": 0, "steps": 0, **score(curve, name)})
         print(json.dumps(rows[-1]), flush=True)
     base = rows[-1]["by_family"]
-    for (n, steps, clips, summary, run), opts in ((f, o) for f in fitted for o in variants):
+    for (n, steps, clips, summary, run), opts in ((f, o) for f in fitted for o in curve.variants):
         spec = str(run / "checkpoints" / "last.pt") + (f"?{opts}" if opts else "")
         rows.append({"model": a.model + (f"?{opts}" if opts else ""), "clips": len(clips), a.by + "s": n,
                      "steps": summary["step"], "train_clips": [c.name for c in clips],
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), "hr_pixels": hr_pixels(a.dataset, clips),
-                     **score(spec)})
+                     **score(curve, spec)})
         rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
         print(json.dumps(rows[-1]), flush=True)
-    write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": test_clips, "rows": rows,
-                                             "by": a.by, "steps": budgets, "config": a.config,
+    return rows
+
+
+def write_records(curve: Curve, rows: list[dict], argv) -> None:
+    """OUT/scaling.json, OUT/scaling.md and OUT/scaling.png."""
+    from gbuffer_export.clip import write_json_atomic
+    a, out = curve.a, curve.a.output
+    write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": curve.test_clips, "rows": rows,
+                                             "by": a.by, "steps": curve.budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
-                                             "score_options": variants[1:], "fits": fits(rows, a.unit_pixels),
+                                             "score_options": curve.variants[1:], "fits": fits(rows, a.unit_pixels),
                                              "command": command_line(argv)})
     (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
                                     + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
-
     if a.multiples:  # sized by HR pixels: the margins per family group against the data size
         plot_margins(rows, a.unit_pixels, out / "scaling.png")
-        print((out / "scaling.md").read_text())
-        return 0
+    else:
+        plot_psnr(rows, curve, out / "scaling.png")
+
+
+def plot_psnr(rows: list[dict], curve: Curve, path: Path) -> None:
+    """Without --multiples: test PSNR against the clips (or scenes, or steps) of each run, the baselines as lines."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    a, counts, budgets = curve.a, curve.counts, curve.budgets
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     learned = [r for r in rows if r["clips"]]
     x = "steps" if len(counts) == 1 and len(budgets) > 1 else a.by + "s"
@@ -248,9 +308,8 @@ def main(argv=None) -> int:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "scaling.png")
-    print((out / "scaling.md").read_text())
-    return 0
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def subsets(a) -> tuple[list[tuple[str, list[Path]]], list[int]]:

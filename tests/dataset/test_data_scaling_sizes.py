@@ -281,3 +281,44 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
     assert data_scaling.main(["-", "-o", str(tmp_path / "o"), "--combine", str(tmp_path / "a/scaling.json"),
                               str(tmp_path / "b/scaling.json")]) == 2
     assert "its test_clips differ from" in capsys.readouterr().err
+
+
+def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
+    """The script's last stage, as the round's end runs it: every run trained (2 steps here), the baselines and each
+    run scored as trained and with --score-options on the test split by family group, the records written."""
+    from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
+    root = tmp_path / "ds"
+    clips = []
+    for i, (split, group) in enumerate([("train", "in-family")] * 3 + [("test", "in-family"), ("test", "held-out")]):
+        cid = f"{split}{i}"
+        make_synthetic_clip(root / "clips" / cid, frames=range(1, 4), hr_size=(128, 72),
+                            look=SyntheticLook(light=0.5 + 0.2 * i))
+        clips.append({"id": cid, "path": f"clips/{cid}", "split": split, "state": "done", "frames_done": 3,
+                      "render": {"frames": 3, "hr_size": [128, 72]}, "family_group": group})
+    (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
+    out = tmp_path / "out"
+    argv = [str(root), "-o", str(out), "--runs", str(tmp_path / "runs"), "--multiples", "1,2", "--unit-pixels",
+            str(3 * 128 * 72), "--steps", "2", "--model", "fusesr-l", "--threads", "1",
+            "--score-options", "residual_clamp=lr-guided"]
+    assert data_scaling.main(argv) == 0
+    record = json.loads((out / "scaling.json").read_text())
+    assert [(r["model"], r["clips"]) for r in record["rows"]] == [
+        ("demod-bilinear", 0), ("demod-jbu", 0), ("fusesr-l", 1), ("fusesr-l?residual_clamp=lr-guided", 1),
+        ("fusesr-l", 2), ("fusesr-l?residual_clamp=lr-guided", 2)]
+    jbu = record["rows"][1]["by_family"]
+    for r in record["rows"][2:]:
+        assert r["steps"] == 2 and set(r["margin_by_family"]) == {"in-family", "held-out"}
+        assert all(abs(r["margin_by_family"][g] - (r["by_family"][g] - jbu[g])) < 1e-9 for g in jbu)
+        assert set(r["margin_min_by_family"]) == {"in-family", "held-out"} and len(r["per_clip"]) == 2
+    assert {(f["model"], f["group"]) for f in record["fits"]} == {
+        (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in ("in-family", "held-out")}
+    assert record["test_clips"] == [str(root / "clips/test3"), str(root / "clips/test4")]
+    assert "predicts" in (out / "scaling.md").read_text() and (out / "scaling.png").stat().st_size > 1000
+    # by clip count (the PSNR plot): the same runs, finished, are scored again, not trained again
+    ckpt = tmp_path / "runs/fusesr-l_001clips/checkpoints/last.pt"
+    mtime = ckpt.stat().st_mtime_ns
+    assert data_scaling.main(argv[:5] + ["--counts", "1,2", "--steps", "2", "--model", "fusesr-l"]) == 0
+    again = json.loads((out / "scaling.json").read_text())
+    assert [r["model"] for r in again["rows"]] == ["demod-bilinear", "demod-jbu", "fusesr-l", "fusesr-l"]
+    assert again["rows"][2]["per_clip"] == record["rows"][2]["per_clip"] and ckpt.stat().st_mtime_ns == mtime
+    assert (out / "scaling.png").stat().st_size > 1000
