@@ -315,8 +315,20 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>", formats=()) -> Data
     render_table = data.get("render", {})
     _check_keys(render_table, _RENDER_KEYS, "render", spec_path)
     defaults = _render_settings(RenderSettings(), render_table, "render", spec_path)
+    splits = _parse_splits(data.get("splits", {}), spec_path)
+    raw_sources = data.get("source", [])
+    if not isinstance(raw_sources, list) or not raw_sources:
+        raise SpecError(f"{spec_path}: no [[source]] tables: add at least one (kind = \"builtin\" or \"assets\")")
+    sources, names = [], set()
+    for i, t in enumerate(raw_sources):
+        render_from = defaults, for_formats, "hr_size" in render_table
+        sources.append(_parse_source(t, f"source[{i}]", i, render_from, names, spec_path))
+    return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
+                       path=Path(spec_path) if spec_path != "<spec>" else None, for_formats=for_formats)
 
-    sp = data.get("splits", {})
+
+def _parse_splits(sp: dict, spec_path) -> Splits:
+    """The ``[splits]`` table, checked: fractions in range, no clip or family in both val and test."""
     _check_keys(sp, _SPLIT_KEYS, "splits", spec_path)
     splits = Splits(val=_str_list(sp.get("val", []), "splits.val", spec_path),
                     test=_str_list(sp.get("test", []), "splits.test", spec_path),
@@ -333,71 +345,76 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>", formats=()) -> Data
     if both:
         raise SpecError(f"{spec_path}: splits: {', '.join(sorted(both))} listed in both val_families and "
                         "test_families")
+    return splits
 
-    raw_sources = data.get("source", [])
-    if not isinstance(raw_sources, list) or not raw_sources:
-        raise SpecError(f"{spec_path}: no [[source]] tables: add at least one (kind = \"builtin\" or \"assets\")")
-    sources, names = [], set()
-    for i, t in enumerate(raw_sources):
-        where = f"source[{i}]"
-        if not isinstance(t, dict):
-            raise SpecError(f"{spec_path}: {where}: expected a table")
-        _check_keys(t, _SOURCE_KEYS, where, spec_path)
-        kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path, Rule(choices=SOURCE_KINDS))
-        sname = _typed(t.get("name", kind if kind == "builtin" else f"{kind}{i}"), str, f"{where}.name", spec_path)
-        if sname in names or not sname.replace("-", "").replace("_", "").isalnum():
-            raise SpecError(f"{spec_path}: {where}.name {sname!r}: must be unique, letters, digits, - and _")
-        names.add(sname)
-        render = _render_settings(defaults, t, where, spec_path)
-        if for_formats:
-            render = _for_formats(render, for_formats, "hr_size" in t or "hr_size" in render_table, where, spec_path)
-        if kind != "scene":
-            for k in _SCENE_ONLY:
-                if k in t:
-                    raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"scene\"")
-        split = _source_key(t, "split", where, spec_path)
-        if kind == "scene":
-            sources.append(_scene_source(t, sname, render, split, where, spec_path))
-            continue
-        cameras = _typed(_str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path), tuple[str, ...],
-                         f"{where}.cameras", spec_path, Rule(items=SOURCE_CAMERAS))
-        if kind == "assets" and "scene" in cameras:
-            raise SpecError(f"{spec_path}: {where}.cameras: 'scene' is for kind = \"builtin\" only")
-        kw = dict(name=sname, kind=kind, render=render, cameras=cameras, split=split)
-        if kind == "builtin":
-            for k in ("paths", "clips_per_asset", "clutter", "target_size_m", "licence"):
-                if k in t:
-                    raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"assets\"")
-            if "seeds" not in t:
-                raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
-            kw["seeds"] = _seeds(t["seeds"], f"{where}.seeds", spec_path)
-            kw["sun"] = _source_key(t, "sun", where, spec_path)
-            kw["props"] = _source_key(t, "props", where, spec_path)
-            if set(kw["props"]) & set(CAMERA_FAMILIES) and cameras != ("scene",):
-                raise SpecError(f"{spec_path}: {where}.props: the camera families "
-                                f"({', '.join(sorted(set(kw['props']) & set(CAMERA_FAMILIES)))}) move the built-in "
-                                "scene's own camera: give the source cameras = [\"scene\"]")
-            if sum(p in CAMERA_FAMILIES for p in kw["props"]) > 1:
-                raise SpecError(f"{spec_path}: {where}.props: at most one camera family per source (each re-keys "
-                                "the one camera)")
-        else:
-            if "seeds" in t or "sun" in t or "props" in t:
-                raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")
-            kw["paths"] = _str_list(t.get("paths", []), f"{where}.paths", spec_path)
-            if not kw["paths"]:
-                raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
-            for k in ("clips_per_asset", "clutter", "target_size_m"):
-                kw[k] = _source_key(t, k, where, spec_path)
-            lic = t.get("licence", {})
-            if not isinstance(lic, dict) or not all(isinstance(v, dict) for v in lic.values()):
-                raise SpecError(f"{spec_path}: {where}.licence: expected {{ASSET = {{licence = ..., attribution = ...}}}}")
-            kw["licence"] = lic
-        kw["environment"] = Environment(
-            hdri=_str_list(t.get("hdri", []), f"{where}.hdri", spec_path),
-            strength=_range(t.get("hdri_strength", [0.7, 1.5]), f"{where}.hdri_strength", spec_path))
-        sources.append(Source(**kw))
-    return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
-                       path=Path(spec_path) if spec_path != "<spec>" else None, for_formats=for_formats)
+
+def _parse_source(t, where: str, i: int, render_from: tuple, names: set, spec_path):
+    """One ``[[source]]`` table (``names``: the names taken so far, this one added); ``render_from``: the spec's
+    render defaults, its export formats and whether its ``[render]`` table sets ``hr_size``."""
+    if not isinstance(t, dict):
+        raise SpecError(f"{spec_path}: {where}: expected a table")
+    _check_keys(t, _SOURCE_KEYS, where, spec_path)
+    kind = _typed(t.get("kind", ""), str, f"{where}.kind", spec_path, Rule(choices=SOURCE_KINDS))
+    sname = _typed(t.get("name", kind if kind == "builtin" else f"{kind}{i}"), str, f"{where}.name", spec_path)
+    if sname in names or not sname.replace("-", "").replace("_", "").isalnum():
+        raise SpecError(f"{spec_path}: {where}.name {sname!r}: must be unique, letters, digits, - and _")
+    names.add(sname)
+    defaults, for_formats, hr_size_set = render_from
+    render = _render_settings(defaults, t, where, spec_path)
+    if for_formats:
+        render = _for_formats(render, for_formats, "hr_size" in t or hr_size_set, where, spec_path)
+    if kind != "scene":
+        for k in _SCENE_ONLY:
+            if k in t:
+                raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"scene\"")
+    split = _source_key(t, "split", where, spec_path)
+    if kind == "scene":
+        return _scene_source(t, sname, render, split, where, spec_path)
+    cameras = _typed(_str_list(t.get("cameras", ["orbit"]), f"{where}.cameras", spec_path), tuple[str, ...],
+                     f"{where}.cameras", spec_path, Rule(items=SOURCE_CAMERAS))
+    if kind == "assets" and "scene" in cameras:
+        raise SpecError(f"{spec_path}: {where}.cameras: 'scene' is for kind = \"builtin\" only")
+    kw = dict(name=sname, kind=kind, render=render, cameras=cameras, split=split)
+    kw.update(_builtin_keys(t, cameras, where, spec_path) if kind == "builtin" else _assets_keys(t, where, spec_path))
+    kw["environment"] = Environment(
+        hdri=_str_list(t.get("hdri", []), f"{where}.hdri", spec_path),
+        strength=_range(t.get("hdri_strength", [0.7, 1.5]), f"{where}.hdri_strength", spec_path))
+    return Source(**kw)
+
+
+def _builtin_keys(t: dict, cameras: tuple, where: str, spec_path) -> dict:
+    """A built-in source's own keys: seeds, sun and props (at most one camera family, which needs the scene camera)."""
+    for k in ("paths", "clips_per_asset", "clutter", "target_size_m", "licence"):
+        if k in t:
+            raise SpecError(f"{spec_path}: {where}.{k}: only for kind = \"assets\"")
+    if "seeds" not in t:
+        raise SpecError(f"{spec_path}: {where}: kind = \"builtin\" needs seeds = \"A:B\"")
+    kw = {"seeds": _seeds(t["seeds"], f"{where}.seeds", spec_path), "sun": _source_key(t, "sun", where, spec_path),
+          "props": _source_key(t, "props", where, spec_path)}
+    if set(kw["props"]) & set(CAMERA_FAMILIES) and cameras != ("scene",):
+        raise SpecError(f"{spec_path}: {where}.props: the camera families "
+                        f"({', '.join(sorted(set(kw['props']) & set(CAMERA_FAMILIES)))}) move the built-in "
+                        "scene's own camera: give the source cameras = [\"scene\"]")
+    if sum(p in CAMERA_FAMILIES for p in kw["props"]) > 1:
+        raise SpecError(f"{spec_path}: {where}.props: at most one camera family per source (each re-keys "
+                        "the one camera)")
+    return kw
+
+
+def _assets_keys(t: dict, where: str, spec_path) -> dict:
+    """An assets source's own keys: paths (at least one), clips per asset, clutter, target size and licences."""
+    if "seeds" in t or "sun" in t or "props" in t:
+        raise SpecError(f"{spec_path}: {where}: seeds, sun and props are for kind = \"builtin\"")
+    kw = {"paths": _str_list(t.get("paths", []), f"{where}.paths", spec_path)}
+    if not kw["paths"]:
+        raise SpecError(f"{spec_path}: {where}: kind = \"assets\" needs paths = [files or folders]")
+    for k in ("clips_per_asset", "clutter", "target_size_m"):
+        kw[k] = _source_key(t, k, where, spec_path)
+    lic = t.get("licence", {})
+    if not isinstance(lic, dict) or not all(isinstance(v, dict) for v in lic.values()):
+        raise SpecError(f"{spec_path}: {where}.licence: expected {{ASSET = {{licence = ..., attribution = ...}}}}")
+    kw["licence"] = lic
+    return kw
 
 
 def _families(sp: dict, key: str, spec_path) -> tuple[str, ...]:
