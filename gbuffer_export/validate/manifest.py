@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 from ..clip import FRAMES_DIR, MANIFEST, ClipError, frame_name, header_identity, load_manifest
 from ..colour_spaces import DEFAULT_WORKING_SPACE, WORKING_SPACES
@@ -87,64 +88,12 @@ def check_header(c: Collector, m: dict) -> dict | None:
     if space not in WORKING_SPACES:  # the clip reads as stored, but training cannot convert it to its space
         c.add("manifest-colour-space", f"{mpath}: scene_linear {space!r} is not a working space training converts "
                                        f"({', '.join(WORKING_SPACES)})", severity=WARNING)
-    sizes: dict[str, tuple[int, int]] = {}
-    scales: dict[str, float] = {"hr": 1.0}
-    levels = m.get("levels")
-    if not isinstance(levels, dict):
-        c.add("manifest-invalid", f"{mpath}: levels is not an object")
-        fatal = True
-        levels = {}
-    for lvl in (*LEVELS, *(k for k in levels if k not in LEVELS)):
-        v = levels.get(lvl)
-        if not is_level_name(lvl):
-            c.add("manifest-invalid", f"{mpath}: level name {lvl!r} is not hr, lr or lr_x<scale>", key=lvl)
-            fatal = True
-            continue
-        if not isinstance(v, dict) or "width" not in v or "height" not in v:
-            c.add("manifest-incomplete", f"{mpath}: levels lacks {lvl!r} with width and height", key=lvl)
-            fatal = True
-            continue
-        w, h = as_int(v["width"]), as_int(v["height"])
-        if w is None or h is None or w < 1 or h < 1:
-            c.add("manifest-invalid", f"{mpath}: level {lvl} size {v['width']!r}x{v['height']!r} "
-                                         "is not positive integers", key=lvl)
-            fatal = True
-            continue
-        sizes[lvl] = (w, h)
-        if lvl == "hr":
-            continue
-        ls = v.get("scale", scale if lvl == "lr" else None)  # version 1: lr is at the top-level scale
-        if isinstance(ls, bool) or not isinstance(ls, (int, float)) or not ls >= 1:
-            c.add("manifest-invalid", f"{mpath}: level {lvl} scale {ls!r} is not a number >= 1", key=lvl)
-            fatal = True
-            continue
-        scales[lvl] = float(ls)
+    sizes, scales, levels_ok = _check_levels(c, mpath, m.get("levels"), scale)
+    fatal = fatal or not levels_ok
     if not fatal:
-        for lvl, ls in scales.items():
-            if lvl == "hr":
-                continue
-            if lvl == "lr" and ls != float(scale):
-                c.add("manifest-inconsistent", f"{mpath}: level lr has scale {ls:g} but the clip's scale is "
-                                               f"{scale:g}", key=lvl)
-            elif lvl != "lr" and level_name(ls, scales["lr"]) != lvl:
-                c.add("manifest-inconsistent", f"{mpath}: level {lvl} has scale {ls:g}; its name must be "
-                                               f"{level_name(ls, scales['lr'])!r}", key=lvl)
-            (wh, hh), (wl, hl) = sizes["hr"], sizes[lvl]
-            if abs(wl * ls - wh) > 1e-6 * wh or abs(hl * ls - hh) > 1e-6 * hh:
-                c.add("manifest-inconsistent", f"{mpath}: hr size {wh}x{hh} != {lvl} size {wl}x{hl} x scale {ls:g}",
-                      key=lvl)
-    raw_buffers = m.get("buffers")
-    buffers: list[str] = []
-    if not isinstance(raw_buffers, list):
-        c.add("manifest-invalid", f"{mpath}: buffers is not a list")
-        fatal = True
-    else:
-        unknown = [b for b in raw_buffers if b not in BUFFERS]
-        if unknown:
-            c.add("manifest-inconsistent", f"{mpath}: unknown buffer(s) {unknown}; known: {', '.join(BUFFERS)}")
-        buffers = [b for b in raw_buffers if b in BUFFERS]
-        if "radiance" not in buffers:
-            c.add("manifest-inconsistent", f"{mpath}: buffers lack 'radiance'")
+        _check_level_scales(c, mpath, sizes, scales, scale)
+    buffers = _check_buffers(c, mpath, m.get("buffers"))
+    fatal = fatal or buffers is None
     planned = m.get("frames")
     if not isinstance(planned, list) or any(as_int(f) is None for f in planned):
         c.add("manifest-invalid", f"{mpath}: frames is not a list of integers")
@@ -159,6 +108,74 @@ def check_header(c: Collector, m: dict) -> dict | None:
         return None
     return {"scale": scale, "scales": scales, "sizes": sizes, "buffers": buffers, "planned": planned,
             "frame_data": {int(k): v for k, v in fd.items()}}
+
+
+def _check_levels(c: Collector, mpath, levels, scale) -> tuple[dict[str, tuple[int, int]], dict[str, float], bool]:
+    """Each level's size and scale (``hr``'s is 1; version 1's ``lr`` takes the clip's ``scale``), and whether all
+    were readable (False: file checks cannot proceed)."""
+    sizes: dict[str, tuple[int, int]] = {}
+    scales: dict[str, float] = {"hr": 1.0}
+    ok = True
+    if not isinstance(levels, dict):
+        c.add("manifest-invalid", f"{mpath}: levels is not an object")
+        ok, levels = False, {}
+    for lvl in (*LEVELS, *(k for k in levels if k not in LEVELS)):
+        v = levels.get(lvl)
+        if not is_level_name(lvl):
+            c.add("manifest-invalid", f"{mpath}: level name {lvl!r} is not hr, lr or lr_x<scale>", key=lvl)
+            ok = False
+            continue
+        if not isinstance(v, dict) or "width" not in v or "height" not in v:
+            c.add("manifest-incomplete", f"{mpath}: levels lacks {lvl!r} with width and height", key=lvl)
+            ok = False
+            continue
+        w, h = as_int(v["width"]), as_int(v["height"])
+        if w is None or h is None or w < 1 or h < 1:
+            c.add("manifest-invalid", f"{mpath}: level {lvl} size {v['width']!r}x{v['height']!r} "
+                                         "is not positive integers", key=lvl)
+            ok = False
+            continue
+        sizes[lvl] = (w, h)
+        if lvl == "hr":
+            continue
+        ls = v.get("scale", scale if lvl == "lr" else None)  # version 1: lr is at the top-level scale
+        if isinstance(ls, bool) or not isinstance(ls, (int, float)) or not ls >= 1:
+            c.add("manifest-invalid", f"{mpath}: level {lvl} scale {ls!r} is not a number >= 1", key=lvl)
+            ok = False
+            continue
+        scales[lvl] = float(ls)
+    return sizes, scales, ok
+
+
+def _check_level_scales(c: Collector, mpath, sizes: dict, scales: dict, scale) -> None:
+    """Each LR level against the clip: lr at the clip's scale, the others named by their scale, sizes that fit."""
+    for lvl, ls in scales.items():
+        if lvl == "hr":
+            continue
+        if lvl == "lr" and ls != float(scale):
+            c.add("manifest-inconsistent", f"{mpath}: level lr has scale {ls:g} but the clip's scale is "
+                                           f"{scale:g}", key=lvl)
+        elif lvl != "lr" and level_name(ls, scales["lr"]) != lvl:
+            c.add("manifest-inconsistent", f"{mpath}: level {lvl} has scale {ls:g}; its name must be "
+                                           f"{level_name(ls, scales['lr'])!r}", key=lvl)
+        (wh, hh), (wl, hl) = sizes["hr"], sizes[lvl]
+        if abs(wl * ls - wh) > 1e-6 * wh or abs(hl * ls - hh) > 1e-6 * hh:
+            c.add("manifest-inconsistent", f"{mpath}: hr size {wh}x{hh} != {lvl} size {wl}x{hl} x scale {ls:g}",
+                  key=lvl)
+
+
+def _check_buffers(c: Collector, mpath, raw_buffers) -> list[str] | None:
+    """The known buffers the manifest lists (unknown ones and a missing radiance reported); None: not a list."""
+    if not isinstance(raw_buffers, list):
+        c.add("manifest-invalid", f"{mpath}: buffers is not a list")
+        return None
+    unknown = [b for b in raw_buffers if b not in BUFFERS]
+    if unknown:
+        c.add("manifest-inconsistent", f"{mpath}: unknown buffer(s) {unknown}; known: {', '.join(BUFFERS)}")
+    buffers = [b for b in raw_buffers if b in BUFFERS]
+    if "radiance" not in buffers:
+        c.add("manifest-inconsistent", f"{mpath}: buffers lack 'radiance'")
+    return buffers
 
 
 def check_frames(c: Collector, h: dict) -> list[int]:
@@ -182,39 +199,50 @@ def check_frames(c: Collector, h: dict) -> list[int]:
     for tp in sorted(c.root.glob(".render-*")):  # the renderer's scratch folders (render.py removes its own)
         c.add("leftover-temp", f"{tp}: scratch folder of an interrupted render (the next render of this clip "
                                "removes it)", severity=WARNING)
-    # frames/ records against the manifest
     rdir = c.root / FRAMES_DIR
-    on_disk: set[int] = set()
-    if rdir.is_symlink():
-        c.add("unsafe-link", f"{rdir}: is a symbolic link; its records are not read")
-    elif rdir.is_dir():
-        for rp in sorted(rdir.iterdir()):
-            if rp.is_symlink():
-                c.add("unsafe-link", f"{rp}: is a symbolic link; not read")
-                continue
-            if _TEMP_RE.match(rp.name):
-                c.add("leftover-temp", f"{rp}: temporary file of an interrupted write", severity=WARNING)
-                continue
-            if rp.suffix != ".json" or not rp.stem.lstrip("-").isdigit():
-                continue
-            f = int(rp.stem)
-            try:
-                rec = json.loads(rp.read_text())
-            except (json.JSONDecodeError, UnicodeDecodeError):
-                c.add("incomplete-frame", f"{rp}: torn record (not valid JSON)", frame=f)
-                continue
-            on_disk.add(f)
-            if f not in fd:
-                c.add("manifest-stale", f"{rp}: frame {f} is recorded in {FRAMES_DIR}/ but not in the "
-                                           "manifest (manifest not merged)", frame=f)
-            elif json_safe(rec) != json_safe(fd[f]):
-                c.add("manifest-stale", f"{rp}: record differs from the manifest's record of frame {f}",
-                         frame=f)
+    on_disk = _check_frame_records(c, rdir, fd)
     for f in finished:
         if f not in on_disk:
             c.add("missing-record", f"{rdir / (frame_name(f) + '.json')}: missing; the manifest lists "
                                        f"frame {f} but a later merge would drop it", frame=f)
-    # buffer files of frames that are not finished; temporary files
+    _check_orphan_buffers(c, fd)
+    return finished
+
+
+def _check_frame_records(c: Collector, rdir: Path, fd: dict) -> set[int]:
+    """The records under ``frames/`` against the manifest's; returns the frames with a readable record."""
+    on_disk: set[int] = set()
+    if rdir.is_symlink():
+        c.add("unsafe-link", f"{rdir}: is a symbolic link; its records are not read")
+        return on_disk
+    if not rdir.is_dir():
+        return on_disk
+    for rp in sorted(rdir.iterdir()):
+        if rp.is_symlink():
+            c.add("unsafe-link", f"{rp}: is a symbolic link; not read")
+            continue
+        if _TEMP_RE.match(rp.name):
+            c.add("leftover-temp", f"{rp}: temporary file of an interrupted write", severity=WARNING)
+            continue
+        if rp.suffix != ".json" or not rp.stem.lstrip("-").isdigit():
+            continue
+        f = int(rp.stem)
+        try:
+            rec = json.loads(rp.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            c.add("incomplete-frame", f"{rp}: torn record (not valid JSON)", frame=f)
+            continue
+        on_disk.add(f)
+        if f not in fd:
+            c.add("manifest-stale", f"{rp}: frame {f} is recorded in {FRAMES_DIR}/ but not in the "
+                                       "manifest (manifest not merged)", frame=f)
+        elif json_safe(rec) != json_safe(fd[f]):
+            c.add("manifest-stale", f"{rp}: record differs from the manifest's record of frame {f}", frame=f)
+    return on_disk
+
+
+def _check_orphan_buffers(c: Collector, fd: dict) -> None:
+    """Buffer files of frames that are not finished, and temporary files, under every level folder."""
     orphans: dict[int, list[str]] = {}
     for ldir in sorted(p for p in c.root.iterdir() if p.is_dir() and is_level_name(p.name)):
         lvl = ldir.name
@@ -236,4 +264,3 @@ def check_frames(c: Collector, h: dict) -> list[int]:
         c.add("incomplete-frame", f"{len(keys)} buffer file(s) of frame {f} exist ({', '.join(keys[:4])}"
                                      f"{', ...' if len(keys) > 4 else ''}) but the frame is not finished",
                  frame=f, files=len(keys))
-    return finished
