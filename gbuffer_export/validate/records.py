@@ -49,66 +49,79 @@ def check_record(c: Collector, frame: int, rec: dict, h: dict) -> dict[str, dict
         if missing:
             c.add("record-incomplete", f"record lacks {', '.join(missing)}", frame=frame, key=lvl,
                      missing=missing)
-        cam = {}
-        ok = True
-        for name in ("world_from_camera", "prev_world_from_camera"):
-            if name not in r:
-                ok = False
-                continue
-            a = floats(r[name])
-            problem = pose_problem(a)
-            if problem:
-                c.add("bad-camera", f"{name} {problem}", frame=frame, key=lvl)
-                ok = False
-                continue
-            cam[name] = a
-        for name in ("intrinsics", "prev_intrinsics"):
-            if name not in r:
-                ok = False
-                continue
-            k = floats(r[name])
-            if not intrinsics_ok(k):
-                c.add("bad-camera", f"{name} {r[name]!r} is not (fx, fy, cx, cy) with positive focal",
-                         frame=frame, key=lvl)
-                ok = False
-                continue
-            cam[name] = k
-        if "jitter" in r:
-            j = floats(r["jitter"])
-            if j.shape != (2,) or not np.all(np.isfinite(j)) or np.any(np.abs(j) > 0.5 + 1e-9):
-                c.add("jitter-range", f"jitter {r['jitter']!r} is not two numbers in [-0.5, 0.5] px",
-                         frame=frame, key=lvl)
-            else:
-                cam["jitter"] = (float(j[0]), float(j[1]))
-        if "spp" in r and (as_int(r["spp"]) is None or as_int(r["spp"]) < 1):
-            c.add("bad-record", f"spp {r['spp']!r} is not a positive integer", frame=frame, key=lvl)
-        if "seed" in r and as_int(r["seed"]) is None:
-            c.add("bad-record", f"seed {r['seed']!r} is not an integer", frame=frame, key=lvl)
-        if "seconds" in r and not (isinstance(r["seconds"], dict) or r["seconds"] is None
-                                   or (isinstance(r["seconds"], (int, float))
-                                       and not isinstance(r["seconds"], bool))):
-            c.add("bad-record", f"seconds {r['seconds']!r} is not a number or an object of timings",
-                     frame=frame, key=lvl)
-        if ok:
+        cam = _level_camera(c, frame, lvl, r)
+        _check_record_numbers(c, frame, lvl, r)
+        if cam is not None:
             cams[lvl] = cam
-    for lvl in (k for k in cams if k != "hr"):
-        if "hr" not in cams:
-            break
-        a, b = cams["hr"], cams[lvl]
-        for name in ("world_from_camera", "prev_world_from_camera"):
-            d = float(np.max(np.abs(a[name] - b[name])))
-            if d > 1e-9 * max(1.0, float(np.max(np.abs(a[name])))):
-                c.add("level-mismatch", f"hr and {lvl} {name} differ (max |diff| {d:.3g})", frame=frame,
-                      key=lvl, max_diff=d)
-        s = h["scales"][lvl]
-        for name in ("intrinsics", "prev_intrinsics"):
-            expect = a[name] / s
-            d = float(np.max(np.abs(b[name] - expect)))
-            if d > 1e-6 * float(np.max(np.abs(expect))):
-                c.add("level-mismatch", f"{lvl} {name} {b[name].tolist()} != hr {name} / {s:g} = "
-                                        f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key=lvl,
-                      max_diff=d)
+    if "hr" in cams:
+        for lvl in (k for k in cams if k != "hr"):
+            _check_level_cameras(c, frame, lvl, cams["hr"], cams[lvl], h["scales"][lvl])
     return cams
+
+
+def _level_camera(c: Collector, frame: int, lvl: str, r: dict) -> dict | None:
+    """One level's poses, intrinsics and jitter as arrays; None when a pose or intrinsics is missing or unusable
+    (reported; a jitter out of range is reported and left out)."""
+    cam, ok = {}, True
+    for name in ("world_from_camera", "prev_world_from_camera"):
+        if name not in r:
+            ok = False
+            continue
+        a = floats(r[name])
+        problem = pose_problem(a)
+        if problem:
+            c.add("bad-camera", f"{name} {problem}", frame=frame, key=lvl)
+            ok = False
+            continue
+        cam[name] = a
+    for name in ("intrinsics", "prev_intrinsics"):
+        if name not in r:
+            ok = False
+            continue
+        k = floats(r[name])
+        if not intrinsics_ok(k):
+            c.add("bad-camera", f"{name} {r[name]!r} is not (fx, fy, cx, cy) with positive focal",
+                     frame=frame, key=lvl)
+            ok = False
+            continue
+        cam[name] = k
+    if "jitter" in r:
+        j = floats(r["jitter"])
+        if j.shape != (2,) or not np.all(np.isfinite(j)) or np.any(np.abs(j) > 0.5 + 1e-9):
+            c.add("jitter-range", f"jitter {r['jitter']!r} is not two numbers in [-0.5, 0.5] px",
+                     frame=frame, key=lvl)
+        else:
+            cam["jitter"] = (float(j[0]), float(j[1]))
+    return cam if ok else None
+
+
+def _check_record_numbers(c: Collector, frame: int, lvl: str, r: dict) -> None:
+    """A level record's spp (a positive integer), seed (an integer) and seconds (a number or timings)."""
+    if "spp" in r and (as_int(r["spp"]) is None or as_int(r["spp"]) < 1):
+        c.add("bad-record", f"spp {r['spp']!r} is not a positive integer", frame=frame, key=lvl)
+    if "seed" in r and as_int(r["seed"]) is None:
+        c.add("bad-record", f"seed {r['seed']!r} is not an integer", frame=frame, key=lvl)
+    if "seconds" in r and not (isinstance(r["seconds"], dict) or r["seconds"] is None
+                               or (isinstance(r["seconds"], (int, float))
+                                   and not isinstance(r["seconds"], bool))):
+        c.add("bad-record", f"seconds {r['seconds']!r} is not a number or an object of timings",
+                 frame=frame, key=lvl)
+
+
+def _check_level_cameras(c: Collector, frame: int, lvl: str, a: dict, b: dict, s: float) -> None:
+    """An LR level's camera against HR's: the same poses, the intrinsics divided by the level's scale ``s``."""
+    for name in ("world_from_camera", "prev_world_from_camera"):
+        d = float(np.max(np.abs(a[name] - b[name])))
+        if d > 1e-9 * max(1.0, float(np.max(np.abs(a[name])))):
+            c.add("level-mismatch", f"hr and {lvl} {name} differ (max |diff| {d:.3g})", frame=frame,
+                  key=lvl, max_diff=d)
+    for name in ("intrinsics", "prev_intrinsics"):
+        expect = a[name] / s
+        d = float(np.max(np.abs(b[name] - expect)))
+        if d > 1e-6 * float(np.max(np.abs(expect))):
+            c.add("level-mismatch", f"{lvl} {name} {b[name].tolist()} != hr {name} / {s:g} = "
+                                    f"{expect.tolist()} (max |diff| {d:.3g} px)", frame=frame, key=lvl,
+                  max_diff=d)
 
 
 def _header_spp(render: dict, part: str) -> int | None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
 
@@ -67,6 +68,21 @@ def summarise(c: Collector, h: dict | None) -> None:
         }
 
 
+@dataclass
+class ClipChecks:
+    """What the per-frame checks of one clip share: its manifest and parsed header (``check_header``), the render
+    settings they depend on, the level camera's report, the exposure, and the HR depth ratios found so far."""
+    manifest: dict
+    h: dict
+    render: dict
+    env_bg: bool  # the G-buffer pass sees the environment as emission: L_D = 0 on the sky at LR
+    lr_denoised: bool
+    level_cam: dict | None
+    exposure: object
+    derived_hr_depth: str | None  # an imported NSS capture's: interpolated, not data
+    ratios: dict[int, float] = field(default_factory=dict)
+
+
 def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool) -> None:
     """All checks of the clip into ``c``: manifest and frames once, then per selected frame its record and, per
     level, its files, the per-buffer value checks (``check_values``) and the motion checks."""
@@ -78,21 +94,14 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
         return
     finished = check_frames(c, h)
     render = manifest.get("render") if isinstance(manifest.get("render"), dict) else {}
-    env_bg = isinstance(render.get("gbuffer"), dict) and render["gbuffer"].get("emission_background") == "environment"
-    lr_denoised = isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise"))
-    level_cam = level_report(manifest)
-    exposure = check_exposure(c, manifest)
     imported = manifest.get("imported") if isinstance(manifest.get("imported"), dict) else {}
-    derived_hr_depth = imported.get("hr_depth")  # an imported NSS capture's: interpolated, not data
-    ratios: dict[int, float] = {}
-    if frames is not None:
-        wanted = set(int(f) for f in frames)
-        selected = [f for f in finished if f in wanted]
-        if not selected and finished:
-            raise BlendSRError(f"{c.root}: none of the selected frames is a finished frame of this clip "
-                             f"(finished: {finished[0]}..{finished[-1]})")
-    else:
-        selected = finished
+    k = ClipChecks(manifest, h, render,
+                   env_bg=isinstance(render.get("gbuffer"), dict)
+                   and render["gbuffer"].get("emission_background") == "environment",
+                   lr_denoised=isinstance(render.get("lr"), dict) and bool(render["lr"].get("denoise")),
+                   level_cam=level_report(manifest), exposure=check_exposure(c, manifest),
+                   derived_hr_depth=imported.get("hr_depth"))
+    selected = _selected(c, finished, frames)
     full = set(selected) if not quick else ({selected[0], selected[-1]} if selected else set())
     bar = None
     if progress and len(selected) > 3:
@@ -100,50 +109,74 @@ def run(c: Collector, frames: Iterable[int] | None, quick: bool, progress: bool)
         bar = tqdm(total=len(selected), desc="validate", unit="frame", file=sys.stderr, leave=False)
     try:
         for f in selected:
-            cams = check_record(c, f, h["frame_data"][f], h)
-            check_against_header(c, f, h["frame_data"][f], h, render, h["frame_data"].get(f - 1))
-            per = {}
-            for lvl in h["sizes"]:
-                b = read_level(c, f, lvl, h, header_only=f not in full)
-                if f not in full:
-                    continue
-                surface = check_values(c, f, lvl, b)
-                check_black_frame(c, f, lvl, b)
-                if lvl == "hr":
-                    check_empty_frame(c, f, b)
-                    check_exposed_frame(c, f, b, exposure, manifest, h["frame_data"][f])
-                    r = depth_ratio(b)
-                    if r is not None:
-                        ratios[f] = r
-                if lvl == "hr" and level_cam is not None:
-                    view = check_level_view(c, f, b, level_cam)
-                    if view:
-                        c.stats.setdefault("camera_view", {})[str(f)] = view
-                if env_bg and lvl != "hr" and not lr_denoised:  # point-sampled, not denoised: L_D = 0 on the sky
-                    check_background_emission(c, f, lvl, b, surface)
-                # an imported clip's HR depth is not data (NSS has none): its HR motion cannot be reprojected
-                mst = {} if lvl == "hr" and derived_hr_depth else check_motion(c, f, lvl, b, cams.get(lvl), surface)
-                check_motion_next(c, f, lvl, b, cams.get(lvl), h["frame_data"][f].get(lvl), surface)
-                accumulate(c, lvl, b, surface, mst)
-                if mst:
-                    per[lvl] = mst
-            if per:
-                c.stats["per_frame"][str(f)] = per
-            c.stats["frames_checked"] += 1
-            c.stats["frames_value_checked"] += int(f in full)
+            _check_frame(c, k, f, f in full)
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    if derived_hr_depth and full:
+    if k.derived_hr_depth and full:
         c.add("motion-unchecked", f"hr/motion is not checked against reprojection: hr/depth is "
-                                  f"{derived_hr_depth} (the imported capture holds no HR depth)", key="hr/motion",
+                                  f"{k.derived_hr_depth} (the imported capture holds no HR depth)", key="hr/motion",
               severity=WARNING)
-    if level_cam is not None:
-        check_level_motion(c, selected, h["frame_data"], level_cam)
-    check_flat_views(c, ratios)
+    if k.level_cam is not None:
+        check_level_motion(c, selected, h["frame_data"], k.level_cam)
+    check_flat_views(c, k.ratios)
     summarise(c, h)
+
+
+def _selected(c: Collector, finished: list[int], frames: Iterable[int] | None) -> list[int]:
+    """The finished frames among ``frames`` (None: all); BlendSRError when ``frames`` holds none of them."""
+    if frames is None:
+        return finished
+    wanted = set(int(f) for f in frames)
+    selected = [f for f in finished if f in wanted]
+    if not selected and finished:
+        raise BlendSRError(f"{c.root}: none of the selected frames is a finished frame of this clip "
+                           f"(finished: {finished[0]}..{finished[-1]})")
+    return selected
+
+
+def _check_frame(c: Collector, k: ClipChecks, f: int, full: bool) -> None:
+    """One frame: its record, then per level its files (headers only unless ``full``) and, when ``full``, the
+    value, view and motion checks."""
+    h = k.h
+    cams = check_record(c, f, h["frame_data"][f], h)
+    check_against_header(c, f, h["frame_data"][f], h, k.render, h["frame_data"].get(f - 1))
+    per = {}
+    for lvl in h["sizes"]:
+        b = read_level(c, f, lvl, h, header_only=not full)
+        if full:
+            mst = _check_level_values(c, k, f, lvl, b, cams.get(lvl))
+            if mst:
+                per[lvl] = mst
+    if per:
+        c.stats["per_frame"][str(f)] = per
+    c.stats["frames_checked"] += 1
+    c.stats["frames_value_checked"] += int(full)
+
+
+def _check_level_values(c: Collector, k: ClipChecks, f: int, lvl: str, b: dict, cam: dict | None) -> dict:
+    """One frame and level's values, usable view and motion (statistics accumulated); the motion statistics."""
+    surface = check_values(c, f, lvl, b)
+    check_black_frame(c, f, lvl, b)
+    if lvl == "hr":
+        check_empty_frame(c, f, b)
+        check_exposed_frame(c, f, b, k.exposure, k.manifest, k.h["frame_data"][f])
+        r = depth_ratio(b)
+        if r is not None:
+            k.ratios[f] = r
+        if k.level_cam is not None:
+            view = check_level_view(c, f, b, k.level_cam)
+            if view:
+                c.stats.setdefault("camera_view", {})[str(f)] = view
+    if k.env_bg and lvl != "hr" and not k.lr_denoised:  # point-sampled, not denoised: L_D = 0 on the sky
+        check_background_emission(c, f, lvl, b, surface)
+    # an imported clip's HR depth is not data (NSS has none): its HR motion cannot be reprojected
+    mst = {} if lvl == "hr" and k.derived_hr_depth else check_motion(c, f, lvl, b, cam, surface)
+    check_motion_next(c, f, lvl, b, cam, k.h["frame_data"][f].get(lvl), surface)
+    accumulate(c, lvl, b, surface, mst)
+    return mst
 
 
 def validate_clip(path: str | Path, *, frames: Iterable[int] | None = None, quick: bool = False,
