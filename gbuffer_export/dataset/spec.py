@@ -704,50 +704,10 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
     for src in spec.sources:
         if src.kind == "scene":
             jobs += _expand_scene(src, spec, base, levels)
-            continue
-        hdris = find_hdris(src.environment, base, spec.path, src.name)
-        if src.kind == "builtin":
-            for s in range(src.seeds[0], src.seeds[1] + 1):
-                scene_id = f"builtin:{s}"
-                cid = f"{src.name}-s{s:04d}"
-                seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
-                rng = _draw(seed)
-                jobs.append(ClipJob(
-                    id=cid, source=src.name, kind="builtin", scene_id=scene_id,
-                    split=assign_split(scene_id, spec.splits, src.split, spec.seed, spec_path=spec.path,
-                                       source=src.name), seed=s,
-                    render=src.render.to_json(), camera=rng.choice(src.cameras),
-                    hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
-                    hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
-                    props=list(src.props) or None,
-                    licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
-                props = [builtin_family(p) for p in src.props]
-                _hold(jobs[-1], spec, [hdri_family(jobs[-1].hdri), *props], [*map(hdri_family, hdris), *props])
-            continue
-        assets = find_assets(src, base, spec.path)
-        split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
-                                         source=src.name, family=f"asset:{a.stem}") for a in assets}
-        for a in assets:
-            lic = dict(read_asset_licence(a))
-            if a.stem in src.licence:
-                lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
-            same_split = [b for b in assets if b != a and split_of[b.stem] == split_of[a.stem]]
-            for k in range(src.clips_per_asset):
-                cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
-                seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
-                rng = _draw(seed)
-                n_clutter = rng.randint(0, min(src.clutter, len(same_split))) if src.clutter else 0
-                clutter = sorted(rng.sample(same_split, n_clutter), key=lambda p: p.stem) if n_clutter else []
-                jobs.append(ClipJob(
-                    id=cid, source=src.name, kind="assets", scene_id=a.stem, split=split_of[a.stem], seed=seed,
-                    render=src.render.to_json(), camera=rng.choice(src.cameras), asset=str(a),
-                    clutter=[str(c) for c in clutter], hdri=rng.choice(hdris),
-                    hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
-                    hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
-                    target_size_m=src.target_size_m, licence=lic))
-                mine = [f"asset:{a.stem}", *(f"asset:{c.stem}" for c in clutter), hdri_family(jobs[-1].hdri)]
-                could = [f"asset:{b.stem}" for b in same_split] if src.clutter else []
-                _hold(jobs[-1], spec, mine, [*mine, *could, *map(hdri_family, hdris)])
+        elif src.kind == "builtin":
+            jobs += _expand_builtin(src, spec, find_hdris(src.environment, base, spec.path, src.name))
+        else:
+            jobs += _expand_assets(src, spec, base, find_hdris(src.environment, base, spec.path, src.name))
     counts = Counter(j.id for j in jobs)
     dup = sorted(i for i, n in counts.items() if n > 1)
     if dup:
@@ -758,6 +718,58 @@ def expand(spec: DatasetSpec) -> list[ClipJob]:
         if lost:
             raise SpecError(f"{spec.path}: splits.{key}: {', '.join(lost)} held by no clip of the spec (held out "
                             "but never measured: a typo, or no source draws it)", key=f"splits.{key}")
+    return jobs
+
+
+def _expand_builtin(src: Source, spec: DatasetSpec, hdris: list) -> list[ClipJob]:
+    """A built-in source's clips: one per seed, its camera, HDRI and strength drawn from the clip's own stream."""
+    jobs = []
+    for s in range(src.seeds[0], src.seeds[1] + 1):
+        scene_id = f"builtin:{s}"
+        cid = f"{src.name}-s{s:04d}"
+        rng = _draw(stable_hash("clip", spec.seed, cid) % (2 ** 31))
+        jobs.append(ClipJob(
+            id=cid, source=src.name, kind="builtin", scene_id=scene_id,
+            split=assign_split(scene_id, spec.splits, src.split, spec.seed, spec_path=spec.path,
+                               source=src.name), seed=s,
+            render=src.render.to_json(), camera=rng.choice(src.cameras),
+            hdri=rng.choice(hdris), hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
+            hdri_strength=round(_loguniform(rng, *src.environment.strength), 4), sun=src.sun,
+            props=list(src.props) or None,
+            licence={"licence": "MIT (BlendSR built-in scene)", "attribution": "BlendSR built-in scene"}))
+        props = [builtin_family(p) for p in src.props]
+        _hold(jobs[-1], spec, [hdri_family(jobs[-1].hdri), *props], [*map(hdri_family, hdris), *props])
+    return jobs
+
+
+def _expand_assets(src: Source, spec: DatasetSpec, base, hdris: list) -> list[ClipJob]:
+    """An assets source's clips: ``clips_per_asset`` per asset, each with clutter of the same split drawn from the
+    clip's own stream (held-out objects are never train clutter), its camera, HDRI and strength."""
+    jobs = []
+    assets = find_assets(src, base, spec.path)
+    split_of = {a.stem: assign_split(a.stem, spec.splits, src.split, spec.seed, spec_path=spec.path,
+                                     source=src.name, family=f"asset:{a.stem}") for a in assets}
+    for a in assets:
+        lic = dict(read_asset_licence(a))
+        if a.stem in src.licence:
+            lic.update({k: str(v) for k, v in src.licence[a.stem].items()})
+        same_split = [b for b in assets if b != a and split_of[b.stem] == split_of[a.stem]]
+        for k in range(src.clips_per_asset):
+            cid = f"{src.name}-{_slug(a.stem)}-{k:02d}"
+            seed = stable_hash("clip", spec.seed, cid) % (2 ** 31)
+            rng = _draw(seed)
+            n_clutter = rng.randint(0, min(src.clutter, len(same_split))) if src.clutter else 0
+            clutter = sorted(rng.sample(same_split, n_clutter), key=lambda p: p.stem) if n_clutter else []
+            jobs.append(ClipJob(
+                id=cid, source=src.name, kind="assets", scene_id=a.stem, split=split_of[a.stem], seed=seed,
+                render=src.render.to_json(), camera=rng.choice(src.cameras), asset=str(a),
+                clutter=[str(c) for c in clutter], hdri=rng.choice(hdris),
+                hdri_rotation_deg=round(rng.uniform(0.0, 360.0), 3),
+                hdri_strength=round(_loguniform(rng, *src.environment.strength), 4),
+                target_size_m=src.target_size_m, licence=lic))
+            mine = [f"asset:{a.stem}", *(f"asset:{c.stem}" for c in clutter), hdri_family(jobs[-1].hdri)]
+            could = [f"asset:{b.stem}" for b in same_split] if src.clutter else []
+            _hold(jobs[-1], spec, mine, [*mine, *could, *map(hdri_family, hdris)])
     return jobs
 
 
