@@ -110,62 +110,22 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
     ``look``: lighting, filtering, declared colour space and camera (``SyntheticLook``)."""
     from .conventions import halton_jitter
 
-    hr_supersample, scene_linear, light = look.hr_supersample, look.scene_linear, look.light
-    exposure, camera = look.exposure, look.camera
-
     w, h = hr_size
     scales = tuple(float(s) for s in (scales or (scale,)))
     levels = levels_header(hr_size, scales)
     frames = list(frames)
     sizes = {lvl: (v["width"], v["height"]) for lvl, v in levels.items()}
     k_hr = (0.9 * w, 0.9 * w, w / 2, h / 2)
-    header = {
-        "blendsr_version": "synthetic", "blender_version": None,
-        "scene": {"file": None, "sha256": None, "builtin": "synthetic-numpy"},
-        "scale": scale_value(scales[0]), "levels": levels,
-        "frames": frames, "buffers": [b for b in ALL_BUFFERS if b in buffers], "fbeta_source": "synthetic",
-        "scene_linear": scene_linear, "render": {
-            "jitter": "halton" if jitter else "none",
-            # n x n samples spread evenly over each HR pixel: a box filter of 1 px (n = 1: a point sample)
-            "hr": {"pixel_filter": "BOX" if hr_supersample > 1 else "GAUSSIAN",
-                   "filter_width_px": 1.0 if hr_supersample > 1 else 0.01},
-            "lr": {"pixel_filter": "GAUSSIAN", "filter_width_px": 0.01}},
-        "materials": {}, "material_summary": {}, **exposure_header(exposure),
-    }
+    header = _synthetic_header(levels, scales, frames, buffers, jitter, look)
     wr = ClipWriter(path, header)
     for i, f in enumerate(frames):
-        m, m_prev, m_next = camera(f), camera(f - 1), camera(f + 1)
+        m, m_prev, m_next = look.camera(f), look.camera(f - 1), look.camera(f + 1)
         record = {}
         for lvl, (lw, lh) in sizes.items():
             k = scale_intrinsics(k_hr, lw / w)
             jit = halton_jitter(i) if (jitter and lvl != "hr") else (0.0, 0.0)
-            g = trace(lw, lh, k, m)  # G-buffers: un-jittered pixel centres would differ from radiance; use jittered
-            if jit != (0.0, 0.0):
-                g = trace(lw, lh, k, m, jit)
-            if lvl == "hr" and hr_supersample > 1:
-                n = hr_supersample
-                acc = 0
-                for sy in range(n):
-                    for sx in range(n):
-                        acc = acc + trace(lw, lh, k, m, ((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5))["radiance"]
-                radiance = acc / (n * n)
-            else:
-                radiance = g["radiance"]
-            depth = g["depth"]
-            bufs = {
-                "radiance": radiance * light,
-                "albedo": g["albedo"],
-                "normal": world_to_camera_normals(g["normal_world"], m),
-                "depth": depth,
-                "roughness": np.where(np.isfinite(depth), 0.5, 0.0),
-                "metallic": np.zeros_like(depth),
-                "specular": np.where(np.isfinite(depth), 0.04, 0.0),
-                "emission": np.zeros_like(g["albedo"]),
-                "fbeta": np.where(np.isfinite(depth)[..., None], g["albedo"], 1.0),
-                "motion": reprojection_motion(depth, k, m, k, m_prev, jit),
-                "motion_next": reprojection_motion(depth, k, m, k, m_next, jit),
-                "flags": g["flags"],
-            }
+            bufs = _synthetic_buffers((lw, lh), k, (m, m_prev, m_next), jit,
+                                      look.hr_supersample if lvl == "hr" else 1, look.light)
             for b in header["buffers"]:
                 wr.write_buffer(f, lvl, b, bufs[b])
             record[lvl] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k,
@@ -175,3 +135,53 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
         wr.commit_frame(f, record)
     wr.close()
     return Path(path)
+
+
+def _synthetic_header(levels: dict, scales: tuple, frames: list, buffers, jitter: bool, look: SyntheticLook) -> dict:
+    """The manifest header of a synthetic clip (BlendSR's renders write the same keys)."""
+    n = look.hr_supersample
+    return {
+        "blendsr_version": "synthetic", "blender_version": None,
+        "scene": {"file": None, "sha256": None, "builtin": "synthetic-numpy"},
+        "scale": scale_value(scales[0]), "levels": levels,
+        "frames": frames, "buffers": [b for b in ALL_BUFFERS if b in buffers], "fbeta_source": "synthetic",
+        "scene_linear": look.scene_linear, "render": {
+            "jitter": "halton" if jitter else "none",
+            # n x n samples spread evenly over each HR pixel: a box filter of 1 px (n = 1: a point sample)
+            "hr": {"pixel_filter": "BOX" if n > 1 else "GAUSSIAN", "filter_width_px": 1.0 if n > 1 else 0.01},
+            "lr": {"pixel_filter": "GAUSSIAN", "filter_width_px": 0.01}},
+        "materials": {}, "material_summary": {}, **exposure_header(look.exposure),
+    }
+
+
+def _synthetic_buffers(size: tuple[int, int], k, poses: tuple, jit, supersample: int, light: float) -> dict:
+    """Every buffer of one frame and level: ray-traced at the (jittered) pixel centres, the radiance averaged over
+    ``supersample``^2 samples spread evenly over each pixel when above 1; ``poses``: this frame's, the previous and
+    the next world_from_camera."""
+    (lw, lh), (m, m_prev, m_next) = size, poses
+    g = trace(lw, lh, k, m)  # G-buffers: un-jittered pixel centres would differ from radiance; use jittered
+    if jit != (0.0, 0.0):
+        g = trace(lw, lh, k, m, jit)
+    if supersample > 1:
+        n, acc = supersample, 0
+        for sy in range(n):
+            for sx in range(n):
+                acc = acc + trace(lw, lh, k, m, ((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5))["radiance"]
+        radiance = acc / (n * n)
+    else:
+        radiance = g["radiance"]
+    depth = g["depth"]
+    return {
+        "radiance": radiance * light,
+        "albedo": g["albedo"],
+        "normal": world_to_camera_normals(g["normal_world"], m),
+        "depth": depth,
+        "roughness": np.where(np.isfinite(depth), 0.5, 0.0),
+        "metallic": np.zeros_like(depth),
+        "specular": np.where(np.isfinite(depth), 0.04, 0.0),
+        "emission": np.zeros_like(g["albedo"]),
+        "fbeta": np.where(np.isfinite(depth)[..., None], g["albedo"], 1.0),
+        "motion": reprojection_motion(depth, k, m, k, m_prev, jit),
+        "motion_next": reprojection_motion(depth, k, m, k, m_next, jit),
+        "flags": g["flags"],
+    }
