@@ -25,6 +25,12 @@ def add_model_source(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers) -> None:
+    """The train, evaluate, upscale and export commands."""
+    for add in (_register_train, _register_evaluate, _register_upscale, _register_export):
+        add(subparsers)
+
+
+def _register_train(subparsers) -> None:
     p = subparsers.add_parser(
         "train", formatter_class=FMT, help="train a model on exported clips",
         description="Train a super-resolution model on BlendSR clips. Configuration: defaults < --config TOML < "
@@ -48,6 +54,8 @@ def register(subparsers) -> None:
     p.add_argument("--list-models", action="store_true", help="print the model table and exit")
     p.set_defaults(func=cmd_train)
 
+
+def _register_evaluate(subparsers) -> None:
     p = subparsers.add_parser(
         "evaluate", formatter_class=FMT, help="score a model against the HR ground truth",
         description="Evaluate a checkpoint or a non-learned model on clips: PSNR/SSIM on the declared tonemap, "
@@ -82,6 +90,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (one per clip)")
     p.set_defaults(func=cmd_evaluate)
 
+
+def _register_upscale(subparsers) -> None:
     p = subparsers.add_parser(
         "upscale", formatter_class=FMT, help="write the super-resolved EXR sequence of a clip",
         description="Upscale every frame of a clip; writes OUT_DIR/NNNNNN.exr (linear Rec.709 RGB float32) and "
@@ -98,6 +108,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_upscale)
 
+
+def _register_export(subparsers) -> None:
     p = subparsers.add_parser(
         "export", formatter_class=FMT, help="export a model to ONNX and check it against torch",
         description="Export to ONNX (opset 17, dynamic batch/height/width), run it with onnxruntime on the same "
@@ -110,7 +122,6 @@ def register(subparsers) -> None:
     p.add_argument("--hr-size", default="128x72", metavar="WxH", help="HR size of random example inputs")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset")
     p.set_defaults(func=cmd_export)
-
 
 #: ``--path``'s choices (``training.inference.fastpath.PATH_CHOICES``; written here: the CLI imports no torch to register)
 PATH_CHOICES = ("auto", "reference", "fast", "fused", "graph")
