@@ -25,6 +25,20 @@ def test_bench_loader_reports_load_and_step_times(tmp_path):
     assert res["ratio"] == pytest.approx(res["load_ms_median"] / res["step_ms_median"])
 
 
+def test_bench_loader_refuses_clips_of_two_scales_and_a_crop_larger_than_a_frame(tmp_path):
+    pytest.importorskip("torch")
+    from gbuffer_export.errors import BlendSRError
+    from training.commands import bench_loader
+    x4 = make_synthetic_clip(tmp_path / "x4", frames=range(1, 3), hr_size=(64, 36), scale=4)
+    x2 = make_synthetic_clip(tmp_path / "x2", frames=range(1, 3), hr_size=(64, 36), scale=2)
+    p = argparse.ArgumentParser()
+    bench_loader.add_arguments(p)
+    with pytest.raises(BlendSRError, match=r"x2: scale 2 differs from .*x4's 4; benchmark clips of one scale"):
+        bench_loader.run(p.parse_args(["--data", str(x4), str(x2), "--crop", "4", "--threads", "1"]))
+    with pytest.raises(BlendSRError, match=r"x4: LR size 16x9 is smaller than --crop 12; pass --crop 9 or less"):
+        bench_loader.run(p.parse_args(["--data", str(x4), "--crop", "12", "--threads", "1"]))
+
+
 def test_command_modules_do_not_import_torch():
     code = ("import sys, argparse\n"
             "import training.commands.cli, training.commands.bench_loader, training.commands.bench_models, training.config\n"

@@ -61,24 +61,21 @@ def _time_loader(sampler, args, device) -> tuple[list[float], float]:
 
 
 def run(args) -> int:
-    from gbuffer_export.errors import BlendSRError
     from gbuffer_export.extras import require
     require("blendsr bench loader", "train")
     import torch
 
+    from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
-    from training.cache import ClipCache
-    from training.config import DataConfig, LossConfig, ModelConfig
+    from training.commands.cli import refuse_dataset
+    from training.config import DataConfig, ModelConfig
     from training.data import BatchSpec, TrainSampler
-    from training.losses import Criterion
+    from training.device import amp_dtype, resolve_device, set_threads
     from training.models import build_model
-    from training.device import amp_dtype, autocast, resolve_device, set_threads
-    from training.trainer import to_device
 
     set_threads(args.threads)
     tmp = None
     clips = list(args.data)
-    from training.commands.cli import refuse_dataset
     for c in clips:
         refuse_dataset(c, "--data")
     if not clips:
@@ -88,19 +85,13 @@ def run(args) -> int:
                                          scale=4, look=SyntheticLook(hr_supersample=1)))]
         print(f"synthetic clip 512x288 x4, 8 frames written in {time.perf_counter() - t:.1f} s")
     try:
-        scales = {ClipCache(c).scale for c in clips}
-        scale = scales.pop()
+        caches = _caches(clips, args.crop)
+        scale = caches[0].scale
         model = build_model(ModelConfig(name=args.model), scale)
         data = DataConfig()  # the training defaults' augmentations
         spec = BatchSpec.for_model(model, crop=args.crop, flip=True, rotate=True,
                                    exposure_range=tuple(data.exposure_range),
                                    reflectance_range=tuple(data.reflectance_range))
-        caches = [ClipCache(c) for c in clips]
-        for c in caches:  # this command's flag, not the training configuration's key
-            w, h = c.sizes["lr"]
-            if args.crop > min(w, h):
-                raise BlendSRError(f"{c.clip_path}: LR size {w}x{h} is smaller than --crop {args.crop}; pass "
-                                   f"--crop {min(w, h)} or less")
         t = time.perf_counter()
         for c in caches:
             c.ensure(spec.cache_keys)
@@ -108,28 +99,8 @@ def run(args) -> int:
         sampler = TrainSampler(caches, spec, args.batch, seed=0)
         device = resolve_device(args.device)
         load_ms, loader_sps = _time_loader(sampler, args, device)
-        model.fast_ops = True  # as in training
-        model.to(device)
-        crit = Criterion(LossConfig()).to(device)
-        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
         dtype = amp_dtype(args.amp, device)
-        step_ms = []
-        for k in range(args.steps + 1):
-            batch, _ = sampler.batch(1000 + k)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            t = time.perf_counter()
-            tb = to_device(batch, device)
-            with autocast(device, dtype):
-                sr = model(tb).float()
-            loss, _ = crit(sr, tb["hr/radiance"][:, -1])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            if k:
-                step_ms.append(1000 * (time.perf_counter() - t))
+        step_ms = _time_steps(model, sampler, args, device, dtype)
         res = {"model": args.model, "batch": args.batch, "crop_lr": args.crop, "scale": scale,
                "threads": torch.get_num_threads(), "amp": str(dtype).replace("torch.", "") if dtype else "none",
                "device": str(device), "workers": args.workers,
@@ -145,8 +116,57 @@ def run(args) -> int:
               f"{res['step_samples_per_s']:.1f} samples/s ({res['step_ms_median']:.0f} ms) -> loader/step "
               f"{res['loader_over_step']:.2f} (cache built in {cache_s:.1f} s)")
         if args.json:
-            Path(args.json).write_text(json.dumps(res, indent=1) + "\n")
+            write_json_atomic(args.json, res)
         return 0
     finally:
         if tmp is not None:
             tmp.cleanup()
+
+
+def _caches(clips: list[str], crop: int) -> list:
+    """The clips' caches; BlendSRError naming the clip when clips differ in scale or an LR frame is smaller than
+    ``crop`` (this command's flag, not the training configuration's key)."""
+    from gbuffer_export.errors import BlendSRError
+    from training.cache import ClipCache
+    caches = [ClipCache(c) for c in clips]
+    for c in caches:
+        if c.scale != caches[0].scale:
+            raise BlendSRError(f"{c.clip_path}: scale {c.scale:g} differs from {caches[0].clip_path}'s "
+                               f"{caches[0].scale:g}; benchmark clips of one scale")
+        w, h = c.sizes["lr"]
+        if crop > min(w, h):
+            raise BlendSRError(f"{c.clip_path}: LR size {w}x{h} is smaller than --crop {crop}; pass "
+                               f"--crop {min(w, h)} or less")
+    return caches
+
+
+def _time_steps(model, sampler, args, device, dtype) -> list[float]:
+    """Milliseconds of each of ``args.steps`` training steps (forward, loss, backward, Adam) after one untimed."""
+    import torch
+
+    from training.config import LossConfig
+    from training.device import autocast
+    from training.losses import Criterion
+    from training.trainer import to_device
+    model.fast_ops = True  # as in training
+    model.to(device)
+    crit = Criterion(LossConfig()).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    step_ms = []
+    for k in range(args.steps + 1):
+        batch, _ = sampler.batch(1000 + k)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t = time.perf_counter()
+        tb = to_device(batch, device)
+        with autocast(device, dtype):
+            sr = model(tb).float()
+        loss, _ = crit(sr, tb["hr/radiance"][:, -1])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        if k:
+            step_ms.append(1000 * (time.perf_counter() - t))
+    return step_ms
