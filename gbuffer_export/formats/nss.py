@@ -505,57 +505,69 @@ def nss_to_clip(root, seq: str | int, out) -> Path:
     names = sorted(ratios, key=ratio_value)
     scales = [ratio_value(r) for r in names]
     w, h = meta["TargetResolution"]["X"], meta["TargetResolution"]["Y"]
-    levels = levels_header((w, h), scales)
+    header = _nss_header(root, seq, meta, levels_header((w, h), scales))
+    cuts = header["imported"]["camera_cuts"]
+    prev = None
+    with ClipWriter(out, header) as wr:
+        for j in header["frames"]:
+            fr = _exposed_frame(root, seq, j, meta)
+            record = {}
+            cam = (fr["world_from_camera"], fr["intrinsics"])
+            cut = j in cuts
+            pcam = cam if cut else prev
+            for lvl, info in header["levels"].items():
+                f = info["width"] / w
+                bufs, jit = _level_buffers(fr, lvl, info, names, scales, (w, h))
+                if cut:  # nothing before it in the sequence: no motion (the previous camera is its own)
+                    bufs["motion"] = np.zeros_like(bufs["motion"])
+                for b, arr in bufs.items():
+                    wr.write_buffer(j, lvl, b, arr)
+                record[lvl] = {"world_from_camera": cam[0], "prev_world_from_camera": pcam[0],
+                               "intrinsics": tuple(v * f for v in cam[1]),
+                               "prev_intrinsics": tuple(v * f for v in pcam[1]), "jitter": [float(x) for x in jit],
+                               "spp": 1, "seed": 0, "seconds": {}}
+            wr.commit_frame(j, record)
+            prev = cam
+    return Path(out)
+
+
+def _nss_header(root: Path, seq, meta: dict, levels: dict) -> dict:
+    """The manifest header of an imported NSS sequence: its levels, frames, the buffers NSS holds, its camera cuts
+    (the first frame and every ``CameraCut``) and where it came from."""
     frames = list(range(len(meta["Frames"])))
-    cuts = [j for j in frames if j == 0 or meta["Frames"][j].get("CameraCut") is True]
     samples = meta.get("Samples")
-    header = {
+    return {
         "blendsr_version": "imported-nss", "blender_version": None,
         "scene": {"file": None, "sha256": None, "builtin": None, "nss": str(root), "sequence": str(seq)},
-        "scale": scale_value(scales[0]), "levels": levels, "frames": frames,
+        "scale": scale_value(levels["lr"]["scale"]), "levels": levels, "frames": frames,
         "buffers": ["radiance", "depth", "motion"], "fbeta_source": None, "scene_linear": NSS_SPACE,
         "render": {"jitter": "halton" if isinstance(samples, dict) and samples.get("Sequence", "None") != "None"
                    else "none",
                    "hr": {}, "lr": {}},
         "materials": {}, "material_summary": {},
         "imported": {"format": "nss", "version": meta.get("Version"), "hr_depth": "interpolated-from-lr",
-                     "camera_cuts": cuts},
+                     "camera_cuts": [j for j in frames if j == 0 or meta["Frames"][j].get("CameraCut") is True]},
     }
-    wr = ClipWriter(out, header)
-    prev = None
-    for j in frames:
-        fr = read_frame(root, seq, j, meta)
-        exposure = meta["Frames"][j].get("Exposure", 1.0)
-        if isinstance(exposure, bool) or not isinstance(exposure, (int, float)) or not 0 < exposure < float("inf"):
-            raise NssError(f"{root / f'{int(seq):04d}.json' if not isinstance(seq, str) else root / f'{seq}.json'}: "
-                           f"Frames[{j}].Exposure {exposure!r} is not a positive number")
-        fr = {k: a * np.float32(exposure) if k.endswith("/radiance") else a for k, a in fr.items()}
-        record = {}
-        cam = (fr["world_from_camera"], fr["intrinsics"])
-        cut = j in cuts
-        pcam = cam if cut else prev
-        for lvl, info in levels.items():
-            lw, lh = info["width"], info["height"]
-            f = lw / w
-            if lvl == "hr":
-                bufs = {"radiance": fr["hr/radiance"], "motion": fr["hr/motion"],
-                        "depth": upsample_depth(fr[f"{names[0]}/depth"], fr[f"{names[0]}/jitter"], (w, h))}
-                jit = (0.0, 0.0)
-            else:
-                r = names[scales.index(info["scale"])]
-                bufs = {b: fr[f"{r}/{b}"] for b in ("radiance", "depth", "motion")}
-                jit = fr[f"{r}/jitter"]
-            if cut:  # nothing before it in the sequence: no motion (the previous camera is its own)
-                bufs["motion"] = np.zeros_like(bufs["motion"])
-            for b, a in bufs.items():
-                wr.write_buffer(j, lvl, b, a)
-            k = tuple(v * f for v in cam[1])
-            record[lvl] = {"world_from_camera": cam[0], "prev_world_from_camera": pcam[0], "intrinsics": k,
-                           "prev_intrinsics": tuple(v * f for v in pcam[1]), "jitter": [float(x) for x in jit],
-                           "spp": 1, "seed": 0, "seconds": {}}
-        wr.commit_frame(j, record)
-        prev = cam
-    return Path(out)
+
+
+def _exposed_frame(root: Path, seq, j: int, meta: dict) -> dict:
+    """Frame ``j``'s arrays with its ``Exposure`` (default 1) applied to every radiance; NssError when the exposure
+    is not a positive number."""
+    fr = read_frame(root, seq, j, meta)
+    exposure = meta["Frames"][j].get("Exposure", 1.0)
+    if isinstance(exposure, bool) or not isinstance(exposure, (int, float)) or not 0 < exposure < float("inf"):
+        raise NssError(f"{root / f'{int(seq):04d}.json' if not isinstance(seq, str) else root / f'{seq}.json'}: "
+                       f"Frames[{j}].Exposure {exposure!r} is not a positive number")
+    return {k: a * np.float32(exposure) if k.endswith("/radiance") else a for k, a in fr.items()}
+
+
+def _level_buffers(fr: dict, lvl: str, info: dict, names: list[str], scales: list[float], hr_size) -> tuple:
+    """One level's radiance, depth and motion, and its jitter: HR depth interpolated from the first LR level's."""
+    if lvl == "hr":
+        return {"radiance": fr["hr/radiance"], "motion": fr["hr/motion"],
+                "depth": upsample_depth(fr[f"{names[0]}/depth"], fr[f"{names[0]}/jitter"], hr_size)}, (0.0, 0.0)
+    r = names[scales.index(info["scale"])]
+    return {b: fr[f"{r}/{b}"] for b in ("radiance", "depth", "motion")}, fr[f"{r}/jitter"]
 
 
 __all__ = ["export_nss", "export_clip", "export_sequence", "check_clip", "frame_runs", "read_frame",
