@@ -583,13 +583,7 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
     root.mkdir(parents=True, exist_ok=True)
     lock = FolderLock(root, "another 'blendsr dataset' is running on this folder")
     try:
-        remove_stale_temporaries(root)
-        for j in jobs:  # nothing is rendered, logged or written through a link out of the dataset folder
-            for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
-                check_no_links(root, root / sub)
-            jp = root / "jobs" / f"{j.id}.json"
-            if not jp.is_file() or json.loads(jp.read_text()) != j.to_json():
-                write_json_atomic(jp, j.to_json())
+        _prepare_folder(root, jobs)
         index = make_index(spec, jobs, root, old, opts)
         write_json_atomic(root / INDEX, index)
         todo = clips_to_render(jobs, index, opts)
@@ -600,52 +594,8 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
               f"({opts.executor}, " + (f"{opts.workers} workers, {threads} threads each)" if opts.executor == "local"
                                        else f"{threads} thread(s) and CPU(s) per task, as many tasks at once as "
                                             f"the cluster has CPUs)"))
-        by_id = {e["id"]: e for e in index["clips"]}
-        mutex = threading.Lock()
-        bar = None
-        if opts.progress and todo:
-            from tqdm import tqdm
-            bar = tqdm(total=len(todo), desc="dataset", unit="clip", file=sys.stderr, dynamic_ncols=True)
-
-        def on_done(job: ClipJob, rc: int, err: str) -> None:
-            with mutex:
-                e = by_id[job.id]
-                state, n = clip_state(root / "clips" / job.id, job.render["frames"])
-                e.update(state=state if rc == 0 else ("failed" if state != "done" else state), frames_done=n)
-                if rc != 0 and state != "done":
-                    e["error"] = err or f"worker exited with code {rc}"
-                else:
-                    e.pop("error", None)
-                e.pop("invalid", None)
-                problem = quick_check(root / "clips" / job.id) if e["state"] == "done" else ""
-                if problem:
-                    e["invalid"] = problem
-                write_json_atomic(root / INDEX, index)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(last=job.id[-24:], failed=sum(c["state"] == "failed" for c in index["clips"]))
-
-        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-
-        def run_one(job: ClipJob, slot: int):
-            cpu = cores[slot % len(cores)] if threads == 1 and cores else None  # one core per worker slot
-            return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
-                                   str(root / "logs" / f"{job.id}.log"), threads, cpu, opts.device,
-                                   opts.blender)
-
         t0 = time.perf_counter()
-        try:
-            if opts.executor == "local":
-                _local_map(todo, run_one, opts.workers, on_done)
-            else:
-                _ray_map(todo, root, threads, opts.address, on_done, explicit=bool(opts.threads),
-                         device=opts.device)
-        except KeyboardInterrupt:  # Ctrl-C: the clip processes are stopped; the index says what is left
-            _record_states(root, jobs, index)
-            raise
-        finally:
-            if bar is not None:
-                bar.close()
+        _render_todo(root, jobs, index, todo, opts)
         index["last_run"] = {"executor": opts.executor, "workers": opts.workers, "threads": threads,
                              "clips_rendered": len(todo), "seconds": round(time.perf_counter() - t0, 1),
                              **({"selection": {"clips": list(opts.clips), "splits": list(opts.splits)}}
@@ -654,6 +604,73 @@ def build_dataset(spec: DatasetSpec, out: str | os.PathLike, opts: RunOptions = 
         return index
     finally:
         lock.close()
+
+
+def _prepare_folder(root: Path, jobs: list[ClipJob]) -> None:
+    """Remove stale temporaries, refuse links out of the folder (nothing is rendered, logged or written through
+    one) and write each clip's job file where it changed."""
+    remove_stale_temporaries(root)
+    for j in jobs:
+        for sub in (f"clips/{j.id}", f"jobs/{j.id}.json", f"logs/{j.id}.log"):
+            check_no_links(root, root / sub)
+        jp = root / "jobs" / f"{j.id}.json"
+        if not jp.is_file() or json.loads(jp.read_text()) != j.to_json():
+            write_json_atomic(jp, j.to_json())
+
+
+def _render_todo(root: Path, jobs: list[ClipJob], index: dict, todo: list[ClipJob], opts: RunOptions) -> None:
+    """Render ``todo`` with the executor ``opts`` names, the index updated (and written) as each clip ends; on
+    Ctrl-C the clip processes are stopped and the index says what is left."""
+    threads = opts.clip_threads()
+    bar = None
+    if opts.progress and todo:
+        from tqdm import tqdm
+        bar = tqdm(total=len(todo), desc="dataset", unit="clip", file=sys.stderr, dynamic_ncols=True)
+    on_done = _index_updater(root, index, bar)
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+
+    def run_one(job: ClipJob, slot: int):
+        cpu = cores[slot % len(cores)] if threads == 1 and cores else None  # one core per worker slot
+        return run_job_process(str(root / "jobs" / f"{job.id}.json"), str(root / "clips" / job.id),
+                               str(root / "logs" / f"{job.id}.log"), threads, cpu, opts.device,
+                               opts.blender)
+    try:
+        if opts.executor == "local":
+            _local_map(todo, run_one, opts.workers, on_done)
+        else:
+            _ray_map(todo, root, threads, opts.address, on_done, explicit=bool(opts.threads), device=opts.device)
+    except KeyboardInterrupt:
+        _record_states(root, jobs, index)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _index_updater(root: Path, index: dict, bar):
+    """``on_done(job, rc, err)``: the clip's state, frames and error (a failed worker's message) and its quick check
+    into ``index``, written atomically; thread-safe (the executors call it from their threads)."""
+    by_id = {e["id"]: e for e in index["clips"]}
+    mutex = threading.Lock()
+
+    def on_done(job: ClipJob, rc: int, err: str) -> None:
+        with mutex:
+            e = by_id[job.id]
+            state, n = clip_state(root / "clips" / job.id, job.render["frames"])
+            e.update(state=state if rc == 0 else ("failed" if state != "done" else state), frames_done=n)
+            if rc != 0 and state != "done":
+                e["error"] = err or f"worker exited with code {rc}"
+            else:
+                e.pop("error", None)
+            e.pop("invalid", None)
+            problem = quick_check(root / "clips" / job.id) if e["state"] == "done" else ""
+            if problem:
+                e["invalid"] = problem
+            write_json_atomic(root / INDEX, index)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(last=job.id[-24:], failed=sum(c["state"] == "failed" for c in index["clips"]))
+    return on_done
 
 
 def _record_states(root: Path, jobs: list[ClipJob], index: dict) -> None:
