@@ -22,8 +22,30 @@ def courtyard(scene, mats, rng) -> None:
     floor = add_object(scene, "Floor", bm, mats["floor"])
     floor[GROUND_PROPERTY] = True
 
-    # Picket fence along y = 1.6 from x = -2.8 to 0.8, wire-mesh panel from 0.8 to 2.8.
     fy = 1.6
+    _fence(scene, mats, fy)
+    _string_lights(scene, mats, fy)
+    _sign(scene, mats, fy)
+
+    # Brick wall on the left.
+    bm = bmesh.new()
+    box(bm, (0.0, 0.0, 0.0), (0.25, 4.6, 1.8))
+    add_object(scene, "Brick Wall", bm, mats["brick"], location=(-3.1, -0.65, 0.9))
+
+    # Terracotta pot with a boxwood ball in front of the wire panel.
+    pot = [(0.0, 0.0), (0.17, 0.0), (0.24, 0.38), (0.26, 0.40), (0.26, 0.43), (0.22, 0.43), (0.0, 0.36)]
+    bm = bmesh.new()
+    lathe(bm, pot, segments=40)
+    px = 1.9 + rng.uniform(-0.15, 0.15)
+    add_object(scene, "Terracotta Pot", bm, mats["terracotta"], location=(px, 1.05, 0.0))
+    bm = bmesh.new()
+    sphere(bm, (0.0, 0.0, 0.0), 0.3, 40, 20)
+    add_object(scene, "Shrub", bm, mats["boxwood"], location=(px, 1.05, 0.62))
+
+
+def _fence(scene, mats, fy: float) -> None:
+    """The picket fence along y = ``fy`` from x = -2.8 to 0.8 (pickets, rails, posts) and the wire-mesh panel from
+    0.8 to 2.8."""
     bm = bmesh.new()
     w, h = 0.045, 1.05
     for k, x in enumerate(np.arange(-2.75, 0.76, 0.085)):
@@ -46,7 +68,9 @@ def courtyard(scene, mats, rng) -> None:
         tube(bm, np.array([[x, fy - 0.004, 0.08], [x, fy - 0.004, 1.12]]), 0.0018, 5)
     add_object(scene, "Wire Mesh", bm, mats["wire"])
 
-    # String lights: a sagging wire over the fence with small emissive bulbs.
+
+def _string_lights(scene, mats, fy: float) -> None:
+    """A sagging wire over the fence with small emissive bulbs."""
     p0, p1 = np.array([-2.85, fy - 0.05, 1.42]), np.array([2.85, fy - 0.05, 1.42])
     pts = catenary(p0, p1, 0.16, 64)
     bm = bmesh.new()
@@ -58,7 +82,9 @@ def courtyard(scene, mats, rng) -> None:
         sphere(bm, (p[0], p[1], p[2] - 0.035), 0.018, 12, 8)
     add_object(scene, "Light Bulbs", bm, mats["bulb"])
 
-    # Painted sign with text on the fence.
+
+def _sign(scene, mats, fy: float) -> None:
+    """A painted board with three lines of text on the fence."""
     bm = bmesh.new()
     box(bm, (0.0, 0.0, 0.0), (1.22, 0.02, 0.34))
     add_object(scene, "Sign Board", bm, mats["sign"], location=(-1.3, fy - 0.035, 0.8))
@@ -66,24 +92,20 @@ def courtyard(scene, mats, rng) -> None:
                  "no. 17  -  courtyard entrance  -  please close the gate", 0.052, mats["letters"],
                  location=(-1.3, fy - 0.046, 0.81), rotation=(math.pi / 2, 0.0, 0.0))
 
-    # Brick wall on the left.
-    bm = bmesh.new()
-    box(bm, (0.0, 0.0, 0.0), (0.25, 4.6, 1.8))
-    add_object(scene, "Brick Wall", bm, mats["brick"], location=(-3.1, -0.65, 0.9))
-
-    # Terracotta pot with a boxwood ball in front of the wire panel.
-    pot = [(0.0, 0.0), (0.17, 0.0), (0.24, 0.38), (0.26, 0.40), (0.26, 0.43), (0.22, 0.43), (0.0, 0.36)]
-    bm = bmesh.new()
-    lathe(bm, pot, segments=40)
-    px = 1.9 + rng.uniform(-0.15, 0.15)
-    add_object(scene, "Terracotta Pot", bm, mats["terracotta"], location=(px, 1.05, 0.0))
-    bm = bmesh.new()
-    sphere(bm, (0.0, 0.0, 0.0), 0.3, 40, 20)
-    add_object(scene, "Shrub", bm, mats["boxwood"], location=(px, 1.05, 0.62))
-
 
 def table_and_props(scene, mats, rng) -> None:
-    """The table (top at ``TABLE_TOP_Z``) and the props on it, each moved and turned a little by ``rng``."""
+    """The table (top at ``TABLE_TOP_Z``) and the props on it, each moved and turned a little by ``rng`` (in this
+    order: the front props', then the back row's draws)."""
+    _table(scene, mats)
+
+    def jit(x, y, r=0.02):
+        return x + rng.uniform(-r, r), y + rng.uniform(-r, r)
+    _front_props(scene, mats, rng, jit)
+    _back_row(scene, mats, rng, jit)
+
+
+def _table(scene, mats) -> None:
+    """A wooden table top at ``TABLE_TOP_Z`` on four legs."""
     z0 = TABLE_TOP_Z
     bm = bmesh.new()
     box(bm, (0.0, 0.0, z0 - 0.02), (1.6, 0.9, 0.04))
@@ -92,9 +114,10 @@ def table_and_props(scene, mats, rng) -> None:
             box(bm, (sx * 0.72, sy * 0.37, (z0 - 0.04) / 2), (0.05, 0.05, z0 - 0.04))
     add_object(scene, "Table", bm, mats["wood"])
 
-    def jit(x, y, r=0.02):
-        return x + rng.uniform(-r, r), y + rng.uniform(-r, r)
 
+def _front_props(scene, mats, rng, jit) -> None:
+    """Placemat with a ceramic bowl and a chrome sphere; newspaper with a glass paperweight."""
+    z0 = TABLE_TOP_Z
     x, y = jit(-0.42, 0.0)
     bm = bmesh.new()
     box(bm, (0.0, 0.0, 0.0), (0.44, 0.32, 0.002))
@@ -121,7 +144,10 @@ def table_and_props(scene, mats, rng) -> None:
     sphere(bm, (0.0, 0.0, 0.0), 0.05)
     add_object(scene, "Chrome Sphere", bm, mats["chrome"], location=(mx + 0.12, my - 0.07, z0 + 0.002 + 0.05))
 
-    # Gold dish, copper cup, brushed pot, glass vase, candle, red cube: back row.
+
+def _back_row(scene, mats, rng, jit) -> None:
+    """Gold dish, copper cup, brushed pot, glass vase, candle and red cube."""
+    z0 = TABLE_TOP_Z
     dish = [(0.0, 0.0), (0.05, 0.0), (0.1, 0.012), (0.12, 0.022), (0.116, 0.024), (0.095, 0.016),
             (0.0, 0.006)]
     bm = bmesh.new()
