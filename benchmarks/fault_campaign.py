@@ -797,26 +797,16 @@ def empty_and_untrusted(fx: Fixtures, tally: Tally, quick: bool, log=print) -> N
 
 # ------------------------------------------------------------------------------------------------ random inputs
 def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
-    from hypothesis import HealthCheck, given, settings
-    from hypothesis import strategies as st
-
-    from gbuffer_export.config import ConfigError
-    from gbuffer_export.exr import write_exr
-    from gbuffer_export.validate import validate_clip
-    from training.config import load_config
+    """Part 2: random manifests, EXR files and training configurations (hypothesis, derandomized), each read by the
+    code that takes it; a traceback is a failure."""
+    from hypothesis import HealthCheck, settings
 
     cfg = settings(max_examples=examples, deadline=None, database=None, derandomize=True,
                    suppress_health_check=list(HealthCheck))
-    base = json.loads((fx.clip / "manifest.json").read_text())
     work = fx.root / "hyp"
     if work.exists():
         shutil.rmtree(work)
     shutil.copytree(fx.clip, work, ignore=shutil.ignore_patterns(".blendsr_cache"))
-    scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True),
-                        st.text(max_size=8))
-    json_values = st.recursive(scalars, lambda c: st.one_of(st.lists(c, max_size=4),
-                                                            st.dictionaries(st.text(max_size=6), c, max_size=4)),
-                               max_leaves=12)
 
     def check(label, fn):
         tally.inputs_tried += 1
@@ -826,15 +816,35 @@ def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
             tally.tracebacks += 1
             tally.fail(f"{label}: {type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}")
 
-    def set_path(m, path, value):
-        d = m
-        for k in path[:-1]:
-            d = d[k] if isinstance(d, dict) and k in d else None
-            if not isinstance(d, dict):
-                return m
-        d[path[-1]] = value
-        return m
+    before = tally.inputs_tried
+    for family in (_random_manifests, _random_exrs, _random_configs):
+        family(fx, work, cfg, check)()
+    log(f"  {tally.inputs_tried - before} random inputs")
 
+
+def _set_path(m: dict, path: tuple, value) -> dict:
+    """``m`` with ``value`` at ``path`` (unchanged where a key on the way is not an object)."""
+    d = m
+    for k in path[:-1]:
+        d = d[k] if isinstance(d, dict) and k in d else None
+        if not isinstance(d, dict):
+            return m
+    d[path[-1]] = value
+    return m
+
+
+def _random_manifests(fx: Fixtures, work: Path, cfg, check):
+    """The test over manifests with one key replaced by a random JSON value, or a top-level key dropped."""
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from gbuffer_export.validate import validate_clip
+    base = json.loads((fx.clip / "manifest.json").read_text())
+    scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True),
+                        st.text(max_size=8))
+    json_values = st.recursive(scalars, lambda c: st.one_of(st.lists(c, max_size=4),
+                                                            st.dictionaries(st.text(max_size=6), c, max_size=4)),
+                               max_leaves=12)
     paths = [("scale",), ("levels",), ("levels", "hr"), ("levels", "lr", "width"), ("frames",), ("buffers",),
              ("frame_data",), ("frame_data", "2"), ("frame_data", "2", "hr"), ("frame_data", "2", "lr", "jitter"),
              ("frame_data", "2", "hr", "intrinsics"), ("schema",), ("schema_version",), ("render",), ("identity",)]
@@ -846,10 +856,19 @@ def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
         if drop and path[0] in m:
             del m[path[0]]
         else:
-            set_path(m, path, value)
+            _set_path(m, path, value)
         (work / "manifest.json").write_text(json.dumps(m))
         check(f"manifest {path}={value!r:.60}", lambda: validate_clip(work, quick=True))
+    return manifests
 
+
+def _random_exrs(fx: Fixtures, work: Path, cfg, check):
+    """The test over buffer files with random channels, sample types and sizes, validated and cached."""
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from gbuffer_export.exr import write_exr
+    from gbuffer_export.validate import validate_clip
     channel_sets = st.lists(st.sampled_from(["R", "G", "B", "A", "X", "Y", "Z", "F", "V", "rgb.R"]), min_size=1,
                             max_size=4, unique=True)
 
@@ -875,7 +894,16 @@ def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
                 pass
         check(f"EXR {key} {chans} {dtype} {w}x{h}", run)
         shutil.copyfile(fx.clip / Path(open_clip(fx.clip).path_of(2, key)).relative_to(fx.clip), path)
+    return exrs
 
+
+def _random_configs(fx: Fixtures, work: Path, cfg, check):
+    """The test over training configurations of random sections, keys and values, some garbled."""
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from gbuffer_export.config import ConfigError
+    from training.config import load_config
     sections = st.sampled_from(["data", "model", "loss", "optim", "run", "extra"])
     keys = st.sampled_from(["crop", "batch_size", "name", "width", "lr", "max_steps", "nonfinite", "betas",
                             "exposure_range", "scale", "pixel", "bogus"])
@@ -903,12 +931,7 @@ def random_inputs(fx: Fixtures, tally: Tally, examples: int, log=print) -> None:
             except (ConfigError, ValueError):
                 pass
         check(f"config {text[:80]!r}", run)
-
-    before = tally.inputs_tried
-    manifests()
-    exrs()
-    configs()
-    log(f"  {tally.inputs_tried - before} random inputs")
+    return configs
 
 
 def _toml(v) -> str:
@@ -1042,34 +1065,41 @@ def render_kills(root: Path, tally: Tally, kills: int, rng: random.Random, frame
             tally.fail(f"render round {round_}: {rep.summary_line()}")
         lost = frames - len(final)
         tally.lost_frames += max(lost, 0)
-        c = open_clip(clip)
         first = first_process["frames"] or set()
-        ok = True
-        for f in c.frames:
-            for lvl in ("hr", "lr"):
-                for b in c.manifest["buffers"]:
-                    a, r = c.read(f, f"{lvl}/{b}"), ref_clip.read(f, f"{lvl}/{b}")
-                    if b in ("depth", "albedo", "emission", "motion", "flags"):
-                        same = a.tobytes() == r.tobytes()
-                    elif b in ("normal", "fbeta"):
-                        same = bool(abs(a.astype("float64") - r).max() <= 1e-6)
-                    else:  # radiance: the same image in expectation (bit-identical is best effort, counted)
-                        same = abs(float(a.mean()) - float(r.mean())) <= 0.05 * max(abs(float(r.mean())), 1e-3)
-                    if b == "radiance" and lvl == "hr":
-                        if f in first:
-                            tally.frames_bit_identical += int(a.tobytes() == r.tobytes())
-                        else:
-                            tally.frames_resumed += 1
-                    if not same:
-                        ok = False
-                        tally.fail(f"render round {round_}: frame {f} {lvl}/{b} differs from the uninterrupted run"
-                                   f" ({'first process' if f in first else 'resumed'})")
+        ok = _same_as_reference(open_clip(clip), ref_clip, first, tally, f"render round {round_}")
         tally.results_compared += 1
         tally.results_differ += 0 if ok else 1
         if rep.ok and lost == 0 and changed["n"] == 0:
             tally.faults_survived += n
         log(f"  render round {round_}: {n} kills, first process finished frames {sorted(first)}, "
             f"{'valid' if rep.ok else 'INVALID'}, {len(final)}/{frames} frames, {'same' if ok else 'DIFFERENT'}")
+
+
+def _same_as_reference(c, ref_clip, first: set, tally: Tally, label: str) -> bool:
+    """Every buffer of every frame of clip ``c`` against the uninterrupted render: the G-buffers bit for bit (normal
+    and F_beta to 1e-6), the radiance in expectation (its HR frames counted bit-identical or resumed: ``first``, the
+    frames the first process finished). Each difference is a failure of ``tally``; True when none."""
+    ok = True
+    for f in c.frames:
+        for lvl in ("hr", "lr"):
+            for b in c.manifest["buffers"]:
+                a, r = c.read(f, f"{lvl}/{b}"), ref_clip.read(f, f"{lvl}/{b}")
+                if b in ("depth", "albedo", "emission", "motion", "flags"):
+                    same = a.tobytes() == r.tobytes()
+                elif b in ("normal", "fbeta"):
+                    same = bool(abs(a.astype("float64") - r).max() <= 1e-6)
+                else:  # radiance: the same image in expectation (bit-identical is best effort, counted)
+                    same = abs(float(a.mean()) - float(r.mean())) <= 0.05 * max(abs(float(r.mean())), 1e-3)
+                if b == "radiance" and lvl == "hr":
+                    if f in first:
+                        tally.frames_bit_identical += int(a.tobytes() == r.tobytes())
+                    else:
+                        tally.frames_resumed += 1
+                if not same:
+                    ok = False
+                    tally.fail(f"{label}: frame {f} {lvl}/{b} differs from the uninterrupted run"
+                               f" ({'first process' if f in first else 'resumed'})")
+    return ok
 
 
 def _weights_digest(ck_path: Path) -> str:
