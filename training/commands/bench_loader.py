@@ -110,17 +110,22 @@ def run(args) -> int:
                "step_samples_per_s": args.batch / (statistics.median(step_ms) / 1000)}
         res["ratio"] = res["load_ms_median"] / res["step_ms_median"]
         res["loader_over_step"] = res["loader_samples_per_s"] / res["step_samples_per_s"]
-        print(f"{args.model} batch {args.batch}, LR crop {args.crop} (x{scale}), {res['threads']} threads, "
-              f"{args.workers} workers, step on {device}, amp {res['amp']}: loader {loader_sps:.1f} samples/s "
-              f"(batch {res['load_ms_median']:.1f} ms, max {res['load_ms_max']:.1f}), step "
-              f"{res['step_samples_per_s']:.1f} samples/s ({res['step_ms_median']:.0f} ms) -> loader/step "
-              f"{res['loader_over_step']:.2f} (cache built in {cache_s:.1f} s)")
+        print(_summary_line(res))
         if args.json:
             write_json_atomic(args.json, res)
         return 0
     finally:
         if tmp is not None:
             tmp.cleanup()
+
+
+def _summary_line(res: dict) -> str:
+    """The result in one line: loader and step throughput, their ratio, and the cache's build time."""
+    return (f"{res['model']} batch {res['batch']}, LR crop {res['crop_lr']} (x{res['scale']}), {res['threads']} "
+            f"threads, {res['workers']} workers, step on {res['device']}, amp {res['amp']}: loader "
+            f"{res['loader_samples_per_s']:.1f} samples/s (batch {res['load_ms_median']:.1f} ms, max "
+            f"{res['load_ms_max']:.1f}), step {res['step_samples_per_s']:.1f} samples/s ({res['step_ms_median']:.0f} "
+            f"ms) -> loader/step {res['loader_over_step']:.2f} (cache built in {res['cache_build_s']:.1f} s)")
 
 
 def _caches(clips: list[str], crop: int) -> list:
