@@ -110,7 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no training: write the clip ids of the largest subset (nested: it holds the others) to FILE "
                         "(UTF-8, one per line; none or '-': print them), for blendsr dataset ... --clips @FILE")
     p.add_argument("--combine", nargs="+", type=Path, metavar="SCALING_JSON",
-                   help="no training: one table and plot in OUT from these scaling.json (DATASET is not read)")
+                   help="no training: one table, one plot and one scaling.json (the rows with each run's size x, and "
+                        "the fits) in OUT from these scaling.json (DATASET is not read)")
     return p
 
 
@@ -145,7 +146,7 @@ def main(argv=None) -> int:
         return 2
     try:
         curve = plan(a)
-    except ValueError as exc:
+    except ValueError as exc:  # BlendSRError among them
         print(f"data_scaling: {exc}", file=sys.stderr)
         return 2
     a.output.mkdir(parents=True, exist_ok=True)
@@ -162,13 +163,19 @@ def main(argv=None) -> int:
 
 
 def plan(a: argparse.Namespace) -> Curve:
-    """The curve ``a`` asks for (ValueError: a score variant the model does not take, checked before any training)."""
+    """The curve ``a`` asks for; ValueError (one line, naming the flag or the file) on what would stop it later: a
+    score variant the model does not take, a step budget that is not an integer, a dataset index it cannot read.
+    Checked before any training."""
     from gbuffer_export.dataset.build import split_clips
     from training.config import load_config
     trained_as = load_config(a.config, [f'model.name="{a.model}"', f"model.scale={a.scale}"]).to_dict()
     variants = ["", *score_variants(a.score_options, trained_as)]
+    try:
+        budgets = [int(s) for s in a.steps.split(",")]
+    except ValueError:
+        raise ValueError(f"--steps {a.steps!r}: expected optimiser steps, comma-separated integers") from None
     groups, counts = subsets(a)
-    return Curve(a, groups, counts, [int(s) for s in a.steps.split(",")], variants, family_groups(a.dataset),
+    return Curve(a, groups, counts, budgets, variants, family_groups(a.dataset),
                  len(split_clips(a.dataset, "test", done_only=False)),
                  [str(c) for c in split_clips(a.dataset, "test")])
 
@@ -315,12 +322,18 @@ def plot_psnr(rows: list[dict], curve: Curve, path: Path) -> None:
 def subsets(a) -> tuple[list[tuple[str, list[Path]]], list[int]]:
     """The ordered training groups and the sorted subset sizes (groups taken) that ``--multiples`` or ``--counts``
     ask for."""
+    try:
+        multiples = [float(m) for m in a.multiples.split(",")] if a.multiples else []
+        counts = [None if c == "all" else int(c) for c in a.counts.split(",")]
+    except ValueError:
+        flag, value = ("--multiples", a.multiples) if a.multiples else ("--counts", a.counts)
+        raise ValueError(f"{flag} {value!r}: expected comma-separated numbers"
+                         + ("" if a.multiples else " or 'all'")) from None
     groups = training_groups(a.dataset, a.by)
-    if a.multiples:
-        sized = pixel_prefixes(a.dataset, groups, [float(m) for m in a.multiples.split(",")], a.unit_pixels)
+    if multiples:
+        sized = pixel_prefixes(a.dataset, groups, multiples, a.unit_pixels)
         return groups, sorted({n for _, n, _ in sized})
-    counts = [len(groups) if c == "all" else int(c) for c in a.counts.split(",")]
-    return groups, sorted({min(c, len(groups)) for c in counts})
+    return groups, sorted({len(groups) if c is None else min(c, len(groups)) for c in counts})
 
 
 def list_clips(a) -> int:
@@ -332,6 +345,9 @@ def list_clips(a) -> int:
     except BlendSRError as exc:
         print(f"data_scaling: {exc} (blendsr dataset SPEC -o DATASET --limit 0 writes the index, rendering nothing)",
               file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"data_scaling: {exc}", file=sys.stderr)
         return 2
     text = "".join(f"{c.name}\n" for _, clips in groups[:max(counts, default=0)] for c in clips)
     if a.list_clips == "-":
@@ -411,6 +427,10 @@ def combine(records: list[Path], out: Path, argv=None) -> int:
             return 2
         seen |= {r["model"] for r in new if not r["clips"]}
         rows += new
+    if any(Path(rec).resolve() == (out / "scaling.json").resolve() for rec in records):
+        print(f"data_scaling: {out / 'scaling.json'}: --combine would overwrite one of its inputs; give another -o",
+              file=sys.stderr)
+        return 2
     out.mkdir(parents=True, exist_ok=True)
     (out / "scaling.md").write_text(report_table(rows, by, unit) + "\n" + "\n".join(extrapolation_lines(rows, unit))
                                     + "\n")
@@ -435,23 +455,25 @@ def log_fit(xs: list[float], ys: list[float]) -> tuple[float, float] | None:
 
 
 def fits(rows: list[dict], unit: float, at: float = 100.0) -> list[dict]:
-    """Per model (a scored variant is its own: ``MODEL?OPTIONS``) and family group with two or more sizes: the fit
+    """Per model (a scored variant is its own: ``MODEL?OPTIONS``), step budget (``steps``, given when the rows hold
+    several) and family group with two or more sizes: the fit
     ``margin = a + b log10(x)`` of the margin over demod-jbu (dB) against the data size ``x`` (multiples of
     ``unit``), the sizes it spans and what it predicts at ``at`` x (an extrapolation). The records behind
     ``extrapolation_lines`` and the results page."""
     learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
+    budgets = sorted({r.get("steps") for r in learned})
     out = []
-    for label, group in ((m, g) for m in dict.fromkeys(r["model"] for r in learned)
-                         for g in sorted({g for r in learned for g in r["margin_by_family"]})):
+    for label, steps, group in ((m, n, g) for m in dict.fromkeys(r["model"] for r in learned) for n in budgets
+                                for g in sorted({g for r in learned for g in r["margin_by_family"]})):
         pts = [(r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
-               if r["model"] == label and group in r["margin_by_family"]]
-        fit = log_fit([x for x, _ in pts], [y for _, y in pts])
-        if fit is None:
+               if r["model"] == label and r.get("steps") == steps and group in r["margin_by_family"]]
+        line = log_fit([x for x, _ in pts], [y for _, y in pts])
+        if line is None:
             continue
-        a, b = (round(v, 6) + 0.0 for v in fit)  # no "-0.00"
-        out.append({"model": label, "group": group, "a": a, "b": b, "sizes": len(pts),
+        a, b = (round(v, 6) + 0.0 for v in line)  # no "-0.00"
+        out.append({"model": label, "group": group, "a": a, "b": b, "sizes": len({x for x, _ in pts}),
                     "x_min": min(x for x, _ in pts), "x_max": max(x for x, _ in pts), "at": at,
-                    "predicted": a + b * math.log10(at)})
+                    "predicted": a + b * math.log10(at), **({"steps": steps} if len(budgets) > 1 else {})})
     return out
 
 
@@ -462,6 +484,7 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
     lines = []
     for f in fits(rows, unit, at):
         name = f"`{f['model']}` {f['group']}" if len(labels) > 1 else f["group"]
+        name += f" ({f['steps']} steps)" if "steps" in f else ""
         lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "
                      f"({f['x_min']:.1f}x to {f['x_max']:.1f}x): {f['b']:+.2f} dB per tenfold data; at {at:g}x it "
                      f"predicts {f['predicted']:+.2f} dB (an extrapolation)")

@@ -11,9 +11,9 @@ Table kinds (``[[section.table]] kind = ...``):
 - ``margins``: rows of ``benchmarks/worst_case.py`` records (``{group: {clips, models: {name: {mean: ...}}}}``): PSNR,
   margin over the baseline, smallest per-clip margin and its clip, SSIM, tPSNR, artifact pixels, per group.
 - ``rows``: the ``rows`` list of a record (what ``blendsr bench models`` and the benchmark scripts write), one
-  column per ``[header, key, format]`` (a dotted key reads a nested value: ``margin_by_family.held-out``); with
-  ``pivot = [row_key, column_key, value_key, format]`` one row per ``row_key`` and one column per value of
-  ``column_key`` (e.g. model x variant -> ms).
+  column per ``[header, key, format]``; with ``pivot = [row_key, column_key, value_key, format]`` one row per
+  ``row_key`` and one column per value of ``column_key`` (e.g. model x variant -> ms). A dotted key, in a column,
+  ``only`` or ``pivot``, reads a nested value (``margin_by_family.held-out``).
 - ``table``: a record that is itself a table, ``{"columns": [...], "rows": [[...], ...]}`` (measurements whose
   script printed a table rather than writing rows).
 - ``fields``: one row per ``[label, dotted.key, format]`` of ``fields``, one column per ``[header, record]`` of
@@ -122,16 +122,16 @@ def rows_table(spec: dict, where: str) -> str:
     only = spec.get("only")
     if only:
         key, values = only
-        rows = [r for r in rows if r.get(key) in values]
+        rows = [r for r in rows if _at(r, key) in values]
     columns = spec.get("columns", [])
     if "pivot" not in spec:
         return markdown([c[0] for c in columns], [[Cell(_at(r, c[1]), c[2] if len(c) > 2 else "{}") for c in columns]
                                                   for r in rows])
     row_key, col_key, value_key, fmt = spec["pivot"]
-    order = spec.get("pivot_columns") or list(dict.fromkeys(r[col_key] for r in rows))
+    order = spec.get("pivot_columns") or list(dict.fromkeys(_at(r, col_key) for r in rows))
     by_row: dict[object, dict] = {}
     for r in rows:
-        by_row.setdefault(r[row_key], {"first": r})[r[col_key]] = r.get(value_key)
+        by_row.setdefault(_at(r, row_key), {"first": r})[_at(r, col_key)] = _at(r, value_key)
     header = [c[0] for c in columns] + [spec.get("pivot_header", "{}").format(v) for v in order]
     body = [[Cell(_at(d["first"], c[1]), c[2] if len(c) > 2 else "{}") for c in columns]
             + [Cell(d.get(v), fmt) for v in order] for d in by_row.values()]

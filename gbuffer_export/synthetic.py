@@ -117,23 +117,22 @@ def make_synthetic_clip(path: str | Path, frames=range(1, 5), hr_size=(64, 36), 
     sizes = {lvl: (v["width"], v["height"]) for lvl, v in levels.items()}
     k_hr = (0.9 * w, 0.9 * w, w / 2, h / 2)
     header = _synthetic_header(levels, scales, frames, buffers, jitter, look)
-    wr = ClipWriter(path, header)
-    for i, f in enumerate(frames):
-        m, m_prev, m_next = look.camera(f), look.camera(f - 1), look.camera(f + 1)
-        record = {}
-        for lvl, (lw, lh) in sizes.items():
-            k = scale_intrinsics(k_hr, lw / w)
-            jit = halton_jitter(i) if (jitter and lvl != "hr") else (0.0, 0.0)
-            bufs = _synthetic_buffers((lw, lh), k, (m, m_prev, m_next), jit,
-                                      look.hr_supersample if lvl == "hr" else 1, look.light)
-            for b in header["buffers"]:
-                wr.write_buffer(f, lvl, b, bufs[b])
-            record[lvl] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k,
-                           "prev_intrinsics": k, "jitter": jit, "spp": 1, "seed": 0, "seconds": {}}
-            if "motion_next" in header["buffers"]:
-                record[lvl].update(next_world_from_camera=m_next, next_intrinsics=k)
-        wr.commit_frame(f, record)
-    wr.close()
+    with ClipWriter(path, header) as wr:
+        for i, f in enumerate(frames):
+            m, m_prev, m_next = look.camera(f), look.camera(f - 1), look.camera(f + 1)
+            record = {}
+            for lvl, (lw, lh) in sizes.items():
+                k = scale_intrinsics(k_hr, lw / w)
+                jit = halton_jitter(i) if (jitter and lvl != "hr") else (0.0, 0.0)
+                bufs = _synthetic_buffers((lw, lh), k, (m, m_prev, m_next), jit,
+                                          look.hr_supersample if lvl == "hr" else 1, look.light)
+                for b in header["buffers"]:
+                    wr.write_buffer(f, lvl, b, bufs[b])
+                record[lvl] = {"world_from_camera": m, "prev_world_from_camera": m_prev, "intrinsics": k,
+                               "prev_intrinsics": k, "jitter": jit, "spp": 1, "seed": 0, "seconds": {}}
+                if "motion_next" in header["buffers"]:
+                    record[lvl].update(next_world_from_camera=m_next, next_intrinsics=k)
+            wr.commit_frame(f, record)
     return Path(path)
 
 

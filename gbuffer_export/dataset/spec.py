@@ -320,8 +320,8 @@ def parse_spec(data: dict, spec_path: str | Path = "<spec>", formats=()) -> Data
     if not isinstance(raw_sources, list) or not raw_sources:
         raise SpecError(f"{spec_path}: no [[source]] tables: add at least one (kind = \"builtin\" or \"assets\")")
     sources, names = [], set()
+    render_from = defaults, for_formats, "hr_size" in render_table
     for i, t in enumerate(raw_sources):
-        render_from = defaults, for_formats, "hr_size" in render_table
         sources.append(_parse_source(t, f"source[{i}]", i, render_from, names, spec_path))
     return DatasetSpec(name=name, seed=seed, sources=tuple(sources), splits=splits,
                        path=Path(spec_path) if spec_path != "<spec>" else None, for_formats=for_formats)
@@ -348,7 +348,7 @@ def _parse_splits(sp: dict, spec_path) -> Splits:
     return splits
 
 
-def _parse_source(t, where: str, i: int, render_from: tuple, names: set, spec_path):
+def _parse_source(t, where: str, i: int, render_from: tuple, names: set, spec_path) -> Source:
     """One ``[[source]]`` table (``names``: the names taken so far, this one added); ``render_from``: the spec's
     render defaults, its export formats and whether its ``[render]`` table sets ``hr_size``."""
     if not isinstance(t, dict):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -215,6 +216,26 @@ def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_p
     assert series == [("fusesr", "held-out", [1.0, 10.0], [1.0, 2.0]), ("fusesr", "in-family", [1.0, 10.0], [2.5, 3.0])]
     (tmp_path / "bad.json").write_text("{}")
     assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "bad.json")]) == 2
+    # OUT holding one of its inputs: refused, the input kept
+    before = (tmp_path / "a/scaling.json").read_text()
+    assert data_scaling.main(["-", "-o", str(tmp_path / "a"), "--combine", str(tmp_path / "a/scaling.json"),
+                              str(tmp_path / "b/scaling.json")]) == 2
+    assert (tmp_path / "a/scaling.json").read_text() == before
+
+
+def test_fits_keep_step_budgets_apart_and_bad_flags_are_one_line(tmp_path, capsys):
+    rows = [{"model": "fusesr", "steps": n, "hr_pixels": x, "margin_by_family": {"held-out": y}}
+            for n, pts in ((500, ((1, 1.0), (10, 2.0))), (2000, ((1, 2.0), (10, 2.5))))
+            for x, y in pts]
+    fits = data_scaling.fits(rows, 1.0)
+    assert [(f["steps"], f["a"], f["b"], f["sizes"]) for f in fits] == [(500, 1.0, 1.0, 2), (2000, 2.0, 0.5, 2)]
+    assert data_scaling.extrapolation_lines(rows, 1.0)[1].startswith("- held-out (2000 steps): margin = +2.00 +0.50")
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)])
+    for flag, value in (("--steps", "500,x"), ("--counts", "1,two"), ("--multiples", "1,3x")):
+        assert data_scaling.main([str(root), "-o", str(tmp_path / "out"), flag, value]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"data_scaling: {flag} {value!r}: expected") and err.count("\n") == 1, err
 
 
 def test_wait_trains_each_run_as_soon_as_its_clips_are_rendered(tmp_path, capsys, monkeypatch):
@@ -300,7 +321,12 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
     argv = [str(root), "-o", str(out), "--runs", str(tmp_path / "runs"), "--multiples", "1,2", "--unit-pixels",
             str(3 * 128 * 72), "--steps", "2", "--model", "fusesr-l", "--threads", "1",
             "--score-options", "residual_clamp=lr-guided"]
-    assert data_scaling.main(argv) == 0
+    import torch
+    threads = torch.get_num_threads()
+    try:
+        assert data_scaling.main(argv) == 0
+    finally:
+        torch.set_num_threads(threads)  # --threads 1 sets this process's
     record = json.loads((out / "scaling.json").read_text())
     assert [(r["model"], r["clips"]) for r in record["rows"]] == [
         ("demod-bilinear", 0), ("demod-jbu", 0), ("fusesr-l", 1), ("fusesr-l?residual_clamp=lr-guided", 1),
@@ -312,6 +338,11 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
         assert set(r["margin_min_by_family"]) == {"in-family", "held-out"} and len(r["per_clip"]) == 2
     assert {(f["model"], f["group"]) for f in record["fits"]} == {
         (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in ("in-family", "held-out")}
+    one, two = record["rows"][2], record["rows"][4]  # fusesr-l at 1x and 2x: the line through the two margins
+    x1, x2 = one["hr_pixels"] / (3 * 128 * 72), two["hr_pixels"] / (3 * 128 * 72)
+    slope = (two["margin_by_family"]["held-out"] - one["margin_by_family"]["held-out"]) / math.log10(x2 / x1)
+    f = next(f for f in record["fits"] if (f["model"], f["group"]) == ("fusesr-l", "held-out"))
+    assert (x1, x2) == (1.0, 2.0) and abs(f["b"] - slope) < 1e-5 and "steps" not in f
     assert record["test_clips"] == [str(root / "clips/test3"), str(root / "clips/test4")]
     assert "predicts" in (out / "scaling.md").read_text() and (out / "scaling.png").stat().st_size > 1000
     # by clip count (the PSNR plot): the same runs, finished, are scored again, not trained again

@@ -11,7 +11,6 @@ device busy when it is the larger) and the medians of the per-batch times. Witho
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
@@ -20,7 +19,7 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", nargs="*", default=[], metavar="CLIP",
-                        help="clips to load from (default: a synthetic clip in a temporary directory)")
+                        help="clips to load from, of one scale (default: a synthetic clip in a temporary directory)")
     parser.add_argument("--model", default="fusesr", help="model whose inputs are loaded and whose step is timed")
     parser.add_argument("--batch", type=int, default=8, help="batch size")
     parser.add_argument("--crop", type=int, default=64, help="LR crop side, pixels")

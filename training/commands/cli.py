@@ -123,6 +123,7 @@ def _register_export(subparsers) -> None:
     p.add_argument("--opset", type=int, default=17, help="ONNX opset")
     p.set_defaults(func=cmd_export)
 
+
 #: ``--path``'s choices (``training.inference.fastpath.PATH_CHOICES``; written here: the CLI imports no torch to register)
 PATH_CHOICES = ("auto", "reference", "fast", "fused", "graph")
 
