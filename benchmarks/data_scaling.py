@@ -278,7 +278,8 @@ def write_records(curve: Curve, rows: list[dict], argv) -> None:
     """OUT/scaling.json, OUT/scaling.md and OUT/scaling.png."""
     from gbuffer_export.clip import write_json_atomic
     a, out = curve.a, curve.a.output
-    write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": curve.test_clips, "rows": rows,
+    write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": curve.test_clips,
+                                             "rows": sized_rows(rows, a.unit_pixels),
                                              "by": a.by, "steps": curve.budgets, "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "score_options": curve.variants[1:], "fits": fits(rows, a.unit_pixels),
@@ -359,21 +360,35 @@ def list_clips(a) -> int:
     return 0
 
 
-def margin_series(rows: list[dict], unit: float) -> list[tuple[str, str, list[float], list[float]]]:
-    """(model, family group, data sizes as multiples of ``unit``, margins over demod-jbu in dB) per curve of
-    ``rows`` (those with HR pixels and margins), each sorted by size."""
+def margin_series(rows: list[dict], unit: float) -> list[dict]:
+    """One curve per model (a scored variant is its own: ``MODEL?OPTIONS``), step budget (``steps``, given when the
+    rows hold several) and family group of ``rows`` (those with HR pixels and margins): ``xs``, the data sizes as
+    multiples of ``unit``, and ``ys``, the margins over demod-jbu (dB), sorted by size. What the plot draws and
+    ``fits`` fits."""
     learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
+    budgets = sorted({r.get("steps") for r in learned})
     out = []
-    for label in dict.fromkeys(r["model"] for r in learned):
-        for group in sorted({g for r in learned for g in r["margin_by_family"]}):
-            pts = sorted((r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
-                         if r["model"] == label and group in r["margin_by_family"])
-            if pts:
-                out.append((label, group, [x for x, _ in pts], [y for _, y in pts]))
+    for model, steps, group in ((m, n, g) for m in dict.fromkeys(r["model"] for r in learned) for n in budgets
+                                for g in sorted({g for r in learned for g in r["margin_by_family"]})):
+        pts = sorted((r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
+                     if r["model"] == model and r.get("steps") == steps and group in r["margin_by_family"])
+        if pts:
+            out.append({"model": model, **({"steps": steps} if len(budgets) > 1 else {}), "group": group,
+                        "xs": [x for x, _ in pts], "ys": [y for _, y in pts]})
     return out
 
 
-def plot_margins(rows: list[dict], unit: float, path: Path) -> list[tuple[str, str, list[float], list[float]]]:
+def sized_rows(rows: list[dict], unit: float) -> list[dict]:
+    """The rows as scaling.json keeps them: each run's with its size ``x`` in multiples of ``unit``."""
+    return [{**r, "x": r["hr_pixels"] / unit} if r.get("hr_pixels") else r for r in rows]
+
+
+def curve_label(series: dict) -> str:
+    """A curve's model, with its step budget when the rows hold several."""
+    return series["model"] + (f" ({series['steps']} steps)" if "steps" in series else "")
+
+
+def plot_margins(rows: list[dict], unit: float, path: Path) -> list[dict]:
     """The scaling plot: per model and family group, the mean margin over demod-jbu (dB; demod-jbu is the 0 line)
     against the training data in multiples of ``unit`` HR pixels, log x; held-out families solid, in-family dashed.
     Returns the series drawn (``margin_series``)."""
@@ -383,12 +398,13 @@ def plot_margins(rows: list[dict], unit: float, path: Path) -> list[tuple[str, s
     series = margin_series(rows, unit)
     fig, ax = plt.subplots(figsize=(5.5, 3.4), dpi=120)
     colors = {}
-    for label, group, xs, ys in series:
-        color = colors.setdefault(label, f"C{len(colors)}")
-        ax.plot(xs, ys, "o-" if group != "in-family" else "s--", color=color, label=f"{label}, {group}")
+    for c in series:
+        color = colors.setdefault(curve_label(c), f"C{len(colors)}")
+        ax.plot(c["xs"], c["ys"], "o-" if c["group"] != "in-family" else "s--", color=color,
+                label=f"{curve_label(c)}, {c['group']}")
     ax.axhline(0.0, color="grey", linestyle=":", label="demod-jbu")
     ax.set_xscale("log")
-    ticks = sorted({x for _, _, xs, _ in series for x in xs})
+    ticks = sorted({x for c in series for x in c["xs"]})
     ax.set_xticks(ticks, [f"{x:.1f}x" for x in ticks])
     ax.minorticks_off()
     ax.set_xlabel(f"training data (x {unit / 1e6:.1f} M HR pixels)")
@@ -435,8 +451,8 @@ def combine(records: list[Path], out: Path, argv=None) -> int:
     (out / "scaling.md").write_text(report_table(rows, by, unit) + "\n" + "\n".join(extrapolation_lines(rows, unit))
                                     + "\n")
     from gbuffer_export.clip import write_json_atomic
-    sized = [{**r, "x": r["hr_pixels"] / unit} if r.get("hr_pixels") else r for r in rows]
-    write_json_atomic(out / "scaling.json", {**first[1], "sources": [str(r) for r in records], "rows": sized,
+    write_json_atomic(out / "scaling.json", {**first[1], "sources": [str(r) for r in records],
+                                             "rows": sized_rows(rows, unit),
                                              "fits": fits(rows, unit), "command": command_line(argv)})
     plot_margins(rows, unit, out / "scaling.png")
     print((out / "scaling.md").read_text())
@@ -455,25 +471,18 @@ def log_fit(xs: list[float], ys: list[float]) -> tuple[float, float] | None:
 
 
 def fits(rows: list[dict], unit: float, at: float = 100.0) -> list[dict]:
-    """Per model (a scored variant is its own: ``MODEL?OPTIONS``), step budget (``steps``, given when the rows hold
-    several) and family group with two or more sizes: the fit
-    ``margin = a + b log10(x)`` of the margin over demod-jbu (dB) against the data size ``x`` (multiples of
-    ``unit``), the sizes it spans and what it predicts at ``at`` x (an extrapolation). The records behind
-    ``extrapolation_lines`` and the results page."""
-    learned = [r for r in rows if r.get("hr_pixels") and r.get("margin_by_family")]
-    budgets = sorted({r.get("steps") for r in learned})
+    """Per curve of ``margin_series`` with two or more sizes: the fit ``margin = a + b log10(x)`` of the margin over
+    demod-jbu (dB) against the data size ``x`` (multiples of ``unit``), the sizes it spans and what it predicts at
+    ``at`` x (an extrapolation). The records behind ``extrapolation_lines`` and the results page."""
     out = []
-    for label, steps, group in ((m, n, g) for m in dict.fromkeys(r["model"] for r in learned) for n in budgets
-                                for g in sorted({g for r in learned for g in r["margin_by_family"]})):
-        pts = [(r["hr_pixels"] / unit, r["margin_by_family"][group]) for r in learned
-               if r["model"] == label and r.get("steps") == steps and group in r["margin_by_family"]]
-        line = log_fit([x for x, _ in pts], [y for _, y in pts])
+    for c in margin_series(rows, unit):
+        line = log_fit(c["xs"], c["ys"])
         if line is None:
             continue
         a, b = (round(v, 6) + 0.0 for v in line)  # no "-0.00"
-        out.append({"model": label, "group": group, "a": a, "b": b, "sizes": len({x for x, _ in pts}),
-                    "x_min": min(x for x, _ in pts), "x_max": max(x for x, _ in pts), "at": at,
-                    "predicted": a + b * math.log10(at), **({"steps": steps} if len(budgets) > 1 else {})})
+        out.append({"model": c["model"], **({"steps": c["steps"]} if "steps" in c else {}), "group": c["group"],
+                    "a": a, "b": b, "sizes": len(set(c["xs"])), "x_min": c["xs"][0], "x_max": c["xs"][-1],
+                    "at": at, "predicted": a + b * math.log10(at)})
     return out
 
 
@@ -484,7 +493,7 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
     lines = []
     for f in fits(rows, unit, at):
         name = f"`{f['model']}` {f['group']}" if len(labels) > 1 else f["group"]
-        name += f" ({f['steps']} steps)" if "steps" in f else ""
+        name += f" ({f['steps']} steps)" if "steps" in f else ""  # as curve_label
         lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "
                      f"({f['x_min']:.1f}x to {f['x_max']:.1f}x): {f['b']:+.2f} dB per tenfold data; at {at:g}x it "
                      f"predicts {f['predicted']:+.2f} dB (an extrapolation)")

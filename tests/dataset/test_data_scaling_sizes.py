@@ -213,7 +213,8 @@ def test_the_plot_and_the_combined_table_show_every_model_and_family_group(tmp_p
     assert len(fit) == 4 and record["sources"] == [str(tmp_path / "a/scaling.json"), str(tmp_path / "b/scaling.json")]
     assert record["command"].startswith(".venv/bin/python benchmarks/data_scaling.py - -o ")
     series = data_scaling.margin_series(json.loads((tmp_path / "a/scaling.json").read_text())["rows"], 100.0)
-    assert series == [("fusesr", "held-out", [1.0, 10.0], [1.0, 2.0]), ("fusesr", "in-family", [1.0, 10.0], [2.5, 3.0])]
+    assert series == [{"model": "fusesr", "group": "held-out", "xs": [1.0, 10.0], "ys": [1.0, 2.0]},
+                      {"model": "fusesr", "group": "in-family", "xs": [1.0, 10.0], "ys": [2.5, 3.0]}]
     (tmp_path / "bad.json").write_text("{}")
     assert data_scaling.main(["-", "-o", str(out), "--combine", str(tmp_path / "bad.json")]) == 2
     # OUT holding one of its inputs: refused, the input kept
@@ -229,6 +230,8 @@ def test_fits_keep_step_budgets_apart_and_bad_flags_are_one_line(tmp_path, capsy
             for x, y in pts]
     fits = data_scaling.fits(rows, 1.0)
     assert [(f["steps"], f["a"], f["b"], f["sizes"]) for f in fits] == [(500, 1.0, 1.0, 2), (2000, 2.0, 0.5, 2)]
+    assert [data_scaling.curve_label(c) for c in data_scaling.margin_series(rows, 1.0)] == [
+        "fusesr (500 steps)", "fusesr (2000 steps)"]  # the plot keeps the budgets apart too
     assert data_scaling.extrapolation_lines(rows, 1.0)[1].startswith("- held-out (2000 steps): margin = +2.00 +0.50")
     root = tmp_path / "ds"
     _dataset(root, [(2, 10, 10)])
@@ -340,6 +343,7 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
         (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in ("in-family", "held-out")}
     one, two = record["rows"][2], record["rows"][4]  # fusesr-l at 1x and 2x: the line through the two margins
     x1, x2 = one["hr_pixels"] / (3 * 128 * 72), two["hr_pixels"] / (3 * 128 * 72)
+    assert (one["x"], two["x"]) == (x1, x2)
     slope = (two["margin_by_family"]["held-out"] - one["margin_by_family"]["held-out"]) / math.log10(x2 / x1)
     f = next(f for f in record["fits"] if (f["model"], f["group"]) == ("fusesr-l", "held-out"))
     assert (x1, x2) == (1.0, 2.0) and abs(f["b"] - slope) < 1e-5 and "steps" not in f
