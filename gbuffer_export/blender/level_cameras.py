@@ -341,84 +341,121 @@ def _valid_eye(geom, p, clearance, rules) -> bool:
     return bool(geom.nearest_distance(p[None])[0] >= clearance and not geom.inside_closed_mesh(p))
 
 
-def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rng, rules: PathRules):
-    """One candidate path of ``n`` eyes (or None with a reason)."""
-    speed = geom.units(rules.walk_speed_mps if kind == "walk" else rules.fly_speed_mps) / fps  # units per frame
-    clearance = geom.units(rules.clearance_m)
-    need = clearance + 0.5 * speed
-    max_turn = math.radians(rules.max_turn_deg_s) / fps
-    starts = _start_points(geom, region, rng, kind, rules)
-    if not starts:
-        return None, NO_FLOOR if len(floor_samples(geom, region)) == 0 else "no free standing point in the region"
-    starts = [s for s in starts if _valid_eye(geom, s[0], need, rules)]
-    if not starts:
-        return None, "no free standing point in the region"
-    p, zf = starts[0]
-    # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter), the
-    # region's border counting as a wall.
-    thetas = np.linspace(0, 2 * math.pi, 24, endpoint=False)
-    free = free_distance(geom, p, _heading_dirs(thetas))
-    free = np.minimum(free, region_room(region, p, _heading_dirs(thetas), min(geom.extent, 64 * speed), 32))
-    best = np.argsort(-np.minimum(free, geom.extent))[:6]
-    theta = float(thetas[rng.choice(best)]) + float(rng.uniform(-0.1, 0.1))
-    climb = 0.0
-    turn, look_yaw, look_pitch, climb_noise = _Smooth(rng, 1.5 * fps), _Smooth(rng, fps), _Smooth(rng, fps), \
-        _Smooth(rng, 2 * fps)
-    eye_h = geom.units(rules.eye_height_m)
-    lo_c, hi_c = geom.content_bounds()
-    eyes, looks = [p.copy()], []
-    ahead = max(geom.units(1.5), 12 * speed)
-    border_ahead = max(ahead, 2.5 * speed / max(max_turn, 1e-9))  # a U-turn's width at the bounded turn rate
-    for i in range(n):
-        # look direction for the current eye
-        pitch = math.radians(rules.pitch_deg[0] + (rules.pitch_deg[1] - rules.pitch_deg[0]) * 0.5 * (look_pitch() + 1))
-        yaw = theta + math.radians(12.0) * look_yaw()
-        looks.append(_heading_dirs(np.array([yaw]), pitch)[0])
-        if i == n - 1:
-            break
-        # steer: random drift plus avoidance of what is ahead
-        cand = theta + np.linspace(-max_turn, max_turn, 7)
-        pitch_move = climb if kind == "fly" else 0.0
-        dirs = _heading_dirs(cand, pitch_move)
-        free = free_distance(geom, p, dirs)
-        pref = theta + max_turn * turn()
-        border = region_room(region, p, dirs, border_ahead)
+class _Walker:
+    """A path being drawn (``_draw``): the rules in level units per frame, the current eye ``p`` over its floor
+    ``zf``, its heading ``theta`` and climb, and the smooth noises that steer and aim it. ``start`` draws it (or
+    gives the reason it cannot start); ``look`` and ``step`` advance it one frame, drawing from ``rng`` in the
+    order the scale set's level paths were planned with."""
+
+    def __init__(self, geom: LevelGeometry, kind: str, fps: float, region: Region, rules: PathRules):
+        self.geom, self.kind, self.fps, self.region, self.rules = geom, kind, fps, region, rules
+        self.speed = geom.units(rules.walk_speed_mps if kind == "walk" else rules.fly_speed_mps) / fps  # per frame
+        self.need = geom.units(rules.clearance_m) + 0.5 * self.speed
+        self.max_turn = math.radians(rules.max_turn_deg_s) / fps
+        self.eye_h = geom.units(rules.eye_height_m)
+        self.lo_c, self.hi_c = geom.content_bounds()
+        self.ahead = max(geom.units(1.5), 12 * self.speed)
+        self.border_ahead = max(self.ahead, 2.5 * self.speed / max(self.max_turn, 1e-9))  # a U-turn's width
+        self.climb = 0.0
+
+    def start(self, rng) -> str | None:
+        """Seat the first eye and heading; None, or why no path can start in the region."""
+        geom, region = self.geom, self.region
+        starts = _start_points(geom, region, rng, self.kind, self.rules)
+        if not starts:
+            return NO_FLOOR if len(floor_samples(geom, region)) == 0 else "no free standing point in the region"
+        starts = [s for s in starts if _valid_eye(geom, s[0], self.need, self.rules)]
+        if not starts:
+            return "no free standing point in the region"
+        self.p, self.zf = starts[0]
+        # Initial heading: towards the most open of 24 horizontal directions (seeded among the best quarter), the
+        # region's border counting as a wall.
+        thetas = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+        free = free_distance(geom, self.p, _heading_dirs(thetas))
+        free = np.minimum(free, region_room(region, self.p, _heading_dirs(thetas), min(geom.extent, 64 * self.speed),
+                                            32))
+        best = np.argsort(-np.minimum(free, geom.extent))[:6]
+        self.theta = float(thetas[rng.choice(best)]) + float(rng.uniform(-0.1, 0.1))
+        self.turn, self.look_yaw, self.look_pitch, self.climb_noise = (
+            _Smooth(rng, 1.5 * self.fps), _Smooth(rng, self.fps), _Smooth(rng, self.fps), _Smooth(rng, 2 * self.fps))
+        return None
+
+    def look(self) -> np.ndarray:
+        """The current eye's look direction (a unit vector)."""
+        lo, hi = self.rules.pitch_deg
+        pitch = math.radians(lo + (hi - lo) * 0.5 * (self.look_pitch() + 1))
+        yaw = self.theta + math.radians(12.0) * self.look_yaw()
+        return _heading_dirs(np.array([yaw]), pitch)[0]
+
+    def step(self) -> bool:
+        """Move one frame: random drift plus avoidance of what is ahead; False at a dead end."""
+        cand = self.theta + np.linspace(-self.max_turn, self.max_turn, 7)
+        dirs = _heading_dirs(cand, self.climb if self.kind == "fly" else 0.0)
+        free = free_distance(self.geom, self.p, dirs)
+        for k in np.argsort(-self._scores(cand, dirs, free)):
+            q = self._moved(dirs[k], free[k])
+            if q is not None:
+                self.theta, self.p = float(cand[k]), q
+                break
+        else:
+            return False
+        if self.kind == "fly":
+            self.climb = float(np.clip(self.climb + math.radians(4.0) / self.fps * self.climb_noise() * 4,
+                                       -0.35, 0.35))
+            if self.p[2] < self.lo_c[2] + self.geom.units(self.rules.min_fly_height_m) + 2 * self.speed:
+                self.climb = abs(self.climb)
+        return True
+
+    def _scores(self, cand: np.ndarray, dirs: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """Per candidate heading: the room ahead less the cost of turning away from the preferred heading (the
+        drift, or a full-rate turn towards the more open side when a wall or the cell's border is ahead)."""
+        geom, region, ahead, border_ahead, max_turn = self.geom, self.region, self.ahead, self.border_ahead, \
+            self.max_turn
+        pref = self.theta + max_turn * self.turn()
+        border = region_room(region, self.p, dirs, border_ahead)
         room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)
         if free[3] < ahead or border[3] < border_ahead:  # a wall or the cell's border ahead: turn at full rate
-            # towards the more open side
-            side = _heading_dirs(theta + np.array([-1.0, 1.0]) * math.radians(60.0), pitch_move)
-            open_ = np.minimum(free_distance(geom, p, side), region_room(region, p, side, border_ahead))
-            pref = theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
-        score = room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)  # the cell's border: a wall
-        order = np.argsort(-score)
-        moved = False
-        for k in order:
-            d = dirs[k]
-            q = p + speed * d
-            if free[k] < speed + need or not region.contains(q[None, :2])[0]:
-                continue
-            if kind == "walk":
-                f = floor_under(geom, q + UP * geom.units(rules.max_step_m), eye_h + geom.units(2 * rules.max_step_m))
-                if f is None or abs(f - zf) > geom.units(rules.max_step_m):
-                    continue
-                zf = f
-                q[2] = eyes[-1][2] + np.clip(zf + eye_h - eyes[-1][2], -speed, speed)
-            else:
-                f = floor_under(geom, q, geom.extent)
-                low = (f if f is not None else lo_c[2]) + geom.units(rules.min_fly_height_m)
-                if q[2] < low or q[2] > hi_c[2] + geom.units(2.0):
-                    continue
-            if geom.nearest_distance(q[None])[0] < need:
-                continue
-            theta, p, moved = float(cand[k]), q, True
+            side = _heading_dirs(self.theta + np.array([-1.0, 1.0]) * math.radians(60.0),
+                                 self.climb if self.kind == "fly" else 0.0)
+            open_ = np.minimum(free_distance(geom, self.p, side), region_room(region, self.p, side, border_ahead))
+            pref = self.theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
+        return room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)  # the cell's border: a wall
+
+    def _moved(self, d: np.ndarray, free: float) -> np.ndarray | None:
+        """The next eye one step along ``d`` (a walk follows its floor, a fly keeps its height band), or None where
+        that step leaves the region, hits a surface, climbs a step too high or leaves the band."""
+        geom, rules, speed, p = self.geom, self.rules, self.speed, self.p
+        q = p + speed * d
+        if free < speed + self.need or not self.region.contains(q[None, :2])[0]:
+            return None
+        if self.kind == "walk":
+            f = floor_under(geom, q + UP * geom.units(rules.max_step_m), self.eye_h + geom.units(2 * rules.max_step_m))
+            if f is None or abs(f - self.zf) > geom.units(rules.max_step_m):
+                return None
+            self.zf = f
+            q[2] = p[2] + np.clip(f + self.eye_h - p[2], -speed, speed)
+        else:
+            f = floor_under(geom, q, geom.extent)
+            low = (f if f is not None else self.lo_c[2]) + geom.units(rules.min_fly_height_m)
+            if q[2] < low or q[2] > self.hi_c[2] + geom.units(2.0):
+                return None
+        return q if geom.nearest_distance(q[None])[0] >= self.need else None
+
+
+def _draw(geom: LevelGeometry, kind: str, n: int, fps: float, region: Region, rng, rules: PathRules):
+    """One candidate path of ``n`` eyes (or None with a reason)."""
+    w = _Walker(geom, kind, fps, region, rules)
+    why = w.start(rng)
+    if why:
+        return None, why
+    eyes, looks = [w.p.copy()], []
+    for i in range(n):
+        looks.append(w.look())
+        if i == n - 1:
             break
-        if not moved:
+        if not w.step():
             return None, "walked into a dead end"
-        if kind == "fly":
-            climb = float(np.clip(climb + math.radians(4.0) / fps * climb_noise() * 4, -0.35, 0.35))
-            if p[2] < lo_c[2] + geom.units(rules.min_fly_height_m) + 2 * speed:
-                climb = abs(climb)
-        eyes.append(p.copy())
+        eyes.append(w.p.copy())
     eyes = np.array(eyes)
     return (eyes, eyes + np.array(looks)), None
 

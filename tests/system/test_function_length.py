@@ -17,9 +17,6 @@ LIMIT = 60
 EXCEPTIONS = {
     # One Triton kernel: a compiled body whose steps share registers; helpers would be inlined into it anyway.
     "training/kernels/hr_triton.py:hr_pixels_kernel",
-    # A level camera path's random walk: its draws, in their order, make the paths the scale set renders; a split
-    # must first be shown to give the same paths on every shared level.
-    "gbuffer_export/blender/level_cameras.py:_draw",
 }
 
 
