@@ -7,8 +7,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..dataset.family_gap import (gap_table, index_families, index_groups, index_kinds, kind_table, lineage_families,
-                                  lineage_groups, read_margins, unseen_by_all, unseen_table)
+from ..dataset.family_gap import (gap_table, index_families, index_groups, index_kinds, index_unseen_assets_levels,
+                                  kind_table, lineage_families, lineage_groups, read_margins, unseen_by_all,
+                                  unseen_table)
 from ..errors import BlendSRError
 
 
@@ -28,7 +29,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--by-kind", action="store_true",
                    help="also the gap within objects and within levels and the kind-matched gap (each held-out clip "
                         "against in-family clips of its own kind: levels score higher margins than objects, and a "
-                        "split whose held-out clips are mostly objects has a larger plain gap by the mix alone)")
+                        "split whose held-out clips are mostly objects has a larger plain gap by the mix alone), and "
+                        "every model on the held-out clips that show an object asset or a level no train clip of the "
+                        "dataset shows (what 'real content never seen' measures)")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
     return p
@@ -59,6 +62,9 @@ def main(argv=None) -> int:
     print(gap_table(models, groups, own))
     if a.by_kind:
         print("\n" + kind_table(models, groups, {k: v for d in a.data for k, v in index_kinds(d).items()}, own))
+        scored = set().union(*models.values())
+        unseen = {c for d in a.data for c in index_unseen_assets_levels(d) if c in scored}
+        print("\n" + unseen_table(models, unseen, "of an object asset or level no train clip shows"))
     if a.unseen_by_all:
         scored = set().union(*models.values())
         clips = unseen_by_all({c: g for c, g in groups.items() if c in scored}, own)

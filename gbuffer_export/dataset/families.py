@@ -34,6 +34,10 @@ BUILTIN_FAMILIES: dict[str, str] = {
 CAMERA_FAMILIES = tuple(k for k, v in BUILTIN_FAMILIES.items() if v == "camera")
 
 IN_FAMILY, HELD_OUT = "in-family", "held-out"
+#: The held-out clips that show an object asset or a level no train clip shows (``unseen_assets_levels``): what
+#: "real objects and levels never seen" measures. The other held-out clips hold out a built-in generator family or
+#: an HDRI only; a sub-group, so a clip in it is also ``held-out``.
+HELD_OUT_ASSET_LEVEL = "held-out asset/level"
 
 
 def builtin_family(name: str) -> str:
@@ -86,6 +90,15 @@ def leak(split: str, possible, val: tuple[str, ...], test: tuple[str, ...]) -> t
         if need and order[need] > order[split]:
             return fam, need
     return None
+
+
+def unseen_assets_levels(clips) -> set[str]:
+    """The ids of ``clips`` (``(id, split, families)`` each) outside the train split that hold an ``asset:`` or
+    ``level:`` family that no train clip holds (``HELD_OUT_ASSET_LEVEL``)."""
+    clips = [(cid, split, set(fams)) for cid, split, fams in clips]
+    trained = set().union(*(fams for _, split, fams in clips if split == "train"))
+    return {cid for cid, split, fams in clips
+            if split != "train" and any(f.split(":", 1)[0] in ("asset", "level") for f in fams - trained)}
 
 
 def family_group(families, val: tuple[str, ...], test: tuple[str, ...]) -> str:

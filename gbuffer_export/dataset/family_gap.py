@@ -20,7 +20,7 @@ import shlex
 from pathlib import Path
 
 from .build import read_index
-from .families import HELD_OUT, IN_FAMILY
+from .families import HELD_OUT, IN_FAMILY, unseen_assets_levels
 
 
 def read_margins(path: Path) -> dict[str, dict[str, float]]:
@@ -94,6 +94,13 @@ def index_groups(dataset: Path) -> dict[str, str]:
     """Clip folder name -> family group, from ``DATASET/dataset.json`` (an index without families: every clip
     ``in-family``)."""
     return {Path(c["path"]).name: c.get("family_group") or IN_FAMILY for c in read_index(dataset)["clips"]}
+
+
+def index_unseen_assets_levels(dataset: Path) -> set[str]:
+    """Folder names of the clips of ``DATASET/dataset.json`` in ``HELD_OUT_ASSET_LEVEL``: outside the train split,
+    holding an object asset or a level that no train clip (rendered or planned) holds."""
+    return unseen_assets_levels((Path(c["path"]).name, c.get("split"), c.get("families") or ())
+                                for c in read_index(dataset)["clips"])
 
 
 def index_families(dataset: Path) -> dict[str, set[str]]:
@@ -201,9 +208,10 @@ def unseen_by_all(groups: dict[str, str], own: dict[str, dict[str, str]]) -> set
     return {c for c, g in groups.items() if g == HELD_OUT and all(o.get(c) == HELD_OUT for o in own.values())}
 
 
-def unseen_table(models: dict[str, dict[str, float]], clips: set[str]) -> str:
-    """A Markdown table: per model, its mean and smallest margin on ``clips`` (models that lack one: n/a)."""
-    lines = [f"| model | margin on the {len(clips)} clips no network trained on (smallest) |", "|---|---|"]
+def unseen_table(models: dict[str, dict[str, float]], clips: set[str], what: str = "no network trained on") -> str:
+    """A Markdown table: per model, its mean and smallest margin on ``clips`` (``what`` they are, in the header;
+    models that lack one: n/a)."""
+    lines = [f"| model | margin on the {len(clips)} clips {what} (smallest) |", "|---|---|"]
     for label, margins in models.items():
         v = [margins[c] for c in clips if c in margins]
         cell = f"{sum(v) / len(v):+.2f} ({min(v):+.2f})" if v and len(v) == len(clips) else "n/a (clips missing)"

@@ -36,8 +36,28 @@ def test_multiples_take_the_smallest_prefix_that_reaches_them(tmp_path):
     assert data_scaling.hr_pixels(tmp_path / "ds", [tmp_path / "ds/clips/c2"]) == 400
     with pytest.raises(SystemExit, match="fewer than 11 x 100"):
         data_scaling.pixel_prefixes(tmp_path / "ds", groups, [11], 100.0)
-    assert data_scaling.family_groups(tmp_path / "ds") == {"c0": "in-family", "c1": "in-family", "c2": "in-family",
-                                                           "c3": "in-family", "t": "held-out"}
+    assert data_scaling.family_groups(tmp_path / "ds") == {"c0": ("in-family",), "c1": ("in-family",),
+                                                           "c2": ("in-family",), "c3": ("in-family",),
+                                                           "t": ("held-out",)}
+
+
+def test_held_out_clips_of_an_unseen_asset_or_level_are_also_their_own_group(tmp_path):
+    """``held-out asset/level``: a clip outside train holding an asset or level no train clip holds; not one whose
+    asset was trained on (held out by its HDRI), nor one holding out a built-in family only."""
+    fams = {"c0": ["asset:A", "hdri:x"], "c1": ["level:L", "material:brick"],
+            "t0": ["asset:B", "hdri:x"], "t1": ["asset:A", "hdri:y"], "t2": ["material:voronoi"], "v0": ["level:M"]}
+    clips = [{"id": c, "path": f"clips/{c}", "split": {"c": "train", "t": "test", "v": "val"}[c[0]], "families": f,
+              "family_group": "in-family" if c[0] == "c" else "held-out", "render": {"frames": 1, "hr_size": [8, 8]}}
+             for c, f in fams.items()]
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION,
+                                                      "clips": clips}))
+    got = data_scaling.family_groups(tmp_path / "ds")
+    assert {c for c, g in got.items() if "held-out asset/level" in g} == {"t0", "v0"}
+    assert got["t0"] == ("held-out", "held-out asset/level") and got["t1"] == ("held-out",)
+    margins = {"c0": 1.0, "t0": 0.2, "t1": 0.5, "t2": 2.0, "v0": 0.7}
+    assert data_scaling.smallest_margins(margins, got) == {"in-family": 1.0, "held-out": 0.2,
+                                                           "held-out asset/level": 0.2}
 
 
 
@@ -147,14 +167,14 @@ def test_the_curve_is_fitted_per_family_group_and_extrapolated_to_100x():
 def test_each_family_group_reports_its_worst_clip_beside_its_mean():
     per = {"a": 30.0, "b": 25.0, "c": 28.0, "d": 20.0}
     base = {"a": 29.0, "b": 26.0, "c": 27.5, "d": 19.0}
-    family = {"a": "in-family", "b": "in-family", "c": "held-out", "d": "held-out"}
+    family = {"a": ("in-family",), "b": ("in-family",), "c": ("held-out",), "d": ("held-out",)}
     margins = {c: per[c] - base[c] for c in per}  # as evaluate_model gives them, over demod-jbu
     assert data_scaling.smallest_margins(margins, family) == {"in-family": -1.0, "held-out": 0.5}
     row = {"model": "fusesr", "clips": 2, "hr_pixels": 100, "steps": 10, "psnr": 25.75, "ssim": 0.9,
            "per_clip": per, "margin_by_family": {"in-family": 0.0, "held-out": 0.75},
            "margin_min_by_family": {"in-family": -1.0, "held-out": 0.5}}
     table = data_scaling.report_table([row], "clip", 100.0)
-    assert "| +0.00 (-1.00) | +0.75 (+0.50) |" in table
+    assert "| +0.00 (-1.00) | +0.75 (+0.50) | - |" in table
 
 
 def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tmp_path):
@@ -309,7 +329,8 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
 
 def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
     """The script's last stage, as the round's end runs it: every run trained (2 steps here), the baselines and each
-    run scored as trained and with --score-options on the test split by family group, the records written."""
+    run scored as trained and with --score-options on the test split by family group (the held-out clip shows an
+    asset no train clip shows: it is also ``held-out asset/level``), the records written."""
     from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
     root = tmp_path / "ds"
     clips = []
@@ -318,7 +339,8 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
         make_synthetic_clip(root / "clips" / cid, frames=range(1, 4), hr_size=(128, 72),
                             look=SyntheticLook(light=0.5 + 0.2 * i))
         clips.append({"id": cid, "path": f"clips/{cid}", "split": split, "state": "done", "frames_done": 3,
-                      "render": {"frames": 3, "hr_size": [128, 72]}, "family_group": group})
+                      "render": {"frames": 3, "hr_size": [128, 72]}, "family_group": group,
+                      "families": ["asset:B" if group == "held-out" else "asset:A"]})
     (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
     out = tmp_path / "out"
     argv = [str(root), "-o", str(out), "--runs", str(tmp_path / "runs"), "--multiples", "1,2", "--unit-pixels",
@@ -335,12 +357,15 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
         ("demod-bilinear", 0), ("demod-jbu", 0), ("fusesr-l", 1), ("fusesr-l?residual_clamp=lr-guided", 1),
         ("fusesr-l", 2), ("fusesr-l?residual_clamp=lr-guided", 2)]
     jbu = record["rows"][1]["by_family"]
+    groups = ("in-family", "held-out", "held-out asset/level")
+    assert set(jbu) == set(groups) and jbu["held-out"] != jbu["in-family"]
     for r in record["rows"][2:]:
-        assert r["steps"] == 2 and set(r["margin_by_family"]) == {"in-family", "held-out"}
+        assert r["steps"] == 2 and set(r["margin_by_family"]) == set(groups)
         assert all(abs(r["margin_by_family"][g] - (r["by_family"][g] - jbu[g])) < 1e-9 for g in jbu)
-        assert set(r["margin_min_by_family"]) == {"in-family", "held-out"} and len(r["per_clip"]) == 2
+        assert set(r["margin_min_by_family"]) == set(groups) and len(r["per_clip"]) == 2
+        assert r["by_family"]["held-out asset/level"] == r["by_family"]["held-out"]  # one clip, both groups
     assert {(f["model"], f["group"]) for f in record["fits"]} == {
-        (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in ("in-family", "held-out")}
+        (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in groups}
     one, two = record["rows"][2], record["rows"][4]  # fusesr-l at 1x and 2x: the line through the two margins
     x1, x2 = one["hr_pixels"] / (3 * 128 * 72), two["hr_pixels"] / (3 * 128 * 72)
     assert (one["x"], two["x"]) == (x1, x2)

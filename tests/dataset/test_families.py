@@ -281,10 +281,15 @@ def test_the_kind_matched_gap_compares_each_held_out_clip_with_in_family_clips_o
     assert row[1] == "| `m` | 1 clips not in the datasets' indexes | | | | |"
     ds = tmp_path / "ds"
     (ds / "clips").mkdir(parents=True)
+    unseen = {"o2": "asset:new", "l3": "level:new"}  # an asset and a level no train clip (o1: asset:seen) shows
     (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
-        {"id": c, "path": f"clips/{c}", "split": "test", "family_group": groups[c],
-         "kind": "scene" if k == "levels" else "asset"} for c, k in kinds.items()]}))
+        {"id": c, "path": f"clips/{c}", "split": "train" if c == "o1" else "test", "family_group": groups[c],
+         "kind": "scene" if k == "levels" else "asset", "families": [unseen.get(c, "asset:seen"), "hdri:x"]}
+        for c, k in kinds.items()]}))
     (tmp_path / "e.json").write_text(json.dumps({"model": "m", "per_clip": [
         {"clip": f"x/{c}", "margin": m} for c, m in margins.items()]}))
     assert main([str(tmp_path / "e.json"), "--data", str(ds), "--by-kind"]) == 0
-    assert "| +0.50 | +0.88 (4 of 4 held-out) |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "| +0.50 | +0.88 (4 of 4 held-out) |" in out
+    # the held-out clips of an asset or level no train clip shows: o2 (margin 1.0) and l3 (3.0)
+    assert "| `m` | +2.00 (+1.00) |" in out.split("of an object asset or level no train clip shows")[1]
