@@ -343,9 +343,9 @@ def _valid_eye(geom, p, clearance, rules) -> bool:
 
 class _Walker:
     """A path being drawn (``_draw``): the rules in level units per frame, the current eye ``p`` over its floor
-    ``zf``, its heading ``theta`` and climb, and the smooth noises that steer and aim it. ``start`` draws it (or
-    gives the reason it cannot start); ``look`` and ``step`` advance it one frame, drawing from ``rng`` in the
-    order the scale set's level paths were planned with."""
+    ``zf``, its heading ``theta`` and climb, and the smooth noises that steer and aim it. ``start`` seats it (or
+    gives the reason it cannot start) and must come first; then ``look`` and ``step`` advance it one frame, drawing
+    from ``rng`` in the order the scale set's level paths were planned with."""
 
     def __init__(self, geom: LevelGeometry, kind: str, fps: float, region: Region, rules: PathRules):
         self.geom, self.kind, self.fps, self.region, self.rules = geom, kind, fps, region, rules
@@ -355,7 +355,8 @@ class _Walker:
         self.eye_h = geom.units(rules.eye_height_m)
         self.lo_c, self.hi_c = geom.content_bounds()
         self.ahead = max(geom.units(1.5), 12 * self.speed)
-        self.border_ahead = max(self.ahead, 2.5 * self.speed / max(self.max_turn, 1e-9))  # a U-turn's width
+        # a U-turn's width at the bounded turn rate
+        self.border_ahead = max(self.ahead, 2.5 * self.speed / max(self.max_turn, 1e-9))
         self.climb = 0.0
 
     def start(self, rng) -> str | None:
@@ -409,21 +410,23 @@ class _Walker:
     def _scores(self, cand: np.ndarray, dirs: np.ndarray, free: np.ndarray) -> np.ndarray:
         """Per candidate heading: the room ahead less the cost of turning away from the preferred heading (the
         drift, or a full-rate turn towards the more open side when a wall or the cell's border is ahead)."""
-        geom, region, ahead, border_ahead, max_turn = self.geom, self.region, self.ahead, self.border_ahead, \
-            self.max_turn
+        geom, region, max_turn = self.geom, self.region, self.max_turn
+        ahead, border_ahead = self.ahead, self.border_ahead
         pref = self.theta + max_turn * self.turn()
         border = region_room(region, self.p, dirs, border_ahead)
-        room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)
+        room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)  # the cell's border: a wall
         if free[3] < ahead or border[3] < border_ahead:  # a wall or the cell's border ahead: turn at full rate
             side = _heading_dirs(self.theta + np.array([-1.0, 1.0]) * math.radians(60.0),
                                  self.climb if self.kind == "fly" else 0.0)
             open_ = np.minimum(free_distance(geom, self.p, side), region_room(region, self.p, side, border_ahead))
             pref = self.theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
-        return room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)  # the cell's border: a wall
+        return room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
 
     def _moved(self, d: np.ndarray, free: float) -> np.ndarray | None:
         """The next eye one step along ``d`` (a walk follows its floor, a fly keeps its height band), or None where
-        that step leaves the region, hits a surface, climbs a step too high or leaves the band."""
+        that step leaves the region, hits a surface, climbs a step too high or leaves the band. A walk's floor
+        ``zf`` follows the step's floor before the last check (clearance), even when that check refuses it: the
+        next candidate of the same frame starts from that floor, as the scale set's paths were drawn."""
         geom, rules, speed, p = self.geom, self.rules, self.speed, self.p
         q = p + speed * d
         if free < speed + self.need or not self.region.contains(q[None, :2])[0]:

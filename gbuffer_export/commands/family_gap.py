@@ -7,9 +7,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..dataset.family_gap import (gap_table, index_families, index_groups, index_kinds, index_unseen_assets_levels,
-                                  kind_table, lineage_families, lineage_groups, read_margins, unseen_by_all,
-                                  unseen_table)
+from ..dataset.family_gap import (content_groups, content_table, gap_table, index_families, index_groups, index_kinds,
+                                  index_trained_families, kind_table, lineage_families, lineage_groups, read_margins,
+                                  unseen_by_all, unseen_table)
 from ..errors import BlendSRError
 
 
@@ -30,8 +30,9 @@ def parser() -> argparse.ArgumentParser:
                    help="also the gap within objects and within levels and the kind-matched gap (each held-out clip "
                         "against in-family clips of its own kind: levels score higher margins than objects, and a "
                         "split whose held-out clips are mostly objects has a larger plain gap by the mix alone), and "
-                        "every model on the held-out clips that show an object asset or a level no train clip of the "
-                        "dataset shows (what 'real content never seen' measures)")
+                        "every model on the held-out clips that show an object asset, or a level, that it never "
+                        "trained on (by the dataset's train split, or by its --seen-from lineage): what 'real objects "
+                        "and levels never seen' measures")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
     return p
@@ -46,7 +47,7 @@ def main(argv=None) -> int:
         for m in a.margins:
             for label, rows in read_margins(m).items():
                 models.setdefault(label, {}).update(rows)
-        own = {}
+        own, lineage = {}, {}
         for item in a.seen_from:
             label, sep, path = item.rpartition("=")  # a label may hold "=" (its options), a path does not
             if not sep or label not in models:
@@ -56,15 +57,18 @@ def main(argv=None) -> int:
             for note in notes:
                 print(f"note: {note}", file=sys.stderr)
             own[label] = lineage_groups(families, trained)
+            lineage[label] = trained
     except (BlendSRError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(gap_table(models, groups, own))
     if a.by_kind:
         print("\n" + kind_table(models, groups, {k: v for d in a.data for k, v in index_kinds(d).items()}, own))
-        scored = set().union(*models.values())
-        unseen = {c for d in a.data for c in index_unseen_assets_levels(d) if c in scored}
-        print("\n" + unseen_table(models, unseen, "of an object asset or level no train clip shows"))
+        trained = set().union(*(index_trained_families(d) for d in a.data))
+        sub = {label: content_groups(families, own.get(label, groups), lineage.get(label, trained))
+               for label in models}
+        if any(sub.values()):
+            print("\n" + content_table(models, sub, own))
     if a.unseen_by_all:
         scored = set().union(*models.values())
         clips = unseen_by_all({c: g for c, g in groups.items() if c in scored}, own)

@@ -20,7 +20,7 @@ import shlex
 from pathlib import Path
 
 from .build import read_index
-from .families import HELD_OUT, IN_FAMILY, unseen_assets_levels
+from .families import HELD_OUT, IN_FAMILY, UNSEEN_CONTENT, unseen_content
 
 
 def read_margins(path: Path) -> dict[str, dict[str, float]]:
@@ -96,11 +96,21 @@ def index_groups(dataset: Path) -> dict[str, str]:
     return {Path(c["path"]).name: c.get("family_group") or IN_FAMILY for c in read_index(dataset)["clips"]}
 
 
-def index_unseen_assets_levels(dataset: Path) -> set[str]:
-    """Folder names of the clips of ``DATASET/dataset.json`` in ``HELD_OUT_ASSET_LEVEL``: outside the train split,
-    holding an object asset or a level that no train clip (rendered or planned) holds."""
-    return unseen_assets_levels((Path(c["path"]).name, c.get("split"), c.get("families") or ())
-                                for c in read_index(dataset)["clips"])
+def index_trained_families(dataset: Path) -> set[str]:
+    """Every family that a clip of the train split of ``DATASET/dataset.json`` holds (planned or rendered)."""
+    return set().union(*(c.get("families") or () for c in read_index(dataset)["clips"] if c.get("split") == "train"))
+
+
+def content_groups(families: dict[str, set[str]], groups: dict[str, str], trained: set[str]) -> dict[str, tuple]:
+    """Clip -> its ``unseen_content`` sub-groups, for the ``held-out`` clips of ``groups`` that show an object asset or
+    a level missing from ``trained`` (the dataset's train split: ``index_trained_families``, the whole split, so that
+    every run of a curve is scored on the same clips; or a network's lineage); other clips are left out."""
+    out = {}
+    for clip, group in groups.items():
+        sub = unseen_content(families.get(clip, ()), trained) if group == HELD_OUT else ()
+        if sub:
+            out[clip] = sub
+    return out
 
 
 def index_families(dataset: Path) -> dict[str, set[str]]:
@@ -208,12 +218,26 @@ def unseen_by_all(groups: dict[str, str], own: dict[str, dict[str, str]]) -> set
     return {c for c, g in groups.items() if g == HELD_OUT and all(o.get(c) == HELD_OUT for o in own.values())}
 
 
-def unseen_table(models: dict[str, dict[str, float]], clips: set[str], what: str = "no network trained on") -> str:
-    """A Markdown table: per model, its mean and smallest margin on ``clips`` (``what`` they are, in the header;
-    models that lack one: n/a)."""
-    lines = [f"| model | margin on the {len(clips)} clips {what} (smallest) |", "|---|---|"]
+def unseen_table(models: dict[str, dict[str, float]], clips: set[str]) -> str:
+    """A Markdown table: per model, its mean and smallest margin on ``clips`` (models that lack one: n/a)."""
+    lines = [f"| model | margin on the {len(clips)} clips no network trained on (smallest) |", "|---|---|"]
     for label, margins in models.items():
         v = [margins[c] for c in clips if c in margins]
         cell = f"{sum(v) / len(v):+.2f} ({min(v):+.2f})" if v and len(v) == len(clips) else "n/a (clips missing)"
         lines.append(f"| `{label}` | {cell} |")
+    return "\n".join(lines)
+
+
+def content_table(models: dict[str, dict[str, float]], sub: dict[str, dict[str, tuple]], own=()) -> str:
+    """A Markdown table: per model, its mean and smallest margin and the clip count on each ``unseen_content``
+    sub-group; ``sub``: per model label, clip -> its sub-groups (``content_groups`` by the dataset's train split, or
+    by the model's own lineage for the labels in ``own``, which its row says)."""
+    f = lambda v: f"{sum(v) / len(v):+.2f} ({min(v):+.2f}, {len(v)})" if v else "n/a (0)"  # noqa: E731
+    lines = ["| model | " + " | ".join(f"{g}s never trained on: margin (smallest, clips)"
+                                       for g in UNSEEN_CONTENT.values()) + " |", "|---|---|---|"]
+    for label, margins in models.items():
+        mine = sub.get(label, {})
+        cells = [f([m for c, m in margins.items() if g in mine.get(c, ())]) for g in UNSEEN_CONTENT.values()]
+        name = f"`{label}`" + (" (by its training lineage)" if label in own else "")
+        lines.append(f"| {name} | {' | '.join(cells)} |")
     return "\n".join(lines)

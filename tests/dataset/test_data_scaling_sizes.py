@@ -41,24 +41,26 @@ def test_multiples_take_the_smallest_prefix_that_reaches_them(tmp_path):
                                                            "t": ("held-out",)}
 
 
-def test_held_out_clips_of_an_unseen_asset_or_level_are_also_their_own_group(tmp_path):
-    """``held-out asset/level``: a clip outside train holding an asset or level no train clip holds; not one whose
-    asset was trained on (held out by its HDRI), nor one holding out a built-in family only."""
-    fams = {"c0": ["asset:A", "hdri:x"], "c1": ["level:L", "material:brick"],
-            "t0": ["asset:B", "hdri:x"], "t1": ["asset:A", "hdri:y"], "t2": ["material:voronoi"], "v0": ["level:M"]}
+def test_held_out_clips_of_an_unseen_asset_or_level_are_also_their_own_groups(tmp_path):
+    """``held-out asset`` / ``held-out level``: a held-out clip showing an asset or a level that no train clip shows;
+    not one whose asset was trained on (held out by its HDRI), nor one holding out a built-in family only, nor an
+    in-family clip (a sub-group of held-out), nor a clip whose index entry has no families (an older index)."""
+    fams = {"c0": ["asset:A", "hdri:x"], "c1": ["level:L", "material:brick"], "t0": ["asset:B", "hdri:x"],
+            "t1": ["asset:A", "hdri:y"], "t2": ["material:voronoi"], "v0": ["level:M"], "v1": ["asset:C"]}
     clips = [{"id": c, "path": f"clips/{c}", "split": {"c": "train", "t": "test", "v": "val"}[c[0]], "families": f,
-              "family_group": "in-family" if c[0] == "c" else "held-out", "render": {"frames": 1, "hr_size": [8, 8]}}
-             for c, f in fams.items()]
+              "family_group": "in-family" if c[0] == "c" or c == "v1" else "held-out",
+              "render": {"frames": 1, "hr_size": [8, 8]}} for c, f in fams.items()]
+    clips.append({"id": "bare", "path": "clips/bare", "split": "test", "render": {"frames": 1, "hr_size": [8, 8]}})
     (tmp_path / "ds").mkdir()
     (tmp_path / "ds" / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION,
                                                       "clips": clips}))
     got = data_scaling.family_groups(tmp_path / "ds")
-    assert {c for c, g in got.items() if "held-out asset/level" in g} == {"t0", "v0"}
-    assert got["t0"] == ("held-out", "held-out asset/level") and got["t1"] == ("held-out",)
-    margins = {"c0": 1.0, "t0": 0.2, "t1": 0.5, "t2": 2.0, "v0": 0.7}
-    assert data_scaling.smallest_margins(margins, got) == {"in-family": 1.0, "held-out": 0.2,
-                                                           "held-out asset/level": 0.2}
-
+    assert got == {"c0": ("in-family",), "c1": ("in-family",), "t0": ("held-out", "held-out asset"),
+                   "t1": ("held-out",), "t2": ("held-out",), "v0": ("held-out", "held-out level"),
+                   "v1": ("in-family",), "bare": ("in-family",)}
+    margins = {"c0": 1.0, "t0": 0.4, "t1": 0.2, "t2": 2.0, "v0": 0.7, "v1": -3.0}
+    assert data_scaling.smallest_margins(margins, got) == {"in-family": -3.0, "held-out": 0.2,
+                                                           "held-out asset": 0.4, "held-out level": 0.7}
 
 
 def test_subsets_are_planned_and_ordered_as_the_mixed_render_order(tmp_path):
@@ -174,7 +176,9 @@ def test_each_family_group_reports_its_worst_clip_beside_its_mean():
            "per_clip": per, "margin_by_family": {"in-family": 0.0, "held-out": 0.75},
            "margin_min_by_family": {"in-family": -1.0, "held-out": 0.5}}
     table = data_scaling.report_table([row], "clip", 100.0)
-    assert "| +0.00 (-1.00) | +0.75 (+0.50) | - |" in table
+    assert "| +0.00 (-1.00) | +0.75 (+0.50) | - | - |" in table
+    row["margin_by_family"]["held-out asset"], row["margin_min_by_family"]["held-out asset"] = 1.0, 1.0  # clip d
+    assert "| +0.75 (+0.50) | +1.00 (+1.00) | - |" in data_scaling.report_table([row], "clip", 100.0)
 
 
 def test_score_variants_are_checked_before_training_and_each_is_its_own_curve(tmp_path):
@@ -329,18 +333,19 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
 
 def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
     """The script's last stage, as the round's end runs it: every run trained (2 steps here), the baselines and each
-    run scored as trained and with --score-options on the test split by family group (the held-out clip shows an
-    asset no train clip shows: it is also ``held-out asset/level``), the records written."""
+    run scored as trained and with --score-options on the test split by family group (of the two held-out clips one
+    shows an asset no train clip shows: it alone is also ``held-out asset``), the records written."""
     from gbuffer_export.synthetic import SyntheticLook, make_synthetic_clip
     root = tmp_path / "ds"
     clips = []
-    for i, (split, group) in enumerate([("train", "in-family")] * 3 + [("test", "in-family"), ("test", "held-out")]):
+    for i, (split, group) in enumerate([("train", "in-family")] * 3 + [("test", "in-family"), ("test", "held-out"),
+                                                                        ("test", "held-out")]):
         cid = f"{split}{i}"
         make_synthetic_clip(root / "clips" / cid, frames=range(1, 4), hr_size=(128, 72),
                             look=SyntheticLook(light=0.5 + 0.2 * i))
         clips.append({"id": cid, "path": f"clips/{cid}", "split": split, "state": "done", "frames_done": 3,
                       "render": {"frames": 3, "hr_size": [128, 72]}, "family_group": group,
-                      "families": ["asset:B" if group == "held-out" else "asset:A"]})
+                      "families": ["asset:B"] if i == 4 else ["asset:A", "hdri:z"] if i == 5 else ["asset:A"]})
     (root / INDEX).write_text(json.dumps({"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "clips": clips}))
     out = tmp_path / "out"
     argv = [str(root), "-o", str(out), "--runs", str(tmp_path / "runs"), "--multiples", "1,2", "--unit-pixels",
@@ -357,13 +362,13 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
         ("demod-bilinear", 0), ("demod-jbu", 0), ("fusesr-l", 1), ("fusesr-l?residual_clamp=lr-guided", 1),
         ("fusesr-l", 2), ("fusesr-l?residual_clamp=lr-guided", 2)]
     jbu = record["rows"][1]["by_family"]
-    groups = ("in-family", "held-out", "held-out asset/level")
-    assert set(jbu) == set(groups) and jbu["held-out"] != jbu["in-family"]
+    groups = ("in-family", "held-out", "held-out asset")
+    assert set(jbu) == set(groups) and len({jbu[g] for g in groups}) == 3
     for r in record["rows"][2:]:
         assert r["steps"] == 2 and set(r["margin_by_family"]) == set(groups)
         assert all(abs(r["margin_by_family"][g] - (r["by_family"][g] - jbu[g])) < 1e-9 for g in jbu)
-        assert set(r["margin_min_by_family"]) == set(groups) and len(r["per_clip"]) == 2
-        assert r["by_family"]["held-out asset/level"] == r["by_family"]["held-out"]  # one clip, both groups
+        assert set(r["margin_min_by_family"]) == set(groups) and len(r["per_clip"]) == 3
+        assert abs(r["by_family"]["held-out asset"] - r["per_clip"]["test4"]) < 1e-3  # its one clip
     assert {(f["model"], f["group"]) for f in record["fits"]} == {
         (m, g) for m in ("fusesr-l", "fusesr-l?residual_clamp=lr-guided") for g in groups}
     one, two = record["rows"][2], record["rows"][4]  # fusesr-l at 1x and 2x: the line through the two margins
@@ -372,7 +377,7 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
     slope = (two["margin_by_family"]["held-out"] - one["margin_by_family"]["held-out"]) / math.log10(x2 / x1)
     f = next(f for f in record["fits"] if (f["model"], f["group"]) == ("fusesr-l", "held-out"))
     assert (x1, x2) == (1.0, 2.0) and abs(f["b"] - slope) < 1e-5 and "steps" not in f
-    assert record["test_clips"] == [str(root / "clips/test3"), str(root / "clips/test4")]
+    assert record["test_clips"] == [str(root / f"clips/test{i}") for i in (3, 4, 5)]
     assert "predicts" in (out / "scaling.md").read_text() and (out / "scaling.png").stat().st_size > 1000
     # by clip count (the PSNR plot): the same runs, finished, are scored again, not trained again
     ckpt = tmp_path / "runs/fusesr-l_001clips/checkpoints/last.pt"
