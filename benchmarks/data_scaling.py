@@ -395,9 +395,9 @@ def sized_rows(rows: list[dict], unit: float) -> list[dict]:
     return [{**r, "x": r["hr_pixels"] / unit} if r.get("hr_pixels") else r for r in rows]
 
 
-def curve_label(series: dict) -> str:
-    """A curve's model, with its step budget when the rows hold several."""
-    return series["model"] + (f" ({series['steps']} steps)" if "steps" in series else "")
+def curve_label(series: dict, model: bool = True) -> str:
+    """A curve's model (without ``model``: nothing), with its step budget when the rows hold several."""
+    return (series["model"] if model else "") + (f" ({series['steps']} steps)" if "steps" in series else "")
 
 
 #: The plot's line per family group (held-out solid, in-family dashed, its unseen assets dash-dotted, levels dotted).
@@ -508,8 +508,7 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
     labels = {r["model"] for r in rows if r.get("hr_pixels") and r.get("margin_by_family")}
     lines = []
     for f in fits(rows, unit, at):
-        name = f"`{f['model']}` {f['group']}" if len(labels) > 1 else f["group"]
-        name += f" ({f['steps']} steps)" if "steps" in f else ""  # as curve_label
+        name = f"`{curve_label(f)}` {f['group']}" if len(labels) > 1 else f["group"] + curve_label(f, model=False)
         lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "
                      f"({f['x_min']:.1f}x to {f['x_max']:.1f}x): {f['b']:+.2f} dB per tenfold data; at {at:g}x it "
                      f"predicts {f['predicted']:+.2f} dB (an extrapolation)")

@@ -381,6 +381,11 @@ class _Walker:
             _Smooth(rng, 1.5 * self.fps), _Smooth(rng, self.fps), _Smooth(rng, self.fps), _Smooth(rng, 2 * self.fps))
         return None
 
+    @property
+    def pitch_move(self) -> float:
+        """The pitch of a move: a fly's climb; a walk moves level."""
+        return self.climb if self.kind == "fly" else 0.0
+
     def look(self) -> np.ndarray:
         """The current eye's look direction (a unit vector)."""
         lo, hi = self.rules.pitch_deg
@@ -391,7 +396,7 @@ class _Walker:
     def step(self) -> bool:
         """Move one frame: random drift plus avoidance of what is ahead; False at a dead end."""
         cand = self.theta + np.linspace(-self.max_turn, self.max_turn, 7)
-        dirs = _heading_dirs(cand, self.climb if self.kind == "fly" else 0.0)
+        dirs = _heading_dirs(cand, self.pitch_move)
         free = free_distance(self.geom, self.p, dirs)
         for k in np.argsort(-self._scores(cand, dirs, free)):
             q = self._moved(dirs[k], free[k])
@@ -416,8 +421,7 @@ class _Walker:
         border = region_room(region, self.p, dirs, border_ahead)
         room = np.minimum(np.minimum(free, ahead), border * ahead / border_ahead)  # the cell's border: a wall
         if free[3] < ahead or border[3] < border_ahead:  # a wall or the cell's border ahead: turn at full rate
-            side = _heading_dirs(self.theta + np.array([-1.0, 1.0]) * math.radians(60.0),
-                                 self.climb if self.kind == "fly" else 0.0)
+            side = _heading_dirs(self.theta + np.array([-1.0, 1.0]) * math.radians(60.0), self.pitch_move)
             open_ = np.minimum(free_distance(geom, self.p, side), region_room(region, self.p, side, border_ahead))
             pref = self.theta + max_turn * (1.0 if open_[1] >= open_[0] else -1.0)
         return room - 0.2 * ahead * np.abs(cand - pref) / max(max_turn, 1e-9)
