@@ -13,7 +13,21 @@ frame into four disjoint regions from its flags and depth; each pixel gets the f
 - ``background``: the other background pixels (``Flag.BACKGROUND``);
 - ``interior``: the other surface pixels.
 
-``training.evaluate`` scores every region (``regions`` in the JSON of ``blendsr evaluate``).
+``material_regions`` splits the same frame by what its G-buffers can describe: a rough opaque surface is its
+G-buffers (albedo, normal, roughness, metallic, specular) times the light arriving there, which varies slowly; a
+glossy, coated or transmissive surface also shows a picture of its surroundings (a reflection, what lies behind the
+glass) that no G-buffer holds, so an upscaler must invent its HR detail from the LR radiance alone. Each pixel gets
+the first that applies:
+
+- ``background``: no surface (``Flag.BACKGROUND``);
+- ``transmission``: a transmissive material (``Flag.TRANSMISSION``): refraction shows what lies behind;
+- ``coated``: a coat or thin-film layer (``Flag.COAT``, ``Flag.THIN_FILM``): a smooth reflective layer whose
+  roughness no G-buffer carries (``roughness`` is the base layer's);
+- ``glossy``: base roughness below ``GLOSSY_ROUGHNESS``: GGX alpha = r^2 < 0.0625, a reflection lobe narrow
+  enough that the reflected scene keeps detail at the HR pixel scale;
+- ``rough``: the other surfaces.
+
+``training.evaluate`` scores every region (``regions`` and ``materials`` in the JSON of ``blendsr evaluate``).
 """
 from __future__ import annotations
 
@@ -24,6 +38,8 @@ from .conventions import Flag
 REGIONS = ("silhouette", "depth_edge", "background", "interior")
 EDGE_PX = 1
 DEPTH_EDGE_RATIO = 0.05
+MATERIALS = ("background", "transmission", "coated", "glossy", "rough")
+GLOSSY_ROUGHNESS = 0.25
 
 
 def _neighbourhood(a: np.ndarray, reduce, fill) -> np.ndarray:
@@ -67,6 +83,25 @@ def pixel_regions(flags: np.ndarray, depth: np.ndarray) -> dict[str, np.ndarray]
     depth_edge = dilate(jump, EDGE_PX - 1) & ~bg & ~silhouette
     return {"silhouette": silhouette, "depth_edge": depth_edge, "background": bg & ~silhouette,
             "interior": ~bg & ~silhouette & ~depth_edge}
+
+
+def material_regions(flags: np.ndarray, roughness: np.ndarray) -> dict[str, np.ndarray]:
+    """The material classes of one frame: {name: H x W bool} for every name of ``MATERIALS``, disjoint and covering
+    the frame. ``flags``: H x W (or H x W x 1) uint32 ``conventions.Flag`` bits; ``roughness``: H x W (or H x W x 1)
+    the Principled base roughness in [0, 1]."""
+    fl = np.asarray(flags).reshape(np.shape(flags)[:2]).astype(np.uint32)
+    r = np.asarray(roughness, np.float64).reshape(np.shape(roughness)[:2])
+    if fl.shape != r.shape:
+        raise ValueError(f"flags {fl.shape} and roughness {r.shape} differ in size")
+    left = np.ones(fl.shape, bool)
+    out = {}
+    for name, m in (("background", (fl & np.uint32(Flag.BACKGROUND)) != 0),
+                    ("transmission", (fl & np.uint32(Flag.TRANSMISSION)) != 0),
+                    ("coated", (fl & np.uint32(Flag.COAT | Flag.THIN_FILM)) != 0),
+                    ("glossy", r < GLOSSY_ROUGHNESS), ("rough", left)):
+        out[name] = m & left
+        left = left & ~m
+    return out
 
 
 def error_breakdown(sq_err: np.ndarray, regions: dict[str, np.ndarray]) -> dict[str, dict]:

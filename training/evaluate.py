@@ -35,7 +35,7 @@ from gbuffer_export.clip import ClipError, buffer_path
 from gbuffer_export.validate.gate import open_valid_clip
 from gbuffer_export.conventions import UNTRUSTED, Flag
 from gbuffer_export.exr import write_exr
-from gbuffer_export.regions import REGIONS, error_breakdown, pixel_regions
+from gbuffer_export.regions import MATERIALS, REGIONS, error_breakdown, material_regions, pixel_regions
 from training import metrics
 from training.flip_worker import FlipRunner
 from training.video_metric import ClipVideo, VideoScorer, clip_fps
@@ -117,7 +117,8 @@ def _means(rows: list[dict]) -> dict:
     worst case (``_worst_means``)."""
     m = {k: _mean([r[k] for r in rows]) for k in METRIC_KEYS + EXTRA_KEYS if k != "ms_per_frame"}
     m.update(ms_per_frame=float(statistics.median(r["ms_per_frame"] for r in rows)), frames=len(rows),
-             regions=_region_means(rows), **_worst_means(rows))
+             regions=_region_means(rows), materials=_region_means(rows, "materials", MATERIALS),
+             **_worst_means(rows))
     return m
 
 
@@ -280,7 +281,8 @@ def _score_clip(model: InferenceModel, job, o: EvalOptions, runner, baseline, wa
         sq = metrics.squared_error(sr, gt)
         row = {"clip": str(clip_path), "frame": int(f), "scale": s_clip, "ms_per_frame": ms,
                "sr_nonfinite": bad, **_frame_scores(sr, gt, inputs, runner, o.delta_e_itp),
-               "regions": _regions(source, f, sq), **_temporal_scores(sr, gt, inputs, f, prev),
+               "regions": _regions(source, f, sq), "materials": _materials(source, f, sq),
+               **_temporal_scores(sr, gt, inputs, f, prev),
                **_worst_scores(sr, gt, sq, baseline.frame(clip_path, base, s_clip, f) if baseline else None)}
         prev = (f, sr, gt)
         rows.append(row)
@@ -421,20 +423,31 @@ def _regions(source, frame: int, sq: np.ndarray) -> dict | None:
     (``metrics.squared_error``; ``gbuffer_export.regions``); None without HR flags and depth."""
     if not (source.has("hr/flags") and source.has("hr/depth")):
         return None
-    regions = pixel_regions(source.read(frame, "hr/flags"), source.read(frame, "hr/depth"))
+    return _breakdown(sq, pixel_regions(source.read(frame, "hr/flags"), source.read(frame, "hr/depth")))
+
+
+def _materials(source, frame: int, sq: np.ndarray) -> dict | None:
+    """{material class: {fraction, psnr, err_share}} of one frame's squared tonemapped error ``sq``
+    (``gbuffer_export.regions.material_regions``); None without HR flags and roughness."""
+    if not (source.has("hr/flags") and source.has("hr/roughness")):
+        return None
+    return _breakdown(sq, material_regions(source.read(frame, "hr/flags"), source.read(frame, "hr/roughness")))
+
+
+def _breakdown(sq: np.ndarray, masks: dict) -> dict:
     return {name: {"fraction": v["fraction"], "err_share": v["err_share"],
                    "psnr": metrics.psnr_from_mse(v["mse"]) if v["mse"] is not None else None}
-            for name, v in error_breakdown(sq, regions).items()}
+            for name, v in error_breakdown(sq, masks).items()}
 
 
-def _region_means(rows: list[dict]) -> dict | None:
-    """The per-frame ``regions`` averaged over the frames that have them (each value over the frames where it is
-    not None); None when no frame has them."""
-    have = [r["regions"] for r in rows if r.get("regions")]
+def _region_means(rows: list[dict], key: str = "regions", names: tuple[str, ...] = REGIONS) -> dict | None:
+    """The per-frame breakdown ``key`` (``regions`` or ``materials``) averaged over the frames that have it (each
+    value over the frames where it is not None); None when no frame has it."""
+    have = [r[key] for r in rows if r.get(key)]
     if not have:
         return None
     return {name: {k: _mean([h[name][k] for h in have]) for k in ("fraction", "psnr", "err_share")}
-            for name in REGIONS}
+            for name in names}
 
 
 def _save(root: Path, clip_name: str, frame: int, sr: np.ndarray) -> None:

@@ -54,3 +54,19 @@ def test_error_breakdown_shares_and_means():
                     "none": {"fraction": 0.0, "mse": None, "err_share": None}}
     with pytest.raises(ValueError, match="differ in size"):
         pixel_regions(flags[:5], depth)
+
+
+def test_material_classes_take_the_first_that_applies():
+    """Background wins over every material flag, transmission over a coat, a coat or thin film over low roughness;
+    roughness 0.25 itself is rough (the threshold is strict)."""
+    from gbuffer_export.regions import GLOSSY_ROUGHNESS, MATERIALS, material_regions
+    fl = np.array([[Flag.BACKGROUND | Flag.TRANSMISSION, Flag.TRANSMISSION | Flag.COAT, Flag.COAT, Flag.THIN_FILM,
+                    0, 0, Flag.SHEEN]], np.uint32)
+    rough = np.array([[0.0, 0.0, 0.0, 0.9, 0.1, GLOSSY_ROUGHNESS, 0.1]])
+    m = material_regions(fl[..., None], rough[..., None])
+    assert tuple(m) == MATERIALS
+    assert (sum(v.astype(int) for v in m.values()) == 1).all()
+    got = [next(k for k, v in m.items() if v[0, i]) for i in range(fl.shape[1])]
+    assert got == ["background", "transmission", "coated", "coated", "glossy", "rough", "glossy"]
+    with pytest.raises(ValueError, match="differ in size"):
+        material_regions(fl, rough[:, :3])

@@ -13,7 +13,7 @@ from gbuffer_export.cli import main  # noqa: E402
 from gbuffer_export.clip import open_clip  # noqa: E402
 from gbuffer_export.conventions import backward_warp  # noqa: E402
 from gbuffer_export.exr import read_exr  # noqa: E402
-from gbuffer_export.regions import pixel_regions  # noqa: E402
+from gbuffer_export.regions import material_regions, pixel_regions  # noqa: E402
 from gbuffer_export.synthetic import make_synthetic_clip  # noqa: E402
 from training.config import load_config  # noqa: E402
 from training.models import MODELS  # noqa: E402
@@ -82,6 +82,14 @@ def test_evaluate_json_matches_direct_computation(clip, tmp_path):
             assert row["regions"][name]["fraction"] == pytest.approx(m.mean())
             assert row["regions"][name]["err_share"] == pytest.approx(sq[m].sum() / sq.sum(), abs=1e-4)
             assert row["regions"][name]["psnr"] == pytest.approx(psnr(tm(sr)[m], tm(gt)[m]), abs=1e-3)
+        materials = material_regions(c.read(f, "hr/flags"), c.read(f, "hr/roughness"))
+        assert materials["background"].any() and materials["rough"].any()  # the synthetic clip: sky and roughness 0.5
+        for name, m in materials.items():
+            assert row["materials"][name]["fraction"] == pytest.approx(m.mean())
+            if m.any():
+                assert row["materials"][name]["psnr"] == pytest.approx(psnr(tm(sr)[m], tm(gt)[m]), abs=1e-3)
+            else:
+                assert row["materials"][name]["psnr"] is None and row["materials"][name]["err_share"] == 0
         if prev is None:
             assert row["tpsnr"] is None and row["warp_error"] is None
         else:
@@ -93,6 +101,8 @@ def test_evaluate_json_matches_direct_computation(clip, tmp_path):
     assert res["mean"]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in res["per_frame"]]))
     assert res["mean"]["regions"]["silhouette"]["psnr"] == \
         pytest.approx(np.mean([r["regions"]["silhouette"]["psnr"] for r in res["per_frame"]]))
+    assert res["mean"]["materials"]["rough"]["psnr"] == \
+        pytest.approx(np.mean([r["materials"]["rough"]["psnr"] for r in res["per_frame"]]))
     assert res["mean"]["ms_per_frame"] == pytest.approx(np.median([r["ms_per_frame"] for r in res["per_frame"]]))
 
 

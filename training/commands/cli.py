@@ -243,10 +243,11 @@ def cmd_evaluate(args) -> int:
     print(f"{result['model']}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  PSNR-HDR {m['psnr_hdr']:.2f} dB  "
           f"FLIP {m['flip'] if m['flip'] is None else round(m['flip'], 4)}  {m['ms_per_frame']:.2f} ms/frame  "
           f"({m['frames']} frames, {result['device']}) -> {args.json}")
-    if m.get("regions"):
-        print("  error by region (pixels, share of the squared error, PSNR): " + "; ".join(
-            f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
-            for name, v in m["regions"].items() if v["psnr"] is not None and v["err_share"] is not None))
+    for key, what in (("regions", "region"), ("materials", "material")):
+        if m.get(key):
+            print(f"  error by {what} (pixels, share of the squared error, PSNR): " + "; ".join(
+                f"{name} {v['fraction']:.1%}, {v['err_share']:.0%}, {v['psnr']:.2f} dB"
+                for name, v in m[key].items() if v["psnr"] is not None and v["err_share"] is not None))
     if result["cvvdp"] is not None:
         print(f"  ColorVideoVDP {m['cvvdp']:.3f} JOD (mean of {len(result['per_clip'])} clip(s): " + ", ".join(
             f"{Path(c['clip']).name} {c['cvvdp']:.3f}" for c in result["per_clip"])
