@@ -1,6 +1,7 @@
 """Where the error lies by material class, per family group: does an upscaler lack data or inputs (issue 54)?
 
-    .venv/bin/python benchmarks/error_by_material.py DATASET BASELINE.json MODEL.json [MODEL.json ...] [-o OUT.md]
+    .venv/bin/python benchmarks/error_by_material.py DATASET BASELINE.json MODEL.json [MODEL.json ...]
+        [--labels LABEL,...] [-o OUT.md]
 
 The JSONs are ``blendsr evaluate`` results on clips of DATASET (``--data DATASET --split val``), the baseline's
 (``demod-jbu``) first; each frame's ``materials`` (``gbuffer_export.regions.material_regions``: background,
@@ -92,6 +93,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", type=Path, help="the dataset folder the results scored (its index gives the groups)")
     p.add_argument("results", type=Path, nargs="+", help="blendsr evaluate JSONs: the baseline's first")
+    p.add_argument("--labels", help="comma-separated names of the models in the table (default: each result's model)")
     p.add_argument("-o", "--output", type=Path, help="also write the table to this Markdown file")
     a = p.parse_args(argv)
     if len(a.results) < 2:
@@ -102,7 +104,10 @@ def main(argv=None) -> int:
     if missing:
         raise SystemExit(f"{missing[0]}: no frame has a material breakdown (blendsr evaluate before 2026-11-30, or "
                          "clips without HR flags and roughness)")
-    text = table(group_rows(clip_groups(a.dataset), base, models), [d["model"] for d in docs[1:]], docs[0]["model"])
+    labels = a.labels.split(",") if a.labels else [d["model"] for d in docs[1:]]
+    if len(labels) != len(models):
+        p.error(f"--labels names {len(labels)} models; {len(models)} results follow the baseline's")
+    text = table(group_rows(clip_groups(a.dataset), base, models), labels, docs[0]["model"])
     print(text)
     if a.output:
         from gbuffer_export.clip import write_bytes_atomic

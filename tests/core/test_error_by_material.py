@@ -72,3 +72,13 @@ def test_refuses_results_without_a_breakdown(tmp_path):
                                      '"materials": null}]}')
     with pytest.raises(SystemExit, match="b.json: no frame has a material breakdown"):
         ebm.main([str(tmp_path), str(tmp_path / "b.json"), str(tmp_path / "b.json")])
+
+
+def test_labels_must_name_every_model(tmp_path, capsys):
+    import json
+    fr = frames(1)
+    for name, which in (("b", 0), ("m", 1)):
+        (tmp_path / f"{name}.json").write_text(json.dumps(result(fr, which, name)))
+    with pytest.raises(SystemExit):
+        ebm.main([str(tmp_path), str(tmp_path / "b.json"), str(tmp_path / "m.json"), "--labels", "x,y"])
+    assert "--labels names 2 models; 1 results follow" in capsys.readouterr().err
