@@ -2,6 +2,7 @@
 held in bf16 without autocast, and the Triton kernels under TRITON_INTERPRET=1 against the torch path."""
 import copy
 import os
+import warnings
 
 import pytest
 
@@ -68,6 +69,27 @@ def test_fused_hr_stage_matches_the_fp32_eager_reference(name, opts):
 @pytest.mark.parametrize("name", ["demod-jbu", "fusesr-fast"])
 def test_compiled_fused_hr_stage_matches_the_fp32_eager_reference(name):
     _fused_matches(name, {}, ("compiled",))
+
+
+@heavy
+def test_cpu_graph_path_traces_the_stage_into_the_model_graph():
+    """The CPU graph path compiles the whole model; the HR stage inside it is traced into that graph
+    (``hr_stage.run`` calls ``hr_stage_torch`` while compiling), not through ``_compiled``'s lru_cache, which dynamo
+    warned of on every first frame ("Silent incorrectness is only a potential risk"). Same output as the reference."""
+    import torch._dynamo.utils as dynamo_utils
+    dynamo_utils.warn_once_cache.clear()  # dynamo warns once per process
+    torch.manual_seed(0)
+    ref = build_model(ModelConfig.of("demod-jbu"), 4).eval()
+    batch = _batch(ref)
+    with torch.inference_mode():
+        want = ref(batch)
+        graph = prepare_inference(copy.deepcopy(ref), path="graph")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            got = forward(graph, batch)
+    assert graph.settings["path"] == "graph" and graph.settings["compiled"] is not None
+    assert _rel(got, want) <= TOL["none"]
+    assert [str(w.message)[:80] for w in caught if "lru_cache" in str(w.message)] == []
 
 
 def _fused_matches(name, opts, impls):
