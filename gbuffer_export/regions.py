@@ -23,9 +23,15 @@ the first that applies:
 - ``transmission``: a transmissive material (``Flag.TRANSMISSION``): refraction shows what lies behind;
 - ``coated``: a coat or thin-film layer (``Flag.COAT``, ``Flag.THIN_FILM``): a smooth reflective layer whose
   roughness no G-buffer carries (``roughness`` is the base layer's);
+- ``unknown``: a surface whose roughness is not known: no material (``Flag.NO_MATERIAL``), or a shader other than
+  one Principled BSDF (``Flag.NON_PRINCIPLED``) whose roughness reads 0: the roughness buffer is written only for a
+  Principled, Diffuse (1) or Glossy BSDF, so a glass, mix or emission shader reads 0 (and so does a Glossy BSDF of
+  roughness 0);
 - ``glossy``: base roughness below ``GLOSSY_ROUGHNESS``: GGX alpha = r^2 < 0.0625, a reflection lobe narrow
   enough that the reflected scene keeps detail at the HR pixel scale;
-- ``rough``: the other surfaces.
+- ``rough``: the other surfaces (a NaN roughness counts as rough).
+
+``background`` is every background pixel here, while in ``pixel_regions`` the silhouette band takes its edge.
 
 ``training.evaluate`` scores every region (``regions`` and ``materials`` in the JSON of ``blendsr evaluate``).
 """
@@ -38,7 +44,7 @@ from .conventions import Flag
 REGIONS = ("silhouette", "depth_edge", "background", "interior")
 EDGE_PX = 1
 DEPTH_EDGE_RATIO = 0.05
-MATERIALS = ("background", "transmission", "coated", "glossy", "rough")
+MATERIALS = ("background", "transmission", "coated", "unknown", "glossy", "rough")
 GLOSSY_ROUGHNESS = 0.25
 
 
@@ -98,6 +104,8 @@ def material_regions(flags: np.ndarray, roughness: np.ndarray) -> dict[str, np.n
     for name, m in (("background", (fl & np.uint32(Flag.BACKGROUND)) != 0),
                     ("transmission", (fl & np.uint32(Flag.TRANSMISSION)) != 0),
                     ("coated", (fl & np.uint32(Flag.COAT | Flag.THIN_FILM)) != 0),
+                    ("unknown", ((fl & np.uint32(Flag.NO_MATERIAL)) != 0)
+                     | (((fl & np.uint32(Flag.NON_PRINCIPLED)) != 0) & (r == 0))),
                     ("glossy", r < GLOSSY_ROUGHNESS), ("rough", left)):
         out[name] = m & left
         left = left & ~m

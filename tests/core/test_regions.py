@@ -58,15 +58,19 @@ def test_error_breakdown_shares_and_means():
 
 def test_material_classes_take_the_first_that_applies():
     """Background wins over every material flag, transmission over a coat, a coat or thin film over low roughness;
-    roughness 0.25 itself is rough (the threshold is strict)."""
+    roughness 0.25 itself is rough (the threshold is strict); no material, or a non-Principled shader reading
+    roughness 0 (not written), is unknown, while a Glossy BSDF's 0.1 is glossy and a Diffuse BSDF's 1 rough; NaN is
+    rough."""
     from gbuffer_export.regions import GLOSSY_ROUGHNESS, MATERIALS, material_regions
     fl = np.array([[Flag.BACKGROUND | Flag.TRANSMISSION, Flag.TRANSMISSION | Flag.COAT, Flag.COAT, Flag.THIN_FILM,
-                    0, 0, Flag.SHEEN]], np.uint32)
-    rough = np.array([[0.0, 0.0, 0.0, 0.9, 0.1, GLOSSY_ROUGHNESS, 0.1]])
+                    0, 0, Flag.SHEEN, Flag.NO_MATERIAL, Flag.NON_PRINCIPLED, Flag.NON_PRINCIPLED,
+                    Flag.NON_PRINCIPLED, 0]], np.uint32)
+    rough = np.array([[0.0, 0.0, 0.0, 0.9, 0.1, GLOSSY_ROUGHNESS, 0.1, 0.8, 0.0, 0.1, 1.0, np.nan]])
     m = material_regions(fl[..., None], rough[..., None])
     assert tuple(m) == MATERIALS
     assert (sum(v.astype(int) for v in m.values()) == 1).all()
     got = [next(k for k, v in m.items() if v[0, i]) for i in range(fl.shape[1])]
-    assert got == ["background", "transmission", "coated", "coated", "glossy", "rough", "glossy"]
+    assert got == ["background", "transmission", "coated", "coated", "glossy", "rough", "glossy", "unknown", "unknown",
+                   "glossy", "rough", "rough"]
     with pytest.raises(ValueError, match="differ in size"):
         material_regions(fl, rough[:, :3])

@@ -88,6 +88,7 @@ def test_cpu_graph_path_traces_the_stage_into_the_model_graph():
             warnings.simplefilter("always")
             got = forward(graph, batch)
     assert graph.settings["path"] == "graph" and graph.settings["compiled"] is not None
+    assert graph.module.hr_impl == "compiled"  # the stage the switch is about ran inside the graph
     assert _rel(got, want) <= TOL["none"]
     assert [str(w.message)[:80] for w in caught if "lru_cache" in str(w.message)] == []
 
