@@ -4,8 +4,8 @@
         [--labels LABEL,...] [-o OUT.md]
 
 The JSONs are ``blendsr evaluate`` results on clips of DATASET (``--data DATASET --split val``), the baseline's
-(``demod-jbu``) first; each frame's ``materials`` (``gbuffer_export.regions.material_regions``: background,
-transmission, coated, glossy, rough) give the squared tonemapped error of every class. For every group of clips (the
+(``demod-jbu``) first; each frame's ``materials`` (``gbuffer_export.regions.material_regions``, the classes of
+``MATERIALS``) give the squared tonemapped error of every class. For every group of clips (the
 kinds objects and levels; the family groups of ``data_scaling.family_groups``: in-family, held-out and its
 sub-groups held-out asset and held-out level) and every class: its share of the pixels, the baseline's PSNR and each
 model's gain over it, both pooled over the frames (the squared error summed over the class's pixels of every frame
@@ -28,9 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 def pooled(result: dict, where: str) -> dict[tuple[str, float, int], dict[str, tuple[float, float]]]:
     """{(clip folder name, scale, frame): {class: (summed squared error, pixels)}} of an evaluate result's frames
-    that have a material breakdown (PSNR on a peak of 1: mse = 10^(-PSNR/10); a capped PSNR gives the cap's mse).
+    that have a material breakdown (PSNR on a peak of 1, as evaluate writes it capped: mse = 10^(-PSNR/10)).
     SystemExit naming ``where`` for a result that is not one, or a frame scored twice."""
-    from training.metrics import PSNR_CAP
     rows = result.get("per_frame") if isinstance(result, dict) else None
     if not isinstance(rows, list):
         raise SystemExit(f"{where}: not a blendsr evaluate result (no per_frame list; worst_case.py's JSONs have none)")
@@ -41,7 +40,7 @@ def pooled(result: dict, where: str) -> dict[tuple[str, float, int], dict[str, t
         key = (Path(r["clip"]).name, float(r["scale"]), int(r["frame"]))
         if key in out:
             raise SystemExit(f"{where}: frame {key[2]} of {key[0]} at scale {key[1]:g} is scored twice")
-        out[key] = {name: (v["fraction"] * r["pixels"] * 10 ** (-min(v["psnr"], PSNR_CAP) / 10)
+        out[key] = {name: (v["fraction"] * r["pixels"] * 10 ** (-v["psnr"] / 10)
                            if v["psnr"] is not None else 0.0, v["fraction"] * r["pixels"])
                     for name, v in r["materials"].items()}
     return out
