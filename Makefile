@@ -59,7 +59,7 @@ test: setup
 	$(VPY) -m pytest -q -n 2 --dist loadfile --timeout 1200 --durations=15 -m "not heavy"
 
 test-heavy: setup
-	$(VPY) -m pytest -q -n 2 --timeout 2400 --durations=15 -m heavy
+	$(VPY) -m pytest -q -n 2 --dist loadfile --timeout 2400 --durations=15 -m heavy
 
 demo: $(DEMO_STAMP)
 	$(VPY) -m gbuffer_export.cli demo -o demo_out $(if $(THREADS),--threads $(THREADS))

@@ -144,6 +144,14 @@ def _pip_download(platform: str, reqs: list[str], dest: Path, constraints: Path,
     _run([*cmd, *reqs], f"pip download for {platform} ({', '.join(_name(r) for r in reqs)})")
 
 
+def cache_lock(cache: Path):
+    """One builder at a time per cache folder (``<cache>.lock`` beside it): two builds at once (two test workers,
+    two terminals) would otherwise empty the folder under each other."""
+    from filelock import FileLock
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    return FileLock(str(cache) + ".lock")
+
+
 def dependency_wheels(platform: str, python: str = sys.executable, cache: Path = WHEEL_CACHE) -> list[Path]:
     """The PyPI wheels of ``platform`` (downloaded once into ``cache/<platform>``, kept while the requirements are
     the same), less Blender's own packages."""
@@ -152,18 +160,19 @@ def dependency_wheels(platform: str, python: str = sys.executable, cache: Path =
     key = hashlib.sha256(json.dumps([required, optional, sorted(pins.items()), PLATFORMS[platform]]).encode())
     dest = cache / platform
     stamp = dest / "requirements.sha256"
-    if not (stamp.is_file() and stamp.read_text() == key.hexdigest()):
-        shutil.rmtree(dest, ignore_errors=True)
-        dest.mkdir(parents=True)
-        constraints = dest / "constraints.txt"
-        constraints.write_text("".join(f"{k}=={v}\n" for k, v in pins.items()))
-        _pip_download(platform, required, dest, constraints, python)
-        for req in optional:
-            try:
-                _pip_download(platform, [req], dest, constraints, python)
-            except BuildError as exc:
-                print(f"blender_addon.build: {platform}: {_name(req)} left out ({exc})", file=sys.stderr)
-        stamp.write_text(key.hexdigest())
+    with cache_lock(dest):
+        if not (stamp.is_file() and stamp.read_text() == key.hexdigest()):
+            shutil.rmtree(dest, ignore_errors=True)
+            dest.mkdir(parents=True)
+            constraints = dest / "constraints.txt"
+            constraints.write_text("".join(f"{k}=={v}\n" for k, v in pins.items()))
+            _pip_download(platform, required, dest, constraints, python)
+            for req in optional:
+                try:
+                    _pip_download(platform, [req], dest, constraints, python)
+                except BuildError as exc:
+                    print(f"blender_addon.build: {platform}: {_name(req)} left out ({exc})", file=sys.stderr)
+            stamp.write_text(key.hexdigest())
     return sorted(w for w in dest.glob("*.whl") if _name(w.name.split("-")[0]) not in ships)
 
 
@@ -198,18 +207,19 @@ def export_graphs(cache: Path = GRAPH_CACHE) -> Path:
         raise BuildError(f"exporting the preview's ONNX graphs needs blendsr[train,export] in this Python ({exc})"
                          ) from None
     stamp = cache / "training.sha256"
-    if stamp.is_file() and stamp.read_text() == key:
-        return cache
-    shutil.rmtree(cache, ignore_errors=True)
-    cache.mkdir(parents=True)
-    for spec, scale in preview_graphs():
-        path = cache / graph_name(spec, scale)
-        report = export_onnx(load_model(spec, scale or 4), path, hr_size=(64, 32))
-        if not report["match"]:
-            raise BuildError(f"{spec}: ONNX Runtime differs from torch by {report['max_abs_diff']:.3g}")
-        sidecar = path.with_suffix(".onnx.json")
-        sidecar.write_text(json.dumps({**report, "onnx": path.name}, indent=1) + "\n")  # no build path inside
-    stamp.write_text(key)
+    with cache_lock(cache):
+        if stamp.is_file() and stamp.read_text() == key:
+            return cache
+        shutil.rmtree(cache, ignore_errors=True)
+        cache.mkdir(parents=True)
+        for spec, scale in preview_graphs():
+            path = cache / graph_name(spec, scale)
+            report = export_onnx(load_model(spec, scale or 4), path, hr_size=(64, 32))
+            if not report["match"]:
+                raise BuildError(f"{spec}: ONNX Runtime differs from torch by {report['max_abs_diff']:.3g}")
+            sidecar = path.with_suffix(".onnx.json")
+            sidecar.write_text(json.dumps({**report, "onnx": path.name}, indent=1) + "\n")  # no build path inside
+        stamp.write_text(key)
     return cache
 
 
