@@ -38,7 +38,10 @@ def test_ctrl_c_after_loading_is_keyboard_interrupt_again(tmp_path):
     p = subprocess.Popen([sys.executable, "-m", "gbuffer_export.cli", "render", "-o", str(tmp_path / "c"),
                           "--hr-size", "64x36", "--frames", "1:40", "--lr-spp", "1", "--hr-spp", "1",
                           "--threads", "1"], env=ENV, cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    time.sleep(4.0)
+    deadline = time.monotonic() + 120  # main() has parsed the command once the render holds its output folder
+    while not (tmp_path / "c" / "manifest.json").is_file():
+        assert p.poll() is None and time.monotonic() < deadline, p.stderr.read() if p.poll() is not None else ""
+        time.sleep(0.1)
     p.send_signal(signal.SIGINT)
     err = p.communicate(timeout=120)[1]
     assert p.returncode == 130, err
