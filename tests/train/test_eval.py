@@ -383,13 +383,14 @@ def test_training_demo_stopped_by_sigterm_records_the_steps_run_and_a_rerun_cont
             time.sleep(0.2)
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=30)
+        proc.wait(timeout=120)
         stopped_in = time.monotonic() - t0
     finally:
         if proc.poll() is None:
             proc.kill()
     log = proc.stdout.read()
-    assert proc.returncode != 0 and stopped_in < 10, (proc.returncode, stopped_in, log[-2000:])
+    # at the next step, not at the budget's end (100,000 steps): a bound loose enough for a loaded 2-core machine
+    assert proc.returncode != 0 and stopped_in < 60, (proc.returncode, stopped_in, log[-2000:])
     assert "FineTuneStopped" in log and "not scored" in log, log[-2000:]
     summary = json.loads((run / "summary.json").read_text())
     ran = summary["step"]
