@@ -41,4 +41,5 @@ def test_a_second_build_waits_for_the_first_and_reuses_its_graphs(tmp_path):
     again = _export(cache)
     out2, err2 = again.communicate(timeout=300)
     assert again.returncode == 0, err2
-    assert out2.split("\n", 1)[1] == out and (cache / "training.sha256").stat().st_mtime_ns == stamp  # reused, not re-exported
+    # reused, not re-exported: the same listing after its "ready" line, the stamp untouched
+    assert out2.split("\n", 1)[1] == out and (cache / "training.sha256").stat().st_mtime_ns == stamp
