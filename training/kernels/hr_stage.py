@@ -262,8 +262,8 @@ def triton_works(device: torch.device) -> bool:
 def run(spec: HRStage, t: HRInputs, impl: str = "compiled") -> torch.Tensor:
     """The HR stage with implementation ``impl`` (``IMPLS``): (B, 3, H, W) float32. ``compiled`` inside an enclosing
     ``torch.compile`` (the CPU graph path compiles the whole model: ``training.inference.fastpath``) traces
-    ``hr_stage_torch`` into that graph rather than through ``_compiled``'s cache, which dynamo warned of (the shipped
-    FuseSR and FuseSR-l at 256x144, one thread, 2026-11-30: the same output bit for bit and the same time)."""
+    ``hr_stage_torch`` into that graph rather than through ``_compiled``'s cache, which dynamo warned of
+    (``tests/train/hr_stage_cases.py``: no warning, the reference's output)."""
     if impl == "triton":  # as the custom operator blendsr::hr_stage (opaque to torch.compile)
         from training.kernels.hr_triton import _spec_params, hr_stage_op
         return hr_stage_op(list(t), _spec_params(spec))
