@@ -17,7 +17,10 @@ once all its clips are rendered (and valid), and the scores wait until every run
 whole (exit 3 until then; rerun the same command, or pass ``--wait MINUTES`` to look again every MINUTES beside the
 render: each run then trains as soon as its clips are). ``blendsr dataset ... --order mixed`` renders in the same
 order, so the smallest subsets are ready first; ``--order train-first`` also finishes every subset before the
-val and test splits, so that the largest run starts while they render.
+val and test splits, so that the largest run starts while they render. Processes may share ``--runs``: a run that
+another one is training (it holds RUN/.lock) is waited for, not entered, so a second process with the same command
+and ``--multiples 10 --train-only`` (no scores: it exits once its runs are trained) trains the largest run beside
+the smaller ones, which the first process scores with the rest.
 
 ``--multiples 1,3,10`` sizes the nested subsets by HR pixels instead: the smallest prefix of the ordered groups
 whose HR pixels (frames x width x height, from the index) reach each multiple of ``--unit-pixels`` (default: the
@@ -114,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait", type=float, default=0.0, metavar="MINUTES",
                    help="while runs wait for clips or the test split is not whole: look again every MINUTES (a "
                         "run trains as soon as its clips are rendered) instead of exiting 3; 0: exit")
+    p.add_argument("--train-only", action="store_true",
+                   help="no scores: exit 0 once the runs are trained (with --wait, as their clips are rendered), "
+                        "e.g. the largest run in a second process beside the one that trains and scores the curve")
     p.add_argument("--list-clips", nargs="?", const="-", metavar="FILE",
                    help="no training: write the clip ids of the largest subset (nested: it holds the others) to FILE "
                         "(UTF-8, one per line; none or '-': print them), for blendsr dataset ... --clips @FILE")
@@ -164,6 +170,8 @@ def main(argv=None) -> int:
     fitted = wait_for_runs(curve, argv)
     if fitted is None:
         return 3
+    if a.train_only:
+        return 0
     rows = score_rows(curve, fitted)
     write_records(curve, rows, argv)
     print((a.output / "scaling.md").read_text())
@@ -208,7 +216,9 @@ def score(curve: Curve, spec: str) -> dict:
 
 
 def fit(curve: Curve, n: int, steps: int, argv) -> tuple[list[Path], dict | None, Path]:
-    """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered."""
+    """Train (or resume, or reuse) the run of the first ``n`` groups; None while any of its clips is unrendered, or
+    while another process trains it (it holds RUN/.lock), so that processes sharing ``--runs`` split one curve."""
+    from gbuffer_export.locks import FolderBusyError
     from training.config import load_config
     from training.train import train
     a = curve.a
@@ -230,7 +240,11 @@ def fit(curve: Curve, n: int, steps: int, argv) -> tuple[list[Path], dict | None
     done = run / "summary.json"
     if done.is_file() and json.loads(done.read_text()).get("step") == steps:
         return clips, json.loads(done.read_text()), run  # finished earlier: score it only
-    summary = train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file())
+    try:
+        summary = train(cfg, run, resume=(run / "checkpoints" / "last.pt").is_file())
+    except FolderBusyError:  # another process of this curve trains it (say --multiples 10 beside 1,3): wait for it
+        print(f"data_scaling: {run.name}: another process is training it; scored once it is finished", flush=True)
+        return clips, None, run
     if summary.get("step") != steps:  # stopped early (a signal): not a point of the equal-compute curve
         raise SystemExit(f"data_scaling: {run.name} stopped at step {summary.get('step')} of {steps} "
                          f"({summary.get('stopped_by')}); rerun the same command to resume it")
@@ -255,7 +269,7 @@ def wait_for_runs(curve: Curve, argv) -> list | None:
         curve.done_train.update(split_clips(a.dataset, "train"))
         curve.test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
         fitted = [(n, steps, *fit(curve, n, steps, argv)) for steps in curve.budgets for n in curve.counts]
-        if len(curve.test_clips) == curve.test_planned and all(summary is not None for *_, summary, _ in fitted):
+        if (a.train_only or len(curve.test_clips) == curve.test_planned) and all(summary is not None for *_, summary, _ in fitted):
             return fitted
         print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
               f"{len(curve.test_clips)} of {curve.test_planned} clips rendered: no scores until every run is trained "

@@ -300,6 +300,37 @@ def test_wait_trains_each_run_as_soon_as_its_clips_are_rendered(tmp_path, capsys
     assert (trained[0] / "command.txt").read_text().startswith(".venv/bin/python benchmarks/data_scaling.py")
 
 
+def test_a_run_another_process_trains_is_waited_for_and_train_only_ends_without_the_test_split(
+        tmp_path, capsys, monkeypatch):
+    """Two processes share --runs: the run whose RUN/.lock the other holds is not entered (the pass goes on, the
+    wait looks again); --train-only exits 0 once its runs are trained, though the test split never renders."""
+    from gbuffer_export.dataset import build
+    from gbuffer_export.locks import FolderLock
+    from training.train import lock_run
+    root = tmp_path / "ds"
+    _dataset(root, [(2, 10, 10)] * 3)
+    run = tmp_path / "out" / "fusesr_001clips"
+    run.mkdir(parents=True)
+    other = FolderLock(run, "held by the test")  # the other process, training this run
+    real = build.split_clips
+    monkeypatch.setattr(build, "split_clips", lambda root, split, done_only=True: real(
+        root, split, done_only=done_only and split != "train"))  # train clips rendered, the test clip never
+    naps = []
+    monkeypatch.setattr(data_scaling.time, "sleep", lambda s: (naps.append(s), other.close()))
+
+    def train(cfg, run, resume=False):  # as train() starts a run: RUN/.lock first
+        with lock_run(run, create=True):
+            (run / "summary.json").write_text('{"step": 2}')
+        return {"step": 2}
+    monkeypatch.setattr("training.train.train", train)
+    assert data_scaling.main([str(root), "-o", str(tmp_path / "out"), "--multiples", "1", "--unit-pixels", "200",
+                              "--steps", "2", "--wait", "1", "--train-only"]) == 0
+    out = capsys.readouterr().out
+    assert "fusesr_001clips: another process is training it" in out and naps == [60.0], out
+    assert json.loads((run / "summary.json").read_text()) == {"step": 2}
+    assert not (tmp_path / "out" / "scaling.json").exists()  # no scores
+
+
 def test_the_wait_ends_on_clips_that_never_come_and_a_run_stopped_early_stops_the_script(tmp_path, capsys,
                                                                                          monkeypatch):
     from gbuffer_export.dataset import build
