@@ -271,10 +271,11 @@ def wait_for_runs(curve: Curve, argv) -> list | None:
         fitted = [(n, steps, *fit(curve, n, steps, argv)) for steps in curve.budgets for n in curve.counts]
         if (a.train_only or len(curve.test_clips) == curve.test_planned) and all(summary is not None for *_, summary, _ in fitted):
             return fitted
+        until = "--train-only: exits once every run is trained" if a.train_only else (
+            "no scores until every run is trained and the test split is whole")
         print(f"data_scaling: {sum(s is not None for *_, s, _ in fitted)} of {len(fitted)} runs trained; test split "
-              f"{len(curve.test_clips)} of {curve.test_planned} clips rendered: no scores until every run is trained "
-              f"and the test split is whole ({f'again in {a.wait:g} min' if a.wait else 'rerun the same command'})",
-              flush=True)
+              f"{len(curve.test_clips)} of {curve.test_planned} clips rendered: {until} "
+              f"({f'again in {a.wait:g} min' if a.wait else 'rerun the same command'})", flush=True)
         if not a.wait:
             return None
         time.sleep(a.wait * 60)

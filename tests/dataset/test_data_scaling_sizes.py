@@ -327,6 +327,7 @@ def test_a_run_another_process_trains_is_waited_for_and_train_only_ends_without_
                               "--steps", "2", "--wait", "1", "--train-only"]) == 0
     out = capsys.readouterr().out
     assert "fusesr_001clips: another process is training it" in out and naps == [60.0], out
+    assert "--train-only: exits once every run is trained (again in 1 min)" in out, out
     assert json.loads((run / "summary.json").read_text()) == {"step": 2}
     assert not (tmp_path / "out" / "scaling.json").exists()  # no scores
 
