@@ -8,7 +8,8 @@ demod-bilinear and demod-jbu; with several --steps, one run per count and step b
 The subsets are nested: the training clips (``--by scene``: the index's scene ids, an asset, a built-in seed or a
 level region, with all their clips) ordered by a stable hash of their ids, the first N of them. Each run is a plain
 ``blendsr train`` run in RUNS (default OUT; resumed when its folder exists, reused when finished) and each score a
-plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP). Writes OUT/scaling.json,
+plain ``evaluate_model`` on the test split (PSNR/SSIM on the evaluation tonemap, no FLIP), kept in RUNS/scores so
+that an interrupted scoring resumes (``score_path``). Writes OUT/scaling.json,
 OUT/scaling.md (the table, and per family group the margin's fit ``a + b log10(x)`` with what it predicts at 100x:
 ``extrapolation_lines``; the fits are also in the JSON: ``fits``) and OUT/scaling.png.
 
@@ -73,6 +74,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import hashlib
 import math
 import json
 import shlex
@@ -198,7 +200,30 @@ def plan(a: argparse.Namespace) -> Curve:
 
 def score(curve: Curve, spec: str) -> dict:
     """``spec`` (a baseline, or a checkpoint with options) on the test split: PSNR, SSIM, per clip and per family
-    group, artifact pixels, and each group's smallest margin over demod-jbu (evaluate's baseline)."""
+    group, artifact pixels, and each group's smallest margin over demod-jbu (evaluate's baseline). Kept in
+    ``score_path`` once computed, so that a scoring cut short resumes after the scores it finished."""
+    from gbuffer_export.clip import write_json_atomic
+    path = score_path(curve, spec)
+    if path.is_file():
+        return json.loads(path.read_text())
+    result = _score(curve, spec)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, result)
+    return result
+
+
+def score_path(curve: Curve, spec: str) -> Path:
+    """RUNS/scores/DIGEST.json: one score, keyed by the checkpoint's bytes (a run trained again is scored again) or
+    the baseline's name, the options, the test clips and the scale; shared by the processes of one ``--runs``.
+    Delete the folder to score again after a change to the evaluation."""
+    weights, _, options = spec.partition("?")
+    ident = hashlib.sha256(Path(weights).read_bytes()).hexdigest() if Path(weights).is_file() else weights
+    clips = sorted(str(Path(c).resolve()) for c in curve.test_clips)
+    key = json.dumps([ident, options, clips, curve.a.scale])
+    return curve.runs / "scores" / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.json"
+
+
+def _score(curve: Curve, spec: str) -> dict:
     from training.evaluate import EvalOptions, evaluate_model, group_means
     from training.inference.loading import load_model
     a = curve.a

@@ -363,7 +363,7 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
     assert "its test_clips differ from" in capsys.readouterr().err
 
 
-def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
+def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path, monkeypatch):
     """The script's last stage, as the round's end runs it: every run trained (2 steps here), the baselines and each
     run scored as trained and with --score-options on the test split by family group (of the two held-out clips one
     shows an asset no train clip shows: it alone is also ``held-out asset``), the records written."""
@@ -411,11 +411,19 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path):
     assert (x1, x2) == (1.0, 2.0) and abs(f["b"] - slope) < 1e-5 and "steps" not in f
     assert record["test_clips"] == [str(root / f"clips/test{i}") for i in (3, 4, 5)]
     assert "predicts" in (out / "scaling.md").read_text() and (out / "scaling.png").stat().st_size > 1000
-    # by clip count (the PSNR plot): the same runs, finished, are scored again, not trained again
+    # by clip count (the PSNR plot): the same runs, finished, are neither trained nor scored again (RUNS/scores)
     ckpt = tmp_path / "runs/fusesr-l_001clips/checkpoints/last.pt"
     mtime = ckpt.stat().st_mtime_ns
+    assert len(list((tmp_path / "runs/scores").glob("*.json"))) == 6
+    def scored_again(*a, **k):
+        raise RuntimeError("scored again")
+    monkeypatch.setattr("training.evaluate.evaluate_model", scored_again)
     assert data_scaling.main(argv[:5] + ["--counts", "1,2", "--steps", "2", "--model", "fusesr-l"]) == 0
     again = json.loads((out / "scaling.json").read_text())
     assert [r["model"] for r in again["rows"]] == ["demod-bilinear", "demod-jbu", "fusesr-l", "fusesr-l"]
     assert again["rows"][2]["per_clip"] == record["rows"][2]["per_clip"] and ckpt.stat().st_mtime_ns == mtime
     assert (out / "scaling.png").stat().st_size > 1000
+    # a run trained again (other bytes) is scored again
+    torch.save({**torch.load(ckpt, weights_only=False), "again": 1}, ckpt)
+    with pytest.raises(RuntimeError, match="scored again"):
+        data_scaling.main(argv[:5] + ["--counts", "1,2", "--steps", "2", "--model", "fusesr-l"])
