@@ -11,7 +11,9 @@ table) when ``-o`` is given; prints the table. With ``--record`` (val split only
 (``pretrained:NAME``, no options) is written into the JSON beside its weights as ``worst_case_val``
 (``training.pretrained.WORST_CASE_VAL``: the frame-weighted margin over ``demod-jbu`` on every group it was scored
 on, per group too, with the weights' sha256, the datasets and this command), which ``pretrained.below_baseline``
-reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there.
+reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there. ``--scores A.json B.json``
+tables (and records) earlier runs' OUT.json instead of scoring: several runs on the same clips merge, so networks
+whose weights are final can be scored while others still train, and one table holds them all.
 """
 from __future__ import annotations
 
@@ -58,6 +60,39 @@ def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
             result[group]["models"][label] = {"mean": r["mean"], "per_clip": r["per_clip"]}
             print(f"{group} {label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
     return result
+
+
+def merged(paths: list[Path]) -> dict:
+    """The results of earlier runs (their OUT.json) as one: per group, every file's models (a later file's row of
+    a model replaces an earlier one's) and notes. ValueError naming the file when a group's clips differ."""
+    result: dict = {}
+    for path in paths:
+        try:
+            doc = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not a worst_case.py OUT.json ({exc})") from None
+        for group, g in doc.items():
+            have = result.setdefault(group, {"clips": g["clips"], "models": {}, "notes": []})
+            if have["clips"] != g["clips"]:
+                raise ValueError(f"{path}: its {group} clips differ from those of {paths[0]}; scores of other clips "
+                                 "do not merge")
+            have["models"].update(g["models"])
+            have["notes"] += [n for n in g["notes"] if n not in have["notes"]]
+    return result
+
+
+def without_scores(argv: list[str]) -> list[str]:
+    """``argv`` less ``--scores`` and its files: the command that scored, as the record names it."""
+    out, skipping = [], False
+    for x in argv:
+        if x == "--scores" or x.startswith("--scores="):
+            skipping = x == "--scores"
+            continue
+        if skipping and not x.startswith("-"):
+            continue
+        skipping = False
+        out.append(x)
+    return out
 
 
 def table(result: dict) -> str:
@@ -120,8 +155,9 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--models", default="demod-bilinear,demod-jbu,pretrained:fusesr,pretrained:fusesr-l")
     p.add_argument("-o", dest="out", type=Path, help="OUT.json and OUT.md")
-    p.add_argument("--scores", type=Path, help="an OUT.json of an earlier run of the same arguments: its scores are "
-                   "tabled (and recorded) instead of scoring again")
+    p.add_argument("--scores", type=Path, nargs="+", metavar="OUT_JSON",
+                   help="OUT.json of earlier runs on the same split (each group's clips the same in every file): "
+                        "their models' scores, merged, are tabled (and recorded) instead of scoring again")
     p.add_argument("--record", action="store_true",
                    help="write each shipped network's val margin beside its weights (val split only)")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -132,10 +168,10 @@ def main(argv=None) -> int:
     from training.bench import parse_models
     try:
         if a.scores:
-            result = json.loads(a.scores.read_text())
+            result = merged(a.scores)
         else:
             result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
-    except (BlendSRError, OSError) as exc:  # bad models, datasets or files: one line, exit 2
+    except (BlendSRError, OSError, ValueError) as exc:  # bad models, datasets or files: one line, exit 2
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 2
     text = table(result)
@@ -145,8 +181,7 @@ def main(argv=None) -> int:
         a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
         a.out.with_suffix(".md").write_text(text + "\n")
     if a.record:
-        kept = [x for i, x in enumerate(argv) if x != "--scores" and (i == 0 or argv[i - 1] != "--scores")]
-        record(result, a.datasets, [x for x in kept if not x.startswith("--scores=")])
+        record(result, a.datasets, without_scores(argv))
     return 0
 
 

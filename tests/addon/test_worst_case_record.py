@@ -50,3 +50,30 @@ def test_record_marks_a_network_below_the_baseline_on_the_wider_val(tmp_path, mo
     assert not pretrained.below_baseline("rdg-s")
     with pytest.raises(SystemExit):
         wc.main(["DS", "--split", "test", "--record"])
+
+
+def test_scores_of_several_runs_on_the_same_clips_merge_and_other_clips_are_refused(tmp_path, capsys):
+    """--scores A B: one table of both runs' models (the networks scored while others still trained, then those);
+    files whose groups hold other clips are refused in one line naming the file; the record's command drops them."""
+    wc = _module()
+    row = {"mean": {"psnr": 30.0, "margin": 0.5, "margin_min": 0.1, "margin_min_clip": "a", "ssim": 0.9,
+                    "tpsnr": 28.0, "artifact_fraction": 0.0, "worst_share": 0.3}, "per_clip": []}
+    runs = {"a": {"objects": {"clips": ["a", "b"], "models": {"demod-jbu": row, "pretrained:rdg-s": row},
+                              "notes": ["n1"]}},
+            "b": {"objects": {"clips": ["a", "b"], "models": {"demod-jbu": row, "pretrained:fusesr": row},
+                              "notes": ["n1"]},
+                  "levels": {"clips": ["c"], "models": {"pretrained:fusesr": row}, "notes": []}},
+            "other": {"objects": {"clips": ["a"], "models": {"demod-jbu": row}, "notes": []}}}
+    for name, doc in runs.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    assert wc.main(["DS", "--split", "val", "--scores", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                    "-o", str(tmp_path / "out")]) == 0
+    got = json.loads((tmp_path / "out.json").read_text())
+    assert list(got["objects"]["models"]) == ["demod-jbu", "pretrained:rdg-s", "pretrained:fusesr"]
+    assert got["objects"]["notes"] == ["n1"] and list(got["levels"]["models"]) == ["pretrained:fusesr"]
+    assert "`pretrained:rdg-s`" in capsys.readouterr().out
+    assert wc.main(["DS", "--split", "val", "--scores", str(tmp_path / "a.json"), str(tmp_path / "other.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "other.json: its objects clips differ" in err, err
+    assert wc.without_scores(["DS", "--scores", "x.json", "y.json", "--split", "val", "--scores=z.json",
+                              "--record"]) == ["DS", "--split", "val", "--record"]
