@@ -294,7 +294,8 @@ def wait_for_runs(curve: Curve, argv) -> list | None:
         curve.done_train.update(split_clips(a.dataset, "train"))
         curve.test_clips[:] = [str(c) for c in split_clips(a.dataset, "test")]
         fitted = [(n, steps, *fit(curve, n, steps, argv)) for steps in curve.budgets for n in curve.counts]
-        if (a.train_only or len(curve.test_clips) == curve.test_planned) and all(summary is not None for *_, summary, _ in fitted):
+        trained = all(summary is not None for *_, summary, _ in fitted)
+        if trained and (a.train_only or len(curve.test_clips) == curve.test_planned):
             return fitted
         until = "--train-only: exits once every run is trained" if a.train_only else (
             "no scores until every run is trained and the test split is whole")
