@@ -207,7 +207,6 @@ def score(curve: Curve, spec: str) -> dict:
     if path.is_file():
         return json.loads(path.read_text())
     result = _score(curve, spec)
-    path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(path, result)
     return result
 
@@ -216,8 +215,9 @@ def score_path(curve: Curve, spec: str) -> Path:
     """RUNS/scores/DIGEST.json: one score, keyed by the checkpoint's bytes (a run trained again is scored again) or
     the baseline's name, the options, the test clips and the scale; shared by the processes of one ``--runs``.
     Delete the folder to score again after a change to the evaluation."""
+    from training.checkpoint import file_sha256
     weights, _, options = spec.partition("?")
-    ident = hashlib.sha256(Path(weights).read_bytes()).hexdigest() if Path(weights).is_file() else weights
+    ident = file_sha256(weights) if Path(weights).is_file() else weights
     clips = sorted(str(Path(c).resolve()) for c in curve.test_clips)
     key = json.dumps([ident, options, clips, curve.a.scale])
     return curve.runs / "scores" / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.json"

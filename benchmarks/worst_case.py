@@ -177,9 +177,9 @@ def main(argv=None) -> int:
     text = table(result)
     print(text)
     if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
-        a.out.with_suffix(".md").write_text(text + "\n")
+        from gbuffer_export.clip import write_bytes_atomic  # a file cut short never passes for a score
+        write_bytes_atomic(a.out.with_suffix(".json"), json.dumps(result, indent=1).encode())
+        write_bytes_atomic(a.out.with_suffix(".md"), (text + "\n").encode())
     if a.record:
         record(result, a.datasets, without_scores(argv))
     return 0
