@@ -213,12 +213,15 @@ def score(curve: Curve, spec: str) -> dict:
 
 def score_path(curve: Curve, spec: str) -> Path:
     """RUNS/scores/DIGEST.json: one score, keyed by the checkpoint's bytes (a run trained again is scored again) or
-    the baseline's name, the options, the test clips and the scale; shared by the processes of one ``--runs``.
-    Delete the folder to score again after a change to the evaluation."""
+    the baseline's name, the options, the test clips (each with its family groups, which the index may change
+    without a render, and its manifest's bytes: a clip rendered again is scored again) and the scale; shared by the
+    processes of one ``--runs``. Delete the folder to score again after a change to the evaluation."""
+    from gbuffer_export.clip import MANIFEST
     from training.checkpoint import file_sha256
     weights, _, options = spec.partition("?")
     ident = file_sha256(weights) if Path(weights).is_file() else weights
-    clips = sorted(str(Path(c).resolve()) for c in curve.test_clips)
+    clips = sorted((str(Path(c).resolve()), sorted(curve.family_of.get(Path(c).name, ())),
+                    file_sha256(Path(c) / MANIFEST)) for c in curve.test_clips)
     key = json.dumps([ident, options, clips, curve.a.scale])
     return curve.runs / "scores" / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.json"
 
@@ -234,10 +237,18 @@ def _score(curve: Curve, spec: str) -> dict:
         means = group_means(r, lambda c, g=g: g if g in curve.family_of.get(c, ()) else "", metrics=("psnr",))
         if g in means:
             by_family[g] = means[g]["psnr"]
-    margins = {Path(c["clip"]).name: c["margin"] for c in r["per_clip"] if c.get("margin") is not None}
-    return {"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip, "by_family": by_family,
-            "artifact_pixels": r["mean"].get("artifact_pixels"),
-            "margin_min_by_family": smallest_margins(margins, curve.family_of)}
+    margins = {Path(c["clip"]).name: c["margin"] for c in r["per_clip"] if finite(c.get("margin")) is not None}
+    return finite({"psnr": r["mean"]["psnr"], "ssim": r["mean"]["ssim"], "per_clip": per_clip,
+                   "by_family": by_family, "artifact_pixels": r["mean"].get("artifact_pixels"),
+                   "margin_min_by_family": smallest_margins(margins, curve.family_of)})
+
+
+def finite(value):
+    """``value`` with every non-finite float (the PSNR of a diverged run's NaN frames) None, through dicts: a score
+    that is kept, tabled as n/a and left out of the margins and fits rather than failing after the test read."""
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def fit(curve: Curve, n: int, steps: int, argv) -> tuple[list[Path], dict | None, Path]:
@@ -322,14 +333,15 @@ def score_rows(curve: Curve, fitted: list) -> list[dict]:
                      "steps": summary["step"], "train_clips": [c.name for c in clips],
                      "elapsed_s": round(summary.get("elapsed_s", 0.0), 1), "hr_pixels": hr_pixels(a.dataset, clips),
                      **score(curve, spec)})
-        rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items() if g in base}
+        rows[-1]["margin_by_family"] = {g: v - base[g] for g, v in rows[-1]["by_family"].items()
+                                        if v is not None and base.get(g) is not None}
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
 def write_records(curve: Curve, rows: list[dict], argv) -> None:
     """OUT/scaling.json, OUT/scaling.md and OUT/scaling.png."""
-    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.clip import write_bytes_atomic, write_json_atomic
     a, out = curve.a, curve.a.output
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": curve.test_clips,
                                              "rows": sized_rows(rows, a.unit_pixels),
@@ -337,8 +349,8 @@ def write_records(curve: Curve, rows: list[dict], argv) -> None:
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "score_options": curve.variants[1:], "fits": fits(rows, a.unit_pixels),
                                              "command": command_line(argv)})
-    (out / "scaling.md").write_text(report_table(rows, a.by, a.unit_pixels) + "\n"
-                                    + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n")
+    write_bytes_atomic(out / "scaling.md", (report_table(rows, a.by, a.unit_pixels) + "\n"
+                                            + "\n".join(extrapolation_lines(rows, a.unit_pixels)) + "\n").encode())
     if a.multiples:  # sized by HR pixels: the margins per family group against the data size
         plot_margins(rows, a.unit_pixels, out / "scaling.png")
     else:
@@ -453,7 +465,7 @@ def plot_margins(rows: list[dict], unit: float, path: Path) -> list[dict]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     series = margin_series(rows, unit)
-    fig, ax = plt.subplots(figsize=(5.5, 3.4), dpi=120)
+    fig, ax = plt.subplots(figsize=(8.0, 3.8), dpi=120)
     colors = {}
     for c in series:
         color = colors.setdefault(curve_label(c), f"C{len(colors)}")
@@ -466,12 +478,11 @@ def plot_margins(rows: list[dict], unit: float, path: Path) -> list[dict]:
     ax.minorticks_off()
     ax.set_xlabel(f"training data (x {unit / 1e6:.1f} M HR pixels)")
     ax.set_ylabel("margin over demod-jbu, test (dB)")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: many curves
     ax.grid(alpha=0.3)
-    fig.tight_layout()
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp)
+    fig.savefig(tmp, bbox_inches="tight")
     plt.close(fig)
     tmp.replace(path)
     return series
@@ -505,9 +516,9 @@ def combine(records: list[Path], out: Path, argv=None) -> int:
               file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
-    (out / "scaling.md").write_text(report_table(rows, by, unit) + "\n" + "\n".join(extrapolation_lines(rows, unit))
-                                    + "\n")
-    from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.clip import write_bytes_atomic, write_json_atomic
+    write_bytes_atomic(out / "scaling.md", (report_table(rows, by, unit) + "\n"
+                                            + "\n".join(extrapolation_lines(rows, unit)) + "\n").encode())
     write_json_atomic(out / "scaling.json", {**first[1], "sources": [str(r) for r in records],
                                              "rows": sized_rows(rows, unit),
                                              "fits": fits(rows, unit), "command": command_line(argv)})
@@ -547,7 +558,8 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
     """``fits`` in words: per model and family group, the fit, its gain per tenfold data and what it predicts at
     ``at`` x. The lines name the model only when there are several."""
     labels = {r["model"] for r in rows if r.get("hr_pixels") and r.get("margin_by_family")}
-    lines = []
+    lines = [f"- {f'`{curve_label(c)}` ' if len(labels) > 1 else ''}{c['group']}: scored at one size "
+             f"({c['xs'][0]:.1f}x), no fit" for c in margin_series(rows, unit) if len(set(c["xs"])) < 2]
     for f in fits(rows, unit, at):
         name = f"`{curve_label(f)}` {f['group']}" if len(labels) > 1 else f["group"] + curve_label(f, model=False)
         lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "
@@ -562,13 +574,14 @@ def report_table(rows: list[dict], by: str, unit: float) -> str:
     lines = [f"| training data | {by}s | clips | x (HR pixels) | steps | test PSNR (dB) | test SSIM | margin in-family "
              "(smallest) | margin held-out (smallest) | of which unseen assets | of which unseen levels | per test "
              "clip (dB) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    num = (lambda v, fmt: "n/a" if v is None else format(v, fmt))  # noqa: E731  (a diverged run's NaN: None)
     for r in rows:
-        per = ", ".join(f"{k} {v:.2f}" for k, v in r["per_clip"].items())
+        per = ", ".join(f"{k} {num(v, '.2f')}" for k, v in r["per_clip"].items())
         m, lo = r.get("margin_by_family", {}), r.get("margin_min_by_family", {})
         cell = lambda g: (f"{m[g]:+.2f}" + (f" ({lo[g]:+.2f})" if g in lo else "")) if g in m else "-"  # noqa: E731
         x = f"{r['hr_pixels'] / unit:.2f}" if r.get("hr_pixels") else "-"
         lines.append(f"| {r['model']} | {r.get(by + 's', '-')} | {r['clips'] or '-'} | {x} | {r['steps'] or '-'} | "
-                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {cell(IN_FAMILY)} | {cell(HELD_OUT)} | "
+                     f"{num(r['psnr'], '.2f')} | {num(r['ssim'], '.4f')} | {cell(IN_FAMILY)} | {cell(HELD_OUT)} | "
                      f"{cell(HELD_OUT_ASSET)} | {cell(HELD_OUT_LEVEL)} | {per} |")
     return "\n".join(lines) + "\n"
 

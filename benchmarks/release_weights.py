@@ -539,17 +539,13 @@ def test_scores(name: str, score: dict, baselines: dict) -> dict:
 
 
 def whole_test_split(dataset: Path) -> list[str]:
-    """Every planned test clip of ``dataset``, finished and valid; ValueError (one line) when any is not, or when the
-    index plans none."""
-    from gbuffer_export.dataset.build import read_index, split_clips
-    test = [str(c) for c in split_clips(dataset, "test")]
-    planned = sum(c.get("split") == "test" for c in read_index(dataset)["clips"])
-    if not planned:
-        raise ValueError(f"{dataset}: its index plans no test clip: nothing to record")
-    if len(test) < planned:
-        raise ValueError(f"{dataset}: {planned - len(test)} of its {planned} test clips are not finished (or not "
-                         "valid): --record-test reads the whole test split")
-    return test
+    """Every planned test clip of ``dataset``, finished and valid (``build.whole_split``); ValueError (one line) when
+    any is not, or when the index plans none."""
+    from gbuffer_export.dataset import build
+    try:
+        return [str(c) for c in build.whole_split(dataset, "test")]
+    except build.DatasetError as exc:
+        raise ValueError(f"{exc}: --record-test reads the whole test split") from None
 
 
 def shipped_docs(models: list[str], spec_sha256: str) -> dict[str, dict]:
@@ -599,14 +595,22 @@ def record_test(a) -> int:
         return 2
     baselines = {m: summary(evaluate(m, test)) for m in ("bicubic", "demod-bilinear", "demod-jbu")}
     command = f"benchmarks/release_weights.py {a.dataset} {a.runs} --models {a.models} --record-test"
+    rc = 0
     for name, doc in docs.items():
         score = {**summary(evaluate(f"pretrained:{name}", test)), "steps": doc.get("step")}
-        doc.update(test_scores(name, score, baselines))
-        doc["dataset"]["test_clips"] = [Path(c).name for c in test]
-        doc["test_split"] = f"recorded {datetime.date.today().isoformat()}: {command}"
-        write_json_atomic((WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json"), doc)
-        print(f"{name}: test margin {doc['gain_over_demod_jbu_db']:+.2f} dB over demod-jbu", file=sys.stderr)
-    return 0
+        path = (WEIGHTS_DIR / PRETRAINED[name]).with_suffix(".json")
+        fresh = json.loads(path.read_text())  # as it is now: scoring took hours, and only the test keys are ours
+        if fresh.get("sha256") != doc.get("sha256") or not deferred(fresh):
+            print(f"blendsr: {path}: the weights were released again or their test split recorded while they were "
+                  "scored; nothing written for them (run --record-test again)", file=sys.stderr)
+            rc = 2
+            continue
+        fresh.update(test_scores(name, score, baselines))
+        fresh["dataset"]["test_clips"] = [Path(c).name for c in test]
+        fresh["test_split"] = f"recorded {datetime.date.today().isoformat()}: {command}"
+        write_json_atomic(path, fresh)
+        print(f"{name}: test margin {fresh['gain_over_demod_jbu_db']:+.2f} dB over demod-jbu", file=sys.stderr)
+    return rc
 
 
 def main(argv=None) -> int:

@@ -28,16 +28,25 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 def clip_groups(datasets: list[Path], split: str) -> dict[str, list[str]]:
-    """The split's finished clips of every dataset, as paths, by group (``family_gap.KINDS``, by
-    ``family_gap.index_kinds``: the one rule of what a level is)."""
-    from gbuffer_export.dataset.build import split_clips
+    """The split's clips of every dataset, as paths, by group (``family_gap.KINDS``, by
+    ``family_gap.index_kinds``: the one rule of what a level is). DatasetError (one line) unless every clip the
+    index plans in the split is finished and valid (``build.whole_split``): part of a split never passes for it."""
+    from gbuffer_export.dataset.build import whole_split
     from gbuffer_export.dataset.family_gap import KINDS, index_kinds
     out: dict[str, list[str]] = {g: [] for g in KINDS}
     for ds in datasets:
         kind = index_kinds(ds)
-        for clip in split_clips(ds, split):
+        for clip in whole_split(ds, split):
             out[kind.get(Path(clip).name, "objects")].append(str(clip))
     return out
+
+
+def weights_sha(label: str) -> str | None:
+    """The sha256 of the weights shipped now under a ``pretrained:NAME`` label (with or without options), from the
+    JSON beside them; None for any other label."""
+    from training import pretrained
+    name = label[len(pretrained.PREFIX):].split("?")[0] if label.startswith(pretrained.PREFIX) else None
+    return pretrained.info(name).get("sha256") if name in pretrained.PRETRAINED else None
 
 
 def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
@@ -45,6 +54,7 @@ def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
     from training.bench import _lacking, load_models
     from training.evaluate import Baseline, EvalOptions, evaluate_model
     loaded = load_models(models, 4)  # every model, before any score: a bad spec fails at once
+    shas = {label: weights_sha(label) for label, _ in loaded}  # what was loaded (its sha checked on loading)
     result: dict = {}
     for group, clips in groups.items():
         if not clips:
@@ -58,27 +68,51 @@ def score(models: list[tuple[str, str]], groups: dict[str, list[str]]) -> dict:
                 continue
             r = evaluate_model(model, clips, EvalOptions(flip=False, scale=4, baseline=base, label=label))
             result[group]["models"][label] = {"mean": r["mean"], "per_clip": r["per_clip"]}
+            if shas[label]:
+                result[group]["models"][label]["sha256"] = shas[label]
             print(f"{group} {label}: PSNR {r['mean']['psnr']:.2f} dB", file=sys.stderr)
     return result
 
 
 def merged(paths: list[Path]) -> dict:
     """The results of earlier runs (their OUT.json) as one: per group, every file's models (a later file's row of
-    a model replaces an earlier one's) and notes. ValueError naming the file when a group's clips differ."""
+    a model replaces an earlier one's) and notes. ValueError naming the file when a group's clips differ, or when a
+    shipped network's row scored other weights than those shipped now (``stale``)."""
     result: dict = {}
     for path in paths:
         try:
             doc = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not a worst_case.py OUT.json ({exc})") from None
-        for group, g in doc.items():
-            have = result.setdefault(group, {"clips": g["clips"], "models": {}, "notes": []})
-            if have["clips"] != g["clips"]:
-                raise ValueError(f"{path}: its {group} clips differ from those of {paths[0]}; scores of other clips "
-                                 "do not merge")
-            have["models"].update(g["models"])
-            have["notes"] += [n for n in g["notes"] if n not in have["notes"]]
+            for group, g in doc.items():
+                have = result.setdefault(group, {"clips": g["clips"], "models": {}, "notes": []})
+                if have["clips"] != g["clips"]:
+                    raise ValueError(f"{path}: its {group} clips differ from those of {paths[0]}; scores of other "
+                                     "clips do not merge")
+                for label, row in g["models"].items():
+                    stale(path, label, row)
+                have["models"].update(g["models"])
+                have["notes"] += [n for n in g["notes"] if n not in have["notes"]]
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+            raise ValueError(f"{path}: not a worst_case.py OUT.json ({type(exc).__name__}: {exc})") from None
     return result
+
+
+def stale(path: Path, label: str, row: dict) -> None:
+    """ValueError naming ``path`` when the row of a shipped network (``pretrained:NAME``) does not say which weights
+    it scored or scored others than those shipped now: its margins would be recorded and tabled for these."""
+    now = weights_sha(label)
+    if now is not None and row.get("sha256") != now:
+        scored = f"weights {row['sha256'][:12]}" if row.get("sha256") else "weights it does not name (no sha256)"
+        raise ValueError(f"{path}: its {label} row scored {scored}, not the {now[:12]} shipped now; score it again")
+
+
+def check_whole(result: dict, groups: dict[str, list[str]], split: str) -> None:
+    """ValueError unless every group of ``result`` holds exactly the clips of ``groups`` (the whole split now)."""
+    for group in set(result) | {g for g, clips in groups.items() if clips}:
+        want = sorted(Path(c).name for c in groups.get(group, []))
+        if sorted(result.get(group, {}).get("clips", [])) != want:
+            raise ValueError(f"--scores: their {group} clips are not the whole {split} split of the datasets now "
+                             f"({len(result.get(group, {}).get('clips', []))} clips, the split has {len(want)}); "
+                             "score again")
 
 
 def without_scores(argv: list[str]) -> list[str]:
@@ -103,9 +137,10 @@ def table(result: dict) -> str:
         for label, r in g["models"].items():
             m = r["mean"]
             clip = Path(m["margin_min_clip"]).name if m.get("margin_min_clip") else ""
-            lines.append(f"| {group} ({n} clips) | `{label}` | {m['psnr']:.2f} | {m['margin']:+.2f} | "
-                         f"{m['margin_min']:+.2f} ({clip}) | {m['ssim']:.4f} | {m['tpsnr']:.2f} | "
-                         f"{m['artifact_fraction']:.3%} | {m['worst_share']:.0%} |")
+            f = (lambda k, fmt: "n/a" if m.get(k) is None else format(m[k], fmt))  # no baseline: no margin
+            lines.append(f"| {group} ({n} clips) | `{label}` | {f('psnr', '.2f')} | {f('margin', '+.2f')} | "
+                         f"{f('margin_min', '+.2f')} ({clip}) | {f('ssim', '.4f')} | {f('tpsnr', '.2f')} | "
+                         f"{f('artifact_fraction', '.3%')} | {f('worst_share', '.0%')} |")
         for note in g["notes"]:
             lines.append(f"| {group} | {note} | | | | | | | |")
     return "\n".join(lines)
@@ -123,12 +158,14 @@ def overall(result: dict, label: str) -> dict | None:
             "margin": round(mean("psnr") - mean("baseline_psnr"), 3),
             "margin_min": round(min(c["margin"] for c in rows), 3), "frames": frames,
             "per_group": {g: round(r["models"][label]["mean"]["margin"], 3) for g, r in result.items()
-                          if label in r["models"]},
+                          if r["models"].get(label, {}).get("mean", {}).get("margin") is not None},
             "left_out": [n for r in result.values() for n in r["notes"] if f" {label}:" in n]}
 
 
 def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
-    """Write each ``pretrained:NAME`` row's ``overall`` into the JSON beside its weights (``WORST_CASE_VAL``)."""
+    """Write each ``pretrained:NAME`` row's ``overall`` into the JSON beside its weights (``WORST_CASE_VAL``), with
+    the sha256 of the weights it scored; a row of weights no longer shipped is left out with a line."""
+    from gbuffer_export.clip import write_json_atomic
     from gbuffer_export.dataset.build import read_index
     from training import pretrained
     where = " + ".join(f"{read_index(d)['spec']['file']} val" for d in datasets)
@@ -139,13 +176,16 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
             continue
         path = (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).with_suffix(".json")
         doc = json.loads(path.read_text())
+        scored = {g["models"][label].get("sha256") for g in result.values() if label in g["models"]}
+        if scored != {doc.get("sha256")}:
+            print(f"{path.name}: not recorded: {label} was scored on other weights than those shipped now",
+                  file=sys.stderr)
+            continue
         doc[pretrained.WORST_CASE_VAL] = {
             "dataset": where, "sha256": doc.get("sha256"),
             "date": datetime.date.today().isoformat(),
             "command": "benchmarks/worst_case.py " + " ".join(shlex.quote(a) for a in argv), **got}
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
-        tmp.replace(path)
+        write_json_atomic(path, doc)
         print(f"{path.name}: {pretrained.WORST_CASE_VAL} margin {got['margin']:+.2f} dB", file=sys.stderr)
 
 
@@ -169,8 +209,10 @@ def main(argv=None) -> int:
     try:
         if a.scores:
             result = merged(a.scores)
+            check_whole(result, clip_groups(a.datasets, a.split), a.split)
         else:
-            result = score(parse_models(a.models), clip_groups(a.datasets, a.split))
+            models = parse_models(a.models)  # a bad spec first: it costs nothing
+            result = score(models, clip_groups(a.datasets, a.split))
     except (BlendSRError, OSError, ValueError) as exc:  # bad models, datasets or files: one line, exit 2
         print(f"blendsr: error: {exc}", file=sys.stderr)
         return 2

@@ -247,6 +247,19 @@ def split_clips(root: str | os.PathLike, split: str, done_only: bool = True) -> 
     return out
 
 
+def whole_split(root: str | os.PathLike, split: str) -> list[Path]:
+    """The clip folders of one split, only when every clip the index plans there is finished and valid (a score of
+    part of a split would pass for the whole); DatasetError (one line) when any is not, or when none is planned."""
+    done = split_clips(root, split)
+    planned = sum(isinstance(c, dict) and c.get("split") == split for c in read_index(Path(root))["clips"])
+    if not planned:
+        raise DatasetError(f"{root}: its index plans no {split} clip")
+    if len(done) < planned:
+        raise DatasetError(f"{root}: {planned - len(done)} of its {planned} {split} clips are not finished (or not "
+                           f"valid); the whole {split} split is read or none of it")
+    return done
+
+
 def expand_data_paths(paths, split: str) -> list[Path]:
     """``--data`` arguments: clip folders stay, a dataset folder becomes the finished clips of ``split``
     (DatasetError when it has none)."""

@@ -166,6 +166,21 @@ def test_the_curve_is_fitted_per_family_group_and_extrapolated_to_100x():
     assert lines[1].startswith("- in-family") and "+0.00 dB per tenfold" in lines[1], lines
 
 
+def test_a_group_at_one_size_says_it_has_no_fit_and_a_diverged_run_is_tabled_not_fatal():
+    """A family group scored at one data size gets a line saying so (it used to vanish from the report); a run whose
+    frames are NaN keeps its score as None (n/a), out of the margins, instead of failing after the test read."""
+    rows = [{"model": "fusesr", "hr_pixels": x, "margin_by_family": {"held-out": y, **extra}}
+            for x, y, extra in ((1.0, 1.0, {"held-out level": 2.0}), (10.0, 2.0, {}))]
+    lines = data_scaling.extrapolation_lines(rows, 1.0)
+    assert lines[0] == "- held-out level: scored at one size (1.0x), no fit" and "held-out: margin" in lines[1], lines
+    nan = float("nan")
+    assert data_scaling.finite({"psnr": nan, "per_clip": {"a": nan, "b": 30.0}, "n": 3}) == {
+        "psnr": None, "per_clip": {"a": None, "b": 30.0}, "n": 3}
+    row = {"model": "fusesr", "clips": 2, "hr_pixels": 100, "steps": 10, "psnr": None, "ssim": None,
+           "per_clip": {"a": None}, "margin_by_family": {}, "margin_min_by_family": {}}
+    assert "| n/a | n/a | - | - | - | - | a n/a |" in data_scaling.report_table([row], "clip", 100.0)
+
+
 def test_each_family_group_reports_its_worst_clip_beside_its_mean():
     per = {"a": 30.0, "b": 25.0, "c": 28.0, "d": 20.0}
     base = {"a": 29.0, "b": 26.0, "c": 27.5, "d": 19.0}
@@ -423,6 +438,13 @@ def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path, mon
     assert [r["model"] for r in again["rows"]] == ["demod-bilinear", "demod-jbu", "fusesr-l", "fusesr-l"]
     assert again["rows"][2]["per_clip"] == record["rows"][2]["per_clip"] and ckpt.stat().st_mtime_ns == mtime
     assert (out / "scaling.png").stat().st_size > 1000
+    # a test clip rendered again (its manifest's bytes differ) is scored again, the baselines first
+    manifest = root / "clips/test3/manifest.json"
+    kept = manifest.read_bytes()
+    manifest.write_bytes(kept + b"\n")
+    with pytest.raises(RuntimeError, match="scored again"):
+        data_scaling.main(argv[:5] + ["--counts", "1,2", "--steps", "2", "--model", "fusesr-l"])
+    manifest.write_bytes(kept)
     # a run trained again (other bytes) is scored again
     torch.save({**torch.load(ckpt, weights_only=False), "again": 1}, ckpt)
     with pytest.raises(RuntimeError, match="scored again"):

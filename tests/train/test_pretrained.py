@@ -336,7 +336,22 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     (o.ds / build.INDEX).write_text((o.ds / build.INDEX).read_text().replace('"other"', '"abc"'))
     wide = o.json.with_name(Path(pretrained.PRETRAINED["fusesr"]).with_suffix(".json").name)
     wide.write_text(json.dumps({"dataset": {"spec_sha256": "wide"}}))  # fusesr kept weights of another spec
+    shipped, scored = o.json.read_text(), o.rw.evaluate
+
+    def meanwhile(edit):  # the JSON edited while the shipped weights are scored (scoring takes hours)
+        def evaluate(model, clips):
+            if model == "pretrained:fusesr-l":
+                o.json.write_text(json.dumps(edit(json.loads(o.json.read_text()))))
+            return scored(model, clips)
+        return evaluate
+    monkeypatch.setattr(o.rw, "evaluate", meanwhile(lambda d: {**d, "sha256": "released again"}))
+    assert o.rw.main([str(o.ds), str(o.runs), "--models", "fusesr-l", "--record-test"]) == 2
+    assert "were released again or their test split recorded while they were scored" in capsys.readouterr().err
+    assert "scores_on_test_split" not in json.loads(o.json.read_text())  # the other release's JSON kept as it is
+    o.json.write_text(shipped)
+    monkeypatch.setattr(o.rw, "evaluate", meanwhile(lambda d: {**d, pretrained.WORST_CASE_VAL: {"margin": 1.0}}))
     assert o.rw.main([str(o.ds), str(o.runs), "--models", "fusesr,fusesr-l", "--record-test"]) == 0
+    assert json.loads(o.json.read_text())[pretrained.WORST_CASE_VAL] == {"margin": 1.0}  # written meanwhile: kept
     assert f"note: {wide}: released from another dataset spec" in capsys.readouterr().err
     assert {m for m, c in o.asked} == {"bicubic", "demod-bilinear", "demod-jbu", "pretrained:fusesr-l"}
     assert all(c == ["t"] for _, c in o.asked)
