@@ -345,7 +345,8 @@ def write_records(curve: Curve, rows: list[dict], argv) -> None:
     a, out = curve.a, curve.a.output
     write_json_atomic(out / "scaling.json", {"dataset": str(a.dataset), "test_clips": curve.test_clips,
                                              "rows": sized_rows(rows, a.unit_pixels),
-                                             "by": a.by, "steps": curve.budgets, "config": a.config,
+                                             "by": a.by, "scale": a.scale, "steps": curve.budgets,
+                                             "config": a.config,
                                              "multiples": a.multiples or None, "unit_pixels": a.unit_pixels,
                                              "score_options": curve.variants[1:], "fits": fits(rows, a.unit_pixels),
                                              "command": command_line(argv)})
@@ -502,7 +503,7 @@ def combine(records: list[Path], out: Path, argv=None) -> int:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             print(f"data_scaling: {rec}: not a scaling.json of data_scaling.py --multiples ({exc})", file=sys.stderr)
             return 2
-        same = {k: data.get(k) for k in ("dataset", "test_clips", "unit_pixels", "by")}
+        same = {k: data.get(k) for k in ("dataset", "test_clips", "unit_pixels", "by", "scale")}
         first = first or (rec, same)
         differ = [k for k in same if same[k] != first[1][k]]
         if differ:

@@ -376,6 +376,12 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
     assert data_scaling.main(["-", "-o", str(tmp_path / "o"), "--combine", str(tmp_path / "a/scaling.json"),
                               str(tmp_path / "b/scaling.json")]) == 2
     assert "its test_clips differ from" in capsys.readouterr().err
+    for name, scale in (("a", 4), ("b", 2)):  # the same clips scored at other scales
+        (tmp_path / name / "scaling.json").write_text(json.dumps({"rows": [], "unit_pixels": 1.0, "test_clips": [],
+                                                                  "scale": scale}))
+    assert data_scaling.main(["-", "-o", str(tmp_path / "o"), "--combine", str(tmp_path / "a/scaling.json"),
+                              str(tmp_path / "b/scaling.json")]) == 2
+    assert "its scale differ from" in capsys.readouterr().err
 
 
 def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path, monkeypatch):
