@@ -8,10 +8,10 @@ A clip is a level when its source is of kind ``scene`` (a level kept as it is, c
 otherwise (assets in generated environments, built-in scenes). A model whose buffers a clip lacks is left out of
 that group with a note (as ``bench models`` does). Writes OUT.json (every model's per-clip rows) and OUT.md (the
 table) when ``-o`` is given; prints the table. With ``--record`` (val split only) each shipped network's row
-(``pretrained:NAME``, no options) is written into the JSON beside its weights as ``worst_case_val``
-(``training.pretrained.WORST_CASE_VAL``: the frame-weighted margin over ``demod-jbu`` on every group it was scored
-on, per group too, with the weights' sha256, the datasets and this command), which ``pretrained.below_baseline``
-reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there. ``--scores A.json B.json``
+(``pretrained:NAME``, no options) is written into the JSON beside its weights under ``worst_case_val``
+(``training.pretrained.WORST_CASE_VAL``, one record per val set, others kept: the frame-weighted margin over
+``demod-jbu`` on every group it was scored on, per group too, with the weights' sha256, the datasets and this
+command), which ``pretrained.below_baseline`` reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there. ``--scores A.json B.json``
 tables (and records) earlier runs' OUT.json instead of scoring: several runs on the same clips merge, so networks
 whose weights are final can be scored while others still train, and one table holds them all.
 """
@@ -181,12 +181,12 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
             print(f"{path.name}: not recorded: {label} was scored on other weights than those shipped now",
                   file=sys.stderr)
             continue
-        doc[pretrained.WORST_CASE_VAL] = {
+        doc.setdefault(pretrained.WORST_CASE_VAL, {})[where] = {  # other val sets' records stay
             "dataset": where, "sha256": doc.get("sha256"),
             "date": datetime.date.today().isoformat(),
             "command": "benchmarks/worst_case.py " + " ".join(shlex.quote(a) for a in argv), **got}
         write_json_atomic(path, doc)
-        print(f"{path.name}: {pretrained.WORST_CASE_VAL} margin {got['margin']:+.2f} dB", file=sys.stderr)
+        print(f"{path.name}: {pretrained.WORST_CASE_VAL} on {where}: margin {got['margin']:+.2f} dB", file=sys.stderr)
 
 
 def main(argv=None) -> int:

@@ -73,16 +73,25 @@ def test_deferred(doc: dict) -> bool:
     return str(doc.get("test_split", "")).startswith("deferred")
 
 
-#: The JSON key of a shipped network's scores on a wider val set than the one it was chosen on
-#: (``benchmarks/worst_case.py --record``): kept only while its ``sha256`` is the weights' own.
+#: The JSON key of a shipped network's scores on wider val sets than the one it was chosen on
+#: (``benchmarks/worst_case.py --record``): ``{val set: record}``, one record per dataset spec's val split (each
+#: recorded again replaces its own only), each kept only while its ``sha256`` is the weights' own.
 WORST_CASE_VAL = "worst_case_val"
+
+
+def val_records(doc: dict) -> dict[str, dict]:
+    """``{val set: record}`` of a weights JSON's ``WORST_CASE_VAL`` that speak for these weights (the record's
+    ``sha256`` is the JSON's) and hold a margin."""
+    records = doc.get(WORST_CASE_VAL) or {}
+    return {where: r for where, r in records.items() if isinstance(r, dict) and r.get("sha256") == doc.get("sha256")
+            and isinstance(r.get("margin"), (int, float))}
 
 
 def val_margins(name: str) -> dict[str, float]:
     """The shipped network's PSNR minus ``demod-jbu``'s on each val set on record, in dB, from the JSON beside its
     weights: ``scores_on_val_split`` (the split its training was chosen on; both scored on the same frames) and
-    ``worst_case_val`` (a wider val set, for the weights of the same sha256: over all of it and over each of its
-    groups, objects and levels); empty when the JSON holds neither."""
+    each of ``val_records`` (wider val sets: over all of one and over each of its groups, objects and levels);
+    empty when the JSON holds neither."""
     try:
         doc = info(name)
     except (OSError, ValueError, KeyError):
@@ -93,11 +102,9 @@ def val_margins(name: str) -> dict[str, float]:
         out["val split"] = float(scores[name]["psnr"]) - float(scores[BASELINE]["psnr"])
     except (ValueError, KeyError, TypeError):
         pass
-    wide = doc.get(WORST_CASE_VAL) or {}
-    if wide.get("sha256") == doc.get("sha256") and isinstance(wide.get("margin"), (int, float)):
-        where = wide.get("dataset", "wide val")
-        out[where] = float(wide["margin"])
-        for group, margin in (wide.get("per_group") or {}).items():  # objects and levels: each a val set of its own
+    for where, record in val_records(doc).items():
+        out[where] = float(record["margin"])
+        for group, margin in (record.get("per_group") or {}).items():  # objects and levels: each a val set of its own
             out[f"{where}, {group}"] = float(margin)
     return out
 

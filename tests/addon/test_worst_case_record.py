@@ -46,10 +46,21 @@ def test_record_marks_a_network_below_the_baseline_on_the_wider_val(tmp_path, mo
     result["levels"]["models"]["pretrained:rdg-s"]["sha256"] = "abc"
     wc.record(result, [tmp_path], ["DS", "--split", "val", "--record"])
     doc = json.loads(json_path.read_text())
-    assert doc[pretrained.WORST_CASE_VAL]["sha256"] == "abc" and doc["scores_on_val_split"] == scores
+    assert doc[pretrained.WORST_CASE_VAL]["wide.toml val"]["sha256"] == "abc" and doc["scores_on_val_split"] == scores
     assert pretrained.val_margin("rdg-s") == pytest.approx(-1.0)  # the worst group: levels
     assert pretrained.below_baseline("rdg-s")
     assert pretrained.val_margins("rdg-s")["val split"] == pytest.approx(0.3)
+    # a second val set (another spec) is recorded beside the first, which stays: the network is as good as its worst
+    for g, m in (("objects", 2.0), ("levels", 1.0)):
+        result[g]["models"]["pretrained:rdg-s"]["mean"]["margin"] = m
+        result[g]["models"]["pretrained:rdg-s"]["per_clip"] = [_clip(g, 8, 30.0 + m, 30.0)]
+    monkeypatch.setattr("gbuffer_export.dataset.build.read_index", lambda d: {"spec": {"file": "scale.toml"}})
+    wc.record(result, [tmp_path], ["DS2", "--split", "val", "--record"])
+    doc = json.loads(json_path.read_text())
+    assert set(doc[pretrained.WORST_CASE_VAL]) == {"wide.toml val", "scale.toml val"}
+    margins = pretrained.val_margins("rdg-s")
+    assert margins["scale.toml val"] == pytest.approx(1.5) and margins["scale.toml val, levels"] == 1.0
+    assert pretrained.val_margin("rdg-s") == pytest.approx(-1.0) and pretrained.below_baseline("rdg-s")
     doc["sha256"] = "new weights"  # retrained since: the record no longer speaks for them
     json_path.write_text(json.dumps(doc))
     assert not pretrained.below_baseline("rdg-s")
