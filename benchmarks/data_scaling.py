@@ -201,14 +201,18 @@ def plan(a: argparse.Namespace) -> Curve:
 def score(curve: Curve, spec: str) -> dict:
     """``spec`` (a baseline, or a checkpoint with options) on the test split: PSNR, SSIM, per clip and per family
     group, artifact pixels, and each group's smallest margin over demod-jbu (evaluate's baseline). Kept in
-    ``score_path`` once computed, so that a scoring cut short resumes after the scores it finished."""
+    ``score_path`` once computed, so that a scoring cut short resumes after the scores it finished; another process
+    computing the same score (the baselines, shared by the curves of one ``--runs``) is waited for, then read."""
     from gbuffer_export.clip import write_json_atomic
+    from gbuffer_export.locks import FolderLock
     path = score_path(curve, spec)
-    if path.is_file():
-        return json.loads(path.read_text())
-    result = _score(curve, spec)
-    write_json_atomic(path, result)
-    return result
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with FolderLock(path.parent, "", name=f".{path.stem}.lock", timeout=-1):
+        if path.is_file():
+            return json.loads(path.read_text())
+        result = _score(curve, spec)
+        write_json_atomic(path, result)
+        return result
 
 
 def score_path(curve: Curve, spec: str) -> Path:

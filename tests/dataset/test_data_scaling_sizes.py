@@ -384,6 +384,35 @@ def test_combine_refuses_curves_scored_on_different_test_clips(tmp_path, capsys)
     assert "its scale differ from" in capsys.readouterr().err
 
 
+def test_a_score_another_process_is_computing_is_waited_for_and_read_not_computed_twice(tmp_path, monkeypatch):
+    """Both curves of one --runs score the baselines: the second waits on the score's lock, then reads the file."""
+    import threading
+    import time
+
+    from gbuffer_export.locks import FolderLock
+    path = tmp_path / "scores" / "abc.json"
+    path.parent.mkdir()
+    monkeypatch.setattr(data_scaling, "score_path", lambda curve, spec: path)
+
+    def computed(curve, spec):
+        raise AssertionError("scored twice")
+    monkeypatch.setattr(data_scaling, "_score", computed)
+    held = threading.Event()
+
+    def other():  # the other process, scoring it now
+        with FolderLock(path.parent, "", name=".abc.lock"):
+            held.set()
+            time.sleep(0.5)
+            path.write_text(json.dumps({"psnr": 30.0}))
+    thread = threading.Thread(target=other)
+    thread.start()
+    held.wait(10)
+    try:
+        assert data_scaling.score(None, "demod-jbu") == {"psnr": 30.0}
+    finally:
+        thread.join()
+
+
 def test_the_curve_trains_scores_and_writes_its_records_end_to_end(tmp_path, monkeypatch):
     """The script's last stage, as the round's end runs it: every run trained (2 steps here), the baselines and each
     run scored as trained and with --score-options on the test split by family group (of the two held-out clips one
