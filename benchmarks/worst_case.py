@@ -11,9 +11,10 @@ table) when ``-o`` is given; prints the table. With ``--record`` (val split only
 (``pretrained:NAME``, no options) is written into the JSON beside its weights under ``worst_case_val``
 (``training.pretrained.WORST_CASE_VAL``, one record per val set, others kept: the frame-weighted margin over
 ``demod-jbu`` on every group it was scored on, per group too, with the weights' sha256, the datasets and this
-command), which ``pretrained.below_baseline`` reads: the README and the add-on's model menu mark a network below ``demod-jbu`` there. ``--scores A.json B.json``
-tables (and records) earlier runs' OUT.json instead of scoring: several runs on the same clips merge, so networks
-whose weights are final can be scored while others still train, and one table holds them all.
+command), which ``pretrained.below_baseline`` reads: the README and the add-on's model menu mark a network below
+``demod-jbu`` there. ``--scores A.json B.json`` tables (and records) earlier runs' OUT.json instead of scoring:
+several runs on the same clips merge, so networks whose weights are final can be scored while others still train,
+and one table holds them all.
 """
 from __future__ import annotations
 
@@ -131,7 +132,7 @@ def without_scores(argv: list[str]) -> list[str]:
 
 def table(result: dict) -> str:
     lines = ["| data | model | PSNR (dB) | margin over demod-jbu | smallest per-clip margin (clip) | SSIM | tPSNR | "
-             "artifact pixels | worst-1 % share |", "|---|---|---|---|---|---|---|---|---|"]
+             "artifact pixels | artifact pixels, worst clip | worst-1 % share |", "|" + "---|" * 10]
     for group, g in result.items():
         n = len(g["clips"])
         for label, r in g["models"].items():
@@ -140,9 +141,10 @@ def table(result: dict) -> str:
             f = (lambda k, fmt: "n/a" if m.get(k) is None else format(m[k], fmt))  # no baseline: no margin
             lines.append(f"| {group} ({n} clips) | `{label}` | {f('psnr', '.2f')} | {f('margin', '+.2f')} | "
                          f"{f('margin_min', '+.2f')} ({clip}) | {f('ssim', '.4f')} | {f('tpsnr', '.2f')} | "
-                         f"{f('artifact_fraction', '.3%')} | {f('worst_share', '.0%')} |")
+                         f"{f('artifact_fraction', '.3%')} | {f('artifact_fraction_max', '.3%')} | "
+                         f"{f('worst_share', '.0%')} |")
         for note in g["notes"]:
-            lines.append(f"| {group} | {note} | | | | | | | |")
+            lines.append(f"| {group} | {note} | | | | | | | | |")
     return "\n".join(lines)
 
 

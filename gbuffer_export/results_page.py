@@ -9,7 +9,8 @@ when the committed page differs from what the records give, or when it grows pas
 Table kinds (``[[section.table]] kind = ...``):
 
 - ``margins``: rows of ``benchmarks/worst_case.py`` records (``{group: {clips, models: {name: {mean: ...}}}}``): PSNR,
-  margin over the baseline, smallest per-clip margin and its clip, SSIM, tPSNR, artifact pixels, per group.
+  margin over the baseline, smallest per-clip margin and its clip, SSIM, tPSNR, artifact pixels (all clips, and the
+  clip with the most), per group.
 - ``rows``: the ``rows`` list of a record (what ``blendsr bench models`` and the benchmark scripts write), one
   column per ``[header, key, format]``; with ``pivot = [row_key, column_key, value_key, format]`` one row per
   ``row_key`` and one column per value of ``column_key`` (e.g. model x variant -> ms). A dotted key, in a column,
@@ -86,7 +87,7 @@ def markdown(header: list[str], rows: list[list[object]]) -> str:
 
 
 MARGIN_HEADER = ["data", "model", "PSNR (dB)", "margin (dB)", "smallest per-clip margin (clip)", "SSIM",
-                 "tPSNR (dB)", "artifact pixels"]
+                 "tPSNR (dB)", "artifact pixels", "artifact pixels, worst clip"]
 
 
 def margins_table(spec: dict, where: str) -> str:
@@ -107,7 +108,7 @@ def margins_table(spec: dict, where: str) -> str:
             label = row.get("label") or f"`{row['model']}`"
             out.append([f"{group} ({len(data[group]['clips'])} clips)", label, Cell(m["psnr"], "{:.2f}"),
                         Cell(m["margin"], "{:+.2f}"), worst, Cell(m["ssim"], "{:.4f}"), Cell(m["tpsnr"], "{:.2f}"),
-                        Cell(m.get("artifact_fraction"), "{:.3%}")])
+                        Cell(m.get("artifact_fraction"), "{:.3%}"), Cell(m.get("artifact_fraction_max"), "{:.3%}")])
     return markdown(spec.get("header", MARGIN_HEADER), out)
 
 

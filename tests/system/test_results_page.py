@@ -17,7 +17,7 @@ def test_the_committed_page_is_what_its_records_give_and_short():
 
 def _worst_case_record(psnr: float, margin: float) -> dict:
     mean = {"psnr": psnr, "margin": margin, "margin_min": margin - 1, "margin_min_clip": "datasets/x/clips/a-00",
-            "ssim": 0.9, "tpsnr": psnr - 2, "artifact_fraction": 0.0001}
+            "ssim": 0.9, "tpsnr": psnr - 2, "artifact_fraction": 0.0001, "artifact_fraction_max": 0.0003}
     return {"objects": {"clips": ["a-00", "b-00"], "models": {"pretrained:m": {"mean": mean}}}}
 
 
@@ -34,7 +34,8 @@ def _page(tmp_path, monkeypatch, record: dict) -> str:
 
 def test_a_table_cell_changes_with_its_record(tmp_path, monkeypatch):
     text = _page(tmp_path, monkeypatch, _worst_case_record(31.234, 1.5))
-    assert "| objects (2 clips) | `pretrained:m` | 31.23 | +1.50 | +0.50 (a-00) | 0.9000 | 29.23 | 0.010% |" in text
+    assert ("| objects (2 clips) | `pretrained:m` | 31.23 | +1.50 | +0.50 (a-00) | 0.9000 | 29.23 | 0.010% | 0.030% |"
+            in text)
     text = _page(tmp_path / "2", monkeypatch, _worst_case_record(30.0, -0.25))
     assert "| 30.00 | -0.25 | -1.25 (a-00) |" in text
 
