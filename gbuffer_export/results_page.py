@@ -16,7 +16,7 @@ Table kinds (``[[section.table]] kind = ...``):
   ``row_key`` and one column per value of ``column_key`` (e.g. model x variant -> ms). A dotted key, in a column,
   ``only`` or ``pivot``, reads a nested value (``margin_by_family.held-out``).
 - ``table``: a record that is itself a table, ``{"columns": [...], "rows": [[...], ...]}`` (measurements whose
-  script printed a table rather than writing rows).
+  script printed a table rather than writing rows), or holds several under names (``key``: ``family_gap --json``).
 - ``fields``: one row per ``[label, dotted.key, format]`` of ``fields``, one column per ``[header, record]`` of
   ``records`` (e.g. a campaign's counts before and after a change).
 
@@ -154,6 +154,10 @@ def fields_table(spec: dict, where: str) -> str:
 
 def literal_table(spec: dict, where: str) -> str:
     data = _record(spec["record"], where)
+    if spec.get("key"):  # one table of a record holding several (family_gap --json)
+        if spec["key"] not in data:
+            raise PageError(f"{spec['record']}: no table {spec['key']!r} (named by {where})")
+        data = data[spec["key"]]
     if "columns" not in data or "rows" not in data:
         raise PageError(f"{spec['record']}: a table record needs 'columns' and 'rows' (named by {where})")
     return markdown(data["columns"], data["rows"])

@@ -35,7 +35,17 @@ def parser() -> argparse.ArgumentParser:
                         "and levels never seen' measures")
     p.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2],
                    help="the checkout the weights JSONs' spec paths are relative to (default: this one)")
+    p.add_argument("--json", type=Path, metavar="OUT.json",
+                   help="also write the tables printed, {name: {columns, rows}} (gap, by_kind, unseen_content, "
+                        "unseen_by_all): records the results page's `table` kind reads (with `key`)")
     return p
+
+
+def table_record(text: str) -> dict:
+    """A Markdown table printed here as ``{"columns": [...], "rows": [[...], ...]}`` (cells as printed)."""
+    lines = [line for line in text.strip().splitlines() if line.startswith("|")]
+    cells = (lambda line: [c.strip() for c in line.strip().strip("|").split("|")])  # noqa: E731
+    return {"columns": cells(lines[0]), "rows": [cells(line) for line in lines[2:]]}
 
 
 def main(argv=None) -> int:
@@ -61,18 +71,22 @@ def main(argv=None) -> int:
     except (BlendSRError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(gap_table(models, groups, own))
+    tables = {"gap": gap_table(models, groups, own)}
     if a.by_kind:
-        print("\n" + kind_table(models, groups, {k: v for d in a.data for k, v in index_kinds(d).items()}, own))
+        tables["by_kind"] = kind_table(models, groups, {k: v for d in a.data for k, v in index_kinds(d).items()}, own)
         trained = set().union(*(index_trained_families(d) for d in a.data))
         sub = {label: content_groups(families, own.get(label, groups), lineage.get(label, trained))
                for label in models}
         if any(sub.values()):
-            print("\n" + content_table(models, sub, own))
+            tables["unseen_content"] = content_table(models, sub, own)
     if a.unseen_by_all:
         scored = set().union(*models.values())
         clips = unseen_by_all({c: g for c, g in groups.items() if c in scored}, own)
-        print("\n" + unseen_table(models, clips))
+        tables["unseen_by_all"] = unseen_table(models, clips)
+    print("\n\n".join(tables.values()))
+    if a.json:
+        from ..clip import write_json_atomic
+        write_json_atomic(a.json, {name: table_record(text) for name, text in tables.items()})
     return 0
 
 

@@ -135,8 +135,11 @@ def test_gap_report_from_worst_case_json(tmp_path, capsys):
     (ds / "clips").mkdir(parents=True)
     (ds / "dataset.json").write_text(json.dumps({"schema": "blendsr-dataset", "schema_version": 1, "clips": [
         {"id": k, "path": f"clips/{k}", "split": "test", "family_group": v} for k, v in groups.items()]}))
-    assert main([str(tmp_path / "m.json"), "--data", str(ds)]) == 0
+    assert main([str(tmp_path / "m.json"), "--data", str(ds), "--json", str(tmp_path / "gap.json")]) == 0
     assert "+1.25 |" in capsys.readouterr().out
+    record = json.loads((tmp_path / "gap.json").read_text())  # what the results page's `table` kind reads
+    assert record["gap"]["rows"] == [["`pretrained:fusesr`", "+2.00 (+2.00, 1)", "+0.75 (+0.50, 2)", "+1.25"]]
+    assert record["gap"]["columns"][0] == "model" and len(record["gap"]["columns"]) == 4
     (tmp_path / "bad.json").write_text("{}")
     assert main([str(tmp_path / "bad.json"), "--data", str(ds)]) == 2
     assert "bad.json: no per-clip margins" in capsys.readouterr().err

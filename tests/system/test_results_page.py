@@ -74,6 +74,17 @@ def test_a_dotted_column_reads_a_nested_value(tmp_path, monkeypatch):
     assert table.splitlines()[2:] == ["| fusesr | 3.0 | +1.23 |", "| demod-jbu |  |  |"]
 
 
+def test_a_table_record_holding_several_tables_is_read_by_key(tmp_path, monkeypatch):
+    """family_gap --json writes its tables under names; the page's `table` kind picks one with `key`."""
+    gap = {"columns": ["model", "gap (dB)"], "rows": [["`fusesr`", "+0.40"]]}
+    (tmp_path / "g.json").write_text(json.dumps({"gap": gap, "by_kind": {"columns": ["model"], "rows": []}}))
+    monkeypatch.setattr(results_page, "REPO", tmp_path)
+    table = results_page.literal_table({"record": "g.json", "key": "gap"}, "t")
+    assert table.splitlines() == ["| model | gap (dB) |", "|---|---|", "| `fusesr` | +0.40 |"]
+    with pytest.raises(PageError, match="g.json: no table 'kind'"):
+        results_page.literal_table({"record": "g.json", "key": "kind"}, "t")
+
+
 def test_generate_check_finds_every_derived_file_current():
     from training.commands.generate import main
     assert main(["--check"]) == 0
