@@ -124,15 +124,15 @@ def lineage_stages(doc: dict, name: str) -> tuple[list[tuple[str, set[str] | Non
     nested ``init_from`` that keeps its own ``dataset`` (``release_weights.shipped_origin`` does since issue 54), then,
     for an ``init_from`` without one, the ``SPEC=`` of its commands (the older JSONs)."""
     stages = [(str(doc["dataset"]["spec_file"]), {str(i) for i in doc["dataset"]["train_clips"]})]
-    notes, init = [], doc.get("init_from")
+    notes, init = unrecorded_start(doc, name, "its last stage"), doc.get("init_from")
     while isinstance(init, dict) and init:
         ds = init.get("dataset")
         if isinstance(ds, dict) and ds.get("spec_file") and ds.get("train_clips") is not None:
             stages.append((str(ds["spec_file"]), {str(i) for i in ds["train_clips"]}))
+            notes += unrecorded_start(init, name, repr(init.get("weights", "a stage")))
             init = init.get("init_from")
             continue
-        commands = init.get("commands") or []
-        words = [w for c in ([commands] if isinstance(commands, str) else commands) for w in shlex.split(str(c))]
+        words = command_words(init)
         specs = [(w.split("=", 1)[1], None) for w in words if w.startswith("SPEC=")]
         stages += specs
         if not specs or any("pretrained:" in w for w in words):
@@ -140,6 +140,21 @@ def lineage_stages(doc: dict, name: str) -> tuple[list[tuple[str, set[str] | Non
                          "families seen there are not counted")
         break
     return stages, notes
+
+
+def command_words(stage: dict) -> list[str]:
+    """The words of a recorded stage's ``commands`` (a string or a list of them)."""
+    commands = stage.get("commands") or []
+    return [w for c in ([commands] if isinstance(commands, str) else commands) for w in shlex.split(str(c))]
+
+
+def unrecorded_start(stage: dict, name: str, what: str) -> list[str]:
+    """A note when a recorded stage's commands start from shipped weights (``pretrained:``) but it keeps no
+    ``init_from``: the stages before it trained on families that would go uncounted without a word."""
+    if stage.get("init_from") or not any("pretrained:" in w for w in command_words(stage)):
+        return []
+    return [f"{name}: {what} started from shipped weights that it does not record (no init_from); the families "
+            "seen before it are not counted"]
 
 
 def lineage_families(weights_json: Path, repo: Path) -> tuple[set[str], list[str]]:

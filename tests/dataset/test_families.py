@@ -250,6 +250,13 @@ def test_the_lineage_of_a_fine_tune_reaches_every_recorded_stage():
     assert len(notes) == 1 and "a stage before 'w' is not recorded" in notes[0]
     stages, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}}, "m.json")
     assert stages == [("s.toml", set())] and notes == []
+    # a stage that started from shipped weights without recording them is said, at the top or nested
+    tuned = ['blendsr train --model m --set run.init_from="pretrained:m"']
+    _, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}, "commands": tuned}, "m.json")
+    assert len(notes) == 1 and "its last stage started from shipped weights that it does not record" in notes[0]
+    zoo = {"weights": "z", "commands": tuned, "dataset": {"spec_file": "zoo.toml", "train_clips": ["z1"]}}
+    stages, notes = lineage_stages({**doc, "init_from": {**wide, "init_from": zoo}}, "m.json")
+    assert stages[-1] == ("zoo.toml", {"z1"}) and len(notes) == 1 and "'z' started from shipped weights" in notes[0]
 
 
 def test_networks_of_different_training_compare_on_the_clips_none_of_them_saw():
