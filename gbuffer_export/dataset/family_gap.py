@@ -85,7 +85,8 @@ def kind_gap(margins: dict[str, float], groups: dict[str, str], kinds: dict[str,
 
 
 def index_kinds(dataset: Path) -> dict[str, str]:
-    """Clip folder name -> ``levels`` (its source is of kind ``scene``) or ``objects``, from ``DATASET/dataset.json``."""
+    """Clip folder name -> ``levels`` (its source is of kind ``scene``) or ``objects``, from
+    ``DATASET/dataset.json``."""
     return {Path(c["path"]).name: "levels" if c.get("kind") == "scene" else "objects"
             for c in read_index(dataset)["clips"]}
 
