@@ -563,8 +563,9 @@ def extrapolation_lines(rows: list[dict], unit: float, at: float = 100.0) -> lis
     """``fits`` in words: per model and family group, the fit, its gain per tenfold data and what it predicts at
     ``at`` x. The lines name the model only when there are several."""
     labels = {r["model"] for r in rows if r.get("hr_pixels") and r.get("margin_by_family")}
-    lines = [f"- {f'`{curve_label(c)}` ' if len(labels) > 1 else ''}{c['group']}: scored at one size "
-             f"({c['xs'][0]:.1f}x), no fit" for c in margin_series(rows, unit) if len(set(c["xs"])) < 2]
+    lines = [f"- {f'`{curve_label(c)}` ' if len(labels) > 1 else ''}{c['group']}"
+             f"{curve_label(c, model=False) if len(labels) <= 1 else ''}: scored at one size ({c['xs'][0]:.1f}x), "
+             "no fit" for c in margin_series(rows, unit) if len(set(c["xs"])) < 2]
     for f in fits(rows, unit, at):
         name = f"`{curve_label(f)}` {f['group']}" if len(labels) > 1 else f["group"] + curve_label(f, model=False)
         lines.append(f"- {name}: margin = {f['a']:+.2f} {f['b']:+.2f} log10(x) dB over {f['sizes']} sizes "

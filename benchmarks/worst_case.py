@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import shlex
 import sys
 from pathlib import Path
@@ -156,10 +157,10 @@ def overall(result: dict, label: str) -> dict | None:
         return None
     frames = sum(c["frames"] for c in rows)
     mean = (lambda k: sum(c[k] * c["frames"] for c in rows) / frames)
-    return {"psnr": round(mean("psnr"), 3), "baseline_psnr": round(mean("baseline_psnr"), 3),
-            "margin": round(mean("psnr") - mean("baseline_psnr"), 3),
-            "margin_min": round(min(c["margin"] for c in rows), 3), "frames": frames,
-            "per_group": {g: round(r["models"][label]["mean"]["margin"], 3) for g, r in result.items()
+    return {"psnr": round(mean("psnr"), 4), "baseline_psnr": round(mean("baseline_psnr"), 4),  # 4: read at 2 as
+            "margin": round(mean("psnr") - mean("baseline_psnr"), 4),                         # the tables print them
+            "margin_min": round(min(c["margin"] for c in rows), 4), "frames": frames,
+            "per_group": {g: round(r["models"][label]["mean"]["margin"], 4) for g, r in result.items()
                           if r["models"].get(label, {}).get("mean", {}).get("margin") is not None},
             "left_out": [n for r in result.values() for n in r["notes"] if f" {label}:" in n]}
 
@@ -176,6 +177,9 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
         got = overall(result, label)
         if name not in pretrained.PRETRAINED or got is None:
             continue
+        if not all(math.isfinite(v) for v in (got["margin"], got["margin_min"], *got["per_group"].values())):
+            print(f"{label}: not recorded: a margin is not finite (a diverged network's frames)", file=sys.stderr)
+            continue
         path = (pretrained.WEIGHTS_DIR / pretrained.PRETRAINED[name]).with_suffix(".json")
         doc = json.loads(path.read_text())
         scored = {g["models"][label].get("sha256") for g in result.values() if label in g["models"]}
@@ -183,7 +187,8 @@ def record(result: dict, datasets: list[Path], argv: list[str]) -> None:
             print(f"{path.name}: not recorded: {label} was scored on other weights than those shipped now",
                   file=sys.stderr)
             continue
-        doc.setdefault(pretrained.WORST_CASE_VAL, {})[where] = {  # other val sets' records stay
+        doc[pretrained.WORST_CASE_VAL] = pretrained.all_val_records(doc)  # other val sets' records stay
+        doc[pretrained.WORST_CASE_VAL][where] = {
             "dataset": where, "sha256": doc.get("sha256"),
             "date": datetime.date.today().isoformat(),
             "command": "benchmarks/worst_case.py " + " ".join(shlex.quote(a) for a in argv), **got}

@@ -79,12 +79,21 @@ def test_deferred(doc: dict) -> bool:
 WORST_CASE_VAL = "worst_case_val"
 
 
+def all_val_records(doc: dict) -> dict[str, dict]:
+    """``{val set: record}`` of a weights JSON's ``WORST_CASE_VAL``, whatever weights they speak for (a JSON of
+    before 2026-11-30 holds one record, read as keyed by its own val set; anything else reads as none)."""
+    records = doc.get(WORST_CASE_VAL)
+    if not isinstance(records, dict):
+        return {}
+    if "margin" in records:
+        return {records.get("dataset", "wide val"): records}
+    return {where: r for where, r in records.items() if isinstance(r, dict)}
+
+
 def val_records(doc: dict) -> dict[str, dict]:
-    """``{val set: record}`` of a weights JSON's ``WORST_CASE_VAL`` that speak for these weights (the record's
-    ``sha256`` is the JSON's) and hold a margin."""
-    records = doc.get(WORST_CASE_VAL) or {}
-    return {where: r for where, r in records.items() if isinstance(r, dict) and r.get("sha256") == doc.get("sha256")
-            and isinstance(r.get("margin"), (int, float))}
+    """``all_val_records`` that speak for these weights (the record's ``sha256`` is the JSON's) and hold a margin."""
+    return {where: r for where, r in all_val_records(doc).items()
+            if r.get("sha256") == doc.get("sha256") and isinstance(r.get("margin"), (int, float))}
 
 
 def val_margins(name: str) -> dict[str, float]:

@@ -136,7 +136,7 @@ def lineage_stages(doc: dict, name: str) -> tuple[list[tuple[str, set[str] | Non
         words = command_words(init)
         specs = [(w.split("=", 1)[1], None) for w in words if w.startswith("SPEC=")]
         stages += specs
-        if not specs or any("pretrained:" in w for w in words):
+        if not specs or starts_from_shipped(words):
             notes.append(f"{name}: a stage before {init.get('weights', 'its init_from')!r} is not recorded; the "
                          "families seen there are not counted")
         break
@@ -149,10 +149,16 @@ def command_words(stage: dict) -> list[str]:
     return [w for c in ([commands] if isinstance(commands, str) else commands) for w in shlex.split(str(c))]
 
 
+def starts_from_shipped(words: list[str]) -> bool:
+    """Whether a stage's command words start its training from shipped weights (``run.init_from`` or a script's
+    ``INIT`` naming ``pretrained:``), not merely mention them (an evaluation of ``pretrained:M``)."""
+    return any(w.split("=", 1)[0] in ("run.init_from", "INIT") and "pretrained:" in w for w in words)
+
+
 def unrecorded_start(stage: dict, name: str, what: str) -> list[str]:
     """A note when a recorded stage's commands start from shipped weights (``pretrained:``) but it keeps no
     ``init_from``: the stages before it trained on families that would go uncounted without a word."""
-    if stage.get("init_from") or not any("pretrained:" in w for w in command_words(stage)):
+    if stage.get("init_from") or not starts_from_shipped(command_words(stage)):
         return []
     return [f"{name}: {what} started from shipped weights that it does not record (no init_from); the families "
             "seen before it are not counted"]

@@ -61,6 +61,17 @@ def test_record_marks_a_network_below_the_baseline_on_the_wider_val(tmp_path, mo
     margins = pretrained.val_margins("rdg-s")
     assert margins["scale.toml val"] == pytest.approx(1.5) and margins["scale.toml val, levels"] == 1.0
     assert pretrained.val_margin("rdg-s") == pytest.approx(-1.0) and pretrained.below_baseline("rdg-s")
+    wc.record(result, [tmp_path], ["DS2", "--split", "val", "--record"])  # recorded again: replaces its own only
+    assert set(json.loads(json_path.read_text())[pretrained.WORST_CASE_VAL]) == {"wide.toml val", "scale.toml val"}
+    flat = json.loads(json_path.read_text())  # a JSON of before 2026-11-30: one record, not keyed by its val set
+    flat[pretrained.WORST_CASE_VAL] = flat[pretrained.WORST_CASE_VAL]["wide.toml val"]
+    json_path.write_text(json.dumps(flat))
+    assert pretrained.val_margins("rdg-s")["wide.toml val, levels"] == pytest.approx(-1.0)
+    wc.record(result, [tmp_path], ["DS2", "--split", "val", "--record"])  # a record beside it: both keyed now
+    assert set(json.loads(json_path.read_text())[pretrained.WORST_CASE_VAL]) == {"wide.toml val", "scale.toml val"}
+    flat[pretrained.WORST_CASE_VAL] = ["not a record"]
+    json_path.write_text(json.dumps(flat))
+    assert pretrained.val_margins("rdg-s") == {"val split": pytest.approx(0.3)}
     doc["sha256"] = "new weights"  # retrained since: the record no longer speaks for them
     json_path.write_text(json.dumps(doc))
     assert not pretrained.below_baseline("rdg-s")

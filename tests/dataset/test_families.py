@@ -254,6 +254,9 @@ def test_the_lineage_of_a_fine_tune_reaches_every_recorded_stage():
     tuned = ['blendsr train --model m --set run.init_from="pretrained:m"']
     _, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}, "commands": tuned}, "m.json")
     assert len(notes) == 1 and "its last stage started from shipped weights that it does not record" in notes[0]
+    scored = ["blendsr train --model m", "blendsr evaluate --checkpoint pretrained:m"]  # from scratch, then scored
+    _, notes = lineage_stages({"dataset": {"spec_file": "s.toml", "train_clips": []}, "commands": scored}, "m.json")
+    assert notes == []
     zoo = {"weights": "z", "commands": tuned, "dataset": {"spec_file": "zoo.toml", "train_clips": ["z1"]}}
     stages, notes = lineage_stages({**doc, "init_from": {**wide, "init_from": zoo}}, "m.json")
     assert stages[-1] == ("zoo.toml", {"z1"}) and len(notes) == 1 and "'z' started from shipped weights" in notes[0]

@@ -349,9 +349,9 @@ def test_release_weights_can_release_before_the_test_split_is_read_and_record_it
     assert "were released again or their test split recorded while they were scored" in capsys.readouterr().err
     assert "scores_on_test_split" not in json.loads(o.json.read_text())  # the other release's JSON kept as it is
     o.json.write_text(shipped)
-    monkeypatch.setattr(o.rw, "evaluate", meanwhile(lambda d: {**d, pretrained.WORST_CASE_VAL: {"margin": 1.0}}))
+    monkeypatch.setattr(o.rw, "evaluate", meanwhile(lambda d: {**d, pretrained.WORST_CASE_VAL: {"s val": {"margin": 1.0}}}))
     assert o.rw.main([str(o.ds), str(o.runs), "--models", "fusesr,fusesr-l", "--record-test"]) == 0
-    assert json.loads(o.json.read_text())[pretrained.WORST_CASE_VAL] == {"margin": 1.0}  # written meanwhile: kept
+    assert json.loads(o.json.read_text())[pretrained.WORST_CASE_VAL] == {"s val": {"margin": 1.0}}  # kept
     assert f"note: {wide}: released from another dataset spec" in capsys.readouterr().err
     assert {m for m, c in o.asked} == {"bicubic", "demod-bilinear", "demod-jbu", "pretrained:fusesr-l"}
     assert all(c == ["t"] for _, c in o.asked)
