@@ -1,0 +1,102 @@
+#!/usr/bin/env bash
+# Issue 54's round in the background: the render and every run, each job started at most once (a lock per job, so
+# rerunning this script starts only what is not running) and each resuming from its own files. Rerun it after a stop,
+# a new session or a new machine (docs/training.md, "The scale set's round", gives each command and why).
+# Jobs (default: all, in this order; logs in LOGS/JOB.log):
+#   render        benchmarks/scale_render.sh: val, the 1x, 3x and 10x subsets, test, the rest
+#   fusesr        FuseSR's curve: 1x, 3x, 10x from scratch (6,000 steps each), scored once the test split is whole
+#   fusesr-10x    FuseSR's 10x run (train only, beside the curve, which waits for it), then its release by the val
+#                 rule after the fine-tune's (each candidate faces what is shipped when its turn comes)
+#   fusesr-l      FuseSR-l's curve, the same way
+#   fusesr-l-10x  FuseSR-l's 10x run (train only), then its release by the val rule
+#   finetune      the shipped FuseSR fine-tuned (3,000 steps) on the 10x subset once it is rendered (the 10x run's
+#                 clips), then its release by the val rule
+# A release writes training/weights/ here: commit the weights with their JSON and model card (make generate).
+# Usage: benchmarks/scale_round.sh [JOB...]
+#   DATA (default datasets/scale), RUNS (default runs), LOGS (default RUNS/round-logs), W: the render's workers
+#   (default 2); NICE (default 10): the trainings' niceness (on Linux that of their own autogroup, so that the render,
+#   niceness 0, keeps its cores); DRY=1: print each job's commands in order and start nothing.
+set -euo pipefail
+SELF=$(cd "$(dirname "$0")" && pwd)/$(basename "$0")
+cd "$(dirname "$SELF")/.."
+DATA=${DATA:-datasets/scale}
+RUNS=${RUNS:-runs}
+LOGS=${LOGS:-$RUNS/round-logs}
+NICE=${NICE:-10}
+PY=${PY:-.venv/bin/python}
+WAIT=${WAIT:-600}
+SCALING=("$PY" benchmarks/data_scaling.py "$DATA" --runs "$RUNS/scaling" --steps 6000 --threads 1 --wait $((WAIT / 60)))
+FT=$RUNS/finetune/fusesr
+JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune)
+
+run() { echo "+ $*"; [ "${DRY:-0}" = 1 ] || "$@"; }
+# until a python expression holds (each look every WAIT seconds); DRY: say so once
+await() { echo "+ until $1"; [ "${DRY:-0}" = 1 ] && return; until "$PY" -c "import sys; sys.exit(not ($1))"; do
+  sleep "$WAIT"; done; }
+# the release of RUN for MODEL by the val rule on held-out-family val, the test split deferred to the round's end
+# (once: RUN/released marks it done, whichever way the rule went; the log says which)
+release() {
+  local model=$1 run=$2
+  [ -f "$run/released" ] && { echo "$run: released already"; return; }
+  run "$PY" benchmarks/release_weights.py "$DATA" "$(dirname "$run")" --models "$model" --script '' \
+      --run "$model=$run" --options "$model?residual_clamp=lr-guided" --defer-test
+  [ "${DRY:-0}" = 1 ] || touch "$run/released"
+}
+
+body_render() { run bash benchmarks/scale_render.sh "$DATA"; }
+body_fusesr() {
+  run "${SCALING[@]}" --multiples 1,3,10 -o docs/bench/scaling-families/fusesr --model fusesr \
+      --score-options residual_clamp=lr-guided
+}
+body_fusesr_l() {
+  run "${SCALING[@]}" --multiples 1,3,10 -o docs/bench/scaling-families/fusesr-l --model fusesr-l \
+      --score-options 'residual_clamp=lr-range;residual_clamp=lr-guided'
+}
+body_fusesr_l_10x() {
+  run "${SCALING[@]}" --multiples 10 -o docs/bench/scaling-families/fusesr-l --model fusesr-l --train-only
+  release fusesr-l "$RUNS/scaling/fusesr-l_470clips"
+}
+body_fusesr_10x() {
+  run "${SCALING[@]}" --multiples 10 -o docs/bench/scaling-families/fusesr --model fusesr --train-only
+  await "__import__('os').path.exists('$FT/released')"
+  release fusesr "$RUNS/scaling/fusesr_470clips"
+}
+# the fine-tune's recipe (docs/training.md): from the shipped weights, benchmarks/pretrain.toml at lr 1e-4, the bound
+# lr-guided, the temporal loss at 0.5
+body_finetune() {
+  [ -f "$FT/released" ] && { echo "$FT: released already"; return; }
+  local subset=$FT.subset.txt
+  [ "${DRY:-0}" = 1 ] || mkdir -p "$FT"
+  run "$PY" benchmarks/data_scaling.py "$DATA" -o - --multiples 1,3,10 --list-clips "$subset"
+  local rendered="set(open('$subset').read().split()) <= {p.name for p in __import__('gbuffer_export.dataset.build',
+    fromlist=['x']).split_clips('$DATA', 'train')}"
+  await "${rendered//$'\n'/ }"
+  local cmd=(.venv/bin/blendsr train --model fusesr --data $(sed "s|^|$DATA/clips/|" "$subset" 2>/dev/null) -o "$FT"
+             --config benchmarks/pretrain.toml --max-steps 3000 --set run.threads=1
+             --set 'run.init_from="pretrained:fusesr"' --set optim.lr=1e-4
+             --set 'model.fusesr.residual_clamp="lr-guided"' --set model.scale=4 --set loss.temporal_weight=0.5)
+  [ "${DRY:-0}" = 1 ] || { printf '%q ' "${cmd[@]}" > "$FT/command.txt"; }
+  if [ -f "$FT/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
+  release fusesr "$FT"
+}
+
+# JOB: its body in the background under LOGS/JOB.lock, unless that job is running already (DRY: in the foreground)
+start() {
+  local job=$1 niceness=$NICE
+  [ "$job" = render ] && niceness=0
+  if [ "${DRY:-0}" = 1 ]; then echo "== $job"; "body_${job//-/_}"; return; fi
+  mkdir -p "$LOGS"
+  if ! flock -n "$LOGS/$job.lock" true; then echo "$job: running already"; return; fi
+  setsid flock -n "$LOGS/$job.lock" bash -c 'echo "$1" > /proc/self/autogroup 2>/dev/null || renice -n "$1" $$ \
+      > /dev/null; exec bash "$2" --body "$3"' round "$niceness" "$SELF" "$job" >> "$LOGS/$job.log" 2>&1 < /dev/null &
+  echo "$job: started (log $LOGS/$job.log)"
+}
+
+if [ "${1:-}" = --body ]; then "body_${2//-/_}"; exit; fi
+[ $# -gt 0 ] || set -- "${JOBS[@]}"
+for j in "$@"; do
+  case " ${JOBS[*]} " in
+    *" $j "*) start "$j" ;;
+    *) echo "scale_round.sh: unknown job '$j' (${JOBS[*]})" >&2; exit 2 ;;
+  esac
+done

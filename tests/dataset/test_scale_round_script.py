@@ -1,0 +1,65 @@
+"""Issue 54: benchmarks/scale_round.sh (re)starts the scale round's background jobs, each at most once, and its
+release order holds: the FuseSR fine-tune faces the val rule before the 10x run, and a run is released once."""
+from __future__ import annotations
+
+import fcntl
+import os
+import subprocess
+import sys
+
+from tests.conftest import REPO
+
+SCRIPT = str(REPO / "benchmarks/scale_round.sh")
+
+
+def _round(tmp_path, *jobs, dry=True):
+    env = {**os.environ, "DRY": "1" if dry else "0", "PY": sys.executable, "RUNS": str(tmp_path / "runs"),
+           "DATA": str(tmp_path / "ds")}
+    return subprocess.run(["bash", SCRIPT, *jobs], env=env, capture_output=True, text=True, timeout=60)
+
+
+def _steps(out):
+    """{job: [its commands]} of a DRY run."""
+    jobs, job = {}, None
+    for line in out.stdout.splitlines():
+        if line.startswith("== "):
+            job = jobs.setdefault(line[3:], [])
+        elif line.startswith("+ "):
+            job.append(line[2:])
+    return jobs
+
+
+def test_every_job_in_order_and_the_fine_tune_released_before_the_10x_run(tmp_path):
+    out = _round(tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    jobs = _steps(out)
+    assert list(jobs) == ["render", "fusesr", "fusesr-10x", "fusesr-l", "fusesr-l-10x", "finetune"]
+    ft = f"{tmp_path}/runs/finetune/fusesr"
+    tenx = jobs["fusesr-10x"]
+    assert "--train-only" in tenx[0] and f"exists('{ft}/released')" in tenx[1]
+    assert f"--run fusesr={tmp_path}/runs/scaling/fusesr_470clips" in tenx[2] and "--defer-test" in tenx[2]
+    tune = jobs["finetune"]
+    assert "--list-clips" in tune[0] and "split_clips" in tune[1]
+    assert "run.init_from=\"pretrained:fusesr\"" in tune[2] and "--max-steps 3000" in tune[2]
+    assert f"--run fusesr={ft}" in tune[3]
+    assert not (tmp_path / "runs" / "round-logs").exists()  # DRY starts nothing
+
+
+def test_a_released_run_is_not_released_again(tmp_path):
+    ft = tmp_path / "runs" / "finetune" / "fusesr"
+    ft.mkdir(parents=True)
+    (ft / "released").touch()
+    out = _round(tmp_path, "finetune")
+    assert out.returncode == 0 and "released already" in out.stdout and "release_weights" not in out.stdout
+
+
+def test_a_running_job_is_not_started_twice_and_an_unknown_one_is_refused(tmp_path):
+    logs = tmp_path / "runs" / "round-logs"
+    logs.mkdir(parents=True)
+    with open(logs / "fusesr.lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        out = _round(tmp_path, "fusesr", dry=False)
+    assert out.returncode == 0 and "fusesr: running already" in out.stdout
+    assert not (logs / "fusesr.log").exists()
+    bad = _round(tmp_path, "fusesr-xl")
+    assert bad.returncode == 2 and "unknown job 'fusesr-xl'" in bad.stderr
