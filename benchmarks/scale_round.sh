@@ -12,6 +12,8 @@
 #   finetune      the shipped FuseSR fine-tuned (3,000 steps) on the 10x subset once it is rendered (the 10x run's
 #                 clips), then its release by the val rule
 # A release writes training/weights/ here: commit the weights with their JSON and model card (make generate).
+# The render reads this checkout's code for every clip (each frame records its commit): run the render job from a
+# checkout that does not change meanwhile (a `git worktree add --detach` at main's HEAD) and the others from this one.
 # Usage: benchmarks/scale_round.sh [JOB...]
 #   DATA (default datasets/scale), RUNS (default runs), LOGS (default RUNS/round-logs), W: the render's workers
 #   (default 2); NICE (default 10): the trainings' niceness (on Linux that of their own autogroup, so that the render,
