@@ -11,6 +11,9 @@
 #   fusesr-l-10x  FuseSR-l's 10x run (train only), then its release by the val rule
 #   finetune      the shipped FuseSR fine-tuned (3,000 steps) on the 10x subset once it is rendered (the 10x run's
 #                 clips), then its release by the val rule
+#   end           the round's end, once both curves are scored and every release has run: the test split's scores
+#                 of what shipped and every record docs/results.md reads (the sections and the verdict are written
+#                 by hand; its last step marks RUNS/round-end.done)
 # A release writes training/weights/ here: commit the weights with their JSON and model card (make generate).
 # The render reads this checkout's code for every clip (each frame records its commit): run the render job from a
 # checkout that does not change meanwhile (a `git worktree add --detach` at main's HEAD) and the others from this one.
@@ -29,9 +32,10 @@ PY=${PY:-.venv/bin/python}
 WAIT=${WAIT:-600}
 SCALING=("$PY" benchmarks/data_scaling.py "$DATA" --runs "$RUNS/scaling" --steps 6000 --threads 1 --wait $((WAIT / 60)))
 FT=$RUNS/finetune/fusesr
-JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune)
+JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune end)
 
 run() { echo "+ $*"; [ "${DRY:-0}" = 1 ] || "$@"; }
+mark() { [ "${DRY:-0}" = 1 ] || touch "$1"; }
 # until a python expression holds (each look every WAIT seconds); DRY: say so once
 await() { echo "+ until $1"; [ "${DRY:-0}" = 1 ] && return; until "$PY" -c "import sys; sys.exit(not ($1))"; do
   sleep "$WAIT"; done; }
@@ -42,17 +46,19 @@ release() {
   [ -f "$run/released" ] && { echo "$run: released already"; return; }
   run "$PY" benchmarks/release_weights.py "$DATA" "$(dirname "$run")" --models "$model" --script '' \
       --run "$model=$run" --options "$model?residual_clamp=lr-guided" --defer-test
-  [ "${DRY:-0}" = 1 ] || touch "$run/released"
+  mark "$run/released"
 }
 
 body_render() { run bash benchmarks/scale_render.sh "$DATA"; }
 body_fusesr() {
   run "${SCALING[@]}" --multiples 1,3,10 -o docs/bench/scaling-families/fusesr --model fusesr \
       --score-options residual_clamp=lr-guided
+  mark "$RUNS/scaling/fusesr.scored"
 }
 body_fusesr_l() {
   run "${SCALING[@]}" --multiples 1,3,10 -o docs/bench/scaling-families/fusesr-l --model fusesr-l \
       --score-options 'residual_clamp=lr-range;residual_clamp=lr-guided'
+  mark "$RUNS/scaling/fusesr-l.scored"
 }
 body_fusesr_l_10x() {
   run "${SCALING[@]}" --multiples 10 -o docs/bench/scaling-families/fusesr-l --model fusesr-l --train-only
@@ -80,6 +86,35 @@ body_finetune() {
   [ "${DRY:-0}" = 1 ] || { printf '%q ' "${cmd[@]}" > "$FT/command.txt"; }
   if [ -f "$FT/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
   release fusesr "$FT"
+}
+
+# the round's end (docs/training.md, "The scale set's round"), once both curves are scored and every candidate has
+# faced the val rule: the test scores of what shipped, every shipped network's margins on val and test (one file per
+# model and split; a file written is not scored again), the val record, the rendered set's check, the two curves in
+# one table and plot, and the gap of every shipped network on test; then commit what it wrote by hand
+SHIPPED=(fusesr fusesr-l fusesr-fast rdg-s fourier-sr nsrd nsrr-fec)
+body_end() {
+  local markers=("$RUNS/scaling/fusesr.scored" "$RUNS/scaling/fusesr-l.scored" "$FT/released"
+                 "$RUNS/scaling/fusesr_470clips/released" "$RUNS/scaling/fusesr-l_470clips/released")
+  await "all(__import__('os').path.exists(p) for p in '${markers[*]}'.split())"
+  run "$PY" benchmarks/release_weights.py "$DATA" "$RUNS/scaling" --models fusesr,fusesr-l --record-test
+  local s m f
+  for s in val test; do for m in bicubic demod-bilinear demod-jbu "${SHIPPED[@]/#/pretrained:}"; do
+    f=docs/bench/scale/$s-${m#pretrained:}
+    [ -s "$f.json" ] || run "$PY" benchmarks/worst_case.py "$DATA" --split $s --models "$m" -o "$f"
+  done; done
+  run "$PY" benchmarks/worst_case.py "$DATA" --split val -o docs/bench/scale/val --record \
+      --scores docs/bench/scale/val-*.json
+  run "$PY" benchmarks/worst_case.py "$DATA" --split test -o docs/bench/scale/test --scores docs/bench/scale/test-*.json
+  run "$PY" -m training.commands.generate
+  run "$PY" -m gbuffer_export.cli validate "$DATA"
+  run "$PY" benchmarks/data_scaling.py - --combine docs/bench/scaling-families/fusesr/scaling.json \
+      docs/bench/scaling-families/fusesr-l/scaling.json -o docs/bench/scaling-families/combined
+  local seen=() n
+  for m in "${SHIPPED[@]}"; do n=${m//-/_}; seen+=(--seen-from "pretrained:$m=training/weights/${n}_x4.json"); done
+  run "$PY" -m gbuffer_export.commands.family_gap docs/bench/scale/test.json --data "$DATA" --by-kind --unseen-by-all \
+      --json docs/bench/scale/gap-test.json "${seen[@]}"
+  mark "$RUNS/round-end.done"
 }
 
 # JOB: its body in the background under LOGS/JOB.lock, unless that job is running already (DRY: in the foreground)

@@ -33,7 +33,7 @@ def test_every_job_in_order_and_the_fine_tune_released_before_the_10x_run(tmp_pa
     out = _round(tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     jobs = _steps(out)
-    assert list(jobs) == ["render", "fusesr", "fusesr-10x", "fusesr-l", "fusesr-l-10x", "finetune"]
+    assert list(jobs) == ["render", "fusesr", "fusesr-10x", "fusesr-l", "fusesr-l-10x", "finetune", "end"]
     ft = f"{tmp_path}/runs/finetune/fusesr"
     tenx = jobs["fusesr-10x"]
     assert "--train-only" in tenx[0] and f"exists('{ft}/released')" in tenx[1]
@@ -43,6 +43,20 @@ def test_every_job_in_order_and_the_fine_tune_released_before_the_10x_run(tmp_pa
     assert "run.init_from=\"pretrained:fusesr\"" in tune[2] and "--max-steps 3000" in tune[2]
     assert f"--run fusesr={ft}" in tune[3]
     assert not (tmp_path / "runs" / "round-logs").exists()  # DRY starts nothing
+
+
+def test_the_round_end_reads_test_only_after_every_release_and_records_val_before_generating(tmp_path):
+    end = _steps(_round(tmp_path, "end"))["end"]
+    waited = end[0]
+    for marker in ("scaling/fusesr.scored", "scaling/fusesr-l.scored", "finetune/fusesr/released",
+                   "scaling/fusesr_470clips/released", "scaling/fusesr-l_470clips/released"):
+        assert f"{tmp_path}/runs/{marker}" in waited
+    assert "--record-test" in end[1]
+    at = {k: next(i for i, c in enumerate(end) if k in c) for k in
+          ("--split test --models pretrained:nsrr-fec", "--record --scores", "training.commands.generate", "--combine",
+           "family_gap")}
+    assert list(at.values()) == sorted(at.values()) and at["--record --scores"] > 1
+    assert sum("--split test --models" in c for c in end) == 10  # every baseline and shipped network
 
 
 def test_a_released_run_is_not_released_again(tmp_path):
