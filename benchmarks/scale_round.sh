@@ -76,10 +76,13 @@ body_finetune() {
   local subset=$FT.subset.txt
   [ "${DRY:-0}" = 1 ] || mkdir -p "$FT"
   run "$PY" benchmarks/data_scaling.py "$DATA" -o - --multiples 1,3,10 --list-clips "$subset"
-  local rendered="set(open('$subset').read().split()) <= {p.name for p in __import__('gbuffer_export.dataset.build',
-    fromlist=['x']).split_clips('$DATA', 'train')}"
-  await "${rendered//$'\n'/ }"
-  local cmd=(.venv/bin/blendsr train --model fusesr --data $(sed "s|^|$DATA/clips/|" "$subset" 2>/dev/null) -o "$FT"
+  # the subset's clip folders by the index's own path rule (build.split_clips), once every one is finished and valid
+  local want="set(open('$subset').read().split())" build="__import__('gbuffer_export.dataset.build', fromlist=['x'])"
+  local paths="[str(p) for p in $build.split_clips('$DATA', 'train') if p.name in $want]"
+  await "len($paths) == len($want)"
+  local data=("@$subset")
+  [ "${DRY:-0}" = 1 ] || mapfile -t data < <("$PY" -c "print('\\n'.join($paths))")
+  local cmd=(.venv/bin/blendsr train --model fusesr --data "${data[@]}" -o "$FT"
              --config benchmarks/pretrain.toml --max-steps 3000 --set run.threads=1
              --set 'run.init_from="pretrained:fusesr"' --set optim.lr=1e-4
              --set 'model.fusesr.residual_clamp="lr-guided"' --set model.scale=4 --set loss.temporal_weight=0.5)
