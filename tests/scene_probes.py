@@ -125,6 +125,33 @@ def probe_default(args) -> dict:
             "optional_props": ds.OPTIONAL_PROPS, "family_ranges": RANGES}
 
 
+def probe_deformed(args) -> dict:
+    """The default scene of ``seed``/``frames``/``props`` (as ``blendsr dataset`` builds a builtin clip) and, per
+    frame from start-1 to end, the world-space evaluated vertices (every ``every``-th) of each mesh an armature
+    deforms, with the rest positions' rigid motion (the rig's transform alone) beside them."""
+    from gbuffer_export.blender.default_scene import build_default_scene
+    scene = build_default_scene(seed=args["seed"], frames=tuple(args["frames"]), resolution=(64, 36),
+                                props=tuple(args["props"]))
+    every, out = args.get("every", 5), {}
+    meshes = [o for o in scene.objects if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)]
+    for f in range(scene.frame_start - 1, scene.frame_end + 1):
+        scene.frame_set(f)
+        dg = bpy.context.evaluated_depsgraph_get()
+        for ob in meshes:
+            ev = ob.evaluated_get(dg)
+            mesh = ev.to_mesh()
+            co = np.empty(3 * len(mesh.vertices))
+            mesh.vertices.foreach_get("co", co)
+            ev.to_mesh_clear()
+            rest = np.empty(3 * len(ob.data.vertices))
+            ob.data.vertices.foreach_get("co", rest)
+            m = np.array(ev.matrix_world)
+            rec = out.setdefault(ob.name, {"deformed": [], "rigid": []})
+            for key, pts in (("deformed", co), ("rigid", rest)):
+                rec[key].append((pts.reshape(-1, 3)[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
+    return {"frames": [scene.frame_start, scene.frame_end], "meshes": out}
+
+
 def probe_default_render(args) -> dict:
     """Tiny Cycles render of the default scene with a Depth pass, written as a multilayer EXR."""
     from gbuffer_export.blender.default_scene import build_default_scene

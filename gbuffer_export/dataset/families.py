@@ -29,6 +29,7 @@ BUILTIN_FAMILIES: dict[str, str] = {
     "neon": "light", "small_emitters": "light", "strong_sun": "light", "night": "light",
     "cam_pan": "camera", "cam_strafe": "camera", "cam_turn": "camera", "cam_cut": "camera",
     "boolean": "geometry", "displaced": "geometry", "instanced": "geometry", "fog": "light", "motion_objects": "motion",
+    "motion_character": "motion",
 }
 #: Camera families re-key the built-in scene's own camera: only with ``cameras = ["scene"]``.
 CAMERA_FAMILIES = tuple(k for k, v in BUILTIN_FAMILIES.items() if v == "camera")

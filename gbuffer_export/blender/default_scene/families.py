@@ -21,7 +21,8 @@ modifier-built geometry (``modifiers.py``, applied): ``boolean`` (a wall with wi
 Boolean, a machined block), ``displaced`` (a boulder and a column, subdivided and displaced by a procedural texture),
 ``instanced`` (hundreds of pebbles, bolts and grass tufts on a raised bed, scattered by a geometry node group).
 ``fog`` (a homogeneous Principled Volume in a box domain around the courtyard and its cameras). ``motion_objects``
-(2-4 props gliding and spinning over the table, keyed on every frame).
+(2-4 props gliding and spinning over the table, keyed on every frame). ``motion_character`` (1-2 walking figures,
+skinned to an armature: ``character.py``).
 
 Each family's drawn parameters are kept on its objects as ``family_params`` (JSON), within ``RANGES``.
 """
@@ -36,6 +37,7 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from ..camera_paths import key_channels, key_look_at
+from .character import build_figure, key_walk
 from .geometry import add_object, box, catenary, cylinder, lathe, sphere, text_object, tube
 from .materials import Mat
 from .modifiers import boolean_cut, displace, instance_on_faces
@@ -73,7 +75,12 @@ RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "fog": {"density_per_m": (0.02, 0.1), "anisotropy": (0.1, 0.6)},
     "motion_objects": {"count": (2, 4), "size_m": (0.08, 0.2), "m_per_frame": (0.01, 0.06),
                        "deg_per_frame": (2.0, 12.0)},
+    "motion_character": {"count": (1, 2), "height_m": (1.5, 1.9), "m_per_frame": (0.03, 0.07),
+                         "swing_deg": (18.0, 32.0), "knee_deg": (25.0, 55.0), "arm_deg": (12.0, 30.0)},
 }
+#: The character family's lanes (y range, m): behind the table (seen across it) and in front of it (crossing the
+#: scene camera's view close up: large disocclusions).
+LANES = ((0.5, 0.9), (-0.85, -0.6))
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
 
@@ -630,6 +637,30 @@ def motion_objects(scene, mats, rng) -> None:
         d.tag(obj)
 
 
+def motion_character(scene, mats, rng) -> None:
+    """1-2 walking figures (1.5-1.9 m, ``character.py``: a mesh skinned to an 11-bone armature), one per lane of
+    ``LANES`` (behind the table, then in front of it), each crossing the view along +-X at 3-7 cm a frame from x in
+    -0.6..0.6, its thighs swinging 18-32 degrees, knees bending up to 25-55 degrees, arms swinging 12-30 degrees:
+    deforming surfaces, keyed on every frame from start-1."""
+    d = Draw("motion_character", rng)
+    frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
+    for k in range(d("count", integer=True)):
+        h, v = d("height_m"), d("m_per_frame")
+        angles = {a: math.radians(d(f"{a}_deg")) for a in ("swing", "knee", "arm")}
+        skin = Mat(f"Walker {k + 1} Skin", tuple(rng.uniform((0.25, 0.15, 0.1), (0.85, 0.6, 0.45))), roughness=0.45,
+                   inputs={"Subsurface Weight": 0.2}).mat
+        shirt = Mat(f"Walker {k + 1} Shirt", tuple(rng.uniform(0.05, 0.9, 3)), roughness=0.8,
+                    inputs={"Sheen Weight": float(rng.uniform(0.2, 0.8))}).mat
+        trousers = Mat(f"Walker {k + 1} Trousers", tuple(rng.uniform(0.03, 0.5, 3)),
+                       roughness=float(rng.uniform(0.5, 0.9))).mat
+        rig, body = build_figure(scene, f"Walker {k + 1}", h, (skin, shirt, trousers))
+        direction = 1.0 if rng.uniform() < 0.5 else -1.0             # +X or -X
+        start = (float(rng.uniform(-0.6, 0.6)), float(rng.uniform(*LANES[k])))
+        key_walk(rig, frames, start, direction * math.pi / 2, v, h, angles, float(rng.uniform(0.0, 2 * math.pi)))
+        d.tag(rig)
+        d.tag(body)
+
+
 #: Family name -> (builder, stream): the stream of its generator (``np.random.default_rng([seed, stream])``).
 FAMILIES = {
     **{f"mat_{p}": (material_family(p), 0x6A00 + i) for i, p in enumerate(SLOTS)},
@@ -641,5 +672,5 @@ FAMILIES = {
     "cam_cut": (cam_cut, 0x6D04),
     "boolean": (boolean, 0x6B07), "displaced": (displaced, 0x6B08), "instanced": (instanced, 0x6B09),
     "fog": (fog, 0x6C05),
-    "motion_objects": (motion_objects, 0x6E01),
+    "motion_objects": (motion_objects, 0x6E01), "motion_character": (motion_character, 0x6E02),
 }
