@@ -120,9 +120,9 @@ def probe_default(args) -> dict:
         scene = ds.build_default_scene(seed=b["seed"], frames=tuple(b["frames"]), resolution=tuple(b["resolution"]),
                                        props=tuple(b.get("props", ())))
         builds.append(scene_summary(scene))
-    from gbuffer_export.blender.default_scene.families import RANGES
+    from gbuffer_export.blender.default_scene.families import CLASSES, RANGES
     return {"factory": factory, "builds": builds, "features": ds.DEFAULT_SCENE_FEATURES,
-            "optional_props": ds.OPTIONAL_PROPS, "family_ranges": RANGES}
+            "optional_props": ds.OPTIONAL_PROPS, "family_ranges": RANGES, "family_classes": CLASSES}
 
 
 def probe_deformed(args) -> dict:

@@ -23,7 +23,7 @@ FAMILY_KINDS = ("asset", "level", "hdri", "prop", "material", "geometry", "light
 BUILTIN_FAMILIES: dict[str, str] = {
     "broken_pane": "prop", "window_pane": "prop",
     "mat_noise": "material", "mat_voronoi": "material", "mat_wave": "material", "mat_brick": "material",
-    "mat_layered": "material",
+    "mat_layered": "material", "mat_surfaces": "material",
     "railing": "geometry", "wires": "geometry", "foliage_cards": "geometry", "stripes_panel": "geometry",
     "text_panel": "geometry", "scatter": "geometry",
     "neon": "light", "small_emitters": "light", "strong_sun": "light", "night": "light",

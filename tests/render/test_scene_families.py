@@ -105,6 +105,22 @@ def test_material_families_span_the_principled_classes_over_their_pattern(probe)
     assert len(classes - {None}) >= 3
 
 
+def test_material_surfaces_are_large_and_of_a_principled_class(probe):
+    b = probe["alone"]["mat_surfaces"]
+    tagged = _tagged(b, "mat_surfaces")
+    assert set(tagged) == {"Surface Wall", "Surface Floor", "Surface Sculpture"}
+    tex = {"noise": "TEX_NOISE", "voronoi": "TEX_VORONOI", "wave": "TEX_WAVE", "brick": "TEX_BRICK",
+           "layered": "TEX_VORONOI"}
+    for name, ob in tagged.items():
+        m = b["materials"][ob["materials"][0]]
+        assert ob["props"]["principled_class"] in probe["family_classes"]
+        assert tex[ob["props"]["pattern"]] in m["node_types"] and m["inputs"]["Base Color"]["linked"], name
+    size = {n: np.subtract(*reversed(ob["bounds"])) for n, ob in tagged.items()}
+    assert min(size["Surface Wall"][0], size["Surface Wall"][1]) < 0.5 and max(size["Surface Wall"][:2]) > 1.55
+    assert size["Surface Wall"][2] > 0.99 and size["Surface Floor"][0] * size["Surface Floor"][1] > 1.9
+    assert size["Surface Floor"][2] < 0.011 and size["Surface Sculpture"].min() > 0.39
+
+
 def test_thin_structures_are_thin(probe):
     rail = probe["alone"]["railing"]["objects"]["Railing"]
     (x0, y0, z0), (x1, y1, z1) = rail["bounds"]

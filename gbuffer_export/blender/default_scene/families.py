@@ -7,6 +7,8 @@ materials (``mat_noise``, ``mat_voronoi``, ``mat_wave``, ``mat_brick``, ``mat_la
 family's own place beside or behind the table, in its pattern, topped by two bevelled primitives whose Principled
 class is drawn from ``CLASSES`` (metal, dielectric, coat, sheen, transmission, anisotropy, emission), the pattern
 driving base colour, roughness and bump.
+``mat_surfaces``: the same classes and patterns on large surfaces (a wall panel, a floor slab, a 0.4-0.6 m block or
+sphere).
 geometry: ``railing`` (a balcony railing 1.15-1.25 m high between the camera and the table: balusters of 5-9 mm radius every 6-10 cm),
 ``wires`` (3-6 sagging wires of 1-2.5 mm radius across the courtyard), ``foliage_cards`` (20-40 leaf cards cut by an
 alpha mask over a planter), ``stripes_panel`` (a panel of stripes, a grid or rings of 3-12 mm period: moire at LR),
@@ -52,6 +54,9 @@ SLOTS = {"noise": (-1.05, 0.75), "voronoi": (1.05, 0.75), "wave": (-0.45, 1.15),
 RANGES: dict[str, dict[str, tuple[float, float]]] = {
     **{f"mat_{p}": {"plinth_height_m": (0.8, 1.05), "scale_per_m": (12.0, 90.0), "roughness": (0.05, 0.6),
                     "bump": (0.05, 0.4), "size_m": (0.12, 0.2), "bevel_m": (0.005, 0.02)} for p in SLOTS},
+    "mat_surfaces": {"wall_width_m": (1.6, 2.4), "wall_height_m": (1.0, 1.6), "floor_width_m": (1.6, 2.4),
+                     "floor_depth_m": (1.2, 1.8), "object_m": (0.4, 0.6), "scale_per_m": (4.0, 30.0),
+                     "roughness": (0.05, 0.6), "bump": (0.05, 0.4)},
     "railing": {"height_m": (1.15, 1.25), "radius_m": (0.005, 0.009), "spacing_m": (0.06, 0.10), "y_m": (-1.05, -0.95)},
     "wires": {"count": (3, 6), "radius_m": (0.001, 0.0025), "sag_m": (0.05, 0.2), "z_m": (1.0, 1.5), "y_m": (0.9, 1.5)},
     "foliage_cards": {"count": (20, 40), "card_m": (0.12, 0.25), "leaf_scale": (8.0, 20.0)},
@@ -207,6 +212,32 @@ def material_family(pattern: str):
             obj["principled_class"] = cls
             d.tag(obj)
     return build
+
+
+def mat_surfaces(scene, mats, rng) -> None:
+    """Material classes on surfaces as large as a game shows them: a wall panel (1.6-2.4 x 1.0-1.6 m, 6 cm thick)
+    standing behind the table at y 1.3-1.45, a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm) under the table and a
+    bevelled block or sphere (0.4-0.6 m) beside it; each of a Principled class of ``CLASSES`` over a pattern of the
+    material families (4-30 features per m), recorded as ``principled_class`` and ``pattern``."""
+    d = Draw("mat_surfaces", rng)
+    ww, wh = d("wall_width_m"), d("wall_height_m")
+    fw, fd, size = d("floor_width_m"), d("floor_depth_m"), d("object_m")
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    parts = (("Wall", (ww, 0.06, wh), (float(rng.uniform(-0.3, 0.3)), float(rng.uniform(1.3, 1.45)), wh / 2), "cube"),
+             ("Floor", (fw, fd, 0.01), (0.0, float(rng.uniform(-0.1, 0.1)), 0.005), "cube"),
+             ("Sculpture", (size, size, size), (side * float(rng.uniform(0.85, 1.2)), float(rng.uniform(0.1, 0.5)),
+                                                size / 2), ("cube", "sphere")[int(rng.integers(2))]))
+    for name, dims, loc, kind in parts:
+        cls = CLASSES[int(rng.integers(len(CLASSES)))]
+        pattern = tuple(SLOTS)[int(rng.integers(len(SLOTS)))]
+        bm = bmesh.new()
+        _bevelled(bm, kind, (0.0, 0.0, 0.0), 1.0, 0.04 if kind == "cube" else 0.0)
+        bmesh.ops.scale(bm, vec=dims, verts=bm.verts)
+        mat = _family_material(f"Surface {name} {cls.title()}", pattern, cls, d, rng)
+        obj = add_object(scene, f"Surface {name}", bm, mat, location=loc,
+                         rotation=(0.0, 0.0, float(rng.uniform(-0.15, 0.15))))
+        obj["principled_class"], obj["pattern"] = cls, pattern
+        d.tag(obj)
 
 
 def railing(scene, mats, rng) -> None:
@@ -664,6 +695,7 @@ def motion_character(scene, mats, rng) -> None:
 #: Family name -> (builder, stream): the stream of its generator (``np.random.default_rng([seed, stream])``).
 FAMILIES = {
     **{f"mat_{p}": (material_family(p), 0x6A00 + i) for i, p in enumerate(SLOTS)},
+    "mat_surfaces": (mat_surfaces, 0x6A10),
     "railing": (railing, 0x6B01), "wires": (wires, 0x6B02), "foliage_cards": (foliage_cards, 0x6B03),
     "stripes_panel": (stripes_panel, 0x6B04), "text_panel": (text_panel, 0x6B05), "scatter": (scatter, 0x6B06),
     "neon": (neon, 0x6C01), "small_emitters": (small_emitters, 0x6C02), "strong_sun": (strong_sun, 0x6C03),
