@@ -96,13 +96,26 @@ def init_from(model, cfg: TrainConfig, scale) -> None:
     weights = {k: v.float() if v.is_floating_point() else v for k, v in inference_weights(init).items()}
     own = model.state_dict()
     fresh = [k for k in getattr(model, "FRESH_PARAMETERS", ()) if k in own and k not in weights]
+    grown = [k for k in getattr(model, "GROWN_INPUTS", ()) if k in own and k in weights and
+             grows_inputs(weights[k], own[k])]
+    for k in grown:  # input channels an option appends: zero weights on them, so the network starts as the weights'
+        weights[k] = torch.cat([weights[k], own[k].new_zeros((own[k].shape[0], own[k].shape[1] - weights[k].shape[1],
+                                                              *own[k].shape[2:]))], dim=1)
     try:
         model.load_state_dict(weights | {k: own[k] for k in fresh})
     except RuntimeError as exc:
         raise ConfigError(f"run.init_from {cfg.run.init_from}: its weights do not fit model {cfg.model.name} "
                           f"with this configuration ({str(exc).splitlines()[0]})") from None
     started = f"; {', '.join(fresh)} start fresh (an option its run did not have)" if fresh else ""
+    started += f"; {', '.join(grown)} gain zero-weighted input channels (an option its run did not have)" \
+        if grown else ""
     logger.info(f"initialised {cfg.model.name} from {cfg.run.init_from} (step {init.get('step')}){started}")
+
+
+def grows_inputs(theirs, ours) -> bool:
+    """True when conv weight ``ours`` is ``theirs`` with more input channels (dim 1) and the same other sizes."""
+    return (theirs.dim() == ours.dim() == 4 and theirs.shape[0] == ours.shape[0] and theirs.shape[2:] == ours.shape[2:]
+            and theirs.shape[1] < ours.shape[1])
 
 
 def init_record(cfg: TrainConfig, ck: dict | None) -> dict | None:

@@ -81,6 +81,13 @@ training decides how far the gate closes on glass. Measured on val before it was
 "FuseSR"): the worst val clip of the FuseSR-fast weights shipped then (b50c607) lost 1.2 dB to ``demod-jbu`` on its
 2.5 % of TRANSMISSION pixels and gained 0.4 dB on the rest.
 
+Material inputs (``hr_material``, default off; not in the paper): the HR branch also reads the HR roughness and
+metallic (``HR_MATERIAL_KEYS``, 2 channels after the 10, so 12 s^2 pixel-unshuffled LR channels; with ``hr_guide``
+the refinement reads them too). The paper's G-buffers hold no material parameters beyond albedo, and F_beta folds
+roughness and metallic into one pre-integrated term, so the network cannot tell a rough dielectric from a smooth
+metal of the same F_beta. Their channels come last, so ``run.init_from`` weights trained without them load with
+zero weights on them (``GROWN_INPUTS``): the fine-tune starts exactly at those weights' network.
+
 Depth is normalised per frame by ``model.depth_norm`` (default d / (d + median LR depth of the current frame);
 background 1). ``hr_gbuffer = false`` drops the HR branch (the HR F_beta is still used for remodulation when
 ``demodulation`` is on), reproducing the switches of the paper's Table 3.
@@ -104,6 +111,8 @@ ENCODER_CHANNELS = (64, 64, 32, 24, 24, 32, 32)
 HR_GEOMETRY_KEYS = ("hr/depth", "hr/normal", "hr/albedo")
 HR_GEOMETRY_CHANNELS = 7
 HR_CHANNELS = 3 + HR_GEOMETRY_CHANNELS  # FuseSR's HR input: F_beta, then the geometry
+#: the HR material parameters FuseSR's HR branch reads after them with ``hr_material``: roughness (1), metallic (1)
+HR_MATERIAL_KEYS = ("hr/roughness", "hr/metallic")
 GATE_OPEN = 4.0  # the confidence gate's initial logit: sigmoid(4) = 0.982, near the ungated network
 #: the HR flags bit of ``transmission_fallback``, tested on the flags as float32 (every bit is below 2^24, so float32
 #: holds them exactly, and floor and remainder export where bitwise operations on integers may not)
@@ -251,6 +260,8 @@ class FuseSR(FuseSRFrame):
     default_history = 2
     hr_channels = 64
     separable = False
+    #: first convs whose input channels ``hr_material`` appends to: ``run.init_from`` zero-pads weights without them
+    GROWN_INPUTS = ("hr_branch.0.weight", "refine.0.weight")
 
     def __init__(self, scale: int, **keys):
         super().__init__(scale, **keys)  # keys: SRModel's; options: FuseSROptions (FuseSRLightOptions)
@@ -262,8 +273,10 @@ class FuseSR(FuseSRFrame):
         self.expand = nn.Sequential(conv(ENCODER_CHANNELS[-1], 64), nn.ReLU(inplace=True))
         self.gates = nn.ModuleList([HistoryGate() for _ in range(self.history)])
         cin = 64 + ENCODER_CHANNELS[-1] * self.history + (2 if self.use_jitter else 0)
+        self.hr_material = bool(opt.hr_material) and self.use_hr
+        hr_in = HR_CHANNELS + (len(HR_MATERIAL_KEYS) if self.hr_material else 0)
         if self.use_hr:
-            self.hr_branch = nn.Sequential(conv(HR_CHANNELS * s * s, self.hr_channels), nn.ReLU(inplace=True))
+            self.hr_branch = nn.Sequential(conv(hr_in * s * s, self.hr_channels), nn.ReLU(inplace=True))
             cin += self.hr_channels
         make = DWSConv if self.separable else conv
         self.fuse_in = nn.Sequential(make(cin, width), nn.ReLU(inplace=True))
@@ -272,7 +285,7 @@ class FuseSR(FuseSRFrame):
         self.confidence = self.confidence_head(width + ENCODER_CHANNELS[0])
         self.hr_guide = bool(opt.hr_guide) and self.use_hr
         # HR guidance (deviation, off by default): the refinement sees the 10 HR G-buffer channels at full resolution
-        self.refine = nn.Sequential(conv(3 + HR_CHANNELS, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
+        self.refine = nn.Sequential(conv(3 + hr_in, 16), nn.ReLU(inplace=True), conv(16, 3)) if self.hr_guide \
             else conv(3, 3)
         if opt.zero_init_refine and self.residual:  # start at the residual base (module doc)
             last = self.refine[-1] if self.hr_guide else self.refine
@@ -284,7 +297,7 @@ class FuseSR(FuseSRFrame):
         if self.history:
             keys.append("lr/motion")
         if self.use_hr:
-            keys += ["hr/fbeta_used", *HR_GEOMETRY_KEYS]
+            keys += ["hr/fbeta_used", *HR_GEOMETRY_KEYS, *(HR_MATERIAL_KEYS if self.hr_material else ())]
         if self.demod:
             keys += ["hr/fbeta_used", "hr/emission"]
         if self.residual:
@@ -311,7 +324,8 @@ class FuseSR(FuseSRFrame):
                 gate = self.gates[k - 1](motion, warped[:, -1:], depth_cur) * valid
                 feats.append(warped[:, :-1] * gate)
         if self.use_hr:
-            hr = torch.cat([current(batch, "hr/fbeta_used"), self.hr_geometry(batch)], dim=1)
+            hr = torch.cat([current(batch, "hr/fbeta_used"), self.hr_geometry(batch),
+                            *[current(batch, k) for k in (HR_MATERIAL_KEYS if self.hr_material else ())]], dim=1)
             feats.append(self.hr_branch(F.pixel_unshuffle(hr, self.scale)))
         y = self.blocks(self.fuse_in(torch.cat(feats, dim=1)))
         head_in = torch.cat([y, f_s], dim=1)

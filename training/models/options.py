@@ -113,6 +113,8 @@ class FuseSROptions(FuseSRFastOptions):
 
     width: int = _width(128)
     hr_guide: bool = False           # the HR refinement also reads the HR G-buffers (not in the paper)
+    hr_material: bool = False        # the HR branch also reads HR roughness and metallic (2 more HR channels; not in
+    # the paper; training/models/fusesr.py, "Material inputs")
 
     def validate(self, where: str) -> None:
         super().validate(where)
@@ -121,6 +123,8 @@ class FuseSROptions(FuseSRFastOptions):
                               "albedo in its HR branch already")
         if self.hr_guide and not self.hr_gbuffer:
             raise ConfigError(f"{where}.hr_guide needs {where}.hr_gbuffer = true (it reads the HR G-buffers)")
+        if self.hr_material and not self.hr_gbuffer:
+            raise ConfigError(f"{where}.hr_material needs {where}.hr_gbuffer = true (it widens the HR branch)")
 
 
 @dataclass
