@@ -11,6 +11,8 @@
 #   fusesr-l-10x  FuseSR-l's 10x run (train only), then its release by the val rule
 #   finetune      the shipped FuseSR fine-tuned (3,000 steps) on the 10x subset once it is rendered (the 10x run's
 #                 clips), then its release by the val rule
+#   inputs        the inputs study: FuseSR-l's 1x run again with hr_material (HR roughness and metallic), all else
+#                 as the curve's 1x run; both scored on val side by side once both are trained (val only)
 #   end           the round's end, once both curves are scored and every release has run: the test split's scores
 #                 of what shipped and every record docs/results.md reads (the sections and the verdict are written
 #                 by hand; its last step marks RUNS/round-end.done)
@@ -32,12 +34,13 @@ PY=${PY:-.venv/bin/python}
 WAIT=${WAIT:-600}
 SCALING=("$PY" benchmarks/data_scaling.py "$DATA" --runs "$RUNS/scaling" --steps 6000 --threads 1 --wait $((WAIT / 60)))
 FT=$RUNS/finetune/fusesr
-JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune end)
+IN=$RUNS/inputs/fusesr-l_047clips_material
+JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune inputs end)
 
 run() { echo "+ $*"; [ "${DRY:-0}" = 1 ] || "$@"; }
 mark() { [ "${DRY:-0}" = 1 ] || touch "$1"; }
 # until a python expression holds (each look every WAIT seconds); DRY: say so once
-await() { echo "+ until $1"; [ "${DRY:-0}" = 1 ] && return; until "$PY" -c "import sys; sys.exit(not ($1))"; do
+await() { echo "+ until $1"; [ "${DRY:-0}" = 1 ] && return; until "$PY" -c "import os, sys; sys.exit(not ($1))"; do
   sleep "$WAIT"; done; }
 # the release of RUN for MODEL by the val rule on held-out-family val, the test split deferred to the round's end
 # (once: RUN/released marks it done, whichever way the rule went; the log says which)
@@ -89,6 +92,19 @@ body_finetune() {
   [ "${DRY:-0}" = 1 ] || { printf '%q ' "${cmd[@]}" > "$FT/command.txt"; }
   if [ -f "$FT/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
   release fusesr "$FT"
+}
+
+# the inputs study (docs/training.md, "The inputs study"): the curve's 1x FuseSR-l run, config and all, with the HR
+# material inputs added; scored on val beside it (the test split is not read) once both have their 6,000 steps
+body_inputs() {
+  local base=$RUNS/scaling/fusesr-l_047clips done="lambda r: __import__('json').load(open(r + '/summary.json'))"
+  await "__import__('os').path.exists('$base/config.toml')"
+  local cmd=(.venv/bin/blendsr train -o "$IN" --config "$base/config.toml" --set model.fusesr-l.hr_material=true)
+  if [ -f "$IN/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
+  await "all(os.path.exists(r + '/summary.json') and ($done)(r).get('step') == 6000 for r in ('$base', '$IN'))"
+  local f=docs/bench/scaling-families/val-inputs-fusesr-l bound="checkpoints/last.pt?residual_clamp=lr-guided"
+  [ -s "$f.json" ] || run "$PY" benchmarks/worst_case.py "$DATA" --split val -o "$f" --models \
+      "demod-jbu,fusesr-l:$base/$bound,fusesr-l:$IN/$bound"
 }
 
 # the round's end (docs/training.md, "The scale set's round"), once both curves are scored and every candidate has

@@ -33,7 +33,7 @@ def test_every_job_in_order_and_the_fine_tune_released_before_the_10x_run(tmp_pa
     out = _round(tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     jobs = _steps(out)
-    assert list(jobs) == ["render", "fusesr", "fusesr-10x", "fusesr-l", "fusesr-l-10x", "finetune", "end"]
+    assert list(jobs) == ["render", "fusesr", "fusesr-10x", "fusesr-l", "fusesr-l-10x", "finetune", "inputs", "end"]
     ft = f"{tmp_path}/runs/finetune/fusesr"
     tenx = jobs["fusesr-10x"]
     assert "--train-only" in tenx[0] and f"exists('{ft}/released')" in tenx[1]
@@ -57,6 +57,16 @@ def test_the_round_end_reads_test_only_after_every_release_and_records_val_befor
            "family_gap")}
     assert list(at.values()) == sorted(at.values()) and at["--record --scores"] > 1
     assert sum("--split test --models" in c for c in end) == 10  # every baseline and shipped network
+
+
+def test_the_inputs_study_is_the_1x_run_with_material_inputs_scored_on_val_only(tmp_path):
+    steps = _steps(_round(tmp_path, "inputs"))["inputs"]
+    base, study = f"{tmp_path}/runs/scaling/fusesr-l_047clips", f"{tmp_path}/runs/inputs/fusesr-l_047clips_material"
+    assert f"{base}/config.toml" in steps[0]
+    assert steps[1].endswith(f"-o {study} --config {base}/config.toml --set model.fusesr-l.hr_material=true")
+    assert base in steps[2] and study in steps[2] and "== 6000" in steps[2]
+    assert len(steps) == 4 and "--split val" in steps[3] and "--split test" not in " ".join(steps)
+    assert f"fusesr-l:{base}/checkpoints/last.pt" in steps[3] and f"fusesr-l:{study}/checkpoints/last.pt" in steps[3]
 
 
 def test_a_released_run_is_not_released_again(tmp_path):
