@@ -126,30 +126,70 @@ def probe_default(args) -> dict:
 
 
 def probe_deformed(args) -> dict:
-    """The default scene of ``seed``/``frames``/``props`` (as ``blendsr dataset`` builds a builtin clip) and, per
-    frame from start-1 to end, the world-space evaluated vertices (every ``every``-th) of each mesh an armature
-    deforms, with the rest positions' rigid motion (the rig's transform alone) beside them."""
+    """The default scene of ``seed``/``frames``/``props`` (as ``blendsr dataset`` builds a builtin clip) and, for each
+    mesh an armature deforms: its rest vertices (object space, every ``every``-th), its skinning (per-vertex weight
+    sums, vertices in no group, the groups of given rest regions), and per frame from start-1 to end the world-space
+    evaluated vertices, the same rest vertices moved rigidly by the object's transform, and the largest ratio of an
+    evaluated edge's length to its rest length; for each rig per frame its world matrix and per leg the thigh's
+    keyed angle about X, the hip joint and the ankle (world)."""
     from gbuffer_export.blender.default_scene import build_default_scene
     scene = build_default_scene(seed=args["seed"], frames=tuple(args["frames"]), resolution=(64, 36),
                                 props=tuple(args["props"]))
-    every, out = args.get("every", 5), {}
-    meshes = [o for o in scene.objects if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)]
+    every = args.get("every", 5)
+    meshes = {o.name: _skinning(o, every) for o in scene.objects
+              if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)}
+    rigs = {o.name: {"matrix": [], "legs": {"L": [], "R": []}} for o in scene.objects if o.type == "ARMATURE"}
     for f in range(scene.frame_start - 1, scene.frame_end + 1):
         scene.frame_set(f)
         dg = bpy.context.evaluated_depsgraph_get()
-        for ob in meshes:
-            ev = ob.evaluated_get(dg)
-            mesh = ev.to_mesh()
-            co = np.empty(3 * len(mesh.vertices))
-            mesh.vertices.foreach_get("co", co)
-            ev.to_mesh_clear()
-            rest = np.empty(3 * len(ob.data.vertices))
-            ob.data.vertices.foreach_get("co", rest)
-            m = np.array(ev.matrix_world)
-            rec = out.setdefault(ob.name, {"deformed": [], "rigid": []})
-            for key, pts in (("deformed", co), ("rigid", rest)):
-                rec[key].append((pts.reshape(-1, 3)[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
-    return {"frames": [scene.frame_start, scene.frame_end], "meshes": out}
+        for name, rec in meshes.items():
+            _deformed_frame(scene.objects[name].evaluated_get(dg), rec, every)
+        for name, rec in rigs.items():
+            rig = scene.objects[name]
+            m = np.array(rig.matrix_world)
+            rec["matrix"].append(m.tolist())
+            for side in "LR":
+                thigh, shin = rig.pose.bones[f"thigh.{side}"], rig.pose.bones[f"shin.{side}"]
+                hip, ankle = (m[:3, :3] @ np.array(p) + m[:3, 3] for p in (thigh.head, shin.tail))
+                rec["legs"][side].append([thigh.rotation_euler[0], hip.tolist(), ankle.tolist()])
+    return {"frames": [scene.frame_start, scene.frame_end], "meshes": meshes, "rigs": rigs,
+            "params": {o.name: o["family_params"] for o in scene.objects if "family_params" in o}}
+
+
+def _skinning(ob, every: int) -> dict:
+    """The rest and skinning part of ``probe_deformed``'s record of ``ob``."""
+    rest = np.empty(3 * len(ob.data.vertices))
+    ob.data.vertices.foreach_get("co", rest)
+    rest = rest.reshape(-1, 3)
+    h = float(rest[:, 2].max())
+    names = {g.index: g.name for g in ob.vertex_groups}
+    sums = np.array([sum(g.weight for g in v.groups) for v in ob.data.vertices])
+    groups = [{names[g.group] for g in v.groups if g.weight > 0} for v in ob.data.vertices]
+    feet = set().union(*[g for g, p in zip(groups, rest) if p[2] < 0.06 * h])
+    hands = set().union(*[g for g, p in zip(groups, rest) if p[2] < 0.465 * h and abs(p[0]) > 0.125 * h])
+    return {"height": h, "rest": rest[::every].tolist(), "weight_sum": [float(sums.min()), float(sums.max())],
+            "ungrouped": int(sum(not g for g in groups)), "feet_groups": sorted(feet), "hand_groups": sorted(hands),
+            "deformed": [], "rigid": [], "edge_stretch": []}
+
+
+def _deformed_frame(ev, rec: dict, every: int) -> None:
+    """Append one frame of ``ev`` (an evaluated, armature-deformed mesh object) to its ``probe_deformed`` record."""
+    mesh = ev.to_mesh()
+    co = np.empty(3 * len(mesh.vertices))
+    mesh.vertices.foreach_get("co", co)
+    ev.to_mesh_clear()
+    co = co.reshape(-1, 3)
+    rest = np.empty(3 * len(ev.original.data.vertices))
+    ev.original.data.vertices.foreach_get("co", rest)
+    rest = rest.reshape(-1, 3)
+    edges = np.empty(2 * len(ev.original.data.edges), dtype=np.int64)
+    ev.original.data.edges.foreach_get("vertices", edges)
+    e = edges.reshape(-1, 2)
+    stretch = np.linalg.norm(co[e[:, 0]] - co[e[:, 1]], axis=1) / np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
+    m = np.array(ev.matrix_world)
+    rec["edge_stretch"].append(float(stretch.max()))
+    for key, pts in (("deformed", co), ("rigid", rest)):
+        rec[key].append((pts[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
 
 
 def probe_default_render(args) -> dict:

@@ -16,6 +16,9 @@ from tests.render.test_scene_default import run_probe
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 NEW = [n for n in BUILTIN_FAMILIES if n not in ("broken_pane", "window_pane")]
+#: The texture node each material family's pattern is made of.
+TEX = {"noise": "TEX_NOISE", "voronoi": "TEX_VORONOI", "wave": "TEX_WAVE", "brick": "TEX_BRICK",
+       "layered": "TEX_VORONOI"}
 MIXED = ["mat_noise", "railing", "neon", "cam_pan", "boolean", "instanced", "motion_objects"]
 
 
@@ -86,10 +89,8 @@ def test_parameters_are_within_their_stated_ranges(probe):
 
 
 def test_material_families_span_the_principled_classes_over_their_pattern(probe):
-    tex = {"noise": "TEX_NOISE", "voronoi": "TEX_VORONOI", "wave": "TEX_WAVE", "brick": "TEX_BRICK",
-           "layered": "TEX_VORONOI"}
     classes = set()
-    for pattern, node in tex.items():
+    for pattern, node in TEX.items():
         b = probe["alone"][f"mat_{pattern}"]
         for name, ob in _tagged(b, f"mat_{pattern}").items():
             m = b["materials"][ob["materials"][0]]
@@ -109,12 +110,10 @@ def test_material_surfaces_are_large_and_of_a_principled_class(probe):
     b = probe["alone"]["mat_surfaces"]
     tagged = _tagged(b, "mat_surfaces")
     assert set(tagged) == {"Surface Wall", "Surface Floor", "Surface Sculpture"}
-    tex = {"noise": "TEX_NOISE", "voronoi": "TEX_VORONOI", "wave": "TEX_WAVE", "brick": "TEX_BRICK",
-           "layered": "TEX_VORONOI"}
     for name, ob in tagged.items():
         m = b["materials"][ob["materials"][0]]
         assert ob["props"]["principled_class"] in probe["family_classes"]
-        assert tex[ob["props"]["pattern"]] in m["node_types"] and m["inputs"]["Base Color"]["linked"], name
+        assert TEX[ob["props"]["pattern"]] in m["node_types"] and m["inputs"]["Base Color"]["linked"], name
     size = {n: np.subtract(*reversed(ob["bounds"])) for n, ob in tagged.items()}
     assert min(size["Surface Wall"][0], size["Surface Wall"][1]) < 0.5 and max(size["Surface Wall"][:2]) > 1.55
     assert size["Surface Wall"][2] > 0.99 and size["Surface Floor"][0] * size["Surface Floor"][1] > 1.9
@@ -246,20 +245,65 @@ hdri = ["builtin:courtyard"]
     assert val.returncode == 0 and "1/1 clips valid" in val.stdout, val.stdout + val.stderr[-2000:]
 
 
-def test_walkers_walk_along_their_lane_facing_where_they_go(probe):
-    b = probe["alone"]["motion_character"]
-    tagged = _tagged(b, "motion_character")
-    rigs = sorted(n for n, ob in tagged.items() if ob["type"] == "ARMATURE")
-    bodies = sorted(n for n, ob in tagged.items() if ob["type"] == "MESH")
-    assert 1 <= len(rigs) == len(bodies) <= 2 and all(tagged[n]["verts"] > 500 for n in bodies)
-    params = json.loads(tagged[rigs[0]]["props"]["family_params"])
-    for rig in rigs:
-        m = np.array(b["animated_matrices"][rig])
+@pytest.fixture(scope="module")
+def walkers():
+    """Seed 3 with the walkers (two: one behind the table, one in front), 8 frames: ``probe_deformed``."""
+    return run_probe("deformed", {"seed": 3, "frames": [1, 8], "props": ["motion_character"], "every": 1})
+
+
+def test_walkers_walk_along_their_lanes_facing_where_they_go(probe, walkers):
+    from gbuffer_export.blender.default_scene.character import HALF_WIDTH
+    tagged = _tagged(probe["alone"]["motion_character"], "motion_character")
+    assert {ob["type"] for ob in tagged.values()} == {"ARMATURE", "MESH"}
+    assert set(walkers["rigs"]) == {"Walker 1 Rig", "Walker 2 Rig"}
+    for k, (rig, rec) in enumerate(sorted(walkers["rigs"].items())):
+        params = json.loads(walkers["params"][rig])
+        h = params["front_height_m" if k else "height_m"]
+        assert params["count"] == 2 and abs(walkers["meshes"][f"Walker {k + 1}"]["height"] - h) < 0.01 * h
+        m = np.array(rec["matrix"])
         step = np.diff(m[:, :3, 3], axis=0)
         assert np.allclose(np.linalg.norm(step[:, :2], axis=1), params["m_per_frame"], rtol=1e-4), rig
-        assert np.abs(step[:, 1]).max() < 1e-6 and np.abs(m[:, 2, 3]).max() < 0.02 * params["height_m"]
         facing = -m[:, :3, 1]                                   # the rest pose faces -Y
         assert np.all(np.einsum("fi,fi->f", facing[1:, :2], step[:, :2]) > 0.99 * params["m_per_frame"]), rig
+        side = abs(m[0, 1, 3]) - 0.47 - HALF_WIDTH * h          # the lane's side clears the table top's edge
+        assert (0.0 <= side <= 0.25 + 1e-6) if k == 0 else (m[0, 1, 3] < 0 and abs(side) < 1e-6), (rig, side)
+
+
+def test_walkers_are_skinned_whole_and_bend_without_tearing(walkers):
+    for name, rec in walkers["meshes"].items():
+        assert rec["ungrouped"] == 0 and abs(rec["weight_sum"][0] - 1) < 1e-5 and abs(rec["weight_sum"][1] - 1) < 1e-5
+        assert rec["feet_groups"] == ["foot.L", "foot.R", "shin.L", "shin.R"], name
+        assert rec["hand_groups"] == ["forearm.L", "forearm.R"], name
+        assert max(rec["edge_stretch"]) < 1.6, (name, rec["edge_stretch"])
+        for a, b in zip(rec["deformed"][:-1], rec["deformed"][1:]):   # not rigid: the best rigid fit leaves cm
+            a, b = np.array(a) - np.mean(a, axis=0), np.array(b) - np.mean(b, axis=0)
+            u, _, vt = np.linalg.svd(a.T @ b)
+            assert np.linalg.norm(a @ (u @ vt) - b, axis=1).max() > 0.02, name
+
+
+def test_walkers_stand_on_the_ground_and_their_stance_foot_stays_put(walkers):
+    """Every frame the lowest vertex is the sole on the ground (within 1 cm); a foot on the ground whose thigh
+    swings back over three frames (stance, away from its turns) does not slide between the middle two; a thigh at a negative angle puts its ankle ahead of its hip."""
+    for k, (rig, rec) in enumerate(sorted(walkers["rigs"].items())):
+        mesh = walkers["meshes"][f"Walker {k + 1}"]
+        d, rest, h = np.array(mesh["deformed"]), np.array(mesh["rest"]), mesh["height"]
+        assert np.all(np.abs(d[:, :, 2].min(axis=1)) < 0.01), d[:, :, 2].min(axis=1)
+        fwd = np.diff(np.array(rec["matrix"])[:, :2, 3], axis=0)[0]
+        fwd /= np.linalg.norm(fwd)
+        stance = 0
+        for side, sx in (("L", 1.0), ("R", -1.0)):
+            foot = d[:, (rest[:, 2] < 0.045 * h) & (np.sign(rest[:, 0]) == sx)]
+            legs = rec["legs"][side]
+            back = [b[0] > a[0] for a, b in zip(legs[:-1], legs[1:])]
+            for f in range(1, len(legs) - 2):                      # the thigh swings back around f..f+1: stance
+                grounded = foot[f, :, 2].min() < 0.005 and foot[f + 1, :, 2].min() < 0.005
+                if grounded and back[f - 1] and back[f] and back[f + 1]:
+                    stance += 1
+                    assert np.linalg.norm(foot[f + 1, :, :2].mean(0) - foot[f, :, :2].mean(0)) < 0.002, (rig, side, f)
+            for angle, hip, ankle in legs:
+                if abs(angle) > 0.05:
+                    assert np.sign(np.dot(np.subtract(ankle, hip)[:2], fwd)) == -np.sign(angle), (rig, side)
+        assert stance >= 3, rig
 
 
 def _vertex_motion_errors(clip, meshes, frames, rigid: bool):
@@ -292,10 +336,10 @@ def _vertex_motion_errors(clip, meshes, frames, rigid: bool):
     return np.concatenate(errs)
 
 
-def test_walkers_deform_and_their_motion_vectors_follow_the_deformed_surface(tmp_path):
-    """A clip of two walkers through ``blendsr dataset``: their meshes bend at the joints (not rigid between frames),
-    they are recorded as moving, ``validate`` passes, and the stored motion of the surface equals the motion of the
-    evaluated (skinned) vertices projected with the clip's cameras, clearly better than the rig's rigid motion."""
+def test_walkers_motion_vectors_follow_the_deformed_surface(tmp_path):
+    """A clip of two walkers through ``blendsr dataset``: they are recorded as moving, ``validate`` passes, and the
+    stored motion of the surface equals the motion of the evaluated (skinned) vertices projected with the clip's
+    cameras, clearly better than the rig's rigid motion."""
     spec = tmp_path / "walk.toml"
     spec.write_text("""
 [dataset]
@@ -326,11 +370,6 @@ hdri = ["builtin:courtyard"]
     frames = [min(clip.frames), max(clip.frames)]
     deformed = run_probe("deformed", {"seed": 3, "frames": frames, "props": ["motion_character"], "every": 1})
     assert deformed["frames"] == frames and set(deformed["meshes"]) == {"Walker 1", "Walker 2"}
-    for name, rec in deformed["meshes"].items():
-        for a, b in zip(rec["deformed"][:-1], rec["deformed"][1:]):   # best rigid fit between frames leaves cm
-            a, b = np.array(a) - np.mean(a, axis=0), np.array(b) - np.mean(b, axis=0)
-            u, _, vt = np.linalg.svd(a.T @ b)
-            assert np.linalg.norm(a @ (u @ vt) - b, axis=1).max() > 0.02, name
     err = _vertex_motion_errors(clip, deformed["meshes"], frames, rigid=False)
     rigid = _vertex_motion_errors(clip, deformed["meshes"], frames, rigid=True)
     assert len(err) > 100 and np.median(err) < 0.2 and np.mean(err < 0.5) > 0.9, (len(err), np.median(err))

@@ -1,15 +1,16 @@
 """A procedural walking figure (bpy layer): the generator's animated character (``motion_character``), built in code
-because nothing may be downloaded. One skinned mesh (legs, torso, arms and neck as lathed and swept tubes, a head, hands
-and feet) deformed by an armature of 11 bones through an Armature modifier, with linear-blend weights across the
-knees, elbows, waist and neck, so that its surface bends at the joints as a game character's does (not a set of rigid
-parts). Its walk is keyed on every frame: the rig glides along its lane, the hips bob twice a cycle, the thighs swing,
-the knees bend in the swing phase, the arms swing against the legs.
+because nothing may be downloaded. One skinned mesh (legs, torso, arms and neck as swept tubes, a head, hands and
+feet) deformed by an armature of 13 bones through an Armature modifier, with linear-blend weights across the knees,
+elbows, waist, shoulders and neck, so that its surface bends at the joints as a game character's does (not a set of
+rigid parts). Its walk is keyed on every frame: the rig glides along its lane, the thighs swing, the knees bend in the
+swing phase, the feet stay level, the arms swing against the legs and the shoulders turn a little. The stance leg is
+straight and its foot does not slide: the hips drop as the legs spread (the stance ankle stays at its rest height)
+and the cycle is as long as the stance foot's travel (``key_walk``).
 
 Units are metres. The figure is built ``height`` tall, standing on z = 0 at the origin and facing -Y in its rest
-pose; its rig object turns it to face its walking direction. Every bone's rest direction is (anti)parallel to a world
-axis and its roll is 0, so that a positive rotation about its local X moves a downward limb's tail toward +Y in
-the rest frame (backward: the figure faces -Y); ``tests/render/test_scene_families.py`` checks it on the evaluated
-mesh.
+pose; its rig object turns it to face its walking direction. Every bone's rest direction is vertical and its roll 0,
+so its local X is the rig's +X and a positive rotation about it moves a downward limb's tail toward +Y (backward:
+the figure faces -Y).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from .geometry import sphere
 _BONES_L = {
     "thigh.L": ("hips", (0.055, 0.0, 0.52), (0.055, 0.0, 0.28)),
     "shin.L": ("thigh.L", (0.055, 0.0, 0.28), (0.055, 0.0, 0.045)),
+    "foot.L": ("shin.L", (0.055, 0.0, 0.045), (0.055, 0.0, 0.0)),
     "upperarm.L": ("spine", (0.135, 0.0, 0.81), (0.135, 0.0, 0.64)),
     "forearm.L": ("upperarm.L", (0.135, 0.0, 0.64), (0.135, 0.0, 0.47)),
 }
@@ -40,19 +42,26 @@ BONES = {
 }
 #: Slot of each part's material: 0 skin, 1 shirt, 2 trousers.
 SKIN, SHIRT, TROUSERS = 0, 1, 2
+#: The leg's length (hip joint to ankle) and the lateral half-width (shoulder and arm) of a figure 1 m tall.
+LEG, HALF_WIDTH = 0.475, 0.18
 
 
 class Body:
-    """The mesh under construction: a bmesh and each vertex's bone weights ({index: {bone: weight}})."""
+    """The mesh under construction: a bmesh and each vertex's bone weights ({BMVert: {bone: weight}}; bmesh may
+    renumber its vertices while parts are added, so they are resolved to indices only once it is complete)."""
 
     def __init__(self, height: float):
         self.bm, self.h, self.weights = bmesh.new(), height, {}
 
     def weigh(self, verts, weight_of) -> None:
         """Record ``weight_of(rest position in 1 m units)`` ({bone: w}) for each vertex of ``verts``."""
-        self.bm.verts.index_update()
         for v in verts:
-            self.weights[v.index] = weight_of(np.array(v.co) / self.h)
+            self.weights[v] = weight_of(np.array(v.co) / self.h)
+
+    def indexed(self) -> dict[int, dict[str, float]]:
+        """The weights by vertex index of the complete mesh (the order ``to_mesh`` keeps)."""
+        self.bm.verts.index_update()
+        return {v.index: w for v, w in self.weights.items()}
 
 
 def _blend(s: float, joint: float, half: float, below: str, above: str) -> dict[str, float]:
@@ -105,7 +114,7 @@ def _limbs(body: Body) -> None:
                       TROUSERS)
         body.weigh(verts, lambda p: _blend(-p[2], -0.28, 0.035, f"thigh.{side}", f"shin.{side}"))
         body.weigh(_ball(body, (sx * 0.055, -0.03, 0.02), 0.035, TROUSERS, (0.8, 1.9, 0.6)),
-                   lambda p: {f"shin.{side}": 1.0})
+                   lambda p: {f"foot.{side}": 1.0})
         arm = [(sx * 0.135, 0.0, z) for z in np.linspace(0.82, 0.47, 9)]
         verts = _tube(body, arm, np.interp(np.linspace(0.82, 0.47, 9), [0.47, 0.64, 0.82], [0.022, 0.028, 0.036]),
                       SHIRT)
@@ -156,6 +165,7 @@ def build_figure(scene, name: str, height: float, materials) -> tuple:
     body = Body(height)
     _limbs(body)
     _trunk(body)
+    weights = body.indexed()
     mesh = bpy.data.meshes.new(name)
     body.bm.to_mesh(mesh)
     body.bm.free()
@@ -164,7 +174,7 @@ def build_figure(scene, name: str, height: float, materials) -> tuple:
     obj = bpy.data.objects.new(name, mesh)
     scene.collection.objects.link(obj)
     groups = {b: obj.vertex_groups.new(name=b) for b in BONES}
-    for i, ws in body.weights.items():
+    for i, ws in weights.items():
         for bone, w in ws.items():
             groups[bone].add([i], w, "REPLACE")
     obj.parent = rig
@@ -172,29 +182,40 @@ def build_figure(scene, name: str, height: float, materials) -> tuple:
     return rig, obj
 
 
+def _tri(x: np.ndarray) -> np.ndarray:
+    """A triangle wave in [-1, 1] with the phase of sin(x)."""
+    return 2.0 / math.pi * np.arcsin(np.sin(x))
+
+
 def key_walk(rig, frames, start_xy, heading: float, m_per_frame: float, height: float, angles: dict, phase: float):
     """Key the walk on ``frames``: the rig glides from ``start_xy`` along ``heading`` (radians about +Z, 0 = the rest
-    pose's -Y) at ``m_per_frame``, one cycle (two steps) per 1.1 ``height`` m; ``angles`` (radians): ``swing`` (thigh
-    amplitude), ``knee`` (largest knee bend), ``arm`` (upper-arm amplitude)."""
+    pose's -Y) at ``m_per_frame``; ``angles`` (radians): ``swing`` (the thighs' largest angle), ``knee`` (the knee's
+    largest bend), ``arm`` (the upper arms' largest angle). A foot's forward offset from the hips is a triangle wave
+    of amplitude LEG sin(swing), so in stance it moves back at a constant rate, which the cycle length
+    4 LEG sin(swing) matches to the rig's speed: the stance foot stays put. The stance knee is straight and the hips
+    drop by LEG (1 - cos thigh angle), so the stance ankle stays at its rest height. Both thighs are at the same
+    angle from the vertical, so a swinging foot clears the ground only while its knee bends with the thigh behind
+    the vertical (a bend with the thigh forward would lower the foot): the knee bends in the swing's first half and
+    is straight in its second, where the foot passes forward level with the stance foot."""
     t = np.asarray(frames, np.float64) - frames[0]
-    dist = m_per_frame * t
-    ph = 2 * math.pi * dist / (1.1 * height) + phase
+    leg = LEG * height
+    ph = 2 * math.pi * m_per_frame * t / (4 * leg * math.sin(angles["swing"])) + phase
     fwd = np.array([math.sin(heading), -math.cos(heading)])
-    xy = np.asarray(start_xy) + np.outer(dist, fwd)
-    z = 0.012 * height * (1 - np.cos(2 * ph)) / 2                       # the hips rise twice a cycle
     zeros = np.zeros_like(t)
-    chans = {"location": np.column_stack([xy, z])}
-    for side, sign in (("L", 1.0), ("R", -1.0)):
-        s = np.sin(ph + (0.0 if sign > 0 else math.pi))
-        swing_fwd = -angles["swing"] * s                                  # negative about X: the leg forward
-        knee = angles["knee"] * np.clip(np.sin(ph + (0.0 if sign > 0 else math.pi) + math.pi / 2), 0.0, 1.0) + 0.05
-        chans[f'pose.bones["thigh.{side}"].rotation_euler'] = np.column_stack([swing_fwd, zeros, zeros])
-        chans[f'pose.bones["shin.{side}"].rotation_euler'] = np.column_stack([knee, zeros, zeros])
-        chans[f'pose.bones["upperarm.{side}"].rotation_euler'] = np.column_stack([angles["arm"] * s, zeros,
-                                                                                   zeros])
-        chans[f'pose.bones["forearm.{side}"].rotation_euler'] = np.column_stack(
-            [-0.25 - 0.15 * np.clip(s, 0.0, 1.0), zeros, zeros])
-    chans['pose.bones["spine"].rotation_euler'] = np.column_stack([zeros, zeros, 0.08 * np.sin(ph)])
+    chans = {}
+    for side, offset in (("L", 0.0), ("R", math.pi)):
+        u = _tri(ph + offset)                                               # the foot forward at +1
+        thigh = -np.arcsin(math.sin(angles["swing"]) * u)                    # negative about X: forward
+        x = ph + offset                                                      # swing: cos(x) > 0
+        knee = angles["knee"] * np.clip(-np.sin(2 * x), 0.0, 1.0) * (np.cos(x) > 0)   # while the thigh is behind
+        arm = angles["arm"] * u                                              # back while the leg is forward
+        for bone, angle in ((f"thigh.{side}", thigh), (f"shin.{side}", knee), (f"foot.{side}", -thigh - knee),
+                            (f"upperarm.{side}", arm),
+                            (f"forearm.{side}", -0.25 - 0.2 * np.clip(-u, 0.0, 1.0))):
+            chans[f'pose.bones["{bone}"].rotation_euler'] = np.column_stack([angle, zeros, zeros])
+    chans['pose.bones["spine"].rotation_euler'] = np.column_stack([zeros, 0.08 * _tri(ph), zeros])  # a turn
+    drop = -leg * (1.0 - np.cos(np.arcsin(math.sin(angles["swing"]) * _tri(ph))))
+    chans["location"] = np.column_stack([np.asarray(start_xy) + np.outer(m_per_frame * t, fwd), drop])
     rig.rotation_mode = "XYZ"
     rig.rotation_euler = (0.0, 0.0, heading)
     key_channels(rig, frames, chans)

@@ -24,7 +24,7 @@ Boolean, a machined block), ``displaced`` (a boulder and a column, subdivided an
 ``instanced`` (hundreds of pebbles, bolts and grass tufts on a raised bed, scattered by a geometry node group).
 ``fog`` (a homogeneous Principled Volume in a box domain around the courtyard and its cameras). ``motion_objects``
 (2-4 props gliding and spinning over the table, keyed on every frame). ``motion_character`` (1-2 walking figures,
-skinned to an armature: ``character.py``).
+skinned to a 13-bone armature: ``character.py``).
 
 Each family's drawn parameters are kept on its objects as ``family_params`` (JSON), within ``RANGES``.
 """
@@ -39,7 +39,7 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from ..camera_paths import key_channels, key_look_at
-from .character import build_figure, key_walk
+from .character import HALF_WIDTH, build_figure, key_walk
 from .geometry import add_object, box, catenary, cylinder, lathe, sphere, text_object, tube
 from .materials import Mat
 from .modifiers import boolean_cut, displace, instance_on_faces
@@ -80,12 +80,13 @@ RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "fog": {"density_per_m": (0.02, 0.1), "anisotropy": (0.1, 0.6)},
     "motion_objects": {"count": (2, 4), "size_m": (0.08, 0.2), "m_per_frame": (0.01, 0.06),
                        "deg_per_frame": (2.0, 12.0)},
-    "motion_character": {"count": (1, 2), "height_m": (1.5, 1.9), "m_per_frame": (0.03, 0.07),
-                         "swing_deg": (18.0, 32.0), "knee_deg": (25.0, 55.0), "arm_deg": (12.0, 30.0)},
+    "motion_character": {"count": (1, 2), "height_m": (1.5, 1.9), "front_height_m": (1.45, 1.65),
+                         "m_per_frame": (0.03, 0.07), "swing_deg": (18.0, 32.0), "knee_deg": (25.0, 55.0),
+                         "arm_deg": (12.0, 30.0)},
 }
-#: The character family's lanes (y range, m): behind the table (seen across it) and in front of it (crossing the
-#: scene camera's view close up: large disocclusions).
-LANES = ((0.5, 0.9), (-0.85, -0.6))
+#: The walkers' lanes keep their sides (``character.HALF_WIDTH`` x height) this far (m) from the table top's edges
+#: (|y| <= ``TABLE_HALF_DEPTH``); behind the table a lane lies up to ``LANE_SPREAD`` further back.
+TABLE_HALF_DEPTH, LANE_CLEARANCE, LANE_SPREAD = 0.45, 0.02, 0.25
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
 
@@ -216,17 +217,19 @@ def material_family(pattern: str):
 
 def mat_surfaces(scene, mats, rng) -> None:
     """Material classes on surfaces as large as a game shows them: a wall panel (1.6-2.4 x 1.0-1.6 m, 6 cm thick)
-    standing behind the table at y 1.3-1.45, a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm) under the table and a
-    bevelled block or sphere (0.4-0.6 m) beside it; each of a Principled class of ``CLASSES`` over a pattern of the
-    material families (4-30 features per m), recorded as ``principled_class`` and ``pattern``."""
+    standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm) under
+    the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of the table top (|x| <= 0.8);
+    each of a Principled class of ``CLASSES`` over a pattern of the material families (4-30 features per m),
+    recorded as ``principled_class`` and ``pattern``."""
     d = Draw("mat_surfaces", rng)
     ww, wh = d("wall_width_m"), d("wall_height_m")
     fw, fd, size = d("floor_width_m"), d("floor_depth_m"), d("object_m")
     side = 1.0 if rng.uniform() < 0.5 else -1.0
-    parts = (("Wall", (ww, 0.06, wh), (float(rng.uniform(-0.3, 0.3)), float(rng.uniform(1.3, 1.45)), wh / 2), "cube"),
+    parts = (("Wall", (ww, 0.06, wh), (float(rng.uniform(-0.3, 0.3)), float(rng.uniform(1.2, 1.3)), wh / 2), "cube"),
              ("Floor", (fw, fd, 0.01), (0.0, float(rng.uniform(-0.1, 0.1)), 0.005), "cube"),
-             ("Sculpture", (size, size, size), (side * float(rng.uniform(0.85, 1.2)), float(rng.uniform(0.1, 0.5)),
-                                                size / 2), ("cube", "sphere")[int(rng.integers(2))]))
+             ("Sculpture", (size, size, size), (side * (0.85 + size / 2 + float(rng.uniform(0.0, 0.3))),
+                                                float(rng.uniform(0.1, 0.5)), size / 2),
+              ("cube", "sphere")[int(rng.integers(2))]))
     for name, dims, loc, kind in parts:
         cls = CLASSES[int(rng.integers(len(CLASSES)))]
         pattern = tuple(SLOTS)[int(rng.integers(len(SLOTS)))]
@@ -235,7 +238,7 @@ def mat_surfaces(scene, mats, rng) -> None:
         bmesh.ops.scale(bm, vec=dims, verts=bm.verts)
         mat = _family_material(f"Surface {name} {cls.title()}", pattern, cls, d, rng)
         obj = add_object(scene, f"Surface {name}", bm, mat, location=loc,
-                         rotation=(0.0, 0.0, float(rng.uniform(-0.15, 0.15))))
+                         rotation=(0.0, 0.0, float(rng.uniform(-0.1, 0.1))))
         obj["principled_class"], obj["pattern"] = cls, pattern
         d.tag(obj)
 
@@ -669,27 +672,38 @@ def motion_objects(scene, mats, rng) -> None:
 
 
 def motion_character(scene, mats, rng) -> None:
-    """1-2 walking figures (1.5-1.9 m, ``character.py``: a mesh skinned to an 11-bone armature), one per lane of
-    ``LANES`` (behind the table, then in front of it), each crossing the view along +-X at 3-7 cm a frame from x in
-    -0.6..0.6, its thighs swinging 18-32 degrees, knees bending up to 25-55 degrees, arms swinging 12-30 degrees:
-    deforming surfaces, keyed on every frame from start-1."""
-    d = Draw("motion_character", rng)
+    """1-2 walking figures (``character.py``: a mesh skinned to a 13-bone armature), each crossing the view along +X
+    or -X at 3-7 cm a frame from x in -0.6..0.6, its thighs swinging 18-32 degrees, knees bending up to 25-55 degrees,
+    arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first (1.5-1.9 m) walks
+    behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene camera's arc,
+    which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose sides clear the
+    table top by ``LANE_CLEARANCE``. Each walker's objects record its own draws (``family_params``)."""
+    count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
-    for k in range(d("count", integer=True)):
-        h, v = d("height_m"), d("m_per_frame")
+    for k in range(count):
+        d = Draw("motion_character", rng)
+        d.params["count"] = count
+        h, v = d("front_height_m" if k else "height_m"), d("m_per_frame")
         angles = {a: math.radians(d(f"{a}_deg")) for a in ("swing", "knee", "arm")}
-        skin = Mat(f"Walker {k + 1} Skin", tuple(rng.uniform((0.25, 0.15, 0.1), (0.85, 0.6, 0.45))), roughness=0.45,
-                   inputs={"Subsurface Weight": 0.2}).mat
-        shirt = Mat(f"Walker {k + 1} Shirt", tuple(rng.uniform(0.05, 0.9, 3)), roughness=0.8,
-                    inputs={"Sheen Weight": float(rng.uniform(0.2, 0.8))}).mat
-        trousers = Mat(f"Walker {k + 1} Trousers", tuple(rng.uniform(0.03, 0.5, 3)),
-                       roughness=float(rng.uniform(0.5, 0.9))).mat
-        rig, body = build_figure(scene, f"Walker {k + 1}", h, (skin, shirt, trousers))
+        edge = TABLE_HALF_DEPTH + LANE_CLEARANCE + HALF_WIDTH * h
+        lane = -edge if k else edge + float(rng.uniform(0.0, LANE_SPREAD))
+        rig, body = build_figure(scene, f"Walker {k + 1}", h, _walker_materials(k, rng))
         direction = 1.0 if rng.uniform() < 0.5 else -1.0             # +X or -X
-        start = (float(rng.uniform(-0.6, 0.6)), float(rng.uniform(*LANES[k])))
-        key_walk(rig, frames, start, direction * math.pi / 2, v, h, angles, float(rng.uniform(0.0, 2 * math.pi)))
+        key_walk(rig, frames, (float(rng.uniform(-0.6, 0.6)), lane), direction * math.pi / 2, v, h, angles,
+                 float(rng.uniform(0.0, 2 * math.pi)))
         d.tag(rig)
         d.tag(body)
+
+
+def _walker_materials(k: int, rng) -> tuple:
+    """Skin (subsurface), a sheen shirt and trousers of walker ``k``."""
+    skin = Mat(f"Walker {k + 1} Skin", tuple(rng.uniform((0.25, 0.15, 0.1), (0.85, 0.6, 0.45))), roughness=0.45,
+               inputs={"Subsurface Weight": 0.2}).mat
+    shirt = Mat(f"Walker {k + 1} Shirt", tuple(rng.uniform(0.05, 0.9, 3)), roughness=0.8,
+                inputs={"Sheen Weight": float(rng.uniform(0.2, 0.8))}).mat
+    trousers = Mat(f"Walker {k + 1} Trousers", tuple(rng.uniform(0.03, 0.5, 3)),
+                   roughness=float(rng.uniform(0.5, 0.9))).mat
+    return skin, shirt, trousers
 
 
 #: Family name -> (builder, stream): the stream of its generator (``np.random.default_rng([seed, stream])``).
