@@ -2,10 +2,10 @@
 because nothing may be downloaded. One skinned mesh (legs, torso, arms and neck as swept tubes, a head, hands and
 feet) deformed by an armature of 13 bones through an Armature modifier, with linear-blend weights across the knees,
 elbows, waist, shoulders and neck, so that its surface bends at the joints as a game character's does (not a set of
-rigid parts). Its walk is keyed on every frame: the rig glides along its lane, the thighs swing, the knees bend in the
-swing phase, the feet stay level, the arms swing against the legs and the shoulders turn a little. The stance leg is
-straight and its foot does not slide: the hips drop as the legs spread (the stance ankle stays at its rest height)
-and the cycle is as long as the stance foot's travel (``key_walk``).
+rigid parts). Its walk is keyed on every frame: the rig glides along its lane and two-bone IK (``leg_ik``) places
+the legs: the stance leg straight with its foot put (the hips drop as the legs spread, and the cycle is as long as
+the stance foot's travel), the swinging foot lifted and carried forward with the knee bent; the feet stay level,
+the arms swing against the legs and the shoulders turn a little (``key_walk``).
 
 Units are metres. The figure is built ``height`` tall, standing on z = 0 at the origin and facing -Y in its rest
 pose; its rig object turns it to face its walking direction. Every bone's rest direction is vertical and its roll 0,
@@ -42,8 +42,10 @@ BONES = {
 }
 #: Slot of each part's material: 0 skin, 1 shirt, 2 trousers.
 SKIN, SHIRT, TROUSERS = 0, 1, 2
-#: The leg's length (hip joint to ankle) and the lateral half-width (shoulder and arm) of a figure 1 m tall.
-LEG, HALF_WIDTH = 0.475, 0.18
+#: The thigh's and the shin's length, the leg's (hip joint to ankle) and the lateral half-width (shoulder and arm) of a
+#: figure 1 m tall.
+THIGH, SHIN = 0.24, 0.235
+LEG, HALF_WIDTH = THIGH + SHIN, 0.18
 
 
 class Body:
@@ -138,7 +140,7 @@ def _trunk(body: Body) -> None:
     body.weigh(verts, torso)
     verts = _tube(body, [(0.0, 0.0, 0.83), (0.0, 0.0, 0.9)], [0.035, 0.032], SKIN, segments=10)
     body.weigh(verts, lambda p: _blend(p[2], 0.85, 0.02, "spine", "head"))
-    body.weigh(_ball(body, (0.0, -0.005, 0.935), 0.065, SKIN, (0.85, 1.0, 1.15)), lambda p: {"head": 1.0})
+    body.weigh(_ball(body, (0.0, -0.005, 0.925), 0.065, SKIN, (0.85, 1.0, 1.15)), lambda p: {"head": 1.0})
 
 
 def _armature(scene, name: str, height: float):
@@ -187,35 +189,43 @@ def _tri(x: np.ndarray) -> np.ndarray:
     return 2.0 / math.pi * np.arcsin(np.sin(x))
 
 
+def leg_ik(forward: np.ndarray, down: np.ndarray, thigh: float, shin: float) -> tuple[np.ndarray, np.ndarray]:
+    """(thigh angle, knee bend), radians about the bones' X (positive: backward), that put the ankle ``forward`` and
+    ``down`` of the hip joint (the law of cosines; the knee bends backward, a target out of reach is clamped to the
+    straight leg)."""
+    r = np.minimum(np.hypot(forward, down), thigh + shin)
+    knee = math.pi - np.arccos(np.clip((thigh ** 2 + shin ** 2 - r ** 2) / (2 * thigh * shin), -1.0, 1.0))
+    at_hip = np.arccos(np.clip((thigh ** 2 + r ** 2 - shin ** 2) / (2 * thigh * r), -1.0, 1.0))
+    return np.arctan2(-forward, down) - at_hip, knee
+
+
 def key_walk(rig, frames, start_xy, heading: float, m_per_frame: float, height: float, angles: dict, phase: float):
     """Key the walk on ``frames``: the rig glides from ``start_xy`` along ``heading`` (radians about +Z, 0 = the rest
     pose's -Y) at ``m_per_frame``; ``angles`` (radians): ``swing`` (the thighs' largest angle), ``knee`` (the knee's
-    largest bend), ``arm`` (the upper arms' largest angle). A foot's forward offset from the hips is a triangle wave
-    of amplitude LEG sin(swing), so in stance it moves back at a constant rate, which the cycle length
-    4 LEG sin(swing) matches to the rig's speed: the stance foot stays put. The stance knee is straight and the hips
-    drop by LEG (1 - cos thigh angle), so the stance ankle stays at its rest height. Both thighs are at the same
-    angle from the vertical, so a swinging foot clears the ground only while its knee bends with the thigh behind
-    the vertical (a bend with the thigh forward would lower the foot): the knee bends in the swing's first half and
-    is straight in its second, where the foot passes forward level with the stance foot."""
+    bend mid-swing), ``arm`` (the upper arms' largest angle). Each ankle's forward offset from the hips is a triangle
+    wave of amplitude LEG sin(swing); in stance it moves back at a constant rate, which the cycle length
+    4 LEG sin(swing) matches to the rig's speed, so the stance foot stays put. The hips drop by LEG (1 - cos(stance
+    thigh angle)), so the straight stance leg keeps its ankle at the rest height; the swinging ankle rises by
+    c cos(x) over its swing (x its phase, c the rise at which the knee bends by ``knee`` mid-swing), and ``leg_ik``
+    places both legs."""
     t = np.asarray(frames, np.float64) - frames[0]
-    leg = LEG * height
-    ph = 2 * math.pi * m_per_frame * t / (4 * leg * math.sin(angles["swing"])) + phase
+    leg, reach = LEG * height, LEG * height * math.sin(angles["swing"])
+    ph = 2 * math.pi * m_per_frame * t / (4 * reach) + phase
     fwd = np.array([math.sin(heading), -math.cos(heading)])
+    hips = leg * np.cos(np.arcsin(math.sin(angles["swing"]) * _tri(ph)))     # hip joint over the stance ankle
+    rise = leg - height * math.sqrt(THIGH ** 2 + SHIN ** 2 + 2 * THIGH * SHIN * math.cos(angles["knee"]))
     zeros = np.zeros_like(t)
     chans = {}
     for side, offset in (("L", 0.0), ("R", math.pi)):
-        u = _tri(ph + offset)                                               # the foot forward at +1
-        thigh = -np.arcsin(math.sin(angles["swing"]) * u)                    # negative about X: forward
-        x = ph + offset                                                      # swing: cos(x) > 0
-        knee = angles["knee"] * np.clip(-np.sin(2 * x), 0.0, 1.0) * (np.cos(x) > 0)   # while the thigh is behind
-        arm = angles["arm"] * u                                              # back while the leg is forward
+        x = ph + offset
+        u = _tri(x)                                                          # the ankle forward at +1
+        thigh, knee = leg_ik(reach * u, hips - rise * np.clip(np.cos(x), 0.0, None), THIGH * height, SHIN * height)
         for bone, angle in ((f"thigh.{side}", thigh), (f"shin.{side}", knee), (f"foot.{side}", -thigh - knee),
-                            (f"upperarm.{side}", arm),
+                            (f"upperarm.{side}", angles["arm"] * u),        # back while the leg is forward
                             (f"forearm.{side}", -0.25 - 0.2 * np.clip(-u, 0.0, 1.0))):
             chans[f'pose.bones["{bone}"].rotation_euler'] = np.column_stack([angle, zeros, zeros])
     chans['pose.bones["spine"].rotation_euler'] = np.column_stack([zeros, 0.08 * _tri(ph), zeros])  # a turn
-    drop = -leg * (1.0 - np.cos(np.arcsin(math.sin(angles["swing"]) * _tri(ph))))
-    chans["location"] = np.column_stack([np.asarray(start_xy) + np.outer(m_per_frame * t, fwd), drop])
+    chans["location"] = np.column_stack([np.asarray(start_xy) + np.outer(m_per_frame * t, fwd), hips - leg])
     rig.rotation_mode = "XYZ"
     rig.rotation_euler = (0.0, 0.0, heading)
     key_channels(rig, frames, chans)

@@ -673,11 +673,12 @@ def motion_objects(scene, mats, rng) -> None:
 
 def motion_character(scene, mats, rng) -> None:
     """1-2 walking figures (``character.py``: a mesh skinned to a 13-bone armature), each crossing the view along +X
-    or -X at 3-7 cm a frame from x in -0.6..0.6, its thighs swinging 18-32 degrees, knees bending up to 25-55 degrees,
-    arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first (1.5-1.9 m) walks
+    or -X at 3-7 cm a frame from x in -0.6..0.6, its thighs swinging 18-32 degrees, knees bent by 25-55 degrees
+    mid-swing, arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first (1.5-1.9 m) walks
     behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene camera's arc,
     which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose sides clear the
-    table top by ``LANE_CLEARANCE``. Each walker's objects record its own draws (``family_params``)."""
+    table top by ``LANE_CLEARANCE`` (and nothing else: other families' objects on a lane are walked through). Each
+    walker's objects record its own draws (``family_params``)."""
     count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
     for k in range(count):
