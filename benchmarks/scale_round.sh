@@ -12,7 +12,7 @@
 #   finetune      the shipped FuseSR fine-tuned (3,000 steps) on the 10x subset once it is rendered (the 10x run's
 #                 clips), then its release by the val rule
 #   inputs        the inputs study: FuseSR-l's 1x run again with hr_material (HR roughness and metallic), all else
-#                 as the curve's 1x run; both scored on val side by side once both are trained (val only)
+#                 as the curve's 1x run, and the 1x run at seed 1; scored on val side by side (val only)
 #   end           the round's end, once both curves are scored and every release has run: the test split's scores
 #                 of what shipped and every record docs/results.md reads (the sections and the verdict are written
 #                 by hand; its last step marks RUNS/round-end.done)
@@ -35,6 +35,7 @@ WAIT=${WAIT:-600}
 SCALING=("$PY" benchmarks/data_scaling.py "$DATA" --runs "$RUNS/scaling" --steps 6000 --threads 1 --wait $((WAIT / 60)))
 FT=$RUNS/finetune/fusesr
 IN=$RUNS/inputs/fusesr-l_047clips_material
+IN_SEED=$RUNS/inputs/fusesr-l_047clips_seed1
 JOBS=(render fusesr fusesr-10x fusesr-l fusesr-l-10x finetune inputs end)
 
 run() { echo "+ $*"; [ "${DRY:-0}" = 1 ] || "$@"; }
@@ -95,16 +96,24 @@ body_finetune() {
 }
 
 # the inputs study (docs/training.md, "The inputs study"): the curve's 1x FuseSR-l run, config and all, with the HR
-# material inputs added; scored on val beside it (the test split is not read) once both have their 6,000 steps
+# material inputs added, and the 1x run again at another seed (the noise floor); the three scored on val side by
+# side (the test split is not read) once all have their 6,000 steps, then grouped by family (held-out assets)
 body_inputs() {
   local base=$RUNS/scaling/fusesr-l_047clips done="lambda r: __import__('json').load(open(r + '/summary.json'))"
   await "__import__('os').path.exists('$base/config.toml')"
-  local cmd=(.venv/bin/blendsr train -o "$IN" --config "$base/config.toml" --set model.fusesr-l.hr_material=true)
-  if [ -f "$IN/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
-  await "all(os.path.exists(r + '/summary.json') and ($done)(r).get('step') == 6000 for r in ('$base', '$IN'))"
+  local run sets
+  for run in "$IN" "$IN_SEED"; do
+    sets=(--set model.fusesr-l.hr_material=true)
+    [ "$run" = "$IN_SEED" ] && sets=(--set run.seed=1)
+    local cmd=(.venv/bin/blendsr train -o "$run" --config "$base/config.toml" "${sets[@]}")
+    if [ -f "$run/checkpoints/last.pt" ]; then run "${cmd[@]}" --resume; else run "${cmd[@]}"; fi
+  done
+  local all="('$base', '$IN', '$IN_SEED')"
+  await "all(os.path.exists(r + '/summary.json') and ($done)(r).get('step') == 6000 for r in $all)"
   local f=docs/bench/scaling-families/val-inputs-fusesr-l bound="checkpoints/last.pt?residual_clamp=lr-guided"
   [ -s "$f.json" ] || run "$PY" benchmarks/worst_case.py "$DATA" --split val -o "$f" --models \
-      "demod-jbu,fusesr-l:$base/$bound,fusesr-l:$IN/$bound"
+      "demod-jbu,fusesr-l:$base/$bound,fusesr-l:$IN/$bound,fusesr-l:$IN_SEED/$bound"
+  run "$PY" -m gbuffer_export.commands.family_gap "$f.json" --data "$DATA" --by-kind --json "$f-gap.json"
 }
 
 # the round's end (docs/training.md, "The scale set's round"), once both curves are scored and every candidate has

@@ -59,14 +59,17 @@ def test_the_round_end_reads_test_only_after_every_release_and_records_val_befor
     assert sum("--split test --models" in c for c in end) == 10  # every baseline and shipped network
 
 
-def test_the_inputs_study_is_the_1x_run_with_material_inputs_scored_on_val_only(tmp_path):
+def test_the_inputs_study_is_the_1x_run_with_material_inputs_beside_a_second_seed_scored_on_val_only(tmp_path):
     steps = _steps(_round(tmp_path, "inputs"))["inputs"]
-    base, study = f"{tmp_path}/runs/scaling/fusesr-l_047clips", f"{tmp_path}/runs/inputs/fusesr-l_047clips_material"
+    base = f"{tmp_path}/runs/scaling/fusesr-l_047clips"
+    study, seed = (f"{tmp_path}/runs/inputs/fusesr-l_047clips_{k}" for k in ("material", "seed1"))
     assert f"{base}/config.toml" in steps[0]
     assert steps[1].endswith(f"-o {study} --config {base}/config.toml --set model.fusesr-l.hr_material=true")
-    assert base in steps[2] and study in steps[2] and "== 6000" in steps[2]
-    assert len(steps) == 4 and "--split val" in steps[3] and "--split test" not in " ".join(steps)
-    assert f"fusesr-l:{base}/checkpoints/last.pt" in steps[3] and f"fusesr-l:{study}/checkpoints/last.pt" in steps[3]
+    assert steps[2].endswith(f"-o {seed} --config {base}/config.toml --set run.seed=1")
+    assert all(r in steps[3] for r in (base, study, seed)) and "== 6000" in steps[3]
+    assert len(steps) == 6 and "--split val" in steps[4] and "--split test" not in " ".join(steps)
+    assert all(f"fusesr-l:{r}/checkpoints/last.pt" in steps[4] for r in (base, study, seed))
+    assert "family_gap" in steps[5] and "--json" in steps[5]
 
 
 def test_a_released_run_is_not_released_again(tmp_path):
