@@ -153,7 +153,8 @@ def probe_deformed(args) -> dict:
                 hip, ankle = (m[:3, :3] @ np.array(p) + m[:3, 3] for p in (thigh.head, shin.tail))
                 rec["legs"][side].append([thigh.rotation_euler[0], hip.tolist(), ankle.tolist()])
     return {"frames": [scene.frame_start, scene.frame_end], "meshes": meshes, "rigs": rigs,
-            "params": {o.name: o["family_params"] for o in scene.objects if "family_params" in o}}
+            "params": {o.name: o["family_params"] for o in scene.objects if "family_params" in o},
+            "starts": {o.name: o["walk_start"] for o in scene.objects if "walk_start" in o}}
 
 
 def _skinning(ob, every: int) -> dict:
@@ -190,6 +191,45 @@ def _deformed_frame(ev, rec: dict, every: int) -> None:
     rec["edge_stretch"].append(float(stretch.max()))
     for key, pts in (("deformed", co), ("rigid", rest)):
         rec[key].append((pts[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
+
+
+def probe_crowd(args) -> dict:
+    """The default scene of ``seed``/``frames``/``props`` with its walkers: per walker per frame, how many of its
+    evaluated vertices lie within ``gap`` metres of the box of any other object's (or instance's) evaluated vertices
+    (objects topped within ``sweep.STEP_M`` of the ground, the floor and fog left out), and what of a walker is left
+    in ``bpy.data`` (objects, meshes, armatures, actions, materials whose name starts with "Walker")."""
+    from gbuffer_export.blender.default_scene import build_default_scene
+    from gbuffer_export.sweep import STEP_M
+    scene = build_default_scene(seed=args["seed"], frames=tuple(args["frames"]), resolution=(64, 36),
+                                props=tuple(args["props"]))
+    walkers = sorted(o.name for o in scene.objects if o.type == "MESH" and o.name.startswith("Walker"))
+    near = {w: [] for w in walkers}
+    for f in range(scene.frame_start - 1, scene.frame_end + 1):
+        scene.frame_set(f)
+        verts, boxes = {}, []
+        for inst in bpy.context.evaluated_depsgraph_get().object_instances:
+            ob = inst.object
+            if ob.type != "MESH" or ob.original.hide_render or ob.original.name in ("Floor", "Fog Volume"):
+                continue
+            mesh = ob.to_mesh()
+            co = np.empty(3 * len(mesh.vertices))
+            mesh.vertices.foreach_get("co", co)
+            ob.to_mesh_clear()
+            m = np.array(inst.matrix_world)
+            co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            if not inst.is_instance and ob.original.name in walkers:
+                verts[ob.original.name] = co
+            elif len(co) and co[:, 2].max() > STEP_M:
+                boxes.append((co.min(axis=0) - args["gap"], co.max(axis=0) + args["gap"]))
+        for w, co in verts.items():
+            inside = np.zeros(len(co), bool)
+            for lo, hi in boxes:
+                inside |= np.all((co > lo) & (co < hi), axis=1)
+            near[w].append(int(inside.sum()))
+    left = sorted(x.name for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.armatures, bpy.data.actions,
+                                      bpy.data.materials) for x in coll if x.name.startswith("Walker"))
+    return {"walkers": walkers, "near": near, "left": left,
+            "params": {w: json.loads(scene.objects[w]["family_params"]) for w in walkers}}
 
 
 def probe_default_render(args) -> dict:

@@ -93,26 +93,15 @@ def test_init_from_ungated_weights_starts_only_the_gate_fresh(tmp_path, caplog):
 
 
 @pytest.mark.parametrize("extra", [{}, {"transmission_fallback": True}], ids=["gate", "gate+fallback"])
-def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(tmp_path, extra):
+def test_gated_network_runs_the_fused_hr_stage_and_exports_to_onnx(fused_then_onnx, extra):
     """The gate (and ``transmission_fallback``, which reads the HR flags: the example inputs hold TRANSMISSION on
     about half the pixels) acts before the fused HR stage (unchanged): the fused torch stage equals the eager output,
     and the ONNX export (the flags an int32 input) matches torch (a gate that reads its features: random 1x1
     weights)."""
-    pytest.importorskip("onnxruntime")
-    from training.inference.export import export_onnx
-    from training.inference.model import InferenceModel
     model = _gated("fusesr-fast", residual_clamp="lr-guided", **extra)
     with torch.no_grad():
         model.confidence.weight.normal_(0.0, 0.3)
-    batch = _batch(model)
-    with torch.no_grad():
-        eager = model(batch)
-        model.hr_impl = "torch"
-        fused = model(batch)
-    model.hr_impl = None
-    assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
-    report = export_onnx(InferenceModel(model, "gated"), tmp_path / "m.onnx", hr_size=(64, 48))
-    assert report["match"], report
+    report = fused_then_onnx(model, _batch(model), "gated")
     assert ("hr_flags" in report["inputs"]) == bool(extra)  # the graph reads the flags only with the fallback
 
 

@@ -63,19 +63,8 @@ def test_init_from_weights_without_them_starts_as_their_network(tmp_path, caplog
         assert float((wide.eval()(batch) - plain(batch)).abs().max()) > 1e-4   # the channels reach the output
 
 
-def test_material_inputs_run_the_fused_hr_stage_and_export_to_onnx(tmp_path):
-    pytest.importorskip("onnxruntime")
-    from training.inference.export import export_onnx
-    from training.inference.model import InferenceModel
+def test_material_inputs_run_the_fused_hr_stage_and_export_to_onnx(fused_then_onnx):
     torch.manual_seed(0)
     model = build_model(ModelConfig.of("fusesr-l", residual_clamp="lr-guided", hr_material=True), 4).eval()
-    batch = _batch(model)
-    with torch.no_grad():
-        eager = model(batch)
-        model.hr_impl = "torch"
-        fused = model(batch)
-    model.hr_impl = None
-    assert torch.allclose(fused, eager, rtol=1e-5, atol=1e-6)
-    report = export_onnx(InferenceModel(model, "material"), tmp_path / "m.onnx", hr_size=(64, 48))
-    assert report["match"], report
+    report = fused_then_onnx(model, _batch(model), "material")
     assert {"hr_roughness", "hr_metallic"} <= set(report["inputs"])

@@ -23,7 +23,7 @@ from ...errors import BlendSRError
 from .layout import TABLE_TOP_Z, animated_camera, courtyard, rolling_ball, table_and_props
 from .lights import STUDIOLIGHTS, hdri_path, make_world, seeded_world, studiolight_path, sun_lamp
 from .materials import make_materials
-from .props import CAMERA_PROPS, OPTIONAL_PROPS, add_props
+from .props import CAMERA_PROPS, LAST_PROPS, OPTIONAL_PROPS, add_props
 
 #: What the default scene holds, for docs and tests: feature -> names of the objects (or world) that carry it.
 DEFAULT_SCENE_FEATURES: dict[str, tuple[str, ...]] = {
@@ -87,10 +87,11 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
         bpy.data.objects.remove(bpy.data.objects["Sun"], do_unlink=True)
     courtyard(scene, mats, rng)
     table_and_props(scene, mats, rng)
-    add_props(scene, mats, seed, [p for p in props if p not in CAMERA_PROPS])
+    add_props(scene, mats, seed, [p for p in props if p not in CAMERA_PROPS + LAST_PROPS])
     rolling_ball(scene, mats, rng, frames_all)
     animated_camera(scene, rng, frames_all)
     add_props(scene, mats, seed, [p for p in props if p in CAMERA_PROPS])
+    add_props(scene, mats, seed, [p for p in props if p in LAST_PROPS])
     scene.frame_set(start)
     return scene
 

@@ -31,6 +31,7 @@ Each family's drawn parameters are kept on its objects as ``family_params`` (JSO
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import bmesh
@@ -38,11 +39,15 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
+from ... import sweep
 from ..camera_paths import key_channels, key_look_at
-from .character import HALF_WIDTH, build_figure, key_walk
+from . import placement
+from .character import build_figure, key_walk
 from .geometry import add_object, box, catenary, cylinder, lathe, sphere, text_object, tube
 from .materials import Mat
 from .modifiers import boolean_cut, displace, instance_on_faces
+
+log = logging.getLogger(__name__)
 
 #: Principled classes a material family's primitives draw from.
 CLASSES = ("metal", "dielectric", "coat", "sheen", "transmission", "anisotropy", "emission")
@@ -84,9 +89,16 @@ RANGES: dict[str, dict[str, tuple[float, float]]] = {
                          "m_per_frame": (0.03, 0.07), "swing_deg": (18.0, 32.0), "knee_deg": (25.0, 55.0),
                          "arm_deg": (12.0, 30.0)},
 }
-#: The walkers' lanes keep their sides (``character.HALF_WIDTH`` x height) this far (m) from the table top's edges
+#: The walkers' lanes keep their sides (their measured reach across the lane) this far (m) from the table top's edges
 #: (|y| <= ``TABLE_HALF_DEPTH``); behind the table a lane lies up to ``LANE_SPREAD`` further back.
-TABLE_HALF_DEPTH, LANE_CLEARANCE, LANE_SPREAD = 0.45, 0.02, 0.25
+TABLE_HALF_DEPTH, LANE_CLEARANCE, LANE_SPREAD = 0.45, 0.02, 0.5
+#: Walker 0's second choice: a lane behind the courtyard's fence (its posts end at y 1.665 m), its near side from
+#: ``FENCE_LANE_Y`` up to ``LANE_SPREAD`` further back, seen through the pickets and the wire mesh.
+FENCE_LANE_Y = 1.7
+#: A walker's custom property: its start, JSON {"x_m", "lane_m" (y), "direction" (+1: +X, -1: -X)}.
+WALK_START = "walk_start"
+#: Starts drawn per walker and lane before it is left out (``motion_character``).
+PLACE_TRIES = 16
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
 
@@ -217,8 +229,8 @@ def material_family(pattern: str):
 
 def mat_surfaces(scene, mats, rng) -> None:
     """Material classes on surfaces as large as a game shows them: a wall panel (1.6-2.4 x 1.0-1.6 m, 6 cm thick)
-    standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm) under
-    the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of the table top (|x| <= 0.8);
+    standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm, its top
+    2 mm above the floor) under the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of the table top (|x| <= 0.8);
     each of a Principled class of ``CLASSES`` over a pattern of the material families (4-30 features per m),
     recorded as ``principled_class`` and ``pattern``."""
     d = Draw("mat_surfaces", rng)
@@ -226,7 +238,7 @@ def mat_surfaces(scene, mats, rng) -> None:
     fw, fd, size = d("floor_width_m"), d("floor_depth_m"), d("object_m")
     side = 1.0 if rng.uniform() < 0.5 else -1.0
     parts = (("Wall", (ww, 0.06, wh), (float(rng.uniform(-0.3, 0.3)), float(rng.uniform(1.2, 1.3)), wh / 2), "cube"),
-             ("Floor", (fw, fd, 0.01), (0.0, float(rng.uniform(-0.1, 0.1)), 0.005), "cube"),
+             ("Floor", (fw, fd, 0.01), (0.0, float(rng.uniform(-0.1, 0.1)), -0.003), "cube"),
              ("Sculpture", (size, size, size), (side * (0.85 + size / 2 + float(rng.uniform(0.0, 0.3))),
                                                 float(rng.uniform(0.1, 0.5)), size / 2),
               ("cube", "sphere")[int(rng.integers(2))]))
@@ -674,11 +686,14 @@ def motion_objects(scene, mats, rng) -> None:
 def motion_character(scene, mats, rng) -> None:
     """1-2 walking figures (``character.py``: a mesh skinned to a 13-bone armature), each crossing the view along +X
     or -X at 3-7 cm a frame from x in -0.6..0.6, its thighs swinging 18-32 degrees, knees bent by 25-55 degrees
-    mid-swing, arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first (1.5-1.9 m) walks
-    behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene camera's arc,
-    which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose sides clear the
-    table top by ``LANE_CLEARANCE`` (and nothing else: other families' objects on a lane are walked through). Each
-    walker's objects record its own draws (``family_params``)."""
+    mid-swing, arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first
+    (1.5-1.9 m) walks behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene
+    camera's arc, which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose
+    sides (measured over the walk) clear the table top by ``LANE_CLEARANCE``. Of ``PLACE_TRIES`` starts (x, lane,
+    direction) drawn per walker, the first whose box clears every other object's box (``LANE_CLEARANCE``), frame by
+    frame, is taken (``gbuffer_export.sweep``: boxes topped within 2 cm of the ground are stepped on); a walker with
+    none is left out. Build it after every other family, so that it sees them. Each walker's objects record its own
+    draws (``family_params``) and its start (``WALK_START``)."""
     count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
     for k in range(count):
@@ -686,14 +701,38 @@ def motion_character(scene, mats, rng) -> None:
         d.params["count"] = count
         h, v = d("front_height_m" if k else "height_m"), d("m_per_frame")
         angles = {a: math.radians(d(f"{a}_deg")) for a in ("swing", "knee", "arm")}
-        edge = TABLE_HALF_DEPTH + LANE_CLEARANCE + HALF_WIDTH * h
-        lane = -edge if k else edge + float(rng.uniform(0.0, LANE_SPREAD))
         rig, body = build_figure(scene, f"Walker {k + 1}", h, _walker_materials(k, rng))
-        direction = 1.0 if rng.uniform() < 0.5 else -1.0             # +X or -X
-        key_walk(rig, frames, (float(rng.uniform(-0.6, 0.6)), lane), direction * math.pi / 2, v, h, angles,
-                 float(rng.uniform(0.0, 2 * math.pi)))
-        d.tag(rig)
-        d.tag(body)
+        phase = float(rng.uniform(0.0, 2 * math.pi))
+
+        def key(xy, heading, rig=rig, h=h, v=v, angles=angles, phase=phase):
+            key_walk(rig, frames, (float(xy[0]), float(xy[1])), heading, v, h, angles, phase)
+        boxes = placement.measure(scene, frames, body, key)
+        placement.unkey(rig)
+        start = _walker_start(k, boxes, rng)
+        if start is None:
+            log.info("motion_character: walker %d of %d left out: none of %d starts clears the scene", k + 1, count,
+                     PLACE_TRIES)
+            placement.remove(rig, body)
+            continue
+        key(start[:2], start[2] * math.pi / 2)
+        for ob in (rig, body):
+            ob[WALK_START] = json.dumps({"x_m": float(start[0]), "lane_m": float(start[1]), "direction": int(start[2])})
+            d.tag(ob)
+
+
+def _walker_start(k: int, boxes: list, rng) -> np.ndarray | None:
+    """The first of the drawn starts (x, lane y, direction +-1) of walker ``k`` whose walk (``boxes``:
+    ``placement.measure``) clears the scene, or None. Walker 0 tries ``PLACE_TRIES`` lanes behind the table, up to
+    ``LANE_SPREAD`` back from its nearest, then as many behind the fence (``FENCE_LANE_Y``); walker 1 tries
+    ``PLACE_TRIES`` starts in front of the table, at its nearest lane (the camera's arc is close)."""
+    half = sweep.half_width(boxes)
+    edge = TABLE_HALF_DEPTH + LANE_CLEARANCE + half
+    n = PLACE_TRIES if k else 2 * PLACE_TRIES
+    lanes = (-np.full(n, edge) if k else
+             (np.array([[edge], [FENCE_LANE_Y + half]]) + rng.uniform(0.0, LANE_SPREAD, (2, PLACE_TRIES))).ravel())
+    starts = np.column_stack([rng.uniform(-0.6, 0.6, n), lanes, np.where(rng.uniform(size=n) < 0.5, 1.0, -1.0)])
+    i = sweep.first_clear(boxes, starts, LANE_CLEARANCE)
+    return None if i is None else starts[i]
 
 
 def _walker_materials(k: int, rng) -> tuple:

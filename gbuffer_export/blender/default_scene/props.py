@@ -120,5 +120,7 @@ _PROPS = {"broken_pane": (broken_pane, 0x9A7E, ("Broken Pane Glass", "Broken Pan
           **{name: (build, stream, ()) for name, (build, stream) in FAMILIES.items()}}
 #: The families that re-key the scene camera (added after it).
 CAMERA_PROPS = tuple(n for n in FAMILIES if n.startswith("cam_"))
+#: The families placed clear of every other object (added last, when every other object is there).
+LAST_PROPS = ("motion_character",)
 #: Opt-in props -> the objects they add (docs and tests; the spec's ``BUILTIN_PROPS`` names the same props).
 OPTIONAL_PROPS: dict[str, tuple[str, ...]] = {name: p[2] for name, p in _PROPS.items()}
