@@ -473,6 +473,9 @@ def test_shipped_specs_expand_with_test_assets_out_of_training(spec_file):
             if j.kind == "scene":
                 levels.setdefault(Path(j.asset).stem, set()).add(j.split)
         assert len(levels) == 3 and all(v == {"train", "val", "test"} for v in levels.values())
+    if spec_file.name == "dataset_games.toml":  # the scale set's clips exactly, then the later families' own
+        scale = expand(load_spec(spec_file.parent / "dataset_scale.toml"))
+        assert [j.to_json() for j in jobs[:len(scale)]] == [j.to_json() for j in scale] and len(jobs) == 1148
     if spec_file.name == "zoo_scales_dataset.toml":  # the zoo clips, the same cameras, with an LR level at 2x
         zoo = expand(load_spec(spec_file.parent / "zoo_dataset.toml"))
 

@@ -182,6 +182,26 @@ def test_the_scale_spec_plans_ten_times_the_wide_set_with_held_out_families():
     assert {j.render["lr_spp"] for j in jobs} <= {4, 16, 32, 128} and {j.render["hr_spp"] for j in jobs} == {32}
 
 
+def test_the_games_spec_holds_out_one_later_family_for_test_and_one_for_val_and_trains_on_the_rest():
+    """``dataset_games.toml``: the scale set's held-out families, then ``geometry:instanced`` for test and
+    ``geometry:displaced`` for val (chosen once, 2026-12-01, before any of their clips was rendered); every other
+    family the scale set lacks is trained on and has in-family test and val clips."""
+    shared_or_skip("scenes/levels")
+    from gbuffer_export.dataset.spec import load_spec
+    from tests.conftest import REPO
+    scale = load_spec(REPO / "examples" / "dataset_scale.toml")
+    spec = load_spec(REPO / "examples" / "dataset_games.toml")
+    assert list(spec.splits.test_families) == [*scale.splits.test_families, "geometry:instanced"]
+    assert list(spec.splits.val_families) == [*scale.splits.val_families, "geometry:displaced"]
+    later = {"geometry:boolean", "light:fog", "motion:objects", "motion:character", "material:surfaces"}
+    held = {}
+    for j in expand(spec):
+        for f in later & set(j.families):
+            held.setdefault(f, set()).add((j.split, j.family_group))
+    assert all(v >= {("train", "in-family"), ("test", "in-family"), ("val", "in-family")} for v in held.values()), held
+    assert held.keys() == later
+
+
 def test_a_network_trained_elsewhere_is_grouped_by_its_own_lineage(tmp_path, capsys):
     """A shipped network trained on another spec may have seen a held-out family of this dataset, and never seen an
     in-family one: with ``--seen-from`` its clips are grouped by its lineage (a weights JSON naming a spec and one of
