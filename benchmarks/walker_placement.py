@@ -1,7 +1,7 @@
 """How often the built-in walkers (``motion_character``) find a place clear of another family's objects (issue 54:
 a walker passes through nothing; one without room is left out). For each family and seed: the default scene with
-that family and the walkers (``build_default_scene``, 8 frames, nothing rendered), and how many of the walkers drawn
-(the family's first draw, ``count``) were placed, and where (behind the fence or not).
+that family and the walkers (``build_default_scene`` as an 8-frame dataset clip builds it, nothing rendered), and
+how many of the walkers drawn (the family's first draw, ``count``) were placed, and where (behind the fence or not).
 
     .venv/bin/python benchmarks/walker_placement.py --seeds 1:6 --crowd boolean,motion_objects,mat_surfaces \\
         --crowd mat_brick,mat_wave,wires,railing -o docs/bench/families/walker_placement.json
@@ -31,7 +31,8 @@ def placed(families: tuple[str, ...], seed: int) -> dict[str, float]:
     """The walkers placed in seed ``seed`` beside ``families``: name -> its lane's y (m)."""
     from gbuffer_export.blender.default_scene import build_default_scene
     from gbuffer_export.blender.default_scene.families import WALK_START
-    scene = build_default_scene(seed=seed, frames=(1, 8), resolution=(64, 36), props=(*families, "motion_character"))
+    scene = build_default_scene(seed=seed, frames=(1, 48), resolution=(64, 36), props=(*families, "motion_character"),
+                                shown=(1, 8))     # as blendsr dataset builds an 8-frame builtin clip
     return {o.name: json.loads(o[WALK_START])["lane_m"] for o in scene.objects
             if o.get("blendsr_family") == "motion_character" and o.type == "MESH"}
 
@@ -59,7 +60,8 @@ def main(argv=None) -> int:
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.output.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"seeds": [first, last], "frames": [1, 8], "families": table}, indent=1) + "\n")
+        record = {"seeds": [first, last], "frames": [1, 48], "shown": [1, 8], "families": table}
+        tmp.write_text(json.dumps(record, indent=1) + "\n")
         tmp.replace(args.output)
     return 0
 

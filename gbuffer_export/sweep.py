@@ -7,8 +7,8 @@ A mover's boxes are measured once, relative to its start point with its heading 
 that a walk whose body motion does not depend on its heading (``character.key_walk``) is measured once for both.
 Boxes are judged at the clip's frames only: two boxes could pass through each other between frames only if they
 moved by more than their extents along the motion in one frame (the built-in movers travel at most 13 cm a frame
-towards each other, a walker is over 30 cm long). Units are metres, +Z up. Everything whose top is within ``STEP_M`` of the ground is stepped on, not walked round
-(a floor, a rug, a 1 cm slab); ground boxes never block.
+towards each other, a walker is over 30 cm long). Units are metres, +Z up. Everything topped within ``STEP_M`` of
+the ground is stepped through, not walked round (a rug, a slab, pebbles below the ankle); ground boxes never block.
 """
 from __future__ import annotations
 

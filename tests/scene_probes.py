@@ -193,18 +193,57 @@ def _deformed_frame(ev, rec: dict, every: int) -> None:
         rec[key].append((pts[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
 
 
+def probe_walk_turn(args) -> dict:
+    """One walker (1.7 m, 5 cm a frame) in an empty scene of frames 1-8: ``placement.measure``'s boxes of it (keyed at
+    the origin heading +X), the world boxes of its evaluated vertices keyed so, and keyed again at each of
+    ``starts`` ([x, y, direction]), per frame."""
+    from gbuffer_export.blender.default_scene import placement
+    from gbuffer_export.blender.default_scene.character import build_figure, key_walk
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 8
+    rig, body = build_figure(scene, "Walker 1", 1.7, [bpy.data.materials.new(n) for n in ("a", "b", "c")])
+    angles = {"swing": 0.45, "knee": 0.7, "arm": 0.35}
+
+    def key(xy, heading):
+        key_walk(rig, np.arange(0, 9), xy, heading, 0.05, 1.7, angles, 1.0)
+
+    def vertex_boxes():
+        out = []
+        for f in range(1, 9):
+            scene.frame_set(f)
+            ev = body.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            mesh = ev.to_mesh()
+            co = np.empty(3 * len(mesh.vertices))
+            mesh.vertices.foreach_get("co", co)
+            ev.to_mesh_clear()
+            m = np.array(ev.matrix_world)
+            co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            out.append([co.min(axis=0).tolist(), co.max(axis=0).tolist()])
+        return out
+    measured = [own.tolist() for own, _, _ in placement.measure(scene, body, key)]
+    result = {"measured": measured, "origin": vertex_boxes(), "moved": []}
+    for x, y, d in args["starts"]:
+        placement.unkey(rig)
+        key((x, y), d * np.pi / 2)
+        result["moved"].append(vertex_boxes())
+    return result
+
+
 def probe_crowd(args) -> dict:
-    """The default scene of ``seed``/``frames``/``props`` with its walkers: per walker per frame, how many of its
+    """The default scene of ``seed``/``frames``/``props`` (``shown``: the frames a clip renders, default ``frames``)
+    with its walkers: per walker per frame shown, how many of its
     evaluated vertices lie within ``gap`` metres of the box of any other object's (or instance's) evaluated vertices
     (objects topped within ``sweep.STEP_M`` of the ground, the floor and fog left out), and what of a walker is left
     in ``bpy.data`` (objects, meshes, armatures, actions, materials whose name starts with "Walker")."""
     from gbuffer_export.blender.default_scene import build_default_scene
     from gbuffer_export.sweep import STEP_M
     scene = build_default_scene(seed=args["seed"], frames=tuple(args["frames"]), resolution=(64, 36),
-                                props=tuple(args["props"]))
+                                props=tuple(args["props"]), shown=tuple(args.get("shown", args["frames"])))
     walkers = sorted(o.name for o in scene.objects if o.type == "MESH" and o.name.startswith("Walker"))
     near = {w: [] for w in walkers}
-    for f in range(scene.frame_start - 1, scene.frame_end + 1):
+    shown = args.get("shown", args["frames"])
+    for f in range(shown[0], shown[1] + 1):
         scene.frame_set(f)
         verts, boxes = {}, []
         for inst in bpy.context.evaluated_depsgraph_get().object_instances:
@@ -228,7 +267,7 @@ def probe_crowd(args) -> dict:
             near[w].append(int(inside.sum()))
     left = sorted(x.name for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.armatures, bpy.data.actions,
                                       bpy.data.materials) for x in coll if x.name.startswith("Walker"))
-    return {"walkers": walkers, "near": near, "left": left,
+    return {"walkers": walkers, "near": near, "left": left, "left_out": list(scene.get("blendsr_left_out", [])),
             "params": {w: json.loads(scene.objects[w]["family_params"]) for w in walkers}}
 
 

@@ -47,12 +47,14 @@ def render_job(job: ClipJob, clip_dir: Path, threads: int = 0, progress: bool = 
     frames = cfg.frames
     world = {"hdri": job.hdri, "rotation_deg": job.hdri_rotation_deg, "strength": job.hdri_strength}
     if job.kind == "builtin":
-        from .default_scene import build_default_scene
+        from .default_scene import LEFT_OUT, build_default_scene
         scene = build_default_scene(seed=job.seed, frames=(1, max(frames[1], 48)), resolution=cfg.hr_size,
-                                    world=world, sun=job.sun, props=tuple(job.props or ()))
+                                    world=world, sun=job.sun, props=tuple(job.props or ()), shown=tuple(frames))
         info = {"file": None, "sha256": None, "builtin": "default", "seed": job.seed, "camera_path": job.camera,
                 "hdri": job.hdri, "hdri_rotation_deg": job.hdri_rotation_deg, "hdri_strength": job.hdri_strength,
-                "props": list(job.props or ())}
+                "props": list(job.props or ()),
+                # only when a family found no room for something it drew: other clips keep their identity
+                **({"left_out": list(scene[LEFT_OUT])} if scene.get(LEFT_OUT) else {})}
         if job.camera in ("orbit", "walk"):
             from .camera_paths import make_camera_path
             make_camera_path(scene, job.camera, frames, job.seed)

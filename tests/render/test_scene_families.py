@@ -279,19 +279,35 @@ def test_walkers_walk_along_their_lanes_facing_where_they_go(probe, walkers):
         assert len(near) and np.abs(near[:, 1]).min() > 0.45, (rig, np.abs(near[:, 1]).min())
 
 
+def test_a_walk_turned_and_moved_has_the_boxes_the_rule_predicts():
+    """The rule measures a walk once (keyed at the origin heading +X) and moves its boxes to each start, turning them
+    180 degrees for -X: ``placement.measure`` gives the evaluated vertices' box in every frame (the walker moving),
+    and the same walk keyed at a start, either way, has the boxes ``sweep.placed`` predicts (0.01 mm)."""
+    from gbuffer_export import sweep
+    starts = [[0.3, 1.1, 1.0], [-0.4, -0.8, -1.0]]
+    r = run_probe("walk_turn", {"starts": starts})
+    measured, origin = np.array(r["measured"]), np.array(r["origin"])
+    assert measured.shape == (8, 2, 3) and np.allclose(measured, origin, atol=1e-5)
+    assert np.allclose(np.diff(origin[:, :, 0].mean(axis=1)), 0.05, atol=0.02)      # it walks +X, frame by frame
+    for start, moved in zip(starts, r["moved"]):
+        want = np.stack([sweep.placed(box, np.array([start]))[0] for box in origin])
+        assert np.allclose(np.array(moved), want, atol=1e-5), (start, np.abs(np.array(moved) - want).max())
+
+
 def test_walkers_pass_through_nothing_and_one_without_room_is_left_out():
     """Beside a boolean wall, flying movers and ``mat_surfaces`` (seed 3: without the rule a walker's vertices enter
     their boxes), no vertex of either walker comes within 1 cm of another object's box (its evaluated vertices') in
     any frame; the rule keeps 2 cm between boxes. Behind a railing at y -1 (seed 3) the walker in front has no lane:
-    it is left out, and nothing of it stays in ``bpy.data``."""
-    crowd = run_probe("crowd", {"seed": 3, "frames": [1, 8], "gap": 0.01,
+    it is left out (the scene records it), and nothing of it stays in ``bpy.data``."""
+    crowd = run_probe("crowd", {"seed": 3, "frames": [1, 48], "shown": [1, 8], "gap": 0.01,
                                 "props": ["boolean", "motion_objects", "mat_surfaces", "motion_character"]})
     assert crowd["walkers"] == ["Walker 1", "Walker 2"], crowd["walkers"]
-    assert all(len(n) == 9 and max(n) == 0 for n in crowd["near"].values()), crowd["near"]
+    assert all(len(n) == 8 and max(n) == 0 for n in crowd["near"].values()), crowd["near"]
     railed = run_probe("crowd", {"seed": 3, "frames": [1, 8], "gap": 0.01, "props": ["railing", "motion_character"]})
     assert railed["walkers"] == ["Walker 1"] and railed["params"]["Walker 1"]["count"] == 2, railed
     assert max(railed["near"]["Walker 1"]) == 0
     assert not [n for n in railed["left"] if n.startswith("Walker 2")], railed["left"]
+    assert railed["left_out"] == ["Walker 2"] and crowd["left_out"] == []
 
 
 def test_walkers_are_skinned_whole_and_bend_without_tearing(walkers):

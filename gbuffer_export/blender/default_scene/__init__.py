@@ -23,6 +23,7 @@ from ...errors import BlendSRError
 from .layout import TABLE_TOP_Z, animated_camera, courtyard, rolling_ball, table_and_props
 from .lights import STUDIOLIGHTS, hdri_path, make_world, seeded_world, studiolight_path, sun_lamp
 from .materials import make_materials
+from .placement import LEFT_OUT, PLACED_FRAMES
 from .props import CAMERA_PROPS, LAST_PROPS, OPTIONAL_PROPS, add_props
 
 #: What the default scene holds, for docs and tests: feature -> names of the objects (or world) that carry it.
@@ -51,7 +52,8 @@ DEFAULT_SCENE_FEATURES: dict[str, tuple[str, ...]] = {
 
 def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
                         resolution: tuple[int, int] = (640, 360), world: dict | None = None,
-                        sun: bool = True, props: tuple[str, ...] = ()) -> bpy.types.Scene:
+                        sun: bool = True, props: tuple[str, ...] = (),
+                        shown: tuple[int, int] | None = None) -> bpy.types.Scene:
     """Reset Blender to an empty factory state and build the default courtyard scene in it.
 
     ``frames``: inclusive (start, end); animation is keyed on every frame from start-1 to end. ``resolution``:
@@ -59,7 +61,8 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     "builtin:NAME", "rotation_deg": about +Z, "strength": multiplier of the normalised sky}); the layout, materials
     and camera of the seed stay the same. ``sun``: False removes the sun lamp. ``props``: opt-in props
     (``OPTIONAL_PROPS``, e.g. ``("broken_pane",)``), each from its own seeded stream: every other object stays as
-    without them. Returns the scene (also
+    without them. ``shown``: the inclusive frames a clip will render (default ``frames``): what is placed clear of
+    everything else (the walkers) is judged on those (``PLACED_FRAMES``). Returns the scene (also
     ``bpy.context.scene``). Engine and sampling are left at the factory values; the caller sets them."""
     start, end = int(frames[0]), int(frames[1])
     unknown = [p for p in props if p not in OPTIONAL_PROPS]
@@ -78,6 +81,8 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     scene.render.resolution_percentage = 100
     scene.render.fps = 24
     scene["blendsr_default_scene_seed"] = int(seed)
+    if shown is not None:
+        scene[PLACED_FRAMES] = [int(f) for f in shown]
 
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5CE7E])
     frames_all = np.arange(start - 1, end + 1)
@@ -96,5 +101,6 @@ def build_default_scene(seed: int = 0, frames: tuple[int, int] = (1, 48),
     return scene
 
 
-__all__ = ["DEFAULT_SCENE_FEATURES", "OPTIONAL_PROPS", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene", "hdri_path",
+__all__ = ["DEFAULT_SCENE_FEATURES", "LEFT_OUT", "OPTIONAL_PROPS", "STUDIOLIGHTS", "TABLE_TOP_Z", "build_default_scene",
+           "hdri_path",
            "make_world", "studiolight_path"]

@@ -229,9 +229,9 @@ def material_family(pattern: str):
 
 def mat_surfaces(scene, mats, rng) -> None:
     """Material classes on surfaces as large as a game shows them: a wall panel (1.6-2.4 x 1.0-1.6 m, 6 cm thick)
-    standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm, its top
-    2 mm above the floor) under the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of the table top (|x| <= 0.8);
-    each of a Principled class of ``CLASSES`` over a pattern of the material families (4-30 features per m),
+    standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm, its
+    top 2 mm above the floor) under the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of
+    the table top (|x| <= 0.8); each of a Principled class of ``CLASSES`` over a pattern of the material families (4-30 features per m),
     recorded as ``principled_class`` and ``pattern``."""
     d = Draw("mat_surfaces", rng)
     ww, wh = d("wall_width_m"), d("wall_height_m")
@@ -689,11 +689,12 @@ def motion_character(scene, mats, rng) -> None:
     mid-swing, arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first
     (1.5-1.9 m) walks behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene
     camera's arc, which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose
-    sides (measured over the walk) clear the table top by ``LANE_CLEARANCE``. Of ``PLACE_TRIES`` starts (x, lane,
-    direction) drawn per walker, the first whose box clears every other object's box (``LANE_CLEARANCE``), frame by
-    frame, is taken (``gbuffer_export.sweep``: boxes topped within 2 cm of the ground are stepped on); a walker with
-    none is left out. Build it after every other family, so that it sees them. Each walker's objects record its own
-    draws (``family_params``) and its start (``WALK_START``)."""
+    sides (measured over the walk) clear the table top by ``LANE_CLEARANCE``. Of the starts (x, lane, direction)
+    drawn per walker (``_walker_start``), the first whose box clears every other object's box by ``LANE_CLEARANCE``
+    in every frame the clip renders (``placement.judged_frames``) is taken (``gbuffer_export.sweep``: boxes topped
+    within ``sweep.STEP_M`` of the ground are stepped through); a walker with none is left out (the scene's
+    ``placement.LEFT_OUT``). Build it after every other family, so that it sees them. Each walker's objects record
+    its own draws (``family_params``) and its start (``WALK_START``)."""
     count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
     for k in range(count):
@@ -706,13 +707,13 @@ def motion_character(scene, mats, rng) -> None:
 
         def key(xy, heading, rig=rig, h=h, v=v, angles=angles, phase=phase):
             key_walk(rig, frames, (float(xy[0]), float(xy[1])), heading, v, h, angles, phase)
-        boxes = placement.measure(scene, frames, body, key)
+        boxes = placement.measure(scene, body, key)
         placement.unkey(rig)
         start = _walker_start(k, boxes, rng)
         if start is None:
             log.info("motion_character: walker %d of %d left out: none of %d starts clears the scene", k + 1, count,
                      PLACE_TRIES)
-            placement.remove(rig, body)
+            placement.remove(scene, rig, body)
             continue
         key(start[:2], start[2] * math.pi / 2)
         for ob in (rig, body):

@@ -8,14 +8,25 @@ import numpy as np
 
 from ..camera_paths import object_boxes
 
+#: The scene's custom property: the inclusive [first, last] frames a clip renders, on which placement is judged.
+PLACED_FRAMES = "blendsr_placed_frames"
+#: The scene's custom property: the names of what a family drew but found no room for (``left_out``).
+LEFT_OUT = "blendsr_left_out"
 
-def measure(scene, frames, body, key) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per frame of ``frames``: (``body``'s box relative to the start (0, 0), every other object's box (K, 2, 3),
-    their ground flags (K,)), with ``body`` keyed by ``key(start_xy, heading)`` at the origin heading +X (the
-    caller keys it again where it goes). The scene is left at its start frame."""
+
+def judged_frames(scene) -> range:
+    """The frames placement is judged on: the scene's ``PLACED_FRAMES`` (default: its frame range)."""
+    first, last = scene.get(PLACED_FRAMES, (scene.frame_start, scene.frame_end))
+    return range(int(first), int(last) + 1)
+
+
+def measure(scene, body, key) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per frame of ``judged_frames``: (``body``'s box relative to the start (0, 0), every other object's box
+    (K, 2, 3), their ground flags (K,)), with ``body`` keyed by ``key(start_xy, heading)`` at the origin heading +X
+    (the caller keys it again where it goes). The scene is left at its start frame."""
     key((0.0, 0.0), np.pi / 2)
     out = []
-    for f in frames:
+    for f in judged_frames(scene):
         scene.frame_set(int(f))
         boxes = object_boxes(scene)
         own = [np.stack([b.lo, b.hi]) for b in boxes if b.name == body.name]
@@ -35,8 +46,10 @@ def unkey(obj) -> None:
         bpy.data.actions.remove(action)
 
 
-def remove(rig, body) -> None:
-    """Remove a mover that found no place: its objects, their data and the materials only it used."""
+def remove(scene, rig, body) -> None:
+    """Remove a mover that found no place (its objects, their data and the materials only it used), and record its
+    name in the scene's ``LEFT_OUT``."""
+    scene[LEFT_OUT] = [*scene.get(LEFT_OUT, []), body.name]
     unkey(rig)
     mesh, arm, mats = body.data, rig.data, [m for m in body.data.materials if m]
     bpy.data.objects.remove(body, do_unlink=True)
