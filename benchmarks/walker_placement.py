@@ -38,16 +38,16 @@ def placed(families: tuple[str, ...], seed: int) -> dict[str, float]:
 
 
 def main(argv=None) -> int:
-    from gbuffer_export.blender.default_scene.families import FAMILIES
+    from gbuffer_export.blender.default_scene import OPTIONAL_PROPS
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1:6", help="first:last seed, inclusive (default 1:6)")
-    ap.add_argument("--families", nargs="*", help="families beside the walkers (default: every other one)")
+    ap.add_argument("--families", nargs="*", help="props beside the walkers (default: every other one, the panes too)")
     ap.add_argument("--crowd", action="append", default=[], metavar="FAM,FAM",
                     help="also a row of these families together (repeatable)")
     ap.add_argument("-o", "--output", type=Path, help="write the per-seed table here (JSON)")
     args = ap.parse_args(argv)
     first, last = map(int, args.seeds.split(":"))
-    families = args.families or [f for f in FAMILIES if f != "motion_character"]
+    families = args.families or [f for f in OPTIONAL_PROPS if f != "motion_character"]
     from gbuffer_export.blender.default_scene.families import FENCE_LANE_Y
     table = {}
     for fams in [(), *((f,) for f in families), *(tuple(c.split(",")) for c in args.crowd)]:
