@@ -6,6 +6,9 @@ one Cycles sample of the Object Index pass at frame 4, and the percentage of pix
     .venv/bin/python benchmarks/family_pixel_share.py mat_surfaces mat_noise --seeds 1:6 --size 256x144 \\
         -o docs/bench/families/pixel_share.json
 
+    .venv/bin/python benchmarks/family_pixel_share.py motion_character --beside boolean,motion_objects,mat_surfaces \\
+        -o docs/bench/families/walker_pixel_share_crowd.json
+
 Prints one line per family and object (median and range over the seeds) and writes the per-seed table as JSON.
 """
 from __future__ import annotations
@@ -21,12 +24,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def shares(family: str, seed: int, size: tuple[int, int], tmp: Path) -> dict[str, float]:
-    """Percent of the frame each object of ``family`` covers in seed ``seed`` at ``size``."""
+def shares(family: str, seed: int, size: tuple[int, int], tmp: Path, beside=()) -> dict[str, float]:
+    """Percent of the frame each object of ``family`` covers in seed ``seed`` at ``size`` (``beside``: other props
+    in the scene too, their objects counted as background)."""
     import bpy
     from gbuffer_export.blender.default_scene import build_default_scene
     from gbuffer_export.exr import read_exr_channels
-    scene = build_default_scene(seed=seed, frames=(1, 8), resolution=size, props=(family,))
+    scene = build_default_scene(seed=seed, frames=(1, 8), resolution=size, props=(*beside, family))
     names = {}
     for i, ob in enumerate(o for o in scene.objects if o.get("blendsr_family") == family):
         ob.pass_index, names[i + 1] = i + 1, ob.name
@@ -48,6 +52,8 @@ def main(argv=None) -> int:
     p.add_argument("families", nargs="+", help="built-in generator families (props of a builtin source)")
     p.add_argument("--seeds", default="1:6", help="inclusive seed range A:B (default 1:6)")
     p.add_argument("--size", default="256x144", help="frame size WxH in pixels (default 256x144, the scale set's)")
+    p.add_argument("--beside", default="", metavar="FAM,FAM",
+                   help="other props in every scene (their objects are not counted; default none)")
     p.add_argument("-o", "--out", type=Path, help="write {family: {seed: {object: percent}}} here (JSON)")
     a = p.parse_args(argv)
     lo, hi = (int(x) for x in a.seeds.split(":"))
@@ -55,7 +61,7 @@ def main(argv=None) -> int:
     table = {}
     with tempfile.TemporaryDirectory() as tmp:
         for family in a.families:
-            table[family] = {str(s): shares(family, s, size, Path(tmp)) for s in range(lo, hi + 1)}
+            table[family] = {str(s): shares(family, s, size, Path(tmp), tuple(filter(None, a.beside.split(",")))) for s in range(lo, hi + 1)}
     for family, per_seed in table.items():
         for name in sorted({n for v in per_seed.values() for n in v}):
             v = [d.get(name, 0.0) for d in per_seed.values()]

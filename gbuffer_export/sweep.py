@@ -58,11 +58,16 @@ def half_width(frames: list) -> float:
     return float(max(np.abs(np.asarray(own, np.float64)[:, 1]).max() for own, *_ in frames))
 
 
-def first_clear(frames: list, starts: np.ndarray, clearance: float) -> int | None:
-    """The index of the first of ``starts`` (C, 3) clear of the blocking boxes (``blocking``) in every frame of
-    ``frames`` (a list of (own (2, 3), others (K, 2, 3), ground (K,))), or None when none is."""
+def clear_mask(frames: list, starts: np.ndarray, clearance: float) -> np.ndarray:
+    """(C,) bool: which of ``starts`` (C, 3) are clear of the blocking boxes (``blocking``) in every frame of
+    ``frames`` (a list of (own (2, 3), others (K, 2, 3), ground (K,)))."""
     ok = np.ones(len(starts), bool)
     for own, others, ground in frames:
         ok &= clear_starts(own, blocking(others, ground), starts, clearance)
-    hits = np.flatnonzero(ok)
+    return ok
+
+
+def first_clear(frames: list, starts: np.ndarray, clearance: float) -> int | None:
+    """The index of the first of ``starts`` clear in every frame (``clear_mask``), or None when none is."""
+    hits = np.flatnonzero(clear_mask(frames, starts, clearance))
     return int(hits[0]) if len(hits) else None

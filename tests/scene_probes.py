@@ -205,8 +205,9 @@ def probe_walk_turn(args) -> dict:
     rig, body = build_figure(scene, "Walker 1", 1.7, [bpy.data.materials.new(n) for n in ("a", "b", "c")])
     angles = {"swing": 0.45, "knee": 0.7, "arm": 0.35}
 
-    def key(xy, heading):
-        key_walk(rig, np.arange(0, 9), xy, heading, 0.05, 1.7, angles, 1.0)
+    def key(start):
+        placement.unkey(rig)
+        key_walk(rig, np.arange(0, 9), start[:2], start[2] * np.pi / 2, 0.05, 1.7, angles, 1.0)
 
     def vertex_boxes():
         out = []
@@ -223,9 +224,8 @@ def probe_walk_turn(args) -> dict:
         return out
     measured = [own.tolist() for own, _, _ in placement.measure(scene, body, key)]
     result = {"measured": measured, "origin": vertex_boxes(), "moved": []}
-    for x, y, d in args["starts"]:
-        placement.unkey(rig)
-        key((x, y), d * np.pi / 2)
+    for start in args["starts"]:
+        key(start)
         result["moved"].append(vertex_boxes())
     return result
 

@@ -99,6 +99,10 @@ FENCE_LANE_Y = 1.7
 WALK_START = "walk_start"
 #: Starts drawn per walker and lane before it is left out (``motion_character``).
 PLACE_TRIES = 16
+#: Of the clear starts, how many are tried for the scene camera's view; the fraction of the walker's sampled
+#: vertices it should see (``placement.seen_fraction``: a walker behind the table in full view shows 0.1-0.2, its
+#: back and the legs the table hides do not count), and below which a walker is left out as out of view.
+SEEN_TRIES, SEEN_MIN, SEEN_FLOOR = 8, 0.1, 0.02
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
 
@@ -690,10 +694,10 @@ def motion_character(scene, mats, rng) -> None:
     (1.5-1.9 m) walks behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene
     camera's arc, which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose
     sides (measured over the walk) clear the table top by ``LANE_CLEARANCE``. Of the starts (x, lane, direction)
-    drawn per walker (``_walker_start``), the first whose box clears every other object's box by ``LANE_CLEARANCE``
-    in every frame the clip renders (``placement.judged_frames``) is taken (``gbuffer_export.sweep``: boxes topped
-    within ``sweep.STEP_M`` of the ground are stepped through); a walker with none is left out (the scene's
-    ``placement.LEFT_OUT``). Build it after every other family, so that it sees them. Each walker's objects record
+    drawn per walker (``_walker_starts``), those whose box clears every other object's box by ``LANE_CLEARANCE`` in
+    every frame the clip renders (``placement.judged_frames``; ``gbuffer_export.sweep``: boxes topped within
+    ``sweep.STEP_M`` of the ground are stepped through) are tried for the scene camera's view (``_seen_start``); a
+    walker with none clear and in view is left out (the scene's ``placement.LEFT_OUT``). Build it after every other family, so that it sees them. Each walker's objects record
     its own draws (``family_params``) and its start (``WALK_START``)."""
     count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
@@ -705,35 +709,51 @@ def motion_character(scene, mats, rng) -> None:
         rig, body = build_figure(scene, f"Walker {k + 1}", h, _walker_materials(k, rng))
         phase = float(rng.uniform(0.0, 2 * math.pi))
 
-        def key(xy, heading, rig=rig, h=h, v=v, angles=angles, phase=phase):
-            key_walk(rig, frames, (float(xy[0]), float(xy[1])), heading, v, h, angles, phase)
+        def key(start, rig=rig, h=h, v=v, angles=angles, phase=phase):     # (x, y, direction)
+            placement.unkey(rig)
+            key_walk(rig, frames, (float(start[0]), float(start[1])), start[2] * math.pi / 2, v, h, angles, phase)
         boxes = placement.measure(scene, body, key)
-        placement.unkey(rig)
-        start = _walker_start(k, boxes, rng)
+        starts = _walker_starts(k, boxes, rng)
+        start = _seen_start(scene, body, key, starts[sweep.clear_mask(boxes, starts, LANE_CLEARANCE)])
         if start is None:
-            log.info("motion_character: walker %d of %d left out: none of %d starts clears the scene", k + 1, count,
-                     PLACE_TRIES)
+            log.info("motion_character: walker %d of %d left out: none of its %d starts clears the scene in the "
+                     "camera's view", k + 1, count, len(starts))
             placement.remove(scene, rig, body)
             continue
-        key(start[:2], start[2] * math.pi / 2)
+        key(start)
         for ob in (rig, body):
             ob[WALK_START] = json.dumps({"x_m": float(start[0]), "lane_m": float(start[1]), "direction": int(start[2])})
             d.tag(ob)
 
 
-def _walker_start(k: int, boxes: list, rng) -> np.ndarray | None:
-    """The first of the drawn starts (x, lane y, direction +-1) of walker ``k`` whose walk (``boxes``:
-    ``placement.measure``) clears the scene, or None. Walker 0 tries ``PLACE_TRIES`` lanes behind the table, up to
-    ``LANE_SPREAD`` back from its nearest, then as many behind the fence (``FENCE_LANE_Y``); walker 1 tries
-    ``PLACE_TRIES`` starts in front of the table, at its nearest lane (the camera's arc is close)."""
+def _walker_starts(k: int, boxes: list, rng) -> np.ndarray:
+    """The starts (x, lane y, direction +-1) drawn for walker ``k`` (``boxes``: ``placement.measure``'s), in the
+    order they are tried: walker 0 ``PLACE_TRIES`` lanes behind the table, up to ``LANE_SPREAD`` back from its
+    nearest, then as many behind the fence (``FENCE_LANE_Y``); walker 1 ``PLACE_TRIES`` starts in front of the
+    table, at its nearest lane (the camera's arc is close)."""
     half = sweep.half_width(boxes)
     edge = TABLE_HALF_DEPTH + LANE_CLEARANCE + half
     n = PLACE_TRIES if k else 2 * PLACE_TRIES
     lanes = (-np.full(n, edge) if k else
              (np.array([[edge], [FENCE_LANE_Y + half]]) + rng.uniform(0.0, LANE_SPREAD, (2, PLACE_TRIES))).ravel())
-    starts = np.column_stack([rng.uniform(-0.6, 0.6, n), lanes, np.where(rng.uniform(size=n) < 0.5, 1.0, -1.0)])
-    i = sweep.first_clear(boxes, starts, LANE_CLEARANCE)
-    return None if i is None else starts[i]
+    return np.column_stack([rng.uniform(-0.6, 0.6, n), lanes, np.where(rng.uniform(size=n) < 0.5, 1.0, -1.0)])
+
+
+def _seen_start(scene, body, key, starts: np.ndarray) -> np.ndarray | None:
+    """Of ``starts`` (the clear ones, in the order drawn; the first ``SEEN_TRIES``), the first from which the scene
+    camera sees at least ``SEEN_MIN`` of the walker (``placement.seen_fraction``) on the first and last frames shown,
+    else the most seen; None without any, or when the most seen shows under ``SEEN_FLOOR`` (hidden: a wall between
+    the camera and the lanes behind the fence). ``key(start)`` keys the walker there."""
+    shown = placement.judged_frames(scene)
+    best, most = None, -1.0
+    for start in starts[:SEEN_TRIES]:
+        key(start)
+        seen = placement.seen_fraction(scene, body, (shown[0], shown[-1]))
+        if seen > most:
+            best, most = start, seen
+        if seen >= SEEN_MIN:
+            break
+    return best if most >= SEEN_FLOOR else None
 
 
 def _walker_materials(k: int, rng) -> tuple:

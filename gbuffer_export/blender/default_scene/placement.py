@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import bpy
 import numpy as np
+from mathutils import Vector
 
 from ..camera_paths import object_boxes
 
@@ -22,9 +23,9 @@ def judged_frames(scene) -> range:
 
 def measure(scene, body, key) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Per frame of ``judged_frames``: (``body``'s box relative to the start (0, 0), every other object's box
-    (K, 2, 3), their ground flags (K,)), with ``body`` keyed by ``key(start_xy, heading)`` at the origin heading +X
+    (K, 2, 3), their ground flags (K,)), with ``body`` keyed by ``key((x, y, direction))`` at the origin heading +X
     (the caller keys it again where it goes). The scene is left at its start frame."""
-    key((0.0, 0.0), np.pi / 2)
+    key((0.0, 0.0, 1.0))
     out = []
     for f in judged_frames(scene):
         scene.frame_set(int(f))
@@ -35,6 +36,36 @@ def measure(scene, body, key) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]
                     np.array([b.ground for b in others], bool)))
     scene.frame_set(scene.frame_start)
     return out
+
+
+def seen_fraction(scene, body, frames, samples: int = 64) -> float:
+    """The fraction of ``body``'s vertices (``samples`` of them, evenly by index) that the scene camera sees at
+    ``frames``: inside its view, and the first thing a ray from the camera meets (within 1 cm of the vertex)."""
+    from bpy_extras.object_utils import world_to_camera_view
+    cam, seen, total = scene.camera, 0, 0
+    if cam is None:
+        return 1.0
+    for f in frames:
+        scene.frame_set(int(f))
+        dg = bpy.context.evaluated_depsgraph_get()
+        ev = body.evaluated_get(dg)
+        mesh = ev.to_mesh()
+        co = np.empty(3 * len(mesh.vertices))
+        mesh.vertices.foreach_get("co", co)
+        ev.to_mesh_clear()
+        m = np.array(ev.matrix_world)
+        pts = co.reshape(-1, 3)[:: max(1, len(co) // 3 // samples)] @ m[:3, :3].T + m[:3, 3]
+        eye = np.array(cam.matrix_world.translation)
+        for p in pts:
+            total += 1
+            u, v, depth = world_to_camera_view(scene, cam, Vector(p))
+            if depth <= 0 or not (0 <= u <= 1 and 0 <= v <= 1):
+                continue
+            dist = float(np.linalg.norm(p - eye))
+            hit, loc, *_ = scene.ray_cast(dg, Vector(eye), Vector((p - eye) / dist), distance=dist + 0.01)
+            seen += bool(hit and np.linalg.norm(np.array(loc) - p) < 0.01)
+    scene.frame_set(scene.frame_start)
+    return seen / max(total, 1)
 
 
 def unkey(obj) -> None:
