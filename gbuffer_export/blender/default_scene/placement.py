@@ -7,7 +7,9 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
+from ...conventions import Flag
 from ..camera_paths import object_boxes
+from ..materials import inspect_material, is_transmissive
 
 #: The scene's custom property: the inclusive [first, last] frames a clip renders, on which placement is judged.
 PLACED_FRAMES = "blendsr_placed_frames"
@@ -38,11 +40,39 @@ def measure(scene, body, key) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     return out
 
 
+def _see_through(ob, cache: dict) -> bool:
+    """Whether a camera ray goes on through ``ob`` (evaluated): one of its materials is transmissive (glass) or cut
+    by alpha (leaf cards, shards), ``materials.inspect_material``'s flags."""
+    name = ob.original.name
+    if name not in cache:
+        mats = [s.material for s in ob.original.material_slots if s.material]
+        infos = [(m, inspect_material(m, 0)) for m in mats]
+        cache[name] = any(i.flags & int(Flag.ALPHA) or is_transmissive(m, i) for m, i in infos)
+    return cache[name]
+
+
+def _reaches(scene, dg, eye: np.ndarray, p: np.ndarray, cache: dict) -> bool:
+    """Whether a ray from ``eye`` reaches ``p`` (within 1 cm) through glass and alpha-cut surfaces only."""
+    origin, dist = eye, float(np.linalg.norm(p - eye))
+    direction = (p - eye) / dist
+    for _ in range(8):
+        hit, loc, _, _, ob, _ = scene.ray_cast(dg, Vector(origin), Vector(direction), distance=dist + 0.01)
+        loc = np.array(loc)
+        if not hit or np.linalg.norm(loc - p) < 0.01:
+            return bool(hit)
+        if not _see_through(ob, cache):
+            return False
+        dist -= float(np.linalg.norm(loc - origin)) + 1e-3
+        origin = loc + 1e-3 * direction
+    return False
+
+
 def seen_fraction(scene, body, frames, samples: int = 64) -> float:
     """The fraction of ``body``'s vertices (``samples`` of them, evenly by index) that the scene camera sees at
-    ``frames``: inside its view, and the first thing a ray from the camera meets (within 1 cm of the vertex)."""
+    ``frames``: inside its view, and the first opaque thing a ray from the camera meets (within 1 cm of the vertex;
+    glass and alpha-cut surfaces let it on)."""
     from bpy_extras.object_utils import world_to_camera_view
-    cam, seen, total = scene.camera, 0, 0
+    cam, seen, total, cache = scene.camera, 0, 0, {}
     if cam is None:
         return 1.0
     for f in frames:
@@ -61,9 +91,7 @@ def seen_fraction(scene, body, frames, samples: int = 64) -> float:
             u, v, depth = world_to_camera_view(scene, cam, Vector(p))
             if depth <= 0 or not (0 <= u <= 1 and 0 <= v <= 1):
                 continue
-            dist = float(np.linalg.norm(p - eye))
-            hit, loc, *_ = scene.ray_cast(dg, Vector(eye), Vector((p - eye) / dist), distance=dist + 0.01)
-            seen += bool(hit and np.linalg.norm(np.array(loc) - p) < 0.01)
+            seen += _reaches(scene, dg, eye, p, cache)
     scene.frame_set(scene.frame_start)
     return seen / max(total, 1)
 
