@@ -59,9 +59,10 @@ def main(argv=None) -> int:
     lo, hi = (int(x) for x in a.seeds.split(":"))
     size = tuple(int(x) for x in a.size.lower().split("x"))
     table = {}
+    beside = tuple(filter(None, a.beside.split(",")))
     with tempfile.TemporaryDirectory() as tmp:
         for family in a.families:
-            table[family] = {str(s): shares(family, s, size, Path(tmp), tuple(filter(None, a.beside.split(",")))) for s in range(lo, hi + 1)}
+            table[family] = {str(s): shares(family, s, size, Path(tmp), beside) for s in range(lo, hi + 1)}
     for family, per_seed in table.items():
         for name in sorted({n for v in per_seed.values() for n in v}):
             v = [d.get(name, 0.0) for d in per_seed.values()]

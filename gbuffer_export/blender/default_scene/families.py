@@ -235,8 +235,8 @@ def mat_surfaces(scene, mats, rng) -> None:
     """Material classes on surfaces as large as a game shows them: a wall panel (1.6-2.4 x 1.0-1.6 m, 6 cm thick)
     standing behind the table at y 1.2-1.3 (clear of the fence at 1.6), a floor slab (1.6-2.4 x 1.2-1.8 m, 1 cm, its
     top 2 mm above the floor) under the table and a bevelled block or sphere (0.4-0.6 m) beside it, 5-35 cm clear of
-    the table top (|x| <= 0.8); each of a Principled class of ``CLASSES`` over a pattern of the material families (4-30 features per m),
-    recorded as ``principled_class`` and ``pattern``."""
+    the table top (|x| <= 0.8); each of a Principled class of ``CLASSES`` over a pattern of the material families
+    (4-30 features per m), recorded as ``principled_class`` and ``pattern``."""
     d = Draw("mat_surfaces", rng)
     ww, wh = d("wall_width_m"), d("wall_height_m")
     fw, fd, size = d("floor_width_m"), d("floor_depth_m"), d("object_m")
@@ -697,8 +697,9 @@ def motion_character(scene, mats, rng) -> None:
     drawn per walker (``_walker_starts``), those whose box clears every other object's box by ``LANE_CLEARANCE`` in
     every frame the clip renders (``placement.judged_frames``; ``gbuffer_export.sweep``: boxes topped within
     ``sweep.STEP_M`` of the ground are stepped through) are tried for the scene camera's view (``_seen_start``); a
-    walker with none clear and in view is left out (the scene's ``placement.LEFT_OUT``). Build it after every other family, so that it sees them. Each walker's objects record
-    its own draws (``family_params``) and its start (``WALK_START``)."""
+    walker with none clear and in view is left out (the scene's ``placement.LEFT_OUT``). Build it after every other
+    family, so that it sees them. Each walker's objects record its own draws (``family_params``) and its start
+    (``WALK_START``)."""
     count = Draw("motion_character", rng)("count", integer=True)
     frames = np.arange(scene.frame_start - 1, scene.frame_end + 1)
     for k in range(count):
