@@ -232,6 +232,13 @@ props = ["motion_objects", "fog", "boolean", "displaced", "instanced"]
 seeds = "3:3"
 cameras = ["scene"]
 hdri = ["builtin:courtyard"]
+[[source]]
+name = "railed"
+kind = "builtin"
+props = ["railing", "motion_character"]
+seeds = "3:3"
+cameras = ["scene"]
+hdri = ["builtin:courtyard"]
 """)
     out = tmp_path / "ds"
     proc, val = run_cli_batch(["dataset", spec, "-o", out, "--threads", "2", "--no-progress"],
@@ -375,8 +382,8 @@ def _vertex_motion_errors(clip, meshes, frames, rigid: bool):
 
 
 def test_walkers_motion_vectors_follow_the_deformed_surface(tmp_path):
-    """A clip of two walkers through ``blendsr dataset``: they are recorded as moving, ``validate`` passes, and the
-    stored motion of the surface equals the motion of the evaluated (skinned) vertices projected with the clip's
+    """A clip of two walkers through ``blendsr dataset``: they are recorded as moving, ``validate`` passes (and a
+    clip whose railing leaves the second walker out records it in ``scene.left_out``), and the stored motion of the surface equals the motion of the evaluated (skinned) vertices projected with the clip's
     cameras, clearly better than the rig's rigid motion."""
     spec = tmp_path / "walk.toml"
     spec.write_text("""
@@ -396,13 +403,23 @@ props = ["motion_character"]
 seeds = "3:3"
 cameras = ["scene"]
 hdri = ["builtin:courtyard"]
+[[source]]
+name = "railed"
+kind = "builtin"
+props = ["railing", "motion_character"]
+seeds = "3:3"
+cameras = ["scene"]
+hdri = ["builtin:courtyard"]
 """)
     out = tmp_path / "ds"
     proc, val = run_cli_batch(["dataset", spec, "-o", out, "--threads", "2", "--no-progress"],
                               ["validate", out, "--no-progress"])
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert val.returncode == 0 and "1/1 clips valid" in val.stdout, val.stdout + val.stderr[-2000:]
+    assert val.returncode == 0 and "2/2 clips valid" in val.stdout, val.stdout + val.stderr[-2000:]
+    railed = open_clip(out / "clips" / "railed-s0003")      # the railing takes the front lane: walker 2 left out
+    assert railed.manifest["scene"]["left_out"] == ["Walker 2"] and "Walker 2" not in railed.manifest["moving_objects"]
     clip = open_clip(out / "clips" / "walk-s0003")
+    assert "left_out" not in clip.manifest["scene"]
     assert {"Walker 1", "Walker 2"} <= set(clip.manifest["moving_objects"])
     assert "motion:character" in clip.manifest["scene"]["families"]
     frames = [min(clip.frames), max(clip.frames)]
