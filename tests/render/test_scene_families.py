@@ -383,8 +383,9 @@ def _vertex_motion_errors(clip, meshes, frames, rigid: bool):
 
 def test_walkers_motion_vectors_follow_the_deformed_surface(tmp_path):
     """A clip of two walkers through ``blendsr dataset``: they are recorded as moving, ``validate`` passes (and a
-    clip whose railing leaves the second walker out records it in ``scene.left_out``), and the stored motion of the surface equals the motion of the evaluated (skinned) vertices projected with the clip's
-    cameras, clearly better than the rig's rigid motion."""
+    clip whose railing leaves the second walker out records it in ``scene.left_out``), and the stored motion of the
+    surface equals the motion of the evaluated (skinned) vertices projected with the clip's cameras, clearly better
+    than the rig's rigid motion."""
     spec = tmp_path / "walk.toml"
     spec.write_text("""
 [dataset]
