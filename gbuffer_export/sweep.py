@@ -54,7 +54,7 @@ def clear_starts(local: np.ndarray, obstacles: np.ndarray, starts: np.ndarray, c
 
 def half_width(frames: list) -> float:
     """The mover's largest reach (m) across its path's line, either side, over ``frames`` (the list of
-    ``first_clear``): the lane's half width in either direction."""
+    ``clear_mask``): the lane's half width in either direction."""
     return float(max(np.abs(np.asarray(own, np.float64)[:, 1]).max() for own, *_ in frames))
 
 
@@ -66,8 +66,3 @@ def clear_mask(frames: list, starts: np.ndarray, clearance: float) -> np.ndarray
         ok &= clear_starts(own, blocking(others, ground), starts, clearance)
     return ok
 
-
-def first_clear(frames: list, starts: np.ndarray, clearance: float) -> int | None:
-    """The index of the first of ``starts`` clear in every frame (``clear_mask``), or None when none is."""
-    hits = np.flatnonzero(clear_mask(frames, starts, clearance))
-    return int(hits[0]) if len(hits) else None

@@ -193,6 +193,16 @@ def _deformed_frame(ev, rec: dict, every: int) -> None:
         rec[key].append((pts[::every] @ m[:3, :3].T + m[:3, 3]).tolist())
 
 
+def _world_vertices(ev, matrix) -> np.ndarray:
+    """(N, 3) world positions of the evaluated object ``ev``'s mesh vertices under ``matrix``."""
+    mesh = ev.to_mesh()
+    co = np.empty(3 * len(mesh.vertices))
+    mesh.vertices.foreach_get("co", co)
+    ev.to_mesh_clear()
+    m = np.array(matrix)
+    return co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+
+
 def probe_walk_turn(args) -> dict:
     """One walker (1.7 m, 5 cm a frame) in an empty scene of frames 1-8: ``placement.measure``'s boxes of it (keyed at
     the origin heading +X), the world boxes of its evaluated vertices keyed so, and keyed again at each of
@@ -214,12 +224,7 @@ def probe_walk_turn(args) -> dict:
         for f in range(1, 9):
             scene.frame_set(f)
             ev = body.evaluated_get(bpy.context.evaluated_depsgraph_get())
-            mesh = ev.to_mesh()
-            co = np.empty(3 * len(mesh.vertices))
-            mesh.vertices.foreach_get("co", co)
-            ev.to_mesh_clear()
-            m = np.array(ev.matrix_world)
-            co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            co = _world_vertices(ev, ev.matrix_world)
             out.append([co.min(axis=0).tolist(), co.max(axis=0).tolist()])
         return out
     measured = [own.tolist() for own, _, _ in placement.measure(scene, body, key)]
@@ -250,12 +255,7 @@ def probe_crowd(args) -> dict:
             ob = inst.object
             if ob.type != "MESH" or ob.original.hide_render or ob.original.name in ("Floor", "Fog Volume"):
                 continue
-            mesh = ob.to_mesh()
-            co = np.empty(3 * len(mesh.vertices))
-            mesh.vertices.foreach_get("co", co)
-            ob.to_mesh_clear()
-            m = np.array(inst.matrix_world)
-            co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+            co = _world_vertices(ob, inst.matrix_world)
             if not inst.is_instance and ob.original.name in walkers:
                 verts[ob.original.name] = co
             elif len(co) and co[:, 2].max() > STEP_M:

@@ -45,7 +45,7 @@ def test_ground_and_what_a_foot_steps_onto_do_not_block():
     assert np.array_equal(kept, obstacles[3:])
 
 
-def test_first_clear_judges_frame_by_frame_not_the_sweep():
+def test_clear_mask_judges_frame_by_frame_not_the_sweep():
     """A mover crossing the lane while the walker is elsewhere does not block it; one in its way at one frame does."""
     local = np.array([[-0.1, -0.1, 0.0], [0.1, 0.1, 1.8]])
     starts = np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 1.0]])
@@ -54,8 +54,8 @@ def test_first_clear_judges_frame_by_frame_not_the_sweep():
         walker = local + np.array([0.1 * t, 0.0, 0.0])               # walks +X
         mover = np.array([[[2.0 - 0.6 * t, -0.1, 1.0], [2.2 - 0.6 * t, 0.1, 1.2]]])  # comes -X towards start 0
         frames.append((walker, mover, np.zeros(1, bool)))
-    assert sweep.first_clear(frames, starts, 0.02) == 1              # they meet at t = 3, at x 0.2..0.4
+    assert sweep.clear_mask(frames, starts, 0.02).tolist() == [False, True]  # they meet at t = 3, at x 0.2..0.4
     late = [(w, m + np.array([10.0, 0.0, 0.0]), g) for w, m, g in frames]
-    assert sweep.first_clear(late, starts, 0.02) == 0
-    assert sweep.first_clear(frames, starts[:1], 0.02) is None
+    assert sweep.clear_mask(late, starts, 0.02).tolist() == [True, True]
+    assert sweep.clear_mask(frames[:2], starts, 0.02).tolist() == [True, True]   # not yet met
     assert abs(sweep.half_width(frames) - 0.1) < 1e-12

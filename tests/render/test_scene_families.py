@@ -232,13 +232,6 @@ props = ["motion_objects", "fog", "boolean", "displaced", "instanced"]
 seeds = "3:3"
 cameras = ["scene"]
 hdri = ["builtin:courtyard"]
-[[source]]
-name = "railed"
-kind = "builtin"
-props = ["railing", "motion_character"]
-seeds = "3:3"
-cameras = ["scene"]
-hdri = ["builtin:courtyard"]
 """)
     out = tmp_path / "ds"
     proc, val = run_cli_batch(["dataset", spec, "-o", out, "--threads", "2", "--no-progress"],

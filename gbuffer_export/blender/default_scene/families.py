@@ -100,8 +100,8 @@ WALK_START = "walk_start"
 #: Starts drawn per walker and lane before it is left out (``motion_character``).
 PLACE_TRIES = 16
 #: Of the clear starts, how many are tried for the scene camera's view; the fraction of the walker's sampled
-#: vertices it should see (``placement.seen_fraction``: a walker behind the table in full view shows 0.1-0.2, its
-#: back and the legs the table hides do not count), and below which a walker is left out as out of view.
+#: vertices it should see (``placement.seen_fraction``: its back and the legs the table
+#: hides do not count, so a walker in full view shows well under half), and below which a walker is left out as out of view.
 SEEN_TRIES, SEEN_MIN, SEEN_FLOOR = 8, 0.1, 0.02
 NEON = ((1.0, 0.1, 0.6), (0.1, 0.9, 1.0), (0.3, 1.0, 0.2), (1.0, 0.45, 0.05), (0.6, 0.2, 1.0))
 
