@@ -1,7 +1,10 @@
 """How often the built-in walkers (``motion_character``) find a place clear of another family's objects (issue 54:
 a walker passes through nothing; one without room is left out). For each family and seed: the default scene with
 that family and the walkers (``build_default_scene`` as an 8-frame dataset clip builds it, nothing rendered), and
-how many of the walkers drawn (the family's first draw, ``count``) were placed, and where (behind the fence or not).
+how many of the walkers drawn (the family's first draw, ``count``) were placed, where (behind the table, behind the
+fence, in front), and the share of the frame each placed walker covers as placement measured it (``frame_share`` of
+its walk start: ``placement.frame_share``, the mean of the first, middle and last frames shown), the number that
+``families.SEEN_MIN`` and ``SEEN_FLOOR`` bound.
 
     .venv/bin/python benchmarks/walker_placement.py --seeds 1:6 --crowd boolean,motion_objects,mat_surfaces \\
         --crowd mat_brick,mat_wave,wires,railing -o docs/bench/families/walker_placement.json
@@ -27,13 +30,14 @@ def drawn(seed: int) -> int:
     return int(np.random.default_rng([seed & 0xFFFFFFFF, FAMILIES["motion_character"][1]]).integers(lo, hi + 1))
 
 
-def placed(families: tuple[str, ...], seed: int) -> dict[str, float]:
-    """The walkers placed in seed ``seed`` beside ``families``: name -> its lane's y (m)."""
+def placed(families: tuple[str, ...], seed: int) -> dict[str, dict]:
+    """The walkers placed in seed ``seed`` beside ``families``: name -> its walk start (``lane_m``: its lane's y in
+    m, ``frame_share``)."""
     from gbuffer_export.blender.default_scene import build_default_scene
     from gbuffer_export.blender.default_scene.families import WALK_START
     scene = build_default_scene(seed=seed, frames=(1, 48), resolution=(64, 36), props=(*families, "motion_character"),
                                 shown=(1, 8))     # as blendsr dataset builds an 8-frame builtin clip
-    return {o.name: json.loads(o[WALK_START])["lane_m"] for o in scene.objects
+    return {o.name: json.loads(o[WALK_START]) for o in scene.objects
             if o.get("blendsr_family") == "motion_character" and o.type == "MESH"}
 
 
@@ -54,9 +58,11 @@ def main(argv=None) -> int:
         rows = [{"seed": s, "drawn": drawn(s), "placed": placed(fams, s)} for s in range(first, last + 1)]
         name = ",".join(fams) or "(alone)"
         table[name] = rows
-        lanes = [y for r in rows for y in r["placed"].values()]
+        starts = [s for r in rows for s in r["placed"].values()]
+        lanes, shares = [s["lane_m"] for s in starts], [100 * s["frame_share"] for s in starts]
         print(f"{name}: {len(lanes)} of {sum(r['drawn'] for r in rows)} placed, "
-              f"{sum(y > FENCE_LANE_Y for y in lanes)} behind the fence", flush=True)
+              f"{sum(y > FENCE_LANE_Y for y in lanes)} behind the fence, {sum(y < 0 for y in lanes)} in front; "
+              f"frame share {min(shares, default=0):.2f}-{max(shares, default=0):.2f} %", flush=True)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.output.with_suffix(".tmp")

@@ -238,9 +238,10 @@ def probe_walk_turn(args) -> dict:
 def probe_crowd(args) -> dict:
     """The default scene of ``seed``/``frames``/``props`` (``shown``: the frames a clip renders, default ``frames``)
     with its walkers: per walker per frame shown, how many of its
-    evaluated vertices lie within ``gap`` metres of the box of any other object's (or instance's) evaluated vertices
-    (objects topped within ``sweep.STEP_M`` of the ground, the floor and fog left out), and what of a walker is left
-    in ``bpy.data`` (objects, meshes, armatures, actions, materials whose name starts with "Walker")."""
+    evaluated vertices lie within ``gap`` metres of the box of any other object's (or instance's, or the other
+    walker's) evaluated vertices (objects topped within ``sweep.STEP_M`` of the ground, the floor and fog left out),
+    each walker's recorded start, and what of a walker is left in ``bpy.data`` (objects, meshes, armatures, actions,
+    materials whose name starts with "Walker")."""
     from gbuffer_export.blender.default_scene import build_default_scene
     from gbuffer_export.sweep import STEP_M
     scene = build_default_scene(seed=args["seed"], frames=tuple(args["frames"]), resolution=(64, 36),
@@ -262,13 +263,52 @@ def probe_crowd(args) -> dict:
                 boxes.append((co.min(axis=0) - args["gap"], co.max(axis=0) + args["gap"]))
         for w, co in verts.items():
             inside = np.zeros(len(co), bool)
-            for lo, hi in boxes:
+            others = [(c.min(axis=0) - args["gap"], c.max(axis=0) + args["gap"]) for v, c in verts.items() if v != w]
+            for lo, hi in boxes + others:
                 inside |= np.all((co > lo) & (co < hi), axis=1)
             near[w].append(int(inside.sum()))
     left = sorted(x.name for coll in (bpy.data.objects, bpy.data.meshes, bpy.data.armatures, bpy.data.actions,
                                       bpy.data.materials) for x in coll if x.name.startswith("Walker"))
     return {"walkers": walkers, "near": near, "left": left, "left_out": list(scene.get("blendsr_left_out", [])),
-            "params": {w: json.loads(scene.objects[w]["family_params"]) for w in walkers}}
+            "params": {w: json.loads(scene.objects[w]["family_params"]) for w in walkers},
+            "starts": {w: json.loads(scene.objects[w]["walk_start"]) for w in walkers}}
+
+
+def probe_walker_share(args) -> dict:
+    """The default scene of ``seed``/``props`` (frames 1-8) with its walkers: each walker's share of the frame at
+    ``frame`` by ``placement.frame_share`` (one ray per pixel of ``size``) and by Cycles (one sample a pixel, a
+    0.01-pixel filter so that it lands on the pixel's centre, the Object Index pass; what the rays pass through,
+    glass and alpha-cut objects, hidden from Cycles' camera rays), and what its walk start records."""
+    from gbuffer_export.blender.default_scene import build_default_scene
+    from gbuffer_export.blender.default_scene.placement import _see_through, frame_share
+    from gbuffer_export.exr import read_exr_channels
+    size = tuple(args["size"])
+    scene = build_default_scene(seed=args["seed"], frames=(1, 8), resolution=size, props=tuple(args["props"]))
+    walkers = sorted((o for o in scene.objects if o.type == "MESH" and o.name.startswith("Walker")),
+                     key=lambda o: o.name)
+    rays = {w.name: frame_share(scene, w, [args["frame"]], grid=size) for w in walkers}
+    cache = {}
+    for ob in scene.objects:      # the rays go on through glass and alpha cuts: so do Cycles' camera rays here
+        if ob.type == "MESH" and _see_through(ob, cache):
+            ob.visible_camera = False
+    for i, w in enumerate(walkers):
+        w.pass_index = i + 1
+    scene.render.engine = "CYCLES"
+    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CPU", 1, False
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.filter_width = 0.01
+    scene.render.threads_mode, scene.render.threads = "FIXED", 2
+    scene.view_layers[0].use_pass_object_index = True
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = args["out"]
+    scene.frame_set(args["frame"])
+    bpy.ops.render.render(write_still=True)
+    index = next(v for k, v in read_exr_channels(args["out"]).items() if k.endswith("Object Index.X"))
+    rendered = {w.name: float(np.mean(np.rint(index) == i + 1)) for i, w in enumerate(walkers)}
+    from gbuffer_export.blender.default_scene.families import FENCE_LANE_Y, SEEN_FLOOR
+    return {"rays": rays, "rendered": rendered, "starts": {w.name: json.loads(w["walk_start"]) for w in walkers},
+            "left_out": list(scene.get("blendsr_left_out", [])), "floor": SEEN_FLOOR, "fence_y": FENCE_LANE_Y}
 
 
 def probe_default_render(args) -> dict:

@@ -294,20 +294,45 @@ def test_a_walk_turned_and_moved_has_the_boxes_the_rule_predicts():
         assert np.allclose(np.array(moved), want, atol=1e-5), (start, np.abs(np.array(moved) - want).max())
 
 
+CROWD = ["boolean", "motion_objects", "mat_surfaces", "motion_character"]
+
+
 def test_walkers_pass_through_nothing_and_one_without_room_is_left_out():
     """Beside a boolean wall, flying movers and ``mat_surfaces`` (seed 3: without the rule a walker's vertices enter
     their boxes), no vertex of either walker comes within 1 cm of another object's box (its evaluated vertices') in
-    any frame; the rule keeps 2 cm between boxes. Behind a railing at y -1 (seed 3) the walker in front has no lane:
-    it is left out (the scene records it), and nothing of it stays in ``bpy.data``."""
-    crowd = run_probe("crowd", {"seed": 3, "frames": [1, 48], "shown": [1, 8], "gap": 0.01,
-                                "props": ["boolean", "motion_objects", "mat_surfaces", "motion_character"]})
+    any frame; the rule keeps 2 cm between boxes. Behind a railing at y -1 (seed 3) the walker in front has no lane
+    there: it walks behind the table, clear of the first walker too. Beside the crowd of seed 5 the first walker finds
+    no start the scene camera sees (the boolean wall stands on its lanes and hides those behind the fence): it is left
+    out (the scene records it), and nothing of it stays in ``bpy.data``."""
+    crowd = run_probe("crowd", {"seed": 3, "frames": [1, 48], "shown": [1, 8], "gap": 0.01, "props": CROWD})
     assert crowd["walkers"] == ["Walker 1", "Walker 2"], crowd["walkers"]
     assert all(len(n) == 8 and max(n) == 0 for n in crowd["near"].values()), crowd["near"]
     railed = run_probe("crowd", {"seed": 3, "frames": [1, 8], "gap": 0.01, "props": ["railing", "motion_character"]})
-    assert railed["walkers"] == ["Walker 1"] and railed["params"]["Walker 1"]["count"] == 2, railed
-    assert max(railed["near"]["Walker 1"]) == 0
-    assert not [n for n in railed["left"] if n.startswith("Walker 2")], railed["left"]
-    assert railed["left_out"] == ["Walker 2"] and crowd["left_out"] == []
+    assert railed["walkers"] == ["Walker 1", "Walker 2"] and railed["left_out"] == [], railed
+    assert railed["starts"]["Walker 2"]["lane_m"] > 0.45, railed["starts"]          # behind the table, not in front
+    assert all(len(n) == 8 and max(n) == 0 for n in railed["near"].values()), railed["near"]
+    hidden = run_probe("crowd", {"seed": 5, "frames": [1, 48], "shown": [1, 8], "gap": 0.01, "props": CROWD})
+    assert hidden["walkers"] == ["Walker 2"] and hidden["params"]["Walker 2"]["count"] == 2, hidden
+    assert not [n for n in hidden["left"] if n.startswith("Walker 1")], hidden["left"]
+    assert hidden["left_out"] == ["Walker 1"] and crowd["left_out"] == []
+
+
+def test_the_share_of_the_frame_a_walker_is_placed_by_is_what_cycles_renders(tmp_path):
+    """``placement.frame_share`` (one ray per pixel, on through glass and alpha-cut surfaces) against the Object
+    Index pass of Cycles at the same frame (one sample on each pixel's centre; the glass on the table hidden from its
+    camera rays, which the placement's rays pass through): a walker in front and one behind the
+    fence, seen through its pickets and wire mesh (seed 3 beside the crowd), and one behind the table beside a second
+    one (seed 3 beside a railing), the same within 0.05 % of the frame; each start records the share placement
+    measured (first, middle and last frames), at least the floor."""
+    for props, lanes in ((CROWD, ("fence", "front")), (["railing", "motion_character"], ("table", "table"))):
+        r = run_probe("walker_share", {"seed": 3, "props": props, "size": [128, 72], "frame": 4,
+                                       "out": str(tmp_path / "index.exr")})
+        assert sorted(r["rays"]) == ["Walker 1", "Walker 2"], r
+        for name, lane in zip(("Walker 1", "Walker 2"), lanes):
+            y = r["starts"][name]["lane_m"]
+            assert {"fence": y > r["fence_y"], "front": y < 0, "table": 0 < y < r["fence_y"]}[lane], (name, y)
+            assert r["rendered"][name] > 0.002 and abs(r["rays"][name] - r["rendered"][name]) <= 5e-4, r
+            assert r["starts"][name]["frame_share"] >= r["floor"], r["starts"]
 
 
 def test_walkers_are_skinned_whole_and_bend_without_tearing(walkers):
@@ -376,9 +401,9 @@ def _vertex_motion_errors(clip, meshes, frames, rigid: bool):
 
 def test_walkers_motion_vectors_follow_the_deformed_surface(tmp_path):
     """A clip of two walkers through ``blendsr dataset``: they are recorded as moving, ``validate`` passes (and a
-    clip whose railing leaves the second walker out records it in ``scene.left_out``), and the stored motion of the
-    surface equals the motion of the evaluated (skinned) vertices projected with the clip's cameras, clearly better
-    than the rig's rigid motion."""
+    clip whose crowd leaves the first walker no clear start in view records it in ``scene.left_out``), and the
+    stored motion of the surface equals the motion of the evaluated (skinned) vertices projected with the clip's
+    cameras, clearly better than the rig's rigid motion."""
     spec = tmp_path / "walk.toml"
     spec.write_text("""
 [dataset]
@@ -398,10 +423,10 @@ seeds = "3:3"
 cameras = ["scene"]
 hdri = ["builtin:courtyard"]
 [[source]]
-name = "railed"
+name = "hidden"
 kind = "builtin"
-props = ["railing", "motion_character"]
-seeds = "3:3"
+props = ["boolean", "motion_objects", "mat_surfaces", "motion_character"]
+seeds = "5:5"
 cameras = ["scene"]
 hdri = ["builtin:courtyard"]
 """)
@@ -410,9 +435,9 @@ hdri = ["builtin:courtyard"]
                               ["validate", out, "--no-progress"])
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert val.returncode == 0 and "2/2 clips valid" in val.stdout, val.stdout + val.stderr[-2000:]
-    railed = open_clip(out / "clips" / "railed-s0003")      # the railing takes the front lane: walker 2 left out
-    assert railed.manifest["scene"]["left_out"] == ["Walker 2"]
-    assert "Walker 2" not in railed.manifest["moving_objects"]
+    hidden = open_clip(out / "clips" / "hidden-s0005")      # no start in view: walker 1 left out
+    assert hidden.manifest["scene"]["left_out"] == ["Walker 1"]
+    assert "Walker 1" not in hidden.manifest["moving_objects"] and "Walker 2" in hidden.manifest["moving_objects"]
     clip = open_clip(out / "clips" / "walk-s0003")
     assert "left_out" not in clip.manifest["scene"]
     assert {"Walker 1", "Walker 2"} <= set(clip.manifest["moving_objects"])

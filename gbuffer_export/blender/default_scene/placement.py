@@ -51,30 +51,55 @@ def _see_through(ob, cache: dict) -> bool:
     return cache[name]
 
 
-def _reaches(scene, dg, eye: np.ndarray, p: np.ndarray, cache: dict) -> bool:
-    """Whether a ray from ``eye`` reaches ``p`` (within 1 cm) through glass and alpha-cut surfaces only."""
-    origin, dist = eye, float(np.linalg.norm(p - eye))
-    direction = (p - eye) / dist
+def _first_opaque(scene, dg, origin: np.ndarray, direction: np.ndarray, cache: dict):
+    """The original name of the first thing a ray from ``origin`` along the unit ``direction`` meets that is not
+    glass or cut by alpha (``_see_through``; it passes through at most 8 of those), or None."""
     for _ in range(8):
-        hit, loc, _, _, ob, _ = scene.ray_cast(dg, Vector(origin), Vector(direction), distance=dist + 0.01)
-        loc = np.array(loc)
-        if not hit or np.linalg.norm(loc - p) < 0.01:
-            return bool(hit)
+        hit, loc, _, _, ob, _ = scene.ray_cast(dg, Vector(origin), Vector(direction))
+        if not hit:
+            return None
         if not _see_through(ob, cache):
-            return False
-        dist -= float(np.linalg.norm(loc - origin)) + 1e-3
-        origin = loc + 1e-3 * direction
-    return False
+            return ob.original.name
+        origin = np.array(loc) + 1e-3 * direction
+    return None
 
 
-def seen_fraction(scene, body, frames, samples: int = 64) -> float:
-    """The fraction of ``body``'s vertices (``samples`` of them, evenly by index) that the scene camera sees at
-    ``frames``: inside its view, and the first opaque thing a ray from the camera meets (within 1 cm of the vertex;
-    glass and alpha-cut surfaces let it on)."""
+def _camera_rays(scene, cam, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World origins and unit directions (N, 3) of the scene camera's rays through the view points ``uv`` (N, 2: 0..1
+    from the left and from the bottom of the frame), perspective or orthographic."""
+    tr, br, bl, tl = (np.array(v) for v in cam.data.view_frame(scene=scene))
+    local = bl + uv[:, :1] * (br - bl) + uv[:, 1:] * (tl - bl)               # on the camera's frame plane
+    m = np.array(cam.matrix_world)
+    points = local @ m[:3, :3].T + m[:3, 3]
+    if cam.data.type == "ORTHO":
+        forward = -m[:3, 2] / np.linalg.norm(m[:3, 2])
+        return points, np.broadcast_to(forward, points.shape)
+    eye = m[:3, 3]
+    rays = points - eye
+    return np.broadcast_to(eye, points.shape), rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _view_box(scene, cam, co: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The view-space box (u0, v0, u1, v1, within 0..1) of the world points ``co`` (N, 3) in front of the scene
+    camera, or None when none is in view."""
     from bpy_extras.object_utils import world_to_camera_view
-    cam, seen, total, cache = scene.camera, 0, 0, {}
+    uvd = np.array([tuple(world_to_camera_view(scene, cam, Vector(p))) for p in co])
+    uvd = uvd[uvd[:, 2] > 0]
+    if not len(uvd):
+        return None
+    lo, hi = np.clip(uvd[:, :2].min(axis=0), 0, 1), np.clip(uvd[:, :2].max(axis=0), 0, 1)
+    return None if np.any(hi <= lo) else (lo[0], lo[1], hi[0], hi[1])
+
+
+def frame_share(scene, body, frames, grid: tuple[int, int] = (128, 72)) -> float:
+    """The share of the scene camera's frame (0..1) in which ``body`` is the first opaque surface (glass and alpha-cut
+    surfaces let the ray on), mean over ``frames``: one ray through the centre of each cell of ``grid`` (columns,
+    rows) of the frame, cast only within the box of ``body``'s evaluated vertices in view (the other cells cannot
+    show it). What a clip shows of it, at the grid's resolution."""
+    cam, cache, shares = scene.camera, {}, []
     if cam is None:
         return 1.0
+    w, h = grid
     for f in frames:
         scene.frame_set(int(f))
         dg = bpy.context.evaluated_depsgraph_get()
@@ -84,16 +109,17 @@ def seen_fraction(scene, body, frames, samples: int = 64) -> float:
         mesh.vertices.foreach_get("co", co)
         ev.to_mesh_clear()
         m = np.array(ev.matrix_world)
-        pts = co.reshape(-1, 3)[:: max(1, len(co) // 3 // samples)] @ m[:3, :3].T + m[:3, 3]
-        eye = np.array(cam.matrix_world.translation)
-        for p in pts:
-            total += 1
-            u, v, depth = world_to_camera_view(scene, cam, Vector(p))
-            if depth <= 0 or not (0 <= u <= 1 and 0 <= v <= 1):
-                continue
-            seen += _reaches(scene, dg, eye, p, cache)
+        box = _view_box(scene, cam, co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3])
+        hits = 0
+        if box is not None:
+            i = np.arange(int(box[0] * w), min(w, int(np.ceil(box[2] * w))))
+            j = np.arange(int(box[1] * h), min(h, int(np.ceil(box[3] * h))))
+            uv = np.stack(np.meshgrid((i + 0.5) / w, (j + 0.5) / h), axis=-1).reshape(-1, 2)
+            origins, dirs = _camera_rays(scene, cam, uv)
+            hits = sum(_first_opaque(scene, dg, o, d, cache) == body.name for o, d in zip(origins, dirs))
+        shares.append(hits / (w * h))
     scene.frame_set(scene.frame_start)
-    return seen / max(total, 1)
+    return float(np.mean(shares)) if shares else 0.0
 
 
 def unkey(obj) -> None:
