@@ -276,7 +276,8 @@ def probe_crowd(args) -> dict:
 
 def probe_walker_share(args) -> dict:
     """The default scene of ``seed``/``props`` (frames 1-8) with its walkers: each walker's share of the frame at
-    ``frame`` by ``placement.frame_share`` (one ray per pixel of ``size``) and by Cycles (one sample a pixel, a
+    ``frame`` by ``placement.frame_share`` (one ray per pixel of ``size``; ``ortho``: through the scene camera made
+    orthographic, that many metres wide, after placement) and by Cycles (one sample a pixel, a
     0.01-pixel filter so that it lands on the pixel's centre, the Object Index pass; what the rays pass through,
     glass and alpha-cut objects, hidden from Cycles' camera rays), and what its walk start records."""
     from gbuffer_export.blender.default_scene import build_default_scene
@@ -286,6 +287,8 @@ def probe_walker_share(args) -> dict:
     scene = build_default_scene(seed=args["seed"], frames=(1, 8), resolution=size, props=tuple(args["props"]))
     walkers = sorted((o for o in scene.objects if o.type == "MESH" and o.name.startswith("Walker")),
                      key=lambda o: o.name)
+    if args.get("ortho"):                         # judged as placed; then measured through an orthographic camera
+        scene.camera.data.type, scene.camera.data.ortho_scale = "ORTHO", args["ortho"]
     rays = {w.name: frame_share(scene, w, [args["frame"]], grid=size) for w in walkers}
     cache = {}
     for ob in scene.objects:      # the rays go on through glass and alpha cuts: so do Cycles' camera rays here

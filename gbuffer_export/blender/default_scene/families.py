@@ -692,8 +692,9 @@ def motion_character(scene, mats, rng) -> None:
     or -X at 3-7 cm a frame from x in -0.6..0.6, its thighs swinging 18-32 degrees, knees bent by 25-55 degrees
     mid-swing, arms swinging 12-30 degrees: deforming surfaces, keyed on every frame from start-1. The first
     (1.5-1.9 m) walks behind the table, the second (``front_height_m``, 1.45-1.65 m: between the table and the scene
-    camera's arc, which comes to y -1.2 m, there is room for no taller one) in front of it, each on a lane whose
-    sides (measured over the walk) clear the table top by ``LANE_CLEARANCE``. Of the starts (x, lane, direction)
+    camera's arc, which comes to y -1.2 m, there is room for no taller one) in front of it (or, where a railing or a
+    window takes the front, behind it like the first), each on a lane whose sides (measured over the walk) clear the
+    table top by ``LANE_CLEARANCE``. Of the starts (x, lane, direction)
     drawn per walker (``_walker_starts``), those whose box clears every other object's box by ``LANE_CLEARANCE`` in
     every frame the clip renders (``placement.judged_frames``; ``gbuffer_export.sweep``: boxes topped within
     ``sweep.STEP_M`` of the ground are stepped through) are tried for the scene camera's view (``_seen_start``); a
@@ -732,8 +733,8 @@ def _walker_starts(k: int, boxes: list, rng) -> np.ndarray:
     """The starts (x, lane y, direction +-1) drawn for walker ``k`` (``boxes``: ``placement.measure``'s), in the
     order they are tried: walker 0 ``PLACE_TRIES`` lanes behind the table, up to ``LANE_SPREAD`` back from its
     nearest, then as many behind the fence (``FENCE_LANE_Y``); walker 1 first ``PLACE_TRIES`` starts in front of
-    the table, at its nearest lane (the camera's arc is close), then walker 0's lanes (where a railing or a window
-    takes the front; the boxes hold walker 0, so the two never meet)."""
+    the table, at its nearest lane (the camera's arc is close), then 32 more drawn as walker 0's are (for where a
+    railing or a window takes the front; the boxes hold walker 0, so the two never meet)."""
     half = sweep.half_width(boxes)
     edge = TABLE_HALF_DEPTH + LANE_CLEARANCE + half
     if not k:

@@ -51,43 +51,61 @@ def _see_through(ob, cache: dict) -> bool:
     return cache[name]
 
 
-def _first_opaque(scene, dg, origin: np.ndarray, direction: np.ndarray, cache: dict):
-    """The original name of the first thing a ray from ``origin`` along the unit ``direction`` meets that is not
-    glass or cut by alpha (``_see_through``; it passes through at most 8 of those), or None."""
+def _first_opaque(scene, dg, origin: np.ndarray, direction: np.ndarray, distance: float, cache: dict):
+    """The original name of the first thing a ray from ``origin`` along the unit ``direction`` meets within
+    ``distance`` that is not glass or cut by alpha (``_see_through``; it gives up after 8 of those), or None."""
     for _ in range(8):
-        hit, loc, _, _, ob, _ = scene.ray_cast(dg, Vector(origin), Vector(direction))
+        hit, loc, _, _, ob, _ = scene.ray_cast(dg, Vector(origin), Vector(direction), distance=distance)
         if not hit:
             return None
         if not _see_through(ob, cache):
             return ob.original.name
-        origin = np.array(loc) + 1e-3 * direction
+        step = float(np.dot(np.array(loc) - origin, direction)) + 1e-3
+        origin, distance = origin + step * direction, distance - step
+        if distance <= 0:
+            return None
     return None
 
 
-def _camera_rays(scene, cam, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World origins and unit directions (N, 3) of the scene camera's rays through the view points ``uv`` (N, 2: 0..1
-    from the left and from the bottom of the frame), perspective or orthographic."""
+def _frame_plane(scene, cam) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The scene camera's world matrix (4, 4, scale removed) and, in its own space, its frame's bottom-left corner
+    and the frame's right and up edges (``view_frame``: on the focal plane of a perspective camera)."""
     tr, br, bl, tl = (np.array(v) for v in cam.data.view_frame(scene=scene))
-    local = bl + uv[:, :1] * (br - bl) + uv[:, 1:] * (tl - bl)               # on the camera's frame plane
-    m = np.array(cam.matrix_world)
-    points = local @ m[:3, :3].T + m[:3, 3]
+    return np.array(cam.matrix_world.normalized()), bl, br - bl, tl - bl
+
+
+def _camera_rays(scene, cam, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World origins, unit directions (N, 3) and lengths (N,) of the scene camera's rays through the view points
+    ``uv`` (N, 2: 0..1 from the left and from the bottom of the frame), from its near clipping plane to its far one,
+    perspective or orthographic."""
+    m, bl, right, up = _frame_plane(scene, cam)
+    local = bl + uv[:, :1] * right + uv[:, 1:] * up
+    near, far = cam.data.clip_start, cam.data.clip_end
     if cam.data.type == "ORTHO":
-        forward = -m[:3, 2] / np.linalg.norm(m[:3, 2])
-        return points, np.broadcast_to(forward, points.shape)
-    eye = m[:3, 3]
-    rays = points - eye
-    return np.broadcast_to(eye, points.shape), rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        local[:, 2] = -near
+        forward = np.broadcast_to(-m[:3, 2], local.shape)
+        return local @ m[:3, :3].T + m[:3, 3], forward, np.full(len(local), far - near)
+    d = local / np.linalg.norm(local, axis=1, keepdims=True)              # camera space, from the eye
+    t0, t1 = near / -d[:, 2], far / -d[:, 2]
+    dirs = d @ m[:3, :3].T
+    return m[:3, 3] + t0[:, None] * dirs, dirs, t1 - t0
 
 
 def _view_box(scene, cam, co: np.ndarray) -> tuple[float, float, float, float] | None:
-    """The view-space box (u0, v0, u1, v1, within 0..1) of the world points ``co`` (N, 3) in front of the scene
-    camera, or None when none is in view."""
-    from bpy_extras.object_utils import world_to_camera_view
-    uvd = np.array([tuple(world_to_camera_view(scene, cam, Vector(p))) for p in co])
-    uvd = uvd[uvd[:, 2] > 0]
-    if not len(uvd):
+    """The view-space box (u0, v0, u1, v1, within 0..1, as ``world_to_camera_view`` measures) of the world points
+    ``co`` (N, 3) beyond the scene camera's near plane; the whole frame when some lie nearer (a face from behind the
+    camera may cross any of it); None when none is in view."""
+    m, bl, right, up = _frame_plane(scene, cam)
+    local = (co - m[:3, 3]) @ m[:3, :3]                                    # camera space
+    depth = -local[:, 2]
+    beyond = depth > cam.data.clip_start
+    if not beyond.any():
         return None
-    lo, hi = np.clip(uvd[:, :2].min(axis=0), 0, 1), np.clip(uvd[:, :2].max(axis=0), 0, 1)
+    if not beyond.all():
+        return 0.0, 0.0, 1.0, 1.0
+    xy = local[:, :2] if cam.data.type == "ORTHO" else local[:, :2] * (-bl[2] / depth)[:, None]
+    uv = (xy - bl[:2]) / np.array([right[0], up[1]])
+    lo, hi = np.clip(uv.min(axis=0), 0, 1), np.clip(uv.max(axis=0), 0, 1)
     return None if np.any(hi <= lo) else (lo[0], lo[1], hi[0], hi[1])
 
 
@@ -95,7 +113,8 @@ def frame_share(scene, body, frames, grid: tuple[int, int] = (128, 72)) -> float
     """The share of the scene camera's frame (0..1) in which ``body`` is the first opaque surface (glass and alpha-cut
     surfaces let the ray on), mean over ``frames``: one ray through the centre of each cell of ``grid`` (columns,
     rows) of the frame, cast only within the box of ``body``'s evaluated vertices in view (the other cells cannot
-    show it). What a clip shows of it, at the grid's resolution."""
+    show it). What a clip shows of it, at the grid's resolution; 1.0 in a scene without a camera (nothing to judge
+    by)."""
     cam, cache, shares = scene.camera, {}, []
     if cam is None:
         return 1.0
@@ -115,8 +134,8 @@ def frame_share(scene, body, frames, grid: tuple[int, int] = (128, 72)) -> float
             i = np.arange(int(box[0] * w), min(w, int(np.ceil(box[2] * w))))
             j = np.arange(int(box[1] * h), min(h, int(np.ceil(box[3] * h))))
             uv = np.stack(np.meshgrid((i + 0.5) / w, (j + 0.5) / h), axis=-1).reshape(-1, 2)
-            origins, dirs = _camera_rays(scene, cam, uv)
-            hits = sum(_first_opaque(scene, dg, o, d, cache) == body.name for o, d in zip(origins, dirs))
+            rays = zip(*_camera_rays(scene, cam, uv))
+            hits = sum(_first_opaque(scene, dg, o, d, n, cache) == body.name for o, d, n in rays)
         shares.append(hits / (w * h))
     scene.frame_set(scene.frame_start)
     return float(np.mean(shares)) if shares else 0.0
